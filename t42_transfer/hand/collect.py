@@ -124,7 +124,9 @@ def collect(
             results.append(_episode_task(task))
             bar.update()
     else:
-        ctx = multiprocessing.get_context("spawn")
+        # fork: workers need nothing but this module, and scripts need no __main__ guard.
+        methods = multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             results = []
             for result in pool.map(_episode_task, tasks, chunksize=max(1, episodes // (8 * workers))):

@@ -77,16 +77,16 @@ def _target() -> HandParams:
     # pads, a tendon routed through different holes, slightly longer links,
     # and one finger printed with a softer flexure than the other.
     left = FingerParams(
-        proximal_mm=64.0, distal_mm=50.0, k_proximal=0.075, k_distal=0.62, r_proximal_mm=7.0, r_distal_mm=3.6,
-        rest_deg=-6.0,
+        proximal_mm=65.0, distal_mm=50.0, k_proximal=0.085, k_distal=0.65, r_proximal_mm=6.5, r_distal_mm=4.0,
+        rest_deg=-5.0,
     )
     right = FingerParams(
-        proximal_mm=63.0, distal_mm=47.0, k_proximal=0.05, k_distal=0.45, r_proximal_mm=8.6, r_distal_mm=2.7,
+        proximal_mm=62.0, distal_mm=46.0, k_proximal=0.045, k_distal=0.42, r_proximal_mm=9.0, r_distal_mm=2.4,
         rest_deg=-10.0,
     )
     return HandParams(
-        name="target", left=left, right=right, base_half_width_mm=34.0, pad_friction=1.4, link_friction=0.25,
-        joint_damping=0.005, spool_radius_mm=19.0,
+        name="target", left=left, right=right, base_half_width_mm=34.0, pad_friction=1.6, link_friction=0.2,
+        joint_damping=0.006, spool_radius_mm=18.0,
     )
 
 
