@@ -1,0 +1,47 @@
+"""ament_python build description of t42_transfer (also usable with plain pip).
+
+Runtime dependencies are NOT listed in install_requires: rosdep resolves the
+ROS ones from package.xml and pip installs the rest from the exact pins in
+requirements.txt (torch must stay at the local CPU build 2.13.0).
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "t42_transfer"
+
+
+def _files(pattern):
+    return sorted(glob(pattern))
+
+
+data_files = [
+    ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+    ("share/" + package_name, ["package.xml"]),
+]
+for directory, pattern in (
+    ("share/" + package_name + "/launch", "launch/*.py"),
+    ("share/" + package_name + "/config", "config/*.yaml"),
+):
+    found = _files(pattern)
+    if found:
+        data_files.append((directory, found))
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    description="Transfer of learned dynamics models between Yale Model-T42 hands.",
+    license="Apache-2.0",
+    maintainer="t42_transfer maintainers",
+    maintainer_email="maintainer@example.com",
+    python_requires=">=3.10",
+    packages=find_packages(exclude=["test", "test.*", "bench", "bench.*", "scripts"]),
+    data_files=data_files,
+    install_requires=["setuptools"],
+    entry_points={
+        "console_scripts": [
+            "t42 = t42_transfer.cli:main",
+        ],
+    },
+)

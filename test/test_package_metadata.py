@@ -1,0 +1,147 @@
+"""package.xml, setup.py and the package agree; entry points resolve; pins hold."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from importlib.metadata import EntryPoint, PackageNotFoundError, version
+from pathlib import Path
+
+import pytest
+
+import t42_transfer
+
+REPO = Path(__file__).resolve().parents[1]
+
+ROS_DEPS = {
+    "rclpy", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs",
+    "sensor_msgs", "trajectory_msgs", "nav_msgs", "diagnostic_msgs",
+}
+ROSDEP_PYTHON_DEPS = {"python3-numpy", "python3-yaml", "python3-matplotlib", "python3-tqdm"}
+
+# What setup() was called with, read without installing anything.
+_SETUP_PROBE = r"""
+import json, sys
+import setuptools  # makes `distutils` the setuptools copy that setup() uses
+from distutils.core import run_setup
+dist = run_setup("setup.py", stop_after="init")
+eps = dist.entry_points or {}
+json.dump({
+    "name": dist.get_name(),
+    "version": dist.get_version(),
+    "console_scripts": list(eps.get("console_scripts", [])),
+    "packages": list(dist.packages or []),
+    "data_files": [[d, list(f)] for d, f in (dist.data_files or [])],
+}, sys.stdout)
+"""
+
+
+@pytest.fixture(scope="module")
+def package_xml() -> ET.Element:
+    return ET.parse(REPO / "package.xml").getroot()
+
+
+@pytest.fixture(scope="module")
+def setup_info() -> dict:
+    proc = subprocess.run([sys.executable, "-c", _SETUP_PROBE], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def test_package_xml_is_format3_ament_python(package_xml):
+    assert package_xml.tag == "package"
+    assert package_xml.get("format") == "3"
+    assert package_xml.findtext("name") == "t42_transfer"
+    assert package_xml.findtext("license") == "Apache-2.0"
+    assert package_xml.findtext("description").strip()
+    assert package_xml.find("maintainer").get("email")
+    assert package_xml.findtext("export/build_type") == "ament_python"
+
+
+def test_package_xml_lists_required_dependencies(package_xml):
+    exec_deps = {e.text.strip() for e in package_xml.iter("exec_depend")}
+    exec_deps |= {e.text.strip() for e in package_xml.iter("depend")}
+    missing = (ROS_DEPS | ROSDEP_PYTHON_DEPS) - exec_deps
+    assert not missing, f"package.xml lacks exec_depend on {sorted(missing)}"
+    assert "python3-pytest" in {e.text.strip() for e in package_xml.iter("test_depend")}
+
+
+def test_versions_agree(package_xml, setup_info):
+    xml_version = package_xml.findtext("version")
+    assert re.fullmatch(r"\d+\.\d+\.\d+", xml_version)
+    assert setup_info["name"] == package_xml.findtext("name")
+    assert setup_info["version"] == xml_version
+    assert t42_transfer.__version__ == xml_version
+
+
+def test_setup_ships_packages_and_ament_files(setup_info):
+    packages = setup_info["packages"]
+    assert "t42_transfer" in packages
+    assert not any(p == "test" or p.startswith("test.") for p in packages)
+    if (REPO / "msg_adapters" / "__init__.py").is_file():
+        assert "msg_adapters" in packages
+    data = {d: set(f) for d, f in setup_info["data_files"]}
+    assert "resource/t42_transfer" in data["share/ament_index/resource_index/packages"]
+    assert (REPO / "resource" / "t42_transfer").is_file()
+    assert "package.xml" in data["share/t42_transfer"]
+
+
+def test_setup_cfg_gives_ros2_run_layout():
+    text = (REPO / "setup.cfg").read_text()
+    assert re.search(r"^\[develop\]\s*\nscript_dir\s*=\s*\$base/lib/t42_transfer\s*$", text, re.M)
+    assert re.search(r"^\[install\]\s*\ninstall_scripts\s*=\s*\$base/lib/t42_transfer\s*$",
+                     text, re.M)
+
+
+def test_console_scripts_resolve_to_callables(setup_info):
+    scripts = setup_info["console_scripts"]
+    assert any(s.split("=", 1)[0].strip() == "t42" for s in scripts)
+    names = set()
+    for spec in scripts:
+        name, value = (part.strip() for part in spec.split("=", 1))
+        assert name not in names, f"duplicate console script {name}"
+        names.add(name)
+        target = EntryPoint(name=name, value=value, group="console_scripts").load()
+        assert callable(target), f"{spec} does not resolve to a callable"
+
+
+def test_t42_main_help_and_version(capsys):
+    from t42_transfer.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert t42_transfer.__version__ in capsys.readouterr().out
+
+
+def _pins(path: Path) -> dict[str, str]:
+    pins = {}
+    for line in path.read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        m = re.fullmatch(r"([A-Za-z0-9_.\-]+)==([A-Za-z0-9_.+\-]+)", line)
+        assert m, f"{path.name}: not an exact pin: {line!r}"
+        pins[m.group(1)] = m.group(2)
+    return pins
+
+
+def test_requirements_are_exact_pins_matching_the_environment():
+    pins = _pins(REPO / "requirements.txt")
+    assert pins.get("torch") == "2.13.0"
+    for name in ("numpy", "mujoco", "rosbags", "mcap", "tqdm", "PyYAML", "matplotlib"):
+        assert name in pins, f"requirements.txt lacks a pin for {name}"
+    pins_test = _pins(REPO / "requirements-test.txt")
+    for name in ("pytest", "hypothesis", "colcon-common-extensions"):
+        assert name in pins_test, f"requirements-test.txt lacks a pin for {name}"
+    for name, pinned in {**pins, **pins_test}.items():
+        try:
+            installed = version(name)
+        except PackageNotFoundError:
+            pytest.fail(f"{name} is pinned but not installed (run scripts/bootstrap.sh)")
+        # A local build label (torch 2.13.0+cpu) satisfies the plain pin.
+        assert installed.split("+", 1)[0] == pinned, f"{name}: {installed} != pin {pinned}"
