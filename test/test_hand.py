@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from t42_transfer.conventions import GRASP_LOAD, MIN_EPISODE_STEPS, OVERLOAD_LOAD
-from t42_transfer.hand import SimulatedHand, variant
+from t42_transfer.hand import SimulatedHand, sim, variant
 from t42_transfer.hand.collect import RandomPolicy, collect, run_episode
+from t42_transfer.hand.sim import LOAD_GUARD
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +66,19 @@ def test_opening_both_fingers_drops_the_object(source_hand: SimulatedHand) -> No
     assert source_hand.end_reason in ("dropped", "lost_contact")
 
 
-def test_closing_both_fingers_overloads(source_hand: SimulatedHand) -> None:
+def test_tightening_past_the_load_guard_is_refused(source_hand: SimulatedHand) -> None:
+    source_hand.reset(seed=4)
+    refused, peak = False, 0.0
+    for _ in range(300):
+        info = source_hand.step_info((1.0, 1.0))
+        refused |= info.refused
+        peak = max(peak, float(np.max(np.abs(source_hand.state[2:]))))
+    assert refused and not source_hand.done
+    assert LOAD_GUARD - 20 < peak < OVERLOAD_LOAD
+
+
+def test_overload_ends_the_episode(source_hand: SimulatedHand, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sim, "LOAD_GUARD", np.inf)  # a driver without the guard
     source_hand.reset(seed=4)
     for _ in range(400):
         state = source_hand.step((1.0, 1.0))

@@ -30,6 +30,8 @@ from t42_transfer.hand.params import HandParams, variant
 
 SERVO_MAX_RAD = 4.0
 """Servo travel; moves beyond it are refused, as the real driver refused them."""
+LOAD_GUARD = 0.9 * OVERLOAD_LOAD
+"""Like the real driver, refuse a tightening move of a servo whose |load| is above this."""
 GRASP_INCREMENT = 0.5
 """Action size of the grasp routine's closing steps."""
 GRASP_MAX_STEPS = 200
@@ -142,8 +144,10 @@ class SimulatedHand:
         delta = np.zeros(2)
         delta[self._order] = a * ACTION_UNIT_RAD
         target = self._servo + delta
-        refused = bool(np.any((target < 0.0) | (target > SERVO_MAX_RAD)))
-        self._servo = np.where((target < 0.0) | (target > SERVO_MAX_RAD), self._servo, target)
+        straining = (delta > 0) & (self._tensions_load() > LOAD_GUARD)
+        blocked = (target < 0.0) | (target > SERVO_MAX_RAD) | straining
+        refused = bool(np.any(blocked))
+        self._servo = np.where(blocked, self._servo, target)
         self._apply_servo()
         before = self._state[:2].copy()
         mujoco.mj_step(self._model, self._data, nstep=self._substeps)

@@ -1,0 +1,127 @@
+"""Side-by-side statistics of simulated and real hands under the same action sequences.
+
+The real T42 test paths (two hands, the same six action sequences) are replayed
+open loop on simulated hands; both are summarised by the quantities a
+researcher would eyeball: workspace extent, step sizes, load ranges and drops.
+The aim is credible behaviour, not a fit: frames differ (camera vs hand base), so
+extents are compared as spans, not coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from t42_transfer.data.trajectory import TrajectorySet
+from t42_transfer.hand.collect import DROP_REASONS, run_episode
+from t42_transfer.hand.sim import SimulatedHand
+
+
+@dataclass(frozen=True)
+class BehaviourStats:
+    """Summary of one set of paths (one row of the comparison table)."""
+
+    name: str
+    paths: int
+    steps: int
+    x_span_mm: float
+    y_span_mm: float
+    step_median_mm: float
+    step_p90_mm: float
+    step_p99_mm: float
+    zero_step_fraction: float
+    load1_range: tuple[float, float]
+    load2_range: tuple[float, float]
+    drop_rate: float
+
+
+def summarise(name: str, data: TrajectorySet) -> BehaviourStats:
+    states = [t.states for t in data]
+    steps = np.concatenate([np.linalg.norm(np.diff(s[:, :2], axis=0), axis=1) for s in states])
+    spans = np.array([np.ptp(s[:, :2], axis=0) for s in states])
+    every = np.concatenate(states)
+    return BehaviourStats(
+        name=name,
+        paths=len(data),
+        steps=int(len(steps)),
+        x_span_mm=float(np.median(spans[:, 0])),
+        y_span_mm=float(np.median(spans[:, 1])),
+        step_median_mm=float(np.median(steps)),
+        step_p90_mm=float(np.percentile(steps, 90)),
+        step_p99_mm=float(np.percentile(steps, 99)),
+        zero_step_fraction=float(np.mean(steps == 0.0)),
+        load1_range=(float(every[:, 2].min()), float(every[:, 2].max())),
+        load2_range=(float(every[:, 3].min()), float(every[:, 3].max())),
+        drop_rate=float(np.mean([t.end_reason in DROP_REASONS for t in data])),
+    )
+
+
+def replay(real: TrajectorySet, hand: str, seed: int = 0) -> TrajectorySet:
+    """Run every real path's action sequence open loop on the simulated ``hand``."""
+    sim = SimulatedHand(hand)
+    return TrajectorySet((run_episode(sim, t.actions, seed + i) for i, t in enumerate(real)), hand=hand)
+
+
+def compare(real_sets: dict[str, TrajectorySet], hands: Sequence[str] = ("source", "target"), seed: int = 0) -> tuple[list[BehaviourStats], dict[str, TrajectorySet]]:
+    """Rows for each real set and for each simulated hand replaying it; also the replays."""
+    rows, replays = [], {}
+    for real_name, real in real_sets.items():
+        rows.append(summarise(f"real {real_name}", real))
+        for hand in hands:
+            sim = replay(real, hand, seed)
+            key = f"sim {hand} on {real_name} actions"
+            replays[key] = sim
+            rows.append(summarise(key, sim))
+    return rows, replays
+
+
+def markdown_table(rows: Sequence[BehaviourStats]) -> str:
+    head = (
+        "| data | paths | steps | x span mm | y span mm | step median mm | p90 | p99 | zero steps | load1 range "
+        "| load2 range | drop rate |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = [
+        f"| {r.name} | {r.paths} | {r.steps} | {r.x_span_mm:.1f} | {r.y_span_mm:.1f} | {r.step_median_mm:.2f} "
+        f"| {r.step_p90_mm:.2f} | {r.step_p99_mm:.2f} | {r.zero_step_fraction:.0%} "
+        f"| {r.load1_range[0]:.0f} .. {r.load1_range[1]:.0f} | {r.load2_range[0]:.0f} .. {r.load2_range[1]:.0f} "
+        f"| {r.drop_rate:.0%} |"
+        for r in rows
+    ]
+    return head + "\n".join(lines) + "\n"
+
+
+def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, TrajectorySet], path: Path) -> Path:
+    """x-y paths of every real set next to its simulated replays, one panel each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = 1 + len(replays) // max(1, len(real_sets))
+    rows = max(1, len(real_sets))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.8 * rows), squeeze=False)
+    order = []
+    for real_name in real_sets:
+        order.append((f"real {real_name}", real_sets[real_name]))
+        order += [(k, v) for k, v in replays.items() if k.endswith(f"on {real_name} actions")]
+    for ax, (title, data) in zip(axes.flat, order):
+        for i, t in enumerate(data):
+            ax.plot(t.states[:, 0], t.states[:, 1], lw=0.8, label=f"path {i}")
+            ax.plot(*t.states[0, :2], "k.", ms=4)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        ax.set_aspect("equal", adjustable="datalim")
+    axes.flat[0].legend(fontsize=6)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def rows_as_dicts(rows: Sequence[BehaviourStats]) -> list[dict]:
+    return [asdict(r) for r in rows]
