@@ -1,31 +1,171 @@
-"""The ``t42`` command: one entry point whose subcommands reach every layer."""
+"""The ``t42`` command: one entry point whose subcommands reach every layer.
+
+Each subcommand parses its arguments, calls one library function and prints a
+summary; bad input ends with ``t42: error: <file>: <problem>`` and exit code 2,
+never a traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from t42_transfer import __version__
+
+DEFAULT_REAL_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "t42_real"
+REAL_FILES = {"A": "testpaths_cyl35_d_v0.pkl", "B": "testpaths_cyl35_red_d_v0.pkl"}
+
+
+def real_data_dir() -> Path:
+    """Where the public real-hand files are: ``$T42_REAL_DATA`` or ``../shared/data/t42_real``."""
+    return Path(os.environ.get("T42_REAL_DATA", DEFAULT_REAL_DIR))
+
+
+# ----------------------------------------------------------------------- commands
+
+
+def _cmd_sim_collect(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_io import assign_start_times, write_bag
+    from t42_transfer.data.trajectory import TrajectorySet
+    from t42_transfer.hand.collect import RandomPolicy, collect
+
+    data, stats = collect(
+        args.hand, args.episodes, args.steps, seed=args.seed, workers=args.workers,
+        policy=RandomPolicy(hold_max=args.hold_max), progress=not args.quiet,
+    )
+    placed = TrajectorySet(assign_start_times(data), hand=data.hand)
+    meta = {"collector": "t42 sim collect", "seed": str(args.seed), "steps": str(args.steps)}
+    bag = write_bag(args.out, placed, storage=args.storage, metadata=meta)
+    print(
+        f"{args.hand}: kept {stats.kept}/{stats.requested} episodes ({placed.num_transitions} transitions; "
+        f"{stats.too_short} too short, {stats.grasp_failed} grasp failures; ends {stats.end_reasons}) -> {bag}"
+    )
+    return 0
+
+
+def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
+    from t42_transfer.data.t42_real import load_t42_testpaths
+    from t42_transfer.hand import realism
+
+    real = {hand: load_t42_testpaths(args.real_dir / name) for hand, name in REAL_FILES.items()}
+    rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
+    table = realism.markdown_table(rows)
+    print(table)
+    if args.out_dir:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
+        (args.out_dir / "sim_vs_real.md").write_text(table)
+        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(realism.rows_as_dicts(rows), indent=2) + "\n")
+        figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
+        print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json and {figure}")
+    return 0
+
+
+def _cmd_bag_info(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_io import bag_info
+
+    info = bag_info(args.bag)
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+    for key, value in info.items():
+        if isinstance(value, dict):
+            print(f"{key}:")
+            for k, v in value.items():
+                print(f"  {k}: {v}")
+        else:
+            print(f"{key}: {value}")
+    return 0
+
+
+def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.data.t42_real import import_t42_to_bag
+
+    bag = import_t42_to_bag(args.pickle, args.out)
+    data = read_bag(bag)
+    print(f"{args.pickle} -> {bag}: {len(data)} paths, {data.num_transitions} transitions, hand {data.hand!r}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from t42_transfer.demo import run_demo
+
+    return run_demo(args.out, quick=args.quick, workers=args.workers)
+
+
+# ------------------------------------------------------------------------ parser
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="t42",
-        description="t42: transfer learned dynamics models between Yale Model-T42 hands.",
+        description=(
+            "t42: transfer learned dynamics models between Yale Model-T42 hands. "
+            "Simulate hands, collect random-policy data, and move trajectories in and out of rosbag2 bags."
+        ),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    parser.add_subparsers(dest="command", metavar="COMMAND")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    demo = commands.add_parser("demo", help="run the main job end to end on simulated hands")
+    demo.add_argument("--quick", action="store_true", help="tiny sizes (about a minute), as CI runs it")
+    demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
+    demo.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    demo.set_defaults(func=_cmd_demo)
+
+    sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
+    col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
+    col.add_argument("--hand", default="source", help="source, target or family-<seed> (default source)")
+    col.add_argument("--episodes", type=int, default=300, help="episodes (paper: 300)")
+    col.add_argument("--steps", type=int, default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
+    col.add_argument("--seed", type=int, default=0)
+    col.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    col.add_argument("--hold-max", type=int, default=5, help="random actions are held 1..N steps (default 5)")
+    col.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    col.add_argument("--quiet", action="store_true", help="no progress bar")
+    col.add_argument("--out", type=Path, required=True, help="bag directory to create")
+    col.set_defaults(func=_cmd_sim_collect)
+
+    cmp_ = sim.add_parser("compare-real", help="replay the real T42 test paths' actions on simulated hands")
+    cmp_.add_argument("--real-dir", type=Path, default=real_data_dir(), help="folder of the public T42 pickles")
+    cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
+    cmp_.add_argument("--seed", type=int, default=0)
+    cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
+    cmp_.set_defaults(func=_cmd_sim_compare_real)
+
+    bag = commands.add_parser("bag", help="rosbag2 bags").add_subparsers(dest="bag_command", metavar="ACTION")
+    info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata")
+    info.add_argument("bag", type=Path)
+    info.add_argument("--json", action="store_true")
+    info.set_defaults(func=_cmd_bag_info)
+    imp = bag.add_parser("import-t42", help="convert a public T42 test-path pickle into a bag")
+    imp.add_argument("pickle", type=Path)
+    imp.add_argument("out", type=Path, help="bag directory to create")
+    imp.set_defaults(func=_cmd_bag_import_t42)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from t42_transfer.data.errors import DataFileError
+
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
+    func = getattr(args, "func", None)
+    if func is None:
+        # `t42` or `t42 sim` alone: show the help of the level reached.
+        chosen = [a for a in (args.command, getattr(args, "sim_command", None), getattr(args, "bag_command", None)) if a]
+        parser.parse_args([*chosen, "--help"]) if chosen else parser.print_help()
         return 0
-    return 0
+    try:
+        return func(args)
+    except (DataFileError, FileExistsError, FileNotFoundError, ValueError) as err:
+        print(f"t42: error: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())
