@@ -16,6 +16,9 @@ import math
 from t42_transfer.hand.params import FingerParams, HandParams
 
 TIMESTEP_S = 0.002
+PROXIMAL_RANGE = "-0.8 1.9"
+"""Proximal joint travel (rad): the flexure lets a finger splay well outward when pushed."""
+
 LINK_RADIUS_MM = 7.0
 FINGER_SIDES = ("left", "right")
 
@@ -33,7 +36,7 @@ def _finger_xml(side: str, f: FingerParams, p: HandParams) -> str:
     return f"""
     <body name="{side}_proximal" pos="{sign * _mm(p.base_half_width_mm):.6f} 0 0">
       <joint name="{side}_proximal" type="hinge" axis="{axis}" stiffness="{f.k_proximal}" springref="{rest:.6f}"
-             damping="{p.joint_damping}" range="-0.4 1.9" limited="true" armature="2e-5"/>
+             damping="{p.joint_damping}" range="{PROXIMAL_RANGE}" limited="true" armature="2e-5"/>
       <geom name="{side}_proximal_link" type="capsule" fromto="0 0 0 0 {_mm(f.proximal_mm):.6f} 0" size="{r}"
             friction="{p.link_friction} 0.005 0.0001" contype="2" conaffinity="1" mass="0.012"/>
       <body name="{side}_distal" pos="0 {_mm(f.proximal_mm):.6f} 0">

@@ -9,6 +9,7 @@ extents are compared as spans, not coordinates.
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Sequence
@@ -36,6 +37,7 @@ class BehaviourStats:
     load1_range: tuple[float, float]
     load2_range: tuple[float, float]
     drop_rate: float
+    end_reasons: dict[str, int]
 
 
 def summarise(name: str, data: TrajectorySet) -> BehaviourStats:
@@ -56,6 +58,7 @@ def summarise(name: str, data: TrajectorySet) -> BehaviourStats:
         load1_range=(float(every[:, 2].min()), float(every[:, 2].max())),
         load2_range=(float(every[:, 3].min()), float(every[:, 3].max())),
         drop_rate=float(np.mean([t.end_reason in DROP_REASONS for t in data])),
+        end_reasons=dict(Counter(t.end_reason or "unknown" for t in data)),
     )
 
 
@@ -65,57 +68,64 @@ def replay(real: TrajectorySet, hand: str, seed: int = 0) -> TrajectorySet:
     return TrajectorySet((run_episode(sim, t.actions, seed + i) for i, t in enumerate(real)), hand=hand)
 
 
-def compare(real_sets: dict[str, TrajectorySet], hands: Sequence[str] = ("source", "target"), seed: int = 0) -> tuple[list[BehaviourStats], dict[str, TrajectorySet]]:
-    """Rows for each real set and for each simulated hand replaying it; also the replays."""
-    rows, replays = [], {}
-    for real_name, real in real_sets.items():
-        rows.append(summarise(f"real {real_name}", real))
-        for hand in hands:
-            sim = replay(real, hand, seed)
-            key = f"sim {hand} on {real_name} actions"
-            replays[key] = sim
-            rows.append(summarise(key, sim))
+def compare(
+    real_sets: dict[str, TrajectorySet], hands: Sequence[str] = ("source", "target"), seed: int = 0
+) -> tuple[list[BehaviourStats], dict[str, TrajectorySet]]:
+    """Rows for each real set, then for each simulated hand replaying the real action sequences.
+
+    The real hands all ran the same sequences, so each simulated hand replays those
+    of the first set once; sets with other sequences are refused rather than mixed.
+    """
+    sets = list(real_sets.values())
+    first = sets[0]
+    for name, other in real_sets.items():
+        same = len(other) == len(first) and all(
+            np.array_equal(a.actions, b.actions[: len(a.actions)]) or np.array_equal(b.actions, a.actions[: len(b.actions)])
+            for a, b in zip(first, other)
+        )
+        if not same:
+            raise ValueError(f"real set {name!r} ran other action sequences than {next(iter(real_sets))!r}")
+    longest = TrajectorySet(max((t for t in group), key=len) for group in zip(*sets))
+    rows = [summarise(f"real {name}", data) for name, data in real_sets.items()]
+    replays = {f"sim {hand}": replay(longest, hand, seed) for hand in hands}
+    rows += [summarise(f"{key} (same actions)", data) for key, data in replays.items()]
     return rows, replays
 
 
 def markdown_table(rows: Sequence[BehaviourStats]) -> str:
     head = (
         "| data | paths | steps | x span mm | y span mm | step median mm | p90 | p99 | zero steps | load1 range "
-        "| load2 range | drop rate |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "| load2 range | drop rate | episode ends |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = [
         f"| {r.name} | {r.paths} | {r.steps} | {r.x_span_mm:.1f} | {r.y_span_mm:.1f} | {r.step_median_mm:.2f} "
         f"| {r.step_p90_mm:.2f} | {r.step_p99_mm:.2f} | {r.zero_step_fraction:.0%} "
         f"| {r.load1_range[0]:.0f} .. {r.load1_range[1]:.0f} | {r.load2_range[0]:.0f} .. {r.load2_range[1]:.0f} "
-        f"| {r.drop_rate:.0%} |"
+        f"| {r.drop_rate:.0%} | {', '.join(f'{k} {v}' for k, v in sorted(r.end_reasons.items()))} |"
         for r in rows
     ]
     return head + "\n".join(lines) + "\n"
 
 
 def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, TrajectorySet], path: Path) -> Path:
-    """x-y paths of every real set next to its simulated replays, one panel each."""
+    """x-y paths of every real set next to the simulated replays, one panel each, path colours matched."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cols = 1 + len(replays) // max(1, len(real_sets))
-    rows = max(1, len(real_sets))
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.8 * rows), squeeze=False)
-    order = []
-    for real_name in real_sets:
-        order.append((f"real {real_name}", real_sets[real_name]))
-        order += [(k, v) for k, v in replays.items() if k.endswith(f"on {real_name} actions")]
-    for ax, (title, data) in zip(axes.flat, order):
+    panels = [(f"real {k}", v) for k, v in real_sets.items()] + [(f"{k} (same actions)", v) for k, v in replays.items()]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.0 * len(panels), 3.8), squeeze=False)
+    for ax, (title, data) in zip(axes.flat, panels):
         for i, t in enumerate(data):
-            ax.plot(t.states[:, 0], t.states[:, 1], lw=0.8, label=f"path {i}")
+            ax.plot(t.states[:, 0], t.states[:, 1], lw=0.8, color=f"C{i}", label=f"path {i}")
             ax.plot(*t.states[0, :2], "k.", ms=4)
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
         ax.set_aspect("equal", adjustable="datalim")
     axes.flat[0].legend(fontsize=6)
+    fig.suptitle("Real T42 test paths and simulated hands under the same action sequences (frames differ)", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

@@ -72,6 +72,9 @@ class SimulatedHand:
         ]
         self._servo_ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{s}_servo") for s in FINGER_SIDES]
         self._spool_m = self.params.spool_radius_mm / 1000.0
+        self._slack_length = np.array(
+            [-f.r_proximal_mm / 1000.0 * np.radians(f.rest_deg) for f in (self.params.left, self.params.right)]
+        )
         self._order = list(self.params.actuator_order)
         self._rng = np.random.default_rng(0)
         self._servo = np.zeros(2)  # servo angles (rad), indexed by finger
@@ -158,9 +161,10 @@ class SimulatedHand:
 
     # ------------------------------------------------------------------ internals
     def _apply_servo(self) -> None:
-        # The servo sets the tendon's rest length: reeling in shortens it.
+        # The servo sets the tendon's rest length: reeling in shortens it.  At servo
+        # angle 0 the tendon is just slack with the finger at its spring rest pose.
         for finger, act_id in enumerate(self._servo_ids):
-            self._data.ctrl[act_id] = -self._spool_m * self._servo[finger]
+            self._data.ctrl[act_id] = self._slack_length[finger] - self._spool_m * self._servo[finger]
 
     def _tensions_load(self) -> np.ndarray:
         """Servo loads (raw units, unsigned) per finger, from the tendon tensions."""

@@ -1,0 +1,94 @@
+"""The ``t42`` command: help, sim -> bag -> trajectories round trip, bag tools, errors, the demo."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from t42_transfer.cli import main
+from t42_transfer.data.bag_io import read_bag
+from t42_transfer.hand.collect import collect
+
+REPO = Path(__file__).resolve().parents[1]
+FIXTURES = REPO / "bags"
+
+
+def test_help_lists_every_subcommand(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([]) == 0
+    text = capsys.readouterr().out
+    for command in ("demo", "sim", "bag"):
+        assert command in text
+    with pytest.raises(SystemExit) as exit_info:
+        main(["sim", "--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    assert "collect" in text and "compare-real" in text
+
+
+def test_sim_collect_round_trips_exactly_through_the_bag(tmp_path: Path) -> None:
+    out = tmp_path / "bag"
+    argv = ["sim", "collect", "--hand", "target", "--episodes", "3", "--steps", "40", "--seed", "7", "--workers", "1"]
+    assert main([*argv, "--quiet", "--out", str(out)]) == 0
+    direct, _ = collect("target", 3, 40, seed=7, workers=1, progress=False)
+    back = read_bag(out)
+    assert len(back) == len(direct) == 3
+    for got, want in zip(back, direct):
+        assert (got.states == want.states).all() and (got.actions == want.actions).all()
+        assert (got.actuator_angles == want.actuator_angles).all()
+        assert got.end_reason == want.end_reason and got.hand == "target"
+
+
+def test_collect_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bag"
+    out.mkdir()
+    code = main(["sim", "collect", "--episodes", "1", "--steps", "20", "--workers", "1", "--quiet", "--out", str(out)])
+    assert code == 2
+    assert str(out) in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fixture", ["source_small", "target_small"])
+def test_bag_info_on_the_fixture_bags(fixture: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bag", "info", str(FIXTURES / fixture), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    data = read_bag(FIXTURES / fixture)
+    assert info["episodes"] == len(data) > 0
+    assert info["transitions"] == data.num_transitions
+    assert info["hand"] == fixture.split("_")[0] == data.hand
+
+
+def test_bad_bag_is_a_clear_error_not_a_traceback(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    junk = tmp_path / "junk"
+    junk.mkdir()
+    (junk / "metadata.yaml").write_text("this: [is not a bag")
+    assert main(["bag", "info", str(junk)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("t42: error: ") and str(junk) in err and "Traceback" not in err
+
+
+@pytest.mark.realdata
+def test_import_t42(t42_real_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "real_a"
+    assert main(["bag", "import-t42", str(t42_real_dir / "testpaths_cyl35_d_v0.pkl"), str(bag)]) == 0
+    assert "6 paths" in capsys.readouterr().out
+    assert read_bag(bag).hand == "cyl35"
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "docs"
+    assert main(["sim", "compare-real", "--real-dir", str(t42_real_dir), "--out-dir", str(out)]) == 0
+    rows = json.loads((out / "sim_vs_real.json").read_text())
+    names = [r["name"] for r in rows]
+    assert names[0] == "real A" and "sim target on B actions" in names
+    assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
+
+
+def test_demo_quick_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--quick", "--out", str(tmp_path), "--workers", "1"]) == 0
+    summary = json.loads(next(tmp_path.glob("*/summary.json")).read_text())
+    assert [r["hand"] for r in summary] == ["source", "target"]
+    assert all(r["transitions"] > 0 for r in summary)
+    assert "read back exactly" in capsys.readouterr().out
