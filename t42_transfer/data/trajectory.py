@@ -163,7 +163,7 @@ def split_by_fraction(
             break
         taken.append(int(i))
         count += len(data[int(i)])
-    if len(taken) == len(data):
+    if len(taken) == len(data) > 1:
         taken.pop()
     chosen = set(taken)
     rest = [int(i) for i in order if int(i) not in chosen]

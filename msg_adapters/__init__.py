@@ -1,0 +1,43 @@
+"""ROS 2 messages <-> numpy for the T42 hand; nothing else in the project converts messages."""
+
+from msg_adapters.hand import (
+    APPLIED_ACTION_TOPIC,
+    HAND_TOPICS,
+    JOINT_STATE,
+    JOINT_STATES_TOPIC,
+    JOINT_TRAJECTORY,
+    OBJECT_POSE_TOPIC,
+    POSE_STAMPED,
+    TYPESTORE,
+    actions_to_joint_trajectory,
+    applied_action,
+    applied_action_msg,
+    joint_state_arrays,
+    joint_state_msg,
+    joint_trajectory_to_actions,
+    ns_to_stamp,
+    object_pose_msg,
+    object_xy_mm,
+    stamp_to_ns,
+)
+
+__all__ = [
+    "APPLIED_ACTION_TOPIC",
+    "HAND_TOPICS",
+    "JOINT_STATE",
+    "JOINT_STATES_TOPIC",
+    "JOINT_TRAJECTORY",
+    "OBJECT_POSE_TOPIC",
+    "POSE_STAMPED",
+    "TYPESTORE",
+    "actions_to_joint_trajectory",
+    "applied_action",
+    "applied_action_msg",
+    "joint_state_arrays",
+    "joint_state_msg",
+    "joint_trajectory_to_actions",
+    "ns_to_stamp",
+    "object_pose_msg",
+    "object_xy_mm",
+    "stamp_to_ns",
+]

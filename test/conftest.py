@@ -1,0 +1,71 @@
+"""Shared fixtures: small synthetic trajectory sets and the location of the public real-hand files."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pytest
+
+from t42_transfer.conventions import ACTION_UNIT_RAD
+from t42_transfer.data.bag_io import assign_start_times
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+
+REPO = Path(__file__).resolve().parents[1]
+
+MakeSet = Callable[..., TrajectorySet]
+
+
+def _synthetic_set(
+    lengths: Sequence[int] = (20, 25, 16),
+    *,
+    seed: int = 0,
+    hand: str = "sim_a",
+    angles: bool | None = None,
+) -> TrajectorySet:
+    """Random-walk episodes; ``angles=None`` gives actuator angles to every other episode only."""
+    rng = np.random.default_rng(seed)
+    reasons = ("length", "dropped", "overload", "lost_contact", "")
+    episodes = []
+    for i, steps in enumerate(lengths):
+        actions = rng.uniform(-1.0, 1.0, size=(steps, 2))
+        xy = np.cumsum(rng.normal(0.0, 0.4, size=(steps + 1, 2)), axis=0) + (10.0, 110.0)
+        loads = np.array([100.0, -100.0]) + rng.normal(0.0, 5.0, size=(steps + 1, 2))
+        known = angles if angles is not None else i % 2 == 0
+        joint = np.vstack([[0.3, 0.3], 0.3 + ACTION_UNIT_RAD * np.cumsum(actions, axis=0)]) if known else None
+        episodes.append(
+            Trajectory(
+                states=np.column_stack([xy, loads]),
+                actions=actions,
+                actuator_angles=joint,
+                end_reason=reasons[i % len(reasons)],
+                hand=hand,
+            )
+        )
+    return TrajectorySet(assign_start_times(episodes), hand=hand)
+
+
+@pytest.fixture(scope="session")
+def make_set() -> MakeSet:
+    """Factory for synthetic sets: ``make_set(lengths, seed=, hand=, angles=)``."""
+    return _synthetic_set
+
+
+@pytest.fixture(scope="session")
+def small_set() -> TrajectorySet:
+    """Three episodes (20, 25, 16 transitions), angles on the first and last."""
+    return _synthetic_set()
+
+
+@pytest.fixture(scope="session")
+def t42_real_dir() -> Path:
+    """The public real T42 pickles: $T42_REAL_DATA or <repo>/../shared/data/t42_real; skips when absent."""
+    directory = Path(os.environ.get("T42_REAL_DATA", REPO.parent / "shared" / "data" / "t42_real"))
+    if not (directory / "testpaths_cyl35_d_v0.pkl").is_file():
+        pytest.skip(
+            f"real T42 test paths not found in {directory} (set T42_REAL_DATA); "
+            "they are not redistributed with the project"
+        )
+    return directory
