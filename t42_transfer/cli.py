@@ -9,21 +9,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from t42_transfer import __version__
-
-DEFAULT_REAL_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "t42_real"
-REAL_FILES = {"A": "testpaths_cyl35_d_v0.pkl", "B": "testpaths_cyl35_red_d_v0.pkl"}
-
-
-def real_data_dir() -> Path:
-    """Where the public real-hand files are: ``$T42_REAL_DATA`` or ``../shared/data/t42_real``."""
-    return Path(os.environ.get("T42_REAL_DATA", DEFAULT_REAL_DIR))
-
 
 # ----------------------------------------------------------------------- commands
 
@@ -48,10 +38,11 @@ def _cmd_sim_collect(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
-    from t42_transfer.data.t42_real import load_t42_testpaths
+    from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
     from t42_transfer.hand import realism
 
-    real = {hand: load_t42_testpaths(args.real_dir / name) for hand, name in REAL_FILES.items()}
+    folder = args.real_dir or real_data_dir()
+    real = {hand: load_t42_testpaths(folder / name) for hand, name in REAL_FILES.items()}
     rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
     table = realism.markdown_table(rows)
     print(table)
@@ -131,7 +122,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.set_defaults(func=_cmd_sim_collect)
 
     cmp_ = sim.add_parser("compare-real", help="replay the real T42 test paths' actions on simulated hands")
-    cmp_.add_argument("--real-dir", type=Path, default=real_data_dir(), help="folder of the public T42 pickles")
+    cmp_.add_argument(
+        "--real-dir", type=Path, default=None, help="folder of the public T42 pickles (default: $T42_REAL_DATA or ../shared/data/t42_real)"
+    )
     cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
     cmp_.add_argument("--seed", type=int, default=0)
     cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -11,9 +10,9 @@ import pytest
 
 from t42_transfer.conventions import ACTION_UNIT_RAD
 from t42_transfer.data.bag_io import assign_start_times
+from t42_transfer.data.t42_real import REAL_FILES, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
-REPO = Path(__file__).resolve().parents[1]
 
 MakeSet = Callable[..., TrajectorySet]
 
@@ -62,8 +61,8 @@ def small_set() -> TrajectorySet:
 @pytest.fixture(scope="session")
 def t42_real_dir() -> Path:
     """The public real T42 pickles: $T42_REAL_DATA or <repo>/../shared/data/t42_real; skips when absent."""
-    directory = Path(os.environ.get("T42_REAL_DATA", REPO.parent / "shared" / "data" / "t42_real"))
-    if not (directory / "testpaths_cyl35_d_v0.pkl").is_file():
+    directory = real_data_dir()
+    if not all((directory / name).is_file() for name in REAL_FILES.values()):
         pytest.skip(
             f"real T42 test paths not found in {directory} (set T42_REAL_DATA); "
             "they are not redistributed with the project"

@@ -9,6 +9,7 @@ numpy arrays, lists and plain scalars.
 from __future__ import annotations
 
 import hashlib
+import os
 import pickle
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,19 @@ from numpy._core.multiarray import _reconstruct
 from t42_transfer.data.bag_io import assign_start_times, write_bag
 from t42_transfer.data.errors import PickleFileError
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+
+REAL_FILES = {"A": "testpaths_cyl35_d_v0.pkl", "B": "testpaths_cyl35_red_d_v0.pkl"}
+"""The two real hands' files: A ("blue") and B ("red"), mirror images of each other."""
+
+
+def real_data_dir() -> Path:
+    """Where the public files are: ``$T42_REAL_DATA``, else ``shared/data/t42_real`` beside the checkout.
+
+    They are not redistributed with the project, so callers must expect the folder to be missing.
+    """
+    default = Path(__file__).resolve().parents[3] / "shared" / "data" / "t42_real"
+    return Path(os.environ.get("T42_REAL_DATA", default))
+
 
 STATE_COLUMNS = (0, 1, 11, 12)
 """Object x, y (mm) and the two actuator loads among the files' 13 state columns."""
