@@ -1,0 +1,96 @@
+"""Models that keep the source model and add a learned residual (Algorithm 2 and its recurrent twin).
+
+The residual network ``g`` has the transition model's architecture and learns, one
+step at a time, the source model's error on target data: ``x' - f_S(x, a)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
+from t42_transfer.models.network import TransitionModel
+
+
+def _spec(model: LatentDynamics) -> dict:
+    return {"kind": model.kind, "config": model.config()}
+
+
+def _build(spec: dict) -> LatentDynamics:
+    return MODEL_KINDS[spec["kind"]].from_config(spec["config"])
+
+
+class CumulativeResidualModel(LatentDynamics):
+    """Algorithm 2: the frozen source rolls out ``x``; ``y' = gamma y + alpha g(x, a)``; shows ``x + y``.
+
+    ``g`` never sees its own output, so the model's Lyapunov exponents are the
+    source's and ``ln gamma`` (the paper's theorem; checked numerically in the tests).
+    """
+
+    kind = "cumulative_residual"
+
+    def __init__(self, source: LatentDynamics, residual: TransitionModel, alpha: float, gamma: float) -> None:
+        super().__init__()
+        self.source = source
+        self.residual = residual
+        self.alpha = float(alpha)
+        self.gamma = float(gamma)
+        self.latent_dim = source.latent_dim + residual.latent_dim
+        for p in self.source.parameters():
+            p.requires_grad_(False)
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return torch.cat([self.source.initial_latent(x0), torch.zeros_like(x0)], dim=-1)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        zs, y = z[:, : self.source.latent_dim], z[:, self.source.latent_dim :]
+        x = self.source.observe(zs)
+        y_next = self.gamma * y + self.alpha * self.residual.delta(x, action)
+        return torch.cat([self.source.latent_step(zs, action), y_next], dim=-1)
+
+    def observe(self, z: Tensor) -> Tensor:
+        zs, y = z[:, : self.source.latent_dim], z[:, self.source.latent_dim :]
+        return self.source.observe(zs) + y
+
+    def config(self) -> dict:
+        return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha, "gamma": self.gamma}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "CumulativeResidualModel":
+        return cls(_build(config["source"]), _build(config["residual"]), config["alpha"], config["gamma"])
+
+
+class RecurrentResidualModel(LatentDynamics):
+    """``x' = f_S(x, a) + alpha g(x, a)`` inside the loop: the residual feeds back on itself."""
+
+    kind = "recurrent_residual"
+
+    def __init__(self, source: LatentDynamics, residual: TransitionModel, alpha: float) -> None:
+        super().__init__()
+        self.source = source
+        self.residual = residual
+        self.alpha = float(alpha)
+        self.latent_dim = source.latent_dim
+        for p in self.source.parameters():
+            p.requires_grad_(False)
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return self.source.initial_latent(x0)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        x = self.source.observe(z)
+        correction = self.alpha * self.residual.delta(x, action)
+        z_next = self.source.latent_step(z, action)
+        pad = z_next.shape[-1] - correction.shape[-1]
+        return z_next + torch.nn.functional.pad(correction, (0, pad))
+
+    def observe(self, z: Tensor) -> Tensor:
+        return self.source.observe(z)
+
+    def config(self) -> dict:
+        return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "RecurrentResidualModel":
+        return cls(_build(config["source"]), _build(config["residual"]), config["alpha"])

@@ -1,0 +1,72 @@
+"""The paper's transition model and its training loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from t42_transfer.models import Normalisation, TransitionModel
+from t42_transfer.models.training import TrainConfig, train_transition_model, trajectory_weights, windows
+
+
+def test_architecture_is_the_papers() -> None:
+    model = TransitionModel(Normalisation.identity())
+    kinds = [type(m) for m in model.net]
+    assert kinds == [nn.Linear, nn.SELU, nn.AlphaDropout, nn.Linear, nn.Tanh, nn.Dropout, nn.Linear]
+    assert (model.net[0].in_features, model.net[0].out_features) == (6, 128)
+    assert (model.net[3].in_features, model.net[3].out_features) == (128, 128)
+    assert model.net[6].out_features == 4
+    assert model.net[2].p == model.net[5].p == 0.1
+    assert TransitionModel(Normalisation.identity(), grasp_input=True).net[0].in_features == 10
+
+
+def test_rollout_shapes_start_and_evaluation_mode() -> None:
+    torch.manual_seed(0)
+    model = TransitionModel(Normalisation.identity()).train()
+    x0, actions = torch.randn(5, 4), torch.rand(5, 7, 2) * 2 - 1
+    states = model.rollout(x0, actions)
+    assert states.shape == (5, 8, 4)
+    assert torch.equal(states[:, 0], x0)
+    assert torch.equal(states, model.rollout(x0, actions))  # dropout is off in rollouts
+    assert model.training  # and the caller's mode is restored
+    with pytest.raises(ValueError, match="actions must be"):
+        model.rollout(x0, torch.zeros(4, 7, 2))
+    with pytest.raises(ValueError, match="x0 must be"):
+        model.rollout(torch.zeros(5, 3), actions)
+
+
+def test_zero_output_layer_moves_by_the_mean_change() -> None:
+    norm = Normalisation(
+        np.zeros(4, np.float32), np.ones(4, np.float32), np.array([1, -2, 0, 3], np.float32), np.ones(4, np.float32)
+    )
+    model = TransitionModel(norm)
+    nn.init.zeros_(model.net[6].weight)
+    nn.init.zeros_(model.net[6].bias)
+    states = model.rollout(torch.zeros(2, 4), torch.zeros(2, 5, 2))
+    np.testing.assert_allclose(states[0, -1].numpy(), [5, -10, 0, 15])
+
+
+def test_training_is_seeded_learns_and_keeps_the_best_epoch(make_set) -> None:
+    data = make_set([40] * 10, seed=3)
+    cfg = TrainConfig(epochs=6, patience=2, seed=4)
+    first, report = train_transition_model(data, cfg, progress=False)
+    again, _ = train_transition_model(data, cfg, progress=False)
+    for p, q in zip(first.parameters(), again.parameters()):
+        assert torch.equal(p, q)
+    assert report.train_loss[-1] < report.train_loss[0]
+    assert report.best_epoch == int(np.argmin(report.val_loss))
+    assert len(report.val_loss) == report.epochs_run <= 6
+
+
+def test_trajectory_weights_are_one_over_i() -> None:
+    np.testing.assert_allclose(trajectory_weights(4).numpy(), [1, 1 / 2, 1 / 3, 1 / 4])
+
+
+def test_windows_cover_each_episode_to_its_end(make_set) -> None:
+    data = make_set([20, 25, 9], seed=1)
+    batch = windows(data, horizon=10, stride=10)
+    # 20 -> starts 0, 10; 25 -> 0, 10, 15; 9 is too short
+    assert batch.x.shape == (5, 11, 4) and batch.a.shape == (5, 10, 2)
+    np.testing.assert_array_equal(batch.x[4].numpy(), data[1].states[15:26])

@@ -1,0 +1,104 @@
+"""Transfer methods: the registry, shapes, determinism, the source left untouched, each method's mechanics."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from t42_transfer.models import Normalisation, TransitionModel
+from t42_transfer.models.training import TrainConfig, train_transition_model, trajectory_loss
+from t42_transfer.transfer import METHODS, PAPER_METHODS, TransferConfig, transfer
+from t42_transfer.transfer.residual import CumulativeResidualModel, RecurrentResidualModel
+
+FAST = TransferConfig(
+    new_model=dataclasses.replace(TransferConfig().new_model, train=TrainConfig(epochs=2)),
+    naive_finetune=dataclasses.replace(TransferConfig().naive_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)),
+    l2_finetune=dataclasses.replace(TransferConfig().l2_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)),
+    trajectory_finetune=dataclasses.replace(
+        TransferConfig().trajectory_finetune, horizon=10, stride=5, train=TrainConfig(lr=1e-3, epochs=2, batch_size=8, patience=None)
+    ),
+    cumulative_residual=dataclasses.replace(TransferConfig().cumulative_residual, train=TrainConfig(epochs=2)),
+    recurrent_residual=dataclasses.replace(TransferConfig().recurrent_residual, train=TrainConfig(epochs=2)),
+)
+
+
+@pytest.fixture(scope="module")
+def source(make_set) -> TransitionModel:
+    model, _ = train_transition_model(make_set([40] * 8, seed=10, hand="src"), TrainConfig(epochs=3), progress=False)
+    return model
+
+
+@pytest.fixture(scope="module")
+def target(make_set):
+    return make_set([30, 35, 25], seed=11, hand="tgt")
+
+
+def test_registry_has_the_papers_six_methods_and_l2() -> None:
+    assert PAPER_METHODS == (
+        "new_model", "direct", "naive_finetune", "trajectory_finetune", "cumulative_residual", "recurrent_residual"
+    )
+    assert set(METHODS) == set(PAPER_METHODS) | {"l2_finetune"}
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_each_method_shapes_determinism_and_untouched_source(method: str, source, target) -> None:
+    before = {k: v.clone() for k, v in source.state_dict().items()}
+    model = transfer(method, source, target, FAST, seed=3)
+    again = transfer(method, source, target, FAST, seed=3)
+    x0, actions = torch.tensor(target[0].states[:1]).repeat(3, 1), torch.rand(3, 12, 2) * 2 - 1
+    states = model.rollout(x0, actions)
+    assert states.shape == (3, 13, 4) and torch.isfinite(states).all()
+    assert torch.equal(states, again.rollout(x0, actions))
+    for k, v in source.state_dict().items():
+        assert torch.equal(v, before[k]), f"{method} modified the source's {k}"
+    if method != "direct":
+        assert not torch.equal(states, source.rollout(x0, actions))
+
+
+def test_bad_requests_are_refused(source, target) -> None:
+    with pytest.raises(ValueError, match="unknown transfer method"):
+        transfer("magic", source, target)
+    with pytest.raises(ValueError, match="needs target data"):
+        transfer("naive_finetune", source, target.subset([]))
+
+
+def _zero_change_model() -> TransitionModel:
+    """A transition model that predicts no change anywhere."""
+    model = TransitionModel(Normalisation.identity(), hidden=4, dropout=0.0)
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.zero_()
+    return model
+
+
+def test_cumulative_residual_follows_algorithm_2() -> None:
+    source = _zero_change_model()
+    residual = TransitionModel(Normalisation.identity(), hidden=4, dropout=0.0)
+    with torch.no_grad():
+        for p in residual.net.parameters():
+            p.zero_()
+        residual.net[6].bias.copy_(torch.tensor([1.0, 2.0, 0.0, 0.0]))  # g = (1, 2, 0, 0) everywhere
+    alpha, gamma = 0.3, 0.5
+    model = CumulativeResidualModel(source, residual, alpha, gamma)
+    states = model.rollout(torch.zeros(1, 4), torch.zeros(1, 4, 2))[0]
+    y, expected = 0.0, []
+    for _ in range(4):
+        y = gamma * y + alpha
+        expected.append(y)
+    np.testing.assert_allclose(states[1:, 0].numpy(), expected, rtol=1e-6)
+    np.testing.assert_allclose(states[1:, 1].numpy(), 2 * np.array(expected), rtol=1e-6)
+    recurrent = RecurrentResidualModel(source, residual, alpha).rollout(torch.zeros(1, 4), torch.zeros(1, 4, 2))[0]
+    np.testing.assert_allclose(recurrent[1:, 0].numpy(), alpha * np.arange(1, 5), rtol=1e-6)
+
+
+def test_trajectory_loss_known_value() -> None:
+    true = torch.zeros(1, 3, 4)
+    predicted = torch.zeros(1, 3, 4)
+    predicted[0, 1] = torch.tensor([2.0, 0.0, 0.0, 0.0])  # step 1: x,y MSE 2, loads 0
+    predicted[0, 2] = torch.tensor([0.0, 0.0, 4.0, 0.0])  # step 2: x,y 0, loads MSE 8 -> 0.1 * 8
+    weights = torch.tensor([1.0, 0.5])
+    loss = trajectory_loss(predicted, true, torch.ones(4), weights)
+    assert float(loss) == pytest.approx(1.0 * 2.0 + 0.5 * 0.8)
