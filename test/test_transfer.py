@@ -11,7 +11,7 @@ import torch
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.models.training import TrainConfig, train_transition_model, trajectory_loss
 from t42_transfer.transfer import METHODS, PAPER_METHODS, TransferConfig, transfer
-from t42_transfer.transfer.residual import CumulativeResidualModel, RecurrentResidualModel
+from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 
 FAST = TransferConfig(
     new_model=dataclasses.replace(TransferConfig().new_model, train=TrainConfig(epochs=2)),

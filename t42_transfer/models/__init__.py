@@ -1,6 +1,14 @@
-"""Transition models: the one dynamics contract, the paper's MLP, training, checkpoints."""
+"""Transition models: the one dynamics contract, the paper's MLP, residual models, training, checkpoints."""
 
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 from t42_transfer.models.network import Normalisation, TransitionModel
+from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 
-__all__ = ["MODEL_KINDS", "LatentDynamics", "Normalisation", "TransitionModel"]
+__all__ = [
+    "MODEL_KINDS",
+    "CumulativeResidualModel",
+    "LatentDynamics",
+    "Normalisation",
+    "RecurrentResidualModel",
+    "TransitionModel",
+]

@@ -28,7 +28,7 @@ from t42_transfer.models.training import (
     windows,
 )
 from t42_transfer.transfer.config import ResidualConfig, TransferConfig
-from t42_transfer.transfer.residual import CumulativeResidualModel, RecurrentResidualModel
+from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 
 Method = Callable[[TransitionModel, TrajectorySet, TransferConfig, int, bool], LatentDynamics]
 
