@@ -1,0 +1,254 @@
+"""Benettin/QR Lyapunov exponents: Henon map, linear maps, masking, models, and the cumulative residual theorem."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor, nn
+
+from t42_transfer.data.trajectory import TrajectorySet
+from t42_transfer.evaluation.lyapunov import (
+    lyapunov_spectrum,
+    maximal_lyapunov,
+    model_lyapunov,
+    model_lyapunov_spectrum,
+)
+from t42_transfer.models.dynamics import LatentDynamics
+from t42_transfer.models.network import Normalisation, TransitionModel
+
+HENON_A, HENON_B = 1.4, 0.3
+HENON_EXPONENTS = (0.4196, -1.6236)  # published values for a = 1.4, b = 0.3
+
+
+def henon(z: Tensor, a: Tensor) -> Tensor:
+    """The Henon map as an autonomous system: the action input is ignored."""
+    x, y = z[:, 0], z[:, 1]
+    return torch.stack([1 - HENON_A * x**2 + y, HENON_B * x], dim=-1)
+
+
+def henon_starts(batch: int, seed: int = 0) -> Tensor:
+    """Starts near the origin, inside the attractor's basin."""
+    return 0.1 + 0.05 * torch.rand(batch, 2, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+
+# ------------------------------------------------------------------ generic maps
+
+
+def test_henon_exponents():
+    batch, steps = 64, 900
+    spectrum = lyapunov_spectrum(henon, henon_starts(batch), torch.zeros(batch, steps, 1), transient=100)
+    assert spectrum.shape == (batch, 2) and spectrum.dtype == torch.float64
+    mean = spectrum.mean(dim=0)
+    assert mean[0].item() == pytest.approx(HENON_EXPONENTS[0], abs=0.01)
+    assert mean[1].item() == pytest.approx(HENON_EXPONENTS[1], abs=0.01)
+    # Each finite-time orbit is close too (their spread is about 0.015 at this length).
+    assert (spectrum[:, 0] - HENON_EXPONENTS[0]).abs().max() < 0.08
+    # |det J| = b at every step, so the exponents of every orbit sum to ln b up to rounding.
+    torch.testing.assert_close(spectrum.sum(dim=1), torch.full((batch,), math.log(HENON_B), dtype=torch.float64))
+
+
+def test_linear_map_gives_log_abs_eigenvalues():
+    eigenvalues = torch.tensor([2.0, -0.5, 0.25], dtype=torch.float64)
+    basis = torch.tensor([[1.0, 0.3, -0.2], [0.1, 1.0, 0.4], [-0.3, 0.2, 1.0]], dtype=torch.float64)
+    matrix = basis @ torch.diag(eigenvalues) @ torch.linalg.inv(basis)
+
+    def linear(z: Tensor, a: Tensor) -> Tensor:
+        return z @ matrix.T
+
+    z0 = torch.randn(4, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    actions = torch.zeros(4, 250, 1)
+    spectrum = lyapunov_spectrum(linear, z0, actions)
+    expected = eigenvalues.abs().log().expand(4, 3)
+    torch.testing.assert_close(spectrum, expected, atol=0.01, rtol=0)
+    # Fewer frame columns give the leading exponents of the full spectrum.
+    torch.testing.assert_close(lyapunov_spectrum(linear, z0, actions, k=2), spectrum[:, :2])
+    torch.testing.assert_close(maximal_lyapunov(linear, z0, actions), spectrum[:, 0])
+
+
+def test_actions_drive_the_map_in_float64():
+    seen: list[torch.dtype] = []
+
+    def scale_by_action(z: Tensor, a: Tensor) -> Tensor:
+        seen.append(z.dtype)
+        return z * a
+
+    actions = torch.rand(3, 50, 1, generator=torch.Generator().manual_seed(2)) + 0.2  # float32 in
+    exponent = maximal_lyapunov(scale_by_action, torch.ones(3, 1, dtype=torch.float32), actions)
+    torch.testing.assert_close(exponent, actions.double().log().mean(dim=(1, 2)))
+    assert set(seen) == {torch.float64}
+    # Zero actions padding a short orbit collapse it (log 0 = -inf), but only past its length.
+    padded = torch.cat([torch.full((1, 5, 1), 2.0), torch.zeros(1, 45, 1)], dim=1)
+    both = maximal_lyapunov(
+        scale_by_action, torch.ones(2, 1), torch.cat([padded, actions[:1]]), lengths=torch.tensor([5, 50])
+    )
+    torch.testing.assert_close(both, torch.stack([torch.tensor(math.log(2.0), dtype=torch.float64), exponent[0]]))
+
+
+def test_lengths_end_orbits_as_if_run_alone():
+    batch, steps = 5, 120
+    z0, actions = henon_starts(batch, seed=3), torch.zeros(batch, steps, 1)
+    lengths = torch.tensor([120, 40, 77, 31, 100])
+    padded = lyapunov_spectrum(henon, z0, actions, transient=30, lengths=lengths)
+    alone = torch.cat(
+        [lyapunov_spectrum(henon, z0[i : i + 1], actions[i : i + 1, :n], transient=30) for i, n in enumerate(lengths)]
+    )
+    torch.testing.assert_close(padded, alone, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"k": 3}, "k must be"),
+        ({"k": 0}, "k must be"),
+        ({"transient": 10}, "transient"),
+        ({"lengths": torch.tensor([10, 11])}, "at most"),
+    ],
+)
+def test_bad_arguments_are_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        lyapunov_spectrum(henon, henon_starts(2), torch.zeros(2, 10, 1), **kwargs)
+
+
+# ------------------------------------------------------------------ models
+
+
+def zero_net_model(grasp_input: bool = False) -> TransitionModel:
+    """``x' = x + delta_mean``: its Jacobian is the identity, so every exponent is exactly 0."""
+    norm = Normalisation.identity()
+    norm = Normalisation(norm.state_mean, norm.state_std, np.array([0.5, -0.2, 3.0, 1.0], np.float32), norm.delta_std)
+    model = TransitionModel(norm, grasp_input=grasp_input)
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model
+
+
+@pytest.mark.parametrize("grasp_input", [False, True])
+def test_translation_model_has_zero_exponents_over_its_whole_latent(grasp_input, small_set):
+    spectrum = model_lyapunov_spectrum(zero_net_model(grasp_input), small_set)
+    assert spectrum.shape == (len(small_set), 8 if grasp_input else 4)
+    torch.testing.assert_close(spectrum, torch.zeros_like(spectrum), rtol=0, atol=1e-12)
+
+
+def test_model_lyapunov_leaves_the_model_alone_and_ignores_dropout(small_set):
+    torch.manual_seed(0)
+    model = TransitionModel(Normalisation.identity()).train()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    first = model_lyapunov(model, small_set)
+    second = model_lyapunov(model, small_set)
+    assert model.training and all(p.dtype == torch.float32 for p in model.parameters())
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+    assert first.shape == (len(small_set),) and first.dtype == torch.float64
+    torch.testing.assert_close(first, second, rtol=0, atol=0)  # dropout off: deterministic
+    assert torch.isfinite(first).all() and first.abs().max() > 1e-3  # a random net is not a translation
+
+
+def test_episodes_and_explicit_arrays_agree(small_set: TrajectorySet):
+    torch.manual_seed(1)
+    model = TransitionModel(Normalisation.identity())
+    from_set = model_lyapunov(model, small_set, steps=18)
+    for i, ep in enumerate(small_set):  # lengths 20, 25, 16: cropped to 18, 18, 16
+        n = min(len(ep), 18)
+        alone = model_lyapunov(model, (ep.states[:1], ep.actions[None, :n]))
+        torch.testing.assert_close(from_set[i : i + 1], alone, rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------ cumulative residual theorem
+
+
+def small_mlp(inputs: int, outputs: int, seed: int, gain: float) -> nn.Sequential:
+    torch.manual_seed(seed)
+    net = nn.Sequential(nn.Linear(inputs, 16), nn.Tanh(), nn.Linear(16, outputs))
+    with torch.no_grad():
+        for layer in (net[0], net[2]):
+            layer.weight.mul_(gain)
+    return net
+
+
+class ToySource(LatentDynamics):
+    """A contracting source model ``x' = 0.6 x + h(x, a)`` whose maximal exponent is negative."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.h = small_mlp(6, 4, seed=0, gain=1.5)
+
+    def config(self) -> dict:
+        return {}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "ToySource":
+        return cls()
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return x0
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        return 0.6 * z + self.h(torch.cat([z, action], dim=-1))
+
+    def observe(self, z: Tensor) -> Tensor:
+        return z
+
+
+class ToyCumulativeResidual(LatentDynamics):
+    """The paper's algorithm as a latent map: ``z = (x, y)``, ``x' = f_S(x, a)``, ``y' = gamma y + alpha g(x, a)``."""
+
+    def __init__(self, source: LatentDynamics, gamma: float, alpha: float = 0.3) -> None:
+        super().__init__()
+        self.source, self.gamma, self.alpha = source, gamma, alpha
+        self.latent_dim = 2 * source.latent_dim
+        self.g = small_mlp(6, 4, seed=1, gain=3.0)
+
+    def config(self) -> dict:
+        return {"gamma": self.gamma, "alpha": self.alpha}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "ToyCumulativeResidual":
+        return cls(ToySource(), **config)
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return torch.cat([self.source.initial_latent(x0), torch.zeros_like(x0)], dim=-1)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        x, y = z[:, :4], z[:, 4:]
+        residual = self.g(torch.cat([x, action], dim=-1))
+        return torch.cat([self.source.latent_step(x, action), self.gamma * y + self.alpha * residual], dim=-1)
+
+    def observe(self, z: Tensor) -> Tensor:
+        return self.source.observe(z[:, :4]) + z[:, 4:]
+
+
+def check_cumulative_residual_theorem(
+    source: LatentDynamics, model: LatentDynamics, gamma: float, x0: Tensor, actions: Tensor, tol: float
+) -> Tensor:
+    """Assert the paper's theorem on every orbit, and return the source's maximal exponents.
+
+    The model's exponents are the source's together with ``ln gamma`` (once per
+    residual dimension), so its maximal exponent is ``max(lambda_source, ln gamma)``.
+    """
+    source_spectrum = model_lyapunov_spectrum(source, (x0, actions))
+    spectrum = model_lyapunov_spectrum(model, (x0, actions))
+    residual_dims = spectrum.shape[1] - source_spectrum.shape[1]
+    residual = torch.full((len(x0), residual_dims), math.log(gamma), dtype=torch.float64)
+    expected = torch.cat([source_spectrum, residual], dim=1)
+    torch.testing.assert_close(spectrum[:, 0], expected.max(dim=1).values, atol=tol, rtol=0)
+    torch.testing.assert_close(spectrum.sort(dim=1).values, expected.sort(dim=1).values, atol=tol, rtol=0)
+    return source_spectrum[:, 0]
+
+
+@pytest.mark.parametrize(("gamma", "dominant"), [(0.9997, "ln gamma"), (0.5, "source")])
+def test_cumulative_residual_theorem_on_toy_model(gamma, dominant):
+    generator = torch.Generator().manual_seed(4)
+    x0 = torch.randn(6, 4, generator=generator)
+    actions = torch.rand(6, 200, 2, generator=generator) * 2 - 1
+    source = ToySource()
+    source_exponent = check_cumulative_residual_theorem(
+        source, ToyCumulativeResidual(source, gamma), gamma, x0, actions, tol=0.02
+    )
+    # The construction must put each case on the intended side, with a clear margin.
+    if dominant == "ln gamma":
+        assert (source_exponent < math.log(gamma) - 0.1).all()
+    else:
+        assert (source_exponent > math.log(gamma) + 0.1).all()
