@@ -82,6 +82,30 @@ def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from t42_transfer.evaluation.experiment import load_config, run_experiment
+    from t42_transfer.evaluation.report import write_report
+
+    cfg = load_config(args.config)
+    if args.workers is not None:
+        cfg = dataclasses.replace(cfg, workers=args.workers)
+    rows = run_experiment(cfg, args.out, progress=not args.quiet)
+    run_dir = args.out / cfg.name
+    print(f"{len(rows)} cells -> {run_dir / 'results.csv'}")
+    if not args.no_report:
+        print(f"report: {write_report(run_dir)}")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from t42_transfer.evaluation.report import write_report
+
+    print(f"report: {write_report(args.run_dir, args.out)}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from t42_transfer.demo import run_demo
 
@@ -107,6 +131,21 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
     demo.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
     demo.set_defaults(func=_cmd_demo)
+
+    exp = commands.add_parser(
+        "experiment", help="run (or resume) a transfer experiment from a YAML config, then write its report"
+    )
+    exp.add_argument("config", type=Path, help="experiment YAML (see configs/)")
+    exp.add_argument("--out", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    exp.add_argument("--workers", type=int, default=None, help="worker processes (default: the config's, else all cores)")
+    exp.add_argument("--no-report", action="store_true", help="skip the figures and report.md")
+    exp.add_argument("--quiet", action="store_true", help="no progress bars")
+    exp.set_defaults(func=_cmd_experiment)
+
+    rep = commands.add_parser("report", help="figures and a Markdown report from an experiment run directory")
+    rep.add_argument("run_dir", type=Path)
+    rep.add_argument("--out", type=Path, default=None, help="output directory (default RUN_DIR/report)")
+    rep.set_defaults(func=_cmd_report)
 
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
     col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")

@@ -252,3 +252,19 @@ def test_cumulative_residual_theorem_on_toy_model(gamma, dominant):
         assert (source_exponent < math.log(gamma) - 0.1).all()
     else:
         assert (source_exponent > math.log(gamma) + 0.1).all()
+
+
+@pytest.mark.parametrize("gamma", [0.5, 0.9997])
+def test_cumulative_residual_theorem_on_the_real_model_classes(gamma):
+    from t42_transfer.models import CumulativeResidualModel, Normalisation, TransitionModel
+
+    torch.manual_seed(7)
+    norm = Normalisation(
+        np.array([0, 90, 100, -100], np.float32), np.array([20, 10, 50, 50], np.float32),
+        np.zeros(4, np.float32), np.array([0.3, 0.3, 3.0, 3.0], np.float32),
+    )
+    source, residual = TransitionModel(norm), TransitionModel(norm)
+    model = CumulativeResidualModel(source, residual, alpha=0.3, gamma=gamma)
+    x0 = torch.tensor([[0.0, 90.0, 100.0, -100.0]]).repeat(4, 1) + torch.randn(4, 4)
+    actions = torch.rand(4, 150, 2) * 2 - 1
+    check_cumulative_residual_theorem(source, model, gamma, x0, actions, tol=0.02)

@@ -279,6 +279,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
 
     run_dir = Path(out) / cfg.name
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
     source_path = train_source(cfg, run_dir, progress)
     target = load_data(cfg.target, run_dir / "data")
     if len(target) < 2:

@@ -50,19 +50,21 @@ class TrainReport:
 
 @dataclass(frozen=True)
 class StepBatch:
-    """Single-step training tensors: inputs, actions, grasp states and normalised targets."""
+    """Single-step training tensors: the network's (normalised) inputs and its targets."""
 
-    x: Tensor
-    a: Tensor
-    grasp: Tensor
+    features: Tensor
     target: Tensor
 
     def __len__(self) -> int:
-        return len(self.x)
+        return len(self.features)
 
 
-def step_batch(data: TrajectorySet, target_fn: Callable[[Tensor, Tensor, Tensor], Tensor]) -> StepBatch:
-    """Stack every transition; ``target_fn(x, a, x_next)`` gives the normalised regression target."""
+def step_batch(model: TransitionModel, data: TrajectorySet, reference: Callable[[Tensor, Tensor], Tensor] | None = None) -> StepBatch:
+    """Every transition of ``data`` as ``model``'s inputs and normalised targets ``x' - reference(x, a)``.
+
+    Built once per training run: the normalisation is fixed while training, so
+    the per-batch work is one gather and the network.
+    """
     xs, acts, nexts, grasps = [], [], [], []
     for traj in data:
         x, a, x_next = traj.transitions()
@@ -74,8 +76,8 @@ def step_batch(data: TrajectorySet, target_fn: Callable[[Tensor, Tensor, Tensor]
         raise ValueError("no transitions to train on")
     x, a, x_next, grasp = (torch.from_numpy(np.concatenate(p)) for p in (xs, acts, nexts, grasps))
     with torch.no_grad():
-        target = target_fn(x, a, x_next)
-    return StepBatch(x, a, grasp, target)
+        base = x if reference is None else reference(x, a)
+        return StepBatch(model.features(x, a, grasp), model.normalise_delta(x_next - base))
 
 
 def _progress(total: int, desc: str, enabled: bool):
@@ -142,9 +144,9 @@ def fit(
     return report
 
 
-def step_loss(predict: Callable[[Tensor, Tensor, Tensor], Tensor], batch: StepBatch, idx: Tensor) -> Tensor:
-    """MSE between ``predict(x, a, grasp)`` and the normalised target on rows ``idx``."""
-    return torch.mean((predict(batch.x[idx], batch.a[idx], batch.grasp[idx]) - batch.target[idx]) ** 2)
+def step_loss(net: nn.Module, batch: StepBatch, idx: Tensor | slice) -> Tensor:
+    """MSE between the network's output and the normalised target on rows ``idx``."""
+    return torch.mean((net(batch.features[idx]) - batch.target[idx]) ** 2)
 
 
 @dataclass(frozen=True)
@@ -230,14 +232,11 @@ def fit_single_step(
     change); a residual network's reference is the source model's prediction.
     """
 
-    def target(x: Tensor, a: Tensor, x_next: Tensor) -> Tensor:
-        return model.normalise_delta(x_next - (x if reference is None else reference(x, a)))
-
-    batch = step_batch(train, target)
-    val_batch = step_batch(val, target) if val is not None and len(val) else None
-    predict = model.normalised_delta
-    val_fn = None if val_batch is None else (lambda: float(step_loss(predict, val_batch, torch.arange(len(val_batch)))))
+    batch = step_batch(model, train, reference)
+    val_batch = step_batch(model, val, reference) if val is not None and len(val) else None
+    net = model.net
+    val_fn = None if val_batch is None else (lambda: float(step_loss(net, val_batch, slice(None))))
     return fit(
-        list(model.net.parameters()), model, lambda idx: step_loss(predict, batch, idx), len(batch), val_fn, cfg, desc,
+        list(net.parameters()), model, lambda idx: step_loss(net, batch, idx), len(batch), val_fn, cfg, desc,
         progress, penalty,
     )
