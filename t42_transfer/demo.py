@@ -1,9 +1,11 @@
 """The README's main job, on embedded defaults: simulated source and target hands.
 
-So far the story covers data: collect random-policy episodes on both hands,
-record them as rosbag2 MCAP bags, read the bags back and check every number
-survived, and summarise.  Transfer, planning and the ROS nodes join it as they
-land.
+The story so far: collect random-policy episodes on both hands and record them
+as rosbag2 MCAP bags (checking every number survives the trip); train the
+source model on the source bag; transfer it to the target hand with a little
+data from the target bag by each method; score every model on held-out target
+episodes (time before 4 mm divergence, position MSE) and save the transferred
+models.  Planning and the ROS nodes join it as they land.
 """
 
 from __future__ import annotations
@@ -25,10 +27,14 @@ class DemoSize:
     source_episodes: int
     target_episodes: int
     steps: int
+    source_epochs: int
+    transfer_episodes: int
+    """Target episodes given to the transfer; the rest are the held-out test set."""
 
 
-FULL = DemoSize(source_episodes=60, target_episodes=15, steps=400)
-QUICK = DemoSize(source_episodes=8, target_episodes=4, steps=120)
+FULL = DemoSize(source_episodes=80, target_episodes=20, steps=400, source_epochs=40, transfer_episodes=3)
+QUICK = DemoSize(source_episodes=10, target_episodes=6, steps=150, source_epochs=5, transfer_episodes=2)
+DEMO_METHODS = ("direct", "new_model", "naive_finetune", "cumulative_residual", "l2_finetune")
 
 
 def _summary_row(name: str, data: TrajectorySet, seconds: float) -> dict:
@@ -75,9 +81,50 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
             f"{r['hand']:8} {r['episodes']:8d} {r['transitions']:11d} {r['mean_length']:8.1f} "
             f"{xr[0]:7.1f} ..{xr[1]:6.1f} {yr[0]:7.1f} ..{yr[1]:6.1f}  {r['end_reasons']}"
         )
-    print("\nbags read back exactly (same numbers) for both hands:")
+    print("bags read back exactly (same numbers) for both hands:")
     for r in rows:
         print(f"  {r['bag']}")
-    (run_dir / "summary.json").write_text(json.dumps(rows, indent=2) + "\n")
+    scores = _transfer_story(run_dir, size)
+    (run_dir / "summary.json").write_text(json.dumps({"data": rows, "transfer": scores}, indent=2) + "\n")
     print(f"summary: {run_dir / 'summary.json'}")
     return 0
+
+
+def _transfer_story(run_dir: Path, size: DemoSize) -> list[dict]:
+    """Source model from the source bag, each method from a few target episodes, scores on the rest."""
+    import torch
+
+    from t42_transfer.evaluation.metrics import evaluate_model
+    from t42_transfer.models.checkpoint import save_model
+    from t42_transfer.models.training import TrainConfig, train_transition_model
+    from t42_transfer.transfer import transfer
+
+    torch.set_num_threads(1)
+    source_data = read_bag(run_dir / "source_bag")
+    target_data = read_bag(run_dir / "target_bag")
+    source, report = train_transition_model(
+        source_data, TrainConfig(epochs=size.source_epochs), desc="source model"
+    )
+    save_model(source, run_dir / "models" / "source.safetensors", method="source", data={"source": source_data.fingerprint()})
+    given = target_data.subset(range(size.transfer_episodes))
+    test = target_data.subset(range(size.transfer_episodes, len(target_data)))
+    print(
+        f"\nsource model: {report.epochs_run} epochs on {source_data.num_transitions} transitions; transfer with "
+        f"{given.num_transitions} target transitions ({len(given)} episodes), test on {len(test)} held-out episodes"
+    )
+    scores = []
+    for method in DEMO_METHODS:
+        start = time.perf_counter()
+        model = transfer(method, source, given, seed=0)
+        seconds = time.perf_counter() - start
+        result = evaluate_model(model, test)
+        path = save_model(model, run_dir / "models" / f"{method}.safetensors", method=method, data={"target": given.fingerprint()})
+        scores.append({
+            "method": method, "divergence_steps": result["divergence_mean"], "position_mse_mm2": result["position_mse_mean"],
+            "seconds": seconds, "model": str(path),
+        })
+    print(f"\n{'method':22} {'steps before 4 mm':>17} {'position MSE mm^2':>17} {'transfer s':>10}")
+    for r in scores:
+        print(f"{r['method']:22} {r['divergence_steps']:17.1f} {r['position_mse_mm2']:17.1f} {r['seconds']:10.1f}")
+    print(f"models: {run_dir / 'models'}")
+    return scores

@@ -264,7 +264,14 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) ->
     if path.exists():
         return path
     data = load_data(cfg.source, run_dir / "data")
-    model, report = train_transition_model(data, cfg.source_training, progress=progress, desc="source model")
+    # Minibatches of 64 gain nothing from a second thread, and idle OpenMP threads
+    # spinning against other processes cost up to 10x on a busy 2-core machine.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model, report = train_transition_model(data, cfg.source_training, progress=progress, desc="source model")
+    finally:
+        torch.set_num_threads(threads)
     save_model(
         model, path, method="source", hyperparameters=dataclasses.asdict(cfg.source_training),
         data={"source": data.fingerprint(), "transitions": data.num_transitions},
