@@ -100,7 +100,8 @@ def fit(
     """The shared loop: shuffled minibatches of indices ``loss_on(idx)``, Adam, clipping, early stop."""
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
-    opt = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    # fused Adam: at batch 64 the per-parameter optimiser ops were ~45 % of a step (bench/bench_training.py).
+    opt = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     report, best, best_state, waited = TrainReport(), math.inf, None, 0
     start = time.perf_counter()
     bar = _progress(cfg.epochs, desc, progress)
@@ -114,7 +115,7 @@ def fit(
                 loss = loss + penalty()
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            nn.utils.clip_grad_norm_(params, cfg.grad_clip, foreach=True)
             opt.step()
             total += loss.item()
             batches += 1
