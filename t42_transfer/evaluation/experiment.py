@@ -143,6 +143,11 @@ def _digest(obj: Any) -> str:
 # ------------------------------------------------------------------------------- data
 
 
+def data_cache(run_dir: Path) -> Path:
+    """Collected data sets live beside the runs (``<out>/data``), shared by every experiment there."""
+    return Path(run_dir).parent / "data"
+
+
 def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
     """The trajectories ``spec`` names; simulated sets are collected once and kept as bags in ``cache``."""
     if spec.real:
@@ -231,7 +236,7 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path]) -> dict[str, Any]
     torch.set_num_threads(1)
     if "source" not in _WORKER:
         _WORKER["source"] = load_model(source_path)[0]
-        _WORKER["target"] = load_data(cfg.target, run_dir / "data")
+        _WORKER["target"] = load_data(cfg.target, data_cache(run_dir))
     source, target = _WORKER["source"], _WORKER["target"]
     train, test = _target_split(cfg, target, cell)
     start = time.perf_counter()
@@ -260,10 +265,10 @@ def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
 def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) -> Path:
     """The source model of this experiment, trained once and cached by its data and settings."""
     key = _digest({"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)})
-    path = run_dir / f"source-{key}.safetensors"
+    path = Path(run_dir).parent / "sources" / f"source-{key}.safetensors"  # shared by experiments with equal source
     if path.exists():
         return path
-    data = load_data(cfg.source, run_dir / "data")
+    data = load_data(cfg.source, data_cache(run_dir))
     # Minibatches of 64 gain nothing from a second thread, and idle OpenMP threads
     # spinning against other processes cost up to 10x on a busy 2-core machine.
     threads = torch.get_num_threads()
@@ -288,7 +293,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
     source_path = train_source(cfg, run_dir, progress)
-    target = load_data(cfg.target, run_dir / "data")
+    target = load_data(cfg.target, data_cache(run_dir))
     if len(target) < 2:
         raise ValueError(f"the target set has {len(target)} episodes; need at least 2")
     cells = [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]

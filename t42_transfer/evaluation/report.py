@@ -89,14 +89,14 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from t42_transfer.evaluation.experiment import Cell, _cell_key, _target_split, load_config, load_data
+    from t42_transfer.evaluation.experiment import Cell, _cell_key, _target_split, data_cache, load_config, load_data
     from t42_transfer.models.checkpoint import load_model
 
     cfg = load_config(run_dir / "config.yaml")
-    sources = sorted(run_dir.glob("source-*.safetensors"))
-    if not sources:
-        return None
-    target = load_data(cfg.target, run_dir / "data")
+    from t42_transfer.evaluation.experiment import train_source
+
+    source = train_source(cfg, run_dir, progress=False)  # cached: finds the experiment's source model
+    target = load_data(cfg.target, data_cache(run_dir))
     cols = min(4, len(cfg.methods))
     rows = -(-len(cfg.methods) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
@@ -104,7 +104,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         ax.set_visible(False)
     for ax, method in zip(axes.flat, cfg.methods):
         cell = Cell(method, amount, 0)
-        model_file = run_dir / "models" / f"{_cell_key(cfg, cell, sources[-1])}.safetensors"
+        model_file = run_dir / "models" / f"{_cell_key(cfg, cell, source)}.safetensors"
         if not model_file.exists():
             ax.set_title(f"{method}: no model", fontsize=8)
             continue
