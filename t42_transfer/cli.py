@@ -106,6 +106,35 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.models.checkpoint import load_model
+    from t42_transfer.planning import Planner, PlannerConfig, Workspace
+    from t42_transfer.planning.export import write_plan
+
+    model, meta = load_model(args.model)
+    if args.workspace:
+        workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
+    else:
+        workspace = Workspace.from_metadata(meta)
+        if workspace is None:
+            raise ValueError(f"{args.model}: stores no workspace; pass --workspace BAG (the model's training data)")
+    cfg = PlannerConfig(
+        samples=args.samples, horizon=args.horizon, sampler=args.sampler, tolerance_mm=args.tolerance,
+        horizon_search=args.horizon_search, refine_iterations=args.refine, seed=args.seed,
+    )
+    plan = Planner(model, workspace, cfg).plan(args.start, args.goal)
+    info = {"model": str(args.model), "method": meta.get("method"), "config": asdict(cfg)}
+    files = write_plan(plan, args.out, workspace, info)
+    if plan.ok:
+        print(f"plan: {len(plan.actions)} steps, predicted final error {plan.error_mm:.2f} mm -> {files[0]}, .csv, .png")
+        return 0
+    print(f"t42: plan not ok ({plan.status}): {plan.reason} -> {files[0]}", file=sys.stderr)
+    return 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from t42_transfer.demo import run_demo
 
@@ -146,6 +175,27 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("run_dir", type=Path)
     rep.add_argument("--out", type=Path, default=None, help="output directory (default RUN_DIR/report)")
     rep.set_defaults(func=_cmd_report)
+
+    plan = commands.add_parser(
+        "plan", help="plan an open-loop action sequence to a goal with a model file (exit 1 when not ok)"
+    )
+    plan.add_argument("model", type=Path, help="model file (.safetensors)")
+    plan.add_argument(
+        "--start", type=float, nargs=4, required=True, metavar=("X", "Y", "LOAD1", "LOAD2"), help="start state (mm, raw loads)"
+    )
+    plan.add_argument("--goal", type=float, nargs=2, required=True, metavar=("X", "Y"), help="goal object position (mm)")
+    plan.add_argument("--horizon", type=int, default=100, help="steps of 0.1 s (default 100)")
+    plan.add_argument("--samples", type=int, default=1000, help="sampled sequences (default 1000)")
+    plan.add_argument("--seed", type=int, default=0)
+    plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
+    plan.add_argument("--tolerance", type=float, default=2.0, help="predicted error that reaches the goal (mm, default 2)")
+    plan.add_argument("--horizon-search", action="store_true", help="return the shortest sequence reaching the goal")
+    plan.add_argument("--refine", type=int, default=0, help="cross-entropy refinement iterations (default 0)")
+    plan.add_argument(
+        "--workspace", type=Path, nargs="+", default=None, help="bags of the training data (default: stored in the model file)"
+    )
+    plan.add_argument("--out", type=Path, required=True, help="directory for plan.json, plan.csv, plan.png")
+    plan.set_defaults(func=_cmd_plan)
 
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
     col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")

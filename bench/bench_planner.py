@@ -1,0 +1,271 @@
+"""Benchmark: Monte Carlo planning throughput (sample-steps/s) at K=1000 samples, horizon T=100.
+
+Writes bench/results/planner.json.  All in one run, float32, no torch.compile
+anywhere.  Each round runs every case once (order rotated); rates are medians
+(and bests) over rounds, ratios the median over rounds of the two cases' ratio
+in that round, which a shared machine's changing load disturbs least:
+
+- ``planner``: ``Planner.plan`` end to end (sampling, fused rollout, safety and
+  goal scoring, selection) on the paper's MLP (a ``TransitionModel`` with random
+  weights and a hand-like normalisation);
+- ``fused_rollout``: the planner's rollout alone (planning/fused.py);
+- ``eager_loop``: the plain eager loop ``s = s + net(cat(s, a))`` under no_grad
+  with the same MLP (baseline a);
+- ``mppi``: pytorch_mppi 0.9.1 ``MPPI.command`` with the same MLP as dynamics
+  (``s + net(cat(s, a))``) and a squared goal distance as running cost
+  (baseline b); skipped with a note when pytorch_mppi is not installed
+  (``pip install pytorch_mppi==0.9.1``);
+- ``matmul_bound``: only the three ``addmm`` of one step at batch K, into
+  preallocated outputs: the matrix work of one step, the reference ceiling.
+
+Peak RSS: a fresh subprocess per setting plans once with K=100k (default
+chunking, then one unchunked batch) and reports its peak resident memory.
+
+    .venv/bin/python bench/bench_planner.py                 # 1 thread (robust on a busy machine)
+    .venv/bin/python bench/bench_planner.py --threads 2 --repeats 11
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from t42_transfer.models import Normalisation, TransitionModel
+from t42_transfer.planning import Planner, PlannerConfig, Workspace
+from t42_transfer.planning.fused import FusedRollout
+from t42_transfer.planning.planner import CHUNK
+
+RESULTS = Path(__file__).parent / "results" / "planner.json"
+START = torch.tensor([0.0, 80.0, 120.0, -120.0])
+GOAL = torch.tensor([10.0, 70.0])
+WORKSPACE = Workspace.box(-200.0, 200.0, -100.0, 300.0, load_limit=1e6)
+"""Wide: random weights drift, and a rejected sample must not change the work measured."""
+
+
+def build_model(seed: int = 0) -> TransitionModel:
+    torch.manual_seed(seed)
+    norm = Normalisation(
+        state_mean=np.array([0.0, 80.0, 120.0, -120.0], np.float32),
+        state_std=np.array([15.0, 10.0, 30.0, 30.0], np.float32),
+        delta_mean=np.zeros(4, np.float32),
+        delta_std=np.array([0.4, 0.4, 2.0, 2.0], np.float32),
+    )
+    return TransitionModel(norm).eval()
+
+
+@torch.no_grad()
+def eager_loop(net: nn.Module, x0: Tensor, actions: Tensor) -> Tensor:
+    s, out = x0, [x0]
+    for t in range(actions.shape[1]):
+        s = s + net(torch.cat([s, actions[:, t]], dim=-1))
+        out.append(s)
+    return torch.stack(out, dim=1)
+
+
+def matmul_only(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
+    l1, l2, l3 = (model.net[i] for i in (0, 3, 6))
+    w1, w2, w3 = (layer.weight.detach().T.contiguous() for layer in (l1, l2, l3))
+    b1, b2, b3 = (layer.bias.detach() for layer in (l1, l2, l3))
+    inputs = torch.randn(batch, w1.shape[0])
+    h1, h2, out = torch.empty(batch, w1.shape[1]), torch.empty(batch, w2.shape[1]), torch.empty(batch, w3.shape[1])
+
+    def run() -> None:
+        for _ in range(horizon):
+            torch.addmm(b1, inputs, w1, out=h1)
+            torch.addmm(b2, h1, w2, out=h2)
+            torch.addmm(b3, h2, w3, out=out)
+
+    return run
+
+
+def mppi_command(net: nn.Module, batch: int, horizon: int) -> Callable[[], None] | str:
+    try:
+        from pytorch_mppi import MPPI
+    except ImportError:
+        return "pytorch_mppi not installed: pip install pytorch_mppi==0.9.1 to measure this baseline"
+
+    @torch.no_grad()
+    def dynamics(s: Tensor, a: Tensor) -> Tensor:
+        return s + net(torch.cat([s, a], dim=-1))
+
+    def running_cost(s: Tensor, a: Tensor) -> Tensor:
+        return ((s[:, :2] - GOAL) ** 2).sum(-1)
+
+    mppi = MPPI(
+        dynamics,
+        running_cost,
+        nx=4,
+        noise_sigma=0.3 * torch.eye(2),
+        num_samples=batch,
+        horizon=horizon,
+        lambda_=1.0,
+        u_min=-torch.ones(2),
+        u_max=torch.ones(2),
+    )
+    return lambda: mppi.command(START)
+
+
+def timed(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def _status_mib(key: str) -> float:
+    """A memory figure of this process from /proc/self/status (VmRSS: now, VmHWM: peak), MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1]) / 1024
+    raise KeyError(key)
+
+
+def rss_child(samples: int, chunk: int) -> None:
+    """Subprocess body: resident memory before one plan of ``samples`` sequences and its peak during it (MiB)."""
+    model = build_model()
+    planner = Planner(model, WORKSPACE, PlannerConfig(samples=samples, chunk=chunk))
+    Planner(model, WORKSPACE, PlannerConfig(samples=10, horizon=5)).plan(START, GOAL)
+    before = _status_mib("VmRSS")
+    Path("/proc/self/clear_refs").write_text("5")  # reset the peak (VmHWM) to the current RSS
+    seconds = timed(lambda: planner.plan(START, GOAL))
+    peak = _status_mib("VmHWM")
+    print(
+        json.dumps(
+            {
+                "samples": samples,
+                "chunk": chunk,
+                "rss_mib_before": before,
+                "peak_rss_mib": peak,
+                "plan_peak_increase_mib": peak - before,
+                "seconds": seconds,
+            }
+        )
+    )
+
+
+def peak_rss(samples: int, chunk: int, threads: int) -> dict:
+    cmd = [sys.executable, __file__, "--threads", str(threads), "--rss-child", str(samples), str(chunk)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--samples", type=int, default=1000)
+    parser.add_argument("--horizon", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=21)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--rss-samples", type=int, default=100_000, help="K of the peak-RSS runs (0: skip them)")
+    parser.add_argument("--rss-child", type=int, nargs=2, metavar=("SAMPLES", "CHUNK"), help=argparse.SUPPRESS)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    if args.rss_child:
+        rss_child(*args.rss_child)
+        return
+
+    k, horizon = args.samples, args.horizon
+    model = build_model()
+    net = model.net
+    gen = torch.Generator().manual_seed(0)
+    x0 = START.expand(k, 4).contiguous()
+    actions = torch.rand(k, horizon, 2, generator=gen) * 2 - 1
+    planner = Planner(model, WORKSPACE, PlannerConfig(samples=k, horizon=horizon))
+    fused = FusedRollout(model)
+    cases: dict[str, Callable[[], object]] = {
+        "planner": lambda: planner.plan(START, GOAL),
+        "fused_rollout": lambda: fused(x0, actions),
+        "eager_loop": lambda: eager_loop(net, x0, actions),
+        "matmul_bound": matmul_only(model, k, horizon),
+    }
+    mppi = mppi_command(net, k, horizon)
+    notes = {}
+    if isinstance(mppi, str):
+        notes["mppi"] = mppi
+    else:
+        cases["mppi"] = mppi
+    for fn in cases.values():  # warm-up: allocator, first-call dispatch
+        fn()
+    times: dict[str, list[float]] = {name: [] for name in cases}
+    names = list(cases)
+    for r in range(args.repeats):
+        for name in names[r % len(names) :] + names[: r % len(names)]:  # rotate the order
+            times[name].append(timed(cases[name]))
+
+    sample_steps = k * horizon
+    rate = {name: sample_steps / statistics.median(ts) for name, ts in times.items()}
+    best = {name: sample_steps / min(ts) for name, ts in times.items()}
+
+    def paired(a: str, b: str) -> float:
+        """Median over rounds of throughput a / throughput b: both ran back to back under the same load."""
+        return statistics.median(tb / ta for ta, tb in zip(times[a], times[b]))
+
+    pairs = [("planner", "eager_loop"), ("planner", "matmul_bound"), ("fused_rollout", "matmul_bound")]
+    pairs += [("planner", "mppi")] if "mppi" in times else []
+    ratios = {f"{a}_vs_{b}": paired(a, b) for a, b in pairs}
+    rss = []
+    if args.rss_samples:
+        rss = [
+            peak_rss(args.rss_samples, CHUNK, args.threads),
+            peak_rss(args.rss_samples, args.rss_samples, args.threads),
+        ]
+
+    result = {
+        "benchmark": "planner",
+        "command": " ".join(["python", *map(shlex.quote, sys.argv)]),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+            "load_average_at_start": os.getloadavg(),
+        },
+        "parameters": {
+            "samples": k,
+            "horizon": horizon,
+            "repeats": args.repeats,
+            "dtype": "float32",
+            "hidden": 128,
+            "weights": "random (seeded)",
+            "sampler": planner.config.sampler,
+            "chunk": planner.config.chunk,
+            "torch_compile": False,
+        },
+        "sample_steps_per_s": rate,
+        "best_sample_steps_per_s": best,
+        "ms_per_call": {name: 1e3 * statistics.median(ts) for name, ts in times.items()},
+        "ratios": ratios,
+        "targets": {
+            "planner_vs_mppi >= 2": ratios.get("planner_vs_mppi", 0.0) >= 2.0,
+            "planner_vs_matmul_bound >= 0.5": ratios["planner_vs_matmul_bound"] >= 0.5,
+        },
+        "peak_rss": rss,
+        "notes": notes,
+        "repeats_s": times,
+    }
+    result["machine"]["load_average_at_end"] = os.getloadavg()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(
+        json.dumps(
+            {k: result[k] for k in ("sample_steps_per_s", "ms_per_call", "ratios", "targets", "peak_rss", "notes")},
+            indent=2,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

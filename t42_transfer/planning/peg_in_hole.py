@@ -1,0 +1,298 @@
+"""Peg-in-hole: plan with a model, execute open loop on the true (simulated) target hand, count hits.
+
+As in the paper, a goal is ``n`` steps away: it is where the true target hand
+puts the object after a random piecewise-constant sequence of ``n`` steps from
+the grasp, so every goal is reachable and farther goals (larger ``n``) test
+longer open-loop predictions; goals outside the trained workspace are redrawn.
+For each model and goal the planner plans from the grasp state (same reset
+seed, hence the same grasp and sensor noise as when the goal was made); the plan
+is executed open loop on the true hand and succeeds when the final object
+centre is within ``tolerance_mm`` of the goal and the hand did not drop the
+object or stop on overload.  Plans the planner refuses (no safe sequence) count
+as failures; a plan predicted to miss (``unreachable``) is still executed, since
+only the true hand decides success.
+
+    python -m t42_transfer.planning.peg_in_hole runs/x/models/*.safetensors \\
+        --workspace bags/source_small bags/target_small --out docs/peg_in_hole
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from t42_transfer.hand.collect import run_episode
+from t42_transfer.hand.sim import GraspFailed, SimulatedHand
+from t42_transfer.models.dynamics import LatentDynamics
+from t42_transfer.planning.planner import Planner, PlannerConfig
+from t42_transfer.planning.sampling import sample_actions
+from t42_transfer.planning.workspace import Workspace
+
+GOAL_ATTEMPTS = 20
+"""Goal sequences drawn per goal at most, while the true hand drops the object or ends outside the workspace."""
+
+
+@dataclass(frozen=True)
+class PegInHoleConfig:
+    distances: tuple[int, ...] = (10, 20, 40, 60, 80, 100)
+    """Goal distances in control steps from the grasp."""
+    trials: int = 10
+    """Goals per distance."""
+    tolerance_mm: float = 10.0
+    hand: str = "target"
+    hold_steps: tuple[int, int] = (5, 40)
+    """Holds of the goal-making sequences (the piecewise sampler's)."""
+    planner: PlannerConfig = field(default_factory=lambda: PlannerConfig(horizon_search=True, tolerance_mm=3.0))
+    """Plans aim tighter than the success tolerance: open-loop execution adds error."""
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Goal:
+    steps: int
+    trial: int
+    seed: int
+    """Reset seed of the true hand: the same grasp (and noise) for making the goal and executing the plan."""
+    grasp: np.ndarray
+    position: np.ndarray
+
+    @property
+    def distance_mm(self) -> float:
+        return float(np.linalg.norm(self.position - self.grasp[:2]))
+
+
+@dataclass(frozen=True)
+class Trial:
+    model: str
+    steps: int
+    success: bool
+    status: str
+    """The planner's status."""
+    end_reason: str
+    """How execution ended: 'length', 'dropped', ..., or 'not_executed'."""
+    goal_distance_mm: float
+    final_error_mm: float | None
+    predicted_error_mm: float | None
+    plan_steps: int
+
+
+@dataclass(frozen=True)
+class Row:
+    model: str
+    steps: int
+    trials: int
+    successes: int
+    success_rate: float
+    goal_distance_mm: float
+    """Mean straight-line distance of the goals from the grasp."""
+    final_error_mm: float | None
+    """Median true final error over executed plans."""
+    predicted_ok: int
+    """Plans predicted to reach the goal (status ok)."""
+    refused: int
+    """Plans the planner refused (nothing executed)."""
+
+
+def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list[Goal]:
+    """``cfg.trials`` goals per distance, made on the true hand; deterministic in ``cfg.seed``.
+
+    With a ``workspace``, goals outside it are redrawn: every planner would refuse
+    them, so they would measure the training data's coverage, not the models.
+    """
+    hand = SimulatedHand(cfg.hand)
+    goals = []
+    for steps in cfg.distances:
+        for trial in range(cfg.trials):
+            goals.append(_make_goal(hand, cfg, steps, trial, workspace))
+    return goals
+
+
+def _make_goal(hand: SimulatedHand, cfg: PegInHoleConfig, steps: int, trial: int, workspace: Workspace | None) -> Goal:
+    for attempt in range(GOAL_ATTEMPTS):
+        seed = int(np.random.SeedSequence([cfg.seed, steps, trial, attempt]).generate_state(1)[0])
+        actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), cfg.hold_steps)[0]
+        try:
+            traj = run_episode(hand, actions.numpy(), seed)
+        except GraspFailed:
+            continue
+        goal = Goal(steps, trial, seed, traj.states[0].astype(np.float64), traj.states[-1, :2].astype(np.float64))
+        inside = workspace is None or bool(workspace.contains_xy(torch.as_tensor(goal.position)))
+        if traj.end_reason == "length" and len(traj) == steps and inside:
+            return goal
+    raise RuntimeError(
+        f"no goal {steps} steps away without a drop (inside the workspace) in {GOAL_ATTEMPTS} attempts (trial {trial})"
+    )
+
+
+def run_trial(name: str, planner: Planner, hand: SimulatedHand, goal: Goal, tolerance_mm: float) -> Trial:
+    """Plan from the goal's grasp, execute open loop on ``hand``, and score the end."""
+    plan = planner.plan(goal.grasp, goal.position, seed=goal.seed)
+    predicted = None if np.isinf(plan.error_mm) else plan.error_mm
+    if len(plan.actions) == 0:
+        return Trial(name, goal.steps, False, plan.status, "not_executed", goal.distance_mm, None, predicted, 0)
+    traj = run_episode(hand, plan.actions.astype(np.float64), goal.seed)
+    error = float(np.linalg.norm(traj.states[-1, :2] - goal.position))
+    completed = traj.end_reason == "length" and len(traj) == len(plan.actions)
+    return Trial(
+        name,
+        goal.steps,
+        completed and error <= tolerance_mm,
+        plan.status,
+        traj.end_reason,
+        goal.distance_mm,
+        error,
+        predicted,
+        len(plan.actions),
+    )
+
+
+def evaluate(
+    models: Mapping[str, LatentDynamics],
+    workspace: Workspace,
+    cfg: PegInHoleConfig = PegInHoleConfig(),
+    goals: Sequence[Goal] | None = None,
+    progress: bool = True,
+) -> tuple[list[Row], list[Trial]]:
+    """Success rate per model and distance (rows), and every trial; all models face the same goals."""
+    from tqdm.auto import tqdm
+
+    goals = list(goals) if goals is not None else make_goals(cfg, workspace)
+    hand = SimulatedHand(cfg.hand)
+    trials = []
+    with tqdm(total=len(models) * len(goals), desc="peg-in-hole", unit="plan", disable=not progress) as bar:
+        for name, model in models.items():
+            planner = Planner(model, workspace, cfg.planner)
+            for goal in goals:
+                trials.append(run_trial(name, planner, hand, goal, cfg.tolerance_mm))
+                bar.update()
+    return summarise(trials), trials
+
+
+def summarise(trials: Sequence[Trial]) -> list[Row]:
+    """One row per (model, distance), in the order first seen."""
+    groups: dict[tuple[str, int], list[Trial]] = {}
+    for t in trials:
+        groups.setdefault((t.model, t.steps), []).append(t)
+    rows = []
+    for (name, steps), group in groups.items():
+        successes = sum(t.success for t in group)
+        errors = [t.final_error_mm for t in group if t.final_error_mm is not None]
+        rows.append(
+            Row(
+                model=name,
+                steps=steps,
+                trials=len(group),
+                successes=successes,
+                success_rate=successes / len(group),
+                goal_distance_mm=float(np.mean([t.goal_distance_mm for t in group])),
+                final_error_mm=float(np.median(errors)) if errors else None,
+                predicted_ok=sum(t.status == "ok" for t in group),
+                refused=sum(t.end_reason == "not_executed" for t in group),
+            )
+        )
+    return rows
+
+
+def markdown_table(rows: Sequence[Row]) -> str:
+    head = (
+        "| model | goal steps | goal distance mm | trials | success rate | median final error mm | predicted ok | refused |\n"
+        "|---|---|---|---|---|---|---|---|\n"
+    )
+    lines = [
+        f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} | {r.success_rate:.0%} "
+        f"| {'-' if r.final_error_mm is None else f'{r.final_error_mm:.1f}'} | {r.predicted_ok} | {r.refused} |"
+        for r in rows
+    ]
+    return head + "\n".join(lines) + "\n"
+
+
+def plot_success(rows: Sequence[Row], path: Path, tolerance_mm: float | None = None) -> Path:
+    """Success rate against goal distance (steps), one line per model."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    for name in dict.fromkeys(r.model for r in rows):
+        mine = sorted((r for r in rows if r.model == name), key=lambda r: r.steps)
+        ax.plot([r.steps for r in mine], [r.success_rate for r in mine], marker="o", label=name)
+    ax.set_xlabel("goal distance (control steps from the grasp)")
+    ax.set_ylabel("success rate")
+    ax.set_ylim(-0.03, 1.03)
+    ax.set_title("Peg-in-hole, open loop" + (f" (tolerance {tolerance_mm:g} mm)" if tolerance_mm else ""), fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def load_models(paths: Sequence[str]) -> dict[str, LatentDynamics]:
+    """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``."""
+    from t42_transfer.models.checkpoint import load_model
+
+    models = {}
+    for spec in paths:
+        name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
+        models[name or Path(file).stem] = load_model(file)[0]
+    return models
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from t42_transfer.data.bag_io import read_bag
+
+    parser = argparse.ArgumentParser(
+        prog="python -m t42_transfer.planning.peg_in_hole", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("models", nargs="+", help="model files, PATH or NAME=PATH")
+    parser.add_argument(
+        "--workspace", nargs="+", type=Path, required=True, help="bags whose states define the trained workspace"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="directory for peg_in_hole.{json,md,png}")
+    parser.add_argument("--distances", nargs="+", type=int, default=list(PegInHoleConfig.distances))
+    parser.add_argument("--trials", type=int, default=PegInHoleConfig.trials)
+    parser.add_argument("--tolerance", type=float, default=PegInHoleConfig.tolerance_mm, help="success tolerance (mm)")
+    parser.add_argument("--samples", type=int, default=PlannerConfig.samples)
+    parser.add_argument("--horizon", type=int, default=PlannerConfig.horizon)
+    parser.add_argument("--hand", default="target")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
+    planner = replace(PegInHoleConfig().planner, samples=args.samples, horizon=args.horizon)
+    cfg = PegInHoleConfig(
+        tuple(args.distances), args.trials, args.tolerance, args.hand, planner=planner, seed=args.seed
+    )
+    rows, trials = evaluate(load_models(args.models), workspace, cfg, progress=not args.quiet)
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {
+        "command": shlex.join([*parser.prog.split(), *(sys.argv[1:] if argv is None else argv)]),
+        "config": asdict(cfg),
+        "workspace": workspace.to_dict(),
+        "rows": [asdict(r) for r in rows],
+        "trials": [asdict(t) for t in trials],
+    }
+    (args.out / "peg_in_hole.json").write_text(json.dumps(report, indent=2) + "\n")
+    table = markdown_table(rows)
+    (args.out / "peg_in_hole.md").write_text(table)
+    plot_success(rows, args.out / "peg_in_hole.png", cfg.tolerance_mm)
+    print(table)
+    print(f"wrote {args.out / 'peg_in_hole.json'}, .md and .png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

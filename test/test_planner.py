@@ -1,0 +1,354 @@
+"""The Monte Carlo planner: bounds, seeds, optimality on a linear model, every safety rejection, fast path, chunking, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch import Tensor
+
+from t42_transfer.cli import main
+from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normalisation, TransitionModel
+from t42_transfer.models.checkpoint import save_model
+from t42_transfer.planning import DISCRETE_ACTIONS, SAMPLERS, Planner, PlannerConfig, Workspace, sample_actions
+from t42_transfer.planning.fused import FusedRollout, is_paper_mlp, make_rollout
+from t42_transfer.planning.sampling import REAL_HAND_ACTIONS
+
+START = np.array([0.0, 80.0, 100.0, -100.0])
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread() -> Iterator[None]:
+    """One torch thread: on a busy 2-core machine a second OpenMP thread waiting for a core costs 10x."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+BOX = Workspace.box(-50.0, 50.0, 40.0, 120.0)
+
+
+class Toy(LatentDynamics):
+    """``(x, y) += gain * a + drift``, loads grow apart by ``load_rate`` per step, NaN once ``x > nan_beyond``."""
+
+    def __init__(
+        self,
+        gain: float = 1.0,
+        drift: tuple[float, float] = (0.0, 0.0),
+        load_rate: float = 0.0,
+        nan_beyond: float = math.inf,
+    ) -> None:
+        super().__init__()
+        self.gain, self.drift, self.load_rate, self.nan_beyond = gain, drift, load_rate, nan_beyond
+
+    def config(self) -> dict:
+        return {}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "Toy":
+        return cls()
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return x0
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        move = torch.cat(
+            [
+                self.gain * action + torch.tensor(self.drift),
+                torch.tensor([self.load_rate, -self.load_rate]).expand_as(action),
+            ],
+            -1,
+        )
+        nxt = z + move
+        return nxt.masked_fill((nxt[:, :1] > self.nan_beyond).expand_as(nxt), math.nan)
+
+    def observe(self, z: Tensor) -> Tensor:
+        return z
+
+
+def hand_norm() -> Normalisation:
+    return Normalisation(
+        state_mean=np.array([0.0, 80.0, 120.0, -120.0], np.float32),
+        state_std=np.array([15.0, 10.0, 30.0, 30.0], np.float32),
+        delta_mean=np.zeros(4, np.float32),
+        delta_std=np.array([0.4, 0.4, 2.0, 2.0], np.float32),
+    )
+
+
+def plan(model: LatentDynamics, goal: tuple[float, float], workspace: Workspace = BOX, **config: object):
+    return Planner(model, workspace, PlannerConfig(**config)).plan(START, np.array(goal))  # type: ignore[arg-type]
+
+
+def executed(actions: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """Where the toy's true dynamics put the object after ``actions``."""
+    return START[:2] + gain * actions.sum(0)
+
+
+# ------------------------------------------------------------------------------ samplers and bounds
+
+
+def test_samplers_draw_bounded_actions_of_their_kind() -> None:
+    gen = torch.Generator().manual_seed(0)
+    assert torch.allclose(DISCRETE_ACTIONS * 1.5, torch.tensor(REAL_HAND_ACTIONS))
+    for sampler in SAMPLERS:
+        actions = sample_actions(sampler, 50, 40, gen, hold_steps=(5, 12))
+        assert actions.shape == (50, 40, 2) and actions.dtype == torch.float32
+        assert actions.abs().max() <= 1.0
+    discrete = sample_actions("discrete", 50, 40, gen).reshape(-1, 2)
+    assert (torch.cdist(discrete, DISCRETE_ACTIONS).min(1).values == 0).all()
+    held = sample_actions("piecewise", 50, 40, gen, hold_steps=(5, 12))
+    for seq in held:
+        changes = [0, *((seq[1:] != seq[:-1]).any(1).nonzero().flatten() + 1).tolist(), 40]
+        runs = np.diff(changes)
+        assert (runs[:-1] >= 5).all() and (runs <= 12).all()  # the last hold may be cut by the horizon
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_plans_are_bounded_finite_and_seeded(sampler: str) -> None:
+    torch.manual_seed(0)
+    model = TransitionModel(hand_norm())
+    config = {"samples": 300, "horizon": 15, "sampler": sampler, "refine_iterations": 2, "horizon_search": True}
+    workspace = Workspace.box(-60, 60, 30, 130)
+    first = Planner(model, workspace, PlannerConfig(**config)).plan(START, (3.0, 78.0))  # type: ignore[arg-type]
+    again = Planner(model, workspace, PlannerConfig(**config)).plan(START, (3.0, 78.0))  # type: ignore[arg-type]
+    other = Planner(model, workspace, PlannerConfig(**config)).plan(START, (3.0, 78.0), seed=1)  # type: ignore[arg-type]
+    assert len(first.actions) > 0 and first.predicted.shape == (len(first.actions) + 1, 4)
+    assert (
+        np.abs(first.actions).max() <= 1.0 and np.isfinite(first.actions).all() and np.isfinite(first.predicted).all()
+    )
+    assert np.array_equal(first.actions, again.actions) and first.error_mm == again.error_mm
+    assert not np.array_equal(first.actions[:1], other.actions[:1]) or len(first.actions) != len(other.actions)
+    assert first.evaluated == 300 + 2 * (300 - 15)  # refinement keeps the 5 % elites and redraws the rest
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    sampler=st.sampled_from(SAMPLERS),
+    seed=st.integers(0, 2**31 - 1),
+    refine=st.integers(0, 2),
+    search=st.booleans(),
+    gain=st.floats(0.1, 20.0),
+    goal=st.tuples(st.floats(-45.0, 45.0), st.floats(45.0, 115.0)),
+)
+def test_any_plan_is_bounded_and_keeps_its_prediction_safe(
+    sampler: str, seed: int, refine: int, search: bool, gain: float, goal: tuple[float, float]
+) -> None:
+    config = PlannerConfig(
+        samples=64, horizon=8, sampler=sampler, refine_iterations=refine, horizon_search=search, seed=seed
+    )
+    result = Planner(Toy(gain=gain), BOX, config).plan(START, goal)
+    assert np.isfinite(result.actions).all() and (np.abs(result.actions) <= 1.0).all()
+    assert np.isfinite(result.predicted).all() and result.predicted.shape == (len(result.actions) + 1, 4)
+    assert BOX.allows(torch.as_tensor(result.predicted)).all()
+    assert result.ok == (result.error_mm <= config.tolerance_mm) and (result.status == "ok") == result.ok
+
+
+# --------------------------------------------------------------------- optimality on a linear model
+
+
+def test_finds_the_known_optimum_of_a_linear_model() -> None:
+    goal = (START[0] + 4.0, START[1] - 2.0)  # reachable in 10 steps, e.g. a = (0.4, -0.2) throughout
+    result = plan(Toy(), goal, samples=500, horizon=10, sampler="uniform", refine_iterations=6, tolerance_mm=0.2)
+    assert result.ok and result.status == "ok" and result.error_mm <= 0.2
+    assert np.linalg.norm(executed(result.actions) - goal) <= 0.2 + 1e-5
+    assert np.allclose(result.predicted[-1, 2:], START[2:])
+
+
+def test_discrete_sampler_finds_the_exact_sequence() -> None:
+    result = plan(Toy(), (START[0] + 2.0, START[1]), samples=200, horizon=2, sampler="discrete")
+    assert result.ok and result.error_mm < 1e-5
+    assert np.array_equal(result.actions, [[1.0, 0.0], [1.0, 0.0]])
+
+
+def test_piecewise_sequences_reach_far_goals_that_iid_actions_do_not() -> None:
+    goal = (START[0] + 25.0, START[1] + 5.0)
+    far = plan(Toy(), goal, samples=1000, horizon=30, sampler="piecewise", hold_steps=(10, 30), tolerance_mm=3.0)
+    iid = plan(Toy(), goal, samples=1000, horizon=30, sampler="uniform", tolerance_mm=3.0)
+    assert far.ok and np.linalg.norm(executed(far.actions) - goal) <= 3.0 + 1e-5
+    assert not iid.ok and iid.error_mm > far.error_mm
+
+
+def test_horizon_search_returns_the_shortest_reaching_prefix() -> None:
+    goal = (START[0] + 5.0, START[1])
+    result = plan(Toy(), goal, samples=1000, horizon=30, horizon_search=True, tolerance_mm=1.0)
+    assert result.ok and 5 <= len(result.actions) < 30  # |a| <= 1: at least 4 steps to come within 1 mm, 5 to pass 4 mm
+    dist = np.linalg.norm(result.predicted[1:, :2] - goal, axis=1)
+    assert dist[-1] <= 1.0 and (dist[:-1] > 1.0).all()
+    assert np.linalg.norm(executed(result.actions) - goal) <= 1.0 + 1e-5
+    assert len(plan(Toy(), goal, samples=1000, horizon=30, tolerance_mm=1.0).actions) == 30
+
+
+# ------------------------------------------------------------------------------ safety rejections
+
+
+def test_nan_predictions_are_rejected() -> None:
+    partial = plan(
+        Toy(nan_beyond=START[0] + 3.0), (START[0] + 2.5, START[1]), samples=400, horizon=10, tolerance_mm=1.0
+    )
+    assert partial.ok and partial.rejected["nan"] > 0 and np.isfinite(partial.predicted).all()
+    everywhere = plan(Toy(nan_beyond=-math.inf), (START[0] + 2.0, START[1]), samples=100, horizon=10)
+    assert not everywhere.ok and everywhere.status == "no_safe_sequence"
+    assert (
+        everywhere.rejected == {"nan": 100, "load": 0, "workspace": 0} and "100 predicted NaN/inf" in everywhere.reason
+    )
+    assert everywhere.actions.shape == (0, 2) and math.isinf(everywhere.error_mm)
+
+
+def test_leaving_the_workspace_is_rejected() -> None:
+    edge = Workspace.box(-50.0, START[0] + 3.0, 40.0, 120.0)
+    near_edge = plan(Toy(), (START[0] + 2.5, START[1]), edge, samples=400, horizon=10, tolerance_mm=1.0)
+    assert near_edge.ok and near_edge.rejected["workspace"] > 0
+    assert near_edge.predicted[:, 0].max() <= START[0] + 3.0
+    drifting = plan(Toy(drift=(5.0, 0.0)), (START[0] + 2.0, START[1]), edge, samples=100, horizon=10)
+    assert drifting.status == "no_safe_sequence" and drifting.rejected == {"nan": 0, "load": 0, "workspace": 100}
+
+
+def test_exceeding_the_load_limit_is_rejected() -> None:
+    result = plan(Toy(load_rate=30.0), (START[0] + 2.0, START[1]), samples=100, horizon=10)  # 100 + 30 t > 280 at t = 7
+    assert result.status == "no_safe_sequence" and result.rejected == {"nan": 0, "load": 100, "workspace": 0}
+    assert "100 over the load limit" in result.reason
+    short = plan(Toy(load_rate=30.0), (START[0] + 2.0, START[1]), samples=100, horizon=6, tolerance_mm=1.0)
+    assert short.ok and np.abs(short.predicted[:, 2:]).max() <= 280.0
+    strict = Workspace(BOX.lower, BOX.upper, load_limit=150.0)
+    assert plan(Toy(load_rate=30.0), (START[0] + 2.0, START[1]), strict, samples=100, horizon=6).rejected["load"] == 100
+
+
+def test_unreachable_goal_is_reported_with_its_predicted_error() -> None:
+    result = plan(Toy(), (START[0] + 40.0, START[1]), samples=500, horizon=10, sampler="piecewise")
+    assert not result.ok and result.status == "unreachable"
+    assert 30.0 <= result.error_mm < 32.0  # at most 10 mm of travel towards a goal 40 mm away
+    assert f"{result.error_mm:.2f} mm" in result.reason
+    assert result.actions.shape == (10, 2)  # the best safe attempt is still returned
+
+
+def test_start_or_goal_outside_the_workspace_and_bad_input() -> None:
+    outside = plan(Toy(), (START[0] + 60.0, START[1]), samples=10, horizon=5)
+    assert outside.status == "goal_outside_workspace" and outside.evaluated == 0
+    tight = Workspace.box(10.0, 20.0, 40.0, 120.0)
+    assert plan(Toy(), (15.0, 80.0), tight, samples=10, horizon=5).status == "start_outside_workspace"
+    with pytest.raises(ValueError, match="goal must be 2 finite"):
+        plan(Toy(), (math.nan, 80.0), samples=10, horizon=5)
+    with pytest.raises(ValueError, match="state must be 4"):
+        Planner(Toy(), BOX).plan(START[:3], (0.0, 80.0))
+    with pytest.raises(ValueError, match="sampler"):
+        PlannerConfig(sampler="gaussian")
+
+
+# ------------------------------------------------------------------------------ fast path, chunking
+
+
+@pytest.mark.parametrize("grasp_input", [False, True])
+def test_fused_rollout_equals_the_generic_rollout(grasp_input: bool) -> None:
+    torch.manual_seed(1)
+    model = TransitionModel(hand_norm(), grasp_input=grasp_input)
+    x0 = torch.tensor(START, dtype=torch.float32) + torch.randn(64, 4) * torch.tensor([10.0, 10.0, 20.0, 20.0])
+    actions = torch.rand(64, 50, 2) * 2 - 1
+    torch.testing.assert_close(FusedRollout(model)(x0, actions), model.rollout(x0, actions), rtol=1e-4, atol=1e-4)
+    residual = CumulativeResidualModel(model, TransitionModel(hand_norm()), 0.3, 0.99)
+    assert is_paper_mlp(model) and not is_paper_mlp(residual)
+    generic = make_rollout(residual)(x0, actions)
+    assert torch.equal(generic.transpose(0, 1), residual.rollout(x0, actions))
+
+
+def test_fast_and_generic_paths_choose_the_same_plan() -> None:
+    torch.manual_seed(2)
+    model = TransitionModel(hand_norm())
+    workspace = Workspace.box(-60, 60, 30, 130)
+    fast, slow = (
+        Planner(model, workspace, PlannerConfig(samples=300, horizon=20, fast_path=f)).plan(START, (2.0, 79.0))
+        for f in (True, False)
+    )
+    assert np.array_equal(fast.actions, slow.actions)
+    assert fast.error_mm == pytest.approx(slow.error_mm, abs=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["toy", "transition"])
+def test_chunking_gives_the_same_plan_as_one_batch(kind: str) -> None:
+    torch.manual_seed(3)
+    model = Toy(load_rate=8.0) if kind == "toy" else TransitionModel(hand_norm())
+    config = {"samples": 200, "horizon": 20, "horizon_search": True, "refine_iterations": 1, "tolerance_mm": 0.5}
+    whole, chunked = (
+        Planner(model, Workspace.box(-60, 60, 30, 130), PlannerConfig(chunk=c, **config)).plan(START, (3.0, 77.0))  # type: ignore[arg-type]
+        for c in (200, 7)
+    )
+    assert np.array_equal(whole.actions, chunked.actions) and whole.status == chunked.status
+    assert whole.error_mm == pytest.approx(chunked.error_mm, abs=1e-5)
+    assert whole.rejected == chunked.rejected and whole.evaluated == chunked.evaluated == 200 + 190
+
+
+# ------------------------------------------------------------------------------------ workspace
+
+
+def test_workspace_contains_its_states_and_round_trips() -> None:
+    rng = np.random.default_rng(0)
+    states = np.column_stack([rng.normal(0, 10, 500), rng.normal(80, 8, 500), rng.normal(100, 20, (500, 2))])
+    ws = Workspace.from_states(states, margin_mm=2.0)
+    assert ws.contains_xy(torch.as_tensor(states[:, :2])).all()
+    x_min, x_max, y_min, y_max = ws.bounds()
+    assert x_min == pytest.approx(states[:, 0].min() - 2.0) and y_max == pytest.approx(states[:, 1].max() + 2.0)
+    corner = torch.tensor([[x_max - 0.1, y_max - 0.1]], dtype=torch.float64)  # inside the box, outside the hull
+    assert not ws.contains_xy(corner).any() and Workspace.box(x_min, x_max, y_min, y_max).contains_xy(corner).all()
+    assert not ws.contains_xy(torch.tensor([[math.nan, 80.0], [math.inf, 80.0]])).any()
+    again = Workspace.from_metadata({"extra": {"workspace": json.loads(json.dumps(ws.to_dict()))}})
+    assert again is not None and np.array_equal(again.lower, ws.lower) and again.load_limit == ws.load_limit
+    assert Workspace.from_metadata({"extra": {}}) is None
+    with pytest.raises(ValueError, match="even number"):
+        Workspace(np.zeros(3), np.ones(3))
+
+
+# ------------------------------------------------------------------------------------------ CLI
+
+
+def test_cli_plan_writes_json_csv_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    torch.manual_seed(4)
+    workspace = Workspace.box(-60, 60, 30, 130)
+    path = save_model(
+        TransitionModel(hand_norm()),
+        tmp_path / "m.safetensors",
+        method="new_model",
+        extra={"workspace": workspace.to_dict()},
+    )
+
+    def argv(goal_y: str, tolerance: str, out: str) -> list[str]:
+        return [
+            "plan",
+            str(path),
+            "--start",
+            *map(str, START),
+            "--goal",
+            "1",
+            goal_y,
+            "--horizon",
+            "10",
+            "--samples",
+            "200",
+            "--sampler",
+            "uniform",
+            "--tolerance",
+            tolerance,
+            "--out",
+            str(tmp_path / out),
+        ]
+
+    assert main(argv("79", "50", "out")) == 0
+    record = json.loads((tmp_path / "out" / "plan.json").read_text())
+    assert record["plan"]["ok"] and len(record["plan"]["actions"]) == 10 and record["config"]["samples"] == 200
+    rows = (tmp_path / "out" / "plan.csv").read_text().splitlines()
+    assert rows[0].startswith("step,action1,action2,predicted_x_mm") and len(rows) == 12
+    assert (tmp_path / "out" / "plan.png").stat().st_size > 0
+    assert main(argv("125", "1", "far")) == 1  # a random model does not travel 45 mm in 10 steps
+    assert "unreachable" in capsys.readouterr().err
+    assert json.loads((tmp_path / "far" / "plan.json").read_text())["plan"]["status"] == "unreachable"
+    bare = save_model(TransitionModel(hand_norm()), tmp_path / "bare.safetensors", method="new_model")
+    assert (
+        main(["plan", str(bare), "--start", *map(str, START), "--goal", "1", "79", "--out", str(tmp_path / "x")]) == 2
+    )
+    assert "--workspace" in capsys.readouterr().err
