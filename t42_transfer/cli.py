@@ -135,6 +135,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 1
 
 
+def _cmd_peg_in_hole(args: argparse.Namespace) -> int:
+    from t42_transfer.planning import peg_in_hole
+
+    return peg_in_hole.main([a for a in args.rest if a != "--"] or ["--help"])
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from t42_transfer.demo import run_demo
 
@@ -197,6 +203,13 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--out", type=Path, required=True, help="directory for plan.json, plan.csv, plan.png")
     plan.set_defaults(func=_cmd_plan)
 
+    peg = commands.add_parser(
+        "peg-in-hole", help="plan with saved models, execute open loop on the simulated target hand, success vs distance",
+        add_help=False,
+    )
+    peg.add_argument("rest", nargs=argparse.REMAINDER, help="arguments of the evaluation (see `t42 peg-in-hole --help`)")
+    peg.set_defaults(func=_cmd_peg_in_hole)
+
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
     col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
     col.add_argument("--hand", default="source", help="source, target or family-<seed> (default source)")
@@ -234,6 +247,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     from t42_transfer.data.errors import DataFileError
 
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["peg-in-hole"]:
+        # Its own parser (shared with the module entry point) takes every argument, --help included.
+        argv = ["peg-in-hole", "--", *argv[1:]] if argv[1:] else argv
     parser = build_parser()
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)

@@ -105,7 +105,13 @@ def _transfer_story(run_dir: Path, size: DemoSize) -> list[dict]:
     source, report = train_transition_model(
         source_data, TrainConfig(epochs=size.source_epochs), desc="source model"
     )
-    save_model(source, run_dir / "models" / "source.safetensors", method="source", data={"source": source_data.fingerprint()})
+    from t42_transfer.planning.workspace import Workspace
+
+    extra = {"workspace": Workspace.from_trajectories(source_data).to_dict()}
+    save_model(
+        source, run_dir / "models" / "source.safetensors", method="source", data={"source": source_data.fingerprint()},
+        extra=extra,
+    )
     given = target_data.subset(range(size.transfer_episodes))
     test = target_data.subset(range(size.transfer_episodes, len(target_data)))
     print(
@@ -118,7 +124,10 @@ def _transfer_story(run_dir: Path, size: DemoSize) -> list[dict]:
         model = transfer(method, source, given, seed=0)
         seconds = time.perf_counter() - start
         result = evaluate_model(model, test)
-        path = save_model(model, run_dir / "models" / f"{method}.safetensors", method=method, data={"target": given.fingerprint()})
+        path = save_model(
+            model, run_dir / "models" / f"{method}.safetensors", method=method, data={"target": given.fingerprint()},
+            extra=extra,
+        )
         scores.append({
             "method": method, "divergence_steps": result["divergence_mean"], "position_mse_mm2": result["position_mse_mean"],
             "seconds": seconds, "model": str(path),

@@ -100,3 +100,16 @@ def test_results_json_holds_the_config(config_file: Path, tmp_path: Path) -> Non
     content = json.loads((tmp_path / "tiny" / "results.json").read_text())
     assert content["config"]["split"] == "paths" and len(content["rows"]) == 1
     assert load_config(tmp_path / "tiny" / "config.yaml") == cfg
+
+
+def test_cell_models_store_the_planning_workspace(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    from t42_transfer.models.checkpoint import read_metadata
+    from t42_transfer.planning.workspace import Workspace
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=1)
+    run_experiment(cfg, tmp_path, progress=False)
+    (model_file,) = (tmp_path / "tiny" / "models").glob("*.safetensors")
+    workspace = Workspace.from_metadata(read_metadata(model_file))
+    assert workspace is not None and workspace.load_limit == 280.0

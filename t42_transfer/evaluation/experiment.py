@@ -231,8 +231,8 @@ def _score(model, train: TrajectorySet, test: TrajectorySet, cfg: ExperimentConf
 _WORKER: dict[str, Any] = {}
 
 
-def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path]) -> dict[str, Any]:
-    cfg, cell, run_dir, source_path = args
+def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -> dict[str, Any]:
+    cfg, cell, run_dir, source_path, workspace = args
     torch.set_num_threads(1)
     if "source" not in _WORKER:
         _WORKER["source"] = load_model(source_path)[0]
@@ -248,7 +248,8 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path]) -> dict[str, Any]
     row.update(_score(model, train, test, cfg))
     row["seconds"] = time.perf_counter() - start
     save_model(model, run_dir / "models" / f"{_cell_key(cfg, cell, source_path)}.safetensors", method=cell.method,
-               hyperparameters=dataclasses.asdict(cfg.transfer), data={"target_train": train.fingerprint()})
+               hyperparameters=dataclasses.asdict(cfg.transfer), data={"target_train": train.fingerprint()},
+               extra={"workspace": workspace})
     return row
 
 
@@ -307,7 +308,11 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
             todo.append(cell)
     workers = cfg.workers or os.cpu_count() or 1
     bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell", disable=not progress)
-    tasks = [(cfg, c, run_dir, source_path) for c in todo]
+    # The planner keeps predictions inside the states these models were trained on.
+    from t42_transfer.planning.workspace import Workspace
+
+    workspace = Workspace.from_trajectories(load_data(cfg.source, data_cache(run_dir))).to_dict() if todo else {}
+    tasks = [(cfg, c, run_dir, source_path, workspace) for c in todo]
 
     def keep(cell: Cell, row: dict[str, Any]) -> None:
         rows[cell] = row

@@ -12,7 +12,7 @@ object or stop on overload.  Plans the planner refuses (no safe sequence) count
 as failures; a plan predicted to miss (``unreachable``) is still executed, since
 only the true hand decides success.
 
-    python -m t42_transfer.planning.peg_in_hole runs/x/models/*.safetensors \\
+    t42 peg-in-hole runs/x/models/*.safetensors \\
         --workspace bags/source_small bags/target_small --out docs/peg_in_hole
 """
 
@@ -237,26 +237,29 @@ def plot_success(rows: Sequence[Row], path: Path, tolerance_mm: float | None = N
     return path
 
 
-def load_models(paths: Sequence[str]) -> dict[str, LatentDynamics]:
-    """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``."""
+def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], Workspace | None]:
+    """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``, and the
+    workspace the first of them stores (None when it stores none)."""
     from t42_transfer.models.checkpoint import load_model
 
-    models = {}
+    models, workspace = {}, None
     for spec in paths:
         name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
-        models[name or Path(file).stem] = load_model(file)[0]
-    return models
+        models[name or Path(file).stem], meta = load_model(file)
+        workspace = workspace or Workspace.from_metadata(meta)
+    return models, workspace
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     from t42_transfer.data.bag_io import read_bag
 
     parser = argparse.ArgumentParser(
-        prog="python -m t42_transfer.planning.peg_in_hole", description=__doc__.splitlines()[0]
+        prog="t42 peg-in-hole", description=__doc__.splitlines()[0]
     )
     parser.add_argument("models", nargs="+", help="model files, PATH or NAME=PATH")
     parser.add_argument(
-        "--workspace", nargs="+", type=Path, required=True, help="bags whose states define the trained workspace"
+        "--workspace", nargs="+", type=Path, default=None,
+        help="bags whose states define the trained workspace (default: the one the first model file stores)"
     )
     parser.add_argument("--out", type=Path, required=True, help="directory for peg_in_hole.{json,md,png}")
     parser.add_argument("--distances", nargs="+", type=int, default=list(PegInHoleConfig.distances))
@@ -271,12 +274,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
+    models, stored = load_models(args.models)
+    if args.workspace:
+        workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
+    elif stored is not None:
+        workspace = stored
+    else:
+        parser.error(f"{args.models[0]} stores no workspace: pass --workspace BAG ... (the models' training data)")
     planner = replace(PegInHoleConfig().planner, samples=args.samples, horizon=args.horizon)
     cfg = PegInHoleConfig(
         tuple(args.distances), args.trials, args.tolerance, args.hand, planner=planner, seed=args.seed
     )
-    rows, trials = evaluate(load_models(args.models), workspace, cfg, progress=not args.quiet)
+    rows, trials = evaluate(models, workspace, cfg, progress=not args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)
     report = {
         "command": shlex.join([*parser.prog.split(), *(sys.argv[1:] if argv is None else argv)]),
