@@ -97,6 +97,8 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
 
     source = train_source(cfg, run_dir, progress=False)  # cached: finds the experiment's source model
     target = load_data(cfg.target, data_cache(run_dir))
+    # Cell keys hash the amount as the config spells it (1 and 1.0 differ).
+    amount = next((a for a in cfg.amounts if float(a) == float(amount)), amount)
     cols = min(4, len(cfg.methods))
     rows = -(-len(cfg.methods) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
