@@ -14,6 +14,8 @@ import argparse
 import json
 import os
 import platform
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -77,6 +79,8 @@ def main() -> None:
     transitions = sum(r["transitions"] for r in runs.values())
     result = {
         "benchmark": "collect",
+        "command": shlex.join(["python", *sys.argv]),
+        "load_average_at_end": os.getloadavg(),
         "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "mujoco": mujoco.__version__},
         "control_steps_per_s_per_core": per_core,
         "baseline_bare_physics_steps_per_s": bare,
