@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shlex
 import statistics
 import sys
@@ -41,16 +40,10 @@ from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.training import TrainConfig
 from t42_transfer.transfer.methods import METHODS, transfer
 
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
+
 RESULTS = Path(__file__).parent / "results" / "cell.json"
 
-
-def machine_info() -> dict:
-    return {
-        "cpus": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-    }
 
 
 def main() -> None:

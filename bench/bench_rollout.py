@@ -35,7 +35,6 @@ import argparse
 import copy
 import json
 import os
-import platform
 import shlex
 import statistics
 import sys
@@ -47,6 +46,8 @@ import torch
 from torch import nn
 
 from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normalisation, RecurrentResidualModel, TransitionModel
+
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
 RESULTS = Path(__file__).parent / "results" / "rollout.json"
 
@@ -60,15 +61,6 @@ METHOD_KIND = {
     "recurrent_residual": "recurrent_residual",
 }
 
-
-def machine_info() -> dict:
-    return {
-        "cpus": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-    }
 
 
 def norm() -> Normalisation:

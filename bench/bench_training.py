@@ -34,7 +34,6 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
 import shlex
 import statistics
 import sys
@@ -57,17 +56,10 @@ from t42_transfer.models.training import (
 from t42_transfer.transfer.config import TrajectoryFineTuneConfig, TransferConfig
 from t42_transfer.transfer.methods import METHODS
 
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
+
 RESULTS = Path(__file__).parent / "results" / "training.json"
 
-
-def machine_info() -> dict:
-    return {
-        "cpus": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
-    }
 
 
 def alternate(fns: list, repeats: int, budget_s: float) -> list[list]:  # type: ignore[type-arg]
