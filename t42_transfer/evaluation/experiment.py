@@ -26,9 +26,9 @@ import torch
 import yaml
 
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
-from t42_transfer.data.trajectory import TrajectorySet, split_by_fraction
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet, split_by_fraction
 from t42_transfer.models.checkpoint import load_model, save_model
-from t42_transfer.models.network import TransitionModel
+from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import TrainConfig, train_transition_model
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS, transfer
@@ -173,7 +173,8 @@ def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
     return data
 
 
-def _mirror(traj):  # type: ignore[no-untyped-def]
+def _mirror(traj: Trajectory) -> Trajectory:
+    """The same episode seen in a mirror: x negated (the real hands A and B are mirror images)."""
     states = traj.states.copy()
     states[:, 0] = -states[:, 0]
     return dataclasses.replace(traj, states=states)
@@ -204,7 +205,7 @@ def _target_split(cfg: ExperimentConfig, target: TrajectorySet, cell: Cell) -> t
     raise ValueError(f"split must be 'fraction' or 'paths', got {cfg.split!r}")
 
 
-def _score(model, train: TrajectorySet, test: TrajectorySet, cfg: ExperimentConfig) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+def _score(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet, cfg: ExperimentConfig) -> dict[str, Any]:
     from t42_transfer.evaluation.lyapunov import model_lyapunov
     from t42_transfer.evaluation.metrics import covering_radius, evaluate_model, max_training_error
 
