@@ -87,7 +87,7 @@ def _build(cls: type, values: dict[str, Any]) -> Any:
         raise ValueError(f"unknown {cls.__name__} settings {unknown}; known: {sorted(fields)}")
     kwargs = {}
     for key, value in values.items():
-        default = getattr(cls(), key) if key not in ("name", "source", "target") else None
+        default = getattr(cls(), key)
         if dataclasses.is_dataclass(default) and isinstance(value, dict):
             kwargs[key] = _build(type(default), value)
         elif isinstance(value, list):
