@@ -1,0 +1,139 @@
+"""The one interface ROS nodes in this project are written against.
+
+Backends (in-process for tests; rclpy or Cyclone DDS for the robot) implement
+:class:`Transport`.  Messages are rosbags Jazzy typestore objects and travel as CDR
+bytes (XCDR1, little endian, header ``00 01 00 00``); :func:`serialize` and
+:func:`deserialize` are the only place that converts between the two.  Service
+request/response types resolve through :func:`t42_transfer.ros.naming.typestore_for`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from abc import ABC, abstractmethod
+from typing import Any, Callable
+
+from t42_transfer.ros.naming import request_type, response_type, typestore_for
+from t42_transfer.ros.qos import DEFAULT, QoSProfile
+
+Callback = Callable[[Any], None]
+
+
+def serialize(msgtype: str, msg: Any) -> bytes:
+    """CDR bytes of ``msg`` (a typestore object of ``msgtype``)."""
+    actual = getattr(msg, "__msgtype__", None)
+    if actual != msgtype:
+        raise TypeError(f"expected a {msgtype} message, got {actual or type(msg).__name__}")
+    return bytes(typestore_for(msgtype).serialize_cdr(msg, msgtype))
+
+
+def deserialize(msgtype: str, data: bytes | bytearray | memoryview) -> Any:
+    """Typestore object of ``msgtype`` from CDR bytes."""
+    return typestore_for(msgtype).deserialize_cdr(bytes(data), msgtype)
+
+
+def message_class(typename: str) -> Any:
+    """The typestore class of a message, service request or service response type."""
+    return typestore_for(typename).types[typename]
+
+
+def service_classes(srvtype: str) -> tuple[Any, Any]:
+    """(request class, response class) of ``srvtype``, e.g. ``std_srvs/srv/Trigger``."""
+    return message_class(request_type(srvtype)), message_class(response_type(srvtype))
+
+
+class Publisher(ABC):
+    """Publishes on one topic; :meth:`publish` serialises, :meth:`publish_raw` sends CDR bytes as is."""
+
+    def __init__(self, topic: str, msgtype: str, qos: QoSProfile) -> None:
+        self.topic, self.msgtype, self.qos = topic, msgtype, qos
+
+    def publish(self, msg: Any) -> None:
+        self.publish_raw(serialize(self.msgtype, msg))
+
+    @abstractmethod
+    def publish_raw(self, data: bytes) -> None: ...
+
+
+class Client(ABC):
+    """Calls one service."""
+
+    def __init__(self, name: str, srvtype: str) -> None:
+        self.name, self.srvtype = name, srvtype
+        self.Request, self.Response = service_classes(srvtype)
+
+    @abstractmethod
+    def service_is_ready(self) -> bool: ...
+
+    @abstractmethod
+    def call(self, request: Any, timeout_s: float = 5.0) -> Any:
+        """The response; TimeoutError when none arrives within ``timeout_s``."""
+
+
+class Timer(ABC):
+    @abstractmethod
+    def cancel(self) -> None: ...
+
+
+class Transport(ABC):
+    """A node's connection to the ROS graph; callbacks run inside :meth:`spin_once`."""
+
+    def __init__(self, node_name: str) -> None:
+        self.node_name = node_name
+        self._closed = False
+        self.logger = logging.getLogger(f"t42_transfer.ros.{node_name}")
+
+    @abstractmethod
+    def publisher(self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT) -> Publisher: ...
+
+    @abstractmethod
+    def subscribe(
+        self, topic: str, msgtype: str, qos: QoSProfile, callback: Callback, raw: bool = False
+    ) -> None:
+        """``callback(msg)`` per message; with ``raw=True`` it gets the CDR bytes."""
+
+    @abstractmethod
+    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
+        """Serve ``name``: ``handler(request) -> response`` (typestore objects)."""
+
+    @abstractmethod
+    def client(self, name: str, srvtype: str) -> Client: ...
+
+    @abstractmethod
+    def timer(self, period_s: float, callback: Callable[[], None]) -> Timer: ...
+
+    @abstractmethod
+    def now_ns(self) -> int:
+        """The node's clock (ROS time) in nanoseconds."""
+
+    @abstractmethod
+    def spin_once(self, timeout_s: float = 0.0) -> int:
+        """Run ready callbacks, waiting up to ``timeout_s`` for one; returns how many ran."""
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> bool:
+        """Spin until ``until()`` is true, the transport closes or ``timeout_s`` (wall) passes.
+
+        Returns whether ``until`` became true (always False without one).
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self.closed:
+            if until is not None and until():
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            self.spin_once(0.05)
+        return False
+
+    def __enter__(self) -> "Transport":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
