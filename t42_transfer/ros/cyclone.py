@@ -48,7 +48,7 @@ from t42_transfer.ros.naming import (
     validate_node_name,
 )
 from t42_transfer.ros.qos import DEFAULT, Durability, History, QoSProfile, Reliability
-from t42_transfer.ros.transport import Callback, Client, Publisher, Timer, Transport, deserialize
+from t42_transfer.ros.transport import Callback, Client, PeriodicTimer, Publisher, Transport, deserialize
 
 ENCLAVE_USER_DATA = b"enclave=/;"
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
@@ -168,23 +168,6 @@ class _Subscription:
         self.callback(data if self.raw else deserialize(self.msgtype, data))
 
 
-class CycloneTimer(Timer):
-    def __init__(self, period_ns: int, callback: Callable[[], None], now_ns: int) -> None:
-        self.period_ns, self.callback = period_ns, callback
-        self.next_due_ns = now_ns + period_ns
-        self.cancelled = False
-
-    def cancel(self) -> None:
-        self.cancelled = True
-
-    def take_if_due(self, now_ns: int) -> bool:
-        if self.cancelled or now_ns < self.next_due_ns:
-            return False
-        missed = (now_ns - self.next_due_ns) // self.period_ns
-        self.next_due_ns += (missed + 1) * self.period_ns
-        return True
-
-
 class CycloneTransport(Transport):
     """One ROS node = one DDS participant on ``domain_id`` (default ``ROS_DOMAIN_ID`` or 0)."""
 
@@ -197,7 +180,7 @@ class CycloneTransport(Transport):
         self._topics: dict[str, tuple[str, Topic]] = {}
         self._publishers: list[CyclonePublisher] = []
         self._subscriptions: list[_Subscription] = []
-        self._timers: list[CycloneTimer] = []
+        self._timers: list[PeriodicTimer] = []
 
     def _check_open(self) -> None:
         if self._closed:
@@ -236,12 +219,12 @@ class CycloneTransport(Transport):
     def client(self, name: str, srvtype: str) -> Client:
         raise NotImplementedError("services are not implemented in the Cyclone backend yet")
 
-    def timer(self, period_s: float, callback: Callable[[], None]) -> CycloneTimer:
+    def timer(self, period_s: float, callback: Callable[[], None]) -> PeriodicTimer:
         self._check_open()
         period_ns = round(period_s * 1e9)
         if period_ns <= 0:
             raise ValueError(f"timer period must be positive, got {period_s} s")
-        timer = CycloneTimer(period_ns, callback, self.now_ns())
+        timer = PeriodicTimer(period_ns, callback, self.now_ns())
         self._timers.append(timer)
         return timer
 

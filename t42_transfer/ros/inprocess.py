@@ -33,8 +33,8 @@ from t42_transfer.ros.qos import DEFAULT, Durability, History, QoSProfile
 from t42_transfer.ros.transport import (
     Callback,
     Client,
+    PeriodicTimer,
     Publisher,
-    Timer,
     Transport,
     deserialize,
     message_class,
@@ -142,24 +142,6 @@ class InProcessClient(Client):
         return deserialize(response_type(srvtype), serialize(response_type(srvtype), response))
 
 
-class InProcessTimer(Timer):
-    def __init__(self, period_ns: int, callback: Callable[[], None], now_ns: int) -> None:
-        self.period_ns, self.callback = period_ns, callback
-        self.next_due_ns = now_ns + period_ns
-        self.cancelled = False
-
-    def cancel(self) -> None:
-        self.cancelled = True
-
-    def take_if_due(self, now_ns: int) -> bool:
-        """Whether it is due; if so schedules the next period after ``now_ns`` (missed ones are skipped, as rcl does)."""
-        if self.cancelled or now_ns < self.next_due_ns:
-            return False
-        missed = (now_ns - self.next_due_ns) // self.period_ns
-        self.next_due_ns += (missed + 1) * self.period_ns
-        return True
-
-
 class InProcessTransport(Transport):
     """One node on an :class:`InProcessBus`."""
 
@@ -169,7 +151,7 @@ class InProcessTransport(Transport):
         self._publishers: list[InProcessPublisher] = []
         self._subscriptions: list[_Subscription] = []
         self._services: list[str] = []
-        self._timers: list[InProcessTimer] = []
+        self._timers: list[PeriodicTimer] = []
 
     def _check_open(self) -> None:
         if self._closed:
@@ -226,12 +208,12 @@ class InProcessTransport(Transport):
         validate_name(name, "service")
         return InProcessClient(self, name, srvtype)
 
-    def timer(self, period_s: float, callback: Callable[[], None]) -> InProcessTimer:
+    def timer(self, period_s: float, callback: Callable[[], None]) -> PeriodicTimer:
         self._check_open()
         period_ns = round(period_s * 1e9)
         if period_ns <= 0:
             raise ValueError(f"timer period must be positive, got {period_s} s")
-        timer = InProcessTimer(period_ns, callback, self.now_ns())
+        timer = PeriodicTimer(period_ns, callback, self.now_ns())
         self._timers.append(timer)
         return timer
 

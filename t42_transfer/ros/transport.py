@@ -76,6 +76,26 @@ class Timer(ABC):
     def cancel(self) -> None: ...
 
 
+class PeriodicTimer(Timer):
+    """A timer a backend polls from its spin loop against its own clock."""
+
+    def __init__(self, period_ns: int, callback: Callable[[], None], now_ns: int) -> None:
+        self.period_ns, self.callback = period_ns, callback
+        self.next_due_ns = now_ns + period_ns
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+    def take_if_due(self, now_ns: int) -> bool:
+        """Whether it is due; if so schedules the next period after ``now_ns`` (missed ones are skipped, as rcl does)."""
+        if self.cancelled or now_ns < self.next_due_ns:
+            return False
+        missed = (now_ns - self.next_due_ns) // self.period_ns
+        self.next_due_ns += (missed + 1) * self.period_ns
+        return True
+
+
 class Transport(ABC):
     """A node's connection to the ROS graph; callbacks run inside :meth:`spin_once`."""
 
