@@ -48,7 +48,7 @@ from t42_transfer.ros.naming import (
     validate_node_name,
 )
 from t42_transfer.ros.qos import DEFAULT, Durability, History, QoSProfile, Reliability
-from t42_transfer.ros.transport import Callback, Client, PeriodicTimer, Publisher, Transport, deserialize
+from t42_transfer.ros.transport import Callback, Client, Publisher, Transport, deserialize
 
 ENCLAVE_USER_DATA = b"enclave=/;"
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
@@ -180,11 +180,6 @@ class CycloneTransport(Transport):
         self._topics: dict[str, tuple[str, Topic]] = {}
         self._publishers: list[CyclonePublisher] = []
         self._subscriptions: list[_Subscription] = []
-        self._timers: list[PeriodicTimer] = []
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise RuntimeError(f"node {self.node_name} is closed")
 
     def _topic(self, topic: str, msgtype: str) -> Topic:
         name = dds_topic(topic)
@@ -218,15 +213,6 @@ class CycloneTransport(Transport):
 
     def client(self, name: str, srvtype: str) -> Client:
         raise NotImplementedError("services are not implemented in the Cyclone backend yet")
-
-    def timer(self, period_s: float, callback: Callable[[], None]) -> PeriodicTimer:
-        self._check_open()
-        period_ns = round(period_s * 1e9)
-        if period_ns <= 0:
-            raise ValueError(f"timer period must be positive, got {period_s} s")
-        timer = PeriodicTimer(period_ns, callback, self.now_ns())
-        self._timers.append(timer)
-        return timer
 
     def now_ns(self) -> int:
         return time.time_ns()

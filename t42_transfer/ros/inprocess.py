@@ -33,7 +33,6 @@ from t42_transfer.ros.qos import DEFAULT, Durability, History, QoSProfile
 from t42_transfer.ros.transport import (
     Callback,
     Client,
-    PeriodicTimer,
     Publisher,
     Transport,
     deserialize,
@@ -151,11 +150,6 @@ class InProcessTransport(Transport):
         self._publishers: list[InProcessPublisher] = []
         self._subscriptions: list[_Subscription] = []
         self._services: list[str] = []
-        self._timers: list[PeriodicTimer] = []
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise RuntimeError(f"node {self.node_name} is closed")
 
     def _warn_unmatched(self, pub: InProcessPublisher, sub: _Subscription) -> None:
         if not pub.qos.compatible_with(sub.qos):
@@ -207,15 +201,6 @@ class InProcessTransport(Transport):
         self._check_open()
         validate_name(name, "service")
         return InProcessClient(self, name, srvtype)
-
-    def timer(self, period_s: float, callback: Callable[[], None]) -> PeriodicTimer:
-        self._check_open()
-        period_ns = round(period_s * 1e9)
-        if period_ns <= 0:
-            raise ValueError(f"timer period must be positive, got {period_s} s")
-        timer = PeriodicTimer(period_ns, callback, self.now_ns())
-        self._timers.append(timer)
-        return timer
 
     def now_ns(self) -> int:
         return int(self.bus.clock())

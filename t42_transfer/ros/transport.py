@@ -102,7 +102,12 @@ class Transport(ABC):
     def __init__(self, node_name: str) -> None:
         self.node_name = node_name
         self._closed = False
+        self._timers: list[PeriodicTimer] = []
         self.logger = logging.getLogger(f"t42_transfer.ros.{node_name}")
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError(f"node {self.node_name} is closed")
 
     @abstractmethod
     def publisher(self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT) -> Publisher: ...
@@ -120,8 +125,15 @@ class Transport(ABC):
     @abstractmethod
     def client(self, name: str, srvtype: str) -> Client: ...
 
-    @abstractmethod
-    def timer(self, period_s: float, callback: Callable[[], None]) -> Timer: ...
+    def timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
+        """``callback()`` every ``period_s`` of :meth:`now_ns`, run by the backend's spin loop."""
+        self._check_open()
+        period_ns = round(period_s * 1e9)
+        if period_ns <= 0:
+            raise ValueError(f"timer period must be positive, got {period_s} s")
+        timer = PeriodicTimer(period_ns, callback, self.now_ns())
+        self._timers.append(timer)
+        return timer
 
     @abstractmethod
     def now_ns(self) -> int:
