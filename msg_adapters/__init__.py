@@ -20,6 +20,7 @@ from msg_adapters.hand import (
     object_xy_mm,
     stamp_to_ns,
 )
+from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 
 __all__ = [
     "APPLIED_ACTION_TOPIC",
@@ -40,4 +41,10 @@ __all__ = [
     "object_pose_msg",
     "object_xy_mm",
     "stamp_to_ns",
+    "PATH",
+    "POINT_STAMPED",
+    "goal_msg",
+    "goal_xy_mm",
+    "path_msg",
+    "path_xy_mm",
 ]
