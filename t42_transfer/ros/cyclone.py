@@ -18,14 +18,35 @@ no peers (this process only); ``SYSTEM_DEFAULT`` -> only ``CYCLONEDDS_URI``.  A
 is ``domain_id``, else ``ROS_DOMAIN_ID``, else 0.  Cyclone configures a domain once
 per process: the first transport on a domain id fixes its configuration.
 
-Callbacks and timers run in :meth:`CycloneTransport.spin_once`.  Services are not
-implemented yet (:meth:`CycloneTransport.service` / :meth:`client` raise
-NotImplementedError).
+Callbacks, timers and service requests run in :meth:`CycloneTransport.spin_once`.
+
+Services follow rmw_cyclonedds_cpp: requests on ``rq<name>Request``, replies on
+``rr<name>Reply``; every sample is the 4-byte encapsulation header, ``{uint64 guid;
+int64 seq}`` (:func:`pack_service_sample`), then the CDR body of the request/response.
+The guid is the client's request-writer instance handle (as rmw's ``pubiid``); the
+server echoes guid and seq, and a client keeps only replies carrying its guid and a
+sequence number it waits for.  The topic types are
+:func:`~t42_transfer.ros.dds_types.dds_service_class`: that header and the body
+fields under rmw's type name (``pkg::srv::dds_::Name_Request_``), so the XTypes type
+information we send describes the actual bytes; rmw_cyclonedds_cpp sends none and
+matches by name.  Service endpoints carry ``serviceid=...;`` / ``clientid=...;`` in
+USER_DATA, which pairs each client's reader with its writer: a server waits up to
+100 ms for the reply reader of the requesting client before replying, and a client
+is ready when a matched request reader and reply writer share a ``serviceid``.
+:meth:`CycloneClient.call` blocks on its own reply reader, so it needs nobody to spin
+the client's node and works from any thread.  A handler that raises is logged and
+the request gets no reply, so the client times out (rclpy would let the exception
+end the spin; a node here keeps serving).
+
+Every node announces itself and its endpoints' GIDs on ``ros_discovery_info``
+(:mod:`t42_transfer.ros.graph`), so ``ros2 node list`` sees it.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
+import struct
 import threading
 import time
 from typing import Any, Callable
@@ -39,16 +60,21 @@ from cyclonedds.util import duration
 
 from cyclonedds._clayer import ddspy_take, ddspy_write  # raw CDR paths used by DataWriter/DataReader
 
-from t42_transfer.ros.dds_types import dds_class
+from t42_transfer.ros.dds_types import dds_class, dds_service_class
+from t42_transfer.ros.graph import ParticipantInfoWriter, gid
 from t42_transfer.ros.naming import (
+    dds_reply_topic,
+    dds_request_topic,
     dds_topic,
     dds_type_name,
+    request_type,
+    response_type,
     user_data_typehash,
     validate_name,
     validate_node_name,
 )
-from t42_transfer.ros.qos import DEFAULT, Durability, History, QoSProfile, Reliability
-from t42_transfer.ros.transport import Callback, Client, Publisher, Transport, deserialize
+from t42_transfer.ros.qos import DEFAULT, SERVICES_DEFAULT, Durability, History, QoSProfile, Reliability
+from t42_transfer.ros.transport import Callback, Client, Publisher, Transport, deserialize, serialize
 
 ENCLAVE_USER_DATA = b"enclave=/;"
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
@@ -126,11 +152,74 @@ def _delete(entity: Any) -> None:
         pass
 
 
+_HANDLE_MASK = (1 << 64) - 1
+_REQUEST_HEADER = {0: struct.Struct(">Qq"), 1: struct.Struct("<Qq")}  # by encapsulation byte 1 (BE/LE)
+_CLIENT_WAIT_S = 0.1  # rmw_send_response waits this long for the client's reply reader
+_SEQ = itertools.count(1)  # like rmw's process-wide request counter
+_SEQ_LOCK = threading.Lock()
+
+
+def _next_seq() -> int:
+    with _SEQ_LOCK:
+        return next(_SEQ)
+
+
+def pack_service_sample(guid: int, seq: int, body: bytes) -> bytes:
+    """Service wire sample: ``body``'s encapsulation header, ``{uint64 guid; int64 seq}``, ``body``'s CDR.
+
+    Alignment in CDR counts from after the encapsulation header; 16 bytes keep every
+    alignment (<= 8), so the body bytes move unchanged.
+    """
+    if len(body) < 4 or body[:2] != b"\x00\x01":
+        raise ValueError("expected little-endian CDR bytes starting 00 01")
+    return body[:4] + _REQUEST_HEADER[1].pack(guid, seq) + body[4:]
+
+
+def unpack_service_sample(data: bytes) -> tuple[int, int, bytes]:
+    """(guid, seq, body CDR with its encapsulation header) of a service wire sample."""
+    if len(data) < 20 or data[0] != 0 or data[1] not in _REQUEST_HEADER:
+        raise ValueError(f"not a CDR service sample: {bytes(data[:20]).hex()}")
+    guid, seq = _REQUEST_HEADER[data[1]].unpack_from(data, 4)
+    return guid, seq, data[:4] + data[20:]
+
+
+def _user_data(endpoint: Any) -> dict[str, str]:
+    """``key=value;`` pairs of a discovered endpoint's USER_DATA (empty if none)."""
+    policy = endpoint.qos[Policy.Userdata] if endpoint is not None else None
+    if policy is None:
+        return {}
+    pairs = (item.split("=", 1) for item in policy.data.decode(errors="replace").split(";") if "=" in item)
+    return {key: value for key, value in pairs}
+
+
+def _csid_string(csid: bytes) -> str:
+    """rmw_cyclonedds_cpp's text form of a client/service id (hex bytes joined by '.')."""
+    return f"{csid[0]:2x}" + "".join(f".{b:x}" for b in csid[1:])
+
+
+def _take(reader: DataReader, what: str) -> list[tuple[bytes, int]]:
+    """All valid samples of ``reader`` as (CDR bytes, publication handle)."""
+    out: list[tuple[bytes, int]] = []
+    while True:
+        ret = ddspy_take(reader._ref, _ANY, _TAKE_BATCH)
+        if isinstance(ret, int):
+            raise RuntimeError(f"dds take on {what} failed ({ret})")
+        out.extend((bytes(data), info.publication_handle) for data, info in ret if info.valid_data)
+        if len(ret) < _TAKE_BATCH:
+            return out
+
+
+def _write(writer: DataWriter, data: bytes, what: str) -> None:
+    ret = ddspy_write(writer._ref, data)
+    if ret < 0:
+        raise RuntimeError(f"dds write on {what} failed ({ret})")
+
+
 class CyclonePublisher(Publisher):
     def __init__(self, node: "CycloneTransport", topic: str, msgtype: str, qos: QoSProfile) -> None:
         super().__init__(topic, msgtype, qos)
         self._node = node
-        self.dds_topic = node._topic(topic, msgtype)
+        self.dds_topic = node._topic(dds_topic(topic), msgtype, dds_class(msgtype))
         self.writer = DataWriter(node.participant, self.dds_topic,
                                  qos=dds_qos(qos, user_data_typehash(msgtype).encode()))
 
@@ -140,32 +229,176 @@ class CyclonePublisher(Publisher):
         data = bytes(data)
         if len(data) < 4 or data[:2] != b"\x00\x01":
             raise ValueError("expected little-endian CDR bytes starting 00 01")
-        ret = ddspy_write(self.writer._ref, data)
-        if ret < 0:
-            raise RuntimeError(f"dds write on {self.topic} failed ({ret})")
+        _write(self.writer, data, self.topic)
 
 
 class _Subscription:
     def __init__(self, node: "CycloneTransport", topic: str, msgtype: str, qos: QoSProfile,
                  callback: Callback, raw: bool) -> None:
         self.topic, self.msgtype, self.qos, self.callback, self.raw = topic, msgtype, qos, callback, raw
-        self.dds_topic = node._topic(topic, msgtype)
+        self.dds_topic = node._topic(dds_topic(topic), msgtype, dds_class(msgtype))
         self.reader = DataReader(node.participant, self.dds_topic,
                                  qos=dds_qos(qos, user_data_typehash(msgtype).encode()))
         self.condition = ReadCondition(self.reader, _ANY)
 
-    def take(self) -> list[bytes]:
-        out: list[bytes] = []
-        while True:
-            ret = ddspy_take(self.reader._ref, _ANY, _TAKE_BATCH)
-            if isinstance(ret, int):
-                raise RuntimeError(f"dds take on {self.topic} failed ({ret})")
-            out.extend(bytes(data) for data, info in ret if info.valid_data)
-            if len(ret) < _TAKE_BATCH:
-                return out
+    def ready(self) -> list[Callable[[], None]]:
+        return [lambda d=data: self.deliver(d) for data, _ in _take(self.reader, self.topic)]
 
     def deliver(self, data: bytes) -> None:
         self.callback(data if self.raw else deserialize(self.msgtype, data))
+
+
+class _ServiceEndpoints:
+    """The writer/reader pair of a client or server, tagged ``clientid=``/``serviceid=`` in USER_DATA."""
+
+    def __init__(self, node: "CycloneTransport", name: str, srvtype: str, server: bool) -> None:
+        validate_name(name, "service")
+        self.name, self.srvtype = name, srvtype
+        self.request_type, self.response_type = request_type(srvtype), response_type(srvtype)
+        self.csid = _csid_string(node._new_csid())
+        key = "serviceid" if server else "clientid"
+        tag = f"{key}={self.csid};"
+        rq = node._topic(dds_request_topic(name), self.request_type, dds_service_class(self.request_type))
+        rr = node._topic(dds_reply_topic(name), self.response_type, dds_service_class(self.response_type))
+        out_topic, out_type, in_topic, in_type = (
+            (rr, self.response_type, rq, self.request_type) if server
+            else (rq, self.request_type, rr, self.response_type))
+        self.writer = DataWriter(node.participant, out_topic,
+                                 qos=dds_qos(SERVICES_DEFAULT, (tag + user_data_typehash(out_type)).encode()))
+        self.reader = DataReader(node.participant, in_topic,
+                                 qos=dds_qos(SERVICES_DEFAULT, (tag + user_data_typehash(in_type)).encode()))
+        self.condition = ReadCondition(self.reader, _ANY)
+        node.graph.add(readers=[self.reader], writers=[self.writer])
+
+    def entities(self) -> list[Any]:
+        return [self.condition, self.reader, self.writer]
+
+
+class _Service(_ServiceEndpoints):
+    def __init__(self, node: "CycloneTransport", name: str, srvtype: str,
+                 handler: Callable[[Any], Any]) -> None:
+        super().__init__(node, name, srvtype, server=True)
+        self.handler, self.logger = handler, node.logger
+
+    def ready(self) -> list[Callable[[], None]]:
+        return [lambda d=data, h=handle: self.serve(d, h) for data, handle in _take(self.reader, self.name)]
+
+    def serve(self, data: bytes, request_writer: int) -> None:
+        """Answer one request; a failing handler is logged and the request left unanswered."""
+        guid, seq, body = unpack_service_sample(data)
+        try:
+            response = self.handler(deserialize(self.request_type, body))
+            reply = pack_service_sample(guid, seq, serialize(self.response_type, response))
+        except Exception:
+            self.logger.exception("service %s: handler failed; request %d gets no reply", self.name, seq)
+            return
+        if self._client_reader_matched(request_writer):
+            _write(self.writer, reply, self.name)
+        else:
+            self.logger.warning("service %s: client of request %d is gone or its reply reader unmatched",
+                                self.name, seq)
+
+    def _client_reader_matched(self, request_writer: int) -> bool:
+        """Wait up to 100 ms until our reply writer matches the requesting client's reader."""
+        deadline = time.monotonic() + _CLIENT_WAIT_S
+        while True:
+            writer = self.reader.get_matched_publication_data(request_writer & _HANDLE_MASK)
+            if writer is None:
+                return False
+            clientid = _user_data(writer).get("clientid")
+            if clientid is None:  # a client that does not tag its endpoints: assume it is there
+                return True
+            for handle in self.writer.get_matched_subscriptions():
+                if _user_data(self.writer.get_matched_subscription_data(handle)).get("clientid") == clientid:
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+
+
+class CycloneClient(Client, _ServiceEndpoints):
+    """Calls a service; :meth:`call` waits on its own reply reader, from any thread."""
+
+    def __init__(self, node: "CycloneTransport", name: str, srvtype: str) -> None:
+        Client.__init__(self, name, srvtype)
+        _ServiceEndpoints.__init__(self, node, name, srvtype, server=False)
+        self._node = node
+        self.guid = self.writer.instance_handle & _HANDLE_MASK
+        self.waitset = WaitSet(node.participant)
+        self.waitset.attach(self.condition)
+        self._cv = threading.Condition()
+        self._waiting: set[int] = set()
+        self._replies: dict[int, bytes] = {}
+        self._taking = False
+
+    def service_is_ready(self) -> bool:
+        """A matched request reader and a matched reply writer of one server (by ``serviceid``)."""
+        readers = self.writer.get_matched_subscriptions()
+        writers = self.reader.get_matched_publications()
+        ids = {_user_data(self.writer.get_matched_subscription_data(h)).get("serviceid") for h in readers}
+        ids.discard(None)
+        if not ids:  # servers that do not tag their endpoints
+            return bool(readers) and bool(writers)
+        return any(_user_data(self.reader.get_matched_publication_data(h)).get("serviceid") in ids
+                   for h in writers)
+
+    def call(self, request: Any, timeout_s: float = 5.0) -> Any:
+        """Send ``request`` once the server is ready and wait for its response (TimeoutError)."""
+        deadline = time.monotonic() + timeout_s
+        body = serialize(self.request_type, request)
+        while not self.service_is_ready():
+            self._check_open()
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"service {self.name} not available within {timeout_s} s")
+            time.sleep(0.01)
+        seq = _next_seq()
+        with self._cv:
+            self._waiting.add(seq)
+        try:
+            _write(self.writer, pack_service_sample(self.guid, seq, body), self.name)
+            reply = self._await(seq, deadline)
+        finally:
+            with self._cv:
+                self._waiting.discard(seq)
+                self._replies.pop(seq, None)
+        if reply is None:
+            raise TimeoutError(f"no reply from service {self.name} within {timeout_s} s")
+        return deserialize(self.response_type, reply)
+
+    def _check_open(self) -> None:
+        if self._node.closed:
+            raise RuntimeError(f"node {self._node.node_name} is closed")
+
+    def _await(self, seq: int, deadline: float) -> bytes | None:
+        """The reply body for ``seq``; one waiting thread takes from the reader for all."""
+        while True:
+            with self._cv:
+                while True:
+                    if seq in self._replies:
+                        return self._replies.pop(seq)
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        return None
+                    if not self._taking:
+                        self._taking = True
+                        break
+                    self._cv.wait(remaining)
+            samples: list[tuple[bytes, int]] = []
+            try:
+                self._check_open()
+                self.waitset.wait(max(0, int(min(remaining, 0.05) * 1e9)))
+                samples = _take(self.reader, self.name)
+            finally:
+                with self._cv:
+                    self._taking = False
+                    for data, _ in samples:
+                        guid, got, body = unpack_service_sample(data)
+                        if guid == self.guid and got in self._waiting:
+                            self._replies[got] = body
+                    self._cv.notify_all()
+
+    def entities(self) -> list[Any]:
+        return [self.waitset, *super().entities()]
 
 
 class CycloneTransport(Transport):
@@ -177,57 +410,74 @@ class CycloneTransport(Transport):
         _domain(self.domain_id)
         self.participant = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=ENCLAVE_USER_DATA)))
         self.waitset = WaitSet(self.participant)
+        self.graph = ParticipantInfoWriter(self.participant, node_name)
         self._topics: dict[str, tuple[str, Topic]] = {}
         self._publishers: list[CyclonePublisher] = []
         self._subscriptions: list[_Subscription] = []
+        self._services: list[_Service] = []
+        self._clients: list[CycloneClient] = []
+        self._csid_count = 0
 
-    def _topic(self, topic: str, msgtype: str) -> Topic:
-        name = dds_topic(topic)
-        dds_type_name(msgtype)
+    def _topic(self, name: str, typename: str, cls: type) -> Topic:
+        """The DDS topic ``name`` (one per participant), checking it keeps carrying ``typename``."""
         if name in self._topics:
             existing, dds = self._topics[name]
-            if existing != msgtype:
-                raise TypeError(f"topic {topic} carries {existing}, not {msgtype}")
+            if existing != typename:
+                raise TypeError(f"DDS topic {name} carries {existing}, not {typename}")
             return dds
-        dds = Topic(self.participant, name, dds_class(msgtype))
-        self._topics[name] = (msgtype, dds)
+        dds = Topic(self.participant, name, cls)
+        self._topics[name] = (typename, dds)
         return dds
+
+    def _new_csid(self) -> bytes:
+        """A client/service id as rmw makes it: participant GUID prefix + big-endian counter."""
+        self._csid_count += 1
+        return gid(self.participant)[:12] + self._csid_count.to_bytes(4, "big")
 
     def publisher(self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT) -> CyclonePublisher:
         self._check_open()
         validate_name(topic)
+        dds_type_name(msgtype)
         pub = CyclonePublisher(self, topic, msgtype, qos)
         self._publishers.append(pub)
+        self.graph.add(writers=[pub.writer])
         return pub
 
     def subscribe(self, topic: str, msgtype: str, qos: QoSProfile, callback: Callback,
                   raw: bool = False) -> None:
         self._check_open()
         validate_name(topic)
+        dds_type_name(msgtype)
         sub = _Subscription(self, topic, msgtype, qos, callback, raw)
         self.waitset.attach(sub.condition)
         self._subscriptions.append(sub)
+        self.graph.add(readers=[sub.reader])
 
     def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
-        raise NotImplementedError("services are not implemented in the Cyclone backend yet")
+        self._check_open()
+        service = _Service(self, name, srvtype, handler)
+        self.waitset.attach(service.condition)
+        self._services.append(service)
 
-    def client(self, name: str, srvtype: str) -> Client:
-        raise NotImplementedError("services are not implemented in the Cyclone backend yet")
+    def client(self, name: str, srvtype: str) -> CycloneClient:
+        self._check_open()
+        client = CycloneClient(self, name, srvtype)
+        self._clients.append(client)
+        return client
 
     def now_ns(self) -> int:
         return time.time_ns()
 
     def _take_ready(self) -> list[Callable[[], None]]:
         ready: list[Callable[[], None]] = []
-        for sub in self._subscriptions:
-            for data in sub.take():
-                ready.append(lambda s=sub, d=data: s.deliver(d))
+        for endpoint in [*self._subscriptions, *self._services]:
+            ready.extend(endpoint.ready())
         now = self.now_ns()
         ready.extend(t.callback for t in self._timers if t.take_if_due(now))
         return ready
 
     def spin_once(self, timeout_s: float = 0.0) -> int:
-        """Run every callback ready now (received messages, then due timers)."""
+        """Run every callback ready now (received messages and requests, then due timers)."""
         self._check_open()
         deadline = time.monotonic() + timeout_s
         while True:
@@ -240,7 +490,7 @@ class CycloneTransport(Transport):
             dues = [t.next_due_ns for t in self._timers if not t.cancelled]
             if dues:
                 remaining = min(remaining, max(0.0, (min(dues) - self.now_ns()) / 1e9))
-            if self._subscriptions:
+            if self._subscriptions or self._services:
                 self.waitset.wait(max(0, int(remaining * 1e9)))
             else:
                 time.sleep(remaining)
@@ -251,20 +501,25 @@ class CycloneTransport(Transport):
         self._closed = True
         for timer in self._timers:
             timer.cancel()
-        for sub in self._subscriptions:
+        for endpoint in [*self._subscriptions, *self._services]:
             try:
-                self.waitset.detach(sub.condition)
+                self.waitset.detach(endpoint.condition)
             except Exception:
                 pass
         entities: list[Any] = [self.waitset]
         for sub in self._subscriptions:
             entities += [sub.condition, sub.reader]
+        for endpoints in [*self._services, *self._clients]:
+            entities += endpoints.entities()
         entities += [pub.writer for pub in self._publishers]
+        entities += self.graph.entities()
         entities += [dds for _, dds in self._topics.values()]
         entities.append(self.participant)
         for entity in entities:
             _delete(entity)
         self._publishers.clear()
         self._subscriptions.clear()
+        self._services.clear()
+        self._clients.clear()
         self._timers.clear()
         self._topics.clear()

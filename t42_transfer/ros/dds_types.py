@@ -11,6 +11,13 @@ ROS ``uint8`` (and ``byte``/``char``) fields are declared as IDL ``octet``
 on XTypes type information with int8/uint8 members.  Sequences/arrays of octets
 are ``bytes`` on the Python side.
 
+:func:`dds_service_class` is the type of a service request/reply *topic*: what
+rmw_cyclonedds_cpp puts on the wire is ``{uint64 guid; int64 seq}`` followed by the
+request/response fields, under the request/response type name.  Declaring exactly
+that layout (instead of the bare request struct) keeps the XTypes type information
+we advertise true to the bytes; rmw_cyclonedds_cpp itself advertises none and
+matches by type name only, so the extra members do not disturb ROS peers.
+
 :func:`to_dds` / :func:`from_dds` convert between typestore objects and instances of
 the generated classes (tests and diagnostics; the transport itself moves CDR bytes).
 """
@@ -51,6 +58,9 @@ _NUMPY = {
 _BASE_NT, _NAME_NT, _ARRAY_NT, _SEQUENCE_NT = 1, 2, 3, 4
 
 _CACHE: dict[str, type[IdlStruct]] = {}
+_SERVICE_CACHE: dict[str, type[IdlStruct]] = {}
+SERVICE_HEADER_FIELDS = ("request_header_guid", "request_header_seq")
+"""Names of the two header members of :func:`dds_service_class` (uint64, int64)."""
 
 
 def idl_type_name(rostype: str) -> str:
@@ -101,6 +111,27 @@ def dds_class(rostype: str) -> type[IdlStruct]:
         fields = {name: _field_type(node) for name, node in _fields(rostype)}
         cls = make_idl_struct(rostype.split("/")[-1] + "_", idl_type_name(rostype), fields)
         _CACHE[rostype] = cls
+    return cls
+
+
+def dds_service_class(rostype: str) -> type[IdlStruct]:
+    """The (cached) wire layout of a service sample: ``{uint64 guid; int64 seq; <fields of rostype>}``.
+
+    ``rostype`` is a request or response type (``std_srvs/srv/Trigger_Request``); the
+    IDL name is the one rmw_cyclonedds_cpp registers (``std_srvs::srv::dds_::Trigger_Request_``).
+    """
+    cls = _SERVICE_CACHE.get(rostype)
+    if cls is None:
+        if rostype.split("/")[1:2] != ["srv"]:
+            raise ValueError(f"{rostype!r} is not a service request/response type")
+        body = {name: _field_type(node) for name, node in _fields(rostype)}
+        clash = set(body) & set(SERVICE_HEADER_FIELDS)
+        if clash:
+            raise ValueError(f"{rostype} has fields named like the request header: {sorted(clash)}")
+        guid, seq = SERVICE_HEADER_FIELDS
+        fields = {guid: t.uint64, seq: t.int64, **body}
+        cls = make_idl_struct(rostype.split("/")[-1] + "_", idl_type_name(rostype), fields)
+        _SERVICE_CACHE[rostype] = cls
     return cls
 
 
