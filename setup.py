@@ -5,6 +5,8 @@ ROS ones from package.xml and pip installs the rest from the exact pins in
 requirements.txt (torch must stay at the local CPU build 2.13.0).
 """
 
+import ast
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
@@ -16,13 +18,24 @@ def _files(pattern):
     return sorted(glob(pattern))
 
 
+def _node_names():
+    """Keys of NODES in t42_transfer/nodes/registry.py, parsed (not imported: the build needs no dependencies)."""
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "t42_transfer", "nodes", "registry.py")
+    with open(path) as f:
+        tree = ast.parse(f.read())
+    for stmt in tree.body:
+        if isinstance(stmt, ast.AnnAssign) and getattr(stmt.target, "id", None) == "NODES":
+            return [key.value for key in stmt.value.keys]
+    raise RuntimeError(f"no NODES dict in {path}")
+
+
 data_files = [
     ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
     ("share/" + package_name, ["package.xml"]),
 ]
 for directory, pattern in (
     ("share/" + package_name + "/launch", "launch/*.py"),
-    ("share/" + package_name + "/config", "config/*.yaml"),
+    ("share/" + package_name + "/config", "configs/suite.yaml"),
 ):
     found = _files(pattern)
     if found:
@@ -42,6 +55,8 @@ setup(
     entry_points={
         "console_scripts": [
             "t42 = t42_transfer.cli:main",
+            # One executable per node (`ros2 run t42_transfer <node>`), named as the registry names it.
+            *(f"{name} = t42_transfer.nodes.registry:main" for name in _node_names()),
         ],
     },
 )

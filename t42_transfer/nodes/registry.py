@@ -1,0 +1,52 @@
+"""The runnable nodes: name -> where its params and node classes live.
+
+Adding a node is one :data:`NODES` entry.  ``setup.py`` parses this file (so
+NODES stays a literal dict) to install one console script per node,
+``ros2 run t42_transfer <name>``, each pointing at :func:`main`.  Classes are
+named by import path so listing nodes loads none of them.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    params: str
+    """``module:Class`` of the node's frozen params dataclass."""
+    node: str
+    """``module:Class`` of the node, constructed as ``Class(transport, params)``, with a ``close()``."""
+    description: str
+    default_name: str
+    """ROS node name unless ``-r __node:=`` renames it."""
+
+    @staticmethod
+    def _load(path: str) -> Any:
+        module, _, name = path.partition(":")
+        return getattr(importlib.import_module(module), name)
+
+    def params_class(self) -> type:
+        return self._load(self.params)
+
+    def node_class(self) -> type:
+        return self._load(self.node)
+
+
+NODES: dict[str, NodeSpec] = {
+    "mock_driver": NodeSpec("t42_transfer.nodes.mock_driver:MockDriverParams", "t42_transfer.nodes.mock_driver:MockDriver",
+                            "simulated hand behind the real driver's topics", "mock_driver"),
+    "recorder": NodeSpec("t42_transfer.nodes.recorder:RecorderParams", "t42_transfer.nodes.recorder:Recorder",
+                         "records the hand topics into rosbag2 MCAP bags", "recorder"),
+}
+
+
+def main() -> int:
+    """Console script of every node: the node is the executable's name (``ros2 run t42_transfer mock_driver``)."""
+    from t42_transfer.ros.runner import run_node
+
+    return run_node(Path(sys.argv[0]).stem, sys.argv[1:])

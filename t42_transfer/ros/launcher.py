@@ -1,0 +1,124 @@
+"""``t42 up``: run the nodes of one params file as separate processes, like a small ``ros2 launch``.
+
+Each node with its own section in the params file runs as
+``python -m t42_transfer.cli node <name> --ros-args --params-file <file>``, in its
+own session (so a terminal's Ctrl-C reaches only this supervisor, which then
+stops the children in order).  Their output is forwarded line by line, prefixed
+``[<name>]``.  On SIGINT/SIGTERM every child gets SIGINT, then SIGTERM after
+``stop_timeout_s``, then SIGKILL.  A child that exits on its own is a failure:
+the others are stopped the same way and the exit code is 1.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+from typing import IO, TextIO
+
+from t42_transfer.nodes.registry import NODES
+from t42_transfer.ros.params import node_sections
+
+POLL_S = 0.1
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen[str]
+    forwarder: threading.Thread
+
+
+def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:
+    """The registered nodes ``config`` has sections for (filtered by ``only``); ValueError for unknown names."""
+    sections = node_sections(config)
+    unknown = [n for n in sections if n not in NODES]
+    if unknown:
+        raise ValueError(f"{config}: no registered node named {', '.join(unknown)}; available: {', '.join(NODES)}")
+    if only is not None:
+        missing = [n for n in only if n not in sections]
+        if missing:
+            raise ValueError(f"--only {','.join(missing)}: not in {config} (it has {', '.join(sections)})")
+        sections = [n for n in sections if n in only]
+    if not sections:
+        raise ValueError(f"{config}: no node sections to run")
+    return sections
+
+
+def _forward(name: str, stream: IO[str], out: TextIO, lock: threading.Lock) -> None:
+    for line in stream:
+        with lock:
+            out.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
+            out.flush()
+
+
+def _stop(children: list[Child], timeout_s: float, say: Callable[[str], None]) -> None:
+    """SIGINT every live child, then SIGTERM and SIGKILL to those still running after ``timeout_s`` each."""
+    for sig, wait_s in ((signal.SIGINT, timeout_s), (signal.SIGTERM, timeout_s), (signal.SIGKILL, timeout_s)):
+        alive = [c for c in children if c.proc.poll() is None]
+        if not alive:
+            return
+        if sig is not signal.SIGINT:
+            say(f"{', '.join(c.name for c in alive)} still running: sending {sig.name}")
+        for child in alive:
+            child.proc.send_signal(sig)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and any(c.proc.poll() is None for c in alive):
+            time.sleep(POLL_S / 2)
+
+
+def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
+       out: TextIO | None = None) -> int:
+    """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child exits; the exit code."""
+    out = out if out is not None else sys.stdout
+    config = Path(config).resolve()
+    names = plan_nodes(config, only)
+    lock = threading.Lock()
+
+    def say(message: str) -> None:
+        with lock:
+            out.write(f"[t42 up] {message}\n")
+            out.flush()
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    children: list[Child] = []
+    failed: list[str] = []
+    try:
+        for name in names:
+            cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name, "--ros-args", "--params-file", str(config)]
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                    bufsize=1, start_new_session=True)
+            forwarder = threading.Thread(target=_forward, args=(name, proc.stdout, out, lock), daemon=True)
+            forwarder.start()
+            children.append(Child(name, proc, forwarder))
+            say(f"started {name} (pid {proc.pid})")
+        while not stop.is_set():
+            failed = [f"{c.name} exited with code {c.proc.returncode}" for c in children if c.proc.poll() is not None]
+            if failed:
+                say(f"{'; '.join(failed)} unexpectedly: stopping the others")
+                break
+            stop.wait(POLL_S)
+        else:
+            say("stopping")
+    finally:
+        _stop(children, stop_timeout_s, say)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for child in children:
+            child.forwarder.join(timeout=1.0)
+    codes = {c.name: c.proc.returncode for c in children}
+    unclean = {n: rc for n, rc in codes.items() if rc != 0}
+    if unclean and not failed:
+        say("not stopped cleanly: " + ", ".join(f"{n} exited with code {rc}" for n, rc in unclean.items()))
+    return 1 if failed or unclean else 0
