@@ -147,6 +147,25 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.out, quick=args.quick, workers=args.workers)
 
 
+def _cmd_node(args: argparse.Namespace) -> int:
+    from t42_transfer.nodes.registry import NODES
+
+    if args.list or not args.name:
+        for name, spec in NODES.items():
+            print(f"{name:16s} {spec.description}")
+        return 0
+    from t42_transfer.ros.runner import run_node
+
+    return run_node(args.name, args.ros_args)
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from t42_transfer.ros.launcher import up
+
+    only = [n for n in args.only.split(",") if n] if args.only else None
+    return up(args.config, only=only, stop_timeout_s=args.stop_timeout)
+
+
 # ------------------------------------------------------------------------ parser
 
 
@@ -241,6 +260,19 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("pickle", type=Path)
     imp.add_argument("out", type=Path, help="bag directory to create")
     imp.set_defaults(func=_cmd_bag_import_t42)
+
+    node = commands.add_parser("node", help="run one ROS node (rclpy if installed, else Cyclone DDS) until Ctrl-C")
+    node.add_argument("--list", action="store_true", help="list the runnable nodes")
+    node.add_argument("name", nargs="?", help="node to run (see --list)")
+    node.add_argument("ros_args", nargs=argparse.REMAINDER,
+                      help="--ros-args --params-file F.yaml -p name:=value -r __node:=new_name")
+    node.set_defaults(func=_cmd_node)
+
+    up = commands.add_parser("up", help="run every node of a ROS params file as its own process until Ctrl-C")
+    up.add_argument("config", type=Path, help="ROS params file (e.g. configs/suite.yaml); one process per node section")
+    up.add_argument("--only", default=None, help="comma-separated node names to run (default: all)")
+    up.add_argument("--stop-timeout", type=float, default=5.0, help="seconds per stop signal (default 5)")
+    up.set_defaults(func=_cmd_up)
     return parser
 
 
