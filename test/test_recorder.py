@@ -269,8 +269,26 @@ def test_params_are_checked(tmp_path: Path) -> None:
         RecorderParams(tmp_path, topics={"/hand/x": "nope_msgs/msg/Nope"})
     with pytest.raises(ValueError):
         RecorderParams(tmp_path, topics={"bad topic": JOINT_STATE})
+    with pytest.raises(ValueError, match="flush_period_s"):
+        RecorderParams(tmp_path, flush_period_s=0)
+    with pytest.raises(ValueError, match="queue_depth"):
+        RecorderParams(tmp_path, queue_depth=0)
     params = RecorderParams(tmp_path, topics={OBJECT_POSE_TOPIC: POSE_STAMPED})
     assert params.bag_prefix == "recording" and params.topics == {OBJECT_POSE_TOPIC: POSE_STAMPED}
+
+
+def test_the_open_chunk_reaches_the_file_every_flush_period(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, flush_period_s=0.5)
+    bag = rig.recorder.current_bag
+    assert bag is not None
+    mcap = bag / f"{bag.name}.mcap"
+    rig.episode(T0_NS, 3, last_state=False)  # 0.3 s: still in memory
+    before = mcap.stat().st_size
+    rig.episode(T0_NS + 3 * CONTROL_PERIOD_NS, 3)  # the clock passes 0.5 s: the timer flushes
+    assert mcap.stat().st_size > before
+    sub = rig.node._subscriptions[0]
+    assert sub.qos == qos.QoSProfile(depth=1000)  # a deep RELIABLE queue, not ROS's default 10
+    rig.close()
 
 
 def test_records_the_mock_driver_one_bag_per_episode(tmp_path: Path) -> None:

@@ -27,6 +27,14 @@ per recorded topic, ``metadata.yaml`` on close) and are named ``<prefix>_<NNN>``
 in ``out_dir``: ``NNN`` counts on from the highest index already there, so no bag
 is ever overwritten.  :func:`t42_transfer.data.bag_io.read_bag` reads them.
 
+Nothing is held back: every ``params.flush_period_s`` (transport timer) the open
+chunk is closed and the file flushed, so a recorder killed with SIGKILL leaves a
+bag whose MCAP is readable up to the last flush (``t42 bag repair`` then rewrites
+its summary and ``metadata.yaml``), and memory stays bounded by one chunk (rosbags
+also closes a chunk at 1 MiB).  Each topic is subscribed RELIABLE with a
+``params.queue_depth`` deep KEEP_LAST queue, so a spin loop stalled by a flush or
+the CPU scheduler loses nothing at kHz rates (ROS's default depth of 10 does).
+
 A message whose bytes do not decode as its topic's type is logged with
 ``transport.logger.warning`` and not written (a bag stays readable).  No callback
 or service handler raises; failures are logged (services answer ``success=False``).
@@ -85,6 +93,10 @@ class RecorderParams:
     start_service: str = START_SERVICE
     stop_service: str = STOP_SERVICE
     split_service: str = SPLIT_SERVICE
+    flush_period_s: float = 1.0
+    """At most this much recording is lost when the process dies (the open chunk is written out this often)."""
+    queue_depth: int = 1000
+    """KEEP_LAST depth of each recorded topic's subscription: messages it can hold while the node is busy."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -99,6 +111,10 @@ class RecorderParams:
             typestore_for(msgtype)  # KeyError for an unknown type
         object.__setattr__(self, "topics", topics)
         object.__setattr__(self, "split_on", tuple(self.split_on))
+        if not self.flush_period_s > 0:
+            raise ValueError(f"flush_period_s must be positive, got {self.flush_period_s!r}")
+        if not isinstance(self.queue_depth, int) or self.queue_depth < 1:
+            raise ValueError(f"queue_depth must be an int >= 1, got {self.queue_depth!r}")
         validate_name(self.status_topic)
         for name in (self.start_service, self.stop_service, self.split_service):
             validate_name(name, "service")
@@ -152,6 +168,19 @@ class _Bag:
         self.count += 1
         self.last_stamp_ns = max(self.last_stamp_ns, stamp_ns)
 
+    def flush(self) -> None:
+        """Write the open chunk and flush the file (no fsync: SIGKILL keeps the page cache).
+
+        rosbags' MCAP writer (0.11.9) has no public flush; its storage closes a
+        chunk only at 1 MiB, so this closes it through the storage object.
+        """
+        storage = self.writer.storage
+        if storage is None:
+            return
+        if storage.chunk.msgs:
+            storage.close_chunk()
+        storage.bio.flush()
+
     def close(self) -> None:
         self.writer.close()
 
@@ -175,12 +204,14 @@ class Recorder:
         Path(params.out_dir).mkdir(parents=True, exist_ok=True)
         if params.mode == "episode":  # first, so a spin sees a status before messages queued with it
             transport.subscribe(params.status_topic, STRING, qos.DEFAULT, self._on_status, raw=True)
+        record_qos = qos.QoSProfile(depth=params.queue_depth)
         for topic, msgtype in params.topics.items():
-            transport.subscribe(topic, msgtype, qos.DEFAULT,
+            transport.subscribe(topic, msgtype, record_qos,
                                 lambda data, t=topic, m=msgtype: self._on_message(t, m, data), raw=True)
         transport.service(params.start_service, TRIGGER, lambda req: self._answer(self.start))
         transport.service(params.stop_service, TRIGGER, lambda req: self._answer(self.stop))
         transport.service(params.split_service, TRIGGER, lambda req: self._answer(self.split))
+        transport.timer(params.flush_period_s, self.flush)
         if params.start_immediately:
             ok, message = self.start()
             if not ok:
@@ -239,6 +270,16 @@ class Recorder:
             if error:
                 return False, f"closing {old} failed: {error}; recording to {path}"
             return True, f"closed {old} ({count} messages); recording to {path}"
+
+    def flush(self) -> None:
+        """Write out what the open bag holds so far; failures are logged (it runs from a timer)."""
+        with self._lock:
+            if self._bag is None:
+                return
+            try:
+                self._bag.flush()
+            except Exception:
+                self.log.exception("flushing %s failed", self._bag.path)
 
     def close(self) -> None:
         """Close any open bag (the transport's owner closes the transport)."""

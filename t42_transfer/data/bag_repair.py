@@ -1,0 +1,228 @@
+"""Make a bag whose writer died (SIGKILL, power cut) whole again: ``t42 bag repair``.
+
+A recorder killed mid-bag leaves an MCAP without its summary and footer, and no
+(or a stale) ``metadata.yaml``.  :func:`bag_io.read_bag` already recovers such a
+bag's readable prefix, with a warning, every time; repairing it once rewrites the
+readable records (every complete chunk, in file order) as a fresh rosbag2 v9 MCAP
+through rosbags' ``Writer`` -- the same layout the recorder and ``bag_io`` write,
+so ``ros2 bag`` and :mod:`bag_io` read it cleanly -- with ``metadata.yaml`` giving
+per-topic counts, start time, duration, types and each topic's offered QoS as
+recorded in its MCAP channel.  Each original file is kept as ``<name>.orig``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import yaml
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.metadata import parse_qos
+
+from t42_transfer.data.errors import BagError
+from t42_transfer.ros.naming import typestore_for
+
+ORIG_SUFFIX = ".orig"
+
+
+@dataclasses.dataclass(frozen=True)
+class RepairReport:
+    """What :func:`repair_bag` found and did."""
+
+    path: Path
+    repaired: bool
+    """False when the bag was sound and left untouched."""
+    problems: tuple[str, ...]
+    """Why it needed repair (empty when it did not)."""
+    counts: dict[str, int]
+    """Messages per topic in the (repaired) bag."""
+    originals: tuple[Path, ...] = ()
+    """Where the original storage files were moved."""
+    stopped: str = ""
+    """Where reading stopped in a damaged file ("" when every file read to its end)."""
+
+    @property
+    def message_count(self) -> int:
+        return sum(self.counts.values())
+
+
+def repair_bag(path: str | Path) -> RepairReport:
+    """Rewrite a damaged MCAP bag directory in place (originals kept as ``*.mcap.orig``).
+
+    A sound bag (readable footer and summary, ``metadata.yaml`` agreeing with the
+    MCAP statistics) is left as it is.  Raises :class:`BagError` for a path that is
+    no MCAP bag directory or holds nothing readable, and FileExistsError when ``*.orig`` files of an earlier
+    repair are in the way (nothing is ever overwritten).
+    """
+    bag = Path(path)
+    files = _mcap_files(bag)
+    problems = _problems(bag, files)
+    if not problems:
+        return RepairReport(bag, False, (), _summary_counts(files))
+    kept = [f.with_name(f.name + ORIG_SUFFIX) for f in files]
+    in_the_way = [str(k) for k in kept if k.exists() or k.is_symlink()]
+    if in_the_way:
+        raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
+    with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
+        rebuilt = Path(staging) / bag.name
+        counts, stopped = _rewrite(files, rebuilt)
+        if not counts:
+            raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
+        for original, orig in zip(files, kept):
+            original.rename(orig)
+        (rebuilt / f"{bag.name}.mcap").rename(files[0])
+        _write_metadata(rebuilt / "metadata.yaml", bag / "metadata.yaml", files[0].name)
+    return RepairReport(bag, True, tuple(problems), counts, tuple(kept), stopped)
+
+
+def _mcap_files(bag: Path) -> list[Path]:
+    if not bag.exists():
+        raise BagError(bag, "does not exist")
+    if not bag.is_dir():
+        raise BagError(bag, "is not a bag directory (repair works on the directory holding the .mcap)")
+    files = sorted(bag.glob("*.mcap"))
+    if not files:
+        raise BagError(bag, "is not an MCAP bag: the directory holds no .mcap file")
+    for file in files:
+        with file.open("rb") as stream:
+            if stream.read(8) != b"\x89MCAP0\r\n":
+                raise BagError(bag, f"{file.name} is not an MCAP file (bad magic bytes)")
+    return files
+
+
+def _problems(bag: Path, files: list[Path]) -> list[str]:
+    """What is wrong with the bag; empty when its storage and metadata.yaml are sound and agree."""
+    problems = []
+    total = 0
+    for file in files:
+        try:
+            with file.open("rb") as stream:
+                summary = make_reader(stream).get_summary()
+            if summary is None or summary.statistics is None:
+                problems.append(f"{file.name} has no summary")
+            else:
+                total += summary.statistics.message_count
+        except Exception as err:  # mcap raises many types for a cut-off file
+            problems.append(f"{file.name} has no readable footer ({type(err).__name__}: {err})")
+    meta_file = bag / "metadata.yaml"
+    if not meta_file.exists():
+        problems.append("metadata.yaml is missing")
+    elif not problems:
+        try:
+            info = yaml.safe_load(meta_file.read_text())["rosbag2_bagfile_information"]
+            listed = sorted(Path(str(p)).name for p in info["relative_file_paths"])
+            count = int(info["message_count"])
+        except Exception as err:  # any malformed YAML
+            problems.append(f"metadata.yaml is unreadable ({type(err).__name__}: {err})")
+        else:
+            if listed != [f.name for f in files]:
+                problems.append(f"metadata.yaml lists files {listed}, the bag holds {[f.name for f in files]}")
+            if count != total:
+                problems.append(f"metadata.yaml counts {count} messages, the MCAP statistics {total}")
+    return problems
+
+
+def _summary_counts(files: list[Path]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for file in files:
+        with file.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+        assert summary is not None and summary.statistics is not None
+        for channel_id, count in summary.statistics.channel_message_counts.items():
+            topic = summary.channels[channel_id].topic
+            counts[topic] = counts.get(topic, 0) + count
+    return counts
+
+
+class _ExactReads:
+    """A file view whose reads return every byte asked for or raise, so a cut-off record is never half-read."""
+
+    def __init__(self, stream: BinaryIO, size: int) -> None:
+        self._stream, self._size = stream, size
+
+    def read(self, n: int) -> bytes:
+        at = self._stream.tell()
+        if at + n > self._size:
+            raise EOFError(f"a record needs {n} bytes at offset {at}, but the file ends at {self._size}")
+        return self._stream.read(n)
+
+
+class _Rewriter:
+    """Streams salvaged records into a rosbags writer, one connection per (topic, type, offered QoS)."""
+
+    def __init__(self, writer: Writer) -> None:
+        self.writer = writer
+        self.connections: dict[tuple[str, str, str], Any] = {}
+        self.counts: dict[str, int] = {}
+        self.custom_seen = False
+
+    def file(self, stream: BinaryIO, size: int) -> None:
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Any] = {}
+        for record in StreamReader(_ExactReads(stream, size), record_size_limit=size).records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = self._connection(record, schemas[record.schema_id])
+            elif isinstance(record, Message):
+                connection = channels[record.channel_id]
+                self.writer.write(connection, record.log_time, record.data)
+                self.counts[connection.topic] += 1
+            elif isinstance(record, Metadata) and record.name == "rosbag2" and not self.custom_seen:
+                self._custom_data(record)
+
+    def _connection(self, channel: Channel, schema: Schema) -> Any:
+        qos_text = channel.metadata.get("offered_qos_profiles", "")
+        key = (channel.topic, schema.name, qos_text)
+        if key not in self.connections:
+            qos = parse_qos(qos_text) if qos_text else []
+            try:
+                typed: dict[str, Any] = {"typestore": typestore_for(schema.name)}
+            except KeyError:  # a type this project does not know: keep the bag's own definition
+                typed = {"msgdef": schema.data.decode(), "rihs01": channel.metadata.get("topic_type_hash", "")}
+            self.connections[key] = self.writer.add_connection(
+                channel.topic, schema.name, serialization_format=channel.message_encoding,
+                offered_qos_profiles=qos, **typed,
+            )
+            self.counts.setdefault(channel.topic, 0)
+        return self.connections[key]
+
+    def _custom_data(self, record: Metadata) -> None:
+        """custom_data of rosbag2's own metadata record (written only on a clean close)."""
+        info = yaml.safe_load(record.metadata.get("serialized_metadata", "")) or {}
+        info = info.get("rosbag2_bagfile_information", info)
+        for key, value in (info.get("custom_data") or {}).items():
+            self.writer.set_custom_data(str(key), str(value))
+        self.custom_seen = True
+
+
+def _rewrite(files: list[Path], rebuilt: Path) -> tuple[dict[str, int], str]:
+    """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped)."""
+    stopped = []
+    with Writer(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        rewriter = _Rewriter(writer)
+        for file in files:
+            with file.open("rb") as stream:
+                try:
+                    rewriter.file(stream, file.stat().st_size)
+                except Exception as err:  # whatever the damage, the records before it stand
+                    stopped.append(f"{file.name} is unreadable from offset {stream.tell()} "
+                                   f"({type(err).__name__}: {err})")
+    return rewriter.counts, "; ".join(stopped)
+
+
+def _write_metadata(written: Path, target: Path, file_name: str) -> None:
+    """rosbags' metadata.yaml for the rebuilt file, renamed to the original file name."""
+    meta = yaml.safe_load(written.read_text())
+    info = meta["rosbag2_bagfile_information"]
+    info["relative_file_paths"] = [file_name]
+    for entry in info.get("files") or []:
+        entry["path"] = file_name
+    tmp = target.with_name(target.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
+    tmp.replace(target)

@@ -1,0 +1,168 @@
+"""Bag repair: a bag left by a killed recorder becomes a clean rosbag2 MCAP bag, originals kept."""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from msg_adapters import HAND_TOPICS, applied_action_msg, joint_state_msg, object_pose_msg
+from t42_transfer.cli import main
+from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.data.bag_io import bag_info, read_bag
+from t42_transfer.data.bag_repair import repair_bag
+from t42_transfer.data.errors import BagError
+from t42_transfer.nodes.recorder import Recorder, RecorderParams
+from t42_transfer.ros import qos
+from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
+from t42_transfer.ros.transport import serialize
+
+T0_NS = 1_000_000_000
+REPO = Path(__file__).resolve().parents[1]
+
+
+def killed_bag(tmp_path: Path, steps: int = 60, unflushed: int = 5) -> tuple[Path, dict[str, list[bytes]]]:
+    """What a recorder killed mid-bag leaves on disk, and the messages written before its last flush.
+
+    A recorder (flush every second) records ``steps + unflushed`` control steps at
+    10 Hz; the bag directory is copied while it is open: the copy is the state a
+    SIGKILL leaves (flushed writes are in the page cache, the open chunk nowhere).
+    """
+    clock = FakeClock(T0_NS)
+    bus = InProcessBus(clock=clock)
+    node, tester = InProcessTransport(bus, "recorder"), InProcessTransport(bus, "tester")
+    recorder = Recorder(node, RecorderParams(tmp_path / "live", flush_period_s=1.0))
+    pubs = {topic: tester.publisher(topic, msgtype, qos.DEFAULT) for topic, msgtype in HAND_TOPICS.items()}
+    flushed: dict[str, list[bytes]] = {topic: [] for topic in HAND_TOPICS}
+    pending: dict[str, list[bytes]] = {topic: [] for topic in HAND_TOPICS}
+    rng = np.random.default_rng(0)
+    for k in range(steps + unflushed):
+        stamp = T0_NS + k * CONTROL_PERIOD_NS
+        clock.advance(ns=stamp - clock())
+        for topic, msg in (
+            ("/hand/object_pose", object_pose_msg(rng.uniform(-20, 20, 2), stamp)),
+            ("/hand/joint_states", joint_state_msg(rng.uniform(-200, 200, 2), None, stamp)),
+            ("/hand/applied_action", applied_action_msg(rng.uniform(-1, 1, 2), stamp)),
+        ):
+            data = serialize(HAND_TOPICS[topic], msg)
+            pubs[topic].publish_raw(data)
+            pending[topic].append(data)
+        node.spin_once()  # messages, then the flush timer when a second has passed
+        if k and k % 10 == 0:  # the timer (due every 1 s from T0) fired: what was pending is on disk
+            for topic in flushed:
+                flushed[topic] += pending[topic]
+                pending[topic] = []
+    live = recorder.current_bag
+    assert live is not None
+    bag = tmp_path / live.name
+    shutil.copytree(live, bag)
+    recorder.close()
+    return bag, flushed
+
+
+def test_a_killed_recorders_bag_is_repaired(tmp_path: Path) -> None:
+    bag, flushed = killed_bag(tmp_path)
+    mcap = bag / f"{bag.name}.mcap"
+    assert not (bag / "metadata.yaml").exists()
+    with open(mcap, "ab") as stream:  # killed in the middle of writing a chunk
+        stream.write(b"\x06" + (5000).to_bytes(8, "little") + b"\x00" * 100)
+    damaged = mcap.read_bytes()
+    with pytest.warns(UserWarning, match="recovered the readable prefix"):
+        assert len(read_bag(bag)) == 1
+
+    report = repair_bag(bag)
+    assert report.repaired
+    assert any("metadata.yaml is missing" in p for p in report.problems)
+    assert "unreadable" in report.stopped
+    assert report.counts == {topic: len(m) for topic, m in flushed.items()}
+    assert report.originals == (bag / f"{bag.name}.mcap.orig",)
+    assert report.originals[0].read_bytes() == damaged  # nothing lost
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        data = read_bag(bag)
+        info = bag_info(bag)
+    assert data.num_transitions == len(flushed["/hand/applied_action"]) - 1  # the last action has no next state
+    assert {t: v["count"] for t, v in info["topics"].items()} == report.counts
+    assert not info["recovered_prefix"]
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["message_count"] == report.message_count
+    assert meta["starting_time"]["nanoseconds_since_epoch"] == T0_NS
+    assert meta["relative_file_paths"] == [mcap.name]
+    for entry in meta["topics_with_message_count"]:
+        topic = entry["topic_metadata"]
+        assert topic["type"] == HAND_TOPICS[topic["name"]]
+        assert topic["offered_qos_profiles"][0]["reliability"] == "reliable"  # as recorded
+
+    from rosbags.highlevel import AnyReader
+    with AnyReader([bag]) as reader:
+        got = {topic: [] for topic in HAND_TOPICS}
+        for conn, _, raw in reader.messages():
+            got[conn.topic].append(bytes(raw))
+    assert got == flushed  # the payloads, in order, byte for byte
+
+    again = repair_bag(bag)
+    assert not again.repaired and again.counts == report.counts
+
+
+def test_stale_metadata_is_rewritten(tmp_path: Path) -> None:
+    bag = tmp_path / "source_small"
+    shutil.copytree(REPO / "bags" / "source_small", bag)
+    assert not repair_bag(bag).repaired
+    meta_file = bag / "metadata.yaml"
+    meta = yaml.safe_load(meta_file.read_text())
+    meta["rosbag2_bagfile_information"]["message_count"] = 7
+    meta_file.write_text(yaml.safe_dump(meta))
+    report = repair_bag(bag)
+    assert report.repaired and "metadata.yaml counts 7 messages" in report.problems[0]
+    assert report.message_count == 1377 and not report.stopped
+    info = bag_info(bag)
+    assert info["metadata"]["t42_transfer.hand"] == "source"  # custom_data survives
+    assert info["episodes"] == 6
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="does not exist"):
+        repair_bag(tmp_path / "missing")
+    file = tmp_path / "file.mcap"
+    file.write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(BagError, match="not a bag directory"):
+        repair_bag(file)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(BagError, match="no .mcap file"):
+        repair_bag(empty)
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    (wrong / "wrong.mcap").write_text("hello, not an mcap")
+    with pytest.raises(BagError, match="bad magic"):
+        repair_bag(wrong)
+    header_only = tmp_path / "header_only"
+    header_only.mkdir()
+    (header_only / "header_only.mcap").write_bytes(b"\x89MCAP0\r\n\x01")
+    with pytest.raises(BagError, match="nothing is readable"):
+        repair_bag(header_only)
+    assert sorted(p.name for p in header_only.iterdir()) == ["header_only.mcap"]  # left as it was
+
+
+def test_an_earlier_repairs_originals_are_never_overwritten(tmp_path: Path) -> None:
+    bag, _ = killed_bag(tmp_path, steps=20, unflushed=0)
+    (bag / f"{bag.name}.mcap.orig").write_text("kept")
+    with pytest.raises(FileExistsError):
+        repair_bag(bag)
+    assert (bag / f"{bag.name}.mcap.orig").read_text() == "kept"
+
+
+def test_cli_bag_repair(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag, flushed = killed_bag(tmp_path, steps=30)
+    assert main(["bag", "repair", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "repaired" in out and f"/hand/joint_states: {len(flushed['/hand/joint_states'])} messages" in out
+    assert main(["bag", "repair", str(bag)]) == 0
+    assert "sound" in capsys.readouterr().out
+    assert main(["bag", "repair", str(tmp_path / "nope")]) == 2
+    assert "does not exist" in capsys.readouterr().err
