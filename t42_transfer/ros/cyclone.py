@@ -28,13 +28,17 @@ server echoes guid and seq, and a client keeps only replies carrying its guid an
 sequence number it waits for.  The topic types are
 :func:`~t42_transfer.ros.dds_types.dds_service_class`: that header and the body
 fields under rmw's type name (``pkg::srv::dds_::Name_Request_``), so the XTypes type
-information we send describes the actual bytes; rmw_cyclonedds_cpp sends none and
-matches by name.  Service endpoints carry ``serviceid=...;`` / ``clientid=...;`` in
+information we send describes the actual bytes (a struct of the bare request would
+advertise a layout 16 bytes off).  rmw_cyclonedds_cpp's sertype provides no type
+information, so Cyclone matches it by type name alone (read from its source; not yet
+tried against a live ROS peer).  Service endpoints carry ``serviceid=...;`` / ``clientid=...;`` in
 USER_DATA, which pairs each client's reader with its writer: a server waits up to
 100 ms for the reply reader of the requesting client before replying, and a client
 is ready when a matched request reader and reply writer share a ``serviceid``.
 :meth:`CycloneClient.call` blocks on its own reply reader, so it needs nobody to spin
-the client's node and works from any thread.  A handler that raises is logged and
+the client's node and works from any thread; it first waits (within its timeout)
+for :meth:`CycloneClient.service_is_ready`, so a request is not written before a
+server can receive it.  A handler that raises is logged and
 the request gets no reply, so the client times out (rclpy would let the exception
 end the spin; a node here keeps serving).
 
@@ -285,7 +289,11 @@ class _Service(_ServiceEndpoints):
 
     def serve(self, data: bytes, request_writer: int) -> None:
         """Answer one request; a failing handler is logged and the request left unanswered."""
-        guid, seq, body = unpack_service_sample(data)
+        try:
+            guid, seq, body = unpack_service_sample(data)
+        except ValueError as exc:
+            self.logger.warning("service %s: dropped a malformed request (%s)", self.name, exc)
+            return
         try:
             response = self.handler(deserialize(self.request_type, body))
             reply = pack_service_sample(guid, seq, serialize(self.response_type, response))
