@@ -17,7 +17,8 @@ ever sees CDR bytes or its own generated classes:
 
 Timers are the base class's :class:`PeriodicTimer` on the node clock, polled in
 :meth:`RclpyTransport.spin_once` next to an executor's ``spin_once``, so timing
-behaves as on the other backends.  ``rclpy.init`` runs once per process with
+behaves as on the other backends.  ``rclpy.init`` runs once per process (the first
+transport's ``domain_id`` wins, default ``ROS_DOMAIN_ID``) with
 rclpy's signal handlers off (the runner owns SIGINT/SIGTERM); the last transport
 to close shuts rclpy down again if it started it.  A client's :meth:`call` spins
 the node's executor until the reply arrives: do not call it from a callback.

@@ -46,7 +46,25 @@ def _error(message: str) -> int:
 
 
 def run_node(name: str, argv: Sequence[str]) -> int:
-    """Run node ``name`` of :data:`~t42_transfer.nodes.registry.NODES` with ROS arguments ``argv``; the exit code."""
+    """Run node ``name`` of :data:`~t42_transfer.nodes.registry.NODES` with ROS arguments ``argv``; the exit code.
+
+    SIGINT/SIGTERM are caught from the start, so a stop request during the (slow)
+    imports and setup still ends in a clean close and exit 0.
+    """
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(name, argv, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _run(name: str, argv: Sequence[str], stop: threading.Event) -> int:
     spec = NODES.get(name)
     if spec is None:
         return _error(f"unknown node {name!r}; available: {', '.join(NODES)}")
@@ -56,31 +74,17 @@ def run_node(name: str, argv: Sequence[str]) -> int:
             raise ValueError(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args)")
         node_name = ros_args.node_name or spec.default_name
         params = load_params(spec.params_class(), node_name, ros_args.params_files, ros_args.overrides)
+        transport = make_transport(node_name)
     except ValueError as err:
         return _error(str(err))
-
     configure_logging()
     log = logging.getLogger(_NODE_LOGGERS + node_name)
-    stop = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with transport:
+        node = spec.node_class()(transport, params)
         try:
-            transport = make_transport(node_name)
-        except ValueError as err:
-            return _error(str(err))
-        with transport:
-            node = spec.node_class()(transport, params)
-            try:
-                log.info("running (%s); SIGINT or SIGTERM stops", type(transport).__name__)
-                transport.spin(until=stop.is_set)
-            finally:
-                node.close()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+            log.info("running (%s); SIGINT or SIGTERM stops", type(transport).__name__)
+            transport.spin(until=stop.is_set)
+        finally:
+            node.close()
     log.info("shut down cleanly")
     return 0
