@@ -46,6 +46,8 @@ DEFAULT_T0_NS = 1_000_000_000
 
 HAND_KEY = "t42_transfer.hand"
 EPISODES_KEY = "t42_transfer.episodes"
+REPAIRED_KEY = "t42_transfer.repaired"
+"""Set by :mod:`t42_transfer.data.bag_repair`: the bag is a killed writer's salvaged prefix (a cut last step is no error)."""
 
 _INFINITE = QosTime(9223372036, 854775807)
 RECORD_QOS = Qos(
@@ -259,6 +261,7 @@ def _load(path: Path) -> _RawBag:
         return _scan_mcap(path, files, meta, problem)
     if problem:
         warnings.warn(f"{path}: {problem}; read its storage files directly", stacklevel=3)
+    raw.truncated = REPAIRED_KEY in raw.custom
     return raw
 
 

@@ -8,6 +8,9 @@ through rosbags' ``Writer`` -- the same layout the recorder and ``bag_io`` write
 so ``ros2 bag`` and :mod:`bag_io` read it cleanly -- with ``metadata.yaml`` giving
 per-topic counts, start time, duration, types and each topic's offered QoS as
 recorded in its MCAP channel.  Each original file is kept as ``<name>.orig``.
+``custom_data`` keeps what the bag had and gains ``REPAIRED_KEY`` (what was
+wrong), so :func:`bag_io.read_bag` still treats a cut-off last step as a cut,
+not an error.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.metadata import parse_qos
 
+from t42_transfer.data.bag_io import REPAIRED_KEY
 from t42_transfer.data.errors import BagError
 from t42_transfer.ros.naming import typestore_for
 
@@ -70,7 +74,7 @@ def repair_bag(path: str | Path) -> RepairReport:
         raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
     with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
         rebuilt = Path(staging) / bag.name
-        counts, stopped = _rewrite(files, rebuilt)
+        counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
         if not counts:
             raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
         for original, orig in zip(files, kept):
@@ -197,15 +201,17 @@ class _Rewriter:
         info = yaml.safe_load(record.metadata.get("serialized_metadata", "")) or {}
         info = info.get("rosbag2_bagfile_information", info)
         for key, value in (info.get("custom_data") or {}).items():
-            self.writer.set_custom_data(str(key), str(value))
+            if key != REPAIRED_KEY:  # this repair's own entry stands
+                self.writer.set_custom_data(str(key), str(value))
         self.custom_seen = True
 
 
-def _rewrite(files: list[Path], rebuilt: Path) -> tuple[dict[str, int], str]:
+def _rewrite(files: list[Path], rebuilt: Path, problems: str) -> tuple[dict[str, int], str]:
     """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped)."""
     stopped = []
     with Writer(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         rewriter = _Rewriter(writer)
+        writer.set_custom_data(REPAIRED_KEY, problems)
         for file in files:
             with file.open("rb") as stream:
                 try:

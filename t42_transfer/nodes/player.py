@@ -198,16 +198,19 @@ def matched_subscribers(publisher: Publisher) -> int | None:
 
 
 def wait_for_subscribers(player: BagPlayer, timeout_s: float) -> bool:
-    """Spin until some topic of ``player`` has a matched reader, or ``timeout_s`` passes; whether one matched.
+    """Spin until every topic of ``player`` has a matched reader, or ``timeout_s`` passes; whether all matched.
 
     Without this the first messages of a DDS playback go to no one: discovery
-    takes a moment after the writers are created.
+    takes a moment after the writers are created.  A backend that cannot count
+    readers returns at once (False).
     """
     deadline = time.monotonic() + timeout_s
     while True:
         counts = [matched_subscribers(p) for p in player.publishers.values()]
-        if any(c for c in counts) or all(c is None for c in counts):
-            return any(c for c in counts)
+        if None in counts:
+            return False
+        if all(counts):
+            return True
         if time.monotonic() >= deadline:
             return False
         player.transport.spin_once(0.02)
