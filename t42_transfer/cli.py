@@ -82,6 +82,47 @@ def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bag_repair(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_repair import repair_bag
+
+    report = repair_bag(args.bag)
+    if not report.repaired:
+        print(f"{report.path}: sound, left as it is ({report.message_count} messages)")
+        return 0
+    print(f"{report.path}: repaired ({'; '.join(report.problems)})")
+    if report.stopped:
+        print(f"  salvaged up to where {report.stopped}")
+    for topic, count in sorted(report.counts.items()):
+        print(f"  {topic}: {count} messages")
+    print(f"  originals kept as {', '.join(str(p) for p in report.originals)}")
+    return 0
+
+
+def _cmd_bag_play(args: argparse.Namespace) -> int:
+    from t42_transfer.nodes.player import BagPlayer, PlayerParams, wait_for_subscribers
+
+    params = PlayerParams(args.bag, rate=args.rate, loop=args.loop, start_paused=True,
+                          topics=tuple(args.topics) if args.topics else None)
+    try:
+        from t42_transfer.ros.backends import make_transport
+    except ImportError:
+        from t42_transfer.ros.cyclone import CycloneTransport as make_transport
+    with make_transport("t42_bag_player") as transport:
+        player = BagPlayer(transport, params)
+        try:
+            if not wait_for_subscribers(player, args.wait_subscribers):
+                print(f"not every topic had a subscriber within {args.wait_subscribers} s; playing anyway",
+                      file=sys.stderr)
+            player.resume()
+            transport.spin(until=lambda: player.done)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            player.close()
+    print(f"{args.bag}: published {player.published} messages on {len(player.publishers)} topics")
+    return 0
+
+
 def _cmd_experiment(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -260,6 +301,17 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("pickle", type=Path)
     imp.add_argument("out", type=Path, help="bag directory to create")
     imp.set_defaults(func=_cmd_bag_import_t42)
+    rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (originals kept as *.orig)")
+    rep.add_argument("bag", type=Path, help="bag directory")
+    rep.set_defaults(func=_cmd_bag_repair)
+    play = bag.add_parser("play", help="publish a bag's messages on their topics (Cyclone DDS or rclpy)")
+    play.add_argument("bag", type=Path, help="bag directory")
+    play.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1.0)")
+    play.add_argument("--topics", nargs="+", default=None, help="play only these topics")
+    play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
+    play.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
+                      help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
+    play.set_defaults(func=_cmd_bag_play)
 
     node = commands.add_parser("node", help="run one ROS node (rclpy if installed, else Cyclone DDS) until Ctrl-C")
     node.add_argument("--list", action="store_true", help="list the runnable nodes")
