@@ -1,5 +1,14 @@
 """ROS 2 messages <-> numpy for the T42 hand; nothing else in the project converts messages."""
 
+from msg_adapters.diagnostics import (
+    DIAGNOSTIC_ARRAY,
+    DIAGNOSTICS_TOPIC,
+    LEVELS,
+    DiagnosticReport,
+    diagnostic_array,
+    level_name,
+    status_report,
+)
 from msg_adapters.hand import (
     APPLIED_ACTION_TOPIC,
     HAND_TOPICS,
@@ -23,6 +32,13 @@ from msg_adapters.hand import (
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 
 __all__ = [
+    "DIAGNOSTIC_ARRAY",
+    "DIAGNOSTICS_TOPIC",
+    "LEVELS",
+    "DiagnosticReport",
+    "diagnostic_array",
+    "level_name",
+    "status_report",
     "APPLIED_ACTION_TOPIC",
     "HAND_TOPICS",
     "JOINT_STATE",

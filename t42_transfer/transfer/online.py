@@ -1,0 +1,373 @@
+"""Online transfer: the bags recorded since the last transfer + a source model file -> a scored, saved model.
+
+The logic behind the transfer server node, without ROS, so it is tested like
+the rest of the science.  One :func:`run_transfer`:
+
+1. takes the candidate bags (a configured list, or every finished bag in
+   ``bag_dir``: a non-hidden directory with a ``metadata.yaml``) minus those a
+   previous successful transfer used, as recorded in ``model_dir/transfer_state.json``;
+2. loads the source model (a plain transition model) and reads the new bags;
+3. holds out whole target episodes (``holdout_fraction`` of them, at least
+   one, never all) and transfers with the rest;
+4. scores the transferred model and, for reference, the source alone on the
+   held-out episodes (divergence time at 4 mm, position MSE);
+5. saves ``model_dir/transferred_<NNN>.safetensors``, then replaces
+   ``model_dir/current.safetensors``, then records the bags as used.
+
+Every refusal (no new bags, too little data, an unreadable bag, a missing or
+incompatible source model) raises :class:`TransferRefused` before anything is
+written.  Files are written atomically (:func:`save_model`, the state file by
+rename), and ``current.safetensors`` is the commit point: when replacing it fails
+the new ``transferred_<NNN>`` file is removed again, so a failed call leaves the
+model directory as it was.  The state file is written last, so a crash after the
+commit can only leave it behind (the bags are offered again), never ahead of the
+models.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import os
+import re
+import tempfile
+import time
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.errors import DataFileError
+from t42_transfer.data.trajectory import TrajectorySet
+from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.models.checkpoint import load_model, save_model
+from t42_transfer.models.network import TransitionModel
+from t42_transfer.planning.workspace import Workspace
+from t42_transfer.transfer.config import TransferConfig
+from t42_transfer.transfer.methods import METHODS, transfer
+
+STATE_FILE = "transfer_state.json"
+CURRENT_MODEL = "current.safetensors"
+MODEL_PREFIX = "transferred"
+STAGES = ("loading", "training", "evaluating", "saving", "done", "failed")
+"""Stages a transfer reports, in order (``done`` or ``failed`` ends it)."""
+
+_MODEL_NAME = re.compile(rf"^{MODEL_PREFIX}_(\d{{3,}})\.safetensors$")
+
+Report = Callable[[str, Mapping[str, object]], None]
+"""``report(stage, info)``: called at each stage change with what is known so far."""
+
+
+class TransferRefused(Exception):
+    """A transfer that cannot run on what it was given; the message says why.  Nothing was written."""
+
+
+@dataclass(frozen=True)
+class OnlineTransferSpec:
+    """What one transfer call runs on."""
+
+    source_model: Path
+    model_dir: Path
+    bag_dir: Path | None = None
+    bags: tuple[Path, ...] = ()
+    """Candidate bags; empty means every finished bag in ``bag_dir``."""
+    method: str = "cumulative_residual"
+    config: TransferConfig = TransferConfig()
+    holdout_fraction: float = 0.25
+    min_episodes: int = 2
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class TransferResult:
+    """What a successful transfer did and how well the model predicts held-out target episodes."""
+
+    method: str
+    bags: tuple[Path, ...]
+    episodes: int
+    transitions: int
+    held_out_episodes: int
+    divergence_steps: float
+    position_mse_mm2: float
+    source_divergence_steps: float
+    source_position_mse_mm2: float
+    model_path: Path
+    seconds: float
+
+    def summary(self) -> str:
+        """The one-line answer of the transfer service."""
+        return (
+            f"{self.method}: trained on {self.episodes} episodes / {self.transitions} transitions from "
+            f"{len(self.bags)} bag(s); on {self.held_out_episodes} held-out episode(s): divergence "
+            f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
+            f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2); "
+            f"model {self.model_path}"
+        )
+
+
+# ---------------------------------------------------------------- configuration
+def config_with_overrides(overrides: Mapping[str, Any]) -> TransferConfig:
+    """:class:`TransferConfig` defaults with nested ``overrides`` (e.g. ``{"cumulative_residual": {"train": {"epochs": 5}}}``).
+
+    Unknown keys and values of the wrong type are a ValueError naming the dotted key.
+    """
+    return _override(TransferConfig(), overrides, "config")
+
+
+def _override(obj: Any, overrides: Mapping[str, Any], where: str) -> Any:
+    if not isinstance(overrides, Mapping):
+        raise ValueError(f"{where} must be a mapping, got {overrides!r}")
+    hints = typing.get_type_hints(type(obj))
+    changes = {}
+    for key, value in overrides.items():
+        path = f"{where}.{key}"
+        if key not in hints:
+            raise ValueError(f"unknown transfer config key {path}; expected one of {sorted(hints)}")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            changes[key] = _override(current, value, path)
+        else:
+            changes[key] = _number(hints[key], value, path)
+    return dataclasses.replace(obj, **changes)
+
+
+def _number(hint: Any, value: Any, where: str) -> Any:
+    """``value`` checked against a numeric field's hint (``int | None`` such as patience also takes None)."""
+    arms = typing.get_args(hint) or (hint,)
+    if value is None and type(None) in arms:
+        return None
+    if float in arms and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if int in arms and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    raise ValueError(f"{where} expects {getattr(hint, '__name__', hint)}, got {value!r}")
+
+
+def epoch_budget(method: str, cfg: TransferConfig) -> int:
+    """Most training epochs ``method`` runs under ``cfg`` (0 for ``direct``)."""
+    section = getattr(cfg, method, None)
+    train = getattr(section, "train", None)
+    return 0 if train is None else int(train.epochs)
+
+
+# ---------------------------------------------------------------- bags and state
+def list_bags(bag_dir: Path) -> list[Path]:
+    """Finished bags in ``bag_dir``, by name: non-hidden directories with a ``metadata.yaml``.
+
+    A recorder writes ``metadata.yaml`` when it closes a bag, so the bag being
+    recorded is not taken; hidden directories are ``write_bag``'s staging.
+    """
+    if not bag_dir.is_dir():
+        raise TransferRefused(f"bag_dir {bag_dir} is not a directory")
+    return sorted(p for p in bag_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
+                  and (p / "metadata.yaml").is_file())
+
+
+def bag_key(bag: Path) -> str:
+    """How the state file names a bag: its resolved path."""
+    return str(Path(bag).resolve())
+
+
+def read_state(model_dir: Path) -> dict[str, Any]:
+    """The state file's content (``used_bags``, ``transfers``); empty when there is none yet."""
+    file = model_dir / STATE_FILE
+    if not file.exists():
+        return {"used_bags": [], "transfers": []}
+    try:
+        state = json.loads(file.read_text())
+        if not isinstance(state.get("used_bags"), list) or not isinstance(state.get("transfers"), list):
+            raise ValueError("expected lists 'used_bags' and 'transfers'")
+    except (OSError, ValueError, AttributeError) as err:
+        raise TransferRefused(f"state file {file} is unreadable ({err}); fix or remove it") from None
+    return state
+
+
+def write_state(model_dir: Path, state: Mapping[str, Any]) -> None:
+    """Replace the state file atomically (written beside it, fsynced, renamed)."""
+    model_dir.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{STATE_FILE}.", suffix=".partial", dir=model_dir)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(state, f, indent=2)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, model_dir / STATE_FILE)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def latest_model(model_dir: Path) -> Path | None:
+    """The model the last recorded transfer saved, if it is still there."""
+    try:
+        transfers = read_state(model_dir)["transfers"]
+    except TransferRefused:
+        return None
+    if not transfers:
+        return None
+    path = model_dir / str(transfers[-1].get("model", ""))
+    return path if path.is_file() else None
+
+
+def next_model_path(model_dir: Path) -> Path:
+    """``model_dir/transferred_<NNN>.safetensors``, one past the highest index there (000 when none)."""
+    taken = [int(m.group(1)) for p in model_dir.iterdir() if (m := _MODEL_NAME.match(p.name))] \
+        if model_dir.is_dir() else []
+    return model_dir / f"{MODEL_PREFIX}_{max(taken, default=-1) + 1:03d}.safetensors"
+
+
+# ---------------------------------------------------------------- inputs
+def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
+    """The source model and its metadata; TransferRefused when it is missing, damaged or not a transition model."""
+    try:
+        model, meta = load_model(path)
+    except DataFileError as err:
+        raise TransferRefused(f"source model unusable: {err}") from None
+    if not isinstance(model, TransitionModel):
+        raise TransferRefused(
+            f"source model unusable: {path} holds a {meta.get('kind')!r} model; transfer starts from a "
+            f"plain transition model trained on the source hand"
+        )
+    return model, meta
+
+
+def read_target(bags: Sequence[Path]) -> TrajectorySet:
+    """Every episode of ``bags``, in order; TransferRefused naming the first unreadable bag."""
+    sets = []
+    for bag in bags:
+        try:
+            sets.append(read_bag(bag))
+        except DataFileError as err:
+            raise TransferRefused(f"unreadable bag: {err}") from None
+    hand = next((s.hand for s in sets if s.hand), "")
+    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand)
+
+
+def merged_workspace(source_meta: Mapping[str, Any], target: TrajectorySet) -> Workspace:
+    """The source model's stored workspace widened to cover the target training states.
+
+    The planner trusts a prediction inside the workspace; the transferred model
+    keeps the source model's knowledge and adds the target's, so both count.
+    """
+    try:
+        source = Workspace.from_metadata(source_meta)
+    except (KeyError, TypeError, ValueError) as err:
+        raise TransferRefused(f"source model unusable: its stored workspace is invalid ({err})") from None
+    if source is None:
+        return Workspace.from_trajectories(target)
+    own = Workspace.from_trajectories(target, directions=source.directions, load_limit=source.load_limit)
+    return Workspace(np.minimum(source.lower, own.lower), np.maximum(source.upper, own.upper), source.load_limit)
+
+
+def hold_out(data: TrajectorySet, fraction: float, seed: int) -> tuple[TrajectorySet, TrajectorySet]:
+    """``(train, held_out)``: ``fraction`` of the episodes (rounded down, at least one, never all) held out.
+
+    Counted in episodes, not transitions: the score is one open-loop rollout per
+    held-out episode, and with the few episodes of one session a transition
+    count would hold out more than asked.
+    """
+    if len(data) < 2:
+        raise ValueError(f"need at least 2 episodes to hold one out, got {len(data)}")
+    order = np.random.default_rng(seed).permutation(len(data))
+    count = min(max(1, int(fraction * len(data))), len(data) - 1)
+    return data.subset(sorted(order[count:])), data.subset(sorted(order[:count]))
+
+
+# ---------------------------------------------------------------- the transfer
+def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: None) -> TransferResult:
+    """One transfer on the bags not used before; see the module docstring.  TransferRefused on bad input."""
+    start = time.monotonic()
+    report("loading", {"method": spec.method})
+    if spec.method not in METHODS:
+        raise TransferRefused(f"unknown transfer method {spec.method!r}; expected one of {sorted(METHODS)}")
+    state = read_state(spec.model_dir)
+    used = set(state["used_bags"])
+    if spec.bags:
+        candidates, where = list(spec.bags), "the configured bags"
+    elif spec.bag_dir is not None:
+        candidates, where = list_bags(spec.bag_dir), str(spec.bag_dir)
+    else:
+        raise TransferRefused("no bags configured: set bag_dir or bags")
+    new = [b for b in candidates if bag_key(b) not in used]
+    if not new:
+        raise TransferRefused(
+            f"no new bags in {where} since the last transfer ({len(candidates)} bag(s), all used already)"
+        )
+    source, source_meta = load_source(spec.source_model)
+    data = read_target(new)
+    if len(data) < spec.min_episodes:
+        raise TransferRefused(
+            f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(new)} new "
+            f"bag(s); need at least {spec.min_episodes} (some to train on, one held out)"
+        )
+    train, held_out = hold_out(data, spec.holdout_fraction, spec.seed)
+    workspace = merged_workspace(source_meta, train)
+    report("training", {
+        "bags": ",".join(b.name for b in new), "episodes": len(train), "transitions": train.num_transitions,
+        "held_out_episodes": len(held_out), "epochs": epoch_budget(spec.method, spec.config),
+    })
+    try:
+        model = transfer(spec.method, source, train, spec.config, seed=spec.seed)
+    except ValueError as err:  # the method refuses data it cannot use, with the reason
+        raise TransferRefused(f"{spec.method} cannot use this data: {err}") from None
+    report("evaluating", {})
+    scores = evaluate_model(model, held_out)
+    baseline = evaluate_model(source, held_out)
+    report("saving", {})
+    path = _commit(model, spec, state, new, source_meta, train, held_out, workspace, scores)
+    return TransferResult(
+        method=spec.method, bags=tuple(new), episodes=len(train), transitions=train.num_transitions,
+        held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
+        position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
+        source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
+    )
+
+
+def _commit(
+    model: Any, spec: OnlineTransferSpec, state: Mapping[str, Any], bags: Sequence[Path],
+    source_meta: Mapping[str, Any], train: TrajectorySet, held_out: TrajectorySet, workspace: Workspace,
+    scores: Mapping[str, Any],
+) -> Path:
+    """Save the numbered model, replace ``current`` (the commit point), then record the bags as used."""
+    evaluation = {
+        "held_out": held_out.fingerprint(), "episodes": len(held_out),
+        "divergence_steps": scores["divergence_mean"], "position_mse_mm2": scores["position_mse_mean"],
+    }
+    section = getattr(spec.config, spec.method, None)
+    kwargs: dict[str, Any] = {
+        "method": spec.method,
+        "hyperparameters": dataclasses.asdict(section) if dataclasses.is_dataclass(section) else {},
+        "data": {
+            "target": train.fingerprint(), "bags": [bag_key(b) for b in bags],
+            "source_model": str(spec.source_model), "source_data": source_meta.get("data", {}),
+        },
+        "extra": {"workspace": workspace.to_dict(), "evaluation": evaluation},
+    }
+    path = next_model_path(spec.model_dir)
+    save_model(model, path, **kwargs)
+    try:
+        save_model(model, spec.model_dir / CURRENT_MODEL, **kwargs)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    record = {
+        "model": path.name, "method": spec.method, "bags": [bag_key(b) for b in bags],
+        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **evaluation,
+    }
+    try:
+        write_state(spec.model_dir, {
+            **state, "used_bags": [*state["used_bags"], *(bag_key(b) for b in bags)],
+            "transfers": [*state["transfers"], record],
+        })
+    except OSError as err:
+        raise OSError(
+            f"{path} is the current model, but recording its bags in {STATE_FILE} failed ({err}); "
+            "they will be offered to the next transfer again"
+        ) from err
+    return path
