@@ -1,4 +1,4 @@
-"""ROS 2 launch file of the node suite: the simulated hand driver and the recorder.
+"""ROS 2 launch file of the node suite: simulated hand driver, recorder, transfer server and planner.
 
 ``ros2 launch t42_transfer t42_suite.launch.py [params_file:=/path/suite.yaml]``.
 The same params file runs without ROS as ``t42 up configs/suite.yaml``.  Each
@@ -15,14 +15,19 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 
+NODES = ("mock_driver", "recorder", "transfer_server", "planner")
+"""The suite: every node of configs/suite.yaml (the explorer is run on its own, it ends when done)."""
+
+
 def generate_launch_description():
     default_params = os.path.join(get_package_share_directory("t42_transfer"), "config", "suite.yaml")
     params_file = LaunchConfiguration("params_file")
     return LaunchDescription([
         DeclareLaunchArgument("params_file", default_value=default_params,
-                              description="ROS params file with mock_driver and recorder sections"),
-        Node(package="t42_transfer", executable="mock_driver", name="mock_driver",
-             parameters=[params_file], output="screen", emulate_tty=True),
-        Node(package="t42_transfer", executable="recorder", name="recorder",
-             parameters=[params_file], output="screen", emulate_tty=True),
+                              description="ROS params file with a section per node"),
+        *[
+            Node(package="t42_transfer", executable=name, name=name,
+                 parameters=[params_file], output="screen", emulate_tty=True)
+            for name in NODES
+        ],
     ])

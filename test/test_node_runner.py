@@ -69,9 +69,10 @@ def test_registry_setup_py_and_launch_file_agree() -> None:
     tree = ast.parse(LAUNCH.read_text(), str(LAUNCH))
     compile(tree, str(LAUNCH), "exec")
     calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "Node"]
-    executables = [kw.value.value for call in calls for kw in call.keywords if kw.arg == "executable"]
-    packages = {kw.value.value for call in calls for kw in call.keywords if kw.arg == "package"}
-    assert executables == ["mock_driver", "recorder"] and packages == {"t42_transfer"}
+    assert len(calls) == 1 and {kw.value.value for kw in calls[0].keywords if kw.arg == "package"} == {"t42_transfer"}
+    suite = [n for n in ast.walk(tree) if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", None) == "NODES"]
+    executables = list(ast.literal_eval(suite[0].value))
+    assert executables == ["mock_driver", "recorder", "transfer_server", "planner"]
     assert set(executables) <= set(scripts)
     assert set(yaml.safe_load(SUITE.read_text())) == set(executables), "the launch file runs the suite's nodes"
 
@@ -129,7 +130,7 @@ def test_t42_up_runs_the_suite_and_stops_it_cleanly(tmp_path: Path) -> None:
 
     out_dir = tmp_path / "recordings"
     config = _suite_copy(tmp_path, out_dir=str(out_dir))
-    proc = subprocess.Popen([*T42, "up", str(config), "--stop-timeout", "10"], cwd=tmp_path,
+    proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver,recorder", "--stop-timeout", "10"], cwd=tmp_path,
                             env=_env(random.randint(1, 200)), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     try:
@@ -155,7 +156,7 @@ def test_t42_up_fails_when_a_child_dies(tmp_path: Path) -> None:
     not_a_dir.write_text("in the way")
     config = _suite_copy(tmp_path, out_dir=str(not_a_dir))
     started = time.monotonic()
-    proc = subprocess.run([*T42, "up", str(config)], cwd=tmp_path, env=_env(random.randint(1, 200)),
+    proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path, env=_env(random.randint(1, 200)),
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert re.search(r"recorder exited with code [1-9]\d* unexpectedly: stopping the others", proc.stdout), proc.stdout

@@ -118,9 +118,16 @@ def test_malformed_params_files(tmp_path: Path, text: str, match: str) -> None:
         load_params(Demo, "demo", [tmp_path / "missing.yaml"])
 
 
-def test_suite_config_builds_both_nodes_params() -> None:
+def test_suite_config_builds_every_nodes_params() -> None:
+    from t42_transfer.nodes.registry import NODES
+    from t42_transfer.ros.params import node_sections
+
     suite = REPO / "configs" / "suite.yaml"
     driver = load_params(MockDriverParams, "mock_driver", [suite])
     recorder = load_params(RecorderParams, "recorder", [suite], [("out_dir", "/tmp/elsewhere")])
     assert driver.hand == "target"
     assert recorder.mode == "episode" and recorder.out_dir == "/tmp/elsewhere"
+    sections = node_sections(suite)
+    assert sections == ["mock_driver", "recorder", "transfer_server", "planner"]
+    for name in sections:
+        assert load_params(NODES[name].params_class(), name, [suite]) is not None

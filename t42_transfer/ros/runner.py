@@ -1,6 +1,7 @@
 """Run one registered node as a process: ROS arguments -> params -> transport -> node -> spin.
 
-The process spins until SIGINT or SIGTERM, then closes the node (a recorder
+The process spins until SIGINT or SIGTERM (or, for a node with a ``finished``
+property such as the explorer, until its work is done), then closes the node (a recorder
 finishes its bag) and the transport and exits 0.  A bad command line or
 parameter exits 2 with one ``t42: error: ...`` line and no traceback.  Logs go
 to stderr in the ROS console format ``[INFO] [<unix time>] [<node>]: message``.
@@ -83,7 +84,7 @@ def _run(name: str, argv: Sequence[str], stop: threading.Event) -> int:
         node = spec.node_class()(transport, params)
         try:
             log.info("running (%s); SIGINT or SIGTERM stops", type(transport).__name__)
-            transport.spin(until=stop.is_set)
+            transport.spin(until=lambda: stop.is_set() or bool(getattr(node, "finished", False)))
         finally:
             node.close()
     log.info("shut down cleanly")
