@@ -306,3 +306,20 @@ def test_drop_publishes_status_and_stops_until_reset(rig, caplog):
     assert rig.reset_client.call(rig.reset_client.Request()).success
     rig.tick()
     assert len(rig.got[JOINT_STATES_TOPIC]) == n_states + 1 and rig.driver.running
+
+
+def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate():
+    r = Rig(MockDriverParams(rate_factor=10.0, sim_time=True))
+    clocks: list = []
+    r.tester.subscribe("/clock", "rosgraph_msgs/msg/Clock", qos.CLOCK, clocks.append)
+    r.tick(5)
+    r.tester.spin_once()
+    stamps = [stamp_to_ns(m.header.stamp) for m in r.got[JOINT_STATES_TOPIC]]
+    assert len(stamps) == 5 and np.all(np.diff(stamps) == CONTROL_PERIOD_NS)  # while wall moved 10 ms a tick
+    assert [stamp_to_ns(c.clock) for c in clocks] == stamps
+    assert stamps[0] == START_NS + CONTROL_PERIOD_NS
+    # commands are judged against the simulated clock: one stamped at sim time is fresh
+    r.command([0.5, 0.5], stamp_ns=stamps[-1])
+    r.tick()
+    np.testing.assert_allclose(r.applied()[-1], [0.5, 0.5], rtol=1e-6)
+    r.close()

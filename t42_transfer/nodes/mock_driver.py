@@ -20,8 +20,13 @@ state, all with stamp ``t`` (the bag convention of :mod:`t42_transfer.data.bag_i
 state ``k`` and action ``k`` share a stamp), then steps the hand with that action.
 When a step ends the episode (drop, lost contact, overload) the next timer tick
 publishes the final state without an action, publishes ``/hand/status`` and stops
-stepping until ``/hand/reset``.  With ``rate_factor != 1`` the stamps follow the
-transport clock, so they are ``0.1 / rate_factor`` s apart in wall time.
+stepping until ``/hand/reset``.  With ``rate_factor != 1`` and wall-clock stamps
+they would be ``0.1 / rate_factor`` s apart, which is not a T42 recording; so
+``sim_time`` makes the driver the clock of the graph, as a simulator is in ROS: it
+publishes ``/clock`` (rosgraph_msgs/msg/Clock) every tick, advancing exactly one
+control period per tick from the wall time it started at, and stamps everything
+with it.  Nodes run with ``use_sim_time:=true`` then read ROS time from ``/clock``,
+so stamps, staleness checks and recorded times agree at any rate.
 
 Which action a step applies:
 
@@ -62,10 +67,11 @@ from msg_adapters import (
     applied_action_msg,
     joint_state_msg,
     joint_trajectory_to_actions,
+    ns_to_stamp,
     object_pose_msg,
     stamp_to_ns,
 )
-from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_S
+from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros import qos
 from t42_transfer.ros.naming import validate_name
@@ -74,6 +80,8 @@ from t42_transfer.ros.transport import Transport, service_classes
 STRING = "std_msgs/msg/String"
 TRIGGER = "std_srvs/srv/Trigger"
 
+CLOCK = "rosgraph_msgs/msg/Clock"
+CLOCK_TOPIC = "/clock"
 COMMAND_TOPIC = "/hand/command"
 TRAJECTORY_TOPIC = "/hand/trajectory"
 RESET_SERVICE = "/hand/reset"
@@ -83,6 +91,7 @@ _LIMIT_SLACK = 1e-6
 """Relative slack on ACTION_LIMIT: wire round trips may land a hair past +-1.5."""
 
 _String = TYPESTORE.types[STRING]
+_Clock = TYPESTORE.types[CLOCK]
 
 
 class CommandRejected(ValueError):
@@ -101,6 +110,9 @@ class MockDriverParams:
     """Seed of the first grasp; reset ``k`` (counting from 0) uses ``seed + k`` (None: unseeded)."""
     max_command_age_s: float = 0.5
     """Commands (and stamped trajectories) older, or further in the future, than this are stale."""
+    sim_time: bool = False
+    """Publish the simulated time on ``clock_topic`` and stamp with it (see the module docstring)."""
+    clock_topic: str = CLOCK_TOPIC
     object_pose_topic: str = OBJECT_POSE_TOPIC
     joint_states_topic: str = JOINT_STATES_TOPIC
     applied_action_topic: str = APPLIED_ACTION_TOPIC
@@ -118,7 +130,7 @@ class MockDriverParams:
         if self.seed is not None and not isinstance(self.seed, int):
             raise ValueError(f"seed must be an int or None, got {self.seed!r}")
         for field in ("object_pose_topic", "joint_states_topic", "applied_action_topic", "command_topic",
-                      "trajectory_topic", "status_topic"):
+                      "trajectory_topic", "status_topic", "clock_topic"):
             validate_name(getattr(self, field))
         validate_name(self.reset_service, "service")
 
@@ -222,6 +234,8 @@ class MockDriver:
         self._joints_pub = transport.publisher(p.joint_states_topic, JOINT_STATE, qos.DEFAULT)
         self._action_pub = transport.publisher(p.applied_action_topic, JOINT_STATE, qos.DEFAULT)
         self._status_pub = transport.publisher(p.status_topic, STRING, qos.TRANSIENT_LOCAL)
+        self._sim_ns = transport.now_ns()
+        self._clock_pub = transport.publisher(p.clock_topic, CLOCK, qos.CLOCK) if p.sim_time else None
         _, self._Response = service_classes(TRIGGER)
         transport.subscribe(p.command_topic, JOINT_STATE, qos.DEFAULT, self._on_command)
         transport.subscribe(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT, self._on_trajectory)
@@ -253,6 +267,10 @@ class MockDriver:
         self._publish_status(status_message("reset", message))
         return True, message
 
+    def now_ns(self) -> int:
+        """The driver's time: the simulated clock with ``sim_time``, else the transport's."""
+        return self._sim_ns if self._clock_pub is not None else self.transport.now_ns()
+
     def close(self) -> None:
         """Stop the timer (the transport's owner closes the transport)."""
         self._timer.cancel()
@@ -260,7 +278,7 @@ class MockDriver:
     # ------------------------------------------------------------------ callbacks
     def _on_command(self, msg: Any) -> None:
         try:
-            action = validate_command(msg, self.transport.now_ns(), self.params.max_command_age_ns)
+            action = validate_command(msg, self.now_ns(), self.params.max_command_age_ns)
         except CommandRejected as err:
             self.log.warning("rejected %s: %s; keeping the last safe command", self.params.command_topic, err)
             return
@@ -275,7 +293,7 @@ class MockDriver:
     def _on_trajectory(self, msg: Any) -> None:
         try:
             actions = validate_trajectory(
-                msg, self.hand.actuator_angles, self.transport.now_ns(), self.params.max_command_age_ns
+                msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns
             )
         except CommandRejected as err:
             self.log.warning("rejected %s: %s; keeping the last safe command", self.params.trajectory_topic, err)
@@ -299,6 +317,9 @@ class MockDriver:
 
     def _on_timer(self) -> None:
         try:
+            if self._clock_pub is not None:
+                self._sim_ns += CONTROL_PERIOD_NS
+                self._clock_pub.publish(_Clock(clock=ns_to_stamp(self._sim_ns)))
             self._tick()
         except Exception:
             self.log.exception("step failed; the hand stops until %s", self.params.reset_service)
@@ -317,7 +338,7 @@ class MockDriver:
     def _tick(self) -> None:
         if not self.running:
             return
-        stamp = self.transport.now_ns()
+        stamp = self.now_ns()
         state = self.hand.state
         self._pose_pub.publish(object_pose_msg(state[:2], stamp))
         self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp))

@@ -51,3 +51,5 @@ TRANSIENT_LOCAL = QoSProfile(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, H
 """Latched: KEEP_LAST 1, RELIABLE, TRANSIENT_LOCAL (late joiners get the last message)."""
 SERVICES_DEFAULT = DEFAULT
 """rmw_qos_profile_services_default equals the default profile."""
+CLOCK = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 1)
+"""rclcpp's ClockQoS for ``/clock``: only the latest time matters."""
