@@ -73,52 +73,87 @@ def _stop(children: list[Child], timeout_s: float, say: Callable[[str], None]) -
             time.sleep(POLL_S / 2)
 
 
+class Supervisor:
+    """Node processes started from one params file; stops them all on exit (``with Supervisor(...)``).
+
+    ``t42 up`` and ``t42 demo`` both run the suite through this class.
+    """
+
+    def __init__(self, config: str | Path, out: TextIO | None = None, stop_timeout_s: float = 5.0,
+                 env: dict[str, str] | None = None) -> None:
+        self.config = Path(config).resolve()
+        self.out = out if out is not None else sys.stdout
+        self.stop_timeout_s = stop_timeout_s
+        self.env = env
+        self.children: list[Child] = []
+        self._lock = threading.Lock()
+
+    def say(self, message: str) -> None:
+        with self._lock:
+            self.out.write(f"[t42 up] {message}\n")
+            self.out.flush()
+
+    def start(self, name: str, *overrides: str) -> Child:
+        """Start node ``name`` with its section of the params file (and ``-p`` ``overrides``, ``key:=value``)."""
+        cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name, "--ros-args",
+               "--params-file", str(self.config)]
+        for override in overrides:
+            cmd += ["-p", override]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                bufsize=1, start_new_session=True, env=self.env)
+        forwarder = threading.Thread(target=_forward, args=(name, proc.stdout, self.out, self._lock), daemon=True)
+        forwarder.start()
+        child = Child(name, proc, forwarder)
+        self.children.append(child)
+        self.say(f"started {name} (pid {proc.pid})")
+        return child
+
+    def exited(self) -> list[str]:
+        """``"<name> exited with code N"`` for every child no longer running."""
+        return [f"{c.name} exited with code {c.proc.returncode}" for c in self.children if c.proc.poll() is not None]
+
+    def stop(self) -> dict[str, int]:
+        """Stop every child (SIGINT, then SIGTERM, then SIGKILL); their exit codes."""
+        _stop(self.children, self.stop_timeout_s, self.say)
+        for child in self.children:
+            child.forwarder.join(timeout=1.0)
+        return {c.name: c.proc.returncode for c in self.children}
+
+    def __enter__(self) -> "Supervisor":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
 def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
        out: TextIO | None = None) -> int:
     """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child exits; the exit code."""
-    out = out if out is not None else sys.stdout
-    config = Path(config).resolve()
     names = plan_nodes(config, only)
-    lock = threading.Lock()
-
-    def say(message: str) -> None:
-        with lock:
-            out.write(f"[t42 up] {message}\n")
-            out.flush()
-
+    supervisor = Supervisor(config, out, stop_timeout_s)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    children: list[Child] = []
     failed: list[str] = []
     try:
         for name in names:
-            cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name, "--ros-args", "--params-file", str(config)]
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                    bufsize=1, start_new_session=True)
-            forwarder = threading.Thread(target=_forward, args=(name, proc.stdout, out, lock), daemon=True)
-            forwarder.start()
-            children.append(Child(name, proc, forwarder))
-            say(f"started {name} (pid {proc.pid})")
+            supervisor.start(name)
         while not stop.is_set():
-            failed = [f"{c.name} exited with code {c.proc.returncode}" for c in children if c.proc.poll() is not None]
+            failed = supervisor.exited()
             if failed:
-                say(f"{'; '.join(failed)} unexpectedly: stopping the others")
+                supervisor.say(f"{'; '.join(failed)} unexpectedly: stopping the others")
                 break
             stop.wait(POLL_S)
         else:
-            say("stopping")
+            supervisor.say("stopping")
     finally:
-        _stop(children, stop_timeout_s, say)
+        codes = supervisor.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        for child in children:
-            child.forwarder.join(timeout=1.0)
-    codes = {c.name: c.proc.returncode for c in children}
     unclean = {n: rc for n, rc in codes.items() if rc != 0}
     if unclean and not failed:
-        say("not stopped cleanly: " + ", ".join(f"{n} exited with code {rc}" for n, rc in unclean.items()))
+        supervisor.say("not stopped cleanly: " + ", ".join(f"{n} exited with code {rc}" for n, rc in unclean.items()))
     return 1 if failed or unclean else 0
