@@ -22,7 +22,7 @@ import argparse
 import json
 import shlex
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -116,19 +116,36 @@ def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list
 
 
 def _make_goal(hand: SimulatedHand, cfg: PegInHoleConfig, steps: int, trial: int, workspace: Workspace | None) -> Goal:
-    for attempt in range(GOAL_ATTEMPTS):
-        seed = int(np.random.SeedSequence([cfg.seed, steps, trial, attempt]).generate_state(1)[0])
-        actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), cfg.hold_steps)[0]
+    seeds = (int(np.random.SeedSequence([cfg.seed, steps, trial, attempt]).generate_state(1)[0])
+             for attempt in range(GOAL_ATTEMPTS))
+    return reachable_goal(hand, steps, cfg.hold_steps, seeds, workspace, trial=trial)
+
+
+def reachable_goal(
+    hand: SimulatedHand, steps: int, hold_steps: tuple[int, int], action_seeds: Iterable[int],
+    workspace: Workspace | None = None, grasp_seed: int | None = None, trial: int = 0,
+) -> Goal:
+    """The first goal ``steps`` away that the true hand reaches without a drop (inside ``workspace``).
+
+    Each attempt samples a piecewise-constant sequence from the next action seed and
+    runs it from a grasp made with ``grasp_seed`` (a driver's reset seed), or with
+    the action seed itself when None.
+    """
+    tried = 0
+    for seed in action_seeds:
+        tried += 1
+        grasp_with = seed if grasp_seed is None else grasp_seed
+        actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), hold_steps)[0]
         try:
-            traj = run_episode(hand, actions.numpy(), seed)
+            traj = run_episode(hand, actions.numpy(), grasp_with)
         except GraspFailed:
             continue
-        goal = Goal(steps, trial, seed, traj.states[0].astype(np.float64), traj.states[-1, :2].astype(np.float64))
+        goal = Goal(steps, trial, grasp_with, traj.states[0].astype(np.float64), traj.states[-1, :2].astype(np.float64))
         inside = workspace is None or bool(workspace.contains_xy(torch.as_tensor(goal.position)))
         if traj.end_reason == "length" and len(traj) == steps and inside:
             return goal
     raise RuntimeError(
-        f"no goal {steps} steps away without a drop (inside the workspace) in {GOAL_ATTEMPTS} attempts (trial {trial})"
+        f"no goal {steps} steps away without a drop (inside the workspace) in {tried} attempts (trial {trial})"
     )
 
 
