@@ -102,7 +102,7 @@ def ours_single_step(data: TrajectorySet, batch_size: int, epochs: int) -> tuple
     model = fresh_model(data)
     cfg = TrainConfig(epochs=epochs, batch_size=batch_size, patience=None)
     start = time.perf_counter()
-    report = fit_single_step(model, data, None, cfg, progress=False)
+    report = fit_single_step(model, data, None, cfg)
     wall = time.perf_counter() - start
     n = data.num_transitions
     return report.samples_per_s, epochs * n / wall
@@ -136,7 +136,7 @@ def ours_trajectory(source: TransitionModel, target: TrajectorySet, tcfg: Trajec
     """Seconds of one trajectory_finetune call."""
     cfg = TransferConfig(trajectory_finetune=tcfg)
     start = time.perf_counter()
-    METHODS["trajectory_finetune"](source, target, cfg, 0, False)
+    METHODS["trajectory_finetune"](source, target, cfg, 0, None)
     return time.perf_counter() - start
 
 

@@ -96,14 +96,14 @@ def _transfer_story(run_dir: Path, size: DemoSize) -> list[dict]:
 
     from t42_transfer.evaluation.metrics import evaluate_model
     from t42_transfer.models.checkpoint import save_model
-    from t42_transfer.models.training import TrainConfig, train_transition_model
+    from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
     from t42_transfer.transfer import transfer
 
     torch.set_num_threads(1)
     source_data = read_bag(run_dir / "source_bag")
     target_data = read_bag(run_dir / "target_bag")
     source, report = train_transition_model(
-        source_data, TrainConfig(epochs=size.source_epochs), desc="source model"
+        source_data, TrainConfig(epochs=size.source_epochs), on_epoch=ProgressBar(), phase="source model"
     )
     from t42_transfer.planning.workspace import Workspace
 

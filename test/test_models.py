@@ -8,7 +8,14 @@ import torch
 from torch import nn
 
 from t42_transfer.models import Normalisation, TransitionModel
-from t42_transfer.models.training import TrainConfig, train_transition_model, trajectory_weights, windows
+from t42_transfer.models.training import (
+    Progress,
+    TrainConfig,
+    fit,
+    train_transition_model,
+    trajectory_weights,
+    windows,
+)
 
 
 def test_architecture_is_the_papers() -> None:
@@ -51,13 +58,41 @@ def test_zero_output_layer_moves_by_the_mean_change() -> None:
 def test_training_is_seeded_learns_and_keeps_the_best_epoch(make_set) -> None:
     data = make_set([40] * 10, seed=3)
     cfg = TrainConfig(epochs=6, patience=2, seed=4)
-    first, report = train_transition_model(data, cfg, progress=False)
-    again, _ = train_transition_model(data, cfg, progress=False)
+    first, report = train_transition_model(data, cfg)
+    again, _ = train_transition_model(data, cfg)
     for p, q in zip(first.parameters(), again.parameters()):
         assert torch.equal(p, q)
     assert report.train_loss[-1] < report.train_loss[0]
     assert report.best_epoch == int(np.argmin(report.val_loss))
     assert len(report.val_loss) == report.epochs_run <= 6
+
+
+def test_progress_hook_is_called_once_per_epoch_until_early_stopping() -> None:
+    torch.manual_seed(0)
+    net = nn.Linear(3, 1)
+    x, y = torch.randn(32, 3), torch.randn(32, 1)
+    rising = iter(range(100))  # validation never improves after the first epoch: patience 2 stops after 3
+
+    def loss_on(idx: torch.Tensor) -> torch.Tensor:
+        return torch.mean((net(x[idx]) - y[idx]) ** 2)
+
+    calls: list[Progress] = []
+    cfg = TrainConfig(epochs=20, batch_size=8, patience=2)
+    report = fit(list(net.parameters()), net, loss_on, 32, lambda: float(next(rising)), cfg, "probe", calls.append)
+    assert report.epochs_run == 3
+    assert [p.epoch for p in calls] == [1, 2, 3]
+    assert all(p.phase == "probe" and p.epochs == 20 for p in calls)
+    assert all(np.isfinite(p.train_loss) for p in calls)
+    assert [p.val_loss for p in calls] == [0.0, 1.0, 2.0]
+    assert [p.train_loss for p in calls] == report.train_loss
+
+
+def test_training_reports_every_epoch_of_its_phase(make_set) -> None:
+    calls: list[Progress] = []
+    _, report = train_transition_model(make_set([30] * 3, seed=2), TrainConfig(epochs=3), on_epoch=calls.append,
+                                       phase="source model")
+    assert [(p.phase, p.epoch, p.epochs) for p in calls] == [("source model", e, 3) for e in (1, 2, 3)]
+    assert all(p.val_loss is None and np.isfinite(p.train_loss) for p in calls)  # 3 episodes: no validation set
 
 
 def test_trajectory_weights_are_one_over_i() -> None:

@@ -45,7 +45,7 @@ def target_data() -> TrajectorySet:
 @pytest.fixture(scope="module")
 def target_model(target_data: TrajectorySet) -> TransitionModel:
     """The paper's MLP after a few epochs on the small target fixture bag: crude, but a real hand model."""
-    return train_transition_model(target_data, TrainConfig(epochs=5, patience=None), progress=False)[0]
+    return train_transition_model(target_data, TrainConfig(epochs=5, patience=None))[0]
 
 
 @pytest.fixture(scope="module")

@@ -330,7 +330,7 @@ def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_toward
     from t42_transfer.planning.sampling import sample_actions
 
     data = read_bag(Path(__file__).resolve().parents[1] / "bags" / "target_small")
-    model = train_transition_model(data, TrainConfig(epochs=5, patience=None), progress=False)[0]
+    model = train_transition_model(data, TrainConfig(epochs=5, patience=None))[0]
     workspace = Workspace.from_trajectories(data)
     path = save_model(model, tmp_path / "target.safetensors", method="target_only",
                       extra={"workspace": workspace.to_dict()})

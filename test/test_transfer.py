@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from t42_transfer.models import Normalisation, TransitionModel
-from t42_transfer.models.training import TrainConfig, train_transition_model, trajectory_loss
+from t42_transfer.models.training import Progress, TrainConfig, train_transition_model, trajectory_loss
 from t42_transfer.transfer import METHODS, PAPER_METHODS, TransferConfig, transfer
 from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 
@@ -27,7 +27,7 @@ FAST = TransferConfig(
 
 @pytest.fixture(scope="module")
 def source(make_set) -> TransitionModel:
-    model, _ = train_transition_model(make_set([40] * 8, seed=10, hand="src"), TrainConfig(epochs=3), progress=False)
+    model, _ = train_transition_model(make_set([40] * 8, seed=10, hand="src"), TrainConfig(epochs=3))
     return model
 
 
@@ -56,6 +56,19 @@ def test_each_method_shapes_determinism_and_untouched_source(method: str, source
         assert torch.equal(v, before[k]), f"{method} modified the source's {k}"
     if method != "direct":
         assert not torch.equal(states, source.rollout(x0, actions))
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_each_method_reports_its_training_epochs_by_phase(method: str, source, target) -> None:
+    calls: list[Progress] = []
+    transfer(method, source, target, FAST, seed=3, on_epoch=calls.append)
+    if method == "direct":
+        assert calls == []  # nothing to train
+        return
+    assert calls and all(p.phase and 1 <= p.epoch <= p.epochs == 2 for p in calls)
+    for phase in {p.phase for p in calls}:
+        assert [p.epoch for p in calls if p.phase == phase] == list(range(1, 1 + sum(p.phase == phase for p in calls)))
+    assert all(np.isfinite(p.train_loss) for p in calls)
 
 
 def test_bad_requests_are_refused(source, target) -> None:

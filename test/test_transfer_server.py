@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import threading
 from pathlib import Path
@@ -43,7 +44,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def source_model(tmp_path_factory: pytest.TempPathFactory, one_torch_thread: None) -> Path:
     """A source model trained for 1 epoch on the source fixture bag, with its workspace."""
     data = read_bag(REPO / "bags" / "source_small")
-    model, _ = train_transition_model(data, TrainConfig(epochs=1), progress=False)
+    model, _ = train_transition_model(data, TrainConfig(epochs=1))
     path = tmp_path_factory.mktemp("source") / "source.safetensors"
     return save_model(model, path, method="source", extra={"workspace": Workspace.from_trajectories(data).to_dict()})
 
@@ -126,6 +127,19 @@ def test_transfer_answers_with_summary_saves_and_announces(tmp_path, source_mode
     assert float(last.values["elapsed_s"]) >= 0.0
 
 
+def test_diagnostics_follow_the_training_epochs(tmp_path, source_model):
+    rig = Rig(tmp_path, source_model, config={"cumulative_residual": {"train": {"epochs": 4, "patience": None}}})
+    add_target_bag(rig.bag_dir)
+    assert rig.call().success
+    training = [r for r in rig.statuses() if r.values["stage"] == "training"]
+    epochs = [int(r.values["epoch"]) for r in training]
+    assert epochs == sorted(epochs) and set(epochs) == {0, 1, 2, 3, 4}
+    trained = [r for r in training if int(r.values["epoch"]) > 0]
+    assert all(r.values["phase"] == "residual" and r.values["epochs"] == "4" for r in trained)
+    assert all(math.isfinite(float(r.values["train_loss"])) for r in trained)
+    assert trained[-1].message == "training residual: epoch 4/4"
+
+
 def test_bags_are_used_once(tmp_path, source_model, make_set):
     rig = Rig(tmp_path, source_model)
     add_target_bag(rig.bag_dir)
@@ -156,10 +170,10 @@ def test_a_restarted_server_announces_the_latest_model(tmp_path, source_model):
 def test_second_call_while_running_is_answered_busy(tmp_path, source_model, monkeypatch):
     entered, release = threading.Event(), threading.Event()
 
-    def slow(source, target, cfg, seed, progress=False):
+    def slow(source, target, cfg, seed, on_epoch=None):
         entered.set()
         assert release.wait(5.0)
-        return METHODS["direct"](source, target, cfg, seed, progress)
+        return METHODS["direct"](source, target, cfg, seed, on_epoch)
 
     monkeypatch.setitem(METHODS, "slow", slow)
     rig = Rig(tmp_path, source_model, method="slow")

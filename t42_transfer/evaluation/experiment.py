@@ -29,7 +29,7 @@ from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet, split_by_fraction
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.models.training import TrainConfig, train_transition_model
+from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS, transfer
 
@@ -276,7 +276,7 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) ->
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        model, report = train_transition_model(data, cfg.source_training, progress=progress, desc="source model")
+        model, report = train_transition_model(data, cfg.source_training, on_epoch=ProgressBar() if progress else None, phase="source model")
     finally:
         torch.set_num_threads(threads)
     save_model(

@@ -1,8 +1,13 @@
 """Training loops: single-step regression and open-loop trajectory fitting.
 
 Both index tensors directly (no DataLoader: it costs 1.5-2.4x here), are seeded,
-show a progress bar, and keep the weights of the best validation epoch when a
-validation set is given (early stopping).
+report each epoch to an optional progress hook, and keep the weights of the best
+validation epoch when a validation set is given (early stopping).
+
+Progress has one mechanism: a :data:`ProgressHook` called with a
+:class:`Progress` after every epoch.  Long work (a transfer behind a ROS
+service, an experiment's source model) passes a hook that forwards it to where
+it is watched; :class:`ProgressBar` is the hook for a terminal.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -19,6 +25,9 @@ from torch import Tensor, nn
 
 from t42_transfer.data.trajectory import TrajectorySet, split_by_fraction
 from t42_transfer.models.network import Normalisation, TransitionModel
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 # The authors' trajectory loss weighs loads 0.1 against positions 1.0.
 LOAD_LOSS_WEIGHT = 0.1
@@ -46,6 +55,55 @@ class TrainReport:
     val_loss: list[float] = field(default_factory=list)
     seconds: float = 0.0
     samples_per_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One finished epoch of one training phase, as reported to a :data:`ProgressHook`."""
+
+    phase: str
+    """What is being trained (e.g. "source model", "residual"): a transfer reports its phases by this name."""
+    epoch: int
+    """Epochs done in this phase, from 1; early stopping can end a phase before ``epochs``."""
+    epochs: int
+    """The phase's epoch budget."""
+    train_loss: float
+    """Mean minibatch loss of this epoch (penalty included)."""
+    val_loss: float | None
+    """Validation loss after this epoch; None when the phase has no validation set."""
+
+
+ProgressHook = Callable[[Progress], None]
+"""Called after every training epoch; the only way training reports where it is."""
+
+
+class ProgressBar:
+    """A :data:`ProgressHook` drawing a tqdm bar per phase (the terminal view of the same reports).
+
+    A bar closes at its phase's last budgeted epoch, when the next phase starts,
+    or when the hook is dropped (tqdm closes a bar it deletes), which covers a
+    phase ended early by early stopping.
+    """
+
+    def __init__(self) -> None:
+        self._bar: tqdm | None = None
+
+    def __call__(self, progress: Progress) -> None:
+        from tqdm.auto import tqdm
+
+        if self._bar is None or progress.epoch == 1:
+            self._close()
+            self._bar = tqdm(total=progress.epochs, desc=progress.phase, unit="ep", leave=False)
+        val = "-" if progress.val_loss is None else f"{progress.val_loss:.4f}"
+        self._bar.set_postfix(train=f"{progress.train_loss:.4f}", val=val)
+        self._bar.update()
+        if progress.epoch >= progress.epochs:
+            self._close()
+
+    def _close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
 
 @dataclass(frozen=True)
@@ -80,12 +138,6 @@ def step_batch(model: TransitionModel, data: TrajectorySet, reference: Callable[
         return StepBatch(model.features(x, a, grasp), model.normalise_delta(x_next - base))
 
 
-def _progress(total: int, desc: str, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, desc=desc, unit="ep", disable=not enabled, leave=False)
-
-
 def fit(
     params: list[nn.Parameter],
     module: nn.Module,
@@ -93,18 +145,20 @@ def fit(
     n_train: int,
     val_loss: Callable[[], float] | None,
     cfg: TrainConfig,
-    desc: str,
-    progress: bool,
+    phase: str,
+    on_epoch: ProgressHook | None = None,
     penalty: Callable[[], Tensor] | None = None,
 ) -> TrainReport:
-    """The shared loop: shuffled minibatches of indices ``loss_on(idx)``, Adam, clipping, early stop."""
+    """The shared loop: shuffled minibatches of indices ``loss_on(idx)``, Adam, clipping, early stop.
+
+    ``on_epoch`` gets a :class:`Progress` named ``phase`` after every epoch run.
+    """
     gen = torch.Generator().manual_seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     # fused Adam: at batch 64 the per-parameter optimiser ops were ~45 % of a step (bench/bench_training.py).
     opt = torch.optim.Adam(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
     report, best, best_state, waited = TrainReport(), math.inf, None, 0
     start = time.perf_counter()
-    bar = _progress(cfg.epochs, desc, progress)
     for epoch in range(cfg.epochs):
         module.train()
         order = torch.randperm(n_train, generator=gen)
@@ -130,11 +184,11 @@ def fit(
                 best, best_state, waited, report.best_epoch = current, copy.deepcopy(module.state_dict()), 0, epoch
             else:
                 waited += 1
-        bar.set_postfix(train=f"{report.train_loss[-1]:.4f}", val=f"{report.val_loss[-1]:.4f}" if report.val_loss else "-")
-        bar.update()
+        if on_epoch is not None:
+            val = report.val_loss[-1] if val_loss is not None else None
+            on_epoch(Progress(phase, epoch + 1, cfg.epochs, report.train_loss[-1], val))
         if cfg.patience is not None and val_loss is not None and waited >= cfg.patience:
             break
-    bar.close()
     if best_state is not None:
         module.load_state_dict(best_state)
     else:
@@ -205,15 +259,15 @@ def train_transition_model(
     cfg: TrainConfig = TrainConfig(),
     grasp_input: bool = False,
     val_fraction: float = 0.1,
-    progress: bool = True,
-    desc: str = "train",
+    on_epoch: ProgressHook | None = None,
+    phase: str = "train",
 ) -> tuple[TransitionModel, TrainReport]:
     """A fresh paper MLP fitted single-step to ``data`` (normalisation from the training part)."""
     train, val = validation_split(data, val_fraction, cfg.seed)
     x, _, x_next = train.transitions()
     torch.manual_seed(cfg.seed)
     model = TransitionModel(Normalisation.from_transitions(x, x_next), grasp_input=grasp_input)
-    report = fit_single_step(model, train, val, cfg, progress=progress, desc=desc)
+    report = fit_single_step(model, train, val, cfg, on_epoch=on_epoch, phase=phase)
     return model, report
 
 
@@ -222,8 +276,8 @@ def fit_single_step(
     train: TrajectorySet,
     val: TrajectorySet | None,
     cfg: TrainConfig,
-    progress: bool = True,
-    desc: str = "train",
+    on_epoch: ProgressHook | None = None,
+    phase: str = "train",
     penalty: Callable[[], Tensor] | None = None,
     reference: Callable[[Tensor, Tensor], Tensor] | None = None,
 ) -> TrainReport:
@@ -238,6 +292,6 @@ def fit_single_step(
     net = model.net
     val_fn = None if val_batch is None else (lambda: float(step_loss(net, val_batch, slice(None))))
     return fit(
-        list(net.parameters()), model, lambda idx: step_loss(net, batch, idx), len(batch), val_fn, cfg, desc,
-        progress, penalty,
+        list(net.parameters()), model, lambda idx: step_loss(net, batch, idx), len(batch), val_fn, cfg, phase,
+        on_epoch, penalty,
     )

@@ -12,9 +12,12 @@ Wiring (defaults; every name is a :class:`TransferServerParams` field):
 * ``/diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
-  training, evaluating, saving, done, failed), ``epochs`` (the method's epoch
-  budget), ``elapsed_s``, ``method``, ``bags`` and what is known so far.
-  Published at every stage change and every ``progress_period_s`` while running;
+  training, evaluating, saving, done, failed), ``elapsed_s``, ``method``,
+  ``bags`` and what is known so far; while training, the last finished epoch:
+  ``phase`` (what the method trains, e.g. ``residual``), ``epoch`` (0 before the
+  first), ``epochs`` (the phase's budget; early stopping may end it sooner),
+  ``train_loss`` and, when the method validates, ``val_loss``.  Published at
+  every stage change, every epoch and every ``progress_period_s`` while running;
 * ``/t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
   ``transferred_<NNN>.safetensors`` (a file never rewritten, so a planner can load
   it while the next transfer replaces ``current.safetensors``); on start the node
@@ -224,8 +227,11 @@ class TransferServer:
     }
 
     def _report(self, stage: str, info: Mapping[str, object]) -> None:
-        """Progress callback of :func:`run_transfer` (worker thread)."""
-        self._set_status(stage, "OK", self._MESSAGES.get(stage, stage), info)
+        """Progress callback of :func:`run_transfer` (worker thread); an epoch report says which in the message."""
+        message = self._MESSAGES.get(stage, stage)
+        if stage == "training" and "phase" in info:
+            message = f"training {info['phase']}: epoch {info['epoch']}/{info['epochs']}"
+        self._set_status(stage, "OK", message, info)
 
     def _set_status(self, stage: str, level: str, message: str, info: Mapping[str, object]) -> None:
         values = {**self._status["values"], **info}
@@ -233,16 +239,20 @@ class TransferServer:
         self._publish_status()
 
     def _publish_status(self) -> None:
-        """Publish the current status; failures are logged (it runs from worker and handler threads)."""
-        status = self._status
-        values = {
-            "stage": status["stage"], "elapsed_s": f"{time.monotonic() - self._started:.1f}",
-            "method": self.params.method, **status["values"],
-        }
+        """Publish the current status; failures are logged (it runs from worker and handler threads).
+
+        The status is read under the lock, so a periodic publish cannot send an
+        older epoch after the worker has published a newer one.
+        """
         try:
             with self._publishing:
                 if self.transport.closed:
                     return
+                status = self._status
+                values = {
+                    "stage": status["stage"], "elapsed_s": f"{time.monotonic() - self._started:.1f}",
+                    "method": self.params.method, **status["values"],
+                }
                 self._diagnostics.publish(diagnostic_array(
                     STATUS_NAME, status["level"], status["message"], values, self.transport.now_ns(),
                 ))

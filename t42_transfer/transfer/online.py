@@ -47,6 +47,7 @@ from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.network import TransitionModel
+from t42_transfer.models.training import Progress
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS, transfer
@@ -60,7 +61,8 @@ STAGES = ("loading", "training", "evaluating", "saving", "done", "failed")
 _MODEL_NAME = re.compile(rf"^{MODEL_PREFIX}_(\d{{3,}})\.safetensors$")
 
 Report = Callable[[str, Mapping[str, object]], None]
-"""``report(stage, info)``: called at each stage change with what is known so far."""
+"""``report(stage, info)``: called at each stage change with what is known so far, and while ``training``
+after every epoch with :func:`epoch_info` (``phase``, ``epoch``, ``epochs``, ``train_loss``, ``val_loss``)."""
 
 
 class TransferRefused(Exception):
@@ -153,6 +155,16 @@ def epoch_budget(method: str, cfg: TransferConfig) -> int:
     section = getattr(cfg, method, None)
     train = getattr(section, "train", None)
     return 0 if train is None else int(train.epochs)
+
+
+def epoch_info(progress: Progress) -> dict[str, object]:
+    """A training epoch as :data:`Report` info; ``val_loss`` only when the phase validates."""
+    info: dict[str, object] = {
+        "phase": progress.phase, "epoch": progress.epoch, "epochs": progress.epochs, "train_loss": progress.train_loss,
+    }
+    if progress.val_loss is not None:
+        info["val_loss"] = progress.val_loss
+    return info
 
 
 # ---------------------------------------------------------------- bags and state
@@ -310,10 +322,13 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     workspace = merged_workspace(source_meta, train)
     report("training", {
         "bags": ",".join(b.name for b in new), "episodes": len(train), "transitions": train.num_transitions,
-        "held_out_episodes": len(held_out), "epochs": epoch_budget(spec.method, spec.config),
+        "held_out_episodes": len(held_out), "epoch": 0, "epochs": epoch_budget(spec.method, spec.config),
     })
     try:
-        model = transfer(spec.method, source, train, spec.config, seed=spec.seed)
+        model = transfer(
+            spec.method, source, train, spec.config, seed=spec.seed,
+            on_epoch=lambda progress: report("training", epoch_info(progress)),
+        )
     except ValueError as err:  # the method refuses data it cannot use, with the reason
         raise TransferRefused(f"{spec.method} cannot use this data: {err}") from None
     report("evaluating", {})
