@@ -18,12 +18,18 @@ from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTranspo
 class Suite:
     """Driver, recorder (episode mode) and explorer on one bus, advanced one driver period at a time."""
 
-    def __init__(self, out_dir: Path, driver: MockDriverParams, explorer: ExplorerParams) -> None:
+    def __init__(self, out_dir: Path, driver: MockDriverParams, explorer: ExplorerParams,
+                 idle_ticks: int = 0) -> None:
         self.clock = FakeClock(1_000_000_000)
         self.bus = InProcessBus(clock=self.clock)
         self.nodes = [InProcessTransport(self.bus, name) for name in ("mock_driver", "recorder", "explorer")]
         self.driver = MockDriver(self.nodes[0], driver)
-        self.recorder = Recorder(self.nodes[1], RecorderParams(out_dir=out_dir, mode="episode"))
+        self.recorder = Recorder(self.nodes[1], RecorderParams(out_dir=out_dir, mode="episode",
+                                                                start_immediately=not explorer.record_start_service))
+        for _ in range(idle_ticks):  # the hand idles before the explorer starts
+            self.clock.advance(self.driver.params.period_s)
+            self.nodes[0].spin_once()
+            self.nodes[1].spin_once()
         self.explorer = Explorer(self.nodes[2], explorer)
 
     def run(self, max_ticks: int) -> int:
@@ -76,8 +82,19 @@ def test_explorer_ends_an_episode_on_a_drop_and_goes_on(tmp_path: Path) -> None:
     assert any(end in ("dropped", "lost_contact", "overload") for end in ends), ends
 
 
+def test_explorer_records_only_its_episodes_when_it_drives_the_recorder(tmp_path: Path) -> None:
+    params = ExplorerParams(episodes=2, steps=20, record_start_service="/recorder/start",
+                            record_stop_service="/recorder/stop")
+    suite = Suite(tmp_path, MockDriverParams(hand="target", seed=2), params, idle_ticks=50)
+    suite.run(300)
+    assert suite.explorer.finished and not suite.recorder.recording
+    lengths = [len(read_bag(bag)[0]) for bag in suite.recorder.bags]
+    assert len(lengths) == 2 and all(20 <= n <= 24 for n in lengths), lengths  # no 50-step idle bag
+
+
 @pytest.mark.parametrize("field, value", [("episodes", 0), ("steps", -1), ("limit", 2.0), ("rate_factor", 0.0),
-                                          ("trajectory_topic", "no_slash")])
+                                          ("trajectory_topic", "no_slash"),
+                                          ("record_stop_service", "stop")])
 def test_bad_parameters_are_refused(field: str, value: object) -> None:
     with pytest.raises(ValueError, match=field.split("_")[0]):
         ExplorerParams(**{field: value})

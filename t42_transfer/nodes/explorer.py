@@ -14,6 +14,11 @@ One whole trajectory per episode (not a command per step) keeps the actions
 exactly as sampled whatever the transport latency: the driver executes it open
 loop, one point per control period, at its own rate.  After ``episodes`` episodes
 :attr:`Explorer.finished` is true and the node idles (``t42 node`` exits).
+
+With ``record_start_service`` / ``record_stop_service`` set (a recorder's
+``/recorder/start`` and ``/recorder/stop``), the explorer starts the recording right
+after its first reset and stops it after its last episode, so the bags hold its
+episodes and nothing of the idle hand before or after them.
 """
 
 from __future__ import annotations
@@ -57,6 +62,10 @@ class ExplorerParams:
     """The driver's rate factor: episode timeouts shrink with it."""
     timeout_margin_s: float = 5.0
     """An episode gives up this long (wall) after its last action was due."""
+    record_start_service: str = ""
+    """Trigger service called after the first reset (empty: none)."""
+    record_stop_service: str = ""
+    """Trigger service called after the last episode (empty: none)."""
     reset_service: str = RESET_SERVICE
     trajectory_topic: str = TRAJECTORY_TOPIC
     joint_states_topic: str = JOINT_STATES_TOPIC
@@ -73,9 +82,11 @@ class ExplorerParams:
         if not (math.isfinite(self.rate_factor) and self.rate_factor > 0):
             raise ValueError(f"rate_factor must be positive, got {self.rate_factor!r}")
         for name in ("trajectory_topic", "joint_states_topic", "applied_action_topic", "status_topic",
-                     "reset_service"):
+                     "reset_service", "record_start_service", "record_stop_service"):
+            if name.startswith("record_") and not getattr(self, name):
+                continue
             try:
-                validate_name(getattr(self, name), "service" if name == "reset_service" else "topic")
+                validate_name(getattr(self, name), "service" if name.endswith("_service") else "topic")
             except ValueError as err:
                 raise ValueError(f"{name}: {err}") from None
 
@@ -104,6 +115,8 @@ class Explorer:
         self._deadline_ns = 0
         self._trajectory_pub = transport.publisher(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT)
         self._reset = transport.client(p.reset_service, TRIGGER)
+        self._record_start = transport.client(p.record_start_service, TRIGGER) if p.record_start_service else None
+        self._record_stop = transport.client(p.record_stop_service, TRIGGER) if p.record_stop_service else None
         transport.subscribe(p.joint_states_topic, JOINT_STATE, qos.DEFAULT, self._on_joint_state)
         transport.subscribe(p.applied_action_topic, JOINT_STATE, qos.DEFAULT, self._on_applied, raw=True)
         transport.subscribe(p.status_topic, STRING, qos.TRANSIENT_LOCAL, self._on_status)
@@ -155,6 +168,7 @@ class Explorer:
         p, now = self.params, self.transport.now_ns()
         if self._phase == "reset":
             if self.episode >= p.episodes:
+                self._trigger(self._record_stop)
                 self._phase = "finished"
                 self.log.info("explored %d episodes", len(self.completed))
                 return
@@ -167,6 +181,8 @@ class Explorer:
                 self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
                 return
             self._reset_ns, self._phase = self.transport.now_ns(), "grasped"
+            if self.episode == 1:
+                self._trigger(self._record_start)
         elif self._phase == "grasped":
             if self._angles is None or self._angles_ns < self._reset_ns:
                 return
@@ -178,6 +194,16 @@ class Explorer:
                 self._finish_episode(self._ended)
             elif now > self._deadline_ns:
                 self._finish_episode("timeout")
+
+    def _trigger(self, client: Any) -> None:
+        """Call a recorder's Trigger service; a failure is logged, exploring goes on."""
+        if client is None:
+            return
+        try:
+            response = client.call(client.Request(structure_needs_at_least_one_member=0), timeout_s=10.0)
+            (self.log.info if response.success else self.log.warning)("%s: %s", client.name, response.message)
+        except Exception as err:
+            self.log.warning("%s failed: %s", client.name, err)
 
     def _send_trajectory(self, now: int) -> None:
         p = self.params
