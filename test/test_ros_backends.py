@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import random
 import sys
+import threading
 import time
 import types
 from collections import deque
@@ -21,10 +22,11 @@ import pytest
 
 from t42_transfer.ros import qos
 from t42_transfer.ros.backends import make_transport, resolve_backend
-from t42_transfer.ros.transport import message_class, serialize, service_classes
+from t42_transfer.ros.transport import deserialize, message_class, serialize, service_classes
 
 POSE = "geometry_msgs/msg/PoseStamped"
 TRIGGER = "std_srvs/srv/Trigger"
+STRING = "std_msgs/msg/String"
 
 
 class FakeMsg:
@@ -47,6 +49,26 @@ class FakeFuture:
         return self._result
 
 
+class FakeTask:
+    """An rclpy executor's handler task: runs once, keeps its exception."""
+
+    def __init__(self, work: Callable[[], None]) -> None:
+        self.work, self.error = work, None
+
+    def __call__(self) -> None:
+        try:
+            self.work()
+        except Exception as exc:
+            self.error = exc
+
+    def exception(self) -> Exception | None:
+        return self.error
+
+
+class FakeTimeout(Exception):
+    """``rclpy.executors.TimeoutException``."""
+
+
 class FakeRos:
     """The fake ``rclpy`` world: modules to inject, and what the backend did to them."""
 
@@ -56,6 +78,10 @@ class FakeRos:
         self.subscriptions: dict[str, list[tuple[Callable[[bytes], None], bool, deque[bytes]]]] = {}
         self.published: list[tuple[str, bytes]] = []
         self.services: dict[str, tuple[Any, Callable[[Any, Any], Any]]] = {}
+        self.service_entities: dict[str, Any] = {}
+        self.requests: deque[tuple[str, Any]] = deque()
+        """Requests from outside the process, taken by the executor: (service name, rclpy request)."""
+        self.responses: list[Any] = []
         self.classes: dict[str, type] = {}
 
     def msg_class(self, name: str) -> type:
@@ -115,9 +141,11 @@ class FakeRos:
                 world.calls.append(("create_subscription", (cls.typename, topic, qos_profile, raw)))
                 world.subscriptions.setdefault(topic, []).append((callback, raw, deque()))
 
-            def create_service(self, srv: Any, name: str, callback: Callable[[Any, Any], Any]) -> None:
-                world.calls.append(("create_service", (srv.typename, name)))
+            def create_service(self, srv: Any, name: str, callback: Callable[[Any, Any], Any],
+                               callback_group: Any = None) -> Any:
+                world.calls.append(("create_service", (srv.typename, name, type(callback_group).__name__)))
                 world.services[name] = (srv, callback)
+                return world.service_entities.setdefault(name, types.SimpleNamespace(srv_name=name))
 
             def create_client(self, srv: Any, name: str) -> Client:
                 return Client(srv, name)
@@ -138,12 +166,17 @@ class FakeRos:
             def shutdown(self) -> None:
                 pass
 
-            def spin_once(self, timeout_sec: float | None = None) -> None:
+            def wait_for_ready_callbacks(self, timeout_sec: float | None = None) -> tuple[FakeTask, Any, Node]:
                 for callback, raw, queue in (s for subs in world.subscriptions.values() for s in subs):
                     if queue:
-                        callback(queue.popleft())
-                        return
+                        return FakeTask(lambda c=callback, m=queue.popleft(): c(m)), None, self.node
+                if world.requests:
+                    name, request = world.requests.popleft()
+                    srv, callback = world.services[name]
+                    work = lambda: world.responses.append(callback(request, srv.Response()))  # noqa: E731
+                    return FakeTask(work), world.service_entities[name], self.node
                 time.sleep(min(timeout_sec or 0.0, 0.01))
+                raise FakeTimeout()
 
             def spin_until_future_complete(self, future: FakeFuture, timeout_sec: float | None = None) -> None:
                 pass
@@ -164,7 +197,10 @@ class FakeRos:
         spaces = {
             "rclpy": {"init": init, "ok": lambda: world.initialised, "try_shutdown": try_shutdown},
             "rclpy.node": {"Node": Node},
-            "rclpy.executors": {"SingleThreadedExecutor": SingleThreadedExecutor},
+            "rclpy.executors": {"SingleThreadedExecutor": SingleThreadedExecutor, "TimeoutException": FakeTimeout,
+                                "ShutdownException": type("ShutdownException", (Exception,), {}),
+                                "ExternalShutdownException": type("ExternalShutdownException", (Exception,), {})},
+            "rclpy.callback_groups": {"ReentrantCallbackGroup": type("ReentrantCallbackGroup", (), {})},
             "rclpy.qos": {"QoSProfile": QoSProfile, "ReliabilityPolicy": Policy, "DurabilityPolicy": Policy,
                           "HistoryPolicy": Policy},
             "rclpy.serialization": {"serialize_message": lambda msg: msg.data,
@@ -303,3 +339,43 @@ def test_rclpy_transport_wiring(fake_ros: FakeRos) -> None:
     assert ("destroy_node", "talker") in fake_ros.calls and ("destroy_node", "listener") in fake_ros.calls
     with pytest.raises(RuntimeError, match="closed"):
         pub.publish(msg)
+
+
+def test_rclpy_concurrent_service_runs_its_handlers_in_threads(fake_ros: FakeRos) -> None:
+    node = make_transport("server", backend="rclpy")
+    Request, Response = service_classes(TRIGGER)
+    release = threading.Event()
+    running: list[str] = []
+
+    def slow(request: Any) -> Any:
+        running.append(threading.current_thread().name)
+        assert release.wait(5.0)
+        return Response(success=True, message="slow")
+
+    node.service("/slow", TRIGGER, slow, concurrent=True)
+    node.service("/quick", TRIGGER, lambda request: Response(success=True, message="quick"))
+    groups = {args[1]: args[2] for name, args in fake_ros.calls if name == "create_service"}
+    assert groups == {"/slow": "ReentrantCallbackGroup", "/quick": "NoneType"}
+    heard: list[Any] = []
+    node.subscribe("/chatter", STRING, qos.DEFAULT, heard.append)
+    request = fake_ros.msg_class(TRIGGER + "_Request")(serialize(Request.__msgtype__, Request()))
+    fake_ros.requests.extend([("/slow", request), ("/slow", request)])
+    assert node.spin_once(0.1) == 1 and node.spin_once(0.1) == 1, "each request starts a thread and returns"
+    node.publisher("/chatter", STRING).publish(message_class(STRING)(data="hi"))
+    fake_ros.requests.append(("/quick", request))
+    assert node.spin_once(0.1) == 1 and node.spin_once(0.1) == 1
+    assert [m.data for m in heard] == ["hi"]
+
+    def answers() -> list[str]:
+        return [deserialize(Response.__msgtype__, r.data).message for r in fake_ros.responses]
+
+    assert answers() == ["quick"], "the slow requests are still running"
+    deadline = time.monotonic() + 5.0
+    while len(running) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(running) == 2 and threading.current_thread().name not in running
+    release.set()
+    while len(fake_ros.responses) < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert answers() == ["quick", "slow", "slow"]
+    node.close()

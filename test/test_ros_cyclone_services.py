@@ -36,7 +36,7 @@ from t42_transfer.ros.cyclone import (  # noqa: E402
 )
 from t42_transfer.ros.naming import SRV_TYPESTORE, type_hash  # noqa: E402
 from t42_transfer.ros.qos import SERVICES_DEFAULT  # noqa: E402
-from t42_transfer.ros.transport import serialize  # noqa: E402
+from t42_transfer.ros.transport import TransportClosed, message_class, serialize  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TRIGGER = "std_srvs/srv/Trigger"
@@ -283,6 +283,145 @@ def test_handler_exception_is_logged_and_unanswered(domain_id: int,
             assert any("handler failed" in r.getMessage() and r.exc_info for r in caplog.records)
             assert client.call(Request(structure_needs_at_least_one_member=2), timeout_s=5).message == "got 2"
             assert calls == [1, 2]
+
+
+STRING = "std_msgs/msg/String"
+
+
+def _wait_until(condition: Any, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return bool(condition())
+
+
+def _call_in_thread(client: Any, tag: int, out: list[Any], timeout_s: float = 10.0) -> threading.Thread:
+    """Call ``client`` from a new thread; the response, or the exception, lands in ``out``."""
+    def run() -> None:
+        try:
+            out.append(client.call(Request(structure_needs_at_least_one_member=tag), timeout_s))
+        except BaseException as exc:  # checked by the test
+            out.append(exc)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread
+
+
+class Blocking:
+    """A handler that blocks each request until :attr:`release` is set, counting the ones inside."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.inside = 0
+        self.entered = 0
+        self._lock = threading.Lock()
+
+    def __call__(self, request: Any) -> Any:
+        with self._lock:
+            self.inside += 1
+            self.entered += 1
+        try:
+            assert self.release.wait(10.0)
+            return _echo(request)
+        finally:
+            with self._lock:
+                self.inside -= 1
+
+
+def test_concurrent_service_keeps_the_node_serving(domain_id: int) -> None:
+    slow = Blocking()
+    with CycloneTransport("server", domain_id) as server, CycloneTransport("caller", domain_id) as caller:
+        server.service("/slow", TRIGGER, slow, concurrent=True)
+        server.service("/quick", TRIGGER, _echo)
+        heard: list[str] = []
+        server.subscribe("/chatter", STRING, SERVICES_DEFAULT, lambda m: heard.append(m.data))
+        chatter = caller.publisher("/chatter", STRING, SERVICES_DEFAULT)
+        slow_client = caller.client("/slow", TRIGGER)
+        first: list[Any] = []
+        second: list[Any] = []
+        with spinning(server):
+            threads = [_call_in_thread(slow_client, 1, first)]
+            assert _wait_until(lambda: slow.inside == 1)
+            start = time.monotonic()
+            assert caller.client("/quick", TRIGGER).call(Request(structure_needs_at_least_one_member=3), 5).message \
+                == "got 3"
+            assert time.monotonic() - start < 1.5
+            threads.append(_call_in_thread(slow_client, 2, second))
+            assert _wait_until(lambda: slow.inside == 2), "a second request runs beside the first"
+            # Published until heard: the first message may go out before the writer is matched.
+            assert _wait_until(lambda: chatter.publish(message_class(STRING)(data="hi")) or heard, 5.0)
+            assert first == [] and second == []
+            slow.release.set()
+            for thread in threads:
+                thread.join(10)
+        assert [r.message for r in first] == ["got 1"] and [r.message for r in second] == ["got 2"]
+
+
+def test_plain_service_is_served_in_the_spin_loop_one_at_a_time(domain_id: int) -> None:
+    slow = Blocking()
+    served: list[str] = []
+    with CycloneTransport("server", domain_id) as server, CycloneTransport("caller", domain_id) as caller:
+        server.service("/slow", TRIGGER, slow)
+        server.service("/quick", TRIGGER, lambda request: (served.append("quick"), _echo(request))[1])
+        heard: list[str] = []
+        server.subscribe("/chatter", STRING, SERVICES_DEFAULT, lambda m: heard.append(m.data))
+        chatter = caller.publisher("/chatter", STRING, SERVICES_DEFAULT)
+        quick = caller.client("/quick", TRIGGER)
+        assert _wait_until(lambda: bool(chatter.writer.get_matched_subscriptions()) and quick.service_is_ready())
+        first: list[Any] = []
+        with spinning(server):
+            thread = _call_in_thread(caller.client("/slow", TRIGGER), 1, first)
+            assert _wait_until(lambda: slow.inside == 1)
+            chatter.publish(message_class(STRING)(data="hi"))
+            with pytest.raises(TimeoutError):
+                quick.call(Request(structure_needs_at_least_one_member=2), timeout_s=0.5)
+            assert heard == [] and served == [], "nothing else runs while the handler blocks the spin loop"
+            slow.release.set()
+            thread.join(10)
+            assert _wait_until(lambda: heard == ["hi"] and served == ["quick"])
+        assert [r.message for r in first] == ["got 1"] and slow.entered == 1
+
+
+def test_closing_while_a_concurrent_handler_runs(domain_id: int, caplog: pytest.LogCaptureFixture) -> None:
+    """close() does not wait for the handler; its late reply is dropped with a log line, no traceback."""
+    slow = Blocking()
+    with CycloneTransport("caller", domain_id) as caller:
+        server = CycloneTransport("server", domain_id)
+        server.service("/slow", TRIGGER, slow, concurrent=True)
+        out: list[Any] = []
+        with caplog.at_level(logging.INFO, logger="t42_transfer.ros.server"), spinning(server):
+            thread = _call_in_thread(caller.client("/slow", TRIGGER), 1, out, timeout_s=2.0)
+            assert _wait_until(lambda: slow.inside == 1)
+            start = time.monotonic()
+            server.close()  # from the test thread while spinning() spins it in another
+            assert time.monotonic() - start < 1.0
+            slow.release.set()
+            assert _wait_until(lambda: slow.inside == 0)
+            thread.join(5)
+        assert len(out) == 1 and isinstance(out[0], TimeoutError)
+        assert _wait_until(lambda: any("no reply" in r.getMessage() for r in caplog.records), 2.0)
+        assert not [r for r in caplog.records if r.exc_info or r.levelno >= logging.WARNING]
+
+
+def test_closing_the_node_ends_a_call_in_another_thread(domain_id: int) -> None:
+    slow = Blocking()
+    with CycloneTransport("server", domain_id) as server:
+        server.service("/slow", TRIGGER, slow, concurrent=True)
+        caller = CycloneTransport("caller", domain_id)
+        waiting: list[Any] = []
+        answering: list[Any] = []
+        with spinning(server):
+            threads = [_call_in_thread(caller.client("/nobody_home", TRIGGER), 1, waiting),
+                       _call_in_thread(caller.client("/slow", TRIGGER), 2, answering)]
+            assert _wait_until(lambda: slow.inside == 1)
+            caller.close()
+            for thread in threads:
+                thread.join(2.0)
+            slow.release.set()
+        for out in (waiting, answering):
+            assert len(out) == 1 and isinstance(out[0], TransportClosed), out
+            assert str(out[0]) == "node caller is closed"
 
 
 SERVER_SCRIPT = textwrap.dedent(

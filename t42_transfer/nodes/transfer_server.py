@@ -29,9 +29,9 @@ worker thread and meanwhile publishes the progress itself (a timed wait on the
 worker, no transport timer), so diagnostics flow even when the backend runs the
 handler inside the node's spin loop.  A call arriving while one runs takes a
 non-blocking lock and, failing, answers ``busy`` at once.  That needs the backend
-to run handlers concurrently: the in-process bus does (each handler runs in its
-caller's thread); a backend that serves calls one at a time from ``spin_once``
-queues a second call until the first ends, and it then finds no new bags.
+to run handlers concurrently, so the service is registered with ``concurrent=True``:
+Cyclone and rclpy then run each request in a thread of its own, and the in-process
+bus runs each handler in its caller's thread anyway.
 
 No handler raises; failures are logged with ``transport.logger`` and answered.
 """
@@ -144,7 +144,7 @@ class TransferServer:
         self._String = TYPESTORE.types[STRING]
         self._diagnostics = transport.publisher(params.diagnostics_topic, DIAGNOSTIC_ARRAY, qos.DEFAULT)
         self._updates = transport.publisher(params.model_topic, STRING, qos.TRANSIENT_LOCAL)
-        transport.service(params.service, TRIGGER, self._on_transfer)
+        transport.service(params.service, TRIGGER, self._on_transfer, concurrent=True)
         latest = latest_model(Path(params.model_dir))
         if latest is not None:
             self._updates.publish(self._String(data=str(latest)))

@@ -18,7 +18,17 @@ no peers (this process only); ``SYSTEM_DEFAULT`` -> only ``CYCLONEDDS_URI``.  A
 is ``domain_id``, else ``ROS_DOMAIN_ID``, else 0.  Cyclone configures a domain once
 per process: the first transport on a domain id fixes its configuration.
 
-Callbacks, timers and service requests run in :meth:`CycloneTransport.spin_once`.
+Callbacks, timers and service requests run in :meth:`CycloneTransport.spin_once`,
+except requests to a service registered with ``concurrent=True``: spin_once starts a
+daemon thread per such request, which runs the handler and writes the reply (after
+the 100 ms wait for the client's reader, below), so the spin loop serves other
+callbacks and requests meanwhile, and a handler still running never keeps the
+process alive.  Publishers and clients work from any thread.  :meth:`close` does not
+wait for running handlers (a transfer may take minutes); it waits, at most
+:data:`_CLOSE_WAIT_S`, for DDS operations in other threads (each a bounded wait:
+a reply, a client's 50 ms reply wait, a spin slice) and then deletes the entities,
+so a late reply is dropped with a log line and a thread inside a client's ``call``
+ends with :class:`~t42_transfer.ros.transport.TransportClosed`, not a DDS error.
 
 Services follow rmw_cyclonedds_cpp: requests on ``rq<name>Request``, replies on
 ``rr<name>Reply``; every sample is the 4-byte encapsulation header, ``{uint64 guid;
@@ -53,7 +63,8 @@ import os
 import struct
 import threading
 import time
-from typing import Any, Callable
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator
 
 from cyclonedds.core import InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
@@ -78,7 +89,15 @@ from t42_transfer.ros.naming import (
     validate_node_name,
 )
 from t42_transfer.ros.qos import DEFAULT, SERVICES_DEFAULT, Durability, History, QoSProfile, Reliability
-from t42_transfer.ros.transport import Callback, Client, Publisher, Transport, deserialize, serialize
+from t42_transfer.ros.transport import (
+    Callback,
+    Client,
+    Publisher,
+    Transport,
+    TransportClosed,
+    deserialize,
+    serialize,
+)
 
 ENCLAVE_USER_DATA = b"enclave=/;"
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
@@ -159,6 +178,8 @@ def _delete(entity: Any) -> None:
 _HANDLE_MASK = (1 << 64) - 1
 _REQUEST_HEADER = {0: struct.Struct(">Qq"), 1: struct.Struct("<Qq")}  # by encapsulation byte 1 (BE/LE)
 _CLIENT_WAIT_S = 0.1  # rmw_send_response waits this long for the client's reply reader
+_SPIN_SLICE_S = 0.1  # spin_once waits in slices, so close() never waits long for it
+_CLOSE_WAIT_S = 1.0  # close() waits this long at most for DDS operations in other threads
 _SEQ = itertools.count(1)  # like rmw's process-wide request counter
 _SEQ_LOCK = threading.Lock()
 
@@ -228,12 +249,12 @@ class CyclonePublisher(Publisher):
                                  qos=dds_qos(qos, user_data_typehash(msgtype).encode()))
 
     def publish_raw(self, data: bytes) -> None:
-        if self._node.closed:
-            raise RuntimeError(f"node {self._node.node_name} is closed")
+        self._node._check_open()
         data = bytes(data)
         if len(data) < 4 or data[:2] != b"\x00\x01":
             raise ValueError("expected little-endian CDR bytes starting 00 01")
-        _write(self.writer, data, self.topic)
+        with self._node._entities():
+            _write(self.writer, data, self.topic)
 
 
 class _Subscription:
@@ -280,12 +301,18 @@ class _ServiceEndpoints:
 
 class _Service(_ServiceEndpoints):
     def __init__(self, node: "CycloneTransport", name: str, srvtype: str,
-                 handler: Callable[[Any], Any]) -> None:
+                 handler: Callable[[Any], Any], concurrent: bool) -> None:
         super().__init__(node, name, srvtype, server=True)
-        self.handler, self.logger = handler, node.logger
+        self.handler, self.concurrent, self.logger = handler, concurrent, node.logger
+        self._node = node
 
     def ready(self) -> list[Callable[[], None]]:
-        return [lambda d=data, h=handle: self.serve(d, h) for data, handle in _take(self.reader, self.name)]
+        serve = self._serve_in_thread if self.concurrent else self.serve
+        return [lambda d=data, h=handle: serve(d, h) for data, handle in _take(self.reader, self.name)]
+
+    def _serve_in_thread(self, data: bytes, request_writer: int) -> None:
+        threading.Thread(target=self.serve, args=(data, request_writer), daemon=True,
+                         name=f"{self._node.node_name}{self.name}").start()
 
     def serve(self, data: bytes, request_writer: int) -> None:
         """Answer one request; a failing handler is logged and the request left unanswered."""
@@ -298,11 +325,20 @@ class _Service(_ServiceEndpoints):
             response = self.handler(deserialize(self.request_type, body))
             reply = pack_service_sample(guid, seq, serialize(self.response_type, response))
         except Exception:
-            self.logger.exception("service %s: handler failed; request %d gets no reply", self.name, seq)
+            if self._node.closed:  # e.g. it published on the closed node: shutdown, not a fault
+                self.logger.info("service %s: node closed while handling request %d; no reply", self.name, seq)
+            else:
+                self.logger.exception("service %s: handler failed; request %d gets no reply", self.name, seq)
             return
-        if self._client_reader_matched(request_writer):
-            _write(self.writer, reply, self.name)
-        else:
+        try:
+            with self._node._entities():
+                matched = self._client_reader_matched(request_writer)
+                if matched:
+                    _write(self.writer, reply, self.name)
+        except TransportClosed:
+            self.logger.info("service %s: node closed before request %d was answered; no reply", self.name, seq)
+            return
+        if not matched:
             self.logger.warning("service %s: client of request %d is gone or its reply reader unmatched",
                                 self.name, seq)
 
@@ -341,21 +377,24 @@ class CycloneClient(Client, _ServiceEndpoints):
 
     def service_is_ready(self) -> bool:
         """A matched request reader and a matched reply writer of one server (by ``serviceid``)."""
-        readers = self.writer.get_matched_subscriptions()
-        writers = self.reader.get_matched_publications()
-        ids = {_user_data(self.writer.get_matched_subscription_data(h)).get("serviceid") for h in readers}
-        ids.discard(None)
-        if not ids:  # servers that do not tag their endpoints
-            return bool(readers) and bool(writers)
-        return any(_user_data(self.reader.get_matched_publication_data(h)).get("serviceid") in ids
-                   for h in writers)
+        with self._node._entities():
+            readers = self.writer.get_matched_subscriptions()
+            writers = self.reader.get_matched_publications()
+            ids = {_user_data(self.writer.get_matched_subscription_data(h)).get("serviceid") for h in readers}
+            ids.discard(None)
+            if not ids:  # servers that do not tag their endpoints
+                return bool(readers) and bool(writers)
+            return any(_user_data(self.reader.get_matched_publication_data(h)).get("serviceid") in ids
+                       for h in writers)
 
     def call(self, request: Any, timeout_s: float = 5.0) -> Any:
-        """Send ``request`` once the server is ready and wait for its response (TimeoutError)."""
+        """Send ``request`` once the server is ready and wait for its response.
+
+        TimeoutError when none comes in time; TransportClosed when the node is or gets closed.
+        """
         deadline = time.monotonic() + timeout_s
         body = serialize(self.request_type, request)
         while not self.service_is_ready():
-            self._check_open()
             if time.monotonic() >= deadline:
                 raise TimeoutError(f"service {self.name} not available within {timeout_s} s")
             time.sleep(0.01)
@@ -363,7 +402,8 @@ class CycloneClient(Client, _ServiceEndpoints):
         with self._cv:
             self._waiting.add(seq)
         try:
-            _write(self.writer, pack_service_sample(self.guid, seq, body), self.name)
+            with self._node._entities():
+                _write(self.writer, pack_service_sample(self.guid, seq, body), self.name)
             reply = self._await(seq, deadline)
         finally:
             with self._cv:
@@ -372,10 +412,6 @@ class CycloneClient(Client, _ServiceEndpoints):
         if reply is None:
             raise TimeoutError(f"no reply from service {self.name} within {timeout_s} s")
         return deserialize(self.response_type, reply)
-
-    def _check_open(self) -> None:
-        if self._node.closed:
-            raise RuntimeError(f"node {self._node.node_name} is closed")
 
     def _await(self, seq: int, deadline: float) -> bytes | None:
         """The reply body for ``seq``; one waiting thread takes from the reader for all."""
@@ -393,9 +429,9 @@ class CycloneClient(Client, _ServiceEndpoints):
                     self._cv.wait(remaining)
             samples: list[tuple[bytes, int]] = []
             try:
-                self._check_open()
-                self.waitset.wait(max(0, int(min(remaining, 0.05) * 1e9)))
-                samples = _take(self.reader, self.name)
+                with self._node._entities():
+                    self.waitset.wait(max(0, int(min(remaining, 0.05) * 1e9)))
+                    samples = _take(self.reader, self.name)
             finally:
                 with self._cv:
                     self._taking = False
@@ -425,6 +461,27 @@ class CycloneTransport(Transport):
         self._services: list[_Service] = []
         self._clients: list[CycloneClient] = []
         self._csid_count = 0
+        self._state = threading.Condition()
+        """Guards ``_closed``, ``_in_use`` and endpoint creation (lists, topics, graph) across threads."""
+        self._in_use = 0
+        """DDS operations running now in :meth:`_entities` blocks; close() waits for them."""
+
+    @contextmanager
+    def _entities(self) -> Iterator[None]:
+        """Use this node's DDS entities, from any thread; TransportClosed once closed.
+
+        :meth:`close` deletes the entities only after every such block has ended, so
+        a thread never meets a deleted entity (a raw DDS error) but a clean TransportClosed.
+        """
+        with self._state:
+            self._check_open()
+            self._in_use += 1
+        try:
+            yield
+        finally:
+            with self._state:
+                self._in_use -= 1
+                self._state.notify_all()
 
     def _topic(self, name: str, typename: str, cls: type) -> Topic:
         """The DDS topic ``name`` (one per participant), checking it keeps carrying ``typename``."""
@@ -443,34 +500,39 @@ class CycloneTransport(Transport):
         return gid(self.participant)[:12] + self._csid_count.to_bytes(4, "big")
 
     def publisher(self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT) -> CyclonePublisher:
-        self._check_open()
         validate_name(topic)
         dds_type_name(msgtype)
-        pub = CyclonePublisher(self, topic, msgtype, qos)
-        self._publishers.append(pub)
-        self.graph.add(writers=[pub.writer])
+        with self._state:
+            self._check_open()
+            pub = CyclonePublisher(self, topic, msgtype, qos)
+            self._publishers.append(pub)
+            self.graph.add(writers=[pub.writer])
         return pub
 
     def subscribe(self, topic: str, msgtype: str, qos: QoSProfile, callback: Callback,
                   raw: bool = False) -> None:
-        self._check_open()
         validate_name(topic)
         dds_type_name(msgtype)
-        sub = _Subscription(self, topic, msgtype, qos, callback, raw)
-        self.waitset.attach(sub.condition)
-        self._subscriptions.append(sub)
-        self.graph.add(readers=[sub.reader])
+        with self._state:
+            self._check_open()
+            sub = _Subscription(self, topic, msgtype, qos, callback, raw)
+            self.waitset.attach(sub.condition)
+            self._subscriptions.append(sub)
+            self.graph.add(readers=[sub.reader])
 
-    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
-        self._check_open()
-        service = _Service(self, name, srvtype, handler)
-        self.waitset.attach(service.condition)
-        self._services.append(service)
+    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any], concurrent: bool = False) -> None:
+        """Serve ``name``; with ``concurrent=True`` each request runs in a thread of its own (module docstring)."""
+        with self._state:
+            self._check_open()
+            service = _Service(self, name, srvtype, handler, concurrent)
+            self.waitset.attach(service.condition)
+            self._services.append(service)
 
     def client(self, name: str, srvtype: str) -> CycloneClient:
-        self._check_open()
-        client = CycloneClient(self, name, srvtype)
-        self._clients.append(client)
+        with self._state:
+            self._check_open()
+            client = CycloneClient(self, name, srvtype)
+            self._clients.append(client)
         return client
 
     def now_ns(self) -> int:
@@ -486,10 +548,10 @@ class CycloneTransport(Transport):
 
     def spin_once(self, timeout_s: float = 0.0) -> int:
         """Run every callback ready now (received messages and requests, then due timers)."""
-        self._check_open()
         deadline = time.monotonic() + timeout_s
         while True:
-            ready = self._take_ready()
+            with self._entities():
+                ready = self._take_ready()
             remaining = deadline - time.monotonic()
             if ready or remaining <= 0:
                 for callback in ready:
@@ -499,14 +561,19 @@ class CycloneTransport(Transport):
             if dues:
                 remaining = min(remaining, max(0.0, (min(dues) - self.now_ns()) / 1e9))
             if self._subscriptions or self._services:
-                self.waitset.wait(max(0, int(remaining * 1e9)))
+                with self._entities():
+                    self.waitset.wait(max(0, int(min(remaining, _SPIN_SLICE_S) * 1e9)))
             else:
                 time.sleep(remaining)
 
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
+        """Close at once; see the module docstring for threads still using the node."""
+        with self._state:
+            if self._closed:
+                return
+            self._closed = True
+            if not self._state.wait_for(lambda: self._in_use == 0, _CLOSE_WAIT_S):
+                self.logger.warning("closing while %d DDS operation(s) still run in other threads", self._in_use)
         for timer in self._timers:
             timer.cancel()
         for endpoint in [*self._subscriptions, *self._services]:

@@ -11,7 +11,9 @@ a second type raises :class:`TopicTypeError`.
 
 Differences from ROS, on purpose: a service handler runs synchronously in the
 caller's :meth:`~InProcessClient.call` (so one thread can drive client and server),
-and its exceptions propagate to the caller.  Timers fire in ``spin_once`` against
+and its exceptions propagate to the caller.  Calls from several threads therefore
+run their handlers concurrently, whether the service was registered with
+``concurrent=True`` or not (the flag is accepted and changes nothing here).  Timers fire in ``spin_once`` against
 the bus clock: wall time (``time.time_ns``) or a :class:`FakeClock` the test advances.
 """
 
@@ -186,7 +188,8 @@ class InProcessTransport(Transport):
             self.bus.subscriptions.setdefault(topic, []).append(sub)
         self._subscriptions.append(sub)
 
-    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
+    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any], concurrent: bool = False) -> None:
+        """Serve ``name``; every call runs ``handler`` in the caller's thread (see the module docstring)."""
         self._check_open()
         validate_name(name, "service")
         message_class(request_type(srvtype))

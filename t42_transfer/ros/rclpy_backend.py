@@ -16,8 +16,16 @@ ever sees CDR bytes or its own generated classes:
   ``deserialize_message`` it into the rclpy response; clients do the reverse.
 
 Timers are the base class's :class:`PeriodicTimer` on the node clock, polled in
-:meth:`RclpyTransport.spin_once` next to an executor's ``spin_once``, so timing
-behaves as on the other backends.  ``rclpy.init`` runs once per process (the first
+:meth:`RclpyTransport.spin_once` next to the executor, so timing behaves as on the
+other backends.  :meth:`RclpyTransport.spin_once` takes one ready callback at a time
+from a ``SingleThreadedExecutor`` (``wait_for_ready_callbacks``, as rclpy's own
+executors do) and runs it in the spinning thread, except the handler of a service
+registered with ``concurrent=True``: that service is in a ``ReentrantCallbackGroup``
+(so a running request blocks neither the node's default group nor the next request)
+and its handler task runs, and sends the response, in a daemon thread of its own,
+as ``MultiThreadedExecutor`` would run it in its pool.  A ``MultiThreadedExecutor``
+for the node would run every other callback in its pool too, outside ``spin_once``
+and alongside our timers, which nodes written for the other backends do not expect.  ``rclpy.init`` runs once per process (the first
 transport's ``domain_id`` wins, default ``ROS_DOMAIN_ID``) with
 rclpy's signal handlers off (the runner owns SIGINT/SIGTERM); the last transport
 to close shuts rclpy down again if it started it.  A client's :meth:`call` spins
@@ -31,7 +39,8 @@ import time
 from typing import Any, Callable
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor, TimeoutException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 from rclpy.qos import QoSProfile as RclpyQoSProfile
@@ -126,7 +135,9 @@ class RclpyTransport(Transport):
             _release()
             raise
         self._ran = 0
-        """Callbacks run so far (what :meth:`spin_once` counts)."""
+        """Callbacks run or started so far (what :meth:`spin_once` counts)."""
+        self._concurrent: list[Any] = []
+        """The rclpy services whose handler tasks run in threads of their own."""
 
     def _counted(self, callback: Callable[..., Any]) -> Callable[..., Any]:
         def run(*args: Any) -> Any:
@@ -149,7 +160,8 @@ class RclpyTransport(Transport):
 
         self.node.create_subscription(get_message(msgtype), topic, self._counted(on_bytes), rclpy_qos(qos), raw=True)
 
-    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
+    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any], concurrent: bool = False) -> None:
+        """Serve ``name``; with ``concurrent=True`` each request runs in a thread of its own (module docstring)."""
         self._check_open()
         validate_name(name, "service")
         srv = get_service(srvtype)
@@ -159,7 +171,11 @@ class RclpyTransport(Transport):
             response = handler(request)
             return deserialize_message(serialize(response_type(srvtype), response), srv.Response)
 
-        self.node.create_service(srv, name, self._counted(on_request))
+        if concurrent:  # counted when spin_once starts its thread
+            self._concurrent.append(
+                self.node.create_service(srv, name, on_request, callback_group=ReentrantCallbackGroup()))
+        else:
+            self.node.create_service(srv, name, self._counted(on_request))
 
     def client(self, name: str, srvtype: str) -> RclpyClient:
         self._check_open()
@@ -175,13 +191,39 @@ class RclpyTransport(Transport):
             self._ran += 1
             timer.callback()
 
+    def _step(self, timeout_s: float) -> None:
+        """Run one ready callback here, or start a concurrent service's handler task in its own thread."""
+        try:
+            handler, entity, _ = self._executor.wait_for_ready_callbacks(timeout_sec=timeout_s)
+        except (TimeoutException, ShutdownException, ExternalShutdownException):
+            return
+        if any(entity is srv for srv in self._concurrent):
+            self._ran += 1
+            threading.Thread(target=self._run_concurrent, args=(handler,), daemon=True,
+                             name=f"{self.node_name} service").start()
+            return
+        handler()
+        if handler.exception() is not None:
+            raise handler.exception()
+
+    def _run_concurrent(self, handler: Any) -> None:
+        """Run a concurrent service's task (handler and response); its error is logged, as it cannot end a spin."""
+        handler()
+        error = handler.exception()
+        if error is None:
+            return
+        if self.closed:
+            self.logger.info("node closed while a service request was handled; no reply")
+        else:
+            self.logger.error("service handler failed; the request gets no reply", exc_info=error)
+
     def spin_once(self, timeout_s: float = 0.0) -> int:
         """Run ready callbacks (one executor step at a time) and due timers, waiting up to ``timeout_s``."""
         self._check_open()
         deadline = time.monotonic() + timeout_s
         start, wait = self._ran, 0.0
         while True:
-            self._executor.spin_once(timeout_sec=wait)
+            self._step(wait)
             self._run_due_timers()
             remaining = deadline - time.monotonic()
             if self._ran > start or remaining <= 0:

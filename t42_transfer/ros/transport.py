@@ -20,6 +20,10 @@ from t42_transfer.ros.qos import DEFAULT, QoSProfile
 Callback = Callable[[Any], None]
 
 
+class TransportClosed(RuntimeError):
+    """Raised by a closed transport's endpoints, also to a call it ends by closing meanwhile."""
+
+
 def serialize(msgtype: str, msg: Any) -> bytes:
     """CDR bytes of ``msg`` (a typestore object of ``msgtype``)."""
     actual = getattr(msg, "__msgtype__", None)
@@ -97,7 +101,16 @@ class PeriodicTimer(Timer):
 
 
 class Transport(ABC):
-    """A node's connection to the ROS graph; callbacks run inside :meth:`spin_once`."""
+    """A node's connection to the ROS graph; callbacks run inside :meth:`spin_once`.
+
+    One exception: a service registered with ``concurrent=True`` may have its handler
+    run outside the spin loop, in a thread of its own per request, with the reply sent
+    from there.  Its handler must therefore be thread-safe: it can run at the same time
+    as the node's other callbacks and as other requests to the same service.  It exists
+    for handlers that take long (a transfer) while the node must keep publishing and
+    answer other calls meanwhile.  A request still being handled when the transport
+    closes gets no reply.
+    """
 
     def __init__(self, node_name: str) -> None:
         self.node_name = node_name
@@ -107,7 +120,7 @@ class Transport(ABC):
 
     def _check_open(self) -> None:
         if self._closed:
-            raise RuntimeError(f"node {self.node_name} is closed")
+            raise TransportClosed(f"node {self.node_name} is closed")
 
     @abstractmethod
     def publisher(self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT) -> Publisher: ...
@@ -119,8 +132,12 @@ class Transport(ABC):
         """``callback(msg)`` per message; with ``raw=True`` it gets the CDR bytes."""
 
     @abstractmethod
-    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any]) -> None:
-        """Serve ``name``: ``handler(request) -> response`` (typestore objects)."""
+    def service(self, name: str, srvtype: str, handler: Callable[[Any], Any], concurrent: bool = False) -> None:
+        """Serve ``name``: ``handler(request) -> response`` (typestore objects).
+
+        With ``concurrent=True`` requests may be handled outside :meth:`spin_once` and
+        alongside each other (see the class docstring: the handler must be thread-safe).
+        """
 
     @abstractmethod
     def client(self, name: str, srvtype: str) -> Client: ...
@@ -153,7 +170,8 @@ class Transport(ABC):
     def spin(self, until: Callable[[], bool] | None = None, timeout_s: float | None = None) -> bool:
         """Spin until ``until()`` is true, the transport closes or ``timeout_s`` (wall) passes.
 
-        Returns whether ``until`` became true (always False without one).
+        Returns whether ``until`` became true (always False without one).  Another thread
+        may close the transport meanwhile: that ends the spin, not with an error.
         """
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while not self.closed:
@@ -161,7 +179,11 @@ class Transport(ABC):
                 return True
             if deadline is not None and time.monotonic() >= deadline:
                 return False
-            self.spin_once(0.05)
+            try:
+                self.spin_once(0.05)
+            except TransportClosed:
+                if not self.closed:  # a callback's error about some other node
+                    raise
         return False
 
     def __enter__(self) -> "Transport":
