@@ -5,8 +5,11 @@ from __future__ import annotations
 import json
 import logging
 import math
+import threading
 import time
 from pathlib import Path
+
+from typing import Any
 
 import numpy as np
 import pytest
@@ -267,8 +270,31 @@ def test_stale_hand_state_is_refused(rig: Rig) -> None:
 
 def test_an_older_goal_is_superseded_by_a_newer_one(rig: Rig) -> None:
     rig.tick()
+    planner = rig.node._model.planner
+    planning, release = threading.Event(), threading.Event()
+    original = planner.plan
+
+    def held_plan(*args: Any, **kwargs: Any) -> Any:  # the first plan waits until the second goal is queued
+        planning.set()
+        release.wait(10.0)
+        return original(*args, **kwargs)
+
+    planner.plan = held_plan
+    before = len(rig.results)
     rig.goal_pub.publish(goal_msg(START_XY + [3.0, 0.0], rig.clock()))
-    results = rig.send(goal_msg(START_XY + [0.0, 3.0], rig.clock()), results=2)
+    rig.planner_node.spin_once()
+    assert planning.wait(10.0)
+    planner.plan = original
+    rig.goal_pub.publish(goal_msg(START_XY + [0.0, 3.0], rig.clock()))
+    rig.planner_node.spin_once()
+    release.set()
+    deadline = time.monotonic() + 10.0
+    while (len(rig.results) < before + 2 or not rig.node.idle) and time.monotonic() < deadline:
+        rig.planner_node.spin_once()
+        rig.tester.spin_once(0.01)
+    rig.tester.spin_once()
+    assert len(rig.results) == before + 2
+    results = rig.results[-1]
     first, second = rig.results[-2:]
     assert first["status"] == "superseded" and not first["accepted"] and "newer goal" in first["reason"]
     assert results is second and second["accepted"] and np.allclose(second["goal_mm"], START_XY + [0.0, 3.0])

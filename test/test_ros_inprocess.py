@@ -215,3 +215,27 @@ def test_spin_once_wakes_on_message_from_another_thread():
     threading.Timer(0.02, lambda: pub.publish(String(data="hi"))).start()
     assert b.spin_once(timeout_s=5.0) == 1
     assert got[0].data == "hi"
+
+
+def test_use_sim_time_takes_ros_time_from_clock_while_timers_keep_the_bus_clock() -> None:
+    from msg_adapters import TYPESTORE, ns_to_stamp
+    from t42_transfer.ros import qos as ros_qos
+
+    clock = FakeClock(5_000_000_000)
+    bus = InProcessBus(clock=clock)
+    sim, node = InProcessTransport(bus, "simulator"), InProcessTransport(bus, "listener")
+    assert node.now_ns() == 5_000_000_000
+    node.use_sim_time()
+    assert node.now_ns() == 0  # no /clock yet, as in ROS
+    ticks: list[int] = []
+    node.timer(1.0, lambda: ticks.append(node.now_ns()))
+    pub = sim.publisher("/clock", "rosgraph_msgs/msg/Clock", ros_qos.CLOCK)
+    Clock = TYPESTORE.types["rosgraph_msgs/msg/Clock"]
+    pub.publish(Clock(clock=ns_to_stamp(42_000_000_123)))
+    clock.advance(1.0)
+    node.spin_once()
+    assert node.now_ns() == 42_000_000_123 and node.clock_ns() == 6_000_000_000
+    assert ticks == [42_000_000_123]  # the timer fired on the bus clock and read ROS time
+    pub.publish(Clock(clock=ns_to_stamp(41_000_000_000)))  # an old clock message does not turn time back
+    node.spin_once()
+    assert node.now_ns() == 42_000_000_123

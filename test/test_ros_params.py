@@ -131,3 +131,15 @@ def test_suite_config_builds_every_nodes_params() -> None:
     assert sections == ["mock_driver", "recorder", "transfer_server", "planner"]
     for name in sections:
         assert load_params(NODES[name].params_class(), name, [suite]) is not None
+
+
+def test_use_sim_time_is_a_node_option_not_a_params_field(tmp_path: Path) -> None:
+    from t42_transfer.ros.params import NodeOptions, node_options
+
+    path = _write(tmp_path / "p.yaml", "mock_driver:\n  ros__parameters:\n    hand: source\n    use_sim_time: true\n")
+    assert load_params(MockDriverParams, "mock_driver", [path]).hand == "source"
+    assert node_options("mock_driver", [path]) == NodeOptions(use_sim_time=True)
+    assert node_options("mock_driver", [path], [("use_sim_time", False)]).use_sim_time is False
+    assert node_options("recorder", [path]) == NodeOptions()
+    with pytest.raises(ValueError, match="use_sim_time"):
+        node_options("mock_driver", [], [("use_sim_time", "sometimes")])

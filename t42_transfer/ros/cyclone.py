@@ -535,14 +535,14 @@ class CycloneTransport(Transport):
             self._clients.append(client)
         return client
 
-    def now_ns(self) -> int:
+    def clock_ns(self) -> int:
         return time.time_ns()
 
     def _take_ready(self) -> list[Callable[[], None]]:
         ready: list[Callable[[], None]] = []
         for endpoint in [*self._subscriptions, *self._services]:
             ready.extend(endpoint.ready())
-        now = self.now_ns()
+        now = self.clock_ns()
         ready.extend(t.callback for t in self._timers if t.take_if_due(now))
         return ready
 
@@ -559,7 +559,7 @@ class CycloneTransport(Transport):
                 return len(ready)
             dues = [t.next_due_ns for t in self._timers if not t.cancelled]
             if dues:
-                remaining = min(remaining, max(0.0, (min(dues) - self.now_ns()) / 1e9))
+                remaining = min(remaining, max(0.0, (min(dues) - self.clock_ns()) / 1e9))
             if self._subscriptions or self._services:
                 with self._entities():
                     self.waitset.wait(max(0, int(min(remaining, _SPIN_SLICE_S) * 1e9)))

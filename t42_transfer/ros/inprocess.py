@@ -205,7 +205,7 @@ class InProcessTransport(Transport):
         validate_name(name, "service")
         return InProcessClient(self, name, srvtype)
 
-    def now_ns(self) -> int:
+    def clock_ns(self) -> int:
         return int(self.bus.clock())
 
     def _take_ready(self) -> list[Callable[[], None]]:
@@ -215,7 +215,7 @@ class InProcessTransport(Transport):
                 while sub.queue:
                     data = sub.queue.popleft()
                     ready.append(lambda s=sub, d=data: s.callback(d if s.raw else deserialize(s.msgtype, d)))
-        now = self.now_ns()
+        now = self.clock_ns()
         ready.extend(t.callback for t in self._timers if t.take_if_due(now))
         return ready
 
@@ -224,7 +224,7 @@ class InProcessTransport(Transport):
         if self.bus._wall:
             dues = [t.next_due_ns for t in self._timers if not t.cancelled]
             if dues:
-                remaining_s = min(remaining_s, max(0.0, (min(dues) - self.now_ns()) / 1e9))
+                remaining_s = min(remaining_s, max(0.0, (min(dues) - self.clock_ns()) / 1e9))
         return remaining_s
 
     def spin_once(self, timeout_s: float = 0.0) -> int:

@@ -185,17 +185,19 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
     raise ValueError(f"{where} expects {_type_name(hint)}, got {value!r} ({type(value).__name__})")
 
 
-def load_params(
-    params_cls: type,
-    node_name: str,
-    params_files: Sequence[str | Path] = (),
-    overrides: Sequence[tuple[str, Any]] | Mapping[str, Any] = (),
-) -> Any:
-    """An instance of the frozen dataclass ``params_cls`` for ``node_name`` from params files and overrides."""
-    if not dataclasses.is_dataclass(params_cls):
-        raise TypeError(f"{params_cls!r} is not a dataclass")
-    fields = {f.name: f for f in dataclasses.fields(params_cls) if f.init}
-    hints = typing.get_type_hints(params_cls)
+@dataclasses.dataclass(frozen=True)
+class NodeOptions:
+    """Parameters every ROS node has, whatever its own params class (``-p use_sim_time:=true``)."""
+
+    use_sim_time: bool = False
+    """ROS time from ``/clock`` (a simulator's) instead of the system clock."""
+
+
+COMMON = frozenset(f.name for f in dataclasses.fields(NodeOptions))
+
+
+def _gather(node_name: str, params_files: Sequence[str | Path],
+            overrides: Sequence[tuple[str, Any]] | Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
     values: dict[str, Any] = {}
     sources: dict[str, str] = {}
     for path in params_files:
@@ -204,6 +206,14 @@ def load_params(
     items = overrides.items() if isinstance(overrides, Mapping) else overrides
     for name, value in items:
         values[name], sources[name] = value, "-p"
+    return values, sources
+
+
+def _build(params_cls: type, node_name: str, values: dict[str, Any], sources: dict[str, str]) -> Any:
+    if not dataclasses.is_dataclass(params_cls):
+        raise TypeError(f"{params_cls!r} is not a dataclass")
+    fields = {f.name: f for f in dataclasses.fields(params_cls) if f.init}
+    hints = typing.get_type_hints(params_cls)
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise ValueError(
@@ -220,4 +230,29 @@ def load_params(
         return params_cls(**kwargs)
     except (TypeError, ValueError, KeyError) as err:
         raise ValueError(f"{node_name}: {err}") from None
+
+
+def load_params(
+    params_cls: type,
+    node_name: str,
+    params_files: Sequence[str | Path] = (),
+    overrides: Sequence[tuple[str, Any]] | Mapping[str, Any] = (),
+) -> Any:
+    """An instance of the frozen dataclass ``params_cls`` for ``node_name`` from params files and overrides.
+
+    The :class:`NodeOptions` every node has (``use_sim_time``) are left to :func:`node_options`.
+    """
+    values, sources = _gather(node_name, params_files, overrides)
+    own = {n: v for n, v in values.items() if n not in COMMON}
+    return _build(params_cls, node_name, own, sources)
+
+
+def node_options(
+    node_name: str,
+    params_files: Sequence[str | Path] = (),
+    overrides: Sequence[tuple[str, Any]] | Mapping[str, Any] = (),
+) -> NodeOptions:
+    """The :class:`NodeOptions` of ``node_name`` from the same params files and overrides."""
+    values, sources = _gather(node_name, params_files, overrides)
+    return _build(NodeOptions, node_name, {n: v for n, v in values.items() if n in COMMON}, sources)
 

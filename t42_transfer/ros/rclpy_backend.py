@@ -182,11 +182,20 @@ class RclpyTransport(Transport):
         validate_name(name, "service")
         return RclpyClient(self, name, srvtype)
 
-    def now_ns(self) -> int:
+    def clock_ns(self) -> int:
+        """The node's ROS clock: rclpy itself follows ``/clock`` once ``use_sim_time`` is set."""
         return int(self.node.get_clock().now().nanoseconds)
 
+    def use_sim_time(self, topic: str = "/clock") -> None:
+        """rclpy's own sim time: the node's ``use_sim_time`` parameter (``topic`` must be /clock)."""
+        from rclpy.parameter import Parameter
+
+        if topic != "/clock":
+            raise ValueError("rclpy takes sim time from /clock only")
+        self.node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+
     def _run_due_timers(self) -> None:
-        now = self.now_ns()
+        now = self.clock_ns()
         for timer in [t for t in self._timers if t.take_if_due(now)]:
             self._ran += 1
             timer.callback()
@@ -229,7 +238,7 @@ class RclpyTransport(Transport):
             if self._ran > start or remaining <= 0:
                 return self._ran - start
             dues = [t.next_due_ns for t in self._timers if not t.cancelled]
-            wait = min([remaining] + [max(0.0, (due - self.now_ns()) / 1e9) for due in dues])
+            wait = min([remaining] + [max(0.0, (due - self.clock_ns()) / 1e9) for due in dues])
 
     def close(self) -> None:
         if self._closed:

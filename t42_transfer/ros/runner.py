@@ -18,7 +18,7 @@ from types import FrameType
 
 from t42_transfer.nodes.registry import NODES
 from t42_transfer.ros.backends import make_transport
-from t42_transfer.ros.params import load_params, parse_ros_args
+from t42_transfer.ros.params import load_params, node_options, parse_ros_args
 
 _NODE_LOGGERS = "t42_transfer.ros."
 
@@ -75,12 +75,15 @@ def _run(name: str, argv: Sequence[str], stop: threading.Event) -> int:
             raise ValueError(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args)")
         node_name = ros_args.node_name or spec.default_name
         params = load_params(spec.params_class(), node_name, ros_args.params_files, ros_args.overrides)
+        options = node_options(node_name, ros_args.params_files, ros_args.overrides)
         transport = make_transport(node_name)
     except ValueError as err:
         return _error(str(err))
     configure_logging()
     log = logging.getLogger(_NODE_LOGGERS + node_name)
     with transport:
+        if options.use_sim_time:
+            transport.use_sim_time()
         node = spec.node_class()(transport, params)
         try:
             log.info("running (%s); SIGINT or SIGTERM stops", type(transport).__name__)

@@ -15,9 +15,11 @@ from abc import ABC, abstractmethod
 from typing import Any, Callable
 
 from t42_transfer.ros.naming import request_type, response_type, typestore_for
+from t42_transfer.ros.qos import CLOCK as CLOCK_QOS
 from t42_transfer.ros.qos import DEFAULT, QoSProfile
 
 Callback = Callable[[Any], None]
+CLOCK = "rosgraph_msgs/msg/Clock"
 
 
 class TransportClosed(RuntimeError):
@@ -116,6 +118,8 @@ class Transport(ABC):
         self.node_name = node_name
         self._closed = False
         self._timers: list[PeriodicTimer] = []
+        self._sim_ns: int | None = None
+        """Latest ``/clock`` time once :meth:`use_sim_time` is on (0 until the first arrives, as in ROS)."""
         self.logger = logging.getLogger(f"t42_transfer.ros.{node_name}")
 
     def _check_open(self) -> None:
@@ -143,18 +147,41 @@ class Transport(ABC):
     def client(self, name: str, srvtype: str) -> Client: ...
 
     def timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
-        """``callback()`` every ``period_s`` of :meth:`now_ns`, run by the backend's spin loop."""
+        """``callback()`` every ``period_s`` of :meth:`clock_ns`, run by the backend's spin loop.
+
+        Timers pace in the backend's clock even under :meth:`use_sim_time` (rclpy's follow
+        ROS time): a node's timer keeps running when no ``/clock`` is published.
+        """
         self._check_open()
         period_ns = round(period_s * 1e9)
         if period_ns <= 0:
             raise ValueError(f"timer period must be positive, got {period_s} s")
-        timer = PeriodicTimer(period_ns, callback, self.now_ns())
+        timer = PeriodicTimer(period_ns, callback, self.clock_ns())
         self._timers.append(timer)
         return timer
 
     @abstractmethod
+    def clock_ns(self) -> int:
+        """The backend's own clock in nanoseconds (system time, or a test's fake clock)."""
+
     def now_ns(self) -> int:
-        """The node's clock (ROS time) in nanoseconds."""
+        """ROS time in nanoseconds: the latest ``/clock`` under :meth:`use_sim_time`, else :meth:`clock_ns`."""
+        return self.clock_ns() if self._sim_ns is None else self._sim_ns
+
+    def use_sim_time(self, topic: str = "/clock") -> None:
+        """Take ROS time from ``topic`` (rosgraph_msgs/msg/Clock), as a node with ``use_sim_time:=true``.
+
+        A simulator (the mock driver with ``sim_time``) publishes it; until the first
+        message arrives :meth:`now_ns` is 0, as in ROS.
+        """
+        if self._sim_ns is not None:
+            return
+        self._sim_ns = 0
+
+        def on_clock(msg: Any) -> None:
+            self._sim_ns = max(self._sim_ns or 0, int(msg.clock.sec) * 10**9 + int(msg.clock.nanosec))
+
+        self.subscribe(topic, CLOCK, CLOCK_QOS, on_clock)
 
     @abstractmethod
     def spin_once(self, timeout_s: float = 0.0) -> int:
