@@ -5,9 +5,12 @@ the driver's reset service (``/hand/reset``), waits for the first joint state of
 the new grasp, sends one ``JointTrajectory`` of ``steps`` random piecewise-constant
 actions (the sampler of :class:`~t42_transfer.hand.collect.RandomPolicy`, seeded
 ``seed + episode``) on ``/hand/trajectory``, and counts the applied actions the
-driver reports on ``/hand/applied_action``.  An episode ends when all of them were
-applied, when ``/hand/status`` reports an end (drop, lost contact, overload) or
-after a timeout; then the next one starts.  A recorder in ``episode`` mode splits
+driver reports on ``/hand/applied_action``.  An episode ends when the driver's
+``/hand/status`` reports ``trajectory_done`` or an end (drop, lost contact,
+overload), or after a timeout; then the next one starts.  The start angles are
+taken from a joint state stamped ``SETTLE_PERIODS`` control periods after the
+newest one seen when the reset answered, so a state still in flight from before the
+reset is not mistaken for the new grasp.  A recorder in ``episode`` mode splits
 its bags on the driver's ``reset`` status, so each episode becomes one bag.
 
 One whole trajectory per episode (not a command per step) keeps the actions
@@ -24,6 +27,7 @@ episodes and nothing of the idle hand before or after them.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,10 +39,11 @@ from msg_adapters import (
     JOINT_STATES_TOPIC,
     JOINT_TRAJECTORY,
     actions_to_joint_trajectory,
+    applied_action,
     joint_state_arrays,
     stamp_to_ns,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_S
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.hand.collect import RANDOM_POLICY_LIMIT, RandomPolicy
 from t42_transfer.nodes.mock_driver import RESET_SERVICE, STATUS_TOPIC, STRING, TRAJECTORY_TOPIC, TRIGGER
 from t42_transfer.nodes.recorder import END_EVENTS
@@ -95,6 +100,7 @@ class Explorer:
     """Runs the episodes; see the module docstring.  Driven by a timer of the node."""
 
     POLL_S = 0.02
+    SETTLE_PERIODS = 3
 
     def __init__(self, transport: Transport, params: ExplorerParams | None = None) -> None:
         self.transport = transport
@@ -109,10 +115,11 @@ class Explorer:
         self._reset_ns = 0
         self._angles: np.ndarray | None = None
         self._angles_ns = -1
-        self._sent_ns = 0
+        self._actions = np.zeros((0, 2))
+        self._mismatched = 0
         self._applied = 0
         self._ended: str | None = None
-        self._deadline_ns = 0
+        self._deadline = 0.0
         self._trajectory_pub = transport.publisher(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT)
         self._reset = transport.client(p.reset_service, TRIGGER)
         self._record_start = transport.client(p.record_start_service, TRIGGER) if p.record_start_service else None
@@ -143,17 +150,20 @@ class Explorer:
         if self._phase != "running":
             return
         try:
-            stamp = stamp_to_ns(deserialize(JOINT_STATE, data).header.stamp)
+            action = applied_action(deserialize(JOINT_STATE, data))
         except Exception as err:
             self.log.warning("ignored an applied action: %s", err)
             return
-        if stamp >= self._sent_ns:
+        # Count the trajectory's own steps (a rejected trajectory, which the driver logs, applies none).
+        if self._applied < len(self._actions) and np.allclose(action, self._actions[self._applied], atol=1e-3):
             self._applied += 1
+        else:
+            self._mismatched += 1
 
     def _on_status(self, msg: Any) -> None:
         words = str(msg.data).split()
         event = words[0].rstrip(":") if words else ""
-        if self._phase == "running" and event in END_EVENTS:
+        if self._phase == "running" and (event in END_EVENTS or event == "trajectory_done"):
             self._ended = event
 
     def _on_timer(self) -> None:
@@ -180,19 +190,20 @@ class Explorer:
                 self.log.warning("reset failed (%s); episode %d skipped", response.message, self.episode)
                 self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
                 return
-            self._reset_ns, self._phase = self.transport.now_ns(), "grasped"
+            self._reset_ns = max(self.transport.now_ns(), self._angles_ns) + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
+            self._phase = "grasped"
             if self.episode == 1:
                 self._trigger(self._record_start)
         elif self._phase == "grasped":
-            if self._angles is None or self._angles_ns < self._reset_ns:
+            if self._angles is None or self._angles_ns <= self._reset_ns:
                 return
             self._send_trajectory(now)
         elif self._phase == "running":
-            if self._applied >= p.steps:
-                self._finish_episode("complete")
+            if self._ended == "trajectory_done":
+                self._finish_episode("complete" if self._applied == p.steps else "mismatch")
             elif self._ended is not None:
                 self._finish_episode(self._ended)
-            elif now > self._deadline_ns:
+            elif time.monotonic() > self._deadline:
                 self._finish_episode("timeout")
 
     def _trigger(self, client: Any) -> None:
@@ -209,14 +220,15 @@ class Explorer:
         p = self.params
         rng = np.random.default_rng(p.seed + self.episode - 1)
         actions = self.policy.sample(rng, p.steps)
-        self._sent_ns, self._applied, self._ended = now, 0, None
+        self._actions, self._applied, self._mismatched, self._ended = actions, 0, 0, None
         self._trajectory_pub.publish(actions_to_joint_trajectory(actions, self._angles, now))
-        duration_s = p.steps * CONTROL_PERIOD_S / p.rate_factor
-        self._deadline_ns = now + round((duration_s + p.timeout_margin_s) * 1e9)
+        # Wall time: under use_sim_time ROS time runs rate_factor times faster.
+        self._deadline = time.monotonic() + p.steps * CONTROL_PERIOD_S / p.rate_factor + p.timeout_margin_s
         self._phase = "running"
 
     def _finish_episode(self, end: str) -> None:
         self.completed.append({"episode": self.episode, "applied": self._applied, "end": end})
-        self.log.info("episode %d/%d: %d actions applied, %s", self.episode, self.params.episodes,
-                      self._applied, end)
+        other = f" ({self._mismatched} other steps)" if self._mismatched else ""
+        self.log.info("episode %d/%d: %d actions applied%s, %s", self.episode, self.params.episodes,
+                      self._applied, other, end)
         self._phase = "reset"

@@ -11,7 +11,8 @@ Wiring (defaults; every name is a :class:`MockDriverParams` field):
 * ``/hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): subscribed, a whole
   open-loop sequence of actuator-angle targets, one point per control period;
 * ``/hand/reset`` (std_srvs/srv/Trigger): served, re-open, re-grasp, start an episode;
-* ``/hand/status`` (std_msgs/msg/String, latched): episode ends and resets.
+* ``/hand/status`` (std_msgs/msg/String, latched): episode ends, resets, and
+  ``trajectory_done`` when a trajectory's last point is being applied.
 
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
 A step stamped ``t = transport.now_ns()`` publishes the current state (pose and
@@ -330,6 +331,8 @@ class MockDriver:
         """The action of this step, as float32 values (what the applied-action topic can carry exactly)."""
         if self._plan:
             action = self._plan.pop(0)
+            if not self._plan:
+                self._publish_status(status_message("trajectory_done", f"episode {self.episode} step {self.steps + 1}"))
         else:
             action = self._command if self._command is not None else np.zeros(ACTION_DIM)
             self._command = None  # a single-step command is held for one step only
