@@ -1,139 +1,531 @@
-"""The README's main job, on embedded defaults: simulated source and target hands.
+"""The README's main job: the whole transfer story on simulated hands, as separate processes over DDS.
 
-The story so far: collect random-policy episodes on both hands and record them
-as rosbag2 MCAP bags (checking every number survives the trip); train the
-source model on the source bag; transfer it to the target hand with a little
-data from the target bag by each method; score every model on held-out target
-episodes (time before 4 mm divergence, position MSE) and save the transferred
-models.  Planning and the ROS nodes join it as they land.
+1. **Source model**: random-action episodes of the simulated *source* hand go into
+   a rosbag2 bag, and the paper's transition model is trained on it (cached in the
+   output directory and reused while the demo's sizes stay the same).
+2. **The suite** starts as separate processes on a private ROS domain, through the
+   supervisor ``t42 up`` uses: the mock driver on the simulated *target* hand, the
+   recorder, the transfer server and the planner.  The driver is the clock of the
+   graph (``sim_time``, ``/clock``) and runs ``rate_factor`` times faster than real
+   time; every other node runs with ``use_sim_time``.
+3. **Target data through topics**: the explorer node (another process) resets the
+   hand and sends random-action trajectories; it starts and stops the recorder,
+   which writes one MCAP bag per episode.
+4. **Transfer**: one call of ``/t42/transfer``; its progress arrives on
+   ``/diagnostics``; the answer names the model, which the planner loads when the
+   server announces it.
+5. **Peg-in-hole**: for each goal the hand is reset; the goal is a point the true
+   target hand reaches from that grasp in ``n`` steps; it is sent to the planner as
+   a ``PointStamped``; the driver executes the planned ``JointTrajectory`` open
+   loop; the object's resting position after the plan decides success.
+6. **Report**: ``report.md``, ``demo.json`` and ``paths.png`` (planned vs executed
+   paths) in the run directory; node logs in ``logs/``.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import random
+import re
+import shutil
+import sys
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
-from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
-from t42_transfer.data.trajectory import TrajectorySet
-from t42_transfer.hand.collect import collect
+from msg_adapters import (
+    APPLIED_ACTION_TOPIC,
+    JOINT_STATE,
+    OBJECT_POSE_TOPIC,
+    POSE_STAMPED,
+    goal_msg,
+    object_xy_mm,
+    path_xy_mm,
+    status_report,
+    stamp_to_ns,
+)
+from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.nodes.recorder import END_EVENTS
+
+STRING = "std_msgs/msg/String"
+TRIGGER = "std_srvs/srv/Trigger"
+PATH = "nav_msgs/msg/Path"
+DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
+SUITE_NODES = ("mock_driver", "recorder", "transfer_server", "planner")
+TRANSFER_STATUS = "t42_transfer: transfer"
 
 
 @dataclass(frozen=True)
 class DemoSize:
     source_episodes: int
-    target_episodes: int
-    steps: int
+    source_steps: int
     source_epochs: int
-    transfer_episodes: int
-    """Target episodes given to the transfer; the rest are the held-out test set."""
+    target_episodes: int
+    """Episodes the explorer collects from the target hand (a quarter is held out for scoring)."""
+    target_steps: int
+    goal_steps: tuple[int, ...]
+    """One peg-in-hole goal per entry, that many control steps from the grasp."""
+    planner_samples: int
+    rate_factor: float
+    transfer: dict[str, Any] = field(default_factory=dict)
+    """Overrides of the transfer server's TransferConfig (nested, as its ``config`` parameter)."""
 
 
-FULL = DemoSize(source_episodes=80, target_episodes=20, steps=400, source_epochs=40, transfer_episodes=3)
-QUICK = DemoSize(source_episodes=10, target_episodes=6, steps=150, source_epochs=5, transfer_episodes=2)
-DEMO_METHODS = ("direct", "new_model", "naive_finetune", "cumulative_residual", "l2_finetune")
+FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
+                goal_steps=(10, 20, 30, 40, 10, 20, 30, 40), planner_samples=1000, rate_factor=5.0)
+QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
+                 goal_steps=(10, 20, 30), planner_samples=300, rate_factor=10.0,
+                 transfer={"cumulative_residual": {"train": {"epochs": 20}}})
+TOLERANCE_MM = 10.0
+"""The paper's peg-in-hole tolerance."""
+HOLD_STEPS = (5, 40)
+SETTLE_STEPS = 80
+"""Steps of holding still after a grasp: the simulated object has stopped sinking by then."""
+GRASP_MATCH_MM = 1.0
 
 
-def _summary_row(name: str, data: TrajectorySet, seconds: float) -> dict:
-    states = np.concatenate([t.states for t in data])
-    ends: dict[str, int] = {}
-    for t in data:
-        ends[t.end_reason] = ends.get(t.end_reason, 0) + 1
+def _say(message: str) -> None:
+    print(message, flush=True)
+
+
+# --------------------------------------------------------------------------- 1. source model
+def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
+    """The source model for ``size`` under ``out`` (trained unless a matching one is cached)."""
+    import torch
+
+    from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
+    from t42_transfer.data.trajectory import TrajectorySet
+    from t42_transfer.hand.collect import collect
+    from t42_transfer.models.checkpoint import read_metadata, save_model
+    from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
+    from t42_transfer.planning.workspace import Workspace
+
+    key = {"episodes": size.source_episodes, "steps": size.source_steps, "epochs": size.source_epochs, "seed": 0}
+    path = out / f"source_model_{size.source_episodes}x{size.source_steps}.safetensors"
+    if path.is_file():
+        try:
+            if read_metadata(path).get("data", {}).get("demo") == key:
+                _say(f"[1/5] source model: cached {path}")
+                return path
+        except Exception:
+            pass
+    start = time.perf_counter()
+    data, stats = collect("source", size.source_episodes, size.source_steps, seed=0, workers=workers)
+    bag_dir = out / f"source_bag_{size.source_episodes}x{size.source_steps}"
+    if bag_dir.exists():
+        shutil.rmtree(bag_dir)
+    bag = write_bag(bag_dir, TrajectorySet(assign_start_times(data), hand=data.hand), metadata={"collector": "t42 demo"})
+    data = read_bag(bag)
+    torch.set_num_threads(1)
+    model, report = train_transition_model(data, TrainConfig(epochs=size.source_epochs), on_epoch=ProgressBar(),
+                                           phase="source model")
+    extra = {"workspace": Workspace.from_trajectories(data).to_dict()}
+    save_model(model, path, method="source", data={"demo": key, "source": data.fingerprint()}, extra=extra)
+    _say(f"[1/5] source model: {len(data)} source-hand episodes ({data.num_transitions} transitions) -> {bag}; "
+         f"{report.epochs_run} epochs -> {path} ({time.perf_counter() - start:.0f} s)")
+    return path
+
+
+# --------------------------------------------------------------------------- 2. the suite
+def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
+    """The params file of the suite (and the explorer) for this run."""
+    def node(**params: Any) -> dict[str, Any]:
+        return {"ros__parameters": params}
+
     return {
-        "hand": name,
-        "episodes": len(data),
-        "transitions": data.num_transitions,
-        "mean_length": data.num_transitions / max(1, len(data)),
-        "x_range_mm": [float(states[:, 0].min()), float(states[:, 0].max())],
-        "y_range_mm": [float(states[:, 1].min()), float(states[:, 1].max())],
-        "end_reasons": ends,
-        "collect_s": seconds,
+        # Stamps are in simulated time, which runs rate_factor times faster: allow the same wall-time lag.
+        "mock_driver": node(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
+                            max_command_age_s=0.5 * size.rate_factor),
+        "recorder": node(out_dir=str(run_dir / "bags"), mode="episode", start_immediately=False, use_sim_time=True),
+        "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
+                                bag_dir=str(run_dir / "bags"), method="cumulative_residual",
+                                config=size.transfer, use_sim_time=True),
+        "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
+        "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,
+                         rate_factor=size.rate_factor, record_start_service="/recorder/start",
+                         record_stop_service="/recorder/stop", use_sim_time=True),
     }
 
 
+class Operator:
+    """The demo's own node: watches the hand and the suite's outputs, calls services, sends goals."""
+
+    def __init__(self, transport: Any) -> None:
+        self.t = transport
+        self.lock = threading.Lock()
+        self.poses: list[tuple[int, np.ndarray]] = []
+        self.applied = 0
+        self.statuses: list[str] = []
+        self.results: list[dict[str, Any]] = []
+        self.paths: list[np.ndarray] = []
+        self.diagnostic: dict[str, str] = {}
+        transport.subscribe(OBJECT_POSE_TOPIC, POSE_STAMPED, _qos().DEFAULT, self._on_pose)
+        transport.subscribe(APPLIED_ACTION_TOPIC, JOINT_STATE, _qos().DEFAULT, self._on_applied, raw=True)
+        transport.subscribe("/hand/status", STRING, _qos().TRANSIENT_LOCAL, lambda m: self.statuses.append(m.data))
+        transport.subscribe("/t42/plan_result", STRING, _qos().DEFAULT, lambda m: self.results.append(json.loads(m.data)))
+        transport.subscribe("/t42/planned_path", PATH, _qos().DEFAULT, lambda m: self.paths.append(path_xy_mm(m)))
+        transport.subscribe("/diagnostics", DIAGNOSTICS, _qos().DEFAULT, self._on_diagnostics)
+        self.goal_pub = transport.publisher("/t42/goal", "geometry_msgs/msg/PointStamped")
+        self.clients = {name: transport.client(name, TRIGGER)
+                        for name in ("/hand/reset", "/t42/transfer", "/recorder/start", "/recorder/stop")}
+
+    def _on_pose(self, msg: Any) -> None:
+        self.poses.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
+        del self.poses[:-2000]
+
+    def _on_applied(self, data: Any) -> None:
+        self.applied += 1
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        try:
+            report = status_report(msg, TRANSFER_STATUS)
+        except KeyError:
+            return
+        self.diagnostic = {"message": report.message, **report.values}
+
+    def spin_until(self, cond: Any, timeout_s: float, what: str, alive: Any = None) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+            if alive is not None:
+                alive()
+            self.t.spin_once(0.05)
+
+    def call(self, service: str, timeout_s: float, alive: Any = None, progress: Any = None) -> Any:
+        """Call a Trigger service from a thread while this node keeps spinning (and showing progress)."""
+        client = self.clients[service]
+        box: dict[str, Any] = {}
+
+        def run() -> None:
+            try:
+                box["response"] = client.call(client.Request(structure_needs_at_least_one_member=0), timeout_s)
+            except Exception as err:
+                box["error"] = err
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        while thread.is_alive():
+            if alive is not None:
+                alive()
+            if progress is not None:
+                progress()
+            self.t.spin_once(0.1)
+        if "error" in box:
+            raise RuntimeError(f"{service}: {box['error']}")
+        return box["response"]
+
+    def latest_pose(self) -> tuple[int, np.ndarray]:
+        return self.poses[-1] if self.poses else (-1, np.full(2, np.nan))
+
+
+def _qos() -> Any:
+    from t42_transfer.ros import qos
+
+    return qos
+
+
+class _Suite:
+    """The node processes of one demo run, with their output in ``logs/``."""
+
+    def __init__(self, run_dir: Path, params_file: Path, env: dict[str, str]) -> None:
+        from t42_transfer.ros.launcher import Supervisor
+
+        (run_dir / "logs").mkdir(exist_ok=True)
+        self.log_path = run_dir / "logs" / "nodes.log"
+        self.log = self.log_path.open("w")
+        self.supervisor = Supervisor(params_file, out=self.log, stop_timeout_s=10.0, env=env)
+        self.may_end: set[str] = set()
+        """Nodes whose exit is not a failure (the explorer ends when done)."""
+
+    def check(self) -> None:
+        """Raise if a suite node died."""
+        dead = [c for c in self.supervisor.children if c.proc.poll() is not None and c.name not in self.may_end]
+        if dead:
+            names = ", ".join(f"{c.name} (exit {c.proc.returncode})" for c in dead)
+            raise RuntimeError(f"node process ended: {names}; see {self.log_path}")
+
+    def stop(self) -> dict[str, int]:
+        codes = self.supervisor.stop()
+        self.log.close()
+        return codes
+
+
+# --------------------------------------------------------------------------- 5. peg-in-hole
+@dataclass
+class GoalRun:
+    steps: int
+    grasp_seed: int
+    goal_mm: list[float]
+    start_mm: list[float]
+    accepted: bool
+    status: str
+    reason: str
+    horizon: int = 0
+    predicted_error_mm: float | None = None
+    planning_time_s: float = 0.0
+    final_mm: list[float] | None = None
+    error_mm: float | None = None
+    end: str = ""
+    success: bool = False
+    planned: list[list[float]] = field(default_factory=list)
+    executed: list[list[float]] = field(default_factory=list)
+
+    @property
+    def start_distance_mm(self) -> float:
+        return float(np.linalg.norm(np.subtract(self.goal_mm, self.start_mm)))
+
+
+def _grasp_seed(message: str) -> int:
+    match = re.search(r"\(seed (-?\d+)\)", message)
+    if match is None:
+        raise RuntimeError(f"cannot tell the grasp seed from the reset answer {message!r}")
+    return int(match.group(1))
+
+
+def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any) -> GoalRun:
+    from t42_transfer.hand.sim import SimulatedHand
+    from t42_transfer.planning.peg_in_hole import reachable_goal
+
+    response = op.call("/hand/reset", 30.0, suite.check)
+    if not response.success:
+        raise RuntimeError(f"reset failed: {response.message}")
+    seed = _grasp_seed(response.message)
+    reset_stamp = op.latest_pose()[0]
+    seeds = (int(np.random.SeedSequence([7, index, attempt]).generate_state(1)[0]) for attempt in range(20))
+    goal = reachable_goal(SimulatedHand("target"), steps, HOLD_STEPS, seeds, workspace, grasp_seed=seed, trial=index,
+                          settle_steps=SETTLE_STEPS)
+    # After a grasp the object sinks into the fingers for a few seconds: the goal is made from the
+    # settled state (the same seed grasps and settles identically here and in the driver), and the
+    # goal is sent once the driver's hand has held still that long and rests there.
+    settled = reset_stamp + SETTLE_STEPS * CONTROL_PERIOD_NS
+
+    def at_grasp() -> bool:
+        stamp, xy = op.latest_pose()
+        return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
+
+    op.spin_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
+    start = op.latest_pose()[1]
+    results = len(op.results)
+    paths = len(op.paths)
+    op.goal_pub.publish(goal_msg(goal.position, op.t.now_ns()))
+    op.spin_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
+    result = op.results[results]
+    run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
+                  result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"])
+    if not run.accepted:
+        run.end = "not executed"
+        return run
+    op.spin_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
+    run.planned = op.paths[paths].tolist()
+    plan_stamp = op.latest_pose()[0]
+    statuses = len(op.statuses)
+    settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
+    op.spin_until(lambda: op.latest_pose()[0] >= settle or len(op.statuses) > statuses, 120.0,
+                  "the plan's execution", suite.check)
+    run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
+    run.final_mm = op.latest_pose()[1].tolist()
+    run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
+    ended = [s for s in op.statuses[statuses:] if s.split(":")[0] in END_EVENTS]
+    run.end = ended[0].split(":")[0] if ended else "completed"
+    run.success = not ended and run.error_mm <= TOLERANCE_MM
+    return run
+
+
+# --------------------------------------------------------------------------- 6. report
+def plot_paths(runs: list[GoalRun], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = min(4, max(1, len(runs)))
+    rows = (len(runs) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
+    for ax, run in zip(axes.flat, runs):
+        if run.planned:
+            planned = np.asarray(run.planned)
+            ax.plot(planned[:, 0], planned[:, 1], "--", color="tab:blue", label="planned")
+        if run.executed:
+            executed = np.asarray(run.executed)
+            ax.plot(executed[:, 0], executed[:, 1], "-", color="tab:orange", label="executed")
+        ax.plot(*run.start_mm, "ko", ms=4, label="start")
+        ax.add_patch(plt.Circle(run.goal_mm, TOLERANCE_MM, color="tab:green", alpha=0.2))
+        ax.plot(*run.goal_mm, "g*", ms=10, label="goal")
+        verdict = "hit" if run.success else ("refused" if not run.accepted else "miss")
+        error = "" if run.error_mm is None else f", {run.error_mm:.1f} mm"
+        ax.set_title(f"{run.steps} steps: {verdict}{error}", fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel("x (mm)", fontsize=8)
+        ax.set_ylabel("y (mm)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(runs):]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=7, loc="best")
+    fig.suptitle(f"peg-in-hole on the simulated target hand (tolerance {TOLERANCE_MM:g} mm)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def goal_table(runs: list[GoalRun]) -> str:
+    lines = ["| goal | steps | start->goal mm | plan | predicted mm | final error mm | end | success |",
+             "|---:|---:|---:|---|---:|---:|---|---|"]
+    for k, run in enumerate(runs):
+        predicted = "" if run.predicted_error_mm is None else f"{run.predicted_error_mm:.1f}"
+        error = "" if run.error_mm is None else f"{run.error_mm:.1f}"
+        plan = f"{run.horizon} steps" if run.accepted else f"refused ({run.status})"
+        lines.append(f"| {k + 1} | {run.steps} | {run.start_distance_mm:.1f} | {plan} | {predicted} | {error} | "
+                     f"{run.end} | {'yes' if run.success else 'no'} |")
+    return "\n".join(lines)
+
+
+def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) -> Path:
+    hits = sum(r.success for r in runs)
+    lines = [
+        "# t42 demo",
+        "",
+        f"Run {run_dir.name}: {summary['mode']}; suite over {summary['transport']} on ROS domain {summary['domain']}.",
+        "",
+        "## Data and transfer",
+        "",
+        f"- Source model: `{summary['source_model']}`.",
+        f"- Target data: {summary['exploration']['bags']} episode bags recorded through topics in `bags/`.",
+        f"- `/t42/transfer` answered in {summary['transfer']['seconds']:.1f} s: {summary['transfer']['message']}",
+        "",
+        "## Peg-in-hole",
+        "",
+        f"{hits}/{len(runs)} goals reached within {TOLERANCE_MM:g} mm (open loop, the planned sequence executed by "
+        "the driver).",
+        "",
+        goal_table(runs),
+        "",
+        "![planned vs executed paths](paths.png)",
+        "",
+    ]
+    path = run_dir / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+# --------------------------------------------------------------------------- the story
 def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
-    """Collect on both hands, round-trip through bags, print and save a summary; 0 on success."""
+    """Run the whole story (see the module docstring); 0 when every step completed."""
+    from t42_transfer.models.checkpoint import read_metadata
+    from t42_transfer.planning.workspace import Workspace
+    from t42_transfer.ros.cyclone import CycloneTransport
+
     size = QUICK if quick else FULL
-    out = Path(out)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    run_dir = out / stamp
-    run_dir.mkdir(parents=True, exist_ok=False)
-    print(f"t42 demo{' --quick' if quick else ''}: simulated source and target hands -> {run_dir}")
-    rows = []
-    for hand, episodes, seed in (("source", size.source_episodes, 0), ("target", size.target_episodes, 1)):
-        start = time.perf_counter()
-        data, _ = collect(hand, episodes, size.steps, seed=seed, workers=workers)
-        data = TrajectorySet(assign_start_times(data), hand=data.hand)
-        seconds = time.perf_counter() - start
-        bag = write_bag(run_dir / f"{hand}_bag", data, metadata={"collector": "t42 demo", "seed": str(seed)})
-        back = read_bag(bag)
-        if len(back) != len(data) or not all(a == b for a, b in zip(data, back)):
-            print(f"FAILED: {bag} did not read back to the trajectories that were written")
-            return 1
-        rows.append({**_summary_row(hand, data, seconds), "bag": str(bag)})
-    print(f"\n{'hand':8} {'episodes':>8} {'transitions':>11} {'mean len':>8} {'x range mm':>16} {'y range mm':>16}  ends")
-    for r in rows:
-        xr, yr = r["x_range_mm"], r["y_range_mm"]
-        print(
-            f"{r['hand']:8} {r['episodes']:8d} {r['transitions']:11d} {r['mean_length']:8.1f} "
-            f"{xr[0]:7.1f} ..{xr[1]:6.1f} {yr[0]:7.1f} ..{yr[1]:6.1f}  {r['end_reasons']}"
-        )
-    print("bags read back exactly (same numbers) for both hands:")
-    for r in rows:
-        print(f"  {r['bag']}")
-    scores = _transfer_story(run_dir, size)
-    (run_dir / "summary.json").write_text(json.dumps({"data": rows, "transfer": scores}, indent=2) + "\n")
-    print(f"summary: {run_dir / 'summary.json'}")
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    run_dir = out / time.strftime("%Y%m%d-%H%M%S")
+    run_dir.mkdir(parents=False, exist_ok=False)
+    started = time.perf_counter()
+    _say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand over DDS -> {run_dir}")
+    model = source_model(out, size, workers)
+    workspace = Workspace.from_dict(read_metadata(model)["extra"]["workspace"])
+
+    params_file = run_dir / "suite.yaml"
+    params_file.write_text(yaml.safe_dump(suite_params(run_dir, model, size), sort_keys=False))
+    domain = int(os.environ.get("T42_DEMO_DOMAIN", random.randint(100, 230)))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), T42_TRANSPORT="cyclone", PYTHONUNBUFFERED="1")
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    suite = _Suite(run_dir, params_file, env)
+    summary: dict[str, Any] = {"mode": "quick" if quick else "full", "size": asdict(size), "domain": domain,
+                               "transport": "Cyclone DDS", "source_model": str(model), "suite": str(params_file)}
+    runs: list[GoalRun] = []
+    try:
+        for name in SUITE_NODES:
+            suite.supervisor.start(name)
+        with CycloneTransport("t42_demo", domain_id=domain) as transport:
+            transport.use_sim_time()
+            op = Operator(transport)
+            ready = lambda: all(c.service_is_ready() for c in op.clients.values())  # noqa: E731
+            op.spin_until(ready, 120.0, "the suite's services", suite.check)
+            _say(f"[2/5] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain {domain} "
+                 f"({time.perf_counter() - started:.0f} s); logs in {suite.log_path}")
+
+            explorer = suite.supervisor.start("explorer")
+            suite.may_end.add("explorer")
+            t0, shown = time.perf_counter(), -1
+
+            def explored() -> bool:
+                nonlocal shown
+                episodes = sum(s.startswith("reset") for s in op.statuses) - 1
+                if episodes != shown and episodes >= 1:
+                    shown = episodes
+                    _say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")
+                return explorer.proc.poll() is not None
+
+            op.spin_until(explored, 60.0 + size.target_episodes * size.target_steps * 0.1 / size.rate_factor * 5,
+                          "the explorer", suite.check)
+            if explorer.proc.returncode != 0:
+                raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
+            bags = sorted(p for p in (run_dir / "bags").glob("episode_*") if (p / "metadata.yaml").is_file())
+            summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
+            _say(f"[3/5] target data: {len(bags)} episode bags recorded through topics "
+                 f"({time.perf_counter() - t0:.0f} s) in {run_dir / 'bags'}")
+
+            t0, last = time.perf_counter(), [""]
+
+            def progress() -> None:
+                d = op.diagnostic
+                line = f"      transfer: {d.get('stage', 'starting')}"
+                if "epoch" in d:
+                    line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
+                if line != last[0]:
+                    last[0] = line
+                    _say(line)
+
+            response = op.call("/t42/transfer", 1800.0, suite.check, progress)
+            summary["transfer"] = {"success": bool(response.success), "message": response.message,
+                                   "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
+            _say(f"[4/5] /t42/transfer ({time.perf_counter() - t0:.0f} s): {response.message}")
+            if not response.success:
+                raise RuntimeError(f"the transfer failed: {response.message}")
+
+            for index, steps in enumerate(size.goal_steps):
+                run = run_goal(op, suite, steps, index, workspace)
+                runs.append(run)
+                verdict = ("hit" if run.success else "miss") if run.accepted else f"refused: {run.reason}"
+                error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
+                _say(f"      goal {index + 1}/{len(size.goal_steps)} ({steps} steps, {run.start_distance_mm:.1f} mm "
+                     f"away):{error} -> {verdict}")
+    except (RuntimeError, TimeoutError) as err:
+        _say(f"FAILED: {err}")
+        codes = suite.stop()
+        summary["exit_codes"] = codes
+        (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+        _tail(suite.log_path)
+        return 1
+    codes = suite.stop()
+    summary["exit_codes"] = codes
+    summary["goals"] = [asdict(r) for r in runs]
+    summary["seconds"] = time.perf_counter() - started
+    (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    plot_paths(runs, run_dir / "paths.png")
+    report = write_report(run_dir, summary, runs)
+    hits = sum(r.success for r in runs)
+    _say(f"[5/5] peg-in-hole: {hits}/{len(runs)} goals within {TOLERANCE_MM:g} mm\n")
+    _say(goal_table(runs))
+    _say(f"\nreport: {report} (plots: {run_dir / 'paths.png'}); {summary['seconds']:.0f} s in all")
+    unclean = {n: c for n, c in codes.items() if c != 0 and n != "explorer"}
+    if unclean:
+        _say(f"FAILED: nodes did not stop cleanly: {unclean}; see {suite.log_path}")
+        return 1
     return 0
 
 
-def _transfer_story(run_dir: Path, size: DemoSize) -> list[dict]:
-    """Source model from the source bag, each method from a few target episodes, scores on the rest."""
-    import torch
-
-    from t42_transfer.evaluation.metrics import evaluate_model
-    from t42_transfer.models.checkpoint import save_model
-    from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
-    from t42_transfer.transfer import transfer
-
-    torch.set_num_threads(1)
-    source_data = read_bag(run_dir / "source_bag")
-    target_data = read_bag(run_dir / "target_bag")
-    source, report = train_transition_model(
-        source_data, TrainConfig(epochs=size.source_epochs), on_epoch=ProgressBar(), phase="source model"
-    )
-    from t42_transfer.planning.workspace import Workspace
-
-    extra = {"workspace": Workspace.from_trajectories(source_data).to_dict()}
-    save_model(
-        source, run_dir / "models" / "source.safetensors", method="source", data={"source": source_data.fingerprint()},
-        extra=extra,
-    )
-    given = target_data.subset(range(size.transfer_episodes))
-    test = target_data.subset(range(size.transfer_episodes, len(target_data)))
-    print(
-        f"\nsource model: {report.epochs_run} epochs on {source_data.num_transitions} transitions; transfer with "
-        f"{given.num_transitions} target transitions ({len(given)} episodes), test on {len(test)} held-out episodes"
-    )
-    scores = []
-    for method in DEMO_METHODS:
-        start = time.perf_counter()
-        model = transfer(method, source, given, seed=0)
-        seconds = time.perf_counter() - start
-        result = evaluate_model(model, test)
-        path = save_model(
-            model, run_dir / "models" / f"{method}.safetensors", method=method, data={"target": given.fingerprint()},
-            extra=extra,
-        )
-        scores.append({
-            "method": method, "divergence_steps": result["divergence_mean"], "position_mse_mm2": result["position_mse_mean"],
-            "seconds": seconds, "model": str(path),
-        })
-    print(f"\n{'method':22} {'steps before 4 mm':>17} {'position MSE mm^2':>17} {'transfer s':>10}")
-    for r in scores:
-        print(f"{r['method']:22} {r['divergence_steps']:17.1f} {r['position_mse_mm2']:17.1f} {r['seconds']:10.1f}")
-    print(f"models: {run_dir / 'models'}")
-    return scores
+def _tail(path: Path, lines: int = 25) -> None:
+    try:
+        text = path.read_text().splitlines()[-lines:]
+    except OSError:
+        return
+    print("\n".join(["--- last node log lines ---", *text]), file=sys.stderr)

@@ -9,7 +9,6 @@ import pytest
 
 from t42_transfer.cli import main
 from t42_transfer.data.bag_io import read_bag
-from t42_transfer.demo import DEMO_METHODS
 from t42_transfer.hand.collect import collect
 from t42_transfer.models.checkpoint import load_model
 
@@ -88,13 +87,3 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
     assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
 
 
-def test_demo_quick_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["demo", "--quick", "--out", str(tmp_path), "--workers", "1"]) == 0
-    summary = json.loads(next(tmp_path.glob("*/summary.json")).read_text())
-    assert [r["hand"] for r in summary["data"]] == ["source", "target"]
-    assert all(r["transitions"] > 0 for r in summary["data"])
-    assert [r["method"] for r in summary["transfer"]] == list(DEMO_METHODS)
-    for row in summary["transfer"]:
-        assert row["divergence_steps"] >= 0 and row["position_mse_mm2"] >= 0
-        assert load_model(row["model"], expect_method=row["method"])[1]["method"] == row["method"]
-    assert "read back exactly" in capsys.readouterr().out

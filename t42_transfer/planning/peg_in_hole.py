@@ -123,26 +123,29 @@ def _make_goal(hand: SimulatedHand, cfg: PegInHoleConfig, steps: int, trial: int
 
 def reachable_goal(
     hand: SimulatedHand, steps: int, hold_steps: tuple[int, int], action_seeds: Iterable[int],
-    workspace: Workspace | None = None, grasp_seed: int | None = None, trial: int = 0,
+    workspace: Workspace | None = None, grasp_seed: int | None = None, trial: int = 0, settle_steps: int = 0,
 ) -> Goal:
     """The first goal ``steps`` away that the true hand reaches without a drop (inside ``workspace``).
 
     Each attempt samples a piecewise-constant sequence from the next action seed and
     runs it from a grasp made with ``grasp_seed`` (a driver's reset seed), or with
-    the action seed itself when None.
+    the action seed itself when None.  With ``settle_steps`` the hand first holds
+    still that long (the object sinks into the fingers after a grasp); the goal's
+    ``grasp`` is then the settled state, where a plan that starts later begins.
     """
     tried = 0
     for seed in action_seeds:
         tried += 1
         grasp_with = seed if grasp_seed is None else grasp_seed
-        actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), hold_steps)[0]
+        actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), hold_steps)[0].numpy()
         try:
-            traj = run_episode(hand, actions.numpy(), grasp_with)
+            traj = run_episode(hand, np.concatenate([np.zeros((settle_steps, actions.shape[1])), actions]), grasp_with)
         except GraspFailed:
             continue
-        goal = Goal(steps, trial, grasp_with, traj.states[0].astype(np.float64), traj.states[-1, :2].astype(np.float64))
+        start = traj.states[min(settle_steps, len(traj.states) - 1)].astype(np.float64)
+        goal = Goal(steps, trial, grasp_with, start, traj.states[-1, :2].astype(np.float64))
         inside = workspace is None or bool(workspace.contains_xy(torch.as_tensor(goal.position)))
-        if traj.end_reason == "length" and len(traj) == steps and inside:
+        if traj.end_reason == "length" and len(traj) == settle_steps + steps and inside:
             return goal
     raise RuntimeError(
         f"no goal {steps} steps away without a drop (inside the workspace) in {tried} attempts (trial {trial})"

@@ -117,6 +117,8 @@ class Supervisor:
         _stop(self.children, self.stop_timeout_s, self.say)
         for child in self.children:
             child.forwarder.join(timeout=1.0)
+            if child.proc.stdout is not None and not child.forwarder.is_alive():
+                child.proc.stdout.close()
         return {c.name: c.proc.returncode for c in self.children}
 
     def __enter__(self) -> "Supervisor":
