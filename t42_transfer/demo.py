@@ -270,6 +270,9 @@ class GoalRun:
     horizon: int = 0
     predicted_error_mm: float | None = None
     planning_time_s: float = 0.0
+    """The planner's own planning time."""
+    goal_to_result_s: float = 0.0
+    """Wall time from publishing the goal to receiving the plan result (published after the sequence)."""
     final_mm: list[float] | None = None
     error_mm: float | None = None
     end: str = ""
@@ -314,11 +317,14 @@ def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any
     start = op.latest_pose()[1]
     results = len(op.results)
     paths = len(op.paths)
+    sent = time.perf_counter()
     op.goal_pub.publish(goal_msg(goal.position, op.t.now_ns()))
     op.spin_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
+    answered_s = time.perf_counter() - sent
     result = op.results[results]
     run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
-                  result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"])
+                  result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"],
+                  goal_to_result_s=answered_s)
     if not run.accepted:
         run.end = "not executed"
         return run
