@@ -13,18 +13,7 @@ from hypothesis.extra.numpy import arrays
 import msg_adapters as ma
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 
-F32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
-PAIRS = arrays(np.float32, 2, elements=F32)
-STAMPS = st.integers(0, 2**31 * 10**9 - 1)
-
-
-def wire(msg):
-    """The message as a subscriber gets it: serialised to CDR and back."""
-    return ma.TYPESTORE.deserialize_cdr(ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__), msg.__msgtype__)
-
-
-def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    return a.dtype == b.dtype == np.float32 and np.array_equal(a.view(np.uint32), b.view(np.uint32))
+from test_msg_adapters import F32, PAIRS, STAMPS, same_bits, wire  # noqa: E402  (the shared round-trip helpers)
 
 
 @given(xy=PAIRS, stamp=STAMPS)

@@ -351,7 +351,7 @@ def _mcap_metadata_record(file: Path) -> tuple[dict[str, str], str | None]:
     return {}, None
 
 
-class _ExactReads:
+class ExactReads:
     """A file view whose reads return all bytes asked for or raise, so a cut-off record is never half-parsed."""
 
     def __init__(self, stream: BinaryIO, size: int) -> None:
@@ -379,7 +379,7 @@ def _scan_mcap(path: Path, files: list[Path], meta: dict[str, Any] | None, probl
         try:
             with file.open("rb") as stream:
                 size = file.stat().st_size
-                for record in StreamReader(_ExactReads(stream, size), record_size_limit=size).records:
+                for record in StreamReader(ExactReads(stream, size), record_size_limit=size).records:
                     if isinstance(record, Schema):
                         schemas[record.id] = record.name
                     elif isinstance(record, Channel):

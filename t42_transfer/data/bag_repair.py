@@ -27,7 +27,7 @@ from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.metadata import parse_qos
 
-from t42_transfer.data.bag_io import REPAIRED_KEY
+from t42_transfer.data.bag_io import REPAIRED_KEY, ExactReads
 from t42_transfer.data.errors import BagError
 from t42_transfer.ros.naming import typestore_for
 
@@ -143,19 +143,6 @@ def _summary_counts(files: list[Path]) -> dict[str, int]:
     return counts
 
 
-class _ExactReads:
-    """A file view whose reads return every byte asked for or raise, so a cut-off record is never half-read."""
-
-    def __init__(self, stream: BinaryIO, size: int) -> None:
-        self._stream, self._size = stream, size
-
-    def read(self, n: int) -> bytes:
-        at = self._stream.tell()
-        if at + n > self._size:
-            raise EOFError(f"a record needs {n} bytes at offset {at}, but the file ends at {self._size}")
-        return self._stream.read(n)
-
-
 class _Rewriter:
     """Streams salvaged records into a rosbags writer, one connection per (topic, type, offered QoS)."""
 
@@ -168,7 +155,7 @@ class _Rewriter:
     def file(self, stream: BinaryIO, size: int) -> None:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Any] = {}
-        for record in StreamReader(_ExactReads(stream, size), record_size_limit=size).records:
+        for record in StreamReader(ExactReads(stream, size), record_size_limit=size).records:
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
