@@ -346,10 +346,9 @@ def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any
 
 # --------------------------------------------------------------------------- 6. report
 def plot_paths(runs: list[GoalRun], path: Path) -> Path:
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     cols = min(4, max(1, len(runs)))
     rows = (len(runs) + cols - 1) // cols
@@ -375,10 +374,7 @@ def plot_paths(runs: list[GoalRun], path: Path) -> Path:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7, loc="best")
     fig.suptitle(f"peg-in-hole on the simulated target hand (tolerance {TOLERANCE_MM:g} mm)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def goal_table(runs: list[GoalRun]) -> str:

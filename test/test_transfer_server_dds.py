@@ -40,10 +40,10 @@ def test_busy_answer_and_diagnostics_while_a_transfer_runs(tmp_path: Path, sourc
                                                            monkeypatch: pytest.MonkeyPatch, domain_id: int) -> None:
     entered, release = threading.Event(), threading.Event()
 
-    def slow(source, target, cfg, seed, progress=False):
+    def slow(source, target, cfg, seed, on_epoch=None):
         entered.set()
         assert release.wait(30.0)
-        return METHODS["direct"](source, target, cfg, seed, progress)
+        return METHODS["direct"](source, target, cfg, seed, on_epoch)
 
     monkeypatch.setitem(METHODS, "slow", slow)
     bag_dir = tmp_path / "bags"

@@ -53,10 +53,9 @@ def _amount_label(config: dict[str, Any]) -> str:
 
 
 def plot_metric(summary, metric: str, config: dict[str, Any], path: Path) -> Path:  # type: ignore[no-untyped-def]
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     label, hint = METRICS[metric]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
@@ -76,18 +75,14 @@ def plot_metric(summary, metric: str, config: dict[str, Any], path: Path) -> Pat
     ax.set_title(f"{config['name']}: {label}" + (f" ({hint})" if hint else ""), fontsize=9)
     ax.legend(fontsize=7)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> Path | None:
     """Predicted (seed 0) against true x-y paths of the first test episodes, one panel per method."""
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from t42_transfer.evaluation.experiment import Cell, _cell_key, _target_split, data_cache, load_config, load_data
     from t42_transfer.models.checkpoint import load_model
@@ -125,10 +120,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
     if labelled:
         labelled[0].legend(fontsize=6)
     fig.suptitle(f"{cfg.name}: open-loop predictions at {amount} ({_amount_label(_as_dict(cfg))}), seed 0", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=100)
 
 
 def _as_dict(cfg) -> dict[str, Any]:  # type: ignore[no-untyped-def]

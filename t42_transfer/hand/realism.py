@@ -109,10 +109,9 @@ def markdown_table(rows: Sequence[BehaviourStats]) -> str:
 
 def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, TrajectorySet], path: Path) -> Path:
     """x-y paths of every real set next to the simulated replays, one panel each, path colours matched."""
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     panels = [(f"real {k}", v) for k, v in real_sets.items()] + [(f"{k} (same actions)", v) for k, v in replays.items()]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.0 * len(panels), 3.8), squeeze=False)
@@ -126,11 +125,7 @@ def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, Trajector
         ax.set_aspect("equal", adjustable="datalim")
     axes.flat[0].legend(fontsize=6)
     fig.suptitle("Real T42 test paths and simulated hands under the same action sequences (frames differ)", fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def rows_as_dicts(rows: Sequence[BehaviourStats]) -> list[dict]:

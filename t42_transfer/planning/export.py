@@ -34,10 +34,9 @@ def write_plan(plan: Plan, out: Path, workspace: Workspace, info: dict[str, Any]
 
 def plot_plan(plan: Plan, workspace: Workspace, path: Path) -> Path:
     """The predicted object path from the start towards the goal, inside the workspace outline."""
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     xy, goal = plan.predicted[:, :2], plan.goal
     fig, ax = plt.subplots(figsize=(5.0, 4.5))
@@ -53,11 +52,7 @@ def plot_plan(plan: Plan, workspace: Workspace, path: Path) -> Path:
     ax.set_ylabel("y (mm)")
     ax.set_aspect("equal", adjustable="datalim")
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def _outline(ax: Any, workspace: Workspace, points: np.ndarray) -> None:

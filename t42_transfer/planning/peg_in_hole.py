@@ -236,10 +236,9 @@ def markdown_table(rows: Sequence[Row]) -> str:
 
 def plot_success(rows: Sequence[Row], path: Path, tolerance_mm: float | None = None) -> Path:
     """Success rate against goal distance (steps), one line per model."""
-    import matplotlib
+    from t42_transfer.plots import pyplot, save
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     for name in dict.fromkeys(r.model for r in rows):
@@ -250,11 +249,7 @@ def plot_success(rows: Sequence[Row], path: Path, tolerance_mm: float | None = N
     ax.set_ylim(-0.03, 1.03)
     ax.set_title("Peg-in-hole, open loop" + (f" (tolerance {tolerance_mm:g} mm)" if tolerance_mm else ""), fontsize=10)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], Workspace | None]:
