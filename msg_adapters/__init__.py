@@ -29,6 +29,7 @@ from msg_adapters.hand import (
     object_xy_mm,
     stamp_to_ns,
 )
+from msg_adapters.kit import RCLPY, ROSBAGS, MessageKit, byte_value, rclpy_class
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 
 __all__ = [
@@ -57,6 +58,11 @@ __all__ = [
     "object_pose_msg",
     "object_xy_mm",
     "stamp_to_ns",
+    "RCLPY",
+    "ROSBAGS",
+    "MessageKit",
+    "byte_value",
+    "rclpy_class",
     "PATH",
     "POINT_STAMPED",
     "goal_msg",

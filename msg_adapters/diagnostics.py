@@ -11,16 +11,13 @@ from __future__ import annotations
 
 from typing import Any, Mapping, NamedTuple
 
-from msg_adapters.hand import TYPESTORE, ns_to_stamp
+from msg_adapters.hand import ns_to_stamp
+from msg_adapters.kit import ROSBAGS, MessageKit, byte_value
 
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 
-_T = TYPESTORE.types
-_Status = _T["diagnostic_msgs/msg/DiagnosticStatus"]
-_KeyValue = _T["diagnostic_msgs/msg/KeyValue"]
-
-LEVELS: dict[str, int] = {"OK": _Status.OK, "WARN": _Status.WARN, "ERROR": _Status.ERROR, "STALE": _Status.STALE}
+LEVELS: dict[str, int] = {"OK": 0, "WARN": 1, "ERROR": 2, "STALE": 3}
 """``DiagnosticStatus`` level names and their byte values."""
 
 
@@ -37,25 +34,27 @@ def diagnostic_array(
     values: Mapping[str, object],
     stamp_ns: int,
     hardware_id: str = "",
+    kit: MessageKit = ROSBAGS,
 ) -> Any:
     """A ``DiagnosticArray`` holding one status; ``level`` is a :data:`LEVELS` name, ``values`` become key-values."""
     if level not in LEVELS:
         raise ValueError(f"level must be one of {sorted(LEVELS)}, got {level!r}")
-    status = _Status(
-        level=LEVELS[level],
+    status = kit.make(
+        "diagnostic_msgs/msg/DiagnosticStatus",
+        level=kit.byte(LEVELS[level]),
         name=name,
         message=message,
         hardware_id=hardware_id,
-        values=[_KeyValue(key=str(k), value=_text(v)) for k, v in values.items()],
+        values=[kit.make("diagnostic_msgs/msg/KeyValue", key=str(k), value=_text(v)) for k, v in values.items()],
     )
-    header = _T["std_msgs/msg/Header"](stamp=ns_to_stamp(stamp_ns), frame_id="")
-    return _T[DIAGNOSTIC_ARRAY](header=header, status=[status])
+    header = kit.make("std_msgs/msg/Header", stamp=ns_to_stamp(stamp_ns, kit), frame_id="")
+    return kit.make(DIAGNOSTIC_ARRAY, header=header, status=[status])
 
 
-def level_name(level: int) -> str:
-    """The :data:`LEVELS` name of a status level byte."""
+def level_name(level: int | bytes) -> str:
+    """The :data:`LEVELS` name of a status level byte (an int in rosbags, one-byte ``bytes`` in rclpy)."""
     for name, value in LEVELS.items():
-        if value == int(level):
+        if value == byte_value(level):
             return name
     raise ValueError(f"unknown diagnostic level {level!r}")
 

@@ -5,8 +5,8 @@ normalised actuator-angle increments, all float32.  On the wire (REP 103) they a
 metres, N m, rad and rad/s in float64.  Every conversion goes float32 -> float64 ->
 SI -> float64 -> float32 with one multiplication or division per direction, so a
 value survives the round trip bit for bit (float64 has 29 bits to spare).
-Messages are rosbags ``Stores.ROS2_JAZZY`` objects; the readers touch only their
-fields, so objects of any typestore with the same definitions work too.
+Builders make rosbags objects by default and rclpy's with ``kit=RCLPY``
+(:mod:`msg_adapters.kit`); the readers touch only fields, so they take either.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
+from msg_adapters.kit import ROSBAGS, TYPESTORE, MessageKit
 from t42_transfer.conventions import (
     ACTION_DIM,
     ACTION_UNIT_RAD,
@@ -25,8 +25,6 @@ from t42_transfer.conventions import (
     FRAME_ID,
     LOAD_UNIT_NM,
 )
-
-TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -48,19 +46,15 @@ _MAX_STAMP_NS = 2**31 * 10**9
 _SPACING_TOLERANCE_NS = 1_000
 """Trajectory point times may carry float rounding from their producer; 1 us of it."""
 
-_T = TYPESTORE.types
-_Time = _T["builtin_interfaces/msg/Time"]
-_Duration = _T["builtin_interfaces/msg/Duration"]
-_Header = _T["std_msgs/msg/Header"]
 _NO_VALUES = np.zeros(0, np.float64)
 
 
-def ns_to_stamp(stamp_ns: int) -> Any:
+def ns_to_stamp(stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
     """``builtin_interfaces/Time`` of a non-negative nanosecond count."""
     if not 0 <= stamp_ns < _MAX_STAMP_NS:
         raise ValueError(f"stamp {stamp_ns} ns is outside builtin_interfaces/Time's range [0, 2^31 s)")
     sec, nanosec = divmod(int(stamp_ns), 10**9)
-    return _Time(sec=sec, nanosec=nanosec)
+    return kit.make("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -68,13 +62,13 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * 10**9 + int(stamp.nanosec)
 
 
-def _duration(ns: int) -> Any:
+def _duration(ns: int, kit: MessageKit) -> Any:
     sec, nanosec = divmod(ns, 10**9)
-    return _Duration(sec=sec, nanosec=nanosec)
+    return kit.make("builtin_interfaces/msg/Duration", sec=sec, nanosec=nanosec)
 
 
-def _header(stamp_ns: int, frame_id: str) -> Any:
-    return _Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+def _header(stamp_ns: int, frame_id: str, kit: MessageKit) -> Any:
+    return kit.make("std_msgs/msg/Header", stamp=ns_to_stamp(stamp_ns, kit), frame_id=frame_id)
 
 
 def _pair(name: str, value: np.ndarray | Sequence[float]) -> np.ndarray:
@@ -113,14 +107,16 @@ def _per_joint(values: np.ndarray, names: Sequence[str], field: str) -> np.ndarr
     return values
 
 
-def object_pose_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int) -> Any:
+def object_pose_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
     """``PoseStamped`` of the object position (metres in FRAME_ID, z = 0, identity orientation)."""
     x, y = _pair("object position", xy_mm) / _MM_PER_M
-    return _T[POSE_STAMPED](
-        header=_header(stamp_ns, FRAME_ID),
-        pose=_T["geometry_msgs/msg/Pose"](
-            position=_T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0),
-            orientation=_T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    return kit.make(
+        POSE_STAMPED,
+        header=_header(stamp_ns, FRAME_ID, kit),
+        pose=kit.make(
+            "geometry_msgs/msg/Pose",
+            position=kit.make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
+            orientation=kit.make("geometry_msgs/msg/Quaternion", x=0.0, y=0.0, z=0.0, w=1.0),
         ),
     )
 
@@ -134,17 +130,21 @@ def object_xy_mm(msg: Any) -> np.ndarray:
 
 
 def joint_state_msg(
-    loads: np.ndarray | Sequence[float], angles: np.ndarray | Sequence[float] | None, stamp_ns: int
+    loads: np.ndarray | Sequence[float],
+    angles: np.ndarray | Sequence[float] | None,
+    stamp_ns: int,
+    kit: MessageKit = ROSBAGS,
 ) -> Any:
     """``JointState`` of the actuators: effort = loads in N m, position = angles (empty if unknown)."""
     effort = _pair("loads", loads) * LOAD_UNIT_NM
     position = _NO_VALUES if angles is None else _pair("actuator angles", angles)
-    return _T[JOINT_STATE](
-        header=_header(stamp_ns, ""),
+    return kit.make(
+        JOINT_STATE,
+        header=_header(stamp_ns, "", kit),
         name=list(ACTUATOR_NAMES),
-        position=position,
-        velocity=_NO_VALUES,
-        effort=effort,
+        position=kit.floats(position),
+        velocity=kit.floats(_NO_VALUES),
+        effort=kit.floats(effort),
     )
 
 
@@ -159,15 +159,16 @@ def joint_state_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     return loads, _to_f32("joint state position", position[cols])
 
 
-def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int) -> Any:
+def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
     """``JointState`` whose velocity (rad/s) is the action held over one control period."""
     velocity = _pair("action", action) * ACTION_UNIT_RAD / CONTROL_PERIOD_S
-    return _T[JOINT_STATE](
-        header=_header(stamp_ns, ""),
+    return kit.make(
+        JOINT_STATE,
+        header=_header(stamp_ns, "", kit),
         name=list(ACTUATOR_NAMES),
-        position=_NO_VALUES,
-        velocity=velocity,
-        effort=_NO_VALUES,
+        position=kit.floats(_NO_VALUES),
+        velocity=kit.floats(velocity),
+        effort=kit.floats(_NO_VALUES),
     )
 
 
@@ -179,7 +180,7 @@ def applied_action(msg: Any) -> np.ndarray:
 
 
 def actions_to_joint_trajectory(
-    actions: np.ndarray, start_angles: np.ndarray | Sequence[float], stamp_ns: int
+    actions: np.ndarray, start_angles: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS
 ) -> Any:
     """``JointTrajectory`` of actuator-angle targets, one per control period.
 
@@ -192,18 +193,19 @@ def actions_to_joint_trajectory(
     if not np.all(np.isfinite(acts)):
         raise ValueError("actions have a non-finite value")
     targets = _pair("start angles", start_angles) + ACTION_UNIT_RAD * np.cumsum(acts.astype(np.float64), axis=0)
-    point = _T["trajectory_msgs/msg/JointTrajectoryPoint"]
     points = [
-        point(
-            positions=target,
-            velocities=_NO_VALUES,
-            accelerations=_NO_VALUES,
-            effort=_NO_VALUES,
-            time_from_start=_duration((k + 1) * CONTROL_PERIOD_NS),
+        kit.make(
+            "trajectory_msgs/msg/JointTrajectoryPoint",
+            positions=kit.floats(target),
+            velocities=kit.floats(_NO_VALUES),
+            accelerations=kit.floats(_NO_VALUES),
+            effort=kit.floats(_NO_VALUES),
+            time_from_start=_duration((k + 1) * CONTROL_PERIOD_NS, kit),
         )
         for k, target in enumerate(targets)
     ]
-    return _T[JOINT_TRAJECTORY](header=_header(stamp_ns, ""), joint_names=list(ACTUATOR_NAMES), points=points)
+    return kit.make(JOINT_TRAJECTORY, header=_header(stamp_ns, "", kit), joint_names=list(ACTUATOR_NAMES),
+                    points=points)
 
 
 def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[float]) -> np.ndarray:

@@ -14,24 +14,26 @@ import numpy as np
 
 from msg_adapters.hand import (
     _MM_PER_M,
-    _T,
     _header,
     _pair,
     _to_f32,
     object_pose_msg,
     object_xy_mm,
 )
+from msg_adapters.kit import ROSBAGS, MessageKit
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 PATH = "nav_msgs/msg/Path"
 
 
-def goal_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int) -> Any:
+def goal_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
     """``PointStamped`` of a goal for the object centre (metres in FRAME_ID, z = 0)."""
     x, y = _pair("goal", xy_mm) / _MM_PER_M
-    return _T[POINT_STAMPED](
-        header=_header(stamp_ns, FRAME_ID), point=_T["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0)
+    return kit.make(
+        POINT_STAMPED,
+        header=_header(stamp_ns, FRAME_ID, kit),
+        point=kit.make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
     )
 
 
@@ -49,15 +51,17 @@ def goal_xy_mm(msg: Any) -> np.ndarray:
     return _to_f32("goal position", point[:2] * _MM_PER_M)
 
 
-def path_msg(xy_mm: np.ndarray, start_ns: int, period_ns: int = CONTROL_PERIOD_NS) -> Any:
+def path_msg(
+    xy_mm: np.ndarray, start_ns: int, period_ns: int = CONTROL_PERIOD_NS, kit: MessageKit = ROSBAGS
+) -> Any:
     """``Path`` of object positions ``xy_mm[N, 2]``, pose ``k`` stamped ``start_ns + k * period_ns``."""
     xy = np.asarray(xy_mm, dtype=np.float32)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise ValueError(f"path positions must have shape [N, 2], got {xy.shape}")
     if period_ns <= 0:
         raise ValueError(f"path period must be positive, got {period_ns} ns")
-    poses = [object_pose_msg(p, start_ns + k * period_ns) for k, p in enumerate(xy)]
-    return _T[PATH](header=_header(start_ns, FRAME_ID), poses=poses)
+    poses = [object_pose_msg(p, start_ns + k * period_ns, kit) for k, p in enumerate(xy)]
+    return kit.make(PATH, header=_header(start_ns, FRAME_ID, kit), poses=poses)
 
 
 def path_xy_mm(msg: Any) -> np.ndarray:

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
+import random
+import sys
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
@@ -13,6 +17,8 @@ from t42_transfer.data.bag_io import assign_start_times
 from t42_transfer.data.t42_real import REAL_FILES, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
+
+sys.path.insert(0, str(Path(__file__).parent))  # test helpers (ros_rig)
 
 MakeSet = Callable[..., TrajectorySet]
 
@@ -79,3 +85,45 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+# --------------------------------------------------------------------------- ROS 2 (rclpy)
+_DOMAIN_LOCKS = Path(os.environ.get("TMPDIR", "/tmp")) / "t42-ros-domains"
+
+
+@pytest.fixture
+def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
+    """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds, with discovery on LOCALHOST.
+
+    Set in ``os.environ`` for the test, so node processes it starts inherit both.
+    """
+    _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
+    ids = list(range(1, 200))
+    random.SystemRandom().shuffle(ids)
+    for domain in ids:
+        handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        try:
+            yield domain
+        finally:
+            handle.close()
+        return
+    pytest.fail("no free ROS domain id")
+
+
+@pytest.fixture
+def ros(ros_domain: int) -> Iterator["RosRig"]:
+    """rclpy in this process on the test's own domain: add nodes, spin until a condition; all torn down after."""
+    from ros_rig import RosRig
+
+    rig = RosRig(ros_domain)
+    try:
+        yield rig
+    finally:
+        rig.shutdown()

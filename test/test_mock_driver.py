@@ -1,20 +1,21 @@
-"""The mock driver node on the in-process transport with a fake clock."""
+"""The mock driver node on real rclpy, in-process: its timer is stepped by hand (``tick``) for determinism."""
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 import pytest
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
-    APPLIED_ACTION_TOPIC,
-    JOINT_STATE,
-    JOINT_STATES_TOPIC,
-    JOINT_TRAJECTORY,
-    OBJECT_POSE_TOPIC,
-    POSE_STAMPED,
-    TYPESTORE,
+    RCLPY,
     actions_to_joint_trajectory,
     applied_action,
     applied_action_msg,
@@ -24,12 +25,13 @@ from msg_adapters import (
 )
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
 from t42_transfer.nodes.mock_driver import (
+    APPLIED_ACTION_TOPIC,
     COMMAND_TOPIC,
+    JOINT_STATES_TOPIC,
+    OBJECT_POSE_TOPIC,
     RESET_SERVICE,
     STATUS_TOPIC,
-    STRING,
     TRAJECTORY_TOPIC,
-    TRIGGER,
     CommandRejected,
     MockDriver,
     MockDriverParams,
@@ -37,45 +39,63 @@ from t42_transfer.nodes.mock_driver import (
     validate_command,
     validate_trajectory,
 )
-from t42_transfer.ros import qos
-from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
+from t42_transfer.ros.qos import LATCHED
 
 START_NS = 1_000_000_000
 MAX_AGE_NS = 500_000_000
+SLOW_TIMER = 1e-3
+"""rate_factor that keeps the driver's own timer (100 s period) out of hand-stepped tests."""
 
 
 class Rig:
-    """A driver node and a tester node on one bus, stepped by hand."""
+    """A driver node and a tester node in one process; the driver is stepped by hand with :meth:`tick`."""
 
-    def __init__(self, params: MockDriverParams | None = None) -> None:
-        self.clock = FakeClock(START_NS)
-        self.bus = InProcessBus(clock=self.clock)
-        self.driver_node = InProcessTransport(self.bus, "mock_driver")
-        self.tester = InProcessTransport(self.bus, "tester")
+    def __init__(self, ros, **params) -> None:
+        self.ros = ros
+        params.setdefault("rate_factor", SLOW_TIMER)
+        self.driver = ros.add(MockDriver, params)
+        self.tester = ros.node("tester")
         self.got: dict[str, list] = {t: [] for t in (OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC,
                                                       STATUS_TOPIC)}
-        for topic, msgtype in ((OBJECT_POSE_TOPIC, POSE_STAMPED), (JOINT_STATES_TOPIC, JOINT_STATE),
-                               (APPLIED_ACTION_TOPIC, JOINT_STATE)):
-            self.tester.subscribe(topic, msgtype, qos.DEFAULT, self.got[topic].append)
-        self.tester.subscribe(STATUS_TOPIC, STRING, qos.TRANSIENT_LOCAL, self.got[STATUS_TOPIC].append)
-        self.driver = MockDriver(self.driver_node, params or MockDriverParams())
-        self.period_s = self.driver.params.period_s
-        self.command_pub = self.tester.publisher(COMMAND_TOPIC, JOINT_STATE)
-        self.trajectory_pub = self.tester.publisher(TRAJECTORY_TOPIC, JOINT_TRAJECTORY)
-        self.reset_client = self.tester.client(RESET_SERVICE, TRIGGER)
+        for topic, msgtype in ((OBJECT_POSE_TOPIC, PoseStamped), (JOINT_STATES_TOPIC, JointState),
+                               (APPLIED_ACTION_TOPIC, JointState)):
+            self.tester.create_subscription(msgtype, topic, self.got[topic].append, 100)
+        self.tester.create_subscription(String, STATUS_TOPIC, self.got[STATUS_TOPIC].append, LATCHED)
+        self.command_pub = self.tester.create_publisher(JointState, COMMAND_TOPIC, 10)
+        self.trajectory_pub = self.tester.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
+        self.reset_client = self.tester.create_client(Trigger, RESET_SERVICE)
+        # discovery: the driver hears the tester and the tester the driver before the test starts
+        assert ros.spin_until(lambda: self.command_pub.get_subscription_count() == 1
+                              and self.trajectory_pub.get_subscription_count() == 1
+                              and self.driver._pose_pub.get_subscription_count() == 1
+                              and self.got[STATUS_TOPIC], 10.0)
+
+    def clock(self) -> int:
+        return self.driver.now_ns()
+
+    def _count(self) -> int:
+        return sum(len(v) for k, v in self.got.items() if k != STATUS_TOPIC)
 
     def tick(self, n: int = 1) -> None:
+        """``n`` control steps, each delivered to the tester before the next."""
         for _ in range(n):
-            self.clock.advance(self.period_s)
-            self.driver_node.spin_once()
-            self.tester.spin_once()
+            before, running = self._count(), self.driver.running
+            self.driver.tick()
+            if running:
+                assert self.ros.spin_until(lambda: self._count() > before + 1, 5.0), "step not delivered"
+                self.ros.spin_for(0.02)
 
-    def deliver(self) -> None:
-        """Run the driver's message callbacks without a timer tick."""
-        self.driver_node.spin_once()
+    def deliver(self, what: list | None = None) -> None:
+        """Let published test messages reach the driver's callbacks."""
+        self.ros.spin_for(0.15)
 
     def command(self, action, stamp_ns: int | None = None) -> None:
-        self.command_pub.publish(applied_action_msg(np.asarray(action, np.float32), self._stamp(stamp_ns)))
+        self.command_pub.publish(applied_action_msg(np.asarray(action, np.float32), self._stamp(stamp_ns), RCLPY))
+        self.deliver()
+
+    def trajectory(self, msg) -> None:
+        self.trajectory_pub.publish(msg)
+        self.deliver()
 
     def _stamp(self, stamp_ns: int | None) -> int:
         return self.clock() if stamp_ns is None else stamp_ns
@@ -86,22 +106,37 @@ class Rig:
     def statuses(self) -> list[str]:
         return [m.data for m in self.got[STATUS_TOPIC]]
 
-    def close(self) -> None:
-        self.driver.close()
-        self.driver_node.close()
-        self.tester.close()
+    def reset(self) -> Trigger.Response:
+        return self.ros.call(self.reset_client, Trigger.Request())
 
 
 @pytest.fixture
-def rig():
-    r = Rig()
-    yield r
-    r.close()
+def rig(ros):
+    return Rig(ros)
 
 
-def _warnings(caplog) -> list[str]:
-    return [r.getMessage() for r in caplog.records
-            if r.levelno == logging.WARNING and r.name.endswith("mock_driver")]
+class LogCapture:
+    """The driver's /rosout lines, as a ROS user sees them."""
+
+    def __init__(self, ros) -> None:
+        from rcl_interfaces.msg import Log
+
+        self.ros = ros
+        self.lines: list = []
+        sub = ros.nodes[-1].create_subscription(Log, "/rosout", self.lines.append, 100)
+        assert ros.spin_until(lambda: sub.get_publisher_count() >= len(ros.nodes), 10.0)
+
+    def _mine(self) -> list[str]:
+        return [m.msg for m in self.lines if m.level == 30 and m.name.endswith("mock_driver")]
+
+    def warnings(self) -> list[str]:
+        self.ros.spin_until(self._mine, 3.0)
+        self.ros.spin_for(0.1)
+        return self._mine()
+
+    def clear(self) -> None:
+        self.ros.spin_for(0.1)
+        self.lines.clear()
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -153,26 +188,26 @@ def test_validate_trajectory_round_trip_and_rejects():
     stale = actions_to_joint_trajectory(actions, start, START_NS - 600_000_000)
     with pytest.raises(CommandRejected, match="stale"):
         validate_trajectory(stale, start, START_NS, MAX_AGE_NS)
-    empty = TYPESTORE.types[JOINT_TRAJECTORY](header=msg.header, joint_names=msg.joint_names, points=[])
+    empty = JointTrajectory(joint_names=list(msg.joint_names))
     assert validate_trajectory(empty, start, START_NS, MAX_AGE_NS).shape == (0, 2)
 
 
 @pytest.mark.parametrize("kwargs", [{"rate_factor": 0.0}, {"rate_factor": float("nan")},
-                                    {"max_command_age_s": -1.0}, {"command_topic": "hand/command"}])
+                                    {"max_command_age_s": -1.0}, {"seed": -3}])
 def test_params_validated(kwargs):
     with pytest.raises(ValueError):
         MockDriverParams(**kwargs)
 
 
 # --------------------------------------------------------------------------- the node
-def test_publishes_at_10_hz_with_stamps(rig):
-    rig.tester.spin_once()
+def test_publishes_state_and_action_per_step_with_one_stamp(rig):
     assert rig.statuses() == ["reset: episode 0 grasped (seed 0)"]
     grasped = rig.driver.hand.state
     rig.tick(5)
-    for topic in (OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC):
-        stamps = [stamp_to_ns(m.header.stamp) for m in rig.got[topic]]
-        assert stamps == [START_NS + (k + 1) * CONTROL_PERIOD_NS for k in range(5)], topic
+    stamps = {topic: [stamp_to_ns(m.header.stamp) for m in rig.got[topic]]
+              for topic in (OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC)}
+    assert len(stamps[JOINT_STATES_TOPIC]) == 5
+    assert stamps[OBJECT_POSE_TOPIC] == stamps[JOINT_STATES_TOPIC] == stamps[APPLIED_ACTION_TOPIC]
     loads, angles = joint_state_arrays(rig.got[JOINT_STATES_TOPIC][0])
     np.testing.assert_array_equal(loads, grasped[2:].astype(np.float32))  # state k at stamp k
     assert angles is not None and loads[0] > 0 > loads[1]
@@ -180,15 +215,40 @@ def test_publishes_at_10_hz_with_stamps(rig):
     assert rig.driver.steps == 5
 
 
-def test_rate_factor_speeds_up_the_timer():
-    r = Rig(MockDriverParams(rate_factor=10.0))
-    try:
-        r.tick(5)  # half a real period: five steps
-        assert r.driver.steps == 5
-        stamps = [stamp_to_ns(m.header.stamp) for m in r.got[JOINT_STATES_TOPIC]]
-        assert np.all(np.diff(stamps) == CONTROL_PERIOD_NS // 10)
-    finally:
-        r.close()
+def test_timer_runs_at_rate_factor_and_rate_changes_at_run_time(ros):
+    driver = ros.add(MockDriver, {"rate_factor": 10.0})  # a step every 10 ms
+    ros.spin_for(1.0)
+    fast = driver.steps
+    assert 40 <= fast <= 110, fast  # shared machine: generous bounds around 100
+    setter = ros.node("setter").create_client(SetParameters, "mock_driver/set_parameters")
+    result = ros.call(setter, SetParameters.Request(parameters=[Parameter("rate_factor", value=1.0).to_parameter_msg()]))
+    assert result.results[0].successful
+    ros.spin_for(0.05)
+    before = driver.steps
+    ros.spin_for(1.0)
+    assert 5 <= driver.steps - before <= 12, driver.steps - before  # 10 Hz now
+
+
+def test_bad_parameter_values_are_refused_and_the_old_kept(ros):
+    driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER})
+    setter = ros.node("setter").create_client(SetParameters, "mock_driver/set_parameters")
+    cases = [Parameter("rate_factor", value=-1.0), Parameter("rate_factor", value="fast"),
+             Parameter("max_command_age_s", value=0.0), Parameter("hand", value="source"),
+             Parameter("seed", value=-2)]
+    for p in cases:
+        result = ros.call(setter, SetParameters.Request(parameters=[p.to_parameter_msg()]))
+        assert not result.results[0].successful and result.results[0].reason, p.name
+    assert driver.params == MockDriverParams(rate_factor=SLOW_TIMER)
+    ok = ros.call(setter, SetParameters.Request(parameters=[Parameter("max_command_age_s", value=2.0).to_parameter_msg()]))
+    assert ok.results[0].successful and driver.params.max_command_age_s == 2.0
+    described = driver.describe_parameter("rate_factor")
+    assert described.type == ParameterType.PARAMETER_DOUBLE and described.description
+    assert described.floating_point_range[0].from_value > 0 and driver.describe_parameter("hand").read_only
+
+
+def test_bad_startup_parameters_are_one_line_errors(ros):
+    with pytest.raises(ValueError, match="rate_factor"):
+        ros.add(MockDriver, {"rate_factor": 0.0})
 
 
 def test_single_step_command_moves_angles_once(rig):
@@ -206,7 +266,7 @@ def test_single_step_command_moves_angles_once(rig):
 
 def test_trajectory_runs_point_by_point_and_is_preempted(rig):
     first = np.array([[0.2, 0.1], [0.3, -0.2], [-0.1, 0.2], [0.4, 0.4], [0.1, 0.1]], np.float32)
-    rig.trajectory_pub.publish(actions_to_joint_trajectory(first, rig.driver.hand.actuator_angles, rig.clock()))
+    rig.trajectory(actions_to_joint_trajectory(first, rig.driver.hand.actuator_angles, rig.clock(), RCLPY))
     targets = []
     for _ in range(2):
         rig.tick()
@@ -214,26 +274,23 @@ def test_trajectory_runs_point_by_point_and_is_preempted(rig):
     assert rig.driver.pending_actions == 3
     second = np.array([[-0.5, -0.5], [0.0, -0.3]], np.float32)
     start = rig.driver.hand.actuator_angles
-    rig.trajectory_pub.publish(actions_to_joint_trajectory(second, start, rig.clock()))
+    rig.trajectory(actions_to_joint_trajectory(second, start, rig.clock(), RCLPY))
     rig.tick(3)
     np.testing.assert_allclose(rig.applied(), np.vstack([first[:2], second, [[0.0, 0.0]]]), atol=1e-6)
     np.testing.assert_allclose(rig.driver.hand.actuator_angles,
                                start + ACTION_UNIT_RAD * second.astype(np.float64).sum(axis=0), atol=1e-9)
     np.testing.assert_allclose(targets[1] - targets[0], ACTION_UNIT_RAD * first[1].astype(np.float64), atol=1e-9)
     assert rig.driver.pending_actions == 0
+    assert any(s.startswith("trajectory_done") for s in rig.statuses())
 
 
 def test_empty_trajectory_and_command_cancel_a_running_one(rig):
     acts = np.full((5, 2), 0.1, np.float32)
-    rig.trajectory_pub.publish(actions_to_joint_trajectory(acts, rig.driver.hand.actuator_angles, 0))
+    rig.trajectory(actions_to_joint_trajectory(acts, rig.driver.hand.actuator_angles, 0, RCLPY))
     rig.tick()
-    empty = TYPESTORE.types[JOINT_TRAJECTORY](header=rig.got[JOINT_STATES_TOPIC][0].header,
-                                              joint_names=["actuator_1", "actuator_2"], points=[])
-    empty.header.stamp = ns_to_stamp(0)
-    rig.trajectory_pub.publish(empty)
+    rig.trajectory(JointTrajectory(joint_names=["actuator_1", "actuator_2"]))  # stamp 0, no points: stop
     rig.tick()
-    rig.trajectory_pub.publish(actions_to_joint_trajectory(acts, rig.driver.hand.actuator_angles, 0))
-    rig.deliver()
+    rig.trajectory(actions_to_joint_trajectory(acts, rig.driver.hand.actuator_angles, 0, RCLPY))
     assert rig.driver.pending_actions == 5
     rig.command([-0.3, 0.0])
     rig.tick(2)
@@ -243,83 +300,109 @@ def test_empty_trajectory_and_command_cancel_a_running_one(rig):
 def test_reset_service_regrasps(rig):
     rig.command([1.0, 1.0])
     rig.tick(3)
-    response = rig.reset_client.call(rig.reset_client.Request())
+    response = rig.reset()
     assert response.success and "episode 1" in response.message
     assert rig.driver.steps == 0 and rig.driver.running and rig.driver.episode == 1
-    rig.tester.spin_once()
-    assert rig.statuses()[-1].startswith("reset")
+    assert rig.ros.spin_until(lambda: rig.statuses()[-1].startswith("reset: episode 1"), 5.0)
+
+
+def _command_rclpy(values, names=("actuator_1", "actuator_2"), stamp_ns=START_NS):
+    msg = applied_action_msg(np.zeros(2, np.float32), stamp_ns, RCLPY)
+    msg.name = list(names)
+    msg.velocity = [float(v) * ACTION_UNIT_RAD / 0.1 for v in values]
+    return msg
 
 
 def _bad_inputs(r: Rig):
-    good = applied_action_msg(np.array([0.1, 0.1], np.float32), r.clock())
-    nan = _command_msg([np.nan, 0.0], stamp_ns=r.clock())
-    inf = _command_msg([0.0, -np.inf], stamp_ns=r.clock())
-    big = _command_msg([1.6, 0.0], stamp_ns=r.clock())
-    names = _command_msg([0.1], names=("actuator_1",), stamp_ns=r.clock())
-    values = _command_msg([0.1, 0.1, 0.1], stamp_ns=r.clock())
-    stale = applied_action_msg(np.array([0.1, 0.1], np.float32), r.clock() - 10**9)
-    spacing = actions_to_joint_trajectory(np.full((3, 2), 0.1, np.float32), r.driver.hand.actuator_angles, 0)
+    now = r.clock()
+    good = applied_action_msg(np.array([0.1, 0.1], np.float32), now, RCLPY)
+    start = r.driver.hand.actuator_angles
+    spacing = actions_to_joint_trajectory(np.full((3, 2), 0.1, np.float32), start, 0, RCLPY)
     spacing.points[2].time_from_start.sec += 1
-    positions = actions_to_joint_trajectory(np.full((2, 2), 0.1, np.float32), r.driver.hand.actuator_angles, 0)
-    positions.points[0].positions = np.array([0.1])
-    nan_traj = actions_to_joint_trajectory(np.full((2, 2), 0.1, np.float32), r.driver.hand.actuator_angles, 0)
-    nan_traj.points[1].positions = np.array([np.nan, 0.2])
-    return good, [("NaN", nan, "non-finite"), ("inf", inf, "non-finite"), ("|a|>1.5", big, "outside"),
-                  ("names", names, "lacks actuator"), ("values", values, "3 values for 2"),
-                  ("stale", stale, "stale"), ("spacing", spacing, "every"),
+    positions = actions_to_joint_trajectory(np.full((2, 2), 0.1, np.float32), start, 0, RCLPY)
+    positions.points[0].positions = [0.1]
+    nan_traj = actions_to_joint_trajectory(np.full((2, 2), 0.1, np.float32), start, 0, RCLPY)
+    nan_traj.points[1].positions = [float("nan"), 0.2]
+    return good, [("NaN", _command_rclpy([np.nan, 0.0], stamp_ns=now), "non-finite"),
+                  ("inf", _command_rclpy([0.0, -np.inf], stamp_ns=now), "non-finite"),
+                  ("|a|>1.5", _command_rclpy([1.6, 0.0], stamp_ns=now), "outside"),
+                  ("names", _command_rclpy([0.1], names=("actuator_1",), stamp_ns=now), "lacks actuator"),
+                  ("values", _command_rclpy([0.1, 0.1, 0.1], stamp_ns=now), "3 values for 2"),
+                  ("stale", applied_action_msg(np.array([0.1, 0.1], np.float32), now - 60 * 10**9, RCLPY), "stale"),
+                  ("spacing", spacing, "every"),
                   ("positions", positions, "1 values for 2"), ("nan trajectory", nan_traj, "non-finite")]
 
 
-def test_bad_inputs_are_rejected_and_the_last_safe_command_kept(rig, caplog):
-    caplog.set_level(logging.WARNING)
+def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
+    rig = Rig(ros, max_command_age_s=30.0)  # wall time passes between making and delivering a message
+    log = LogCapture(rig.ros)
     rig.tick()
     good, bad = _bad_inputs(rig)
     rig.command_pub.publish(good)
+    rig.deliver()
     for name, msg, why in bad:
-        pub = rig.trajectory_pub if msg.__msgtype__ == JOINT_TRAJECTORY else rig.command_pub
-        caplog.clear()
-        pub.publish(msg)
+        log.clear()
+        (rig.trajectory_pub if isinstance(msg, JointTrajectory) else rig.command_pub).publish(msg)
         rig.deliver()  # no exception escapes the callback
-        warnings = _warnings(caplog)
+        warnings = log.warnings()
         assert len(warnings) == 1 and why in warnings[0] and "rejected" in warnings[0], (name, warnings)
     rig.tick(2)
     np.testing.assert_allclose(rig.applied(), [[0, 0], [0.1, 0.1], [0, 0]], atol=1e-6)
     assert rig.driver.running
 
 
-def test_drop_publishes_status_and_stops_until_reset(rig, caplog):
-    caplog.set_level(logging.WARNING)
+def test_drop_publishes_status_and_stops_until_reset(rig):
+    log = LogCapture(rig.ros)
     for _ in range(60):
         rig.command([-1.0, -1.0])
         rig.tick()
         if not rig.driver.running:
             break
     assert not rig.driver.running
-    status = rig.statuses()[-1]
-    assert status.split(":")[0] in ("dropped", "lost_contact"), status
-    assert any("ended" in w for w in _warnings(caplog))
+    assert rig.ros.spin_until(lambda: rig.statuses()[-1].split(":")[0] in ("dropped", "lost_contact"), 5.0), \
+        rig.statuses()
+    assert any("ended" in w for w in log.warnings())
+    rig.ros.spin_for(0.1)
     n_actions, n_states = len(rig.got[APPLIED_ACTION_TOPIC]), len(rig.got[JOINT_STATES_TOPIC])
     assert n_states == n_actions + 1  # the final state has no action
     rig.command([-1.0, -1.0])
-    rig.tick(3)  # no stepping (nor crash) until reset
+    rig.driver.tick()  # no stepping (nor crash) until reset
+    rig.ros.spin_for(0.1)
     assert len(rig.got[JOINT_STATES_TOPIC]) == n_states
-    assert rig.reset_client.call(rig.reset_client.Request()).success
+    assert rig.reset().success
     rig.tick()
     assert len(rig.got[JOINT_STATES_TOPIC]) == n_states + 1 and rig.driver.running
 
 
-def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate():
-    r = Rig(MockDriverParams(rate_factor=10.0, sim_time=True))
+def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros):
+    r = Rig(ros, sim_time=True)
     clocks: list = []
-    r.tester.subscribe("/clock", "rosgraph_msgs/msg/Clock", qos.CLOCK, clocks.append)
-    r.tick(5)
-    r.tester.spin_once()
+    r.tester.create_subscription(Clock, "/clock", clocks.append, 10)
+    ros.spin_for(0.3)
+    start = r.clock()
+    for k in range(1, 6):
+        r.driver._on_timer()  # the timer callback: /clock first, then the step
+        assert ros.spin_until(lambda: len(r.got[JOINT_STATES_TOPIC]) == len(clocks) == k, 5.0)
     stamps = [stamp_to_ns(m.header.stamp) for m in r.got[JOINT_STATES_TOPIC]]
-    assert len(stamps) == 5 and np.all(np.diff(stamps) == CONTROL_PERIOD_NS)  # while wall moved 10 ms a tick
-    assert [stamp_to_ns(c.clock) for c in clocks] == stamps
-    assert stamps[0] == START_NS + CONTROL_PERIOD_NS
+    assert len(stamps) == 5 and np.all(np.diff(stamps) == CONTROL_PERIOD_NS)
+    assert [stamp_to_ns(c.clock) for c in clocks] == stamps and stamps[0] == start + CONTROL_PERIOD_NS
     # commands are judged against the simulated clock: one stamped at sim time is fresh
     r.command([0.5, 0.5], stamp_ns=stamps[-1])
-    r.tick()
+    r.driver._on_timer()
+    assert ros.spin_until(lambda: len(r.applied()) == 6, 5.0)
     np.testing.assert_allclose(r.applied()[-1], [0.5, 0.5], rtol=1e-6)
-    r.close()
+
+
+def test_works_under_a_namespace_with_remapped_names(ros):
+    driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER}, namespace="/left",
+                     cli_args=["--ros-args", "-r", "hand/object_pose:=pose_remapped"])
+    tester = ros.node("ns_tester")
+    poses, joints = [], []
+    tester.create_subscription(PoseStamped, "/left/pose_remapped", poses.append, 10)
+    tester.create_subscription(JointState, "/left/hand/joint_states", joints.append, 10)
+    reset = tester.create_client(Trigger, "/left/hand/reset")
+    assert ros.spin_until(lambda: driver._pose_pub.get_subscription_count() == 1
+                          and driver._joints_pub.get_subscription_count() == 1, 10.0)
+    driver.tick()
+    assert ros.spin_until(lambda: poses and joints, 5.0)
+    assert ros.call(reset, Trigger.Request()).success

@@ -1,145 +1,97 @@
-"""ROS params files and --ros-args for the nodes' params dataclasses: parsing, precedence, coercion, errors."""
+"""Params dataclasses as declared ROS parameters: descriptors, params files, overrides, refusals at run time."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from rcl_interfaces.msg import ParameterType
+from rcl_interfaces.srv import SetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from t42_transfer.nodes.mock_driver import MockDriverParams
-from t42_transfer.nodes.recorder import RecorderParams
-from t42_transfer.ros.params import RosArgs, load_params, node_sections, parse_ros_args
-
-REPO = Path(__file__).resolve().parents[1]
+from t42_transfer.ros.params import LiveParams, declare_params, param
 
 
 @dataclass(frozen=True)
 class Demo:
-    path: Path = Path("a")
-    gains: tuple[float, ...] = (1.0,)
-    pair: tuple[int, str] = (0, "x")
-    rate: float = 1.0
-    count: int = 1
-    flag: bool = False
-    label: str | None = None
-    topics: dict[str, str] = field(default_factory=dict)
+    out: Path = param(description="where results go", read_only=True)
+    rate: float = param(1.0, "steps per tick", min=0.01, max=100.0)
+    count: int = param(3, "how many", min=1)
+    flag: bool = param(False, "a switch")
+    gains: tuple[float, ...] = param((1.0, 2.0), "per-joint gains")
+    names: tuple[str, ...] = param(("a",), "names")
+    seed: int | None = param(None, "seed (unset: random)")
+
+    def __post_init__(self) -> None:
+        if self.count > 2 * len(self.gains) + 10:
+            raise ValueError(f"count {self.count} is more than the gains allow")
 
 
-def _write(path: Path, text: str) -> Path:
-    path.write_text(text)
-    return path
+class DemoNode(Node):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("demo", **kwargs)
+        self.changes: list[tuple[Demo, Demo]] = []
+        self.live = LiveParams(self, Demo, lambda old, new: self.changes.append((old, new)))
 
 
-def test_parse_ros_args_splits_blocks_and_parses_values() -> None:
-    rest, ros = parse_ros_args([
-        "pos", "--ros-args", "--params-file", "a.yaml", "-p", "rate:=2", "--param", "gains:=[1, 2.5]",
-        "-r", "__node:=renamed", "-p", "label:=", "--", "tail",
-    ])
-    assert rest == ["pos", "tail"]
-    assert ros == RosArgs((Path("a.yaml"),), (("rate", 2), ("gains", [1, 2.5]), ("label", None)), "renamed")
-    assert parse_ros_args(["x"]) == (["x"], RosArgs())
+def test_declares_every_field_with_its_descriptor(ros) -> None:
+    node = ros.add(DemoNode, {"out": "/tmp/x"})
+    assert node.live.value == Demo(out=Path("/tmp/x"))
+    types = {n: node.describe_parameter(n).type for n in ("out", "rate", "count", "flag", "gains", "names")}
+    assert types == {"out": ParameterType.PARAMETER_STRING, "rate": ParameterType.PARAMETER_DOUBLE,
+                     "count": ParameterType.PARAMETER_INTEGER, "flag": ParameterType.PARAMETER_BOOL,
+                     "gains": ParameterType.PARAMETER_DOUBLE_ARRAY, "names": ParameterType.PARAMETER_STRING_ARRAY}
+    rate = node.describe_parameter("rate")
+    assert rate.description == "steps per tick" and not rate.read_only
+    assert (rate.floating_point_range[0].from_value, rate.floating_point_range[0].to_value) == (0.01, 100.0)
+    assert node.describe_parameter("count").integer_range[0].from_value == 1
+    assert node.describe_parameter("out").read_only and node.describe_parameter("seed").dynamic_typing
 
 
-@pytest.mark.parametrize("argv, match", [
-    (["--ros-args", "-p", "rate"], "name:=value"),
-    (["--ros-args", "-p"], "expects a value"),
-    (["--ros-args", "-r", "/a:=/b"], "only __node"),
-    (["--ros-args", "-r", "__node:=bad name"], "node name"),
-    (["--ros-args", "--log-level", "debug"], "unsupported ROS argument"),
+def test_params_file_then_overrides(ros, tmp_path: Path) -> None:
+    params_file = tmp_path / "p.yaml"
+    params_file.write_text("/**:\n  ros__parameters:\n    rate: 2.0\n    count: 5\n"
+                           "demo:\n  ros__parameters:\n    out: results\n    rate: 3.0\n    names: [left, right]\n    seed: 7\n")
+    node = ros.add(DemoNode, {"count": 6}, cli_args=["--ros-args", "--params-file", str(params_file)])
+    assert node.live.value == Demo(out=Path("results"), rate=3.0, count=6, names=("left", "right"), seed=7)
+
+
+@pytest.mark.parametrize("params,match", [
+    ({}, "missing required parameter 'out'"),
+    ({"out": "x", "rate": 1000.0}, "rate"),
+    ({"out": "x", "count": "many"}, "count"),
+    ({"out": "x", "count": 99}, "more than the gains allow"),
 ])
-def test_parse_ros_args_rejects_what_it_does_not_support(argv: list[str], match: str) -> None:
+def test_bad_start_values_are_value_errors_naming_the_parameter(ros, params, match) -> None:
     with pytest.raises(ValueError, match=match):
-        parse_ros_args(argv)
+        ros.add(DemoNode, params)
 
 
-def test_files_then_overrides_with_wildcard_first(tmp_path: Path) -> None:
-    first = _write(tmp_path / "a.yaml", """
-demo:
-  ros__parameters: {count: 3, rate: 2}
-/**:
-  ros__parameters: {count: 1, label: everyone}
-other:
-  ros__parameters: {nonsense: 1}
-""")
-    second = _write(tmp_path / "b.yaml", "/demo:\n  ros__parameters: {rate: 4.5}\n")
-    params = load_params(Demo, "demo", [first, second], [("count", 7)])
-    assert params.count == 7 and params.rate == 4.5 and params.label == "everyone"
-    assert node_sections(first) == ["demo", "other"]
+def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None:
+    node = ros.add(DemoNode, {"out": "x"})
+    client = ros.node("setter").create_client(SetParameters, "demo/set_parameters")
+
+    def set_(**values):
+        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+        return [(r.successful, r.reason) for r in ros.call(client, request).results]
+
+    assert set_(count=40) == [(False, "count 40 is more than the gains allow")]
+    assert set_(rate=0.0)[0][0] is False and set_(count=2.5)[0][0] is False and set_(out="y")[0][0] is False
+    assert node.live.value == Demo(out=Path("x")) and node.changes == []
+    assert set_(rate=4.0, seed=3) == [(True, ""), (True, "")]
+    assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3)
+    assert [new.rate for _, new in node.changes] == [4.0, 4.0]
+    assert node.changes[-1][1].seed == 3
+    assert set_(use_sim_time=True) == [(True, "")]  # rclpy's own parameters pass through
 
 
-def test_coercion_of_yaml_values() -> None:
-    params = load_params(Demo, "demo", [], {
-        "path": "out/dir", "gains": [1, 2.5], "pair": [3, "y"], "rate": 2, "topics": {"/a": "std_msgs/msg/String"},
-    })
-    assert params.path == Path("out/dir") and params.gains == (1.0, 2.5) and params.pair == (3, "y")
-    assert isinstance(params.rate, float) and params.topics == {"/a": "std_msgs/msg/String"}
+def test_declare_params_rejects_types_ros_cannot_carry(ros) -> None:
+    @dataclass(frozen=True)
+    class Bad:
+        table: dict = param(default_factory=dict, description="a mapping")
 
-
-@pytest.mark.parametrize("name, value, match", [
-    ("rate", "fast", "'rate' expects float"),
-    ("count", 2.5, "'count' expects int"),
-    ("count", True, "'count' expects int"),
-    ("flag", 1, "'flag' expects bool"),
-    ("gains", 1.0, "'gains' expects a list"),
-    ("pair", [1], "expects 2 values"),
-    ("label", 5, "'label' expects str | None"),
-])
-def test_wrong_types_name_the_parameter(name: str, value: object, match: str) -> None:
-    with pytest.raises(ValueError, match=match):
-        load_params(Demo, "demo", [], [(name, value)])
-
-
-def test_unknown_parameter_lists_the_valid_ones(tmp_path: Path) -> None:
-    f = _write(tmp_path / "p.yaml", "mock_driver:\n  ros__parameters: {hand: source, hnad: target}\n")
-    with pytest.raises(ValueError) as err:
-        load_params(MockDriverParams, "mock_driver", [f])
-    text = str(err.value)
-    assert "mock_driver: unknown parameter(s) hnad" in text and "valid: hand, rate_factor" in text
-
-
-def test_missing_required_and_dataclass_checks_are_value_errors() -> None:
-    with pytest.raises(ValueError, match="recorder: missing required parameter.*out_dir"):
-        load_params(RecorderParams, "recorder")
-    with pytest.raises(ValueError, match="recorder: mode must be one of"):
-        load_params(RecorderParams, "recorder", [], {"out_dir": "x", "mode": "sometimes"})
-
-
-@pytest.mark.parametrize("text, match", [
-    ("demo: [1, 2]\n", "'ros__parameters'"),
-    ("demo:\n  parameters: {count: 1}\n", "'ros__parameters'"),
-    ("- a\n", "mapping of node names"),
-    ("demo: {ros__parameters: {count: [1\n", "not valid YAML"),
-])
-def test_malformed_params_files(tmp_path: Path, text: str, match: str) -> None:
-    with pytest.raises(ValueError, match=match):
-        load_params(Demo, "demo", [_write(tmp_path / "bad.yaml", text)])
-    with pytest.raises(ValueError, match="params file .*missing.yaml"):
-        load_params(Demo, "demo", [tmp_path / "missing.yaml"])
-
-
-def test_suite_config_builds_every_nodes_params() -> None:
-    from t42_transfer.nodes.registry import NODES
-    from t42_transfer.ros.params import node_sections
-
-    suite = REPO / "configs" / "suite.yaml"
-    driver = load_params(MockDriverParams, "mock_driver", [suite])
-    recorder = load_params(RecorderParams, "recorder", [suite], [("out_dir", "/tmp/elsewhere")])
-    assert driver.hand == "target"
-    assert recorder.mode == "episode" and recorder.out_dir == "/tmp/elsewhere"
-    sections = node_sections(suite)
-    assert sections == ["mock_driver", "recorder", "transfer_server", "planner"]
-    for name in sections:
-        assert load_params(NODES[name].params_class(), name, [suite]) is not None
-
-
-def test_use_sim_time_is_a_node_option_not_a_params_field(tmp_path: Path) -> None:
-    from t42_transfer.ros.params import NodeOptions, node_options
-
-    path = _write(tmp_path / "p.yaml", "mock_driver:\n  ros__parameters:\n    hand: source\n    use_sim_time: true\n")
-    assert load_params(MockDriverParams, "mock_driver", [path]).hand == "source"
-    assert node_options("mock_driver", [path]) == NodeOptions(use_sim_time=True)
-    assert node_options("mock_driver", [path], [("use_sim_time", False)]).use_sim_time is False
-    assert node_options("recorder", [path]) == NodeOptions()
-    with pytest.raises(ValueError, match="use_sim_time"):
-        node_options("mock_driver", [], [("use_sim_time", "sometimes")])
+    node = ros.node("plain")
+    with pytest.raises(TypeError, match="cannot be a ROS parameter"):
+        declare_params(node, Bad)

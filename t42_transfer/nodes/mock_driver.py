@@ -1,27 +1,27 @@
 """Mock hand driver: a :class:`~t42_transfer.hand.sim.SimulatedHand` behind the real driver's topics.
 
-Wiring (defaults; every name is a :class:`MockDriverParams` field):
+Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``/hand/object_pose`` (geometry_msgs/msg/PoseStamped): published each step;
-* ``/hand/joint_states`` (sensor_msgs/msg/JointState): published each step,
+* ``hand/object_pose`` (geometry_msgs/msg/PoseStamped): published each step;
+* ``hand/joint_states`` (sensor_msgs/msg/JointState): published each step,
   position = actuator angles, effort = loads;
-* ``/hand/applied_action`` (sensor_msgs/msg/JointState): published each step the hand moves;
-* ``/hand/command`` (sensor_msgs/msg/JointState): subscribed, one single-step
+* ``hand/applied_action`` (sensor_msgs/msg/JointState): published each step the hand moves;
+* ``hand/command`` (sensor_msgs/msg/JointState): subscribed, one single-step
   action as velocity = action * ACTION_UNIT_RAD / CONTROL_PERIOD_S;
-* ``/hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): subscribed, a whole
+* ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): subscribed, a whole
   open-loop sequence of actuator-angle targets, one point per control period;
-* ``/hand/reset`` (std_srvs/srv/Trigger): served, re-open, re-grasp, start an episode;
-* ``/hand/status`` (std_msgs/msg/String, latched): episode ends, resets, and
+* ``hand/reset`` (std_srvs/srv/Trigger): served, re-open, re-grasp, start an episode;
+* ``hand/status`` (std_msgs/msg/String, latched): episode ends, resets, and
   ``trajectory_done`` when a trajectory's last point is being applied.
 
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
-A step stamped ``t = transport.now_ns()`` publishes the current state (pose and
+A step stamped ``t`` (ROS time) publishes the current state (pose and
 joint states) and, if the episode is still running, the action applied from that
 state, all with stamp ``t`` (the bag convention of :mod:`t42_transfer.data.bag_io`:
 state ``k`` and action ``k`` share a stamp), then steps the hand with that action.
 When a step ends the episode (drop, lost contact, overload) the next timer tick
-publishes the final state without an action, publishes ``/hand/status`` and stops
-stepping until ``/hand/reset``.  With ``rate_factor != 1`` and wall-clock stamps
+publishes the final state without an action, publishes ``hand/status`` and stops
+stepping until ``hand/reset``.  With ``rate_factor != 1`` and wall-clock stamps
 they would be ``0.1 / rate_factor`` s apart, which is not a T42 recording; so
 ``sim_time`` makes the driver the clock of the graph, as a simulator is in ROS: it
 publishes ``/clock`` (rosgraph_msgs/msg/Clock) every tick, advancing exactly one
@@ -43,7 +43,7 @@ within one period the latest wins.
 Bad input (NaN/inf, ``|a| > ACTION_LIMIT``, missing actuators or value counts
 that do not match the names, trajectory points not one period apart, unset,
 stale or future stamps) is rejected: the callback logs the reason with
-``transport.logger.warning`` and leaves the pending command as it was.  No
+the node's logger and leaves the pending command as it was.  No
 callback raises.  The checks are the pure functions :func:`validate_command`,
 :func:`validate_trajectory` and :func:`check_stamp`.
 """
@@ -55,15 +55,16 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from geometry_msgs.msg import PoseStamped
+from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
-    APPLIED_ACTION_TOPIC,
-    JOINT_STATE,
-    JOINT_STATES_TOPIC,
-    JOINT_TRAJECTORY,
-    OBJECT_POSE_TOPIC,
-    POSE_STAMPED,
-    TYPESTORE,
+    RCLPY,
     applied_action,
     applied_action_msg,
     joint_state_msg,
@@ -74,25 +75,21 @@ from msg_adapters import (
 )
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
-from t42_transfer.ros import qos
-from t42_transfer.ros.naming import validate_name
-from t42_transfer.ros.transport import Transport, service_classes
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import LATCHED
 
-STRING = "std_msgs/msg/String"
-TRIGGER = "std_srvs/srv/Trigger"
-
-CLOCK = "rosgraph_msgs/msg/Clock"
+OBJECT_POSE_TOPIC = "hand/object_pose"
+JOINT_STATES_TOPIC = "hand/joint_states"
+APPLIED_ACTION_TOPIC = "hand/applied_action"
+COMMAND_TOPIC = "hand/command"
+TRAJECTORY_TOPIC = "hand/trajectory"
+RESET_SERVICE = "hand/reset"
+STATUS_TOPIC = "hand/status"
 CLOCK_TOPIC = "/clock"
-COMMAND_TOPIC = "/hand/command"
-TRAJECTORY_TOPIC = "/hand/trajectory"
-RESET_SERVICE = "/hand/reset"
-STATUS_TOPIC = "/hand/status"
+"""Absolute, as every simulator's: rclpy's ``use_sim_time`` reads ``/clock``."""
 
 _LIMIT_SLACK = 1e-6
 """Relative slack on ACTION_LIMIT: wire round trips may land a hair past +-1.5."""
-
-_String = TYPESTORE.types[STRING]
-_Clock = TYPESTORE.types[CLOCK]
 
 
 class CommandRejected(ValueError):
@@ -101,26 +98,16 @@ class CommandRejected(ValueError):
 
 @dataclass(frozen=True)
 class MockDriverParams:
-    """Parameters of :class:`MockDriver` (the node's ROS parameters)."""
+    """The mock driver's ROS parameters."""
 
-    hand: str = "target"
-    """Hand variant for :class:`SimulatedHand` ("source", "target" or "family-<seed>")."""
-    rate_factor: float = 1.0
-    """Steps run ``rate_factor`` times faster than real time (timer period 0.1 s / rate_factor)."""
-    seed: int | None = 0
-    """Seed of the first grasp; reset ``k`` (counting from 0) uses ``seed + k`` (None: unseeded)."""
-    max_command_age_s: float = 0.5
-    """Commands (and stamped trajectories) older, or further in the future, than this are stale."""
-    sim_time: bool = False
-    """Publish the simulated time on ``clock_topic`` and stamp with it (see the module docstring)."""
-    clock_topic: str = CLOCK_TOPIC
-    object_pose_topic: str = OBJECT_POSE_TOPIC
-    joint_states_topic: str = JOINT_STATES_TOPIC
-    applied_action_topic: str = APPLIED_ACTION_TOPIC
-    command_topic: str = COMMAND_TOPIC
-    trajectory_topic: str = TRAJECTORY_TOPIC
-    reset_service: str = RESET_SERVICE
-    status_topic: str = STATUS_TOPIC
+    hand: str = param("target", "simulated hand variant: source, target or family-<seed>", read_only=True)
+    rate_factor: float = param(1.0, "steps run this many times faster than real time (timer 0.1 s / rate_factor)",
+                               min=1e-3, max=1000.0)
+    seed: int | None = param(0, "seed of the first grasp; reset k uses seed + k (unset: unseeded)")
+    max_command_age_s: float = param(0.5, "commands stamped further than this from now (past or future) are refused",
+                                     min=1e-3, max=3600.0)
+    sim_time: bool = param(False, "be the graph's clock: publish /clock, one control period per tick, and stamp "
+                                  "with it (other nodes then run with use_sim_time:=true)", read_only=True)
 
     def __post_init__(self) -> None:
         rate = self.rate_factor
@@ -128,12 +115,8 @@ class MockDriverParams:
             raise ValueError(f"rate_factor must be a positive finite number, got {self.rate_factor!r}")
         if not (math.isfinite(self.max_command_age_s) and self.max_command_age_s > 0):
             raise ValueError(f"max_command_age_s must be positive and finite, got {self.max_command_age_s!r}")
-        if self.seed is not None and not isinstance(self.seed, int):
-            raise ValueError(f"seed must be an int or None, got {self.seed!r}")
-        for field in ("object_pose_topic", "joint_states_topic", "applied_action_topic", "command_topic",
-                      "trajectory_topic", "status_topic", "clock_topic"):
-            validate_name(getattr(self, field))
-        validate_name(self.reset_service, "service")
+        if self.seed is not None and (not isinstance(self.seed, int) or self.seed < 0):
+            raise ValueError(f"seed must be a non-negative int or unset, got {self.seed!r}")
 
     @property
     def period_s(self) -> float:
@@ -208,19 +191,19 @@ def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], no
 
 
 def status_message(event: str, detail: str = "") -> str:
-    """Text of a ``/hand/status`` message: the event word first (``dropped``, ``overload``, ``reset``...)."""
+    """Text of a ``hand/status`` message: the event word first (``dropped``, ``overload``, ``reset``...)."""
     return f"{event}: {detail}" if detail else event
 
 
 # --------------------------------------------------------------------------- the node
-class MockDriver:
+class MockDriver(Node):
     """The simulated hand on the driver's topics; see the module docstring for behaviour."""
 
-    def __init__(self, transport: Transport, params: MockDriverParams | None = None) -> None:
-        self.transport = transport
-        self.params = params if params is not None else MockDriverParams()
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("mock_driver", **node_kwargs)
+        self._params = LiveParams(self, MockDriverParams, self._on_params)
         p = self.params
-        self.log = transport.logger
+        self.log = self.get_logger()
         self.hand = SimulatedHand(p.hand)
         self.episode = -1
         """Index of the current episode (resets so far - 1)."""
@@ -230,23 +213,27 @@ class MockDriver:
         """Whether the timer steps the hand (False after an episode end until a reset)."""
         self._command: np.ndarray | None = None
         self._plan: list[np.ndarray] = []
+        self._closed = False
 
-        self._pose_pub = transport.publisher(p.object_pose_topic, POSE_STAMPED, qos.DEFAULT)
-        self._joints_pub = transport.publisher(p.joint_states_topic, JOINT_STATE, qos.DEFAULT)
-        self._action_pub = transport.publisher(p.applied_action_topic, JOINT_STATE, qos.DEFAULT)
-        self._status_pub = transport.publisher(p.status_topic, STRING, qos.TRANSIENT_LOCAL)
-        self._sim_ns = transport.now_ns()
-        self._clock_pub = transport.publisher(p.clock_topic, CLOCK, qos.CLOCK) if p.sim_time else None
-        _, self._Response = service_classes(TRIGGER)
-        transport.subscribe(p.command_topic, JOINT_STATE, qos.DEFAULT, self._on_command)
-        transport.subscribe(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT, self._on_trajectory)
-        transport.service(p.reset_service, TRIGGER, self._on_reset)
+        self._pose_pub = self.create_publisher(PoseStamped, OBJECT_POSE_TOPIC, 10)
+        self._joints_pub = self.create_publisher(JointState, JOINT_STATES_TOPIC, 10)
+        self._action_pub = self.create_publisher(JointState, APPLIED_ACTION_TOPIC, 10)
+        self._status_pub = self.create_publisher(String, STATUS_TOPIC, LATCHED)
+        self._sim_ns = self.get_clock().now().nanoseconds
+        self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.sim_time else None
+        self.create_subscription(JointState, COMMAND_TOPIC, self._on_command, 10)
+        self.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self._on_trajectory, 10)
+        self.create_service(Trigger, RESET_SERVICE, self._on_reset)
         ok, why = self.reset()
         if not ok:
-            self.log.warning("initial grasp failed: %s; call %s to retry", why, p.reset_service)
-        self._timer = transport.timer(p.period_s, self._on_timer)
+            self.log.warning(f"initial grasp failed: {why}; call {self.resolve_service_name(RESET_SERVICE)} to retry")
+        self._timer = self.create_timer(p.period_s, self._on_timer)
 
     # ------------------------------------------------------------------ state
+    @property
+    def params(self) -> MockDriverParams:
+        return self._params.value
+
     @property
     def pending_actions(self) -> int:
         """Trajectory points still to execute."""
@@ -269,61 +256,69 @@ class MockDriver:
         return True, message
 
     def now_ns(self) -> int:
-        """The driver's time: the simulated clock with ``sim_time``, else the transport's."""
-        return self._sim_ns if self._clock_pub is not None else self.transport.now_ns()
+        """The driver's time: the simulated clock with ``sim_time``, else the node's ROS time."""
+        return self._sim_ns if self._clock_pub is not None else self.get_clock().now().nanoseconds
 
     def close(self) -> None:
-        """Stop the timer (the transport's owner closes the transport)."""
-        self._timer.cancel()
+        """Stop stepping (the owner destroys the node)."""
+        self._closed = True
 
     # ------------------------------------------------------------------ callbacks
-    def _on_command(self, msg: Any) -> None:
+    def _on_params(self, old: MockDriverParams, new: MockDriverParams) -> None:
+        if new.rate_factor != old.rate_factor:
+            self._timer.timer_period_ns = round(new.period_s * 1e9)
+            self.log.info(f"rate_factor {old.rate_factor} -> {new.rate_factor}: a step every {new.period_s:.4f} s")
+
+    def _on_command(self, msg: JointState) -> None:
         try:
             action = validate_command(msg, self.now_ns(), self.params.max_command_age_ns)
         except CommandRejected as err:
-            self.log.warning("rejected %s: %s; keeping the last safe command", self.params.command_topic, err)
+            self.log.warning(f"rejected {COMMAND_TOPIC}: {err}; keeping the last safe command")
             return
-        except Exception:  # never raise from a callback
-            self.log.exception("rejected %s: could not read the message", self.params.command_topic)
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"rejected {COMMAND_TOPIC}: could not read the message ({err!r})")
             return
         if self._plan:
-            self.log.info("single-step command cancels a trajectory with %d points left", len(self._plan))
+            self.log.info(f"single-step command cancels a trajectory with {len(self._plan)} points left")
         self._plan = []
         self._command = action
 
-    def _on_trajectory(self, msg: Any) -> None:
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
         try:
             actions = validate_trajectory(
                 msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns
             )
         except CommandRejected as err:
-            self.log.warning("rejected %s: %s; keeping the last safe command", self.params.trajectory_topic, err)
+            self.log.warning(f"rejected {TRAJECTORY_TOPIC}: {err}; keeping the last safe command")
             return
-        except Exception:
-            self.log.exception("rejected %s: could not read the message", self.params.trajectory_topic)
+        except Exception as err:
+            self.log.error(f"rejected {TRAJECTORY_TOPIC}: could not read the message ({err!r})")
             return
         if self._plan:
-            self.log.info("trajectory with %d points pre-empts one with %d points left", len(actions), len(self._plan))
+            self.log.info(f"trajectory with {len(actions)} points pre-empts one with {len(self._plan)} points left")
         self._plan = list(actions)
         self._command = None
 
-    def _on_reset(self, request: Any) -> Any:
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
             ok, message = self.reset()
         except Exception as err:  # a service handler must answer, not raise
-            self.log.exception("reset failed")
+            self.log.error(f"reset failed: {err!r}")
             self.running = False
             ok, message = False, f"reset failed: {err}"
-        return self._Response(success=ok, message=message)
+        response.success, response.message = ok, message
+        return response
 
     def _on_timer(self) -> None:
+        if self._closed:
+            return
         try:
             if self._clock_pub is not None:
                 self._sim_ns += CONTROL_PERIOD_NS
-                self._clock_pub.publish(_Clock(clock=ns_to_stamp(self._sim_ns)))
-            self._tick()
-        except Exception:
-            self.log.exception("step failed; the hand stops until %s", self.params.reset_service)
+                self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
+            self.tick()
+        except Exception as err:
+            self.log.error(f"step failed ({err!r}); the hand stops until {RESET_SERVICE} is called")
             self.running, self._command, self._plan = False, None, []
 
     # ------------------------------------------------------------------ one step
@@ -338,26 +333,27 @@ class MockDriver:
             self._command = None  # a single-step command is held for one step only
         return np.asarray(action, np.float32).astype(np.float64)
 
-    def _tick(self) -> None:
+    def tick(self) -> None:
+        """One control step: publish the state (and the action applied from it), then step the hand."""
         if not self.running:
             return
         stamp = self.now_ns()
         state = self.hand.state
-        self._pose_pub.publish(object_pose_msg(state[:2], stamp))
-        self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp))
+        self._pose_pub.publish(object_pose_msg(state[:2], stamp, RCLPY))
+        self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp, RCLPY))
         if self.hand.done:
             self.running = False
             self._command, self._plan = None, []
             reason = self.hand.end_reason
-            self.log.warning("episode %d ended after %d steps: %s", self.episode, self.steps, reason)
+            self.log.warning(f"episode {self.episode} ended after {self.steps} steps: {reason}")
             self._publish_status(status_message(reason, f"episode {self.episode} ended after {self.steps} steps"))
             return
         action = self._next_action()
-        self._action_pub.publish(applied_action_msg(action, stamp))
+        self._action_pub.publish(applied_action_msg(action, stamp, RCLPY))
         info = self.hand.step_info(action)
         self.steps += 1
         if info.refused:
-            self.log.info("step %d: a servo move was refused (travel limit or load guard)", self.steps)
+            self.log.info(f"step {self.steps}: a servo move was refused (travel limit or load guard)")
 
     def _publish_status(self, text: str) -> None:
-        self._status_pub.publish(_String(data=text))
+        self._status_pub.publish(String(data=text))

@@ -17,41 +17,32 @@ from typing import Any
 
 @dataclass(frozen=True)
 class NodeSpec:
-    params: str
-    """``module:Class`` of the node's frozen params dataclass."""
     node: str
-    """``module:Class`` of the node, constructed as ``Class(transport, params)``, with a ``close()``;
-    a node with a ``finished`` property that turns true ends its process (exit 0)."""
+    """``module:Class`` of the node: an ``rclpy.node.Node`` constructed as ``Class(**node_kwargs)``
+    (``context=``, ``namespace=``, ``parameter_overrides=``...), with a ``close()``; a node with a
+    ``finished`` property that turns true ends its process (exit 0)."""
     description: str
-    default_name: str
-    """ROS node name unless ``-r __node:=`` renames it."""
 
     @staticmethod
     def _load(path: str) -> Any:
         module, _, name = path.partition(":")
         return getattr(importlib.import_module(module), name)
 
-    def params_class(self) -> type:
-        return self._load(self.params)
-
     def node_class(self) -> type:
         return self._load(self.node)
 
 
 NODES: dict[str, NodeSpec] = {
-    "mock_driver": NodeSpec("t42_transfer.nodes.mock_driver:MockDriverParams", "t42_transfer.nodes.mock_driver:MockDriver",
-                            "simulated hand behind the real driver's topics", "mock_driver"),
-    "recorder": NodeSpec("t42_transfer.nodes.recorder:RecorderParams", "t42_transfer.nodes.recorder:Recorder",
-                         "records the hand topics into rosbag2 MCAP bags", "recorder"),
-    "explorer": NodeSpec("t42_transfer.nodes.explorer:ExplorerParams", "t42_transfer.nodes.explorer:Explorer",
-                         "random-action episodes through the driver; exits when done", "explorer"),
-    "transfer_server": NodeSpec("t42_transfer.nodes.transfer_server:TransferServerParams",
-                                "t42_transfer.nodes.transfer_server:TransferServer",
-                                "transfers the source model to the recorded hand on /t42/transfer",
-                                "transfer_server"),
-    "planner": NodeSpec("t42_transfer.nodes.planner_node:PlannerNodeParams",
-                        "t42_transfer.nodes.planner_node:PlannerNode",
-                        "plans open-loop action sequences to goals with the current model", "planner"),
+    "mock_driver": NodeSpec("t42_transfer.nodes.mock_driver:MockDriver",
+                            "simulated hand behind the real driver's topics"),
+    "recorder": NodeSpec("t42_transfer.nodes.recorder:Recorder",
+                         "records the hand topics into rosbag2 MCAP bags"),
+    "explorer": NodeSpec("t42_transfer.nodes.explorer:Explorer",
+                         "random-action episodes through the driver; exits when done"),
+    "transfer_server": NodeSpec("t42_transfer.nodes.transfer_server:TransferServer",
+                                "transfers the source model to the recorded hand on /t42/transfer"),
+    "planner": NodeSpec("t42_transfer.nodes.planner_node:PlannerNode",
+                        "plans open-loop action sequences to goals with the current model"),
 }
 
 

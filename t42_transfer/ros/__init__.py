@@ -1,5 +1,3 @@
-"""ROS 2 (Jazzy) wire conventions and the transport interface nodes are written against.
-
-``naming`` and ``qos`` are pure; ``transport`` holds the abstract :class:`Transport`
-and the one CDR (de)serialisation helper; ``inprocess`` is a backend for unit tests.
-"""
+"""Glue between the project's plain modules and rclpy: params dataclasses as declared ROS
+parameters, QoS profiles, the node runner and the ``t42 up`` supervisor.  The graph itself
+is rclpy's; nothing here imitates it."""

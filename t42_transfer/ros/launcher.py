@@ -1,16 +1,19 @@
 """``t42 up``: run the nodes of one params file as separate processes, like a small ``ros2 launch``.
 
 Each node with its own section in the params file runs as
-``python -m t42_transfer.cli node <name> --ros-args --params-file <file>``, in its
+``python -m t42_transfer.cli node <name> --ros-args --params-file <file>`` (plus
+``-r __ns:=<namespace>`` when one is given), in its
 own session (so a terminal's Ctrl-C reaches only this supervisor, which then
 stops the children in order).  Their output is forwarded line by line, prefixed
 ``[<name>]``.  On SIGINT/SIGTERM every child gets SIGINT, then SIGTERM after
 ``stop_timeout_s``, then SIGKILL.  A child that exits on its own is a failure:
-the others are stopped the same way and the exit code is 1.
+the others are stopped the same way and the exit code is 1.  Discovery stays on
+this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) unless the user set a range.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -22,8 +25,12 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, TextIO
 
+import yaml
+
 from t42_transfer.nodes.registry import NODES
-from t42_transfer.ros.params import node_sections
+from t42_transfer.ros.runner import keep_discovery_local
+
+WILDCARDS = ("/**", "**")
 
 POLL_S = 0.1
 
@@ -33,6 +40,19 @@ class Child:
     name: str
     proc: subprocess.Popen[str]
     forwarder: threading.Thread
+
+
+def node_sections(path: str | Path) -> list[str]:
+    """Names of the nodes a ROS params file has its own section for (wildcards excluded), in file order."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise ValueError(f"params file {path}: {err.strerror or err}") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"params file {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"params file {path}: expected a mapping of node names")
+    return [str(key).lstrip("/") for key in doc if key not in WILDCARDS]
 
 
 def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:
@@ -80,8 +100,9 @@ class Supervisor:
     """
 
     def __init__(self, config: str | Path, out: TextIO | None = None, stop_timeout_s: float = 5.0,
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, namespace: str = "") -> None:
         self.config = Path(config).resolve()
+        self.namespace = namespace
         self.out = out if out is not None else sys.stdout
         self.stop_timeout_s = stop_timeout_s
         self.env = env
@@ -97,6 +118,8 @@ class Supervisor:
         """Start node ``name`` with its section of the params file (and ``-p`` ``overrides``, ``key:=value``)."""
         cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name, "--ros-args",
                "--params-file", str(self.config)]
+        if self.namespace:
+            cmd += ["-r", f"__ns:={self.namespace}"]
         for override in overrides:
             cmd += ["-p", override]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -129,10 +152,11 @@ class Supervisor:
 
 
 def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
-       out: TextIO | None = None) -> int:
+       out: TextIO | None = None, namespace: str = "") -> int:
     """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child exits; the exit code."""
     names = plan_nodes(config, only)
-    supervisor = Supervisor(config, out, stop_timeout_s)
+    supervisor = Supervisor(config, out, stop_timeout_s, namespace=namespace)
+    supervisor.say(f"discovery range {keep_discovery_local()}, ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}")
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

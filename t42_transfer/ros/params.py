@@ -1,258 +1,246 @@
-"""ROS 2 parameters for a node's frozen params dataclass, without a ROS install.
+"""A node's frozen params dataclass as declared ROS 2 parameters: one configuration mechanism.
 
-One configuration mechanism, the one ROS uses: params-file YAML
-(``<node_name>: {ros__parameters: {...}}``, with ``/**`` as the every-node
-wildcard) plus command-line overrides in ROS syntax::
+Each node keeps its settings in a frozen dataclass whose ``__post_init__`` checks
+them (usable without ROS, in tests and the CLI).  :func:`declare_params` declares
+one ROS parameter per field, with a descriptor built from the field's
+:func:`param` metadata (description, range, read-only), reads the values rclpy
+resolved from params files and ``-p`` overrides, and returns the dataclass.
 
-    --ros-args --params-file F.yaml -p name:=value -r __node:=new_name
+Parameters that are not read-only may change at run time (``ros2 param set``).
+:class:`LiveParams` validates a change by building the would-be dataclass, so a bad
+value is refused with the reason ``__post_init__`` gives and the node keeps its old
+value; an accepted change reaches the node through a callback.
 
-so the same files and arguments work under ``ros2 run``/``ros2 launch`` (rclpy)
-and ``t42 node``/``t42 up`` (Cyclone DDS).  Values are YAML (``-p`` values are
-parsed as YAML scalars or lists, as rcl does).  Precedence, lowest first: the
-dataclass defaults, each params file in order (within a file ``/**`` before the
-node's own section), then ``-p`` overrides in order.
-
-Values are checked against the dataclass's type hints: an unknown name, a missing
-required parameter or a value of the wrong type is a :class:`ValueError` that names
-the node and the parameter.  Coercions are the lossless ones a YAML file needs:
-list -> tuple, str -> Path, int -> float.  A mapping-typed field takes a YAML
-mapping (ROS itself would flatten it into dotted names; only this loader reads it).
+Types: ``bool``, ``int``, ``float``, ``str``, ``Path`` (a string), tuples of
+``float``/``int``/``str`` (arrays); ``X | None`` fields are declared with dynamic
+typing so that "unset" is a value.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
-import yaml
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.exceptions import ParameterException, ParameterUninitializedException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from t42_transfer.ros.naming import validate_node_name
+P = TypeVar("P")
 
-WILDCARDS = ("/**", "**")
-"""Params-file keys that apply to every node."""
-
-
-@dataclass(frozen=True)
-class RosArgs:
-    """What ``--ros-args`` blocks of a command line ask for."""
-
-    params_files: tuple[Path, ...] = ()
-    overrides: tuple[tuple[str, Any], ...] = ()
-    """``-p name:=value`` pairs, values parsed as YAML, in command-line order."""
-    node_name: str | None = None
-    """``-r __node:=name``."""
-
-
-def _split_assignment(text: str, option: str) -> tuple[str, str]:
-    name, sep, value = text.partition(":=")
-    if not sep or not name:
-        raise ValueError(f"--ros-args {option} expects name:=value, got {text!r}")
-    return name, value
-
-
-def parse_ros_args(argv: Sequence[str]) -> tuple[list[str], RosArgs]:
-    """Split ``argv`` into the arguments outside ``--ros-args ... [--]`` blocks and the parsed ROS arguments.
-
-    Understood: ``--params-file F``, ``-p/--param name:=value``, ``-r/--remap __node:=name``
-    (also ``__name:=``).  Anything else inside a block is a ValueError (this is not rcl:
-    topic remapping, namespaces and log options are not supported).
-    """
-    rest: list[str] = []
-    files: list[Path] = []
-    overrides: list[tuple[str, Any]] = []
-    node_name: str | None = None
-    args = list(argv)
-    i, in_block = 0, False
-    while i < len(args):
-        arg = args[i]
-        i += 1
-        if arg == "--ros-args":
-            in_block = True
-            continue
-        if not in_block:
-            rest.append(arg)
-            continue
-        if arg == "--":
-            in_block = False
-            continue
-        if arg in ("--params-file", "-p", "--param", "-r", "--remap"):
-            if i >= len(args):
-                raise ValueError(f"--ros-args {arg} expects a value")
-            value = args[i]
-            i += 1
-            if arg == "--params-file":
-                files.append(Path(value))
-            elif arg in ("-p", "--param"):
-                name, text = _split_assignment(value, arg)
-                overrides.append((name, yaml.safe_load(text) if text else None))
-            else:
-                name, text = _split_assignment(value, arg)
-                if name not in ("__node", "__name"):
-                    raise ValueError(f"--ros-args {arg} {value}: only __node:=<name> remapping is supported")
-                node_name = validate_node_name(text)
-            continue
-        raise ValueError(f"unsupported ROS argument {arg!r} (supported: --params-file, -p, -r __node:=)")
-    return rest, RosArgs(tuple(files), tuple(overrides), node_name)
-
-
-def read_params_file(path: str | Path, node_name: str) -> dict[str, Any]:
-    """The parameters a params file gives ``node_name``: its ``/**`` section, then its own (later wins)."""
-    path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise ValueError(f"params file {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        raise ValueError(f"params file {path}: not valid YAML ({err})") from None
-    if doc is None:
-        return {}
-    if not isinstance(doc, dict):
-        raise ValueError(f"params file {path}: expected a mapping of node names, got {type(doc).__name__}")
-    values: dict[str, Any] = {}
-    for key in (*WILDCARDS, node_name, "/" + node_name):
-        if key not in doc:
-            continue
-        section = doc[key]
-        params = section.get("ros__parameters") if isinstance(section, dict) else None
-        if not isinstance(params, dict):
-            raise ValueError(f"params file {path}: section {key!r} must be a mapping with 'ros__parameters'")
-        values.update(params)
-    return values
-
-
-def node_sections(path: str | Path) -> list[str]:
-    """Names of the nodes a params file has its own section for (wildcards excluded), in file order."""
-    doc = yaml.safe_load(Path(path).read_text()) or {}
-    if not isinstance(doc, dict):
-        raise ValueError(f"params file {path}: expected a mapping of node names")
-    return [str(key).lstrip("/") for key in doc if key not in WILDCARDS]
-
-
-def _type_name(hint: Any) -> str:
-    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
-
-
-def _coerce(value: Any, hint: Any, where: str) -> Any:
-    """``value`` as ``hint`` (see the module docstring for the coercions); ValueError if it cannot be."""
-    origin = typing.get_origin(hint)
-    if hint is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        arms = typing.get_args(hint)
-        if value is None:
-            if type(None) in arms:
-                return None
-        else:
-            for arm in arms:  # an exact match first, so 'str | Path' keeps a str
-                if isinstance(arm, type) and arm is not type(None) and isinstance(value, arm) \
-                        and not (arm is int and isinstance(value, bool)):
-                    return value
-            for arm in arms:
-                if arm is type(None):
-                    continue
-                try:
-                    return _coerce(value, arm, where)
-                except ValueError:
-                    pass
-        raise ValueError(f"{where} expects {_type_name(hint)}, got {value!r}")
-    if origin is tuple:
-        args = typing.get_args(hint)
-        if not isinstance(value, (list, tuple)):
-            raise ValueError(f"{where} expects a list, got {value!r}")
-        if not args:
-            return tuple(value)
-        if len(args) == 2 and args[1] is Ellipsis:
-            args = (args[0],) * len(value)
-        if len(args) != len(value):
-            raise ValueError(f"{where} expects {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-    if origin in (dict, Mapping, typing.Mapping) or hint in (dict, Mapping):
-        if not isinstance(value, dict):
-            raise ValueError(f"{where} expects a mapping, got {value!r}")
-        key_hint, value_hint = typing.get_args(hint) or (Any, Any)
-        return {_coerce(k, key_hint, where): _coerce(v, value_hint, f"{where}[{k!r}]") for k, v in value.items()}
-    if hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if hint is Path and isinstance(value, (str, Path)):
-        return Path(value)
-    if isinstance(hint, type) and isinstance(value, hint) and not (hint is int and isinstance(value, bool)):
-        return value
-    raise ValueError(f"{where} expects {_type_name(hint)}, got {value!r} ({type(value).__name__})")
+_META = "t42_param"
 
 
 @dataclasses.dataclass(frozen=True)
-class NodeOptions:
-    """Parameters every ROS node has, whatever its own params class (``-p use_sim_time:=true``)."""
-
-    use_sim_time: bool = False
-    """ROS time from ``/clock`` (a simulator's) instead of the system clock."""
-
-
-COMMON = frozenset(f.name for f in dataclasses.fields(NodeOptions))
-
-
-def _gather(node_name: str, params_files: Sequence[str | Path],
-            overrides: Sequence[tuple[str, Any]] | Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
-    values: dict[str, Any] = {}
-    sources: dict[str, str] = {}
-    for path in params_files:
-        for name, value in read_params_file(path, node_name).items():
-            values[name], sources[name] = value, f"params file {path}"
-    items = overrides.items() if isinstance(overrides, Mapping) else overrides
-    for name, value in items:
-        values[name], sources[name] = value, "-p"
-    return values, sources
+class ParamInfo:
+    description: str
+    read_only: bool = False
+    """True where a change at run time makes no sense (the node built its hand, bag or model from it)."""
+    min: float | None = None
+    max: float | None = None
+    constraints: str = ""
+    """Free text shown by ``ros2 param describe`` for checks a range cannot express."""
 
 
-def _build(params_cls: type, node_name: str, values: dict[str, Any], sources: dict[str, str]) -> Any:
+def param(default: Any = dataclasses.MISSING, description: str = "", *, read_only: bool = False,
+          min: float | None = None, max: float | None = None, constraints: str = "",
+          default_factory: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field that is also a documented ROS parameter."""
+    info = ParamInfo(description, read_only, min, max, constraints)
+    if default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default_factory=default_factory, metadata={_META: info})
+    return dataclasses.field(default=default, metadata={_META: info})
+
+
+_SCALARS = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+    Path: ParameterType.PARAMETER_STRING,
+}
+_ARRAYS = {
+    bool: ParameterType.PARAMETER_BOOL_ARRAY,
+    int: ParameterType.PARAMETER_INTEGER_ARRAY,
+    float: ParameterType.PARAMETER_DOUBLE_ARRAY,
+    str: ParameterType.PARAMETER_STRING_ARRAY,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class _Field:
+    name: str
+    hint: Any
+    """The hint without ``| None``."""
+    optional: bool
+    ros_type: int
+    info: ParamInfo
+    default: Any
+
+
+def _fields(params_cls: type) -> list[_Field]:
     if not dataclasses.is_dataclass(params_cls):
         raise TypeError(f"{params_cls!r} is not a dataclass")
-    fields = {f.name: f for f in dataclasses.fields(params_cls) if f.init}
     hints = typing.get_type_hints(params_cls)
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise ValueError(
-            f"{node_name}: unknown parameter(s) {', '.join(unknown)} "
-            f"(from {', '.join(sorted({sources[n] for n in unknown}))}); valid: {', '.join(fields)}"
-        )
-    missing = [n for n, f in fields.items() if n not in values
-               and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
-    if missing:
-        raise ValueError(f"{node_name}: missing required parameter(s) {', '.join(missing)} "
-                         f"(set them in a params file or with -p name:=value)")
-    kwargs = {n: _coerce(v, hints[n], f"{node_name}: parameter {n!r}") for n, v in values.items()}
-    try:
-        return params_cls(**kwargs)
-    except (TypeError, ValueError, KeyError) as err:
-        raise ValueError(f"{node_name}: {err}") from None
+    out = []
+    for f in dataclasses.fields(params_cls):
+        if not f.init:
+            continue
+        hint, optional = hints[f.name], False
+        if typing.get_origin(hint) in (typing.Union, types.UnionType):
+            arms = [a for a in typing.get_args(hint) if a is not type(None)]
+            optional = len(arms) < len(typing.get_args(hint))
+            # "str | Path" is a path given as a string
+            hint = Path if set(arms) <= {str, Path} and Path in arms else arms[0]
+            if len(arms) > 1 and hint is not Path:
+                raise TypeError(f"{params_cls.__name__}.{f.name}: a parameter has one type, got {hints[f.name]}")
+        if typing.get_origin(hint) is tuple:
+            elem = typing.get_args(hint)[0]
+            ros_type = _ARRAYS[elem]
+        elif hint in _SCALARS:
+            ros_type = _SCALARS[hint]
+        else:
+            raise TypeError(f"{params_cls.__name__}.{f.name}: {hint} cannot be a ROS parameter")
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            default = dataclasses.MISSING
+        info = f.metadata.get(_META, ParamInfo(""))
+        out.append(_Field(f.name, hint, optional, ros_type, info, default))
+    return out
 
 
-def load_params(
-    params_cls: type,
-    node_name: str,
-    params_files: Sequence[str | Path] = (),
-    overrides: Sequence[tuple[str, Any]] | Mapping[str, Any] = (),
-) -> Any:
-    """An instance of the frozen dataclass ``params_cls`` for ``node_name`` from params files and overrides.
+def _descriptor(field: _Field) -> ParameterDescriptor:
+    info = field.info
+    desc = ParameterDescriptor(
+        name=field.name,
+        type=ParameterType.PARAMETER_NOT_SET if field.optional else field.ros_type,
+        description=info.description,
+        read_only=info.read_only,
+        dynamic_typing=field.optional,
+        additional_constraints=info.constraints + (" (unset: none)" if field.optional else ""),
+    )
+    if info.min is not None or info.max is not None:
+        lo = -math.inf if info.min is None else info.min
+        hi = math.inf if info.max is None else info.max
+        if field.ros_type == ParameterType.PARAMETER_INTEGER:
+            big = 2**63 - 1
+            desc.integer_range = [IntegerRange(from_value=int(max(lo, -big)), to_value=int(min(hi, big)), step=0)]
+        elif field.ros_type == ParameterType.PARAMETER_DOUBLE:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+    return desc
 
-    The :class:`NodeOptions` every node has (``use_sim_time``) are left to :func:`node_options`.
+
+def _to_ros(value: Any) -> Any:
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, tuple):
+        return list(value)
+    return value
+
+
+def _from_ros(field: _Field, value: Any) -> Any:
+    """The dataclass value of a parameter value; ValueError when its type is not the field's."""
+    if value is None:
+        if field.optional:
+            return None
+        raise ValueError(f"parameter {field.name!r} must be set")
+    hint = field.hint
+    if typing.get_origin(hint) is tuple:
+        elem = typing.get_args(hint)[0]
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"parameter {field.name!r} expects a list, got {value!r}")
+        return tuple(float(v) if elem is float else v for v in value)
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if hint is Path:
+        return Path(value) if isinstance(value, str) else value
+    if not isinstance(value, hint) or (hint is int and isinstance(value, bool)):
+        raise ValueError(f"parameter {field.name!r} expects {hint.__name__}, got {value!r}")
+    return value
+
+
+def declare_params(node: Node, params_cls: type[P]) -> P:
+    """Declare ``params_cls``'s fields as ``node``'s parameters; the dataclass of their values.
+
+    ValueError (one line naming the node and the parameter) for a missing required
+    parameter, a value of the wrong type or one ``__post_init__`` refuses.
     """
-    values, sources = _gather(node_name, params_files, overrides)
-    own = {n: v for n, v in values.items() if n not in COMMON}
-    return _build(params_cls, node_name, own, sources)
+    where = node.get_fully_qualified_name()
+    values: dict[str, Any] = {}
+    for field in _fields(params_cls):
+        try:
+            if field.default is dataclasses.MISSING:
+                p = node.declare_parameter(field.name, Parameter.Type(field.ros_type), _descriptor(field))
+                value = p.value
+            else:
+                p = node.declare_parameter(field.name, _to_ros(field.default), _descriptor(field))
+                value = p.value
+        except ParameterUninitializedException:
+            raise ValueError(f"{where}: missing required parameter {field.name!r} "
+                             f"(set it in a params file or with -p {field.name}:=...)") from None
+        except ParameterException as err:  # wrong type or out of range
+            raise ValueError(f"{where}: parameter {field.name!r}: {err}") from None
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{where}: parameter {field.name!r}: {err}") from None
+        if value is None and field.default is dataclasses.MISSING:
+            raise ValueError(f"{where}: missing required parameter {field.name!r} "
+                             f"(set it in a params file or with -p {field.name}:=...)")
+        values[field.name] = _from_ros(field, value)
+    try:
+        return params_cls(**values)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: {err}") from None
 
 
-def node_options(
-    node_name: str,
-    params_files: Sequence[str | Path] = (),
-    overrides: Sequence[tuple[str, Any]] | Mapping[str, Any] = (),
-) -> NodeOptions:
-    """The :class:`NodeOptions` of ``node_name`` from the same params files and overrides."""
-    values, sources = _gather(node_name, params_files, overrides)
-    return _build(NodeOptions, node_name, {n: v for n, v in values.items() if n in COMMON}, sources)
+class LiveParams(Generic[P]):
+    """A node's params dataclass kept in step with ``ros2 param set``: bad values refused with the reason.
 
+    ``on_change(old, new)`` runs after a change was accepted (in the executor's thread).
+    """
+
+    def __init__(self, node: Node, params_cls: type[P], on_change: Callable[[P, P], None] | None = None) -> None:
+        self._fields = {f.name: f for f in _fields(params_cls)}
+        self.value: P = declare_params(node, params_cls)
+        self._pending: P | None = None
+        self._on_change = on_change
+        node.add_on_set_parameters_callback(self._validate)
+        node.add_post_set_parameters_callback(self._apply)
+
+    def _validate(self, parameters: list[Parameter]) -> SetParametersResult:
+        changes = {}
+        for p in parameters:
+            field = self._fields.get(p.name)
+            if field is None:  # rclpy's own (use_sim_time, ...)
+                continue
+            try:
+                changes[p.name] = _from_ros(field, p.value)
+            except ValueError as err:
+                return SetParametersResult(successful=False, reason=str(err))
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            self._pending = dataclasses.replace(self.value, **changes)
+        except (TypeError, ValueError) as err:
+            return SetParametersResult(successful=False, reason=str(err))
+        return SetParametersResult(successful=True)
+
+    def _apply(self, parameters: list[Parameter]) -> None:
+        if self._pending is None:
+            return
+        old, self.value, self._pending = self.value, self._pending, None
+        if self._on_change is not None:
+            self._on_change(old, self.value)

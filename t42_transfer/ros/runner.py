@@ -1,44 +1,34 @@
-"""Run one registered node as a process: ROS arguments -> params -> transport -> node -> spin.
+"""Run one registered node as a process, as ``ros2 run`` does: rclpy parses ``--ros-args``.
 
-The process spins until SIGINT or SIGTERM (or, for a node with a ``finished``
-property such as the explorer, until its work is done), then closes the node (a recorder
-finishes its bag) and the transport and exits 0.  A bad command line or
-parameter exits 2 with one ``t42: error: ...`` line and no traceback.  Logs go
-to stderr in the ROS console format ``[INFO] [<unix time>] [<node>]: message``.
+``t42 node NAME [--ros-args ...]`` and the console script ``NAME`` (``ros2 run
+t42_transfer NAME``) both end here.  rclpy takes the whole argument list
+(remapping, namespaces, ``-p``, ``--params-file``, ``--log-level``,
+``use_sim_time``); the node declares its parameters.  The node spins on a
+:class:`~rclpy.executors.MultiThreadedExecutor` (nodes put callbacks that must not
+block each other in separate callback groups) until SIGINT or SIGTERM, or until a
+node with a ``finished`` property (the explorer) is done; then the node's
+``close()`` runs (a recorder finishes its bag) and the process exits 0.  A bad
+command line or parameter exits 2 with one ``t42: error: ...`` line.
 """
 
 from __future__ import annotations
 
-import logging
+import os
 import signal
 import sys
 import threading
 from collections.abc import Sequence
 from types import FrameType
 
-from t42_transfer.nodes.registry import NODES
-from t42_transfer.ros.backends import make_transport
-from t42_transfer.ros.params import load_params, node_options, parse_ros_args
-
-_NODE_LOGGERS = "t42_transfer.ros."
+DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 
 
-class RosFormatter(logging.Formatter):
-    """``[LEVEL] [seconds.nanoseconds] [node]: message``, as rcutils prints by default."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        name = record.name[len(_NODE_LOGGERS):] if record.name.startswith(_NODE_LOGGERS) else record.name
-        level = {"WARNING": "WARN", "CRITICAL": "FATAL"}.get(record.levelname, record.levelname)
-        text = f"[{level}] [{record.created:.9f}] [{name}]: {record.getMessage()}"
-        if record.exc_info:
-            text += "\n" + self.formatException(record.exc_info)
-        return text
-
-
-def configure_logging(level: int = logging.INFO) -> None:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(RosFormatter())
-    logging.basicConfig(level=level, handlers=[handler], force=True)
+def keep_discovery_local(env: dict[str, str] | os._Environ[str] | None = None) -> str:
+    """Set ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` unless the user chose a range; the range in effect."""
+    env = os.environ if env is None else env
+    if not env.get(DISCOVERY_ENV):
+        env[DISCOVERY_ENV] = "LOCALHOST"
+    return env[DISCOVERY_ENV]
 
 
 def _error(message: str) -> int:
@@ -47,48 +37,60 @@ def _error(message: str) -> int:
 
 
 def run_node(name: str, argv: Sequence[str]) -> int:
-    """Run node ``name`` of :data:`~t42_transfer.nodes.registry.NODES` with ROS arguments ``argv``; the exit code.
-
-    SIGINT/SIGTERM are caught from the start, so a stop request during the (slow)
-    imports and setup still ends in a clean close and exit 0.
-    """
+    """Run node ``name`` of :data:`~t42_transfer.nodes.registry.NODES` with command line ``argv``; the exit code."""
     stop = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
 
+    # Caught from the start: a stop during the (slow) imports still ends in a clean close.
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return _run(name, argv, stop)
+        return _run(name, list(argv), stop)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
 
-def _run(name: str, argv: Sequence[str], stop: threading.Event) -> int:
+def _run(name: str, argv: list[str], stop: threading.Event) -> int:
+    from t42_transfer.nodes.registry import NODES
+
     spec = NODES.get(name)
     if spec is None:
         return _error(f"unknown node {name!r}; available: {', '.join(NODES)}")
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+    from rclpy.utilities import remove_ros_args
+
     try:
-        rest, ros_args = parse_ros_args(argv)
-        if rest:
-            raise ValueError(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args)")
-        node_name = ros_args.node_name or spec.default_name
-        params = load_params(spec.params_class(), node_name, ros_args.params_files, ros_args.overrides)
-        options = node_options(node_name, ros_args.params_files, ros_args.overrides)
-        transport = make_transport(node_name)
-    except ValueError as err:
-        return _error(str(err))
-    configure_logging()
-    log = logging.getLogger(_NODE_LOGGERS + node_name)
-    with transport:
-        if options.use_sim_time:
-            transport.use_sim_time()
-        node = spec.node_class()(transport, params)
+        rest = remove_ros_args(["t42"] + argv)[1:]
+    except Exception as err:  # rcl's parse error
+        return _error(f"bad --ros-args: {err}")
+    if rest:
+        return _error(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args)")
+    context = rclpy.Context()
+    try:
+        rclpy.init(args=["t42"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as err:
+        return _error(f"bad --ros-args: {err}")
+    executor = MultiThreadedExecutor(context=context)
+    node = None
+    try:
         try:
-            log.info("running (%s); SIGINT or SIGTERM stops", type(transport).__name__)
-            transport.spin(until=lambda: stop.is_set() or bool(getattr(node, "finished", False)))
-        finally:
-            node.close()
-    log.info("shut down cleanly")
-    return 0
+            node = spec.node_class()(context=context)
+        except ValueError as err:
+            return _error(str(err))
+        executor.add_node(node)
+        node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; SIGINT or SIGTERM stops")
+        while not stop.is_set() and not getattr(node, "finished", False):
+            executor.spin_once(timeout_sec=0.1)
+        node.close()
+        node.get_logger().info("shut down cleanly")
+        return 0
+    finally:
+        executor.shutdown(timeout_sec=5.0)
+        if node is not None:
+            node.destroy_node()
+        if context.ok():
+            rclpy.shutdown(context=context)

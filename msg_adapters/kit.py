@@ -1,0 +1,80 @@
+"""Which message classes the builders make: rosbags' Jazzy typestore or rclpy's generated ones.
+
+Both sides have the same fields, so every reader in :mod:`msg_adapters` takes
+either; builders take a ``kit`` saying which to build.  The bag layer builds
+rosbags objects (:data:`ROSBAGS`, no ROS runtime needed), nodes build rclpy
+objects (:data:`RCLPY`).  The two differ only in how a primitive sequence and a
+``byte`` are held (numpy arrays and ints in rosbags; ``array.array`` and
+one-byte ``bytes`` in rclpy), which :meth:`MessageKit.floats` and
+:meth:`MessageKit.byte` hide.
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+from abc import ABC, abstractmethod
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+"""rosbags' Jazzy typestore: what bags are read into and written from."""
+
+
+class MessageKit(ABC):
+    """Makes message objects of one family by ROS type name (``geometry_msgs/msg/PoseStamped``)."""
+
+    @abstractmethod
+    def cls(self, typename: str) -> type: ...
+
+    @abstractmethod
+    def floats(self, values: np.ndarray) -> Any:
+        """A float64 sequence field's value."""
+
+    @abstractmethod
+    def byte(self, value: int) -> Any:
+        """A ``byte`` field's value."""
+
+    def make(self, typename: str, **fields: Any) -> Any:
+        return self.cls(typename)(**fields)
+
+
+class RosbagsKit(MessageKit):
+    def cls(self, typename: str) -> type:
+        return TYPESTORE.types[typename]
+
+    def floats(self, values: np.ndarray) -> Any:
+        return np.ascontiguousarray(values, dtype=np.float64)
+
+    def byte(self, value: int) -> Any:
+        return int(value)
+
+
+class RclpyKit(MessageKit):
+    def cls(self, typename: str) -> type:
+        return rclpy_class(typename)
+
+    def floats(self, values: np.ndarray) -> Any:
+        return array.array("d", np.ascontiguousarray(values, dtype=np.float64).tobytes())
+
+    def byte(self, value: int) -> Any:
+        return bytes([int(value)])
+
+
+@lru_cache(maxsize=None)
+def rclpy_class(typename: str) -> type:
+    """rclpy's generated class of ``pkg/msg/Name`` or ``pkg/srv/Name`` (imported on first use)."""
+    package, kind, name = typename.split("/")
+    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+
+
+def byte_value(value: Any) -> int:
+    """A ``byte`` field as an int, from either family."""
+    return value[0] if isinstance(value, (bytes, bytearray)) else int(value)
+
+
+ROSBAGS: MessageKit = RosbagsKit()
+RCLPY: MessageKit = RclpyKit()

@@ -1,0 +1,94 @@
+"""In-process rclpy for node tests: one context on the test's domain, one executor spun on demand."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+N = TypeVar("N", bound=Node)
+REPO = Path(__file__).resolve().parents[1]
+
+
+class RosRig:
+    def __init__(self, domain_id: int) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.executor = MultiThreadedExecutor(context=self.context)
+        self.nodes: list[Node] = []
+
+    def add(self, node_cls: Callable[..., N], params: dict[str, Any] | None = None, **kwargs: Any) -> N:
+        """``node_cls(context=..., parameter_overrides=params, **kwargs)``, added to the executor."""
+        overrides = [Parameter(k, value=v) for k, v in (params or {}).items()]
+        node = node_cls(context=self.context, parameter_overrides=overrides, **kwargs)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def node(self, name: str = "tester", **kwargs: Any) -> Node:
+        """A plain node for the test's own publishers, subscriptions and clients."""
+        return self.add(Node, node_name=name, **kwargs)
+
+    def spin_until(self, condition: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+        """Spin until ``condition()`` holds (True) or ``timeout_s`` passes (False)."""
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            if time.monotonic() >= deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.05)
+        return True
+
+    def spin_for(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def call(self, client: Any, request: Any, timeout_s: float = 10.0) -> Any:
+        """Call a service through ``client`` (waiting for it first); the response, or AssertionError."""
+        assert client.wait_for_service(timeout_sec=timeout_s), f"service {client.srv_name} not available"
+        future = client.call_async(request)
+        assert self.spin_until(future.done, timeout_s), f"no answer from {client.srv_name} within {timeout_s} s"
+        return future.result()
+
+    def shutdown(self) -> None:
+        for node in reversed(self.nodes):
+            close = getattr(node, "close", None)
+            if callable(close):
+                close()
+        self.executor.shutdown(timeout_sec=5.0)
+        for node in self.nodes:
+            node.destroy_node()
+        if self.context.ok():
+            rclpy.shutdown(context=self.context)
+
+
+def start_node(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Popen:
+    """``t42 node NAME --ros-args ...`` as a process (environment inherited: the test's domain)."""
+    cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name]
+    if ros_args:
+        cmd += ["--ros-args", *ros_args]
+    out = open(log, "w") if log is not None else subprocess.DEVNULL
+    return subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, text=True)
+
+
+def stop(procs: Sequence[subprocess.Popen], timeout_s: float = 10.0) -> list[int]:
+    """SIGINT each process, then kill what is still running after ``timeout_s``; the exit codes."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(2)
+    codes = []
+    for proc in procs:
+        try:
+            codes.append(proc.wait(timeout=timeout_s))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            codes.append(proc.wait())
+    return codes
