@@ -16,10 +16,13 @@ import t42_transfer
 
 REPO = Path(__file__).resolve().parents[1]
 
-ROS_DEPS = {
-    "rclpy", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs",
-    "sensor_msgs", "trajectory_msgs", "nav_msgs", "diagnostic_msgs",
+LAUNCH_DEPS = {"launch", "launch_ros", "ament_index_python"}
+ROS_MESSAGE_PACKAGES = {
+    "rcl_interfaces", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs", "sensor_msgs",
+    "trajectory_msgs", "nav_msgs", "diagnostic_msgs", "rosgraph_msgs", "action_msgs", "lifecycle_msgs",
+    "visualization_msgs", "shape_msgs", "stereo_msgs", "actionlib_msgs", "unique_identifier_msgs",
 }
+"""ROS interface packages the code could name (an import or a ``pkg/msg/Name`` type string)."""
 ROSDEP_PYTHON_DEPS = {"python3-numpy", "python3-yaml", "python3-matplotlib", "python3-tqdm"}
 
 # What setup() was called with, read without installing anything.
@@ -62,12 +65,39 @@ def test_package_xml_is_format3_ament_python(package_xml):
     assert package_xml.findtext("export/build_type") == "ament_python"
 
 
-def test_package_xml_lists_required_dependencies(package_xml):
+def _ros_packages_used() -> set[str]:
+    """ROS packages the package's code and launch file import or name by type string."""
+    used: set[str] = set()
+    files = [*REPO.glob("t42_transfer/**/*.py"), *REPO.glob("msg_adapters/*.py"), *REPO.glob("launch/*.py")]
+    for path in files:
+        text = path.read_text()
+        if re.search(r"^\s*(from|import) rclpy\b", text, re.M):
+            used.add("rclpy")
+        for pkg in re.findall(r"^\s*(?:from|import) ([a-z_]+)(?:\.(?:msg|srv)|\b)", text, re.M):
+            if pkg in ROS_MESSAGE_PACKAGES | LAUNCH_DEPS:
+                used.add(pkg)
+        for pkg in re.findall(r"[\"']([a-z_]+)/(?:msg|srv)/[A-Z]\w*[\"']", text):
+            used.add(pkg)
+    return used
+
+
+def test_package_xml_names_the_ros_packages_the_code_uses_and_no_others(package_xml):
     exec_deps = {e.text.strip() for e in package_xml.iter("exec_depend")}
     exec_deps |= {e.text.strip() for e in package_xml.iter("depend")}
-    missing = (ROS_DEPS | ROSDEP_PYTHON_DEPS) - exec_deps
-    assert not missing, f"package.xml lacks exec_depend on {sorted(missing)}"
+    ros_deps = {d for d in exec_deps if not d.startswith("python3-")}
+    used = _ros_packages_used()
+    assert {"rclpy", "sensor_msgs", "std_srvs", "launch_ros"} <= used  # the scan finds things
+    assert ros_deps == used, f"package.xml lacks {sorted(used - ros_deps)}, names unused {sorted(ros_deps - used)}"
+    assert ROSDEP_PYTHON_DEPS <= exec_deps
     assert "python3-pytest" in {e.text.strip() for e in package_xml.iter("test_depend")}
+
+
+def test_no_home_made_transport_left():
+    sources = [*REPO.glob("t42_transfer/**/*.py"), *REPO.glob("msg_adapters/*.py"), *REPO.glob("test/*.py"),
+               *REPO.glob("bench/*.py"), REPO / "requirements.txt", REPO / "package.xml"]
+    offenders = [str(p.relative_to(REPO)) for p in sources
+                 if p != Path(__file__) and re.search(r"cyclonedds|CycloneTransport|InProcessBus", p.read_text())]
+    assert not offenders
 
 
 def test_versions_agree(package_xml, setup_info):
@@ -124,7 +154,7 @@ def _pins(path: Path) -> dict[str, str]:
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
-        m = re.fullmatch(r"([A-Za-z0-9_.\-]+)==([A-Za-z0-9_.+\-]+)", line)
+        m = re.fullmatch(r"([A-Za-z0-9_.\-]+)(?:\[[a-z0-9_,\-]+\])?==([A-Za-z0-9_.+\-]+)", line)
         assert m, f"{path.name}: not an exact pin: {line!r}"
         pins[m.group(1)] = m.group(2)
     return pins
@@ -133,7 +163,8 @@ def _pins(path: Path) -> dict[str, str]:
 def test_requirements_are_exact_pins_matching_the_environment():
     pins = _pins(REPO / "requirements.txt")
     assert pins.get("torch") == "2.13.0"
-    for name in ("numpy", "mujoco", "rosbags", "mcap", "tqdm", "PyYAML", "matplotlib"):
+    for name in ("numpy", "mujoco", "rosbags", "mcap", "tqdm", "PyYAML", "matplotlib", "ros-jazzy-rclpy",
+                 "ros-jazzy-common-interfaces", "ros-jazzy-rosgraph-msgs"):
         assert name in pins, f"requirements.txt lacks a pin for {name}"
     pins_test = _pins(REPO / "requirements-test.txt")
     for name in ("pytest", "hypothesis", "colcon-common-extensions"):
