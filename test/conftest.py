@@ -7,7 +7,7 @@ import os
 import random
 import sys
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Callable, Iterator, Sequence
 
 import numpy as np
 import pytest
@@ -19,6 +19,8 @@ from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 
 sys.path.insert(0, str(Path(__file__).parent))  # test helpers (ros_rig)
+if TYPE_CHECKING:
+    from ros_rig import RosRig
 
 MakeSet = Callable[..., TrajectorySet]
 

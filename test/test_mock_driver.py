@@ -20,7 +20,6 @@ from msg_adapters import (
     applied_action,
     applied_action_msg,
     joint_state_arrays,
-    ns_to_stamp,
     stamp_to_ns,
 )
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
