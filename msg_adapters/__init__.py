@@ -17,7 +17,6 @@ from msg_adapters.hand import (
     JOINT_TRAJECTORY,
     OBJECT_POSE_TOPIC,
     POSE_STAMPED,
-    TYPESTORE,
     actions_to_joint_trajectory,
     applied_action,
     applied_action_msg,
@@ -29,7 +28,7 @@ from msg_adapters.hand import (
     object_xy_mm,
     stamp_to_ns,
 )
-from msg_adapters.kit import RCLPY, ROSBAGS, MessageKit, byte_value, rclpy_class
+from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 
 __all__ = [

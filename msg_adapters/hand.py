@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from msg_adapters.kit import ROSBAGS, TYPESTORE, MessageKit
+from msg_adapters.kit import ROSBAGS, MessageKit
 from t42_transfer.conventions import (
     ACTION_DIM,
     ACTION_UNIT_RAD,
