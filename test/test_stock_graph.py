@@ -1,0 +1,204 @@
+"""A stock ROS 2 graph uses the suite: a plain rclpy script (test/stock_user.py, importing nothing of
+ours) against ``t42 up``; and two suites (two simulated hands) side by side under two namespaces."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from ros_rig import REPO, start_node, stop
+
+STOCK_USER = Path(__file__).with_name("stock_user.py")
+T42 = [sys.executable, "-u", "-m", "t42_transfer.cli"]
+
+
+@pytest.fixture(scope="module")
+def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A source model trained for 1 epoch on the source fixture bag, with its workspace."""
+    import torch
+
+    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.models.checkpoint import save_model
+    from t42_transfer.models.training import TrainConfig, train_transition_model
+    from t42_transfer.planning.workspace import Workspace
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        data = read_bag(REPO / "bags" / "source_small")
+        model, _ = train_transition_model(data, TrainConfig(epochs=1))
+    finally:
+        torch.set_num_threads(threads)
+    path = tmp_path_factory.mktemp("source") / "source.safetensors"
+    return save_model(model, path, method="source", extra={"workspace": Workspace.from_trajectories(data).to_dict()})
+
+
+def suite_file(root: Path, source: Path, seed: int = 0) -> Path:
+    """A params file for the suite and the explorer, everything under ``root``, tiny sizes."""
+    methods = root / "transfer_methods.yaml"
+    methods.write_text(yaml.safe_dump({"naive_finetune": {"train": {"epochs": 2}}}))
+
+    def node(**params: Any) -> dict[str, Any]:
+        return {"ros__parameters": params}
+
+    config = {
+        "mock_driver": node(hand="target", rate_factor=5.0, seed=seed),
+        "recorder": node(out_dir=str(root / "bags"), mode="episode", start_immediately=False),
+        "transfer_server": node(source_model=str(source), model_dir=str(root / "models"),
+                                bag_dir=str(root / "bags"), method="naive_finetune", config=str(methods),
+                                min_episodes=2),
+        "planner": node(model=str(root / "models" / "current.safetensors"), samples=128, horizon=10),
+        "explorer": node(episodes=3, steps=30, seed=seed + 1, rate_factor=5.0,
+                         record_start_service="recorder/start", record_stop_service="recorder/stop"),
+    }
+    path = root / "suite.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+class Suite:
+    """``t42 up`` of a params file (optionally under a namespace), its output in a log file."""
+
+    def __init__(self, params: Path, namespace: str = "") -> None:
+        self.params, self.namespace = params, namespace
+        self.log = params.with_suffix(f".{namespace.strip('/') or 'root'}.log")
+        cmd = [*T42, "up", str(params), "--only", "mock_driver,recorder,transfer_server,planner",
+               "--stop-timeout", "10"]
+        if namespace:
+            cmd += ["--namespace", namespace]
+        self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=self.log.open("w"), stderr=subprocess.STDOUT,
+                                     env=dict(os.environ, PYTHONUNBUFFERED="1"))
+
+    def explore(self, timeout_s: float = 180.0) -> int:
+        """Run the explorer (its section of the params file) to completion; its exit code."""
+        args = ["--params-file", str(self.params)]
+        if self.namespace:
+            args += ["-r", f"__ns:={self.namespace}"]
+        log = self.params.with_suffix(f".explorer.{self.namespace.strip('/') or 'root'}.log")
+        proc = start_node("explorer", *args, log=log)
+        try:
+            return proc.wait(timeout=timeout_s)
+        finally:
+            stop([proc])
+
+    def output(self) -> str:
+        return self.log.read_text()
+
+    def stop(self) -> int:
+        return stop([self.proc], timeout_s=60.0)[0]
+
+
+def stock_user(mode: str, namespace: str = "", timeout_s: float = 600.0) -> dict[str, Any]:
+    """Run the plain rclpy script; what it saw (it prints one JSON object)."""
+    proc = subprocess.run([sys.executable, str(STOCK_USER), mode, namespace], capture_output=True, text=True,
+                          timeout=timeout_s, cwd=STOCK_USER.parent, env=dict(os.environ, PYTHONPATH=""))
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert lines, proc.stdout + proc.stderr
+    result = json.loads(lines[-1])
+    assert proc.returncode == 0 and "error" not in result, (result, proc.stderr[-3000:])
+    return result
+
+
+def test_stock_user_script_imports_nothing_of_ours() -> None:
+    text = STOCK_USER.read_text()
+    assert "t42_transfer" not in text and "msg_adapters" not in text and "ros_rig" not in text
+
+
+def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path, ros_domain: int) -> None:
+    suite = Suite(suite_file(tmp_path, source_model))
+    try:
+        seen = stock_user("graph")
+        assert {"/mock_driver", "/recorder", "/transfer_server", "/planner"} <= set(seen["nodes"])
+        params = seen["parameters"]
+        assert {"rate_factor", "hand", "seed", "use_sim_time"} <= set(params["mock_driver"])
+        assert {"samples", "tolerance_mm", "use_sim_time"} <= set(params["planner"])
+        assert "source_model" in params["transfer_server"] and "out_dir" in params["recorder"]
+        ok, reason = seen["bad_set"]
+        assert not ok and reason and seen["after_bad_set"] == 5.0  # refused, old value kept
+        assert seen["good_set"][0] and seen["after_good_set"] == 10.0
+        assert not seen["planner_bad_samples"][0] and seen["planner_bad_samples"][1]
+        assert seen["planner_good_samples"][0] and seen["planner_samples"] == 64
+        assert seen["pose"]["frame_id"] and 0.0 < abs(seen["pose"]["y_m"]) < 0.5  # metres, not mm
+        assert seen["joint_state"]["name"] == ["actuator_1", "actuator_2"] and len(seen["joint_state"]["effort"]) == 2
+        assert seen["reset"][0] and "grasped" in seen["reset"][1]
+        assert set(seen["rosout"]) == {"mock_driver", "recorder", "transfer_server", "planner"}
+        assert "rejected" in seen["rosout_warning"] and "non-finite" in seen["rosout_warning"]
+
+        assert suite.explore() == 0, suite.output()
+        assert len(list((tmp_path / "bags").glob("episode_*"))) >= 3
+
+        seen = stock_user("transfer")
+        success, message, seconds = seen["transfer"]
+        assert success, (message, suite.output()[-4000:])
+        assert "naive_finetune" in message and (tmp_path / "models" / "current.safetensors").is_file()
+        assert seen["trajectory"]["joint_names"] == ["actuator_1", "actuator_2"]
+        assert 1 <= seen["trajectory"]["points"] <= 10
+        assert seen["path"]["poses"] == seen["trajectory"]["points"] + 1 and seen["path"]["frame_id"]
+    finally:
+        code = suite.stop()
+    assert code == 0, suite.output()[-4000:]
+
+
+def _topics_in(bags: list[Path]) -> set[str]:
+    from rosbags.rosbag2 import Reader
+
+    topics: set[str] = set()
+    for bag in bags:
+        with Reader(bag) as reader:
+            topics |= {c.topic for c in reader.connections}
+    return topics
+
+
+def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_model: Path, ros) -> None:
+    from std_srvs.srv import Trigger
+    from trajectory_msgs.msg import JointTrajectory
+
+    from t42_transfer.models.checkpoint import read_metadata
+
+    roots = {ns: tmp_path / ns.strip("/") for ns in ("/left", "/right")}
+    suites = {}
+    for k, (ns, root) in enumerate(roots.items()):
+        root.mkdir()
+        suites[ns] = Suite(suite_file(root, source_model, seed=100 * k), ns)
+    probe = ros.node("two_hands_probe")
+    trajectories: dict[str, list] = {ns: [] for ns in roots}
+    for ns in roots:
+        probe.create_subscription(JointTrajectory, f"{ns}/hand/trajectory", trajectories[ns].append, 10)
+    try:
+        for ns, suite in suites.items():
+            assert suite.explore() == 0, suite.output()
+        for ns, root in roots.items():
+            bags = sorted((root / "bags").glob("episode_*"))
+            assert len(bags) >= 3, ns
+            other = "/right" if ns == "/left" else "/left"
+            topics = _topics_in(bags)
+            assert f"{ns}/hand/object_pose" in topics and not any(t.startswith(other) for t in topics), topics
+            answer = ros.call(probe.create_client(Trigger, f"{ns}/t42/transfer"), Trigger.Request(), timeout_s=300.0)
+            assert answer.success, (ns, answer.message, suites[ns].output()[-3000:])
+            meta = read_metadata(root / "models" / "current.safetensors")
+            assert str(root / "bags") in json.dumps(meta), "each server trains on its own bags"
+        # a goal to the left planner moves only the left hand
+        from geometry_msgs.msg import PointStamped, PoseStamped
+
+        poses: list = []
+        probe.create_subscription(PoseStamped, "/left/hand/object_pose", poses.append, 10)
+        goal_pub = probe.create_publisher(PointStamped, "/left/t42/goal", 10)
+        assert ros.spin_until(lambda: poses and goal_pub.get_subscription_count() == 1, 30.0)
+        ros.spin_for(1.0)
+        goal = PointStamped()
+        goal.header = poses[-1].header
+        goal.point.x, goal.point.y = poses[-1].pose.position.x + 0.004, poses[-1].pose.position.y + 0.004
+        goal_pub.publish(goal)
+        assert ros.spin_until(lambda: trajectories["/left"], 120.0), suites["/left"].output()[-3000:]
+        ros.spin_for(1.0)
+        assert trajectories["/right"] == []
+    finally:
+        codes = [suite.stop() for suite in suites.values()]
+    assert codes == [0, 0], [s.output()[-3000:] for s in suites.values()]
