@@ -1,13 +1,25 @@
-"""Benchmark: pub/sub round-trip latency between two processes over Cyclone DDS on localhost.
+"""Benchmark: pub/sub round trip of hand messages between two processes over rclpy on localhost.
 
-Writes bench/results/pubsub_latency.json.  A ping process publishes a pre-serialised
-PoseStamped on /bench/ping and waits for an echo process to send the same bytes
-back on /bench/pong: through our CycloneTransport (raw CDR bytes, ``publish_raw``,
-``spin_once``), and, as the in-run baseline, through bare cyclonedds-python typed
-``DataWriter.write`` / ``DataReader.take`` (IDL objects, waitset wait) with the same
-QoS (RELIABLE KEEP_LAST 10).  Median, p90, p99 of the round trips after a warm-up.
+Writes bench/results/pubsub_latency.json.  A ping process publishes hand-state
+messages (geometry_msgs/PoseStamped, sensor_msgs/JointState) on ``bench/ping/*``;
+an echo process (a plain rclpy node with raw subscriptions) publishes the same CDR
+bytes back on ``bench/pong/*``; the pinger's typed subscription receives them.
+Default QoS (RELIABLE, KEEP_LAST 10), the middleware rclpy loads (rmw_fastrtps_cpp
+from the wheels).  One round trip is timed from building the message to having
+its values back as numpy, so each case includes its conversions:
 
-    .venv/bin/python bench/bench_pubsub_latency.py              # 1000 round trips each
+- ``ours``: built with msg_adapters (``object_pose_msg`` / ``joint_state_msg``,
+  ``kit=RCLPY``), read back with ``object_xy_mm`` / ``joint_state_arrays``;
+- ``bare`` (baseline): the same rclpy classes filled field by field and read
+  field by field into numpy, with the same arithmetic and no checks.
+
+Both cases and both types are interleaved trip by trip (order rotated each round)
+through the same two processes at a fixed, modest rate, so they share the
+machine's load; every reply is checked against the values sent.  The run has its
+own ROS_DOMAIN_ID (random in 150-230 unless set) and LOCALHOST discovery.
+
+    .venv/bin/python bench/bench_pubsub_latency.py                # 2000 round trips per case, 200 trips/s
+    .venv/bin/python bench/bench_pubsub_latency.py --trips 500
 """
 
 from __future__ import annotations
@@ -17,175 +29,322 @@ import json
 import os
 import random
 import shlex
+import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-
-from msg_adapters import POSE_STAMPED, object_pose_msg  # noqa: E402
-from t42_transfer.ros.transport import serialize  # noqa: E402
+from msg_adapters import joint_state_arrays, joint_state_msg, object_pose_msg, object_xy_mm
+from t42_transfer.conventions import ACTUATOR_NAMES, FRAME_ID, LOAD_UNIT_NM
+from t42_transfer.ros.runner import keep_discovery_local
 
 RESULTS = Path(__file__).parent / "results" / "pubsub_latency.json"
-PING, PONG = "/bench/ping", "/bench/pong"
-WARMUP = 100
+KINDS = ("pose", "joint_state")
+DEPTH = 10
+"""rclpy's default KEEP_LAST depth, as the hand's nodes publish with."""
+_MM_PER_M = 1000.0
 
 
-class Bare:
-    """Typed cyclonedds-python endpoints: write an IDL object, take IDL objects."""
+def _classes() -> dict[str, type]:
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState
 
-    def __init__(self, send: str, receive: str) -> None:
-        from cyclonedds.core import Policy, Qos, ReadCondition, SampleState, ViewState, InstanceState, WaitSet
-        from cyclonedds.domain import Domain, DomainParticipant
-        from cyclonedds.pub import DataWriter
-        from cyclonedds.sub import DataReader
-        from cyclonedds.topic import Topic
-        from cyclonedds.util import duration
-
-        from t42_transfer.ros.cyclone import discovery_config, domain_id_from_env
-        from t42_transfer.ros.dds_types import dds_class
-        from t42_transfer.ros.naming import dds_topic
-
-        domain_id = domain_id_from_env()
-        self.domain = Domain(domain_id, discovery_config())  # the same localhost config CycloneTransport uses
-        self.participant = DomainParticipant(domain_id)
-        self.cls = dds_class(POSE_STAMPED)
-        qos = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.Durability.Volatile,
-                  Policy.History.KeepLast(10), Policy.DataRepresentation(use_cdrv0_representation=True))
-        self.writer = DataWriter(self.participant, Topic(self.participant, "bare" + dds_topic(send), self.cls), qos=qos)
-        self.reader = DataReader(self.participant, Topic(self.participant, "bare" + dds_topic(receive), self.cls),
-                                 qos=qos)
-        self.waitset = WaitSet(self.participant)
-        self.waitset.attach(ReadCondition(self.reader, SampleState.Any | ViewState.Any | InstanceState.Any))
-
-    def matched(self) -> bool:
-        return bool(self.writer.get_matched_subscriptions()) and bool(self.reader.get_matched_publications())
-
-    def send(self, obj: object) -> None:
-        self.writer.write(obj)
-
-    def receive(self) -> object:
-        while True:
-            samples = self.reader.take(N=1)
-            if samples:
-                return samples[0]
-            self.waitset.wait(1_000_000_000)
+    return {"pose": PoseStamped, "joint_state": JointState}
 
 
-class Ours:
-    """Our CycloneTransport: publish_raw and raw callbacks run by spin_once."""
-
-    def __init__(self, name: str, send: str, receive: str) -> None:
-        from t42_transfer.ros import qos
-        from t42_transfer.ros.cyclone import CycloneTransport
-
-        self.node = CycloneTransport(name)
-        self.pub = self.node.publisher(send, POSE_STAMPED, qos.DEFAULT)
-        self.got: list[bytes] = []
-        self.node.subscribe(receive, POSE_STAMPED, qos.DEFAULT, self.got.append, raw=True)
-
-    def matched(self) -> bool:
-        return bool(self.pub.writer.get_matched_subscriptions()) and \
-            bool(self.node._subscriptions[0].reader.get_matched_publications())
-
-    def send(self, data: bytes) -> None:
-        self.pub.publish_raw(data)
-
-    def receive(self) -> bytes:
-        while not self.got:
-            self.node.spin_once(1.0)
-        return self.got.pop(0)
+# --------------------------------------------------------------------------- echo process
 
 
-def _wait_matched(endpoint: Bare | Ours, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not endpoint.matched():
-        if time.monotonic() > deadline:
-            raise SystemExit("endpoints did not match")
-        time.sleep(0.02)
-    time.sleep(0.3)
+def role_echo() -> None:
+    """Return every ping's CDR bytes unchanged on the matching pong topic until SIGINT/SIGTERM."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init()
+    node = rclpy.create_node("bench_echo")
+    for kind, cls in _classes().items():
+        pong = node.create_publisher(cls, f"bench/pong/{kind}", DEPTH)
+        node.create_subscription(cls, f"bench/ping/{kind}", pong.publish, DEPTH, raw=True)
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
 
 
-def _endpoint(impl: str, role: str) -> Bare | Ours:
-    send, receive = (PING, PONG) if role == "ping" else (PONG, PING)
-    return Ours(f"bench_{role}", send, receive) if impl == "ours" else Bare(send, receive)
+# --------------------------------------------------------------------------- ping process
 
 
-def role_echo(impl: str, trips: int) -> None:
-    endpoint = _endpoint(impl, "echo")
-    _wait_matched(endpoint)
-    for _ in range(trips + WARMUP):
-        endpoint.send(endpoint.receive())  # type: ignore[arg-type]
-    time.sleep(0.5)
+class Case(NamedTuple):
+    """How one case builds the message of trip ``i`` (with the values it should get back) and reads a reply."""
+
+    kind: str
+    build: Callable[[int], tuple[Any, np.ndarray]]
+    read: Callable[[Any], np.ndarray]
 
 
-def ping(impl: str, trips: int, env: dict[str, str]) -> np.ndarray:
-    echo = subprocess.Popen([sys.executable, __file__, "--role", "echo", "--impl", impl, "--trips", str(trips)],
-                            cwd=REPO, env=env, stderr=subprocess.PIPE, text=True)
-    endpoint = _endpoint(impl, "ping")
-    payload = serialize(POSE_STAMPED, object_pose_msg([12.5, -3.0], 1_000_000_000))
-    message: object = payload if impl == "ours" else endpoint.cls.deserialize(payload)  # type: ignore[union-attr]
-    send: Callable[[object], None] = endpoint.send  # type: ignore[assignment]
-    _wait_matched(endpoint)
-    times = []
-    for i in range(trips + WARMUP):
-        start = time.perf_counter()
-        send(message)
-        back = endpoint.receive()
-        elapsed = time.perf_counter() - start
-        if i >= WARMUP:
-            times.append(elapsed)
-    assert (back == payload) if impl == "ours" else (back.serialize() == payload)  # type: ignore[union-attr]
-    _, err = echo.communicate(timeout=60)
+def _values(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Trip ``i``'s object position (mm), loads, actuator angles (float32) and stamp (ns)."""
+    xy = np.array([i % 40 - 20.0, 3.0 + i % 7], np.float32)
+    loads = np.array([i % 300 - 150.0, 12.5], np.float32)
+    angles = np.array([0.01 * (i % 50), -0.2], np.float32)
+    return xy, loads, angles, 1_000_000_000 + i * 5_000_000
+
+
+def ours_cases() -> list[Case]:
+    from msg_adapters import RCLPY
+
+    def pose(i: int) -> tuple[Any, np.ndarray]:
+        xy, _, _, stamp = _values(i)
+        return object_pose_msg(xy, stamp, kit=RCLPY), xy
+
+    def joints(i: int) -> tuple[Any, np.ndarray]:
+        _, loads, angles, stamp = _values(i)
+        return joint_state_msg(loads, angles, stamp, kit=RCLPY), np.concatenate([loads, angles])
+
+    def joint_values(msg: Any) -> np.ndarray:
+        loads, angles = joint_state_arrays(msg)
+        return np.concatenate([loads, angles])
+
+    return [Case("pose", pose, object_xy_mm), Case("joint_state", joints, joint_values)]
+
+
+def bare_cases() -> list[Case]:
+    classes = _classes()
+
+    def pose(i: int) -> tuple[Any, np.ndarray]:
+        xy, _, _, stamp = _values(i)
+        msg = classes["pose"]()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        msg.header.frame_id = FRAME_ID
+        msg.pose.position.x = float(xy[0]) / _MM_PER_M
+        msg.pose.position.y = float(xy[1]) / _MM_PER_M
+        msg.pose.orientation.w = 1.0
+        return msg, xy
+
+    def pose_values(msg: Any) -> np.ndarray:
+        position = msg.pose.position
+        return np.array([position.x * _MM_PER_M, position.y * _MM_PER_M]).astype(np.float32)
+
+    def joints(i: int) -> tuple[Any, np.ndarray]:
+        _, loads, angles, stamp = _values(i)
+        msg = classes["joint_state"]()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 10**9)
+        msg.name = list(ACTUATOR_NAMES)
+        msg.position = [float(a) for a in angles]
+        msg.effort = [float(load) * LOAD_UNIT_NM for load in loads]
+        return msg, np.concatenate([loads, angles])
+
+    def joint_values(msg: Any) -> np.ndarray:
+        loads = np.array(msg.effort) / LOAD_UNIT_NM
+        return np.concatenate([loads, np.array(msg.position)]).astype(np.float32)
+
+    return [Case("pose", pose, pose_values), Case("joint_state", joints, joint_values)]
+
+
+def role_ping(trips: int, warmup: int, rate: float) -> None:
+    """Time ``warmup + trips`` round trips of every case, interleaved; print the times (ms) as one JSON line."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    rclpy.init()
+    node = rclpy.create_node("bench_ping")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    replies: dict[str, Any] = {}
+
+    def keep(kind: str) -> Callable[[Any], None]:
+        return lambda msg: replies.__setitem__(kind, msg)
+
+    pubs, subs = {}, []
+    for kind, cls in _classes().items():
+        pubs[kind] = node.create_publisher(cls, f"bench/ping/{kind}", DEPTH)
+        subs.append(node.create_subscription(cls, f"bench/pong/{kind}", keep(kind), DEPTH))
+
+    def spin_until(done: Callable[[], bool], timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not done():
+            if time.monotonic() > deadline:
+                return False
+            executor.spin_once(timeout_sec=0.05)
+        return True
+
+    def matched() -> bool:
+        return all(p.get_subscription_count() for p in pubs.values()) and all(s.get_publisher_count() for s in subs)
+
+    def echoed(kind: str, msg: Any) -> bool:
+        """Graph discovery can precede endpoint matching: ping every 0.2 s until one comes back."""
+        for _ in range(100):
+            pubs[kind].publish(msg)
+            if spin_until(lambda: kind in replies, 0.2):
+                return True
+        return False
+
+    cases = {("ours", c.kind): c for c in ours_cases()} | {("bare", c.kind): c for c in bare_cases()}
+    try:
+        if not spin_until(matched, 30.0):
+            raise SystemExit("the echo process did not appear within 30 s")
+        for kind in KINDS:
+            if not echoed(kind, cases[("ours", kind)].build(0)[0]):
+                raise SystemExit(f"no {kind} echo within 20 s")
+        spin_until(lambda: False, 0.3)  # drain late echoes of the priming pings
+        replies.clear()
+
+        names = list(cases)
+        times: dict[tuple[str, str], list[float]] = {name: [] for name in names}
+        period = 1.0 / rate
+        next_start = time.perf_counter()
+        for i in range(warmup + trips):
+            for name in names[i % len(names) :] + names[: i % len(names)]:
+                next_start += period
+                time.sleep(max(0.0, next_start - time.perf_counter()))
+                next_start = max(next_start, time.perf_counter())  # running late: no catch-up burst
+                case = cases[name]
+                start = time.perf_counter_ns()
+                msg, expected = case.build(i)
+                pubs[case.kind].publish(msg)
+                if not spin_until(lambda: case.kind in replies, 5.0):
+                    raise SystemExit(f"{name} trip {i}: no echo within 5 s")
+                got = case.read(replies.pop(case.kind))
+                elapsed = time.perf_counter_ns() - start
+                if not np.array_equal(got, expected):
+                    raise SystemExit(f"{name} trip {i}: sent {expected.tolist()}, got back {got.tolist()}")
+                if i >= warmup:
+                    times[name].append(elapsed / 1e6)
+        print(
+            json.dumps(
+                {
+                    "rmw": rclpy.get_rmw_implementation_identifier(),
+                    "times_ms": {f"{impl}/{kind}": ts for (impl, kind), ts in times.items()},
+                }
+            )
+        )
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+# --------------------------------------------------------------------------- orchestration
+
+
+def stop(proc: subprocess.Popen, timeout_s: float = 10.0) -> str:
+    """SIGINT ``proc`` if it still runs, kill it after ``timeout_s``; its stderr."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+    return err or ""
+
+
+def stats(ms: list[float]) -> dict[str, float]:
+    arr = np.asarray(ms)
+    return {
+        "median_ms": round(float(np.median(arr)), 4),
+        "p90_ms": round(float(np.percentile(arr, 90)), 4),
+        "p99_ms": round(float(np.percentile(arr, 99)), 4),
+        "mean_ms": round(float(arr.mean()), 4),
+        "max_ms": round(float(arr.max()), 4),
+    }
+
+
+def run(trips: int, warmup: int, rate: float, env: dict[str, str]) -> dict:
+    """Start the echo and ping processes, wait for the pinger's times, stop both; the pinger's report."""
+
+    def start(*args: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, __file__, "--role", *args],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    echo = start("echo")
+    ping = None
+    try:
+        ping = start("ping", "--trips", str(trips), "--warmup", str(warmup), "--rate", str(rate))
+        budget_s = 90.0 + 3 * len(KINDS) * 2 * (trips + warmup) / rate  # 3x the paced time, plus start-up
+        out, err = ping.communicate(timeout=budget_s)
+        if ping.returncode:
+            raise SystemExit(f"ping process failed ({ping.returncode}): {err[-3000:]}")
+    finally:
+        if ping is not None and ping.returncode is None:
+            stop(ping)
+        echo_err = stop(echo)
     if echo.returncode:
-        raise RuntimeError(f"echo failed: {err[-2000:]}")
-    return np.array(times) * 1e3
-
-
-def stats(ms: np.ndarray) -> dict[str, float]:
-    return {"median_ms": round(float(np.median(ms)), 4), "p90_ms": round(float(np.percentile(ms, 90)), 4),
-            "p99_ms": round(float(np.percentile(ms, 99)), 4), "mean_ms": round(float(ms.mean()), 4)}
+        raise SystemExit(f"echo process failed ({echo.returncode}): {echo_err[-3000:]}")
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--role", choices=("echo",), default=None)
-    parser.add_argument("--impl", choices=("ours", "bare"), default="ours")
-    parser.add_argument("--trips", type=int, default=1000)
+    parser.add_argument("--role", choices=("echo", "ping"), help=argparse.SUPPRESS)
+    parser.add_argument("--trips", type=int, default=2000, help="timed round trips per case")
+    parser.add_argument("--warmup", type=int, default=100, help="untimed round trips per case first")
+    parser.add_argument("--rate", type=float, default=200.0, help="round trips per second, all cases together")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.role == "echo":
-        return role_echo(args.impl, args.trips)
+        return role_echo()
+    if args.role == "ping":
+        return role_ping(args.trips, args.warmup, args.rate)
 
-    sys.path.insert(0, str(REPO / "bench"))
+    sys.path.insert(0, str(Path(__file__).parent))
     from machine import machine_info
 
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = env.get("ROS_DOMAIN_ID") or str(random.randint(150, 230))
+    discovery = keep_discovery_local(env)
     info = machine_info()
-    results = {}
-    domains = random.sample(range(100, 201), 2)
-    for impl, domain_id in zip(("ours", "bare"), domains):  # each on its own domain: a process configures one once
-        domain = str(domain_id)
-        env = dict(os.environ, ROS_DOMAIN_ID=domain, PYTHONPATH=str(REPO))
-        env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-        env.pop("CYCLONEDDS_URI", None)
-        os.environ["ROS_DOMAIN_ID"] = domain
-        results[impl] = stats(ping(impl, args.trips, env))
-        print(impl, results[impl], flush=True)
+    load_before = os.getloadavg()
+    started = time.monotonic()
+    report = run(args.trips, args.warmup, args.rate, env)
+    wall_s = time.monotonic() - started
+    load_after = os.getloadavg()
+
+    times = report["times_ms"]
+    per_type = {}
+    for kind in KINDS:
+        ours, bare = stats(times[f"ours/{kind}"]), stats(times[f"bare/{kind}"])
+        per_type[kind] = {
+            "ours_msg_adapters": ours,
+            "baseline_bare_rclpy": bare,
+            "ratio_ours_over_bare": {k: round(ours[k] / bare[k], 3) for k in ("median_ms", "p90_ms", "p99_ms")},
+        }
+        print(kind, json.dumps(per_type[kind]), flush=True)
     result = {
-        "benchmark": "pub/sub round trip between two processes over Cyclone DDS on localhost (PoseStamped)",
-        "command": " ".join(shlex.quote(a) for a in [".venv/bin/python", "bench/bench_pubsub_latency.py", *sys.argv[1:]]),
+        "benchmark": "pub/sub round trip of hand messages between two processes over rclpy on localhost",
+        "command": " ".join(
+            shlex.quote(a) for a in [".venv/bin/python", "bench/bench_pubsub_latency.py", *sys.argv[1:]]
+        ),
         "machine": info,
-        "load_average_after": os.getloadavg(),
-        "round_trips": args.trips,
-        "warmup": WARMUP,
-        "ours_cyclone_transport_raw": results["ours"],
-        "baseline_bare_cyclonedds_typed": results["bare"],
-        "median_ratio_ours_over_bare": round(results["ours"]["median_ms"] / results["bare"]["median_ms"], 3),
+        "load_average_before": load_before,
+        "load_average_after": load_after,
+        "wall_s": round(wall_s, 1),
+        "ros": {
+            "rmw": report["rmw"],
+            "domain_id": int(env["ROS_DOMAIN_ID"]),
+            "discovery_range": discovery,
+            "qos": f"RELIABLE KEEP_LAST {DEPTH} VOLATILE",
+            "echo": "raw subscription, Publisher.publish(bytes)",
+        },
+        "round_trips_per_case": args.trips,
+        "warmup_per_case": args.warmup,
+        "rate_hz_all_cases": args.rate,
+        "timed": "build message -> publish -> echo -> typed receive -> values back as numpy (checked equal)",
+        "geometry_msgs/PoseStamped": per_type["pose"],
+        "sensor_msgs/JointState": per_type["joint_state"],
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
