@@ -1,29 +1,34 @@
 """Planner node: object goals in, open-loop actuator trajectories out, planned with the latest model.
 
-Wiring (defaults; every name is a :class:`PlannerNodeParams` field):
+Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``/t42/goal`` (geometry_msgs/msg/PointStamped): subscribed; the goal of the
+* ``t42/goal`` (geometry_msgs/msg/PointStamped): subscribed; the goal of the
   object centre, metres in ``t42_base`` (other frames and non-finite values are refused);
-* ``/hand/object_pose``, ``/hand/joint_states``: subscribed; the latest hand state
+* ``hand/object_pose``, ``hand/joint_states``: subscribed; the latest hand state
   ``(x mm, y mm, load1, load2)`` (the ``STATE_NAMES`` layout :func:`load_model`
   checks in every checkpoint) and the actuator angles;
-* ``/t42/model_updated`` (std_msgs/msg/String, latched): subscribed with
-  TRANSIENT_LOCAL; a model file path to plan with from now on;
-* ``/hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an
+* ``t42/model_updated`` (std_msgs/msg/String, latched): subscribed TRANSIENT_LOCAL;
+  a model file path to plan with from now on (the transfer server announces there);
+* ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an
   accepted plan; actuator-angle targets one per control period, starting from the
   angles of the state planned from, stamped when published (the driver refuses it stale);
-* ``/t42/planned_path`` (nav_msgs/msg/Path): published with each trajectory; the
-  predicted object positions (horizon + 1 poses, the start included), metres in
+* ``t42/planned_path`` (nav_msgs/msg/Path): published with each trajectory; the
+  predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
-* ``/t42/plan_result`` (std_msgs/msg/String): exactly one JSON line per goal,
+* ``t42/plan_result`` (std_msgs/msg/String): exactly one JSON line per goal,
   :class:`PlanResult`: accepted, or refused with a status code and a reason.
+
+Parameters are :class:`PlannerNodeParams`.  ``model`` is read once at start (later
+models come by announcement); the planner settings and ``max_state_age_s`` may be
+changed at run time (``ros2 param set``) and apply from the next goal served.
 
 Decisions, and why:
 
-* Plans run in one worker thread, not in the goal callback: K samples x T steps
-  take 0.1-1 s, and a blocked spin would stop the node from tracking the hand
-  state and model announcements meanwhile.  Publishers are thread-safe on every
-  backend; the state and model are swapped under a lock.
+* Plans run in one worker thread, not in an executor callback: K samples x T steps
+  take 0.1-1 s, and the node must keep tracking the hand state meanwhile (the plan
+  for the next goal starts from it).  State callbacks stay in the node's default
+  callback group; model loading has its own, so reading a large file does not
+  stall state tracking either.  State and model are swapped under a lock.
 * The latest goal wins.  A goal arriving while another waits replaces it; one
   arriving while a plan runs lets that plan finish (the planner cannot be
   interrupted) and then discards it unpublished.  Either way the older goal
@@ -34,8 +39,11 @@ Decisions, and why:
   a given model was trained.
 * Only plans the planner calls ``ok`` (a safe prediction within ``tolerance_mm``)
   are executed; ``unreachable`` ones are refused with their predicted error.
-* Hand state older than ``max_state_age_s`` (driver stopped, episode ended) is
-  refused: an open-loop plan from an old state is a plan for another hand.
+* Hand state further than ``max_state_age_s`` from now (driver stopped, episode
+  ended) is refused: an open-loop plan from an old state is a plan for another hand.
+* Results are published reliable and TRANSIENT_LOCAL with a depth of 10: both
+  volatile and latched subscribers match, a late latched one gets the last result,
+  and a ``superseded`` result published just before the plan's is not overwritten.
 
 Nothing here raises from a callback: failures are logged and, for goals, answered
 on the result topic.
@@ -47,21 +55,23 @@ import json
 import math
 import threading
 import time
+import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from geometry_msgs.msg import PointStamped, PoseStamped
+from nav_msgs.msg import Path as PathMsg
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
-    JOINT_STATE,
-    JOINT_STATES_TOPIC,
-    JOINT_TRAJECTORY,
-    OBJECT_POSE_TOPIC,
-    PATH,
-    POINT_STAMPED,
-    POSE_STAMPED,
-    TYPESTORE,
+    RCLPY,
     actions_to_joint_trajectory,
     goal_xy_mm,
     joint_state_arrays,
@@ -70,20 +80,21 @@ from msg_adapters import (
     stamp_to_ns,
 )
 from t42_transfer.models.checkpoint import load_model
+from t42_transfer.models.dynamics import LatentDynamics
+from t42_transfer.nodes.mock_driver import JOINT_STATES_TOPIC, OBJECT_POSE_TOPIC, TRAJECTORY_TOPIC
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
-from t42_transfer.ros import qos
-from t42_transfer.ros.naming import validate_name
-from t42_transfer.ros.transport import Transport
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import LATCHED
 
-STRING = "std_msgs/msg/String"
+GOAL_TOPIC = "t42/goal"
+MODEL_UPDATED_TOPIC = "t42/model_updated"
+PATH_TOPIC = "t42/planned_path"
+RESULT_TOPIC = "t42/plan_result"
 
-GOAL_TOPIC = "/t42/goal"
-MODEL_UPDATED_TOPIC = "/t42/model_updated"
-TRAJECTORY_TOPIC = "/hand/trajectory"
-PATH_TOPIC = "/t42/planned_path"
-RESULT_TOPIC = "/t42/plan_result"
+RESULT_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""See the module docstring: matches volatile and latched subscribers, keeps back-to-back results."""
 
-_String = TYPESTORE.types[STRING]
 _DEFAULTS = PlannerConfig()
 
 
@@ -91,36 +102,34 @@ _DEFAULTS = PlannerConfig()
 class PlannerNodeParams:
     """Parameters of :class:`PlannerNode` (the node's ROS parameters)."""
 
-    model: str = ""
-    """Model file to start with; empty or missing: wait for ``model_updated_topic`` (goals are refused meanwhile)."""
-    samples: int = _DEFAULTS.samples
-    horizon: int = _DEFAULTS.horizon
-    horizon_search: bool = True
-    """Plan the shortest sequence that reaches the goal (PlannerConfig's default, False, always plans ``horizon`` steps)."""
-    tolerance_mm: float = _DEFAULTS.tolerance_mm
-    seed: int = _DEFAULTS.seed
-    max_state_age_s: float = 0.5
-    """Plan only from a hand state at most this old (or this far in the future)."""
-    goal_topic: str = GOAL_TOPIC
-    model_updated_topic: str = MODEL_UPDATED_TOPIC
-    object_pose_topic: str = OBJECT_POSE_TOPIC
-    joint_states_topic: str = JOINT_STATES_TOPIC
-    trajectory_topic: str = TRAJECTORY_TOPIC
-    path_topic: str = PATH_TOPIC
-    result_topic: str = RESULT_TOPIC
+    model: str = param("", "model file to start with; empty or missing: wait for t42/model_updated "
+                           "(goals are refused meanwhile)", read_only=True)
+    samples: int = param(_DEFAULTS.samples, "action sequences sampled per plan", min=1)
+    horizon: int = param(_DEFAULTS.horizon, "steps of a sampled sequence (0.1 s each); with horizon_search "
+                                            "the longest plan", min=1)
+    horizon_search: bool = param(True, "plan the shortest sequence that reaches the goal "
+                                       "(false: always plan horizon steps)")
+    tolerance_mm: float = param(_DEFAULTS.tolerance_mm, "a prediction this close to the goal reaches it (mm)",
+                                min=0.0, constraints="positive, finite")
+    seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")
+    max_state_age_s: float = param(0.5, "plan only from a hand state at most this old (or this far in the future)",
+                                   min=0.0, constraints="positive, finite")
 
     def __post_init__(self) -> None:
         _ = self.planner_config  # PlannerConfig validates the planner fields
+        if not math.isfinite(self.tolerance_mm):
+            raise ValueError(f"tolerance_mm must be finite, got {self.tolerance_mm!r}")
         if not (math.isfinite(self.max_state_age_s) and self.max_state_age_s > 0):
             raise ValueError(f"max_state_age_s must be positive and finite, got {self.max_state_age_s!r}")
-        for field in ("goal_topic", "model_updated_topic", "object_pose_topic", "joint_states_topic",
-                      "trajectory_topic", "path_topic", "result_topic"):
-            validate_name(getattr(self, field))
 
     @property
     def planner_config(self) -> PlannerConfig:
         return PlannerConfig(samples=self.samples, horizon=self.horizon, horizon_search=self.horizon_search,
                              tolerance_mm=self.tolerance_mm, seed=self.seed)
+
+    @property
+    def max_state_age_ns(self) -> int:
+        return round(self.max_state_age_s * 1e9)
 
 
 @dataclass(frozen=True)
@@ -158,13 +167,19 @@ class Refused(Exception):
 
 @dataclass(frozen=True)
 class LoadedModel:
+    """A model and the workspace it was trained in; planners are built per goal with the current settings."""
+
     path: str
     method: str
-    planner: Planner
+    model: LatentDynamics
+    workspace: Workspace
+
+    def planner(self, config: PlannerConfig) -> Planner:
+        return Planner(self.model, self.workspace, config)
 
 
-def load_planner(path: str | Path, config: PlannerConfig) -> LoadedModel:
-    """A planner for the model in ``path`` inside the workspace it stores.
+def load_planner_model(path: str | Path) -> LoadedModel:
+    """The model in ``path`` with its stored workspace.
 
     Raises :class:`~t42_transfer.models.checkpoint.CheckpointError` for an unreadable
     file and ``ValueError`` for a file without a workspace (see the module docstring).
@@ -174,7 +189,7 @@ def load_planner(path: str | Path, config: PlannerConfig) -> LoadedModel:
     if workspace is None:
         raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
                          "the planner cannot tell where its predictions hold")
-    return LoadedModel(str(path), str(meta.get("method", "")), Planner(model, workspace, config))
+    return LoadedModel(str(path), str(meta.get("method", "")), model, workspace)
 
 
 @dataclass(frozen=True)
@@ -207,14 +222,13 @@ class _Goal:
     stamp_ns: int
 
 
-class PlannerNode:
+class PlannerNode(Node):
     """Plans for goals with the latest model and hand state; see the module docstring for behaviour."""
 
-    def __init__(self, transport: Transport, params: PlannerNodeParams | None = None) -> None:
-        self.transport = transport
-        self.params = params if params is not None else PlannerNodeParams()
-        p = self.params
-        self.log = transport.logger
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("planner", **node_kwargs)
+        self._params = LiveParams(self, PlannerNodeParams, self._on_params)
+        self.log = self.get_logger()
         self._cond = threading.Condition()
         self._model: LoadedModel | None = None
         self._pose: tuple[int, np.ndarray] | None = None
@@ -223,21 +237,27 @@ class PlannerNode:
         self._planning = False
         self._stopping = False
 
-        self._trajectory_pub = transport.publisher(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT)
-        self._path_pub = transport.publisher(p.path_topic, PATH, qos.DEFAULT)
-        self._result_pub = transport.publisher(p.result_topic, STRING, qos.DEFAULT)
-        if p.model and Path(p.model).exists():
-            self.load(p.model)
+        self._trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
+        self._path_pub = self.create_publisher(PathMsg, PATH_TOPIC, 10)
+        self._result_pub = self.create_publisher(String, RESULT_TOPIC, RESULT_QOS)
+        model = self.params.model
+        if model and Path(model).exists():
+            self.load(model)
         else:
-            self.log.info("no model file %r yet; waiting for %s", p.model, p.model_updated_topic)
-        transport.subscribe(p.object_pose_topic, POSE_STAMPED, qos.DEFAULT, self._on_pose)
-        transport.subscribe(p.joint_states_topic, JOINT_STATE, qos.DEFAULT, self._on_joints)
-        transport.subscribe(p.model_updated_topic, STRING, qos.TRANSIENT_LOCAL, self._on_model_updated)
-        transport.subscribe(p.goal_topic, POINT_STAMPED, qos.DEFAULT, self._on_goal)
-        self._worker = threading.Thread(target=self._work, name=f"{transport.node_name}_planner", daemon=True)
+            self.log.info(f"no model file {model!r} yet; waiting for {self._model_topic}")
+        self.create_subscription(PoseStamped, OBJECT_POSE_TOPIC, self._on_pose, 10)
+        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joints, 10)
+        self.create_subscription(String, MODEL_UPDATED_TOPIC, self._on_model_updated, LATCHED,
+                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_subscription(PointStamped, GOAL_TOPIC, self._on_goal, 10)
+        self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()
 
     # ------------------------------------------------------------------ state
+    @property
+    def params(self) -> PlannerNodeParams:
+        return self._params.value
+
     @property
     def model(self) -> LoadedModel | None:
         return self._model
@@ -248,49 +268,70 @@ class PlannerNode:
         with self._cond:
             return self._pending is None and not self._planning
 
+    @property
+    def state_stamp_ns(self) -> int | None:
+        """Stamp of the older of the latest object pose and joint states (None before both arrived)."""
+        with self._cond:
+            if self._pose is None or self._joints is None:
+                return None
+            return min(self._pose[0], self._joints[0])
+
+    @property
+    def _model_topic(self) -> str:
+        return self.resolve_topic_name(MODEL_UPDATED_TOPIC)
+
     def load(self, path: str) -> bool:
         """Plan with the model in ``path`` from now on; on failure keep the current one and log why."""
         try:
-            loaded = load_planner(path, self.params.planner_config)
+            loaded = load_planner_model(path)
         except Exception as err:
             kept = self._model.path if self._model else "none"
-            self.log.warning("could not load model %s (%s); keeping model %s", path, err, kept)
+            self.log.warning(f"could not load model {path} ({err}); keeping model {kept}")
             return False
         with self._cond:
             self._model = loaded
-        self.log.info("planning with model %s (method %r)", path, loaded.method)
+        self.log.info(f"planning with model {path} (method {loaded.method!r})")
         return True
 
     def close(self) -> None:
-        """Stop the worker after its current plan (unpublished); the transport's owner closes the transport."""
+        """Stop the worker after its current plan (left unpublished); idempotent."""
         with self._cond:
             self._stopping = True
             self._cond.notify_all()
         self._worker.join()
 
+    def destroy_node(self) -> None:
+        """Stop the worker first, so it never publishes through destroyed publishers."""
+        self.close()
+        super().destroy_node()
+
     # ------------------------------------------------------------------ callbacks
-    def _on_pose(self, msg: Any) -> None:
+    def _on_params(self, old: PlannerNodeParams, new: PlannerNodeParams) -> None:
+        changed = {k: v for k, v in asdict(new).items() if asdict(old)[k] != v}
+        self.log.info(f"parameters changed {changed}: used from the next goal")
+
+    def _on_pose(self, msg: PoseStamped) -> None:
         try:
             pose = (stamp_to_ns(msg.header.stamp), object_xy_mm(msg))
         except Exception as err:
-            self.log.warning("ignored %s: %s", self.params.object_pose_topic, err)
+            self.log.warning(f"ignored {OBJECT_POSE_TOPIC}: {err}")
             return
         with self._cond:
             self._pose = pose
 
-    def _on_joints(self, msg: Any) -> None:
+    def _on_joints(self, msg: JointState) -> None:
         try:
             joints = (stamp_to_ns(msg.header.stamp), *joint_state_arrays(msg))
         except Exception as err:
-            self.log.warning("ignored %s: %s", self.params.joint_states_topic, err)
+            self.log.warning(f"ignored {JOINT_STATES_TOPIC}: {err}")
             return
         with self._cond:
             self._joints = joints
 
-    def _on_model_updated(self, msg: Any) -> None:
+    def _on_model_updated(self, msg: String) -> None:
         self.load(msg.data.strip())
 
-    def _on_goal(self, msg: Any) -> None:
+    def _on_goal(self, msg: PointStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         try:
             goal = _Goal(goal_xy_mm(msg), stamp)
@@ -315,27 +356,31 @@ class PlannerNode:
             try:
                 self._serve(goal)
             except Exception as err:  # the worker outlives any one goal
-                self.log.exception("planning failed")
+                self.log.error(f"planning failed: {err!r}\n{traceback.format_exc()}")
                 self._publish_result(PlanResult(False, "error", f"planning failed: {err!r}", goal.xy.tolist(),
                                                 goal.stamp_ns))
             finally:
                 with self._cond:
                     self._planning = False
 
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
     def _serve(self, goal: _Goal) -> None:
         """Plan for ``goal``, then publish the trajectory and path (accepted) and the result."""
         goal_mm = goal.xy.tolist()
+        p = self.params
         with self._cond:
             loaded, pose, joints = self._model, self._pose, self._joints
         try:
             if loaded is None:
-                raise Refused("no_model", f"no model loaded yet; waiting for {self.params.model_updated_topic}")
-            hand = hand_state(pose, joints, self.transport.now_ns(), round(self.params.max_state_age_s * 1e9))
+                raise Refused("no_model", f"no model loaded yet; waiting for {self._model_topic}")
+            hand = hand_state(pose, joints, self._now_ns(), p.max_state_age_ns)
         except Refused as refused:
             self._publish_result(PlanResult(False, refused.status, refused.reason, goal_mm, goal.stamp_ns))
             return
         started = time.perf_counter()
-        plan = loaded.planner.plan(hand.state, goal.xy)
+        plan = loaded.planner(p.planner_config).plan(hand.state, goal.xy)
         result = PlanResult(
             accepted=plan.ok,
             status=plan.status,
@@ -357,20 +402,18 @@ class PlannerNode:
                 self._publish_result(_superseded(goal, result))
                 return
         if plan.ok:
-            stamp = self.transport.now_ns()
-            self._trajectory_pub.publish(actions_to_joint_trajectory(plan.actions, hand.angles, stamp))
-            self._path_pub.publish(path_msg(plan.predicted[:, :2], stamp))
+            stamp = self._now_ns()
+            self._trajectory_pub.publish(actions_to_joint_trajectory(plan.actions, hand.angles, stamp, kit=RCLPY))
+            self._path_pub.publish(path_msg(plan.predicted[:, :2], stamp, kit=RCLPY))
         self._publish_result(result)
 
     def _publish_result(self, result: PlanResult) -> None:
-        if self.transport.closed:  # the owner closed the transport before this node
-            return
         if result.accepted:
-            self.log.info("goal %s mm: %d-step plan, predicted error %.2f mm", result.goal_mm, result.horizon,
-                          result.predicted_error_mm)
+            self.log.info(f"goal {result.goal_mm} mm: {result.horizon}-step plan, "
+                          f"predicted error {result.predicted_error_mm:.2f} mm")
         else:
-            self.log.warning("refused goal %s mm (%s): %s", result.goal_mm, result.status, result.reason)
-        self._result_pub.publish(_String(data=result.to_json()))
+            self.log.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
+        self._result_pub.publish(String(data=result.to_json()))
 
 
 def _superseded(goal: _Goal, planned: PlanResult | None = None) -> PlanResult:
