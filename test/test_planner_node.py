@@ -1,61 +1,56 @@
-"""The planner node on the in-process bus, with the mock driver and a fake clock."""
+"""The planner node on real rclpy, in-process, with the mock driver stepped by hand."""
 
 from __future__ import annotations
 
 import json
-import logging
 import math
 import threading
-import time
 from pathlib import Path
-
 from typing import Any
 
 import numpy as np
 import pytest
 import torch
+from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.msg import Log
+from rcl_interfaces.srv import SetParameters
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from std_msgs.msg import String
 from torch import Tensor
+from trajectory_msgs.msg import JointTrajectory
 
-from msg_adapters import (
-    JOINT_TRAJECTORY,
-    PATH,
-    POINT_STAMPED,
-    goal_msg,
-    joint_trajectory_to_actions,
-    path_xy_mm,
-    stamp_to_ns,
-)
+from msg_adapters import RCLPY, goal_msg, joint_trajectory_to_actions, path_xy_mm, stamp_to_ns
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models import LatentDynamics
 from t42_transfer.models.checkpoint import save_model
-from t42_transfer.nodes.mock_driver import MockDriver, MockDriverParams
+from t42_transfer.nodes.mock_driver import TRAJECTORY_TOPIC, MockDriver
 from t42_transfer.nodes.planner_node import (
     GOAL_TOPIC,
     MODEL_UPDATED_TOPIC,
     PATH_TOPIC,
     RESULT_TOPIC,
-    STRING,
-    TRAJECTORY_TOPIC,
     PlannerNode,
     PlannerNodeParams,
     Refused,
     hand_state,
 )
-from t42_transfer.planning import Workspace
-from t42_transfer.ros import qos
-from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
-from t42_transfer.ros.transport import message_class
+from t42_transfer.planning import Planner, Workspace
+from t42_transfer.ros.qos import LATCHED
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-START_NS = 1_000_000_000
 GRASP = SimulatedHand("target")
 GRASP.reset(0)
 START_XY = GRASP.state[:2].copy()
 """Where the mock driver (seed 0) holds the object after its first grasp."""
 BOX = Workspace.box(START_XY[0] - 40, START_XY[0] + 40, START_XY[1] - 40, START_XY[1] + 40)
-SMALL = dict(samples=200, horizon=20, tolerance_mm=3.0)
+SMALL = dict(samples=200, horizon=20, tolerance_mm=3.0, max_state_age_s=5.0)
+"""Fast plans; a generous state age, since a loaded 2-core machine may take a while between tick and plan."""
+SLOW_TIMER = 1e-3
+"""The driver's rate_factor that keeps its own timer (100 s period) out of hand-stepped tests."""
 
 
 class LinearHand(LatentDynamics):
@@ -89,59 +84,86 @@ def toy_file(path: Path, method: str = "toy", gain: float = 1.0, workspace: Work
     return save_model(LinearHand(gain), path, method=method, extra=extra)
 
 
-class Rig:
-    """Mock driver, planner node and a tester node on one bus; the driver steps on a fake clock."""
+class Rosout:
+    """Log lines of one node as a ROS user sees them (/rosout)."""
 
-    def __init__(self, model: Path | str = "", **params: object) -> None:
-        self.clock = FakeClock(START_NS)
-        self.bus = InProcessBus(clock=self.clock)
-        self.tester = InProcessTransport(self.bus, "tester")
+    def __init__(self, ros, node_name: str) -> None:
+        self.ros, self.node_name, self.lines = ros, node_name, []
+        # TRANSIENT_LOCAL: /rosout's history, so no line is lost while the subscription is being matched
+        qos = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        ros.node(f"rosout_{node_name}").create_subscription(Log, "/rosout", self.lines.append, qos)
+
+    def warnings(self) -> list[str]:
+        return [m.msg for m in self.lines if m.level == 30 and m.name.endswith(self.node_name)]
+
+
+class Rig:
+    """Mock driver (stepped by hand), planner node and a tester node on the test's own domain."""
+
+    def __init__(self, ros, model: Path | str = "", driver: bool = True, **params: Any) -> None:
+        self.ros = ros
+        self.driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER}) if driver else None
+        self.tester = ros.node("tester")
         self.results: list[dict] = []
-        self.trajectories: list = []
-        self.paths: list = []
-        self.tester.subscribe(RESULT_TOPIC, STRING, qos.DEFAULT, lambda m: self.results.append(json.loads(m.data)))
-        self.tester.subscribe(TRAJECTORY_TOPIC, JOINT_TRAJECTORY, qos.DEFAULT, self.trajectories.append)
-        self.tester.subscribe(PATH_TOPIC, PATH, qos.DEFAULT, self.paths.append)
-        self.goal_pub = self.tester.publisher(GOAL_TOPIC, POINT_STAMPED)
-        self.model_pub = self.tester.publisher(MODEL_UPDATED_TOPIC, STRING, qos.TRANSIENT_LOCAL)
-        self.driver_node = InProcessTransport(self.bus, "mock_driver")
-        self.driver = MockDriver(self.driver_node, MockDriverParams())
-        self.planner_node = InProcessTransport(self.bus, "planner")
-        self.node = PlannerNode(self.planner_node, PlannerNodeParams(model=str(model), **params))  # type: ignore[arg-type]
+        self.trajectories: list[JointTrajectory] = []
+        self.paths: list[PathMsg] = []
+        self.tester.create_subscription(String, RESULT_TOPIC, lambda m: self.results.append(json.loads(m.data)), 10)
+        self.tester.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self.trajectories.append, 10)
+        self.tester.create_subscription(PathMsg, PATH_TOPIC, self.paths.append, 10)
+        self.goal_pub = self.tester.create_publisher(PointStamped, GOAL_TOPIC, 10)
+        self.model_pub = self.tester.create_publisher(String, MODEL_UPDATED_TOPIC, LATCHED)
+        self.setter = self.tester.create_client(SetParameters, "planner/set_parameters")
+        self.planner: PlannerNode | None = None
+        self.start_planner(model, **params)
+
+    def start_planner(self, model: Path | str = "", **params: Any) -> None:
+        self.planner = self.ros.add(PlannerNode, {"model": str(model), **params})
+        planner, driver = self.planner, self.driver
+        assert self.ros.spin_until(lambda: self.goal_pub.get_subscription_count() == 1
+                                   and self.model_pub.get_subscription_count() == 1
+                                   and planner._result_pub.get_subscription_count() == 1
+                                   and planner._path_pub.get_subscription_count() == 1
+                                   and planner._trajectory_pub.get_subscription_count() == 1 + (driver is not None)
+                                   and (driver is None or driver._pose_pub.get_subscription_count() == 1
+                                        and driver._joints_pub.get_subscription_count() == 1), 10.0), "discovery"
 
     def tick(self, n: int = 1) -> None:
-        """``n`` driver steps; the planner takes in the state each publishes."""
+        """``n`` driver steps, each taken in by the planner before the next."""
         for _ in range(n):
-            self.clock.advance(0.1)
-            self.driver_node.spin_once()
-            self.planner_node.spin_once()
+            before = self.planner.state_stamp_ns
+            self.driver.tick()
+            assert self.ros.spin_until(lambda: self.planner.state_stamp_ns != before, 5.0), "state not delivered"
 
-    def announce(self, path: Path | str) -> None:
-        self.model_pub.publish(message_class(STRING)(data=str(path)))
-        self.planner_node.spin_once()
+    def now_ns(self) -> int:
+        return self.tester.get_clock().now().nanoseconds
+
+    def publish_goal(self, xy: np.ndarray | list[float], frame_id: str = FRAME_ID) -> None:
+        msg = goal_msg(np.asarray(xy, np.float32), self.now_ns(), RCLPY)
+        msg.header.frame_id = frame_id
+        self.goal_pub.publish(msg)
+
+    def wait_results(self, count: int) -> None:
+        """Spin until ``count`` results arrived and the planner is idle; then check no extra result follows."""
+        assert self.ros.spin_until(lambda: len(self.results) >= count and self.planner.idle, 20.0), \
+            f"{len(self.results)} of {count} plan results"
+        self.ros.spin_for(0.05)
+        assert len(self.results) == count, self.results
 
     def goal(self, xy: np.ndarray | list[float], frame_id: str = FRAME_ID) -> dict:
-        """Send a goal and wait for its result."""
-        msg = goal_msg(np.asarray(xy, np.float32), self.clock())
-        msg.header.frame_id = frame_id
-        return self.send(msg)
-
-    def send(self, msg: object, results: int = 1) -> dict:
-        expected = len(self.results) + results
-        self.goal_pub.publish(msg)
-        deadline = time.monotonic() + 10.0
-        while (len(self.results) < expected or not self.node.idle) and time.monotonic() < deadline:
-            self.planner_node.spin_once()
-            self.tester.spin_once(0.01)
-        self.tester.spin_once()
-        assert len(self.results) == expected, "no plan result within 10 s"
+        """Send a goal and wait for its one result."""
+        expected = len(self.results) + 1
+        self.publish_goal(xy, frame_id)
+        self.wait_results(expected)
         return self.results[-1]
 
-    def close(self) -> None:
-        self.node.close()
-        self.driver.close()
-        for node in (self.planner_node, self.driver_node, self.tester):
-            node.close()
+    def announce(self, path: Path | str) -> None:
+        self.model_pub.publish(String(data=str(path)))
+
+    def set(self, **values: Any) -> list:
+        """``ros2 param set`` on the planner: the SetParametersResult of each value."""
+        msgs = [Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]
+        request = SetParameters.Request(parameters=msgs)
+        return list(self.ros.call(self.setter, request).results)
 
 
 @pytest.fixture
@@ -150,57 +172,51 @@ def toy(tmp_path: Path) -> Path:
 
 
 @pytest.fixture
-def rig(toy: Path):
-    rig = Rig(toy, **SMALL)
-    yield rig
-    rig.close()
-
-
-def driver_warnings(caplog: pytest.LogCaptureFixture) -> list[str]:
-    return [r.getMessage() for r in caplog.records if r.name.endswith("mock_driver") and r.levelno >= logging.WARNING]
+def rig(ros, toy: Path) -> Rig:
+    return Rig(ros, toy, **SMALL)
 
 
 # --------------------------------------------------------------------------- accepted plans
-def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(rig: Rig, caplog) -> None:
-    caplog.set_level(logging.INFO)
+def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros, rig: Rig) -> None:
+    driver_log = Rosout(ros, "mock_driver")
     rig.tick()
     goal = START_XY + [6.0, -4.0]
+    before = rig.now_ns()
     result = rig.goal(goal)
     assert result["accepted"] and result["status"] == "ok", result
     assert result["method"] == "toy" and result["samples_evaluated"] == 200 and result["planning_time_s"] > 0
     assert np.allclose(result["goal_mm"], goal) and np.allclose(result["start_mm"], START_XY, atol=0.5)
     assert result["predicted_error_mm"] <= 3.0
+    assert ros.spin_until(lambda: rig.trajectories and rig.paths, 5.0)
     (traj,), (path,) = rig.trajectories, rig.paths
     steps = result["horizon"]
     assert 1 <= steps <= 20 and len(traj.points) == steps and len(path.poses) == steps + 1
     stamp = stamp_to_ns(traj.header.stamp)
-    assert stamp == rig.clock() and stamp_to_ns(path.header.stamp) == stamp
-    assert [stamp_to_ns(p.header.stamp) for p in path.poses] == [stamp + k * CONTROL_PERIOD_NS for k in range(steps + 1)]
+    assert before <= stamp <= rig.now_ns() and stamp_to_ns(path.header.stamp) == stamp
+    pose_stamps = [stamp_to_ns(p.header.stamp) for p in path.poses]
+    assert pose_stamps == [stamp + k * CONTROL_PERIOD_NS for k in range(steps + 1)]
     predicted = path_xy_mm(path)
     actions = joint_trajectory_to_actions(traj, rig.driver.hand.actuator_angles)
     assert np.all(np.abs(actions) <= 1.0 + 1e-5)
     assert np.allclose(predicted[1:], predicted[0] + np.cumsum(actions, 0), atol=1e-3)  # the toy's prediction
     assert np.linalg.norm(predicted[-1] - goal) <= 3.0
 
-    rig.driver_node.spin_once()
-    assert rig.driver.pending_actions == steps and not driver_warnings(caplog)
+    assert ros.spin_until(lambda: rig.driver.pending_actions == steps, 5.0)
     rig.tick(steps)
-    assert rig.driver.pending_actions == 0 and not driver_warnings(caplog)
+    assert rig.driver.pending_actions == 0
+    ros.spin_for(0.1)
+    assert driver_log.warnings() == []
 
 
-def test_a_model_announced_before_the_node_starts_is_loaded_from_the_latched_topic(toy: Path) -> None:
-    rig = Rig("", **SMALL)
-    try:
-        rig.node.close()
-        rig.planner_node.close()
-        rig.model_pub.publish(message_class(STRING)(data=str(toy)))
-        rig.planner_node = InProcessTransport(rig.bus, "planner2")
-        rig.node = PlannerNode(rig.planner_node, PlannerNodeParams(**SMALL))  # type: ignore[arg-type]
-        rig.tick()
-        assert rig.node.model is not None and rig.node.model.path == str(toy)
-        assert rig.goal(START_XY + [3.0, 3.0])["accepted"]
-    finally:
-        rig.close()
+def test_a_model_announced_before_the_node_starts_is_loaded_from_the_latched_topic(ros, toy: Path) -> None:
+    tester = ros.node("announcer")
+    announcer = tester.create_publisher(String, MODEL_UPDATED_TOPIC, LATCHED)
+    announcer.publish(String(data=str(toy)))
+    rig = Rig(ros, "", **SMALL)
+    assert ros.spin_until(lambda: rig.planner.model is not None, 10.0)
+    assert rig.planner.model.path == str(toy)
+    rig.tick()
+    assert rig.goal(START_XY + [3.0, 3.0])["accepted"]
 
 
 # --------------------------------------------------------------------------- refusals
@@ -211,21 +227,20 @@ def test_goal_before_any_hand_state_is_refused(rig: Rig) -> None:
     assert rig.trajectories == [] and rig.paths == []
 
 
-def test_goal_before_the_model_exists_is_refused_until_it_is_announced(tmp_path: Path, caplog) -> None:
-    caplog.set_level(logging.INFO)
+def test_goal_before_the_model_exists_is_refused_until_it_is_announced(ros, tmp_path: Path) -> None:
     later = tmp_path / "later.safetensors"
-    rig = Rig(later, **SMALL)
-    try:
-        rig.tick()
-        result = rig.goal(START_XY + [3.0, 0.0])
-        assert result["status"] == "no_model" and MODEL_UPDATED_TOPIC in result["reason"]
-        assert rig.trajectories == [] and any("refused goal" in r.getMessage() for r in caplog.records)
-        rig.announce(toy_file(later, method="late"))
-        rig.tick()
-        result = rig.goal(START_XY + [3.0, 0.0])
-        assert result["accepted"] and result["method"] == "late" and len(rig.trajectories) == 1
-    finally:
-        rig.close()
+    rig = Rig(ros, later, **SMALL)
+    log = Rosout(ros, "planner")
+    rig.tick()
+    result = rig.goal(START_XY + [3.0, 0.0])
+    assert result["status"] == "no_model" and "/t42/model_updated" in result["reason"]
+    assert ros.spin_until(lambda: any("refused goal" in w for w in log.warnings()), 5.0)
+    rig.announce(toy_file(later, method="late"))
+    assert ros.spin_until(lambda: rig.planner.model is not None, 10.0)
+    rig.tick()
+    result = rig.goal(START_XY + [3.0, 0.0])
+    assert result["accepted"] and result["method"] == "late"
+    assert ros.spin_until(lambda: len(rig.trajectories) == 1, 5.0)
 
 
 def test_goal_outside_the_workspace_is_refused(rig: Rig) -> None:
@@ -236,76 +251,86 @@ def test_goal_outside_the_workspace_is_refused(rig: Rig) -> None:
     assert rig.trajectories == [] and rig.paths == []
 
 
-def test_unreachable_goal_is_refused_with_its_predicted_error(tmp_path: Path) -> None:
-    rig = Rig(toy_file(tmp_path / "slow.safetensors", gain=0.1), **SMALL)
-    try:
-        rig.tick()
-        result = rig.goal(START_XY + [20.0, 0.0])
-        assert result["status"] == "unreachable" and result["predicted_error_mm"] > 3.0
-        assert rig.trajectories == [] and rig.paths == []
-    finally:
-        rig.close()
+def test_unreachable_goal_is_refused_with_its_predicted_error(ros, tmp_path: Path) -> None:
+    rig = Rig(ros, toy_file(tmp_path / "slow.safetensors", gain=0.1), **SMALL)
+    rig.tick()
+    result = rig.goal(START_XY + [20.0, 0.0])
+    assert result["status"] == "unreachable" and result["predicted_error_mm"] > 3.0
+    assert rig.trajectories == [] and rig.paths == []
 
 
-@pytest.mark.parametrize("frame_id, xy, why", [("map", [0.0, 80.0], "frame 'map'"),
-                                              (FRAME_ID, [math.nan, 80.0], "non-finite")])
-def test_bad_goals_are_refused_and_the_node_keeps_planning(rig: Rig, frame_id: str, xy: list[float],
+@pytest.mark.parametrize("frame_id, x, why", [("map", 0.0, "frame 'map'"), (FRAME_ID, math.nan, "non-finite")])
+def test_bad_goals_are_refused_and_the_node_keeps_planning(ros, rig: Rig, frame_id: str, x: float,
                                                            why: str) -> None:
     rig.tick()
-    msg = goal_msg([0.0, 80.0], rig.clock())
+    msg = goal_msg([0.0, 80.0], rig.now_ns(), RCLPY)
     msg.header.frame_id = frame_id
-    msg.point.x = xy[0] / 1000.0
-    result = rig.send(msg)
+    msg.point.x = x
+    rig.goal_pub.publish(msg)
+    rig.wait_results(1)
+    result = rig.results[0]
     assert result["status"] == "bad_goal" and why in result["reason"] and result["goal_mm"] is None
     assert rig.trajectories == []
-    assert rig.goal(START_XY + [2.0, 2.0])["accepted"] and len(rig.trajectories) == 1
+    assert rig.goal(START_XY + [2.0, 2.0])["accepted"]
+    assert ros.spin_until(lambda: len(rig.trajectories) == 1, 5.0)
 
 
-def test_stale_hand_state_is_refused(rig: Rig) -> None:
+def test_stale_hand_state_is_refused(ros, toy: Path) -> None:
+    rig = Rig(ros, toy, **{**SMALL, "max_state_age_s": 0.2})
     rig.tick()
-    rig.clock.advance(1.0)  # the driver stops publishing
+    ros.spin_for(0.3)  # the driver stops publishing
     result = rig.goal(START_XY + [2.0, 2.0])
-    assert result["status"] == "stale_state" and "1.000 s" in result["reason"]
+    assert result["status"] == "stale_state" and "limit 0.200 s" in result["reason"]
+    assert rig.trajectories == []
+    rig.tick()  # the driver is back
+    assert rig.goal(START_XY + [2.0, 2.0])["accepted"]
 
 
-def test_an_older_goal_is_superseded_by_a_newer_one(rig: Rig) -> None:
+# --------------------------------------------------------------------------- concurrency
+def test_state_is_tracked_during_a_long_plan_and_the_latest_goal_wins(ros, rig: Rig,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     rig.tick()
-    planner = rig.node._model.planner
     planning, release = threading.Event(), threading.Event()
-    original = planner.plan
+    original = Planner.plan
 
-    def held_plan(*args: Any, **kwargs: Any) -> Any:  # the first plan waits until the second goal is queued
-        planning.set()
-        release.wait(10.0)
-        return original(*args, **kwargs)
+    def held_plan(self: Planner, *args: Any, **kwargs: Any) -> Any:  # the first plan waits for release
+        if not planning.is_set():
+            planning.set()
+            assert release.wait(20.0)
+        return original(self, *args, **kwargs)
 
-    planner.plan = held_plan
-    before = len(rig.results)
-    rig.goal_pub.publish(goal_msg(START_XY + [3.0, 0.0], rig.clock()))
-    rig.planner_node.spin_once()
-    assert planning.wait(10.0)
-    planner.plan = original
-    rig.goal_pub.publish(goal_msg(START_XY + [0.0, 3.0], rig.clock()))
-    rig.planner_node.spin_once()
+    monkeypatch.setattr(Planner, "plan", held_plan)
+    first, waiting, latest = START_XY + [3.0, 0.0], START_XY + [0.0, 3.0], START_XY + [-3.0, 0.0]
+    rig.publish_goal(first)
+    assert ros.spin_until(planning.is_set, 10.0)
+    stamp = rig.planner.state_stamp_ns
+    rig.tick(3)  # the planner keeps taking in the hand state while it plans
+    assert rig.planner.state_stamp_ns > stamp and not rig.planner.idle
+    rig.publish_goal(waiting)
+    rig.publish_goal(latest)
+    assert ros.spin_until(lambda: len(rig.results) == 1, 10.0)  # the waiting goal is replaced at once
+    assert rig.results[0]["status"] == "superseded" and np.allclose(rig.results[0]["goal_mm"], waiting)
+    assert rig.results[0]["reason"] == "a newer goal arrived"
     release.set()
-    deadline = time.monotonic() + 10.0
-    while (len(rig.results) < before + 2 or not rig.node.idle) and time.monotonic() < deadline:
-        rig.planner_node.spin_once()
-        rig.tester.spin_once(0.01)
-    rig.tester.spin_once()
-    assert len(rig.results) == before + 2
-    results = rig.results[-1]
-    first, second = rig.results[-2:]
-    assert first["status"] == "superseded" and not first["accepted"] and "newer goal" in first["reason"]
-    assert results is second and second["accepted"] and np.allclose(second["goal_mm"], START_XY + [0.0, 3.0])
-    assert len(rig.trajectories) == 1
+    rig.wait_results(3)
+    by_goal = {tuple(np.round(r["goal_mm"], 3)): r for r in rig.results}
+    discarded, served = by_goal[tuple(np.round(first, 3))], by_goal[tuple(np.round(latest, 3))]
+    assert discarded["status"] == "superseded" and "plan was discarded" in discarded["reason"]
+    assert not discarded["accepted"] and served["accepted"] and rig.results[-1] is served
+    assert ros.spin_until(lambda: len(rig.trajectories) == 1, 5.0)
+    ros.spin_for(0.1)
+    assert len(rig.trajectories) == 1 and len(rig.paths) == 1
+    assert np.linalg.norm(path_xy_mm(rig.paths[0])[-1] - latest) <= 3.0
 
 
 # --------------------------------------------------------------------------- model updates
-def test_announced_model_replaces_the_old_and_bad_announcements_keep_it(rig: Rig, tmp_path: Path, caplog) -> None:
+def test_announced_model_replaces_the_old_and_bad_announcements_keep_it(ros, rig: Rig, tmp_path: Path) -> None:
+    log = Rosout(ros, "planner")
     rig.tick()
     assert rig.goal(START_XY + [2.0, 0.0])["method"] == "toy"
-    rig.announce(toy_file(tmp_path / "new.safetensors", method="new"))
+    new = toy_file(tmp_path / "new.safetensors", method="new")
+    rig.announce(new)
+    assert ros.spin_until(lambda: rig.planner.model.path == str(new), 10.0)
     assert rig.goal(START_XY + [2.0, 0.0])["method"] == "new"
 
     (tmp_path / "broken.safetensors").write_bytes(b"not a model")
@@ -313,12 +338,58 @@ def test_announced_model_replaces_the_old_and_bad_announcements_keep_it(rig: Rig
     for bad, why in ((tmp_path / "missing.safetensors", "does not exist"),
                      (tmp_path / "broken.safetensors", "not a readable model file"),
                      (no_workspace, "stores no workspace")):
-        caplog.clear()
+        log.lines.clear()
         rig.announce(bad)
-        rig.tick()
-        (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert ros.spin_until(lambda: any("could not load model" in w for w in log.warnings()), 10.0), bad
+        (warning,) = log.warnings()
         assert why in warning and "keeping model" in warning and "new.safetensors" in warning
-        assert rig.goal(START_XY + [2.0, 0.0])["method"] == "new"
+        assert rig.planner.model.path == str(new)
+    rig.tick()
+    assert rig.goal(START_XY + [2.0, 0.0])["method"] == "new"
+
+
+# --------------------------------------------------------------------------- parameters
+def test_parameter_changes_apply_to_the_next_plan_and_bad_values_are_refused(rig: Rig) -> None:
+    rig.tick()
+    assert rig.goal(START_XY + [6.0, 0.0])["accepted"]
+    (ok,) = rig.set(samples=50)
+    assert ok.successful and rig.planner.params.samples == 50
+    assert rig.goal(START_XY + [2.0, 0.0])["samples_evaluated"] == 50
+    (ok,) = rig.set(horizon=2)  # at most about 1.4 mm per step: 6 mm is out of reach now
+    assert ok.successful
+    rig.tick()
+    short = rig.goal(START_XY + [6.0, 0.0])
+    assert short["status"] == "unreachable" and short["horizon"] <= 2
+
+    before = rig.planner.params
+    for name, value, why in (("samples", 0, "range"), ("samples", "many", "type"),
+                             ("tolerance_mm", 0.0, "tolerance_mm must be positive"),
+                             ("tolerance_mm", math.inf, "finite"), ("max_state_age_s", -1.0, "range"),
+                             ("model", "other.safetensors", "read-only")):
+        (refused,) = rig.set(**{name: value})
+        assert not refused.successful and why in refused.reason, (name, refused.reason)
+    assert rig.planner.params == before
+    described = rig.planner.describe_parameter("samples")
+    assert described.description and described.integer_range[0].from_value == 1
+    assert rig.planner.describe_parameter("model").read_only
+
+
+def test_bad_startup_parameters_are_one_line_errors(ros) -> None:
+    with pytest.raises(ValueError, match="max_state_age_s"):
+        ros.add(PlannerNode, {"max_state_age_s": math.nan})
+
+
+def test_works_under_a_namespace_with_remapped_names(ros) -> None:
+    planner = ros.add(PlannerNode, {"model": ""}, namespace="/left", cli_args=["--ros-args", "-r", "t42/goal:=aim"])
+    tester = ros.node("ns_tester")
+    results: list[dict] = []
+    tester.create_subscription(String, "/left/t42/plan_result", lambda m: results.append(json.loads(m.data)), 10)
+    goals = tester.create_publisher(PointStamped, "/left/aim", 10)
+    assert ros.spin_until(lambda: goals.get_subscription_count() == 1
+                          and planner._result_pub.get_subscription_count() == 1, 10.0)
+    goals.publish(goal_msg(START_XY, tester.get_clock().now().nanoseconds, RCLPY))
+    assert ros.spin_until(lambda: results, 10.0)
+    assert results[0]["status"] == "no_model" and "/left/t42/model_updated" in results[0]["reason"]
 
 
 # --------------------------------------------------------------------------- pure parts
@@ -337,20 +408,18 @@ def test_hand_state_joins_pose_and_loads_and_checks_freshness() -> None:
         assert err.value.status == "stale_state"
 
 
-def test_params_validate_planner_fields_and_names() -> None:
+@pytest.mark.parametrize("kwargs", [{"samples": 0}, {"horizon": 0}, {"tolerance_mm": -1.0},
+                                    {"tolerance_mm": math.inf}, {"max_state_age_s": math.inf},
+                                    {"max_state_age_s": 0.0}])
+def test_params_validate_planner_fields(kwargs: dict) -> None:
     assert PlannerNodeParams(samples=5, horizon=3, tolerance_mm=1.0).planner_config.samples == 5
     with pytest.raises(ValueError):
-        PlannerNodeParams(samples=0)
-    with pytest.raises(ValueError):
-        PlannerNodeParams(tolerance_mm=-1.0)
-    with pytest.raises(ValueError):
-        PlannerNodeParams(max_state_age_s=math.inf)
-    with pytest.raises(ValueError):
-        PlannerNodeParams(goal_topic="not a topic")
+        PlannerNodeParams(**kwargs)
 
 
 # --------------------------------------------------------------------------- closed loop
-def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_towards_the_goal(tmp_path: Path) -> None:
+def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_towards_the_goal(ros,
+                                                                                           tmp_path: Path) -> None:
     from t42_transfer.data.bag_io import read_bag
     from t42_transfer.models.training import TrainConfig, train_transition_model
     from t42_transfer.planning.sampling import sample_actions
@@ -368,16 +437,13 @@ def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_toward
     goal = hand.state[:2].copy()
     assert not hand.done and workspace.contains_xy(torch.as_tensor(goal, dtype=torch.float32))
 
-    rig = Rig(path, samples=300, horizon=30, tolerance_mm=5.0)
-    try:
-        rig.tick()
-        start = rig.driver.hand.state[:2].copy()
-        result = rig.goal(goal)
-        assert result["accepted"], result
-        rig.driver_node.spin_once()
-        rig.tick(result["horizon"] + 1)
-        final = rig.driver.hand.state[:2]
-        assert rig.driver.running and rig.driver.pending_actions == 0
-        assert np.linalg.norm(final - goal) < np.linalg.norm(start - goal), (start, final, goal)
-    finally:
-        rig.close()
+    rig = Rig(ros, path, samples=300, horizon=30, tolerance_mm=5.0, max_state_age_s=5.0)
+    rig.tick()
+    start = rig.driver.hand.state[:2].copy()
+    result = rig.goal(goal)
+    assert result["accepted"], result
+    assert ros.spin_until(lambda: rig.driver.pending_actions == result["horizon"], 5.0)
+    rig.tick(result["horizon"] + 1)
+    final = rig.driver.hand.state[:2]
+    assert rig.driver.running and rig.driver.pending_actions == 0
+    assert np.linalg.norm(final - goal) < np.linalg.norm(start - goal), (start, final, goal)
