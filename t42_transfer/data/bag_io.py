@@ -7,7 +7,10 @@ at least ``EPISODE_GAP_S`` apart, so the reader finds their borders from stamps
 alone; ``custom_data`` restores what stamps cannot say (end reasons, hands).
 
 The reader aligns the three topics by header stamp, not by log time or order,
-which also makes bags of a real ``ros2 bag record`` readable.  A damaged MCAP
+which also makes bags of a real ``ros2 bag record`` readable.  The hand topics
+may lie under one namespace (a recorder run with ``__ns:=/left`` writes
+``/left/hand/object_pose``...): they are found by suffix; a bag holding the hand
+topics of two namespaces is refused, as it mixes two hands.  A damaged MCAP
 (cut off mid-write, writer killed) is scanned record by record and its readable
 prefix returned with a warning; everything else that is wrong raises
 :class:`BagError` naming the bag and the problem.
@@ -17,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 import tempfile
 import warnings
@@ -63,12 +67,16 @@ RECORD_QOS = Qos(
 )
 """ROS default QoS, written as ``ros2 bag record`` writes a default publisher's offer."""
 
+ROS_DISTRO = "jazzy"
+"""What our bags' metadata says they were recorded with: Jazzy's CDR and type hashes (rosbags writes "rosbags")."""
+
 _STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 _SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 _HALF_PERIOD_NS = CONTROL_PERIOD_NS // 2
 _MAX_STEP_NS = 3 * CONTROL_PERIOD_NS // 2
 _WITHIN = f"within {_HALF_PERIOD_NS / 1e6:g} ms"
 _POSE, _JOINTS, _ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC
+_HAND_SUFFIXES = tuple(ma.HAND_TOPICS)
 _CONVERTERS: dict[str, Callable[[Any], Any]] = {
     _POSE: ma.object_xy_mm,
     _JOINTS: ma.joint_state_arrays,
@@ -77,6 +85,31 @@ _CONVERTERS: dict[str, Callable[[Any], Any]] = {
 
 
 # --------------------------------------------------------------------------- writing
+
+_DISTRO_LINE = re.compile(r"^( {0,2})ros_distro: rosbags$", re.MULTILINE)
+"""rosbags' ros_distro line at the top level of the bag information (metadata.yaml nests it 2 deep)."""
+
+
+def _jazzy(text: str) -> str:
+    return _DISTRO_LINE.sub(rf"\1ros_distro: {ROS_DISTRO}", text, count=1)
+
+
+class JazzyWriter(Writer):
+    """rosbags' ``Writer`` whose metadata (``metadata.yaml`` and the MCAP's own record) says ``ros_distro: jazzy``.
+
+    rosbags 0.11 hard-codes ``rosbags``; ``ros2 bag info`` shows the distro, and the
+    bytes are Jazzy's, so the metadata says so.
+    """
+
+    def close(self) -> None:
+        storage = self.storage
+        assert storage is not None, "close() of a writer that is not open"
+        close_storage = storage.close
+        storage.close = lambda version, text: close_storage(version, _jazzy(text))  # type: ignore[method-assign]
+        super().close()
+        tmp = self.metapath.with_suffix(".yaml.distro")
+        tmp.write_text(_jazzy(self.metapath.read_text()))
+        tmp.replace(self.metapath)
 
 
 def assign_start_times(
@@ -116,7 +149,7 @@ def write_bag(
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent))
     try:
         bag = staging / target.name
-        with Writer(bag, version=9, storage_plugin=_STORAGES[storage]) as writer:
+        with JazzyWriter(bag, version=9, storage_plugin=_STORAGES[storage]) as writer:
             for key, value in custom.items():
                 writer.set_custom_data(key, value)
             connections = {
@@ -197,12 +230,19 @@ class _RawBag:
     storage: str
     topics: dict[str, _Topic]
     messages: dict[str, list[tuple[int, bytes]]]
+    """By bag topic: the hand topics found under :attr:`namespace`."""
     custom: dict[str, str]
     ros_distro: str | None
     start_ns: int
     end_ns: int
     truncated: bool = False
     """Only a readable prefix was recovered: a cut-off last step is not an error."""
+    namespace: str = ""
+    """Prefix of the hand topics in this bag ("" for ``/hand/...``, ``/left`` for ``/left/hand/...``)."""
+
+    def hand_topic(self, topic: str) -> str:
+        """The bag's name of hand topic ``topic`` (``/hand/object_pose`` -> ``/left/hand/object_pose``)."""
+        return self.namespace + topic
 
 
 def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
@@ -233,6 +273,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "start_ns": raw.start_ns,
         "duration_s": (raw.end_ns - raw.start_ns) / 1e9,
         "topics": {name: {"type": t.msgtype, "count": t.count} for name, t in sorted(raw.topics.items())},
+        "namespace": raw.namespace or "/",
         "episodes": len(data),
         "transitions": data.num_transitions,
         "hand": data.hand,
@@ -254,6 +295,8 @@ def _load(path: Path) -> _RawBag:
         return _scan_mcap(path, files, None, problem)  # rosbags opens no bag directory without metadata.yaml
     try:
         raw = _read_with_rosbags([path] if meta is not None else files, storage, meta)
+    except BagError:
+        raise
     except Exception as err:  # rosbags, mcap and sqlite3 raise many types on damaged files
         problem = f"rosbags cannot read it ({type(err).__name__}: {err})"
         if storage != "mcap":
@@ -306,13 +349,31 @@ def _add_topic(topics: dict[str, _Topic], topic: str, msgtype: str, count: int, 
     known.count += count
 
 
+def hand_namespace(path: str | Path, topics: Iterable[str]) -> str:
+    """The one namespace the hand topics among ``topics`` lie under ("" for the root); BagError for several.
+
+    A hand topic is found by suffix: ``/hand/object_pose`` or ``<ns>/hand/object_pose``.
+    """
+    found: dict[str, list[str]] = {}
+    for name in topics:
+        for hand in ma.HAND_TOPICS:
+            if name.endswith(hand):
+                found.setdefault(name[: -len(hand)], []).append(name)
+    if len(found) > 1:
+        listed = "; ".join(f"{ns or '/'} ({', '.join(sorted(names))})" for ns, names in sorted(found.items()))
+        raise BagError(path, f"holds hand topics under {len(found)} namespaces: {listed}; "
+                             "a bag must hold one hand's topics (filter it to one namespace)")
+    return next(iter(found), "")
+
+
 def _read_with_rosbags(sources: list[Path], storage: str, meta: dict[str, Any] | None) -> _RawBag:
     with AnyReader(sources, default_typestore=ma.TYPESTORE) as reader:
         topics: dict[str, _Topic] = {}
         for conn in reader.connections:
             _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest)
-        messages: dict[str, list[tuple[int, bytes]]] = {topic: [] for topic in ma.HAND_TOPICS}
-        wanted = [c for c in reader.connections if c.topic in ma.HAND_TOPICS]
+        namespace = hand_namespace(sources[0], topics)
+        messages: dict[str, list[tuple[int, bytes]]] = {namespace + topic: [] for topic in ma.HAND_TOPICS}
+        wanted = [c for c in reader.connections if c.topic in messages]
         if wanted:  # an empty list would mean "every connection"
             for conn, log_ns, data in reader.messages(connections=wanted):
                 messages[conn.topic].append((log_ns, bytes(data)))
@@ -324,7 +385,7 @@ def _read_with_rosbags(sources: list[Path], storage: str, meta: dict[str, Any] |
         custom, distro = _mcap_metadata_record(sources[0])
     else:
         custom, distro = {}, None
-    return _RawBag(storage, topics, messages, custom, distro, start, end)
+    return _RawBag(storage, topics, messages, custom, distro, start, end, namespace=namespace)
 
 
 def _text_map(value: Any) -> dict[str, str]:
@@ -369,7 +430,8 @@ def _scan_mcap(path: Path, files: list[Path], meta: dict[str, Any] | None, probl
     schemas: dict[int, str] = {}
     channels: dict[int, str] = {}
     topics: dict[str, _Topic] = {}
-    messages: dict[str, list[tuple[int, bytes]]] = {topic: [] for topic in ma.HAND_TOPICS}
+    messages: dict[str, list[tuple[int, bytes]]] = {}
+    """Every topic that may be a hand topic (the namespace is known once all channels are)."""
     custom, distro = (_text_map(meta.get("custom_data")), meta.get("ros_distro")) if meta else ({}, None)
     digests = _yaml_digests(meta)
     counts: Counter[str] = Counter()
@@ -391,13 +453,15 @@ def _scan_mcap(path: Path, files: list[Path], meta: dict[str, Any] | None, probl
                         topic = channels[record.channel_id]
                         counts[topic] += 1
                         log_times.append(record.log_time)
-                        if topic in messages:
-                            messages[topic].append((record.log_time, record.data))
+                        if topic.endswith(_HAND_SUFFIXES):
+                            messages.setdefault(topic, []).append((record.log_time, record.data))
                     elif isinstance(record, Metadata) and record.name == "rosbag2" and meta is None:
                         custom, distro = _serialized_metadata(record)
         except Exception as err:  # whatever the damage, what was read before it stands
             stopped = f"{file.name} is unreadable from there on ({type(err).__name__}: {err})"
             break
+    namespace = hand_namespace(path, topics)
+    messages = {namespace + topic: messages.get(namespace + topic, []) for topic in ma.HAND_TOPICS}
     found = sum(len(m) for m in messages.values())
     if found == 0:
         detail = f"; {stopped}" if stopped else ""
@@ -415,7 +479,7 @@ def _scan_mcap(path: Path, files: list[Path], meta: dict[str, Any] | None, probl
     for received in messages.values():
         received.sort(key=lambda m: m[0])
     start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
-    return _RawBag("mcap", topics, messages, custom, distro, start, end, truncated=bool(stopped))
+    return _RawBag("mcap", topics, messages, custom, distro, start, end, truncated=bool(stopped), namespace=namespace)
 
 
 def _yaml_digests(meta: dict[str, Any] | None) -> dict[str, str]:
@@ -441,25 +505,26 @@ class _Stream:
 
 def _decode(path: Path, raw: _RawBag) -> dict[str, _Stream]:
     """Hand topics as header-stamped numpy values, checked for type, finiteness and order."""
-    _check_topics(path, raw.topics)
+    _check_topics(path, raw)
     streams = {}
     for topic, msgtype in ma.HAND_TOPICS.items():
         stamps: list[int] = []
         values = []
-        for log_ns, data in raw.messages[topic]:
+        name = raw.hand_topic(topic)
+        for log_ns, data in raw.messages[name]:
             try:
                 msg = ma.TYPESTORE.deserialize_cdr(data, msgtype)
             except Exception as err:  # corrupt CDR raises whatever the decoder trips over
-                raise BagError(path, f"{topic}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
+                raise BagError(path, f"{name}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
             stamp = ma.stamp_to_ns(msg.header.stamp)
             try:
                 values.append(_CONVERTERS[topic](msg))
             except ValueError as err:
-                raise BagError(path, f"{topic} at stamp {stamp} ns: {err}") from None
+                raise BagError(path, f"{name} at stamp {stamp} ns: {err}") from None
             if stamps and stamp <= stamps[-1]:
                 raise BagError(
                     path,
-                    f"{topic}: header stamps must increase, but {stamp} ns (logged at {log_ns} ns) "
+                    f"{name}: header stamps must increase, but {stamp} ns (logged at {log_ns} ns) "
                     f"follows {stamps[-1]} ns",
                 )
             stamps.append(stamp)
@@ -467,8 +532,10 @@ def _decode(path: Path, raw: _RawBag) -> dict[str, _Stream]:
     return streams
 
 
-def _check_topics(path: Path, topics: dict[str, _Topic]) -> None:
-    for topic, expected in ma.HAND_TOPICS.items():
+def _check_topics(path: Path, raw: _RawBag) -> None:
+    topics = raw.topics
+    for hand, expected in ma.HAND_TOPICS.items():
+        topic = raw.hand_topic(hand)
         info = topics.get(topic)
         if info is None:
             present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
