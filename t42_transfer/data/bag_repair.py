@@ -27,9 +27,9 @@ from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.rosbag2.metadata import parse_qos
 
+from msg_adapters import TYPESTORE
 from t42_transfer.data.bag_io import REPAIRED_KEY, ExactReads
 from t42_transfer.data.errors import BagError
-from t42_transfer.ros.naming import typestore_for
 
 ORIG_SUFFIX = ".orig"
 
@@ -172,9 +172,9 @@ class _Rewriter:
         key = (channel.topic, schema.name, qos_text)
         if key not in self.connections:
             qos = parse_qos(qos_text) if qos_text else []
-            try:
-                typed: dict[str, Any] = {"typestore": typestore_for(schema.name)}
-            except KeyError:  # a type this project does not know: keep the bag's own definition
+            if schema.name in TYPESTORE.types:
+                typed: dict[str, Any] = {"typestore": TYPESTORE}
+            else:  # a type Jazzy's store does not know: keep the bag's own definition
                 typed = {"msgdef": schema.data.decode(), "rihs01": channel.metadata.get("topic_type_hash", "")}
             self.connections[key] = self.writer.add_connection(
                 channel.topic, schema.name, serialization_format=channel.message_encoding,
