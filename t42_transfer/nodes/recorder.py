@@ -1,124 +1,163 @@
-"""Recorder node: the hand topics, as received, into rosbag2 MCAP bags.
+"""Recorder node: the hand topics, as received, into rosbag2 MCAP bags, begun and ended at step boundaries.
 
-Wiring (defaults; every name is a :class:`RecorderParams` field):
+Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* the hand topics of :data:`msg_adapters.HAND_TOPICS` (``params.topics``):
-  subscribed raw; each message's CDR bytes are written UNCHANGED, logged at the
-  receive time ``transport.now_ns()``;
-* ``/recorder/start``, ``/recorder/stop``, ``/recorder/split`` (std_srvs/srv/Trigger):
-  start opens a bag when none is open, stop closes the open one, split closes it
-  and opens the next; each answers ``success`` and a message naming the bag;
-* ``/hand/status`` (std_msgs/msg/String, only in ``mode="episode"``): a status whose
-  first word is one of ``params.split_on`` (``reset``, ``dropped``,
-  ``lost_contact``, ``overload``) splits the bag, so each bag holds one episode.
-  Topics are not ordered against each other (one queue per subscription), so the
-  split is placed in time, not in arrival order: the bag splits before the first
-  recorded message whose header stamp (receive time for messages without a
-  header) is later than ``T``, where ``T`` is the receive time of an end status
-  (``dropped``, ``lost_contact``, ``overload``: the final state, stamped before
-  it, stays in its episode) and, for any other split word such as ``reset``, the
-  latest stamp recorded so far (what follows belongs to the new episode).  A split
-  only happens when the open bag holds messages, so the ``reset`` that follows an
-  episode end (or one published on start) opens no empty bag.
+* the topics of ``params.topics`` (default ``hand/object_pose``,
+  ``hand/joint_states``, ``hand/applied_action``; :data:`RECORDABLE` knows their
+  types): subscribed raw with a ``params.queue_depth`` deep RELIABLE queue; each
+  message's CDR bytes are written UNCHANGED, logged at its receive time (the
+  node's ROS time), under the topic's fully resolved name (``/left/hand/object_pose``
+  under namespace ``/left``), which :func:`t42_transfer.data.bag_io.read_bag` finds;
+* ``~/start``, ``~/stop``, ``~/split`` (std_srvs/srv/Trigger): private names, as
+  ``ros2 bag record``'s own services (``~/split_bagfile``...), so they are
+  ``/recorder/start`` for the default node name and follow a renamed node
+  (``__node:=rec_left`` -> ``/rec_left/start``) or a namespace (``/left/recorder/start``).
+  Start opens a bag, stop closes it, split closes it and opens the next; each
+  answers ``success`` and a message naming the bag;
+* ``hand/status`` (std_msgs/msg/String, used in ``mode="episode"``): a status whose
+  first word is in ``params.split_on`` splits the bag, so each bag holds one
+  episode (see "Steps" for where).
+
+Steps.  A control step is the state (object pose and joint states) and the action
+applied from it, all with ONE header stamp (the mock driver's and the bag
+convention of :mod:`t42_transfer.data.bag_io`).  Each topic has its own queue, so
+the messages of a step arrive in any order and interleaved with the next step's;
+a bag begun or ended "now" could hold an action without its state (a transfer
+refuses such a bag).  So messages are grouped by stamp (:class:`StepBuffer`) and
+whole steps are written, in stamp order.  A step is complete once every recorded
+topic has either delivered its message for the stamp or already delivered a
+later one (one publisher per topic delivers in order, so nothing more will come
+for it); a step still incomplete ``params.step_hold_s`` after its first message
+(an episode's final state waits for an action that never comes) is written as it
+is.  A message for a stamp already written arrives too late and is dropped with a
+warning.  Bag changes happen between steps:
+
+* start, stop, split: after the step in progress (the newest stamp received): the
+  bag opens, closes, or closes and the next opens at once when no step is in
+  progress, else as soon as that step is complete (the answer says which); the
+  step in progress belongs to the time before the request;
+* episode mode: a split word splits after the step in progress, and an end status
+  (``dropped``, ``lost_contact``, ``overload``) after the steps stamped up to its
+  receive time too (the final state, stamped before it, may arrive after it: it
+  stays in its episode; this assumes the driver stamps with the recorder's clock,
+  as on one machine or with ``use_sim_time`` on both).  Only a bag holding
+  messages is split, so the ``reset`` that follows an episode end (or one
+  published on start) opens no empty bag.
+
+A bag never begins with a step whose state was not received (an action alone, a
+pose alone: dropped with a warning), and on close only steps holding their whole
+state are written.
 
 Bags are written as :mod:`t42_transfer.data.bag_io` writes them (rosbags
-``Writer(version=9)``, MCAP, ``offered_qos_profiles=[RECORD_QOS]``, one connection
-per recorded topic, ``metadata.yaml`` on close) and are named ``<prefix>_<NNN>``
-in ``out_dir``: ``NNN`` counts on from the highest index already there, so no bag
-is ever overwritten.  :func:`t42_transfer.data.bag_io.read_bag` reads them.
+``Writer(version=9)``, MCAP, ``ros_distro: jazzy``, ``offered_qos_profiles=[RECORD_QOS]``,
+one connection per recorded topic, ``metadata.yaml`` on close) and are named
+``<prefix>_<NNN>`` in ``out_dir``: ``NNN`` counts on from the highest index
+already there, so no bag is ever overwritten.
 
-Nothing is held back: every ``params.flush_period_s`` (transport timer) the open
-chunk is closed and the file flushed, so a recorder killed with SIGKILL leaves a
-bag whose MCAP is readable up to the last flush (``t42 bag repair`` then rewrites
-its summary and ``metadata.yaml``), and memory stays bounded by one chunk (rosbags
-also closes a chunk at 1 MiB).  Each topic is subscribed RELIABLE with a
-``params.queue_depth`` deep KEEP_LAST queue, so a spin loop stalled by a flush or
-the CPU scheduler loses nothing at kHz rates (``bench/bench_recorder.py``: none
-lost at 1 and 5 kHz; ROS's default depth of 10 lost 0.5% at 5 kHz).
+Nothing is held back longer than a step: every ``params.flush_period_s`` (steady
+time) the open chunk is closed and the file flushed, so a recorder killed with
+SIGKILL leaves a bag whose MCAP is readable up to the last flush (``t42 bag
+repair`` then rewrites its summary and ``metadata.yaml``), and memory stays
+bounded by one chunk (rosbags also closes a chunk at 1 MiB).
 
-A message whose bytes do not decode as its topic's type is logged with
-``transport.logger.warning`` and not written (a bag stays readable).  No callback
-or service handler raises; failures are logged (services answer ``success=False``).
+A message whose bytes do not decode as its topic's type is logged and not written
+(a bag stays readable).  No callback or service handler raises; failures are
+logged (services answer ``success=False``).
 """
 
 from __future__ import annotations
 
+import math
 import re
 import threading
+import time
+from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable
 
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rosbags.rosbag2 import StoragePlugin
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
-from msg_adapters import HAND_TOPICS
-from t42_transfer.data.bag_io import RECORD_QOS
-from t42_transfer.ros import qos
-from t42_transfer.ros.naming import typestore_for, validate_name
-from t42_transfer.ros.transport import Transport, deserialize, service_classes
+from msg_adapters import (
+    APPLIED_ACTION_TOPIC,
+    HAND_TOPICS,
+    JOINT_STATES_TOPIC,
+    OBJECT_POSE_TOPIC,
+    TYPESTORE,
+    rclpy_class,
+    stamp_to_ns,
+)
+from t42_transfer.data.bag_io import RECORD_QOS, JazzyWriter
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import recording
 
 STRING = "std_msgs/msg/String"
-TRIGGER = "std_srvs/srv/Trigger"
 
-START_SERVICE = "/recorder/start"
-STOP_SERVICE = "/recorder/stop"
-SPLIT_SERVICE = "/recorder/split"
-STATUS_TOPIC = "/hand/status"
+START_SERVICE = "~/start"
+STOP_SERVICE = "~/stop"
+SPLIT_SERVICE = "~/split"
+STATUS_TOPIC = "hand/status"
+
+RECORDABLE = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
+"""Relative names the recorder knows the types of (every one has a header stamp)."""
+STATE_TOPICS = (OBJECT_POSE_TOPIC.lstrip("/"), JOINT_STATES_TOPIC.lstrip("/"))
+"""The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
+ACTION_TOPIC = APPLIED_ACTION_TOPIC.lstrip("/")
 
 MODES = ("recording", "episode")
 SPLIT_EVENTS = ("reset", "dropped", "lost_contact", "overload")
-"""First words of a ``/hand/status`` message that split (``status_message`` of the mock driver)."""
+"""First words of a ``hand/status`` message that split (``status_message`` of the mock driver)."""
 END_EVENTS = ("dropped", "lost_contact", "overload")
 """Split words sent after an episode's final state (the others precede the next episode's first)."""
+
+CLOCK_RESTART_NS = 1_000_000_000
+"""A stamp this much older than the newest written step means the publisher's clock restarted."""
 
 _PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
 @dataclass(frozen=True)
 class RecorderParams:
-    """Parameters of :class:`Recorder` (the node's ROS parameters)."""
+    """The recorder's ROS parameters."""
 
-    out_dir: str | Path
-    """Directory the bags are created in (made if missing)."""
-    mode: str = "recording"
-    """``"recording"``: bags change only on the services; ``"episode"``: also split on status events."""
-    prefix: str | None = None
-    """Bag name prefix; ``None`` uses the mode (``episode_000``, ``recording_000``...)."""
-    start_immediately: bool = True
-    """Open the first bag on construction (else wait for ``/recorder/start``)."""
-    topics: Mapping[str, str] = field(default_factory=lambda: dict(HAND_TOPICS))
-    """Recorded topics and their message types."""
-    status_topic: str = STATUS_TOPIC
-    split_on: tuple[str, ...] = SPLIT_EVENTS
-    """Status words that split the bag in ``"episode"`` mode."""
-    start_service: str = START_SERVICE
-    stop_service: str = STOP_SERVICE
-    split_service: str = SPLIT_SERVICE
-    flush_period_s: float = 1.0
-    """At most this much recording is lost when the process dies (the open chunk is written out this often)."""
-    queue_depth: int = 1000
-    """KEEP_LAST depth of each recorded topic's subscription: messages it can hold while the node is busy."""
+    out_dir: Path = param(description="directory the bags are created in (made if missing)", read_only=True)
+    mode: str = param("recording", "recording: bags change only on the services; "
+                                   "episode: also split on hand/status events (one bag per episode)")
+    prefix: str | None = param(None, "bag name prefix (unset: the mode, e.g. episode_000)")
+    start_immediately: bool = param(True, "open the first bag at start (else wait for ~/start)", read_only=True)
+    topics: tuple[str, ...] = param(tuple(RECORDABLE), "recorded topics, relative names (remap to rename): "
+                                    + ", ".join(RECORDABLE), read_only=True)
+    split_on: tuple[str, ...] = param(SPLIT_EVENTS, "hand/status first words that split the bag in episode mode")
+    flush_period_s: float = param(1.0, "the open chunk reaches the file this often: at most this much "
+                                       "recording is lost when the process is killed", min=1e-3, max=3600.0)
+    step_hold_s: float = param(0.5, "a step still missing a message this long after its first (steady time) "
+                                    "is written as it is", min=1e-3, max=60.0)
+    queue_depth: int = param(1000, "KEEP_LAST depth of each recorded subscription: messages it holds while "
+                                   "the node is busy", read_only=True, min=1, max=1_000_000)
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if not _PREFIX.match(self.bag_prefix):
             raise ValueError(f"prefix must be a plain file name part ([A-Za-z0-9_.-]), got {self.prefix!r}")
-        topics = dict(self.topics)
-        if not topics:
+        if not self.topics:
             raise ValueError("topics must name at least one topic")
-        for topic, msgtype in topics.items():
-            validate_name(topic)
-            typestore_for(msgtype)  # KeyError for an unknown type
-        object.__setattr__(self, "topics", topics)
-        object.__setattr__(self, "split_on", tuple(self.split_on))
-        if not self.flush_period_s > 0:
-            raise ValueError(f"flush_period_s must be positive, got {self.flush_period_s!r}")
+        unknown = [t for t in self.topics if t not in RECORDABLE]
+        if unknown:
+            raise ValueError(f"topics {unknown} are not recordable; topics are relative names among "
+                             f"{', '.join(RECORDABLE)} (remap them to record other names)")
+        if len(set(self.topics)) != len(self.topics):
+            raise ValueError(f"topics must not repeat, got {list(self.topics)}")
+        for name, value in (("flush_period_s", self.flush_period_s), ("step_hold_s", self.step_hold_s)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
         if not isinstance(self.queue_depth, int) or self.queue_depth < 1:
             raise ValueError(f"queue_depth must be an int >= 1, got {self.queue_depth!r}")
-        validate_name(self.status_topic)
-        for name in (self.start_service, self.stop_service, self.split_service):
-            validate_name(name, "service")
 
     @property
     def bag_prefix(self) -> str:
@@ -134,40 +173,111 @@ def next_bag_path(out_dir: str | Path, prefix: str) -> Path:
     return directory / f"{prefix}_{max(taken, default=-1) + 1:03d}"
 
 
-def _stamp_ns(msg: Any, default: int) -> int:
-    """Header stamp of ``msg`` in ns, or ``default`` for a message without a header."""
-    header = getattr(msg, "header", None)
-    stamp = getattr(header, "stamp", None)
-    if stamp is None:
-        return default
-    return int(stamp.sec) * 10**9 + int(stamp.nanosec)
+# --------------------------------------------------------------------------- steps (no ROS)
+@dataclass
+class Step:
+    """The messages of one header stamp: ``(topic, log_ns, cdr)`` in arrival order."""
+
+    stamp: int
+    first_seen_s: float
+    """Steady time of its first message."""
+    messages: list[tuple[str, int, bytes]] = field(default_factory=list)
+
+    @property
+    def topics(self) -> set[str]:
+        return {topic for topic, _, _ in self.messages}
 
 
+class StepBuffer:
+    """Groups messages by header stamp and releases whole steps in stamp order (see the module docstring).
+
+    ``topics`` are the recorded topics; a step is complete once each of them
+    delivered its message for the stamp or a later one.  Steady times are passed
+    in, so the buffer is deterministic in tests.
+    """
+
+    def __init__(self, topics: Iterable[str], hold_s: float) -> None:
+        self.topics = tuple(topics)
+        self.hold_s = hold_s
+        self._latest: dict[str, int] = {}
+        """Newest stamp delivered per topic."""
+        self._pending: dict[int, Step] = {}
+        self.released_stamp: int | None = None
+        """Stamp of the newest step released."""
+
+    @property
+    def latest_stamp(self) -> int | None:
+        """The newest stamp received on any topic (released or not)."""
+        return max(self._latest.values(), default=None)
+
+    @property
+    def oldest_pending(self) -> int | None:
+        return min(self._pending, default=None)
+
+    def add(self, topic: str, stamp: int, log_ns: int, data: bytes, now_s: float) -> tuple[list[Step], bool]:
+        """File one message; (the steps now released in stamp order, whether the message came too late)."""
+        released: list[Step] = []
+        if self.released_stamp is not None and stamp <= self.released_stamp:
+            if stamp > self.released_stamp - CLOCK_RESTART_NS:
+                return [], True
+            released = self.drain()  # the publisher's clock restarted: what waits is all there will be
+            self._latest.clear()
+            self.released_stamp = None
+        step = self._pending.get(stamp)
+        if step is None:
+            step = self._pending[stamp] = Step(stamp, now_s)
+        step.messages.append((topic, log_ns, data))
+        self._latest[topic] = max(stamp, self._latest.get(topic, stamp))
+        return released + self.release(now_s), False
+
+    def _complete(self, step: Step, now_s: float) -> bool:
+        if now_s - step.first_seen_s >= self.hold_s:
+            return True
+        have = step.topics
+        return all(t in have or self._latest.get(t, step.stamp) > step.stamp for t in self.topics)
+
+    def release(self, now_s: float) -> list[Step]:
+        """Steps that are complete (or held ``hold_s``), oldest first, up to the first that is not."""
+        out = []
+        while self._pending:
+            oldest = min(self._pending)
+            if not self._complete(self._pending[oldest], now_s):
+                break
+            out.append(self._pending.pop(oldest))
+            self.released_stamp = oldest
+        return out
+
+    def drain(self) -> list[Step]:
+        """Every waiting step, oldest first (the recording ends)."""
+        out = [self._pending.pop(stamp) for stamp in sorted(self._pending)]
+        if out:
+            self.released_stamp = out[-1].stamp
+        return out
+
+
+# --------------------------------------------------------------------------- bags
 class _Bag:
-    """One open bag: its writer, connections by topic and message count."""
+    """One open bag: its writer, connections by resolved topic, and what was written."""
 
-    def __init__(self, path: Path, topics: Mapping[str, str]) -> None:
+    def __init__(self, path: Path, types: dict[str, str]) -> None:
         self.path = path
-        self.writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self.writer = JazzyWriter(path, version=9, storage_plugin=StoragePlugin.MCAP)
         self.writer.open()
         try:
             self.connections = {
-                topic: self.writer.add_connection(
-                    topic, msgtype, typestore=typestore_for(msgtype), offered_qos_profiles=[RECORD_QOS]
-                )
-                for topic, msgtype in topics.items()
+                topic: self.writer.add_connection(topic, msgtype, typestore=TYPESTORE,
+                                                  offered_qos_profiles=[RECORD_QOS])
+                for topic, msgtype in types.items()
             }
         except Exception:
             self.writer.abort()
             raise
         self.count = 0
-        self.last_stamp_ns = -1
-        """Latest header stamp written."""
 
-    def write(self, topic: str, log_ns: int, data: bytes, stamp_ns: int) -> None:
-        self.writer.write(self.connections[topic], log_ns, data)
-        self.count += 1
-        self.last_stamp_ns = max(self.last_stamp_ns, stamp_ns)
+    def write(self, step: Step) -> None:
+        for topic, log_ns, data in step.messages:
+            self.writer.write(self.connections[topic], log_ns, data)
+            self.count += 1
 
     def flush(self) -> None:
         """Write the open chunk and flush the file (no fsync: SIGKILL keeps the page cache).
@@ -186,41 +296,72 @@ class _Bag:
         self.writer.close()
 
 
-class Recorder:
-    """Records the hand topics into bags; see the module docstring for behaviour."""
+@dataclass(frozen=True)
+class _Change:
+    """A bag change waiting for the steps up to ``after`` (a stamp) to be written."""
 
-    def __init__(self, transport: Transport, params: RecorderParams) -> None:
-        self.transport = transport
-        self.params = params
-        self.log = transport.logger
+    kind: str
+    """``start``, ``stop``, ``split`` or ``episode`` (a split only if the bag holds messages)."""
+    after: int | None
+    why: str = ""
+
+
+# --------------------------------------------------------------------------- the node
+class Recorder(Node):
+    """Records the hand topics into bags at step boundaries; see the module docstring."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("recorder", **node_kwargs)
+        self._params = LiveParams(self, RecorderParams, self._on_params)
+        p = self.params
+        self.log = self.get_logger()
+        try:
+            Path(p.out_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {p.out_dir}: {err.strerror}") from None
         self.bags: list[Path] = []
         """Every bag this recorder has closed, in order."""
+        self.received = 0
+        """Messages received on the recorded topics and handled (counted when their callback ends)."""
         self.dropped = 0
-        """Messages not written (undecodable bytes or a failed write)."""
+        """Messages not written (undecodable bytes, too late for their step, orphans, a failed write)."""
         self._bag: _Bag | None = None
-        self._split_after_ns: int | None = None
-        """Episode mode: split before the first message stamped after this (a status's receive time)."""
+        self._changes: deque[_Change] = deque()
+        self._will_record = False
+        """Whether a bag is open once every waiting change is carried out."""
         self._lock = threading.RLock()
-        _, self._Response = service_classes(TRIGGER)
-        Path(params.out_dir).mkdir(parents=True, exist_ok=True)
-        if params.mode == "episode":  # first, so a spin sees a status before messages queued with it
-            transport.subscribe(params.status_topic, STRING, qos.DEFAULT, self._on_status, raw=True)
-        record_qos = qos.QoSProfile(depth=params.queue_depth)
-        for topic, msgtype in params.topics.items():
-            transport.subscribe(topic, msgtype, record_qos,
-                                lambda data, t=topic, m=msgtype: self._on_message(t, m, data), raw=True)
-        transport.service(params.start_service, TRIGGER, lambda req: self._answer(self.start))
-        transport.service(params.stop_service, TRIGGER, lambda req: self._answer(self.stop))
-        transport.service(params.split_service, TRIGGER, lambda req: self._answer(self.split))
-        transport.timer(params.flush_period_s, self.flush)
-        if params.start_immediately:
+        self._closed = False
+
+        qos = recording(p.queue_depth)
+        self._types: dict[str, str] = {}
+        """Resolved topic -> type."""
+        for name in p.topics:
+            msgtype, topic = RECORDABLE[name], self.resolve_topic_name(name)  # namespace and remapping applied
+            self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_message, topic, msgtype), qos,
+                                     raw=True)
+            self._types[topic] = msgtype
+        self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
+        self._buffer = StepBuffer(self._types, p.step_hold_s)
+        self.create_subscription(String, STATUS_TOPIC, self._on_status, 10, raw=True)
+        self.create_service(Trigger, START_SERVICE, partial(self._answer, self.start))
+        self.create_service(Trigger, STOP_SERVICE, partial(self._answer, self.stop))
+        self.create_service(Trigger, SPLIT_SERVICE, partial(self._answer, self.split))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
+        self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
+        if p.start_immediately:
             ok, message = self.start()
             if not ok:
-                self.log.error("could not start recording: %s", message)
+                raise ValueError(f"{self.get_fully_qualified_name()}: could not start recording: {message}")
 
     # ------------------------------------------------------------------ state
     @property
+    def params(self) -> RecorderParams:
+        return self._params.value
+
+    @property
     def recording(self) -> bool:
+        """Whether a bag is open now."""
         return self._bag is not None
 
     @property
@@ -235,42 +376,31 @@ class Recorder:
         bag = self._bag
         return 0 if bag is None else bag.count
 
+    @property
+    def waiting_changes(self) -> int:
+        """Requested bag changes waiting for the step in progress."""
+        return len(self._changes)
+
     def start(self) -> tuple[bool, str]:
-        """Open a new bag unless one is open; (success, message)."""
+        """Open a new bag after the step in progress; (success, message)."""
         with self._lock:
-            if self._bag is not None:
-                return False, f"already recording to {self._bag.path}"
-            try:
-                path = self._open()
-            except Exception as err:
-                self.log.exception("could not open a bag in %s", self.params.out_dir)
-                return False, f"could not open a bag in {self.params.out_dir}: {err}"
-            return True, f"recording to {path}"
+            if self._will_record:
+                return False, f"already recording to {self._bag.path if self._bag is not None else 'a bag'}"
+            return True, self._request("start", self._buffer.latest_stamp)
 
     def stop(self) -> tuple[bool, str]:
-        """Close the open bag; (success, message)."""
+        """Close the open bag after the step in progress; (success, message)."""
         with self._lock:
-            if self._bag is None:
+            if not self._will_record:
                 return False, "not recording"
-            path, count, error = self._close()
-            if error:
-                return False, f"closing {path} failed: {error}"
-            return True, f"closed {path} ({count} messages)"
+            return True, self._request("stop", self._buffer.latest_stamp)
 
     def split(self) -> tuple[bool, str]:
-        """Close the open bag and open the next; (success, message)."""
+        """Close the open bag after the step in progress and open the next; (success, message)."""
         with self._lock:
-            if self._bag is None:
+            if not self._will_record:
                 return False, "not recording; call start"
-            old, count, error = self._close()
-            try:
-                path = self._open()
-            except Exception as err:
-                self.log.exception("could not open a bag in %s", self.params.out_dir)
-                return False, f"closed {old} ({count} messages) but could not open the next: {err}"
-            if error:
-                return False, f"closing {old} failed: {error}; recording to {path}"
-            return True, f"closed {old} ({count} messages); recording to {path}"
+            return True, self._request("split", self._buffer.latest_stamp)
 
     def flush(self) -> None:
         """Write out what the open bag holds so far; failures are logged (it runs from a timer)."""
@@ -279,93 +409,182 @@ class Recorder:
                 return
             try:
                 self._bag.flush()
-            except Exception:
-                self.log.exception("flushing %s failed", self._bag.path)
+            except Exception as err:
+                self.log.error(f"flushing {self._bag.path} failed: {err!r}")
 
     def close(self) -> None:
-        """Close any open bag (the transport's owner closes the transport)."""
+        """Write the waiting steps that hold their whole state, carry out waiting changes, close the bag."""
         with self._lock:
-            if self._bag is not None:
-                self._close()
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                whole = [s for s in self._buffer.drain() if self._state_topics <= s.topics]
+                self._write_steps(whole)
+                self._carry_out(None)
+                if self._bag is not None:
+                    self._close_bag()
+            except Exception as err:  # close() never raises
+                self.log.error(f"closing the recorder failed: {err!r}")
 
-    # ------------------------------------------------------------------ bags
-    def _open(self) -> Path:
-        self._split_after_ns = None
-        bag = _Bag(next_bag_path(self.params.out_dir, self.params.bag_prefix), self.params.topics)
+    # ------------------------------------------------------------------ bag changes
+    def _request(self, kind: str, after: int | None, why: str = "") -> str:
+        """Queue a bag change after the steps up to ``after``; carry out what can be; the answer's text."""
+        if self._changes and self._changes[-1].after is not None:
+            after = self._changes[-1].after if after is None else max(after, self._changes[-1].after)
+        self._changes.append(_Change(kind, after, why))
+        if kind == "start":
+            self._will_record = True
+        elif kind == "stop":
+            self._will_record = False
+        done = self._carry_out(self._buffer.oldest_pending)
+        if kind in done:
+            return done[kind]
+        return f"{kind}: after the step in progress (stamp {after} ns) is complete"
+
+    def _carry_out(self, next_stamp: int | None) -> dict[str, str]:
+        """Carry out the changes due before the step stamped ``next_stamp`` (None: every change); what each did."""
+        done: dict[str, str] = {}
+        while self._changes:
+            change = self._changes[0]
+            if next_stamp is not None and change.after is not None and change.after >= next_stamp:
+                break
+            self._changes.popleft()
+            done[change.kind] = self._change(change)
+        return done
+
+    def _change(self, change: _Change) -> str:
+        if change.kind == "start":
+            return f"recording to {self._open_bag()}"
+        if change.kind == "stop":
+            return self._close_bag() if self._bag is not None else "not recording"
+        if self._bag is None:
+            return "not recording"
+        if change.kind == "episode" and self._bag.count == 0:
+            return f"{self._bag.path} is empty: not split"
+        closed = self._close_bag()
+        message = f"{closed}; recording to {self._open_bag()}"
+        if change.why:
+            self.log.info(f"{change.why}: {message}")
+        return message
+
+    def _open_bag(self) -> Path:
+        p = self.params
+        bag = _Bag(next_bag_path(p.out_dir, p.bag_prefix), self._types)
         self._bag = bag
-        self.log.info("recording to %s", bag.path)
+        self.log.info(f"recording to {bag.path}")
         return bag.path
 
-    def _close(self) -> tuple[Path, int, str]:
-        """Close the open bag: (path, messages, error text or "")."""
+    def _close_bag(self) -> str:
+        """Close the open bag; what happened."""
         bag, self._bag = self._bag, None
-        self._split_after_ns = None
         assert bag is not None
         try:
             bag.close()
         except Exception as err:
-            self.log.exception("closing %s failed", bag.path)
-            return bag.path, bag.count, f"{type(err).__name__}: {err}"
+            self.log.error(f"closing {bag.path} failed: {err!r}")
+            return f"closing {bag.path} failed: {type(err).__name__}: {err}"
         self.bags.append(bag.path)
-        self.log.info("closed %s (%d messages)", bag.path, bag.count)
-        return bag.path, bag.count, ""
+        self.log.info(f"closed {bag.path} ({bag.count} messages)")
+        return f"closed {bag.path} ({bag.count} messages)"
 
-    # ------------------------------------------------------------------ callbacks
-    def _answer(self, action: Any) -> Any:
-        try:
-            ok, message = action()
-        except Exception as err:  # a service handler must answer, not raise
-            self.log.exception("recorder service failed")
-            ok, message = False, f"failed: {type(err).__name__}: {err}"
-        return self._Response(success=ok, message=message)
-
-    def _on_message(self, topic: str, msgtype: str, data: Any) -> None:
-        try:
-            now = self.transport.now_ns()
-            data = bytes(data)
+    # ------------------------------------------------------------------ steps
+    def _write_steps(self, steps: list[Step]) -> None:
+        for step in steps:
+            self._carry_out(step.stamp)
+            bag = self._bag
+            if bag is None:
+                continue
+            if bag.count == 0 and not self._state_topics <= step.topics:
+                self.dropped += len(step.messages)
+                self.log.warning(f"{bag.path} does not begin with the step stamped {step.stamp} ns: it lacks "
+                                 f"{', '.join(sorted(self._state_topics - step.topics))} (received before the "
+                                 "bag began, or lost)")
+                continue
             try:
-                msg = deserialize(msgtype, data)
+                bag.write(step)
+            except Exception as err:
+                self.dropped += len(step.messages)
+                self.log.error(f"could not write the step stamped {step.stamp} ns to {bag.path}: {err!r}")
+
+    def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
+        try:
+            log_ns = self.get_clock().now().nanoseconds
+            try:
+                stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, msgtype).header.stamp)
             except Exception as err:  # the decoder raises whatever it trips over
                 self.dropped += 1
-                self.log.warning("dropped a message on %s: its %d bytes are not a %s (%s: %s)",
-                                 topic, len(data), msgtype, type(err).__name__, err)
+                self.log.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
+                                 f"({type(err).__name__}: {err})")
                 return
             with self._lock:
-                if self._bag is None:
+                if self._closed:
                     return
-                stamp = _stamp_ns(msg, now)
-                if self._split_after_ns is not None and stamp > self._split_after_ns:
-                    self._split_after_ns = None
-                    if self._bag.count:
-                        ok, message = self.split()
-                        (self.log.info if ok else self.log.error)("episode status: %s", message)
-                        if self._bag is None:
-                            self.dropped += 1
-                            return
-                self._bag.write(topic, now, data, stamp)
-        except Exception:  # never raise from a callback
+                released, late = self._buffer.add(topic, stamp, log_ns, bytes(data), time.monotonic())
+                if late:
+                    self.dropped += 1
+                    self.log.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
+                                     f"written (step_hold_s {self.params.step_hold_s} s passed, or it is a "
+                                     "duplicate)", throttle_duration_sec=5.0)
+                self._write_steps(released)
+                self._carry_out(self._buffer.oldest_pending)
+        except Exception as err:  # never raise from a callback
             self.dropped += 1
-            self.log.exception("could not record a message on %s", topic)
+            self.log.error(f"could not record a message on {topic}: {err!r}")
+        finally:
+            self.received += 1
 
-    def _on_status(self, data: Any) -> None:
-        try:
+    def _on_hold_timer(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
             try:
-                text = deserialize(STRING, bytes(data)).data
+                self._write_steps(self._buffer.release(time.monotonic()))
+                self._carry_out(self._buffer.oldest_pending)
             except Exception as err:
-                self.log.warning("ignored a message on %s: not a %s (%s: %s)",
-                                 self.params.status_topic, STRING, type(err).__name__, err)
+                self.log.error(f"could not write waiting steps: {err!r}")
+
+    def _on_status(self, data: bytes) -> None:
+        try:
+            if self.params.mode != "episode":
+                return
+            try:
+                text = TYPESTORE.deserialize_cdr(data, STRING).data
+            except Exception as err:
+                self.log.warning(f"ignored a message on {STATUS_TOPIC}: not a {STRING} ({type(err).__name__}: {err})")
                 return
             words = str(text).split()
             event = words[0].rstrip(":") if words else ""
             if event not in self.params.split_on:
                 return
             with self._lock:
-                if self._bag is None or (self._bag.count == 0 and self._split_after_ns is None):
-                    return
-                if event in END_EVENTS:
-                    self._split_after_ns = self.transport.now_ns()
-                elif self._split_after_ns is None:
-                    self._split_after_ns = self._bag.last_stamp_ns
-                self.log.info("status %r: the bag splits before the next message stamped later", event)
-        except Exception:  # never raise from a callback
-            self.log.exception("could not handle a message on %s", self.params.status_topic)
+                if self._closed or not self._will_record or any(c.kind == "episode" for c in self._changes):
+                    return  # one split per episode border: a reset right after an end status adds none
+                after = self._buffer.latest_stamp
+                if event in END_EVENTS:  # the final state may still be on its way: stamped before now
+                    now = self.get_clock().now().nanoseconds
+                    after = now if after is None else max(now, after)
+                self._request("episode", after, f"status {event!r}")
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"could not handle a message on {STATUS_TOPIC}: {err!r}")
+
+    # ------------------------------------------------------------------ services, params
+    def _answer(self, action: Any, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            ok, message = action()
+        except Exception as err:  # a service handler must answer, not raise
+            self.log.error(f"recorder service failed: {err!r}")
+            ok, message = False, f"failed: {type(err).__name__}: {err}"
+        response.success, response.message = ok, message
+        return response
+
+    def _on_params(self, old: RecorderParams, new: RecorderParams) -> None:
+        # a new period counts from now (rcl keeps the old next call time otherwise)
+        if new.flush_period_s != old.flush_period_s:
+            self._flush_timer.timer_period_ns = round(new.flush_period_s * 1e9)
+            self._flush_timer.reset()
+        if new.step_hold_s != old.step_hold_s:
+            with self._lock:
+                self._buffer.hold_s = new.step_hold_s
+            self._hold_timer.timer_period_ns = round(new.step_hold_s / 2 * 1e9)
+            self._hold_timer.reset()
