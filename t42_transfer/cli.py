@@ -99,27 +99,46 @@ def _cmd_bag_repair(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_play(args: argparse.Namespace) -> int:
-    from t42_transfer.nodes.player import BagPlayer, PlayerParams, wait_for_subscribers
+    from t42_transfer.nodes.player import PlayerParams
+    from t42_transfer.ros.runner import keep_discovery_local
 
-    params = PlayerParams(args.bag, rate=args.rate, loop=args.loop, start_paused=True,
-                          topics=tuple(args.topics) if args.topics else None)
+    topics = tuple(args.topics) if args.topics else None
+    PlayerParams(args.bag, rate=args.rate, loop=args.loop, topics=topics, clock_hz=args.clock)  # bad input: exit 2
+    keep_discovery_local()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+
+    from t42_transfer.nodes.player import BagPlayer
+
+    overrides = [Parameter("bag", value=str(args.bag)), Parameter("rate", value=float(args.rate)),
+                 Parameter("loop", value=args.loop), Parameter("clock_hz", value=float(args.clock)),
+                 Parameter("start_paused", value=True)]
+    if topics:
+        overrides.append(Parameter("topics", value=list(topics)))
+    context = rclpy.Context()
+    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
     try:
-        from t42_transfer.ros.backends import make_transport
-    except ImportError:
-        from t42_transfer.ros.cyclone import CycloneTransport as make_transport
-    with make_transport("t42_bag_player") as transport:
-        player = BagPlayer(transport, params)
+        player = BagPlayer(context=context, parameter_overrides=overrides)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(player)
         try:
-            if not wait_for_subscribers(player, args.wait_subscribers):
+            if not player.wait_for_subscribers(args.wait_subscribers):
                 print(f"not every topic had a subscriber within {args.wait_subscribers} s; playing anyway",
                       file=sys.stderr)
             player.resume()
-            transport.spin(until=lambda: player.done)
+            while not player.finished:
+                executor.spin_once(timeout_sec=0.1)
         except KeyboardInterrupt:
             pass
         finally:
             player.close()
-    print(f"{args.bag}: published {player.published} messages on {len(player.publishers)} topics")
+            executor.shutdown(timeout_sec=2.0)
+            player.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+    print(f"{args.bag}: published {player.published} messages on {len(player.topic_publishers)} topics")
     return 0
 
 
@@ -305,11 +324,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (originals kept as *.orig)")
     rep.add_argument("bag", type=Path, help="bag directory")
     rep.set_defaults(func=_cmd_bag_repair)
-    play = bag.add_parser("play", help="publish a bag's messages on their topics (Cyclone DDS or rclpy)")
+    play = bag.add_parser("play", help="publish a bag's messages on their topics over ROS 2 (rclpy), as ros2 bag play")
     play.add_argument("bag", type=Path, help="bag directory")
     play.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1.0)")
-    play.add_argument("--topics", nargs="+", default=None, help="play only these topics")
+    play.add_argument("--topics", nargs="+", default=None, help="play only these topics (as named in the bag)")
     play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
+    play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
+                      help="publish /clock from the bag's time at HZ (40 when HZ is not given), as ros2 bag play --clock")
     play.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
                       help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
     play.set_defaults(func=_cmd_bag_play)

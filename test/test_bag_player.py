@@ -1,24 +1,29 @@
-"""The bag player on the in-process bus with a fake clock: order, timing, bytes, controls, bad input."""
+"""The bag player on real rclpy in this process: order, bytes, timing, filter, pause, loop, rate, /clock, bad input."""
 
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import Writer
+from rosgraph_msgs.msg import Clock
 
-from msg_adapters import HAND_TOPICS
+from msg_adapters import HAND_TOPICS, TYPESTORE, object_pose_msg, rclpy_class, stamp_to_ns
 from t42_transfer.cli import main
 from t42_transfer.data.errors import BagError
-from t42_transfer.nodes.player import BagPlayer, PlayerParams, play_bag
-from t42_transfer.ros import qos
-from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
+from t42_transfer.nodes.player import BagPlayer, PlayerParams, Timeline
+from t42_transfer.ros.qos import recording
 
 REPO = Path(__file__).resolve().parents[1]
 BAG = REPO / "bags" / "target_small"
-T0_NS = 7_000_000_000
-TICK_NS = 1_000_000
+POSE = "/hand/object_pose"
 
 
 def bag_messages(bag: Path = BAG) -> list[tuple[str, int, bytes]]:
@@ -26,103 +31,183 @@ def bag_messages(bag: Path = BAG) -> list[tuple[str, int, bytes]]:
         return [(conn.topic, log_ns, bytes(raw)) for conn, log_ns, raw in reader.messages()]
 
 
-class Rig:
-    """A player node and a sink node recording (clock, topic, bytes) per message."""
+class Sink:
+    """The test's node: raw subscriptions to the hand topics recording (steady time, topic, bytes)."""
 
-    def __init__(self, **params: object) -> None:
-        self.clock = FakeClock(T0_NS)
-        bus = InProcessBus(clock=self.clock)
-        self.node, self.sink = InProcessTransport(bus, "player"), InProcessTransport(bus, "sink")
-        self.got: list[tuple[int, str, bytes]] = []
-        for topic, msgtype in HAND_TOPICS.items():
-            self.sink.subscribe(topic, msgtype, qos.QoSProfile(depth=10_000),
-                                lambda data, t=topic: self.got.append((self.clock(), t, data)), raw=True)
-        self.player = BagPlayer(self.node, PlayerParams(params.pop("bag", BAG), **params))
-
-    def run(self, ticks: int) -> None:
-        for _ in range(ticks):
-            self.clock.advance(ns=TICK_NS)
-            self.node.spin_once()
-            self.sink.spin_once()
+    def __init__(self, ros: Any, topics: Any = HAND_TOPICS) -> None:
+        self.node = ros.node("sink")
+        self.got: list[tuple[float, str, bytes]] = []
+        for topic in topics:
+            self.node.create_subscription(rclpy_class(HAND_TOPICS[topic]), topic,
+                                          lambda data, t=topic: self.got.append((time.monotonic(), t, data)),
+                                          recording(10_000), raw=True)
 
 
-@pytest.mark.parametrize("rate", [1.0, 2.5])
-def test_messages_come_out_in_order_with_their_spacing_and_bytes(rate: float) -> None:
+def add_player(ros: Any, bag: Path = BAG, **params: Any) -> BagPlayer:
+    player = ros.add(BagPlayer, params={"bag": str(bag), "start_paused": True, **params})
+    assert player.wait_for_subscribers(10.0), "the sink never matched"
+    return player
+
+
+@pytest.mark.parametrize("rate", [20.0, 50.0])
+def test_messages_come_out_in_order_with_their_bytes_and_spacing(ros: Any, rate: float) -> None:
     expected = bag_messages()
-    first = expected[0][1]
-    rig = Rig(rate=rate)
-    duration_ticks = (expected[-1][1] - first) / rate / TICK_NS
-    rig.run(int(duration_ticks) + 5)
-    assert rig.player.done and rig.player.published == len(expected)
-    assert [(t, d) for _, t, d in rig.got] == [(t, d) for t, _, d in expected]  # order and bytes
-    for (sent_at, _, _), (_, log_ns, _) in zip(rig.got, expected):
-        due = T0_NS + round((log_ns - first) / rate)
-        assert due <= sent_at < due + TICK_NS or sent_at == T0_NS + TICK_NS  # the first tick is 1 ms in
-    rig.run(100)
-    assert len(rig.got) == len(expected)
+    sink = Sink(ros)
+    player = add_player(ros, rate=rate)
+    ros.spin_for(0.2)
+    assert sink.got == [] and player.published == 0  # paused
+    player.resume()
+    duration_s = (expected[-1][1] - expected[0][1]) / 1e9 / rate
+    assert ros.spin_until(lambda: len(sink.got) == len(expected), duration_s * 2 + 10)
+    assert player.finished and player.published == len(expected)
+    for topic in HAND_TOPICS:  # per topic: the bag's bytes in the bag's order
+        assert [d for _, t, d in sink.got if t == topic] == [d for t, _, d in expected if t == topic]
+    # timing: never early, and the whole bag takes its duration / rate
+    first_at, first_log = sink.got[0][0], expected[0][1]
+    got_at = {d: at for at, _, d in sink.got}
+    early = [(log_ns - first_log) / 1e9 / rate - (got_at[d] - first_at) for _, log_ns, d in expected]
+    assert max(early) < 0.02
+    assert duration_s * 0.95 < sink.got[-1][0] - first_at < duration_s * 1.5 + 0.5
 
 
-def test_topic_filter_pause_resume_and_loop() -> None:
-    expected = bag_messages()
-    poses = [m for m in expected if m[0] == "/hand/object_pose"]
-    rig = Rig(topics=("/hand/object_pose",), start_paused=True, rate=10.0)
-    assert set(rig.player.publishers) == {"/hand/object_pose"}
-    rig.run(1000)
-    assert rig.got == [] and rig.player.paused
-    rig.player.resume()
-    start = rig.clock()
-    rig.run(100)  # 1 s of a 10x playback: the first 10 s of the bag
-    played = len(rig.got)
-    assert 0 < played < len(poses)
-    rig.player.pause()
-    rig.run(2000)
-    assert len(rig.got) == played
-    rig.player.resume()
-    rig.run(5000)
-    assert rig.player.done and [d for _, _, d in rig.got] == [d for _, _, d in poses]
-    assert rig.got[-1][0] - start >= (poses[-1][1] - poses[0][1]) / 10 + 2000 * TICK_NS  # paused time did not count
+def test_topic_filter_pause_resume_and_loop(ros: Any) -> None:
+    poses = [m for m in bag_messages() if m[0] == POSE]
+    sink = Sink(ros, [POSE])
+    player = add_player(ros, rate=50.0, topics=[POSE])
+    assert set(player.topic_publishers) == {POSE}
+    player.resume()
+    assert ros.spin_until(lambda: len(sink.got) >= 20, 10.0)
+    player.pause()
+    ros.spin_for(0.1)
+    held = len(sink.got)
+    assert held < len(poses)
+    ros.spin_for(0.5)  # longer than the rest of the bag at 50x
+    assert len(sink.got) == held and not player.finished
+    player.resume()
+    assert ros.spin_until(lambda: player.finished, 10.0)
+    ros.spin_for(0.1)
+    assert [d for _, _, d in sink.got] == [d for _, _, d in poses]
 
-    looping = Rig(topics=("/hand/object_pose",), rate=100.0, loop=True)
-    looping.run(2 * 420 + 50)  # two passes of the 42 s bag at 100x
-    assert looping.player.loops == 2 and not looping.player.done
-    assert [d for _, _, d in looping.got[: 2 * len(poses)]] == [d for _, _, d in poses] * 2
-    looping.player.close()
-
-
-def test_publishers_offer_the_recorded_qos_unless_overridden() -> None:
-    rig = Rig(qos={"/hand/joint_states": qos.SENSOR_DATA})
-    assert rig.player.publishers["/hand/object_pose"].qos == qos.DEFAULT  # what the bag recorded
-    assert rig.player.publishers["/hand/joint_states"].qos == qos.SENSOR_DATA
-    rig.player.close()
+    looping = add_player(ros, rate=200.0, topics=[POSE], loop=True)
+    looping.resume()
+    assert ros.spin_until(lambda: looping.loops >= 2, 10.0)
+    assert not looping.finished
+    looping.close()
+    ros.spin_for(0.1)
+    second = [d for _, _, d in sink.got[len(poses):]]
+    assert second[: 2 * len(poses)] == [d for _, _, d in poses] * 2
 
 
-def test_play_bag_spins_until_done_on_the_wall_clock() -> None:
-    bus = InProcessBus()
-    with InProcessTransport(bus, "player") as node:
-        assert play_bag(node, BAG, rate=200.0, timeout_s=20.0) == len(bag_messages())
+def test_rate_changes_while_playing(ros: Any) -> None:
+    sink = Sink(ros, [POSE])
+    player = add_player(ros, rate=2.0, topics=[POSE])  # 21 s at this rate
+    player.resume()
+    assert ros.spin_until(lambda: len(sink.got) >= 3, 10.0)
+    bag_time = player.bag_now_ns()
+    result = player.set_parameters([Parameter("rate", value=400.0)])[0]
+    assert result.successful
+    assert player.bag_now_ns() >= bag_time  # bag time carries on from where it was
+    assert ros.spin_until(lambda: player.finished, 3.0)
+    refused = player.set_parameters([Parameter("rate", value=0.0)])[0]
+    assert not refused.successful
 
 
-def test_bad_input_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    node = InProcessTransport(InProcessBus(clock=FakeClock()), "player")
+def test_clock_publishes_the_bag_time(ros: Any) -> None:
+    start = bag_messages()[0][1]
+    clocks: list[int] = []
+    ros.node("clock_sink").create_subscription(Clock, "/clock", lambda m: clocks.append(stamp_to_ns(m.clock)), 10)
+    Sink(ros, [POSE])
+    player = add_player(ros, rate=10.0, clock_hz=50.0, topics=[POSE])
+    ros.spin_for(0.3)
+    paused = list(clocks)
+    assert paused and set(paused) == {start}  # paused: the bag's first instant, standing still
+    player.resume()
+    began = time.monotonic()
+    ros.spin_for(1.0)
+    player.pause()
+    elapsed = time.monotonic() - began
+    after = clocks[len(paused):]
+    assert after == sorted(after) and after[-1] - start > 0.7 * elapsed * 10 * 1e9
+    assert after[-1] - start <= 1.05 * elapsed * 10 * 1e9
+    ros.spin_for(0.2)
+    assert clocks[-1] == player.bag_now_ns()
+
+
+def test_timeline_maps_bag_time_to_steady_time() -> None:
+    now = [1_000]
+    line = Timeline(5_000, rate=2.0, paused=True, now_ns=lambda: now[0])
+    assert line.due_ns(6_000) == float("inf") and line.bag_now() == 5_000
+    now[0] = 2_000
+    line.resume()
+    assert line.due_ns(6_000) == 2_500 and line.bag_now() == 5_000
+    now[0] = 2_500
+    assert line.bag_now() == 6_000
+    line.set_rate(4.0)
+    assert line.due_ns(8_000) == 3_000
+    line.pause()
+    now[0] = 9_999
+    assert line.bag_now() == 6_000
+
+
+def test_publishers_offer_the_recorded_qos(ros: Any, tmp_path: Path) -> None:
+    infinite = QosTime(9223372036, 854775807)
+    latched = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+                  infinite, infinite, QosLiveliness.AUTOMATIC, infinite, False)
+    bag = tmp_path / "latched"
+    with Writer(bag, version=9) as writer:
+        conn = writer.add_connection(POSE, HAND_TOPICS[POSE], typestore=TYPESTORE, offered_qos_profiles=[latched])
+        writer.write(conn, 1, bytes(TYPESTORE.serialize_cdr(object_pose_msg((1.0, 2.0), 1), HAND_TOPICS[POSE])))
+        writer.add_connection("/other", HAND_TOPICS[POSE], typestore=TYPESTORE)  # no offered QoS recorded
+    player = ros.add(BagPlayer, params={"bag": str(bag), "start_paused": True})
+    pose_qos = player.topic_publishers[POSE].qos_profile
+    assert pose_qos.durability == DurabilityPolicy.TRANSIENT_LOCAL and pose_qos.depth == 1
+    other = player.topic_publishers["/other"].qos_profile
+    assert other.reliability == ReliabilityPolicy.RELIABLE and other.depth == 10  # ROS's default
+
+
+def test_bad_input_is_refused(ros: Any, tmp_path: Path) -> None:
     for rate in (0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rate"):
             PlayerParams(BAG, rate=rate)
+    with pytest.raises(ValueError, match="clock_hz"):
+        PlayerParams(BAG, clock_hz=-1.0)
+    with pytest.raises(ValueError, match="absolute"):
+        PlayerParams(BAG, topics=("hand/object_pose",))
     with pytest.raises(BagError, match="does not exist"):
-        BagPlayer(node, PlayerParams(tmp_path / "missing"))
+        ros.add(BagPlayer, params={"bag": str(tmp_path / "missing")})
     junk = tmp_path / "junk"
     junk.mkdir()
     (junk / "notes.txt").write_text("not a bag")
     with pytest.raises(BagError, match="cannot be played"):
-        BagPlayer(node, PlayerParams(junk))
+        ros.add(BagPlayer, params={"bag": str(junk)})
     killed = tmp_path / "killed"
     shutil.copytree(BAG, killed)
     (killed / "metadata.yaml").unlink()
     with pytest.raises(BagError, match="t42 bag repair"):
-        BagPlayer(node, PlayerParams(killed))
+        ros.add(BagPlayer, params={"bag": str(killed)})
     with pytest.raises(BagError, match="has no topic /nope"):
-        BagPlayer(node, PlayerParams(BAG, topics=("/nope",)))
+        ros.add(BagPlayer, params={"bag": str(BAG), "topics": ["/nope"]})
 
-    assert main(["bag", "play", str(BAG), "--rate", "0"]) == 2
-    assert "rate must be" in capsys.readouterr().err
+
+def test_cli_plays_a_bag_and_refuses_bad_input(ros_domain: int, tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bag", "play", str(BAG), "--rate", "400", "--wait-subscribers", "0", "--clock"]) == 0
+    out = capsys.readouterr()
+    assert f"{BAG}: published 1088 messages on 3 topics" in out.out
+    assert "not every topic had a subscriber" in out.err
+
+    for argv, problem in (
+        (["--rate", "0"], "rate must be"),
+        (["--rate", "-2"], "rate must be"),
+        (["--clock", "-1"], "clock_hz must be"),
+    ):
+        assert main(["bag", "play", str(BAG), *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("t42: error:") and problem in err and "Traceback" not in err
     assert main(["bag", "play", str(tmp_path / "missing")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "does not exist" in err and err.count("\n") == 1
+    (tmp_path / "notabag").mkdir()
+    assert main(["bag", "play", str(tmp_path / "notabag")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot be played" in err and err.count("\n") == 1

@@ -1,227 +1,303 @@
 """Bag player node: a rosbag2 bag's messages back onto their topics, like ``ros2 bag play``.
 
-Each message goes out as the CDR bytes stored in the bag (``publish_raw``), on its
-topic with its type, at its log-time offset from the bag's first message divided by
-``rate``.  Timing runs on the transport's clock and timers, so the same code plays
-in real time over Cyclone DDS and deterministically on the in-process bus with a
-:class:`~t42_transfer.ros.inprocess.FakeClock`: a message is published on the first
-timer tick (every ``tick_s``) at or after its due time.  Each topic's publisher
-offers the QoS the bag recorded for it (reliability, durability, history, depth),
-else ROS's default, unless ``params.qos`` names one.
+Each message goes out as the CDR bytes stored in the bag (``Publisher.publish(bytes)``,
+nothing is decoded), on its topic as named in the bag (absolute: a bag recorded
+under ``/left`` plays on ``/left/hand/...``; remap to move it) with its type, at
+its log-time offset from the bag's first message divided by ``rate``.  Each topic's
+publisher offers the QoS the bag recorded for it (reliability, durability, history,
+depth), else ROS's default.
+
+Playback runs in its own thread on steady time (a player does not follow
+``use_sim_time``: it is the clock), so timing does not depend on the executor; the
+``rate`` parameter may change while playing and the current bag time carries on
+from where it is.  With ``clock_hz > 0`` the node publishes ``/clock``
+(rosgraph_msgs/msg/Clock) that often with the bag's current time, as ``ros2 bag
+play --clock`` does, so nodes run with ``use_sim_time:=true`` live in the bag's
+time (it stands still while paused and jumps back on each loop).
 
 Messages are read lazily through rosbags, so memory does not grow with the bag.
-A bag without ``metadata.yaml`` or with a cut-off MCAP (a killed recorder) is
-refused: ``t42 bag repair`` makes it playable.
+A missing path, a directory that is no bag, or a bag without ``metadata.yaml`` or
+with a cut-off MCAP (a killed recorder) is refused with a :class:`BagError` naming
+it (``t42 bag repair`` makes the last playable).
 """
 
 from __future__ import annotations
 
+import math
+import threading
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
+from rosgraph_msgs.msg import Clock
 
+from msg_adapters import RCLPY, ns_to_stamp, rclpy_class
 from t42_transfer.data.errors import BagError
-from t42_transfer.ros import qos as ros_qos
-from t42_transfer.ros.naming import validate_name
-from t42_transfer.ros.transport import Publisher, Transport
+from t42_transfer.ros.params import LiveParams, param
+
+CLOCK_TOPIC = "/clock"
+DEFAULT_QOS = QoSProfile(depth=10)
+"""ROS's default (RELIABLE, VOLATILE, KEEP_LAST 10), for a topic whose bag recorded no offered QoS."""
 
 
 @dataclass(frozen=True)
 class PlayerParams:
-    """Parameters of :class:`BagPlayer`."""
+    """The player's ROS parameters."""
 
-    bag: str | Path
-    """Bag directory (rosbag2, MCAP or sqlite3) to play."""
-    rate: float = 1.0
-    """Playback speed factor: 2.0 plays twice as fast."""
-    loop: bool = False
-    """Start again from the first message after the last (never done)."""
-    start_paused: bool = False
-    """Publish nothing until :meth:`BagPlayer.resume`."""
-    topics: tuple[str, ...] | None = None
-    """Play only these topics (all when None); each must be in the bag."""
-    qos: Mapping[str, ros_qos.QoSProfile] = field(default_factory=dict)
-    """Publisher QoS per topic, overriding what the bag recorded."""
-    tick_s: float = 0.001
-    """Timer period: the timing resolution of playback."""
+    bag: Path = param(description="bag directory (rosbag2, MCAP or sqlite3) to play", read_only=True)
+    rate: float = param(1.0, "playback speed factor: 2.0 plays twice as fast (may change while playing)",
+                        min=1e-6, max=1e6)
+    loop: bool = param(False, "start again from the first message after the last (never finishes)")
+    topics: tuple[str, ...] | None = param(None, "play only these topics, as named in the bag (unset: all)",
+                                           read_only=True)
+    clock_hz: float = param(0.0, "publish /clock with the bag's time this often (Hz), as ros2 bag play --clock; "
+                                 "0: no /clock", read_only=True, min=0.0, max=10_000.0)
+    start_paused: bool = param(False, "publish nothing until resume() (the CLI waits for subscribers first)",
+                               read_only=True)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.rate, (int, float)) and self.rate > 0 and self.rate != float("inf")):
+        if not (isinstance(self.rate, (int, float)) and math.isfinite(self.rate) and self.rate > 0):
             raise ValueError(f"rate must be a positive finite number, got {self.rate!r}")
-        if not self.tick_s > 0:
-            raise ValueError(f"tick_s must be positive, got {self.tick_s!r}")
+        if not (isinstance(self.clock_hz, (int, float)) and math.isfinite(self.clock_hz) and self.clock_hz >= 0):
+            raise ValueError(f"clock_hz must be a finite number >= 0, got {self.clock_hz!r}")
         if self.topics is not None:
-            object.__setattr__(self, "topics", tuple(self.topics))
-            for topic in self.topics:
-                validate_name(topic)
-        object.__setattr__(self, "qos", dict(self.qos))
+            if not self.topics:
+                raise ValueError("topics must name at least one topic (unset plays all)")
+            relative = [t for t in self.topics if not t.startswith("/")]
+            if relative:
+                raise ValueError(f"topics are named as in the bag (absolute, e.g. /hand/object_pose), got {relative}")
 
 
-def offered_qos(profiles: list[Any]) -> ros_qos.QoSProfile:
-    """Our QoS profile for a bag connection's offered QoS (rosbags ``Qos`` list); DEFAULT when none."""
+def offered_qos(profiles: list[Any]) -> QoSProfile:
+    """rclpy's QoS for a bag connection's offered QoS (rosbags ``Qos`` list); ROS's default when none."""
     if not profiles:
-        return ros_qos.DEFAULT
+        return DEFAULT_QOS
     offered = profiles[0]
     keep_all = offered.history == QosHistory.KEEP_ALL
-    return ros_qos.QoSProfile(
-        ros_qos.Reliability.BEST_EFFORT if offered.reliability == QosReliability.BEST_EFFORT
-        else ros_qos.Reliability.RELIABLE,
-        ros_qos.Durability.TRANSIENT_LOCAL if offered.durability == QosDurability.TRANSIENT_LOCAL
-        else ros_qos.Durability.VOLATILE,
-        ros_qos.History.KEEP_ALL if keep_all else ros_qos.History.KEEP_LAST,
-        max(int(offered.depth), 1) if not keep_all and offered.depth > 0 else ros_qos.DEFAULT.depth,
+    return QoSProfile(
+        reliability=ReliabilityPolicy.BEST_EFFORT if offered.reliability == QosReliability.BEST_EFFORT
+        else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if offered.durability == QosDurability.TRANSIENT_LOCAL
+        else DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
+        depth=max(int(offered.depth), 1) if not keep_all and offered.depth > 0 else DEFAULT_QOS.depth,
     )
 
 
-class BagPlayer:
-    """Plays one bag on ``transport``; see the module docstring."""
+class Timeline:
+    """Bag time <-> steady time at a rate, with pause and rate changes (no ROS; ``now_ns`` is injectable)."""
 
-    def __init__(self, transport: Transport, params: PlayerParams) -> None:
-        self.transport, self.params = transport, params
+    def __init__(self, start_bag_ns: int, rate: float, paused: bool = False,
+                 now_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        self._now = now_ns
+        self._bag_ns = start_bag_ns
+        """Bag time at steady time ``_at_ns`` (the anchor)."""
+        self._at_ns = now_ns()
+        self.rate = rate
+        self.paused = paused
+
+    def bag_now(self) -> int:
+        """The bag time playing now."""
+        if self.paused:
+            return self._bag_ns
+        return self._bag_ns + round((self._now() - self._at_ns) * self.rate)
+
+    def due_ns(self, bag_ns: int) -> float:
+        """Steady time at which bag time ``bag_ns`` plays (inf while paused)."""
+        if self.paused:
+            return math.inf
+        return self._at_ns + (bag_ns - self._bag_ns) / self.rate
+
+    def _anchor(self) -> None:
+        self._bag_ns, self._at_ns = self.bag_now(), self._now()
+
+    def set_rate(self, rate: float) -> None:
+        self._anchor()
+        self.rate = rate
+
+    def pause(self) -> None:
+        self._anchor()
+        self.paused = True
+
+    def resume(self) -> None:
+        self._anchor()
+        self.paused = False
+
+    def restart(self, bag_ns: int, at_ns: float) -> None:
+        """Play bag time ``bag_ns`` at steady time ``at_ns`` (a loop's next pass)."""
+        self._bag_ns, self._at_ns = bag_ns, round(at_ns)
+
+
+def open_bag(path: str | Path) -> AnyReader:
+    """An open rosbags reader of ``path``, or BagError saying why it cannot be played."""
+    bag = Path(path)
+    if not bag.exists():
+        raise BagError(bag, "does not exist")
+    try:
+        reader = AnyReader([bag])
+        reader.open()
+    except Exception as err:  # rosbags raises many types for what is not a sound bag
+        raise BagError(bag, f"cannot be played ({type(err).__name__}: {err}); "
+                            "a bag left by a killed recorder needs `t42 bag repair` first") from None
+    return reader
+
+
+class BagPlayer(Node):
+    """Plays one bag; see the module docstring."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("bag_player", **node_kwargs)
+        self._params = LiveParams(self, PlayerParams, self._on_params)
+        p = self.params
+        self.log = self.get_logger()
         self.published = 0
         """Messages published so far (over all loops)."""
         self.loops = 0
         """Completed passes through the bag."""
-        path = Path(params.bag)
-        if not path.exists():
-            raise BagError(path, "does not exist")
+        self._reader = open_bag(p.bag)
         try:
-            self._reader = AnyReader([path])
-            self._reader.open()
-        except Exception as err:  # rosbags raises many types for what is not a sound bag
-            raise BagError(path, f"cannot be played ({type(err).__name__}: {err}); "
-                                 "a bag left by a killed recorder needs `t42 bag repair` first") from None
-        try:
-            self._connections = self._select(path)
-            self.publishers: dict[str, Publisher] = {}
+            self._connections = self._select(Path(p.bag))
+            self.topic_publishers = {}
+            """Publisher by bag topic."""
             for conn in self._connections:
-                if conn.topic not in self.publishers:
-                    qos = params.qos.get(conn.topic) or offered_qos(conn.ext.offered_qos_profiles)
-                    self.publishers[conn.topic] = transport.publisher(conn.topic, conn.msgtype, qos)
+                if conn.topic not in self.topic_publishers:
+                    try:
+                        msg_class = rclpy_class(conn.msgtype)
+                    except (ImportError, AttributeError, ValueError):
+                        raise BagError(p.bag, f"topic {conn.topic} has type {conn.msgtype}, "
+                                              "whose message package is not installed here") from None
+                    self.topic_publishers[conn.topic] = self.create_publisher(
+                        msg_class, conn.topic, offered_qos(conn.ext.offered_qos_profiles))
         except Exception:
             self._reader.close()
             raise
         self.first_log_ns = self._reader.start_time if self._reader.message_count else 0
-        self._messages: Iterator[tuple[Any, int, bytes]] = iter(())
-        self._next: tuple[Any, int, bytes] | None = None
-        self._base_ns: int | None = None
-        """Transport time at which the bag's first message is due (None until started)."""
-        self._paused_at_ns: int | None = transport.now_ns() if params.start_paused else None
+        self._cond = threading.Condition()
+        self._timeline = Timeline(self.first_log_ns, p.rate, paused=p.start_paused)
+        self._stop = False
+        self._finished = False
         self._closed = False
-        self._restart()
-        self._timer = transport.timer(params.tick_s, self._tick)
-        if not params.start_paused:
-            self._base_ns = transport.now_ns()
+        self._clock_pub = None
+        if p.clock_hz > 0:
+            self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
+            self.create_timer(1.0 / p.clock_hz, self._publish_clock, clock=RosClock(clock_type=ClockType.STEADY_TIME))
+        self._thread = threading.Thread(target=self._play, name=f"{self.get_name()}_playback", daemon=True)
+        self._thread.start()
 
     def _select(self, path: Path) -> list[Any]:
         connections = list(self._reader.connections)
-        if self.params.topics is None:
+        wanted = self.params.topics
+        if wanted is None:
             return connections
         present = {c.topic for c in connections}
-        missing = sorted(set(self.params.topics) - present)
+        missing = sorted(set(wanted) - present)
         if missing:
             raise BagError(path, f"has no topic {', '.join(missing)}; it has {', '.join(sorted(present))}")
-        return [c for c in connections if c.topic in self.params.topics]
-
-    def _restart(self) -> None:
-        self._messages = iter(self._reader.messages(connections=self._connections)) \
-            if self._connections else iter(())
-        self._next = next(self._messages, None)
+        return [c for c in connections if c.topic in wanted]
 
     # ------------------------------------------------------------------ control
     @property
-    def done(self) -> bool:
-        """Every message published (never for ``loop``)."""
-        return self._next is None
+    def params(self) -> PlayerParams:
+        return self._params.value
+
+    @property
+    def finished(self) -> bool:
+        """Every message published (never with ``loop``), or playback failed; the runner then ends."""
+        return self._finished
 
     @property
     def paused(self) -> bool:
-        return self._paused_at_ns is not None
+        return self._timeline.paused
+
+    def bag_now_ns(self) -> int:
+        """The bag time playing now (what ``/clock`` says)."""
+        with self._cond:
+            return self._timeline.bag_now()
 
     def pause(self) -> None:
-        if self._paused_at_ns is None:
-            self._paused_at_ns = self.transport.now_ns()
+        with self._cond:
+            self._timeline.pause()
+            self._cond.notify_all()
 
     def resume(self) -> None:
         """Start or continue; paused time does not count."""
-        if self._paused_at_ns is None:
-            return
-        now = self.transport.now_ns()
-        self._base_ns = now if self._base_ns is None else self._base_ns + now - self._paused_at_ns
-        self._paused_at_ns = None
+        with self._cond:
+            self._timeline.resume()
+            self._cond.notify_all()
+
+    def wait_for_subscribers(self, timeout_s: float) -> bool:
+        """Wait until every topic has a matched subscriber, or ``timeout_s`` passes; whether all matched.
+
+        Without this the first messages of a playback go to no one: discovery
+        takes a moment (seconds between processes) after the publishers are made.
+        """
+        deadline = time.monotonic() + timeout_s
+        while not all(pub.get_subscription_count() for pub in self.topic_publishers.values()):
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+        return True
 
     def close(self) -> None:
-        """Stop publishing and close the bag (the transport's owner closes the transport)."""
-        if not self._closed:
-            self._closed = True
-            self._timer.cancel()
+        """Stop publishing and close the bag (the owner destroys the node)."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout=5.0)
+        try:
             self._reader.close()
+        except Exception as err:  # close() never raises
+            self.log.error(f"closing {self.params.bag} failed: {err!r}")
 
     # ------------------------------------------------------------------ playback
-    def due_ns(self, log_ns: int) -> int:
-        """Transport time at which the message logged at ``log_ns`` goes out (``resume``/start set the base)."""
-        assert self._base_ns is not None
-        return self._base_ns + round((log_ns - self.first_log_ns) / self.params.rate)
+    def _wait_until_due(self, log_ns: int) -> bool:
+        """Block until the message logged at ``log_ns`` is due; False when playback stops first."""
+        with self._cond:
+            while not self._stop:
+                delay_ns = self._timeline.due_ns(log_ns) - time.monotonic_ns()
+                if delay_ns <= 0:
+                    return True
+                self._cond.wait(timeout=None if math.isinf(delay_ns) else delay_ns / 1e9)
+        return False
 
-    def _tick(self) -> None:
-        if self.paused or self._closed:
-            return
-        now = self.transport.now_ns()
-        while self._next is not None:
-            conn, log_ns, data = self._next
-            if self.due_ns(log_ns) > now:
-                return
-            self.publishers[conn.topic].publish_raw(data)
-            self.published += 1
-            self._next = next(self._messages, None)
-            if self._next is None and self.params.loop and self.published:
-                self.loops += 1
-                self._base_ns = self.due_ns(log_ns)  # the next pass's first message follows this last one
-                self._restart()
-                return  # the next pass starts on the next tick, so a zero-length bag cannot spin here
-        self.close()
+    def _play(self) -> None:
+        try:
+            while self._connections:
+                last_ns = None
+                for conn, log_ns, data in self._reader.messages(connections=self._connections):
+                    if not self._wait_until_due(log_ns):
+                        return
+                    self.topic_publishers[conn.topic].publish(bytes(data))
+                    self.published += 1
+                    last_ns = log_ns
+                if not self.params.loop or last_ns is None:
+                    break
+                with self._cond:
+                    self.loops += 1  # the next pass's first message follows this pass's last one
+                    self._timeline.restart(self.first_log_ns, self._timeline.due_ns(last_ns))
+            self.log.info(f"played {self.params.bag}: {self.published} messages")
+        except Exception as err:  # a playback thread must not die silently
+            self.log.error(f"playback of {self.params.bag} failed: {err!r}")
+        finally:
+            self._finished = True
 
+    def _publish_clock(self) -> None:
+        if self._clock_pub is not None and not self._closed:
+            self._clock_pub.publish(Clock(clock=ns_to_stamp(max(self.bag_now_ns(), 0), RCLPY)))
 
-def matched_subscribers(publisher: Publisher) -> int | None:
-    """Readers matched to ``publisher`` (Cyclone DDS writer or rclpy publisher); None where the backend cannot tell."""
-    writer = getattr(publisher, "writer", None)  # CyclonePublisher's DataWriter
-    if writer is not None and hasattr(writer, "get_matched_subscriptions"):
-        return len(writer.get_matched_subscriptions())
-    pub = getattr(publisher, "pub", None)  # RclpyPublisher's rclpy Publisher
-    if pub is not None and hasattr(pub, "get_subscription_count"):
-        return int(pub.get_subscription_count())
-    return None
-
-
-def wait_for_subscribers(player: BagPlayer, timeout_s: float) -> bool:
-    """Spin until every topic of ``player`` has a matched reader, or ``timeout_s`` passes; whether all matched.
-
-    Without this the first messages of a DDS playback go to no one: discovery
-    takes a moment after the writers are created.  A backend that cannot count
-    readers returns at once (False).
-    """
-    deadline = time.monotonic() + timeout_s
-    while True:
-        counts = [matched_subscribers(p) for p in player.publishers.values()]
-        if None in counts:
-            return False
-        if all(counts):
-            return True
-        if time.monotonic() >= deadline:
-            return False
-        player.transport.spin_once(0.02)
-
-
-def play_bag(transport: Transport, bag: str | Path, rate: float = 1.0, timeout_s: float | None = None) -> int:
-    """Play ``bag`` once on ``transport`` at ``rate``, spinning until done; returns the messages published."""
-    player = BagPlayer(transport, PlayerParams(bag, rate))
-    try:
-        if not transport.spin(until=lambda: player.done, timeout_s=timeout_s):
-            raise TimeoutError(f"playing {bag} did not finish within {timeout_s} s")
-    finally:
-        player.close()
-    return player.published
+    def _on_params(self, old: PlayerParams, new: PlayerParams) -> None:
+        if new.rate != old.rate:
+            with self._cond:
+                self._timeline.set_rate(new.rate)
+                self._cond.notify_all()
+            self.log.info(f"rate {old.rate} -> {new.rate}")
