@@ -124,12 +124,13 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(player)
         try:
-            if not player.wait_for_subscribers(args.wait_subscribers):
+            if not player.wait_for_subscribers(args.wait_subscribers, settle_s=0.5):
                 print(f"not every topic had a subscriber within {args.wait_subscribers} s; playing anyway",
                       file=sys.stderr)
             player.resume()
             while not player.finished:
                 executor.spin_once(timeout_sec=0.1)
+            player.wait_for_acks(5.0)
         except KeyboardInterrupt:
             pass
         finally:

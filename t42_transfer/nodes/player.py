@@ -31,8 +31,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
@@ -188,7 +190,9 @@ class BagPlayer(Node):
         self._clock_pub = None
         if p.clock_hz > 0:
             self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
-            self.create_timer(1.0 / p.clock_hz, self._publish_clock, clock=RosClock(clock_type=ClockType.STEADY_TIME))
+            # its own group: /clock keeps its pace whatever else the node's callbacks do
+            self.create_timer(1.0 / p.clock_hz, self._publish_clock, callback_group=ReentrantCallbackGroup(),
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
         self._thread = threading.Thread(target=self._play, name=f"{self.get_name()}_playback", daemon=True)
         self._thread.start()
 
@@ -233,18 +237,27 @@ class BagPlayer(Node):
             self._timeline.resume()
             self._cond.notify_all()
 
-    def wait_for_subscribers(self, timeout_s: float) -> bool:
+    def wait_for_subscribers(self, timeout_s: float, settle_s: float = 0.0) -> bool:
         """Wait until every topic has a matched subscriber, or ``timeout_s`` passes; whether all matched.
 
         Without this the first messages of a playback go to no one: discovery
         takes a moment (seconds between processes) after the publishers are made.
+        Each side matches the other on its own, so a subscriber in another process
+        may not accept data yet when this side sees it: ``settle_s`` more gives it time.
         """
         deadline = time.monotonic() + timeout_s
         while not all(pub.get_subscription_count() for pub in self.topic_publishers.values()):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.02)
+        time.sleep(settle_s)
         return True
+
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        """Wait until RELIABLE subscribers acknowledged everything published (before the publishers go away)."""
+        deadline = time.monotonic() + timeout_s
+        return all(pub.wait_for_all_acked(Duration(nanoseconds=max(0, round((deadline - time.monotonic()) * 1e9))))
+                   for pub in self.topic_publishers.values())
 
     def close(self) -> None:
         """Stop publishing and close the bag (the owner destroys the node)."""
