@@ -1,100 +1,143 @@
-"""The explorer node drives the mock driver through whole random episodes (in-process bus, fake clock)."""
+"""The explorer node drives the mock driver through whole random episodes (real rclpy, in-process)."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
-from t42_transfer.data.bag_io import read_bag
-from t42_transfer.hand.sim import SimulatedHand
-from t42_transfer.nodes.explorer import Explorer, ExplorerParams
-from t42_transfer.nodes.mock_driver import MockDriver, MockDriverParams
-from t42_transfer.nodes.recorder import Recorder, RecorderParams
-from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
+from msg_adapters import applied_action
+from t42_transfer.hand.collect import RandomPolicy
+from t42_transfer.nodes.explorer import Explorer
+from t42_transfer.nodes.mock_driver import APPLIED_ACTION_TOPIC, RESET_SERVICE, STATUS_TOPIC, MockDriver
+from t42_transfer.ros.qos import LATCHED
 
-
-class Suite:
-    """Driver, recorder (episode mode) and explorer on one bus, advanced one driver period at a time."""
-
-    def __init__(self, out_dir: Path, driver: MockDriverParams, explorer: ExplorerParams,
-                 idle_ticks: int = 0) -> None:
-        self.clock = FakeClock(1_000_000_000)
-        self.bus = InProcessBus(clock=self.clock)
-        self.nodes = [InProcessTransport(self.bus, name) for name in ("mock_driver", "recorder", "explorer")]
-        self.driver = MockDriver(self.nodes[0], driver)
-        self.recorder = Recorder(self.nodes[1], RecorderParams(out_dir=out_dir, mode="episode",
-                                                                start_immediately=not explorer.record_start_service))
-        for _ in range(idle_ticks):  # the hand idles before the explorer starts
-            self.clock.advance(self.driver.params.period_s)
-            self.nodes[0].spin_once()
-            self.nodes[1].spin_once()
-        self.explorer = Explorer(self.nodes[2], explorer)
-
-    def run(self, max_ticks: int) -> int:
-        for tick in range(max_ticks):
-            if self.explorer.finished:
-                return tick
-            self.clock.advance(self.driver.params.period_s)
-            for node in self.nodes:
-                node.spin_once()
-        return max_ticks
+RATE = 10.0
+"""The driver steps 10x faster than real time: a 30-step episode takes 0.3 s."""
+DRIVER = {"hand": "target", "rate_factor": RATE, "max_command_age_s": 30.0}
+EXPLORER = {"rate_factor": RATE, "timeout_margin_s": 30.0}
+"""A loaded test machine may deliver a trajectory late or step slowly: staleness and timeouts are not under test."""
 
 
-def replay(hand: SimulatedHand, seed: int, actions: np.ndarray) -> np.ndarray:
-    states = [hand.reset(seed)]
-    for action in actions:
-        hand.step(action)
-        states.append(hand.state)
-    return np.asarray(states, np.float32)
+class Watcher:
+    """The test's node: every applied action and driver status, in arrival order."""
+
+    def __init__(self, ros: Any, namespace: str = "") -> None:
+        self.node = ros.node("tester", namespace=namespace)
+        self.actions: list[np.ndarray] = []
+        self.statuses: list[str] = []
+        self.node.create_subscription(JointState, APPLIED_ACTION_TOPIC,
+                                      lambda m: self.actions.append(applied_action(m)), 1000)
+        self.node.create_subscription(String, STATUS_TOPIC, lambda m: self.statuses.append(m.data), LATCHED)
+
+    def explored(self) -> np.ndarray:
+        """The non-zero applied actions (the driver applies zeros while no trajectory runs)."""
+        acts = np.asarray(self.actions).reshape(-1, 2)
+        return acts[np.abs(acts).sum(axis=1) > 0]
 
 
-def test_explorer_episodes_become_one_bag_each_equal_to_the_simulation(tmp_path: Path) -> None:
-    suite = Suite(tmp_path, MockDriverParams(hand="target", seed=7), ExplorerParams(episodes=2, steps=30, seed=3))
-    ticks = suite.run(400)
-    assert suite.explorer.finished, f"not finished after {ticks} ticks: {suite.explorer.completed}"
-    suite.recorder.close()
-    assert [e["end"] for e in suite.explorer.completed] == ["complete", "complete"]
-    assert all(e["applied"] == 30 for e in suite.explorer.completed)
-
-    episodes = [t for bag in suite.recorder.bags for t in read_bag(bag)]
-    explored = [t for t in episodes if np.abs(t.actions).sum() > 0]
-    assert len(explored) == 2, [len(t) for t in episodes]
-    hand = SimulatedHand("target")
-    for k, trajectory in enumerate(explored):
-        # The driver's reset k+1 (its construction grasped episode 0) used seed 7 + k + 1.
-        expected = replay(hand, 7 + k + 1, trajectory.actions.astype(np.float64))
-        np.testing.assert_array_equal(trajectory.states, expected)
-        assert len(trajectory.actions) >= 30  # the 30 random actions, maybe a zero step around them
-        sampled = ExplorerParams(hold_max=5).limit
-        assert np.abs(trajectory.actions).max() <= sampled + 1e-6
+def sampled(seed: int, steps: int, hold_max: int = 5, limit: float = 1.0) -> np.ndarray:
+    return RandomPolicy(hold_max=hold_max, limit=limit).sample(np.random.default_rng(seed), steps)
 
 
-def test_explorer_ends_an_episode_on_a_drop_and_goes_on(tmp_path: Path) -> None:
-    suite = Suite(tmp_path, MockDriverParams(hand="target", seed=1),
-                  ExplorerParams(episodes=2, steps=400, hold_max=40, limit=1.5, seed=0))
-    suite.run(2000)
-    suite.recorder.close()
-    assert suite.explorer.finished
-    ends = [e["end"] for e in suite.explorer.completed]
-    assert len(ends) == 2
+def test_episodes_run_through_the_driver_with_the_sampled_actions(ros) -> None:
+    watcher = Watcher(ros)
+    driver = ros.add(MockDriver, {**DRIVER, "seed": 7})
+    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 30, "seed": 3})
+    assert ros.spin_until(lambda: explorer.finished, 90.0), f"not finished: {explorer.completed}"
+    assert explorer.completed == [{"episode": 1, "applied": 30, "end": "complete"},
+                                  {"episode": 2, "applied": 30, "end": "complete"}]
+    assert driver.episode == 2, "one reset per episode after the driver's own first grasp"
+    # Exactly the sampled actions, in order: each trajectory started from the new grasp's angles.
+    expected = np.vstack([sampled(3, 30), sampled(4, 30)])
+    np.testing.assert_allclose(watcher.explored(), expected, atol=1e-6)
+    events = [s.split(":")[0] for s in watcher.statuses]
+    assert events.count("trajectory_done") == 2 and events.count("reset") >= 2
+    assert events.index("reset", 1) < events.index("trajectory_done"), events
+    ros.spin_for(0.3)
+    assert len(watcher.explored()) == 60, "nothing is sent after the last episode"
+
+
+def test_an_episode_ends_on_a_drop_and_the_next_one_runs(ros) -> None:
+    driver = ros.add(MockDriver, {**DRIVER, "seed": 1, "rate_factor": 20.0})
+    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 400, "hold_max": 40, "limit": 1.5,
+                                  "rate_factor": 20.0})
+    assert ros.spin_until(lambda: explorer.finished, 90.0), f"not finished: {explorer.completed}"
+    ends = [e["end"] for e in explorer.completed]
+    assert len(ends) == 2 and driver.episode == 2
     assert any(end in ("dropped", "lost_contact", "overload") for end in ends), ends
+    dropped = next(e for e in explorer.completed if e["end"] != "complete")
+    assert dropped["applied"] < 400
 
 
-def test_explorer_records_only_its_episodes_when_it_drives_the_recorder(tmp_path: Path) -> None:
-    params = ExplorerParams(episodes=2, steps=20, record_start_service="/recorder/start",
-                            record_stop_service="/recorder/stop")
-    suite = Suite(tmp_path, MockDriverParams(hand="target", seed=2), params, idle_ticks=50)
-    suite.run(300)
-    assert suite.explorer.finished and not suite.recorder.recording
-    lengths = [len(read_bag(bag)[0]) for bag in suite.recorder.bags]
-    assert len(lengths) == 2 and all(20 <= n <= 24 for n in lengths), lengths  # no 50-step idle bag
+def test_it_records_only_its_episodes_under_a_namespace(ros) -> None:
+    """Recorder services resolved in the node's namespace: start after the first reset, stop after the last."""
+    watcher = Watcher(ros, namespace="/left")
+    calls: list[tuple[str, int, int, bool]] = []
+    driver = ros.add(MockDriver, {**DRIVER, "seed": 2}, namespace="/left")
+    explorer: Explorer | None = None
+
+    def service(name: str):
+        def answer(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+            calls.append((name, driver.episode, len(watcher.explored()), explorer.finished))
+            response.success, response.message = True, f"{name} ok"
+            return response
+        return answer
+
+    for name in ("start", "stop"):
+        watcher.node.create_service(Trigger, f"recorder/{name}", service(name))
+    ros.spin_for(0.5)  # the hand idles before the explorer starts
+    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 20,
+                                  "record_start_service": "recorder/start",
+                                  "record_stop_service": "recorder/stop"}, namespace="/left")
+    assert ros.spin_until(lambda: explorer.finished, 90.0), f"not finished: {explorer.completed}"
+    assert [e["end"] for e in explorer.completed] == ["complete", "complete"]
+    # start: after the explorer's first reset, before any explored action; stop: after all, before finishing.
+    assert calls == [("start", 1, 0, False), ("stop", 2, 40, False)], calls
+    assert explorer.get_fully_qualified_name() == "/left/explorer"
 
 
-@pytest.mark.parametrize("field, value", [("episodes", 0), ("steps", -1), ("limit", 2.0), ("rate_factor", 0.0),
-                                          ("trajectory_topic", "no_slash"),
-                                          ("record_stop_service", "stop")])
-def test_bad_parameters_are_refused(field: str, value: object) -> None:
-    with pytest.raises(ValueError, match=field.split("_")[0]):
-        ExplorerParams(**{field: value})
+def test_an_absent_recorder_and_failed_resets_do_not_stop_exploring(ros) -> None:
+    tester = ros.node("tester")
+    resets: list[int] = []
+
+    def refuse(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        resets.append(1)
+        response.success, response.message = False, "grasp failed: nothing to hold"
+        return response
+
+    tester.create_service(Trigger, RESET_SERVICE, refuse)
+    explorer = ros.add(Explorer, {"episodes": 2, "record_start_service": "nobody/start",
+                                  "record_stop_service": "nobody/stop"})
+    explorer.SERVICE_TIMEOUT_S = 0.3
+    assert ros.spin_until(lambda: explorer.finished, 10.0), explorer.completed
+    assert explorer.completed == [{"episode": 1, "applied": 0, "end": "reset_failed"},
+                                  {"episode": 2, "applied": 0, "end": "reset_failed"}]
+    assert len(resets) == 2
+
+
+@pytest.mark.parametrize("field, value", [
+    ("episodes", 0), ("steps", -1), ("hold_max", 0), ("limit", 2.0), ("limit", 0.0), ("rate_factor", 0.0),
+    ("seed", -1), ("record_stop_service", "1stop"), ("record_start_service", "with space"),
+])
+def test_bad_parameters_are_refused_at_start(ros, field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        ros.add(Explorer, {field: value})
+
+
+def test_parameters_change_at_run_time_with_a_reason_when_refused(ros) -> None:
+    explorer = ros.add(Explorer, {"episodes": 3})
+    explorer.close()  # no driver here: only the parameters are looked at
+    ok = explorer.set_parameters([Parameter("steps", value=10), Parameter("episodes", value=1)])
+    assert all(r.successful for r in ok) and (explorer.params.steps, explorer.params.episodes) == (10, 1)
+    limit = explorer.set_parameters([Parameter("limit", value=0.0)])[0]
+    assert not limit.successful and "limit" in limit.reason and explorer.params.limit == 1.0
+    hold = explorer.set_parameters([Parameter("hold_max", value=0)])[0]
+    assert not hold.successful and explorer.params.hold_max == 5
+    fixed = explorer.set_parameters([Parameter("record_start_service", value="recorder/start")])[0]
+    assert not fixed.successful and "read-only" in fixed.reason and explorer.params.record_start_service == ""

@@ -1,158 +1,246 @@
 """Explorer node: collects random-action episodes from a hand through its driver's topics.
 
-This is how target-hand data is gathered for a transfer: for each episode it calls
-the driver's reset service (``/hand/reset``), waits for the first joint state of
-the new grasp, sends one ``JointTrajectory`` of ``steps`` random piecewise-constant
-actions (the sampler of :class:`~t42_transfer.hand.collect.RandomPolicy`, seeded
-``seed + episode``) on ``/hand/trajectory``, and counts the applied actions the
-driver reports on ``/hand/applied_action``.  An episode ends when the driver's
-``/hand/status`` reports ``trajectory_done`` or an end (drop, lost contact,
-overload), or after a timeout; then the next one starts.  The start angles are
-taken from a joint state stamped ``SETTLE_PERIODS`` control periods after the
-newest one seen when the reset answered, so a state still in flight from before the
-reset is not mistaken for the new grasp.  A recorder in ``episode`` mode splits
-its bags on the driver's ``reset`` status, so each episode becomes one bag.
+This is how target-hand data is gathered for a transfer.  Wiring (relative names,
+the driver's: remap them with ``--ros-args -r``, or run under a namespace):
+
+* ``hand/reset`` (std_srvs/srv/Trigger): called to start each episode;
+* ``hand/joint_states`` (sensor_msgs/msg/JointState): the actuator angles a
+  trajectory starts from;
+* ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): one per episode;
+* ``hand/applied_action`` (sensor_msgs/msg/JointState): counted against the sent actions;
+* ``hand/status`` (std_msgs/msg/String, latched): ``trajectory_done`` or an
+  episode end (drop, lost contact, overload) ends the episode.
+
+For each episode it calls the reset service, waits for a joint state of the new
+grasp, sends one ``JointTrajectory`` of ``steps`` random piecewise-constant actions
+(the sampler of :class:`~t42_transfer.hand.collect.RandomPolicy`, seeded
+``seed + episode - 1``) and counts the applied actions the driver reports.  An
+episode ends when the driver reports ``trajectory_done`` (and the last applied
+action arrived, or a short grace passed: the two topics are not ordered) or an
+end, or after a wall-clock timeout; then the next one starts.  The start angles
+come from a joint state stamped ``SETTLE_PERIODS`` control periods after the
+newest one seen when the reset answered, so a state still in flight from before
+the reset is not mistaken for the new grasp, and only once discovery has matched
+the trajectory, applied-action and status topics with the driver.  A recorder in ``episode`` mode
+splits its bags on the driver's ``reset`` status, so each episode becomes one bag.
 
 One whole trajectory per episode (not a command per step) keeps the actions
-exactly as sampled whatever the transport latency: the driver executes it open
-loop, one point per control period, at its own rate.  After ``episodes`` episodes
-:attr:`Explorer.finished` is true and the node idles (``t42 node`` exits).
+exactly as sampled whatever the latency: the driver executes it open loop, one
+point per control period, at its own rate.  After ``episodes`` episodes
+:attr:`Explorer.finished` is true (``t42 node explorer`` then exits).
 
 With ``record_start_service`` / ``record_stop_service`` set (a recorder's
-``/recorder/start`` and ``/recorder/stop``), the explorer starts the recording right
-after its first reset and stops it after its last episode, so the bags hold its
-episodes and nothing of the idle hand before or after them.
+``recorder/start`` and ``recorder/stop``, resolved in the node's namespace), the
+explorer starts the recording right after its first reset and stops it after its
+last episode (and only then finishes), so the bags hold its episodes and nothing
+of the idle hand before or after them.  A recorder that is absent or does not
+answer within ``SERVICE_TIMEOUT_S`` is logged and exploring goes on.
+
+Nothing waits inside a callback: a timer advances the episode state machine and
+polls the service calls' futures, so the node shares any executor.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from rclpy.client import Client
+from rclpy.exceptions import InvalidServiceNameException
+from rclpy.expand_topic_name import expand_topic_name
+from rclpy.node import Node
+from rclpy.task import Future
+from rclpy.validate_full_topic_name import validate_full_topic_name
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
 
-from msg_adapters import (
+from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, stamp_to_ns
+from t42_transfer.conventions import ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S, RANDOM_POLICY_LIMIT
+from t42_transfer.data.trajectory import END_REASONS
+from t42_transfer.hand.collect import RandomPolicy
+from t42_transfer.nodes.mock_driver import (
     APPLIED_ACTION_TOPIC,
-    JOINT_STATE,
     JOINT_STATES_TOPIC,
-    JOINT_TRAJECTORY,
-    actions_to_joint_trajectory,
-    applied_action,
-    joint_state_arrays,
-    stamp_to_ns,
+    RESET_SERVICE,
+    STATUS_TOPIC,
+    TRAJECTORY_TOPIC,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
-from t42_transfer.hand.collect import RANDOM_POLICY_LIMIT, RandomPolicy
-from t42_transfer.nodes.mock_driver import RESET_SERVICE, STATUS_TOPIC, STRING, TRAJECTORY_TOPIC, TRIGGER
-from t42_transfer.nodes.recorder import END_EVENTS
-from t42_transfer.ros import qos
-from t42_transfer.ros.naming import validate_name
-from t42_transfer.ros.transport import Transport, deserialize
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import LATCHED
+
+TRAJECTORY_DONE = "trajectory_done"
+END_EVENTS = tuple(reason for reason in END_REASONS if reason not in ("", "length"))
+"""``hand/status`` events that end an episode early (the hand's end reasons)."""
+
+
+def _check_service_name(field: str, name: str) -> None:
+    """ValueError unless ``name`` is empty or a valid (relative or absolute) service name."""
+    if not name:
+        return
+    try:
+        validate_full_topic_name(expand_topic_name(name, "explorer", "/"), is_service=True)
+    except (InvalidServiceNameException, ValueError) as err:
+        why = str(err).splitlines()[0].split(", at ")[0].rstrip(":")  # rcl appends its source location
+        raise ValueError(f"{field}: {name!r} is not a valid service name ({why})") from None
 
 
 @dataclass(frozen=True)
 class ExplorerParams:
-    """Parameters of :class:`Explorer` (the node's ROS parameters)."""
+    """The explorer's ROS parameters; all but the recorder services take effect with the next episode."""
 
-    episodes: int = 5
-    steps: int = 100
-    """Random actions per episode (the episode may end earlier)."""
-    hold_max: int = 5
-    """Each random action is held 1..hold_max steps."""
-    limit: float = RANDOM_POLICY_LIMIT
-    seed: int = 0
-    rate_factor: float = 1.0
-    """The driver's rate factor: episode timeouts shrink with it."""
-    timeout_margin_s: float = 5.0
-    """An episode gives up this long (wall) after its last action was due."""
-    record_start_service: str = ""
-    """Trigger service called after the first reset (empty: none)."""
-    record_stop_service: str = ""
-    """Trigger service called after the last episode (empty: none)."""
-    reset_service: str = RESET_SERVICE
-    trajectory_topic: str = TRAJECTORY_TOPIC
-    joint_states_topic: str = JOINT_STATES_TOPIC
-    applied_action_topic: str = APPLIED_ACTION_TOPIC
-    status_topic: str = STATUS_TOPIC
+    episodes: int = param(5, "episodes to run; the node finishes after the last", min=1, max=1_000_000)
+    steps: int = param(100, "random actions per episode, sent as one trajectory (the episode may end earlier)",
+                       min=1, max=1_000_000)
+    hold_max: int = param(5, "each random action is held 1..hold_max steps", min=1, max=1_000_000)
+    limit: float = param(RANDOM_POLICY_LIMIT, "random actions are uniform in [-limit, limit] per actuator",
+                         min=0.0, max=ACTION_LIMIT, constraints="> 0")
+    seed: int = param(0, "episode k (from 1) samples its actions with seed + k - 1", min=0)
+    rate_factor: float = param(1.0, "the driver's rate factor: episode timeouts shrink with it", min=1e-3, max=1000.0)
+    timeout_margin_s: float = param(5.0, "an episode gives up this long (wall time) after its last action was due",
+                                    min=0.0, max=3600.0)
+    record_start_service: str = param("", "recorder Trigger service called after the first reset, e.g. "
+                                          "recorder/start (empty: none)", read_only=True)
+    record_stop_service: str = param("", "recorder Trigger service called after the last episode, e.g. "
+                                         "recorder/stop (empty: none)", read_only=True)
 
     def __post_init__(self) -> None:
         for name in ("episodes", "steps", "hold_max"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if not (math.isfinite(self.limit) and 0 < self.limit <= 1.5):
-            raise ValueError(f"limit must be in (0, 1.5], got {self.limit!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative int, got {self.seed!r}")
+        if not (math.isfinite(self.limit) and 0 < self.limit <= ACTION_LIMIT):
+            raise ValueError(f"limit must be in (0, {ACTION_LIMIT}], got {self.limit!r}")
         if not (math.isfinite(self.rate_factor) and self.rate_factor > 0):
-            raise ValueError(f"rate_factor must be positive, got {self.rate_factor!r}")
-        for name in ("trajectory_topic", "joint_states_topic", "applied_action_topic", "status_topic",
-                     "reset_service", "record_start_service", "record_stop_service"):
-            if name.startswith("record_") and not getattr(self, name):
-                continue
-            try:
-                validate_name(getattr(self, name), "service" if name.endswith("_service") else "topic")
-            except ValueError as err:
-                raise ValueError(f"{name}: {err}") from None
+            raise ValueError(f"rate_factor must be positive and finite, got {self.rate_factor!r}")
+        if not (math.isfinite(self.timeout_margin_s) and self.timeout_margin_s >= 0):
+            raise ValueError(f"timeout_margin_s must be >= 0 and finite, got {self.timeout_margin_s!r}")
+        _check_service_name("record_start_service", self.record_start_service)
+        _check_service_name("record_stop_service", self.record_stop_service)
 
 
-class Explorer:
-    """Runs the episodes; see the module docstring.  Driven by a timer of the node."""
+class _Call:
+    """One Trigger call polled by a timer: waits for the service, sends the request, waits for the answer."""
+
+    def __init__(self, client: Client, wait_s: float | None, answer_s: float) -> None:
+        self.client = client
+        self._answer_s = answer_s
+        self._deadline = None if wait_s is None else time.monotonic() + wait_s
+        self._future: Future | None = None
+
+    def poll(self) -> Trigger.Response | str | None:
+        """The response once answered, the reason (str) when it failed, None while pending."""
+        name = self.client.srv_name
+        if self._future is None:
+            if self.client.service_is_ready():
+                self._future = self.client.call_async(Trigger.Request())
+                self._deadline = time.monotonic() + self._answer_s
+            elif self._deadline is not None and time.monotonic() > self._deadline:
+                return f"{name} is not available"
+            return None
+        if self._future.done():
+            err = self._future.exception()
+            return self._future.result() if err is None else f"{name} failed: {err}"
+        if self._deadline is not None and time.monotonic() > self._deadline:
+            self.cancel()
+            return f"no answer from {name} within {self._answer_s:g} s"
+        return None
+
+    def cancel(self) -> None:
+        if self._future is not None and not self._future.done():
+            self.client.remove_pending_request(self._future)
+
+
+class Explorer(Node):
+    """Runs the episodes; see the module docstring."""
 
     POLL_S = 0.02
+    """Period of the timer that advances the episodes."""
     SETTLE_PERIODS = 3
+    SERVICE_TIMEOUT_S = 10.0
+    """How long a recorder service may take to appear, and any service to answer."""
+    DONE_GRACE_S = 1.0
+    """After ``trajectory_done``, how long (wall) the last applied actions may take to arrive."""
 
-    def __init__(self, transport: Transport, params: ExplorerParams | None = None) -> None:
-        self.transport = transport
-        self.params = p = params if params is not None else ExplorerParams()
-        self.log = transport.logger
-        self.policy = RandomPolicy(hold_max=p.hold_max, limit=p.limit)
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("explorer", **node_kwargs)
+        self._params = LiveParams(self, ExplorerParams, self._on_params)
+        p = self.params
+        self.log = self.get_logger()
         self.episode = 0
         """Episodes started so far."""
         self.completed: list[dict[str, Any]] = []
-        """One summary per finished episode: applied actions, how it ended."""
+        """One summary per finished episode: ``episode``, ``applied`` actions, ``end`` (how it ended)."""
         self._phase = "reset"
+        self._call: _Call | None = None
         self._reset_ns = 0
         self._angles: np.ndarray | None = None
         self._angles_ns = -1
         self._actions = np.zeros((0, 2))
-        self._mismatched = 0
         self._applied = 0
+        self._mismatched = 0
         self._ended: str | None = None
+        self._done_at = 0.0
         self._deadline = 0.0
-        self._trajectory_pub = transport.publisher(p.trajectory_topic, JOINT_TRAJECTORY, qos.DEFAULT)
-        self._reset = transport.client(p.reset_service, TRIGGER)
-        self._record_start = transport.client(p.record_start_service, TRIGGER) if p.record_start_service else None
-        self._record_stop = transport.client(p.record_stop_service, TRIGGER) if p.record_stop_service else None
-        transport.subscribe(p.joint_states_topic, JOINT_STATE, qos.DEFAULT, self._on_joint_state)
-        transport.subscribe(p.applied_action_topic, JOINT_STATE, qos.DEFAULT, self._on_applied, raw=True)
-        transport.subscribe(p.status_topic, STRING, qos.TRANSIENT_LOCAL, self._on_status)
-        self._timer = transport.timer(self.POLL_S, self._on_timer)
+        self._closed = False
+
+        self._trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
+        self._reset = self.create_client(Trigger, RESET_SERVICE)
+        self._record_start = self.create_client(Trigger, p.record_start_service) if p.record_start_service else None
+        self._record_stop = self.create_client(Trigger, p.record_stop_service) if p.record_stop_service else None
+        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state, 10)
+        self._applied_sub = self.create_subscription(JointState, APPLIED_ACTION_TOPIC, self._on_applied, 10)
+        self._status_sub = self.create_subscription(String, STATUS_TOPIC, self._on_status, LATCHED)
+        self._timer = self.create_timer(self.POLL_S, self._on_timer)
+
+    @property
+    def params(self) -> ExplorerParams:
+        return self._params.value
 
     @property
     def finished(self) -> bool:
+        """True once every episode ran (and the recorder was told to stop): the process may exit."""
         return self._phase == "finished"
 
     def close(self) -> None:
+        """Stop advancing and drop a pending service call (the owner destroys the node)."""
+        if self._closed:
+            return
+        self._closed = True
         self._timer.cancel()
+        if self._call is not None:
+            self._call.cancel()
 
     # ------------------------------------------------------------------ callbacks
-    def _on_joint_state(self, msg: Any) -> None:
+    def _on_params(self, old: ExplorerParams, new: ExplorerParams) -> None:
+        changed = [f"{f.name} {getattr(old, f.name)} -> {getattr(new, f.name)}" for f in dataclasses.fields(new)
+                   if getattr(old, f.name) != getattr(new, f.name)]
+        self.log.info(f"{', '.join(changed)}: takes effect with the next episode")
+
+    def _on_joint_state(self, msg: JointState) -> None:
         try:
             stamp = stamp_to_ns(msg.header.stamp)
             _, angles = joint_state_arrays(msg)
-            if angles is not None and stamp >= self._angles_ns:
-                self._angles, self._angles_ns = angles, stamp
         except Exception as err:  # never raise from a callback
-            self.log.warning("ignored a joint state: %s", err)
+            self.log.warning(f"ignored a joint state: {err}")
+            return
+        if angles is not None and stamp >= self._angles_ns:
+            self._angles, self._angles_ns = angles, stamp
 
-    def _on_applied(self, data: Any) -> None:
+    def _on_applied(self, msg: JointState) -> None:
         if self._phase != "running":
             return
         try:
-            action = applied_action(deserialize(JOINT_STATE, data))
+            action = applied_action(msg)
         except Exception as err:
-            self.log.warning("ignored an applied action: %s", err)
+            self.log.warning(f"ignored an applied action: {err}")
             return
         # Count the trajectory's own steps (a rejected trajectory, which the driver logs, applies none).
         if self._applied < len(self._actions) and np.allclose(action, self._actions[self._applied], atol=1e-3):
@@ -160,75 +248,118 @@ class Explorer:
         else:
             self._mismatched += 1
 
-    def _on_status(self, msg: Any) -> None:
-        words = str(msg.data).split()
+    def _on_status(self, msg: String) -> None:
+        words = msg.data.split()
         event = words[0].rstrip(":") if words else ""
-        if self._phase == "running" and (event in END_EVENTS or event == "trajectory_done"):
+        if self._phase == "running" and self._ended is None and (event in END_EVENTS or event == TRAJECTORY_DONE):
             self._ended = event
+            self._done_at = time.monotonic()
 
     def _on_timer(self) -> None:
+        if self._closed:
+            return
         try:
             self._advance()
-        except Exception:  # never raise from a callback: give the episode up, go on
-            self.log.exception("episode %d failed", self.episode)
+        except Exception as err:  # never raise from a callback: give the episode up, go on
+            self.log.error(f"episode {self.episode} failed: {err!r}")
+            if self._call is not None:
+                self._call.cancel()
+                self._call = None
             self._finish_episode("error")
 
     # ------------------------------------------------------------------ the episode loop
     def _advance(self) -> None:
-        p, now = self.params, self.transport.now_ns()
+        p = self.params
         if self._phase == "reset":
             if self.episode >= p.episodes:
-                self._trigger(self._record_stop)
-                self._phase = "finished"
-                self.log.info("explored %d episodes", len(self.completed))
-                return
-            if not self._reset.service_is_ready():
-                return
-            response = self._reset.call(self._reset.Request(structure_needs_at_least_one_member=0), timeout_s=10.0)
-            self.episode += 1
-            if not response.success:
-                self.log.warning("reset failed (%s); episode %d skipped", response.message, self.episode)
-                self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
-                return
-            self._reset_ns = max(self.transport.now_ns(), self._angles_ns) + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
-            self._phase = "grasped"
-            if self.episode == 1:
-                self._trigger(self._record_start)
+                self._phase = "stopping"
+                if self._record_stop is not None:
+                    self._call = _Call(self._record_stop, self.SERVICE_TIMEOUT_S, self.SERVICE_TIMEOUT_S)
+            else:
+                self._phase = "resetting"
+                self._call = _Call(self._reset, None, self.SERVICE_TIMEOUT_S)
+        if self._phase == "resetting":
+            self._on_reset_answer(self._call.poll())
+        elif self._phase == "starting_recorder":
+            if self._recorder_answered(self._call.poll()):
+                self._call, self._phase = None, "grasped"
         elif self._phase == "grasped":
-            if self._angles is None or self._angles_ns <= self._reset_ns:
-                return
-            self._send_trajectory(now)
+            settled = self._angles is not None and self._angles_ns > self._reset_ns
+            if settled and self._matched():
+                self._send_trajectory()
         elif self._phase == "running":
-            if self._ended == "trajectory_done":
-                self._finish_episode("complete" if self._applied == p.steps else "mismatch")
-            elif self._ended is not None:
-                self._finish_episode(self._ended)
-            elif time.monotonic() > self._deadline:
-                self._finish_episode("timeout")
+            self._check_episode_end()
+        elif self._phase == "stopping":
+            if self._call is None or self._recorder_answered(self._call.poll()):
+                self._call = None
+                self._phase = "finished"
+                self.log.info(f"explored {len(self.completed)} episodes")
 
-    def _trigger(self, client: Any) -> None:
-        """Call a recorder's Trigger service; a failure is logged, exploring goes on."""
-        if client is None:
+    def _matched(self) -> bool:
+        """Whether discovery matched the trajectory, applied-action and status topics with the driver.
+
+        A trajectory sent before would be lost, and applied actions or statuses
+        missed would end the episode as a mismatch or a timeout.
+        """
+        return (self._trajectory_pub.get_subscription_count() > 0 and self._applied_sub.get_publisher_count() > 0
+                and self._status_sub.get_publisher_count() > 0)
+
+    def _on_reset_answer(self, answer: Trigger.Response | str | None) -> None:
+        if answer is None:
             return
-        try:
-            response = client.call(client.Request(structure_needs_at_least_one_member=0), timeout_s=10.0)
-            (self.log.info if response.success else self.log.warning)("%s: %s", client.name, response.message)
-        except Exception as err:
-            self.log.warning("%s failed: %s", client.name, err)
+        self.episode += 1
+        self._call = None
+        ok = not isinstance(answer, str) and answer.success
+        if not ok:
+            why = answer if isinstance(answer, str) else answer.message
+            self.log.warning(f"reset failed ({why}); episode {self.episode} skipped")
+            self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
+            self._phase = "reset"
+            return
+        self._reset_ns = max(self.get_clock().now().nanoseconds, self._angles_ns) + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
+        if self.episode == 1 and self._record_start is not None:
+            self._call = _Call(self._record_start, self.SERVICE_TIMEOUT_S, self.SERVICE_TIMEOUT_S)
+            self._phase = "starting_recorder"
+        else:
+            self._phase = "grasped"
 
-    def _send_trajectory(self, now: int) -> None:
+    def _recorder_answered(self, answer: Trigger.Response | str | None) -> bool:
+        """Log a recorder call's outcome (a failure does not stop exploring); False while pending."""
+        if answer is None:
+            return False
+        name = self._call.client.srv_name
+        if isinstance(answer, str):
+            self.log.warning(f"{answer}; exploring goes on")
+        elif answer.success:
+            self.log.info(f"{name}: {answer.message}")
+        else:
+            self.log.warning(f"{name} refused: {answer.message}; exploring goes on")
+        return True
+
+    def _send_trajectory(self) -> None:
         p = self.params
         rng = np.random.default_rng(p.seed + self.episode - 1)
-        actions = self.policy.sample(rng, p.steps)
+        actions = RandomPolicy(hold_max=p.hold_max, limit=p.limit).sample(rng, p.steps)
         self._actions, self._applied, self._mismatched, self._ended = actions, 0, 0, None
-        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, self._angles, now))
+        now = self.get_clock().now().nanoseconds
+        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, self._angles, now, RCLPY))
         # Wall time: under use_sim_time ROS time runs rate_factor times faster.
         self._deadline = time.monotonic() + p.steps * CONTROL_PERIOD_S / p.rate_factor + p.timeout_margin_s
         self._phase = "running"
 
+    def _check_episode_end(self) -> None:
+        if self._ended == TRAJECTORY_DONE:
+            if self._applied == len(self._actions):
+                self._finish_episode("complete")
+            elif time.monotonic() > self._done_at + self.DONE_GRACE_S:
+                self._finish_episode("mismatch")
+        elif self._ended is not None:
+            self._finish_episode(self._ended)
+        elif time.monotonic() > self._deadline:
+            self._finish_episode("timeout")
+
     def _finish_episode(self, end: str) -> None:
         self.completed.append({"episode": self.episode, "applied": self._applied, "end": end})
         other = f" ({self._mismatched} other steps)" if self._mismatched else ""
-        self.log.info("episode %d/%d: %d actions applied%s, %s", self.episode, self.params.episodes,
-                      self._applied, other, end)
+        self.log.info(f"episode {self.episode}/{self.params.episodes}: {self._applied} actions applied{other}, {end}")
         self._phase = "reset"
