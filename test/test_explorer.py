@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -12,9 +13,13 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import applied_action
+from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.trajectory import Trajectory
 from t42_transfer.hand.collect import RandomPolicy
+from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.nodes.explorer import Explorer
 from t42_transfer.nodes.mock_driver import APPLIED_ACTION_TOPIC, RESET_SERVICE, STATUS_TOPIC, MockDriver
+from t42_transfer.nodes.recorder import Recorder
 from t42_transfer.ros.qos import LATCHED
 
 RATE = 10.0
@@ -61,6 +66,46 @@ def test_episodes_run_through_the_driver_with_the_sampled_actions(ros) -> None:
     assert events.index("reset", 1) < events.index("trajectory_done"), events
     ros.spin_for(0.3)
     assert len(watcher.explored()) == 60, "nothing is sent after the last episode"
+
+
+def replays(trajectory: Trajectory, seed: int) -> bool:
+    """Whether the recorded states are the simulation's: grasp ``seed``, hold (zero actions), the recorded actions.
+
+    The bag may begin a few held steps after the grasp (the recorder starts after the first reset).
+    """
+    hand = SimulatedHand("target")
+    state = hand.reset(seed)
+    for _ in range(100):
+        if np.array_equal(np.float32(state), trajectory.states[0]):
+            break
+        hand.step(np.zeros(2))
+        state = hand.state
+    else:
+        return False
+    states = [state]
+    for action in trajectory.actions.astype(np.float64):
+        hand.step(action)
+        states.append(hand.state)
+    return np.array_equal(np.asarray(states, np.float32), trajectory.states)
+
+
+def test_recorded_episodes_are_one_bag_each_and_replay_the_simulation(ros, tmp_path: Path) -> None:
+    """Driver (the graph's clock), recorder in episode mode and explorer: the explorer's episodes, nothing else."""
+    sim = {"use_sim_time": True}
+    driver = ros.add(MockDriver, {**DRIVER, "seed": 7, "sim_time": True, "max_command_age_s": 300.0})
+    recorder = ros.add(Recorder, {"out_dir": str(tmp_path), "mode": "episode", "start_immediately": False, **sim})
+    ros.spin_for(0.5)  # the hand idles before the explorer starts: not recorded
+    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 20, "seed": 3, **sim,
+                                  "record_start_service": "recorder/start", "record_stop_service": "recorder/stop"})
+    assert ros.spin_until(lambda: explorer.finished, 90.0), f"not finished: {explorer.completed}"
+    assert ros.spin_until(lambda: not recorder.recording and not recorder.waiting_changes, 10.0)
+    assert [e["end"] for e in explorer.completed] == ["complete", "complete"] and driver.episode == 2
+    assert len(recorder.bags) == 2, recorder.bags
+    for k, bag in enumerate(recorder.bags):
+        (episode,) = read_bag(bag)
+        moved = episode.actions[np.abs(episode.actions).sum(axis=1) > 0]
+        np.testing.assert_allclose(moved, sampled(3 + k, 20), atol=1e-6)
+        assert replays(episode, 7 + k + 1), f"{bag.name} is not the simulated episode"
 
 
 def test_an_episode_ends_on_a_drop_and_the_next_one_runs(ros) -> None:
