@@ -92,3 +92,31 @@ def stop(procs: Sequence[subprocess.Popen], timeout_s: float = 10.0) -> list[int
             proc.kill()
             codes.append(proc.wait())
     return codes
+
+
+class Rosout:
+    """Log lines of one node as a ROS user sees them (/rosout)."""
+
+    WARN = 30
+
+    def __init__(self, ros: RosRig, node_name: str) -> None:
+        from rcl_interfaces.msg import Log
+        from rclpy.qos import DurabilityPolicy, QoSProfile
+
+        self.ros, self.node_name, self.lines = ros, node_name, []
+        # TRANSIENT_LOCAL: /rosout's history, so no line is lost while the subscription is being matched
+        qos = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        ros.node(f"rosout_{node_name}").create_subscription(Log, "/rosout", self.lines.append, qos)
+
+    def warnings(self) -> list[str]:
+        return [m.msg for m in self.lines if m.level == self.WARN and m.name.endswith(self.node_name)]
+
+    def wait_warnings(self, count: int = 1, timeout_s: float = 3.0) -> list[str]:
+        """The node's warnings once at least ``count`` arrived (or ``timeout_s`` passed), and a moment more."""
+        self.ros.spin_until(lambda: len(self.warnings()) >= count, timeout_s)
+        self.ros.spin_for(0.1)
+        return self.warnings()
+
+    def clear(self) -> None:
+        self.ros.spin_for(0.1)
+        self.lines.clear()

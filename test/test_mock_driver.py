@@ -8,6 +8,7 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterType
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
+from ros_rig import Rosout
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -112,30 +113,6 @@ class Rig:
 @pytest.fixture
 def rig(ros):
     return Rig(ros)
-
-
-class LogCapture:
-    """The driver's /rosout lines, as a ROS user sees them."""
-
-    def __init__(self, ros) -> None:
-        from rcl_interfaces.msg import Log
-
-        self.ros = ros
-        self.lines: list = []
-        sub = ros.nodes[-1].create_subscription(Log, "/rosout", self.lines.append, 100)
-        assert ros.spin_until(lambda: sub.get_publisher_count() >= len(ros.nodes), 10.0)
-
-    def _mine(self) -> list[str]:
-        return [m.msg for m in self.lines if m.level == 30 and m.name.endswith("mock_driver")]
-
-    def warnings(self) -> list[str]:
-        self.ros.spin_until(self._mine, 3.0)
-        self.ros.spin_for(0.1)
-        return self._mine()
-
-    def clear(self) -> None:
-        self.ros.spin_for(0.1)
-        self.lines.clear()
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -334,7 +311,7 @@ def _bad_inputs(r: Rig):
 
 def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
     rig = Rig(ros, max_command_age_s=30.0)  # wall time passes between making and delivering a message
-    log = LogCapture(rig.ros)
+    log = Rosout(rig.ros, "mock_driver")
     rig.tick()
     good, bad = _bad_inputs(rig)
     rig.command_pub.publish(good)
@@ -343,7 +320,7 @@ def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
         log.clear()
         (rig.trajectory_pub if isinstance(msg, JointTrajectory) else rig.command_pub).publish(msg)
         rig.deliver()  # no exception escapes the callback
-        warnings = log.warnings()
+        warnings = log.wait_warnings()
         assert len(warnings) == 1 and why in warnings[0] and "rejected" in warnings[0], (name, warnings)
     rig.tick(2)
     np.testing.assert_allclose(rig.applied(), [[0, 0], [0.1, 0.1], [0, 0]], atol=1e-6)
@@ -351,7 +328,7 @@ def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
 
 
 def test_drop_publishes_status_and_stops_until_reset(rig):
-    log = LogCapture(rig.ros)
+    log = Rosout(rig.ros, "mock_driver")
     for _ in range(60):
         rig.command([-1.0, -1.0])
         rig.tick()
@@ -360,7 +337,7 @@ def test_drop_publishes_status_and_stops_until_reset(rig):
     assert not rig.driver.running
     assert rig.ros.spin_until(lambda: rig.statuses()[-1].split(":")[0] in ("dropped", "lost_contact"), 5.0), \
         rig.statuses()
-    assert any("ended" in w for w in log.warnings())
+    assert any("ended" in w for w in log.wait_warnings())
     rig.ros.spin_for(0.1)
     n_actions, n_states = len(rig.got[APPLIED_ACTION_TOPIC]), len(rig.got[JOINT_STATES_TOPIC])
     assert n_states == n_actions + 1  # the final state has no action

@@ -13,10 +13,9 @@ import pytest
 import torch
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import Log
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile
+from ros_rig import Rosout
 from std_msgs.msg import String
 from torch import Tensor
 from trajectory_msgs.msg import JointTrajectory
@@ -82,19 +81,6 @@ class LinearHand(LatentDynamics):
 def toy_file(path: Path, method: str = "toy", gain: float = 1.0, workspace: Workspace | None = BOX) -> Path:
     extra = {"workspace": workspace.to_dict()} if workspace is not None else None
     return save_model(LinearHand(gain), path, method=method, extra=extra)
-
-
-class Rosout:
-    """Log lines of one node as a ROS user sees them (/rosout)."""
-
-    def __init__(self, ros, node_name: str) -> None:
-        self.ros, self.node_name, self.lines = ros, node_name, []
-        # TRANSIENT_LOCAL: /rosout's history, so no line is lost while the subscription is being matched
-        qos = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        ros.node(f"rosout_{node_name}").create_subscription(Log, "/rosout", self.lines.append, qos)
-
-    def warnings(self) -> list[str]:
-        return [m.msg for m in self.lines if m.level == 30 and m.name.endswith(self.node_name)]
 
 
 class Rig:
