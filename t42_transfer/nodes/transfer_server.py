@@ -1,15 +1,15 @@
 """Transfer server node: on request, transfer the source model to the bags recorded since the last transfer.
 
-Wiring (defaults; every name is a :class:`TransferServerParams` field):
+Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``/t42/transfer`` (std_srvs/srv/Trigger): runs one transfer
+* ``t42/transfer`` (std_srvs/srv/Trigger): runs one transfer
   (:func:`t42_transfer.transfer.online.run_transfer`: new bags, held-out
   scoring, atomic saves, state file) and answers ``success=True`` with a one-line
   summary (method, data used, held-out divergence time and MSE, model path), or
-  ``success=False`` with the reason (no new bags, too little data, an unreadable
-  bag, an unusable source model; nothing is written then), or ``busy`` while a
-  transfer runs;
-* ``/diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
+  ``success=False`` with a one-line reason (no new bags, too little data, an
+  unreadable bag, an unusable source model or config file; nothing is written
+  then), or ``busy: ...`` at once while a transfer runs;
+* ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
   training, evaluating, saving, done, failed), ``elapsed_s``, ``method``,
@@ -18,171 +18,194 @@ Wiring (defaults; every name is a :class:`TransferServerParams` field):
   first), ``epochs`` (the phase's budget; early stopping may end it sooner),
   ``train_loss`` and, when the method validates, ``val_loss``.  Published at
   every stage change, every epoch and every ``progress_period_s`` while running;
-* ``/t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
+* ``t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
   ``transferred_<NNN>.safetensors`` (a file never rewritten, so a planner can load
   it while the next transfer replaces ``current.safetensors``); on start the node
   republishes the last one recorded in the state file.
 
-Blocking design.  Trigger is request/response and the answer is the summary, so
-the handler returns only when the transfer is done.  It runs the transfer in a
-worker thread and meanwhile publishes the progress itself (a timed wait on the
-worker, no transport timer), so diagnostics flow even when the backend runs the
-handler inside the node's spin loop.  A call arriving while one runs takes a
-non-blocking lock and, failing, answers ``busy`` at once.  That needs the backend
-to run handlers concurrently, so the service is registered with ``concurrent=True``:
-Cyclone and rclpy then run each request in a thread of its own, and the in-process
-bus runs each handler in its caller's thread anyway.
+Concurrency.  Trigger is request/response and the answer is the summary, so the
+service callback returns only when the transfer is done.  The callback is in a
+:class:`~rclpy.callback_groups.ReentrantCallbackGroup`, so on a
+``MultiThreadedExecutor`` (``t42 node`` spins one) a second request runs in
+another executor thread while the first trains: it fails to take a non-blocking
+lock and answers ``busy`` at once.  The first callback runs the transfer in a
+worker thread and, while waiting for it, publishes the progress itself every
+``progress_period_s``, so diagnostics flow without needing a free executor
+thread.  Parameters other than the model and bag locations take effect with the
+next call.
 
-No handler raises; failures are logged with ``transport.logger`` and answered.
+No callback raises; failures are logged with the node's logger and answered.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from msg_adapters import DIAGNOSTIC_ARRAY, DIAGNOSTICS_TOPIC, TYPESTORE, diagnostic_array
-from t42_transfer.ros import qos
-from t42_transfer.ros.naming import validate_name
-from t42_transfer.ros.transport import Transport, service_classes
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from msg_adapters import RCLPY, diagnostic_array
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import LATCHED
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS
 from t42_transfer.transfer.online import (
     OnlineTransferSpec,
     TransferRefused,
     TransferResult,
-    config_with_overrides,
+    config_from_file,
     latest_model,
     run_transfer,
 )
 
-STRING = "std_msgs/msg/String"
-TRIGGER = "std_srvs/srv/Trigger"
-
-TRANSFER_SERVICE = "/t42/transfer"
-MODEL_TOPIC = "/t42/model_updated"
+TRANSFER_SERVICE = "t42/transfer"
+MODEL_TOPIC = "t42/model_updated"
+DIAGNOSTICS_TOPIC = "diagnostics"
 STATUS_NAME = "t42_transfer: transfer"
-"""Name of the node's status in ``/diagnostics``."""
+"""Name of the node's status in ``diagnostics``."""
+
+
+def one_line(text: str) -> str:
+    """``text`` with its line breaks (and runs of blanks) made single spaces: a service answer is one line."""
+    return " ".join(text.split())
 
 
 @dataclass(frozen=True)
 class TransferServerParams:
-    """Parameters of :class:`TransferServer` (the node's ROS parameters)."""
+    """The transfer server's ROS parameters."""
 
-    source_model: str | Path
-    """The source hand's model (a transition model checkpoint); read at every call."""
-    model_dir: str | Path
-    """Where ``transferred_<NNN>.safetensors``, ``current.safetensors`` and the state file live."""
-    bag_dir: str | Path = ""
-    """Finished bags here not used by an earlier transfer are the target data (unless ``bags`` is set)."""
-    bags: tuple[str, ...] = ()
-    """Explicit target bags instead of ``bag_dir``; those used by an earlier transfer are skipped too."""
-    method: str = "cumulative_residual"
-    """Any name in :data:`t42_transfer.transfer.METHODS`."""
-    config: Mapping[str, Any] = field(default_factory=dict)
-    """Overrides of :class:`TransferConfig`'s paper defaults, nested: ``{cumulative_residual: {train: {epochs: 50}}}``."""
-    holdout_fraction: float = 0.25
-    """Share of the new episodes held out (at least one) to score the model."""
-    min_episodes: int = 2
-    """Fewer new episodes than this are refused as too little data."""
-    seed: int = 0
-    service: str = TRANSFER_SERVICE
-    model_topic: str = MODEL_TOPIC
-    diagnostics_topic: str = DIAGNOSTICS_TOPIC
-    progress_period_s: float = 0.5
-    """Diagnostics are re-published this often while a transfer runs."""
+    source_model: Path = param(description="the source hand's model (a transition model checkpoint); "
+                                           "read at every call")
+    model_dir: Path = param(description="where transferred_<NNN>.safetensors, current.safetensors and the state "
+                                        "file live", read_only=True)
+    bag_dir: str = param("", "finished bags here not used by an earlier transfer are the target data "
+                             "(empty: use bags)", read_only=True)
+    bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
+                                      "transfer are skipped too", read_only=True)
+    method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))}")
+    config_file: str = param("", "YAML file of overrides of the methods' settings, e.g. "
+                                 "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
+                                 "checked when set, read at every call")
+    holdout_fraction: float = param(0.25, "share of the new episodes held out (at least one) to score the model",
+                                    min=0.0, max=1.0, constraints="strictly between 0 and 1")
+    min_episodes: int = param(2, "fewer new episodes than this are refused as too little data", min=2)
+    seed: int = param(0, "seed of the hold-out split and the training", min=0)
+    progress_period_s: float = param(0.5, "diagnostics are re-published this often while a transfer runs",
+                                     min=0.001, max=3600.0)
 
     def __post_init__(self) -> None:
-        if not str(self.bag_dir) and not self.bags:
+        if not self.bag_dir and not self.bags:
             raise ValueError("set bag_dir or bags: the transfer needs target bags")
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {sorted(METHODS)}, got {self.method!r}")
-        object.__setattr__(self, "bags", tuple(str(b) for b in self.bags))
-        object.__setattr__(self, "config", dict(self.config))
-        self.transfer_config()  # ValueError for an unknown key or a wrong type
+        self.transfer_config()  # ValueError for an unreadable file, an unknown key or a wrong type
         if not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"holdout_fraction must be in (0, 1), got {self.holdout_fraction!r}")
         if not isinstance(self.min_episodes, int) or self.min_episodes < 2:
-            raise ValueError(f"min_episodes must be an int >= 2 (one to train on, one held out), got {self.min_episodes!r}")
-        if not self.progress_period_s > 0:
+            raise ValueError(f"min_episodes must be an int >= 2 (one to train on, one held out), "
+                             f"got {self.min_episodes!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative int, got {self.seed!r}")
+        if not (math.isfinite(self.progress_period_s) and self.progress_period_s > 0):
             raise ValueError(f"progress_period_s must be positive, got {self.progress_period_s!r}")
-        validate_name(self.service, "service")
-        validate_name(self.model_topic)
-        validate_name(self.diagnostics_topic)
 
     def transfer_config(self) -> TransferConfig:
-        return config_with_overrides(self.config)
+        """The :class:`~t42_transfer.transfer.config.TransferConfig` of ``config_file`` (read now)."""
+        return config_from_file(self.config_file)
 
     def spec(self) -> OnlineTransferSpec:
-        """What one call runs on (built per call, so the files are looked at afresh)."""
+        """What one call runs on (built per call, so the files are looked at afresh); ValueError for a bad config file."""
         return OnlineTransferSpec(
             source_model=Path(self.source_model), model_dir=Path(self.model_dir),
-            bag_dir=Path(self.bag_dir) if str(self.bag_dir) else None, bags=tuple(Path(b) for b in self.bags),
+            bag_dir=Path(self.bag_dir) if self.bag_dir else None, bags=tuple(Path(b) for b in self.bags),
             method=self.method, config=self.transfer_config(), holdout_fraction=self.holdout_fraction,
             min_episodes=self.min_episodes, seed=self.seed,
         )
 
 
-class TransferServer:
+class TransferServer(Node):
     """Serves transfers; see the module docstring for behaviour."""
 
-    def __init__(self, transport: Transport, params: TransferServerParams) -> None:
-        self.transport = transport
-        self.params = params
-        self.log = transport.logger
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("transfer_server", **node_kwargs)
+        self._params = LiveParams(self, TransferServerParams, self._on_params)
+        self.log = self.get_logger()
         self.last_result: TransferResult | None = None
         self._job = threading.Lock()
         """Held while a transfer runs: a second call that cannot take it is answered busy."""
         self._publishing = threading.Lock()
-        """Worker and handler threads publish the status one at a time."""
+        """Worker and callback threads publish the status one at a time."""
         self._status: dict[str, Any] = {"stage": "idle", "level": "OK", "message": "idle", "values": {}}
+        self._method = self.params.method
+        """The method of the running (or last) transfer."""
         self._started = time.monotonic()
-        _, self._Response = service_classes(TRIGGER)
-        self._String = TYPESTORE.types[STRING]
-        self._diagnostics = transport.publisher(params.diagnostics_topic, DIAGNOSTIC_ARRAY, qos.DEFAULT)
-        self._updates = transport.publisher(params.model_topic, STRING, qos.TRANSIENT_LOCAL)
-        transport.service(params.service, TRIGGER, self._on_transfer, concurrent=True)
-        latest = latest_model(Path(params.model_dir))
+        self._closed = False
+        self._diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
+        self._updates = self.create_publisher(String, MODEL_TOPIC, LATCHED)
+        self.create_service(Trigger, TRANSFER_SERVICE, self._on_transfer, callback_group=ReentrantCallbackGroup())
+        latest = latest_model(Path(self.params.model_dir))
         if latest is not None:
-            self._updates.publish(self._String(data=str(latest)))
+            self._updates.publish(String(data=str(latest)))
+
+    @property
+    def params(self) -> TransferServerParams:
+        return self._params.value
 
     @property
     def busy(self) -> bool:
         return self._job.locked()
 
     def close(self) -> None:
-        """Nothing to release; a running transfer finishes in its (daemon) thread, its saves are atomic."""
+        """Stop publishing; a running transfer finishes in its (daemon) thread, unannounced; its saves are atomic."""
+        if self._closed:
+            return
+        self._closed = True
         if self.busy:
-            self.log.warning("closing while a transfer runs; it finishes in the background, unpublished")
+            self.log.warning("closing while a transfer runs; it finishes in the background, unannounced")
 
-    # ------------------------------------------------------------------ service
-    def _on_transfer(self, request: Any) -> Any:
+    # ------------------------------------------------------------------ callbacks
+    def _on_params(self, old: TransferServerParams, new: TransferServerParams) -> None:
+        changed = [f"{f.name} {getattr(old, f.name)} -> {getattr(new, f.name)}" for f in dataclasses.fields(new)
+                   if getattr(old, f.name) != getattr(new, f.name)]
+        self.log.info(f"{', '.join(changed)}: takes effect with the next call")
+
+    def _on_transfer(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if not self._job.acquire(blocking=False):
-            status = self._status
-            return self._Response(
-                success=False,
-                message=f"busy: a {self.params.method} transfer is {status['stage']} "
-                        f"({time.monotonic() - self._started:.0f} s in); call again when it is done",
-            )
+            response.success = False
+            response.message = (f"busy: a {self._method} transfer is {self._status['stage']} "
+                                f"({time.monotonic() - self._started:.0f} s in); call again when it is done")
+            return response
         try:
             ok, message = self._run()
-        except Exception as err:  # a service handler must answer, not raise
-            self.log.exception("transfer service failed")
+        except Exception as err:  # a service callback must answer, not raise
+            self.log.error(f"transfer service failed: {err!r}")
             ok, message = False, f"failed: {type(err).__name__}: {err}"
         finally:
             self._job.release()
-        return self._Response(success=ok, message=message)
+        response.success, response.message = ok, one_line(message)
+        return response
 
     def _run(self) -> tuple[bool, str]:
         """Run one transfer in a worker thread, publishing progress until it ends; (success, message)."""
         self._started = time.monotonic()
+        params = self.params
+        self._method = params.method
         self._status = {"stage": "loading", "level": "OK", "message": "starting", "values": {}}
+        try:
+            spec = params.spec()
+        except ValueError as err:  # the config file changed since it was set
+            return self._not_done(str(err), refused=True)
         outcome: dict[str, Any] = {}
         done = threading.Event()
-        spec = self.params.spec()
 
         def work() -> None:
             try:
@@ -190,33 +213,36 @@ class TransferServer:
             except TransferRefused as err:
                 outcome["refused"] = str(err)
             except Exception as err:  # reported, never raised from the thread
-                self.log.exception("transfer failed")
                 outcome["error"] = f"failed: {type(err).__name__}: {err}"
             finally:
                 done.set()
 
         threading.Thread(target=work, name="transfer", daemon=True).start()
-        while not done.wait(self.params.progress_period_s):
+        while not done.wait(params.progress_period_s) and not self._closed:
             self._publish_status()
         result: TransferResult | None = outcome.get("result")
         if result is None:
+            if not done.is_set():
+                return False, "the node is shutting down; the transfer finishes unannounced"
             refused = "refused" in outcome
-            reason = outcome["refused"] if refused else outcome["error"]
-            (self.log.warning if refused else self.log.error)("transfer not done: %s", reason)
-            self._set_status("failed", "WARN" if refused else "ERROR", reason, {})
-            return False, reason
+            return self._not_done(outcome["refused"] if refused else outcome["error"], refused)
         self.last_result = result
         summary = result.summary()
-        self.log.info("transfer done: %s", summary)
-        try:
-            self._updates.publish(self._String(data=str(result.model_path)))
-        except Exception:  # e.g. the node closed meanwhile: the model is saved all the same
-            self.log.exception("could not announce %s on %s", result.model_path, self.params.model_topic)
+        self.log.info(f"transfer done: {summary}")
+        if not self._closed:
+            self._updates.publish(String(data=str(result.model_path)))
         self._set_status("done", "OK", summary, {
             "divergence_steps": result.divergence_steps, "position_mse_mm2": result.position_mse_mm2,
             "model": str(result.model_path),
         })
         return True, summary
+
+    def _not_done(self, reason: str, refused: bool) -> tuple[bool, str]:
+        """Log and publish a refusal (WARN) or a failure (ERROR); (False, the one-line reason)."""
+        reason = one_line(reason)
+        (self.log.warning if refused else self.log.error)(f"transfer not done: {reason}")
+        self._set_status("failed", "WARN" if refused else "ERROR", reason, {})
+        return False, reason
 
     # ------------------------------------------------------------------ diagnostics
     _MESSAGES = {
@@ -239,22 +265,23 @@ class TransferServer:
         self._publish_status()
 
     def _publish_status(self) -> None:
-        """Publish the current status; failures are logged (it runs from worker and handler threads).
+        """Publish the current status; failures are logged (it runs from worker and callback threads).
 
         The status is read under the lock, so a periodic publish cannot send an
         older epoch after the worker has published a newer one.
         """
         try:
             with self._publishing:
-                if self.transport.closed:
+                if self._closed:
                     return
                 status = self._status
                 values = {
                     "stage": status["stage"], "elapsed_s": f"{time.monotonic() - self._started:.1f}",
-                    "method": self.params.method, **status["values"],
+                    "method": self._method, **status["values"],
                 }
                 self._diagnostics.publish(diagnostic_array(
-                    STATUS_NAME, status["level"], status["message"], values, self.transport.now_ns(),
+                    STATUS_NAME, status["level"], status["message"], values,
+                    self.get_clock().now().nanoseconds, kit=RCLPY,
                 ))
-        except Exception:
-            self.log.exception("could not publish the transfer status")
+        except Exception as err:
+            self.log.error(f"could not publish the transfer status: {err!r}")

@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
 from t42_transfer.data.bag_io import read_bag
 from t42_transfer.data.errors import DataFileError
@@ -119,6 +120,27 @@ def config_with_overrides(overrides: Mapping[str, Any]) -> TransferConfig:
     Unknown keys and values of the wrong type are a ValueError naming the dotted key.
     """
     return _override(TransferConfig(), overrides, "config")
+
+
+def config_from_file(path: str | Path) -> TransferConfig:
+    """:class:`TransferConfig` defaults with the nested overrides of a YAML file; ``""`` (or an empty file): defaults.
+
+    The file holds what :func:`config_with_overrides` takes, e.g.
+    ``cumulative_residual: {train: {epochs: 50}}``.  ValueError (one line naming the
+    file) when it cannot be read, is not YAML, or has an unknown key or a wrong type.
+    """
+    if not str(path):
+        return TransferConfig()
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise ValueError(f"transfer config {path}: {err.strerror or err}") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"transfer config {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    try:
+        return config_with_overrides({} if doc is None else doc)
+    except ValueError as err:
+        raise ValueError(f"transfer config {path}: {err}") from None
 
 
 def _override(obj: Any, overrides: Mapping[str, Any], where: str) -> Any:
