@@ -1,0 +1,83 @@
+"""The transfer server as a process (``t42 node transfer_server``): busy answers, live diagnostics, a latched model."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from msg_adapters import DiagnosticReport, status_report
+from ros_rig import REPO, start_node, stop
+from t42_transfer.nodes.transfer_server import DIAGNOSTICS_TOPIC, MODEL_TOPIC, STATUS_NAME, TRANSFER_SERVICE
+from t42_transfer.ros.qos import LATCHED
+from test_transfer_server import add_target_bag, config_file, source_model  # noqa: F401  (fixture)
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+LONG = "cumulative_residual: {train: {epochs: 800, patience: null}}\n"
+"""Seconds of training on the fixture bag (a few ms an epoch): time for a second call meanwhile."""
+
+
+def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, tmp_path: Path,
+                                                                          source_model: Path) -> None:
+    bag_dir, model_dir = tmp_path / "bags", tmp_path / "models"
+    bag_dir.mkdir()
+    add_target_bag(bag_dir)
+    log = tmp_path / "server.log"
+    server = start_node(
+        "transfer_server", "-r", "__ns:=/left", "-p", f"source_model:={source_model}", "-p", f"model_dir:={model_dir}",
+        "-p", f"bag_dir:={bag_dir}", "-p", f"config_file:={config_file(tmp_path / 'long.yaml', LONG)}",
+        "-p", "progress_period_s:=0.05", log=log,
+    )
+    try:
+        tester = ros.node("tester", namespace="/left")
+        reports: list[DiagnosticReport] = []
+        tester.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+                                   lambda m: reports.append(status_report(m, STATUS_NAME)), 10_000)
+        client = tester.create_client(Trigger, TRANSFER_SERVICE)
+        assert tester.resolve_service_name(TRANSFER_SERVICE) == "/left/t42/transfer"
+        assert client.wait_for_service(timeout_sec=60.0), log.read_text()
+        first = client.call_async(Trigger.Request())
+        assert ros.spin_until(lambda: any(r.values["stage"] == "training" for r in reports), 60.0), log.read_text()
+
+        start = time.monotonic()
+        second = ros.call(client, Trigger.Request(), timeout_s=5.0)
+        assert time.monotonic() - start < 1.0, "a busy server answers at once"
+        assert not second.success and second.message.startswith("busy") and "training" in second.message
+        seen = len(reports)
+        assert ros.spin_until(lambda: sum(r.values["stage"] == "training" for r in reports[seen:]) >= 3, 10.0), \
+            "progress is published on diagnostics while training"
+        assert not first.done()
+
+        assert ros.spin_until(first.done, 120.0), log.read_text()
+        answer = first.result()
+        assert answer.success, answer.message
+        model = model_dir / "transferred_000.safetensors"
+        assert str(model) in answer.message and model.is_file()
+        assert ros.spin_until(lambda: reports[-1].values["stage"] == "done", 5.0)
+        assert reports[-1].level == "OK" and reports[-1].message == answer.message
+
+        # A listener joining afterwards still gets the announcement (latched).
+        late = ros.node("late", namespace="/left")
+        updates: list[str] = []
+        late.create_subscription(String, MODEL_TOPIC, lambda m: updates.append(m.data), LATCHED)
+        assert ros.spin_until(lambda: updates == [str(model)], 10.0), updates
+    finally:
+        codes = stop([server])
+    assert codes == [0], log.read_text()
+
+
+def test_a_bad_parameter_ends_the_process_with_one_line(ros_domain: int, tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "t42_transfer.cli", "node", "transfer_server", "--ros-args",
+           "-p", "source_model:=s.safetensors", "-p", f"model_dir:={tmp_path}", "-p", f"bag_dir:={tmp_path}",
+           "-p", "method:=nope"]
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    errors = [line for line in done.stderr.splitlines() if line.startswith("t42: error:")]
+    assert len(errors) == 1 and "method must be one of" in errors[0], done.stderr
