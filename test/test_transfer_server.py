@@ -68,7 +68,7 @@ def config_file(path: Path, text: str = TINY) -> str:
 
 def server_params(tmp_path: Path, source: Path, **params: Any) -> dict[str, Any]:
     return {"source_model": str(source), "model_dir": str(tmp_path / "models"), "bag_dir": str(tmp_path / "bags"),
-            "config_file": config_file(tmp_path / "tiny.yaml"), "progress_period_s": 0.02, **params}
+            "config": config_file(tmp_path / "tiny.yaml"), "progress_period_s": 0.02, **params}
 
 
 class Rig:
@@ -140,7 +140,7 @@ def test_transfer_answers_with_summary_saves_and_announces(ros, tmp_path, source
 
 def test_diagnostics_follow_the_training_epochs(ros, tmp_path, source_model):
     settings = config_file(tmp_path / "four.yaml", "cumulative_residual: {train: {epochs: 4, patience: null}}\n")
-    rig = Rig(ros, tmp_path, source_model, config_file=settings)
+    rig = Rig(ros, tmp_path, source_model, config=settings)
     add_target_bag(rig.bag_dir)
     assert rig.call().success
     training = [r for r in rig.reports if r.values["stage"] == "training"]
@@ -323,17 +323,17 @@ def test_a_crash_while_saving_keeps_the_old_current_model(ros, tmp_path, source_
 @pytest.mark.parametrize("bad, word", [
     ({"bag_dir": ""}, "bag_dir"),
     ({"method": "nope"}, "method"),
-    ({"config_file": "cumulative_residual: {train: {epochs: 1.5}}\n"}, "epochs"),
-    ({"config_file": "nope: {}\n"}, "nope"),
-    ({"config_file": "[unclosed\n"}, "YAML"),
+    ({"config": "cumulative_residual: {train: {epochs: 1.5}}\n"}, "epochs"),
+    ({"config": "nope: {}\n"}, "nope"),
+    ({"config": "[unclosed\n"}, "YAML"),
     ({"holdout_fraction": 1.0}, "holdout_fraction"),
     ({"min_episodes": 1}, "min_episodes"),
     ({"progress_period_s": 0.0}, "progress_period_s"),
 ])
 def test_bad_parameters_are_refused_at_start(ros, tmp_path, bad, word):
     params = server_params(tmp_path, tmp_path / "s.safetensors", **bad)
-    if "config_file" in bad:
-        params["config_file"] = config_file(tmp_path / "bad.yaml", bad["config_file"])
+    if "config" in bad:
+        params["config"] = config_file(tmp_path / "bad.yaml", bad["config"])
     with pytest.raises(ValueError, match=word):
         ros.add(TransferServer, params)
 
@@ -349,7 +349,7 @@ def test_parameters_change_at_run_time_and_take_effect_with_the_next_call(ros, t
     refused = {
         "method": server.set_parameters([Parameter("method", value="nope")])[0],
         "holdout": server.set_parameters([Parameter("holdout_fraction", value=1.0)])[0],
-        "config": server.set_parameters([Parameter("config_file", value=str(tmp_path / "missing.yaml"))])[0],
+        "config": server.set_parameters([Parameter("config", value=str(tmp_path / "missing.yaml"))])[0],
         "read-only": server.set_parameters([Parameter("model_dir", value=str(tmp_path / "elsewhere"))])[0],
     }
     assert not any(r.successful for r in refused.values())
@@ -360,7 +360,7 @@ def test_parameters_change_at_run_time_and_take_effect_with_the_next_call(ros, t
 
     other = tmp_path / "three.yaml"
     other.write_text("cumulative_residual: {train: {epochs: 3, patience: null}}\n")
-    assert server.set_parameters([Parameter("config_file", value=str(other))])[0].successful
+    assert server.set_parameters([Parameter("config", value=str(other))])[0].successful
     add_target_bag(rig.bag_dir)
     assert rig.call().success
     assert rig.reports[-1].values["epochs"] == "3"

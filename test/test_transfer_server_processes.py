@@ -32,7 +32,7 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
     log = tmp_path / "server.log"
     server = start_node(
         "transfer_server", "-r", "__ns:=/left", "-p", f"source_model:={source_model}", "-p", f"model_dir:={model_dir}",
-        "-p", f"bag_dir:={bag_dir}", "-p", f"config_file:={config_file(tmp_path / 'long.yaml', LONG)}",
+        "-p", f"bag_dir:={bag_dir}", "-p", f"config:={config_file(tmp_path / 'long.yaml', LONG)}",
         "-p", "progress_period_s:=0.05", log=log,
     )
     try:

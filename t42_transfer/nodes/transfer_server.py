@@ -7,7 +7,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   scoring, atomic saves, state file) and answers ``success=True`` with a one-line
   summary (method, data used, held-out divergence time and MSE, model path), or
   ``success=False`` with a one-line reason (no new bags, too little data, an
-  unreadable bag, an unusable source model or config file; nothing is written
+  unreadable bag, an unusable source model or ``config`` file; nothing is written
   then), or ``busy: ...`` at once while a transfer runs;
 * ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
@@ -92,7 +92,7 @@ class TransferServerParams:
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
                                       "transfer are skipped too", read_only=True)
     method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))}")
-    config_file: str = param("", "YAML file of overrides of the methods' settings, e.g. "
+    config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")
     holdout_fraction: float = param(0.25, "share of the new episodes held out (at least one) to score the model",
@@ -119,8 +119,8 @@ class TransferServerParams:
             raise ValueError(f"progress_period_s must be positive, got {self.progress_period_s!r}")
 
     def transfer_config(self) -> TransferConfig:
-        """The :class:`~t42_transfer.transfer.config.TransferConfig` of ``config_file`` (read now)."""
-        return config_from_file(self.config_file)
+        """The :class:`~t42_transfer.transfer.config.TransferConfig` of the ``config`` file (read now)."""
+        return config_from_file(self.config)
 
     def spec(self) -> OnlineTransferSpec:
         """What one call runs on (built per call, so the files are looked at afresh); ValueError for a bad config file."""
