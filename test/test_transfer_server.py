@@ -377,7 +377,8 @@ def test_explicit_bags_instead_of_a_directory(ros, tmp_path, source_model):
 def test_config_files_hold_nested_overrides(tmp_path):
     assert config_from_file("") == config_with_overrides({})
     assert config_from_file(config_file(tmp_path / "empty.yaml", "")) == config_with_overrides({})
-    cfg = config_from_file(config_file(tmp_path / "alpha.yaml", "cumulative_residual: {alpha: 1, train: {patience: null}}\n"))
+    overrides = "cumulative_residual: {alpha: 1, train: {patience: null}}\n"
+    cfg = config_from_file(config_file(tmp_path / "alpha.yaml", overrides))
     assert cfg.cumulative_residual.alpha == 1.0 and cfg.cumulative_residual.train.patience is None
     with pytest.raises(ValueError, match="must be a mapping"):
         config_from_file(config_file(tmp_path / "list.yaml", "[1, 2]\n"))

@@ -25,7 +25,7 @@ LONG = "cumulative_residual: {train: {epochs: 800, patience: null}}\n"
 
 
 def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, tmp_path: Path,
-                                                                          source_model: Path) -> None:
+                                                                          source_model: Path) -> None:  # noqa: F811
     bag_dir, model_dir = tmp_path / "bags", tmp_path / "models"
     bag_dir.mkdir()
     add_target_bag(bag_dir)

@@ -62,7 +62,6 @@ from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, stamp_to_ns
 from t42_transfer.conventions import ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S, RANDOM_POLICY_LIMIT
-from t42_transfer.data.trajectory import END_REASONS
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.nodes.mock_driver import (
     APPLIED_ACTION_TOPIC,
@@ -71,12 +70,11 @@ from t42_transfer.nodes.mock_driver import (
     STATUS_TOPIC,
     TRAJECTORY_TOPIC,
 )
+from t42_transfer.nodes.recorder import END_EVENTS
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import LATCHED
 
 TRAJECTORY_DONE = "trajectory_done"
-END_EVENTS = tuple(reason for reason in END_REASONS if reason not in ("", "length"))
-"""``hand/status`` events that end an episode early (the hand's end reasons)."""
 
 
 def _check_service_name(field: str, name: str) -> None:
@@ -316,7 +314,8 @@ class Explorer(Node):
             self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
             self._phase = "reset"
             return
-        self._reset_ns = max(self.get_clock().now().nanoseconds, self._angles_ns) + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
+        newest = max(self.get_clock().now().nanoseconds, self._angles_ns)
+        self._reset_ns = newest + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
         if self.episode == 1 and self._record_start is not None:
             self._call = _Call(self._record_start, self.SERVICE_TIMEOUT_S, self.SERVICE_TIMEOUT_S)
             self._phase = "starting_recorder"

@@ -123,7 +123,7 @@ class TransferServerParams:
         return config_from_file(self.config)
 
     def spec(self) -> OnlineTransferSpec:
-        """What one call runs on (built per call, so the files are looked at afresh); ValueError for a bad config file."""
+        """What one call runs on, built per call so the files are looked at afresh; ValueError for a bad config."""
         return OnlineTransferSpec(
             source_model=Path(self.source_model), model_dir=Path(self.model_dir),
             bag_dir=Path(self.bag_dir) if self.bag_dir else None, bags=tuple(Path(b) for b in self.bags),
