@@ -2,7 +2,6 @@
 
 from msg_adapters.diagnostics import (
     DIAGNOSTIC_ARRAY,
-    DIAGNOSTICS_TOPIC,
     LEVELS,
     DiagnosticReport,
     diagnostic_array,
@@ -33,7 +32,6 @@ from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, pat
 
 __all__ = [
     "DIAGNOSTIC_ARRAY",
-    "DIAGNOSTICS_TOPIC",
     "LEVELS",
     "DiagnosticReport",
     "diagnostic_array",

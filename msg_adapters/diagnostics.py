@@ -15,7 +15,6 @@ from msg_adapters.hand import ns_to_stamp
 from msg_adapters.kit import ROSBAGS, MessageKit, byte_value
 
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
-DIAGNOSTICS_TOPIC = "/diagnostics"
 
 LEVELS: dict[str, int] = {"OK": 0, "WARN": 1, "ERROR": 2, "STALE": 3}
 """``DiagnosticStatus`` level names and their byte values."""

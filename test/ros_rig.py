@@ -14,6 +14,8 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from t42_transfer.ros.runner import EXECUTOR_THREADS
+
 N = TypeVar("N", bound=Node)
 REPO = Path(__file__).resolve().parents[1]
 
@@ -22,7 +24,7 @@ class RosRig:
     def __init__(self, domain_id: int) -> None:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.executor = MultiThreadedExecutor(context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=self.context)
         self.nodes: list[Node] = []
 
     def add(self, node_cls: Callable[..., N], params: dict[str, Any] | None = None, **kwargs: Any) -> N:
@@ -75,8 +77,10 @@ def start_node(name: str, *ros_args: str, log: Path | None = None) -> subprocess
     cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name]
     if ros_args:
         cmd += ["--ros-args", *ros_args]
-    out = open(log, "w") if log is not None else subprocess.DEVNULL
-    return subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT, text=True)
+    if log is None:
+        return subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    with open(log, "w") as out:  # the child keeps its own descriptor
+        return subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
 
 
 def stop(procs: Sequence[subprocess.Popen], timeout_s: float = 10.0) -> list[int]:

@@ -23,6 +23,7 @@ class Demo:
     gains: tuple[float, ...] = param((1.0, 2.0), "per-joint gains")
     names: tuple[str, ...] = param(("a",), "names")
     seed: int | None = param(None, "seed (unset: random)")
+    extra: tuple[str, ...] = param((), "empty by default")
 
     def __post_init__(self) -> None:
         if self.count > 2 * len(self.gains) + 10:
@@ -39,10 +40,12 @@ class DemoNode(Node):
 def test_declares_every_field_with_its_descriptor(ros) -> None:
     node = ros.add(DemoNode, {"out": "/tmp/x"})
     assert node.live.value == Demo(out=Path("/tmp/x"))
-    types = {n: node.describe_parameter(n).type for n in ("out", "rate", "count", "flag", "gains", "names")}
+    types = {n: node.describe_parameter(n).type for n in ("out", "rate", "count", "flag", "gains", "names", "extra")}
     assert types == {"out": ParameterType.PARAMETER_STRING, "rate": ParameterType.PARAMETER_DOUBLE,
                      "count": ParameterType.PARAMETER_INTEGER, "flag": ParameterType.PARAMETER_BOOL,
-                     "gains": ParameterType.PARAMETER_DOUBLE_ARRAY, "names": ParameterType.PARAMETER_STRING_ARRAY}
+                     "gains": ParameterType.PARAMETER_DOUBLE_ARRAY, "names": ParameterType.PARAMETER_STRING_ARRAY,
+                     "extra": ParameterType.PARAMETER_STRING_ARRAY}
+    assert node.get_parameter("extra").type_ == Parameter.Type.STRING_ARRAY
     rate = node.describe_parameter("rate")
     assert rate.description == "steps per tick" and not rate.read_only
     assert (rate.floating_point_range[0].from_value, rate.floating_point_range[0].to_value) == (0.01, 100.0)
@@ -54,8 +57,9 @@ def test_params_file_then_overrides(ros, tmp_path: Path) -> None:
     params_file = tmp_path / "p.yaml"
     params_file.write_text("/**:\n  ros__parameters:\n    rate: 2.0\n    count: 5\n"
                            "demo:\n  ros__parameters:\n    out: results\n    rate: 3.0\n    names: [left, right]\n    seed: 7\n")
-    node = ros.add(DemoNode, {"count": 6}, cli_args=["--ros-args", "--params-file", str(params_file)])
-    assert node.live.value == Demo(out=Path("results"), rate=3.0, count=6, names=("left", "right"), seed=7)
+    node = ros.add(DemoNode, {"count": 6, "extra": ["z"]}, cli_args=["--ros-args", "--params-file", str(params_file)])
+    assert node.live.value == Demo(out=Path("results"), rate=3.0, count=6, names=("left", "right"), seed=7,
+                                   extra=("z",))
 
 
 @pytest.mark.parametrize("params,match", [
@@ -81,8 +85,9 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     assert set_(rate=0.0)[0][0] is False and set_(count=2.5)[0][0] is False and set_(out="y")[0][0] is False
     assert node.live.value == Demo(out=Path("x")) and node.changes == []
     assert set_(rate=4.0, seed=3) == [(True, ""), (True, "")]
-    assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3)
-    assert [new.rate for _, new in node.changes] == [4.0, 4.0]
+    assert set_(extra=["a", "b"]) == [(True, "")]  # an empty default still has its type
+    assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3, extra=("a", "b"))
+    assert [new.rate for _, new in node.changes] == [4.0, 4.0, 4.0]
     assert node.changes[-1][1].seed == 3
     assert set_(use_sim_time=True) == [(True, "")]  # rclpy's own parameters pass through
 

@@ -366,8 +366,6 @@ def test_parameters_change_at_run_time_and_take_effect_with_the_next_call(ros, t
     assert rig.reports[-1].values["epochs"] == "3"
 
 
-@pytest.mark.xfail(strict=True, reason="ros.params declares an empty tuple default as a BYTE_ARRAY parameter, "
-                                       "so a list of strings is refused (shared foundation)")
 def test_explicit_bags_instead_of_a_directory(ros, tmp_path, source_model):
     bag = add_target_bag(tmp_path)
     rig = Rig(ros, tmp_path, source_model, bag_dir="", bags=[str(bag)])

@@ -183,12 +183,16 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
     values: dict[str, Any] = {}
     for field in _fields(params_cls):
         try:
-            if field.default is dataclasses.MISSING:
-                p = node.declare_parameter(field.name, Parameter.Type(field.ros_type), _descriptor(field))
-                value = p.value
+            if field.default is dataclasses.MISSING or field.default == ():
+                # No default, or an empty one whose type rclpy cannot infer from [] (it would say BYTE_ARRAY):
+                # declare by type; an empty default is then set with its type spelled out.
+                ros_type = Parameter.Type(field.ros_type)
+                value = node.declare_parameter(field.name, ros_type, _descriptor(field)).value
+                if value is None and field.default == ():
+                    node.set_parameters([Parameter(field.name, ros_type, [])])
+                    value = []
             else:
-                p = node.declare_parameter(field.name, _to_ros(field.default), _descriptor(field))
-                value = p.value
+                value = node.declare_parameter(field.name, _to_ros(field.default), _descriptor(field)).value
         except ParameterUninitializedException:
             raise ValueError(f"{where}: missing required parameter {field.name!r} "
                              f"(set it in a params file or with -p {field.name}:=...)") from None

@@ -21,6 +21,9 @@ from collections.abc import Sequence
 from types import FrameType
 
 DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+EXECUTOR_THREADS = max(4, os.cpu_count() or 1)
+"""Threads of a node process's executor: at least 4, so a long callback in its own group (a transfer)
+never leaves a busy answer or a state update waiting for a free thread, even on one CPU."""
 
 
 def keep_discovery_local(env: dict[str, str] | os._Environ[str] | None = None) -> str:
@@ -74,7 +77,7 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         rclpy.init(args=["t42"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as err:
         return _error(f"bad --ros-args: {err}")
-    executor = MultiThreadedExecutor(context=context)
+    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
     node = None
     try:
         try:
