@@ -1,16 +1,27 @@
-"""Benchmark: the recorder over Cyclone DDS on localhost at kHz rates: loss, throughput, memory.
+"""Benchmark: the recorder node over rclpy (Fast DDS) on localhost at kHz rates: loss, CPU per message, memory.
 
-Writes bench/results/recorder.json.  A publisher process sends pre-serialised hand
-messages (PoseStamped, JointState, JointState for action: the three hand topics in
-turn) at a fixed total rate for N seconds, RELIABLE KEEP_LAST 10 (ROS default); a
-recorder process (CycloneTransport + Recorder) records them.  Reported per run:
-sent vs recorded, recorder RSS over time (1 s samples), and the recorder process's
-CPU time per message.  Baselines measured in the same run: the same stream into a
-bare sink process (same transport, raw subscriptions whose callback only counts),
-and writing the same messages straight into a bag in-process (no DDS).
+Writes bench/results/recorder.json.  A publisher process (rclpy, raw CDR bytes from
+rosbags) sends hand messages (PoseStamped, JointState, JointState for the applied
+action: the three hand topics in turn, one step per three messages) at a fixed
+total rate for N seconds, RELIABLE KEEP_LAST 1000; a receiver process records or
+counts them.  Both receivers run as ``t42 node`` runs a node
+(:mod:`t42_transfer.ros.runner`: a MultiThreadedExecutor spun until stopped):
 
-    .venv/bin/python bench/bench_recorder.py                 # 1 kHz x 30 s; 5 and 10 kHz x 10 s; depth 10
-    .venv/bin/python bench/bench_recorder.py --quick         # 5 s runs
+- ``recorder``: the :class:`~t42_transfer.nodes.recorder.Recorder` node (default
+  parameters: queue depth 1000, flush every 1 s, steps grouped by stamp);
+- ``sink`` (baseline): a bare rclpy node whose raw subscriptions (same QoS) only count.
+
+Reported per run: sent vs received vs written to the bag, the receiver's CPU time
+per message while messages flowed (process CPU between the 1 s samples around the
+stream; also from ready to stop, idle spinning included), its RSS every second.
+Two more runs at 5 kHz spin a SingleThreadedExecutor instead, to show what the
+executor costs.  Also the recorder's own per-message work without ROS (decode the stamp,
+group by step, write to the bag) measured in-process.  The machine's load average
+is recorded before and after: on a shared machine the numbers vary with it.
+Each run has its own ROS_DOMAIN_ID and LOCALHOST discovery.
+
+    .venv/bin/python bench/bench_recorder.py           # recorder 1 kHz x 30 s; the rest 10 s each
+    .venv/bin/python bench/bench_recorder.py --quick   # 5 s runs
 """
 
 from __future__ import annotations
@@ -24,23 +35,31 @@ import shlex
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from msg_adapters import HAND_TOPICS, applied_action_msg, joint_state_msg, object_pose_msg  # noqa: E402
+from msg_adapters import (  # noqa: E402
+    HAND_TOPICS,
+    TYPESTORE,
+    applied_action_msg,
+    joint_state_msg,
+    object_pose_msg,
+)
 from t42_transfer.conventions import CONTROL_PERIOD_NS  # noqa: E402
-from t42_transfer.ros.transport import serialize  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "recorder.json"
 TOPICS = list(HAND_TOPICS)
+QUEUE_DEPTH = 1000
 
 
 def hand_messages(steps: int) -> list[tuple[str, bytes]]:
-    """``steps`` control steps of pre-serialised hand messages, the three topics in turn."""
+    """``steps`` control steps of CDR hand messages, the three topics in turn, stamps one period apart."""
     out = []
     for k in range(steps):
         stamp = 1_000_000_000 + k * CONTROL_PERIOD_NS
@@ -49,7 +68,7 @@ def hand_messages(steps: int) -> list[tuple[str, bytes]]:
             (TOPICS[1], joint_state_msg([k % 300 - 150.0, 12.5], [0.1, 0.2], stamp)),
             (TOPICS[2], applied_action_msg([0.5, -0.5], stamp)),
         ):
-            out.append((topic, serialize(HAND_TOPICS[topic], msg)))
+            out.append((topic, bytes(TYPESTORE.serialize_cdr(msg, HAND_TOPICS[topic]))))
     return out
 
 
@@ -64,129 +83,165 @@ def cpu_s() -> float:
 
 
 # --------------------------------------------------------------------------- roles (subprocesses)
-
-
 def role_publisher(rate: float, seconds: float) -> None:
-    from t42_transfer.ros import qos
-    from t42_transfer.ros.cyclone import CycloneTransport
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+
+    from msg_adapters import rclpy_class
+    from t42_transfer.ros.qos import recording
 
     total = int(rate * seconds)
     messages = hand_messages(total // 3 + 1)[:total]
-    with CycloneTransport("bench_hand") as node:
-        pubs = {t: node.publisher(t, HAND_TOPICS[t], qos.DEFAULT) for t in TOPICS}
-        deadline = time.monotonic() + 30
-        while not all(p.writer.get_matched_subscriptions() for p in pubs.values()):
-            if time.monotonic() > deadline:
-                raise SystemExit("no subscriber matched")
-            time.sleep(0.02)
-        time.sleep(0.5)
-        start, sent = time.perf_counter(), 0
-        while sent < total:
-            due = min(total, int((time.perf_counter() - start) * rate) + 1)
-            while sent < due:
-                topic, data = messages[sent]
-                pubs[topic].publish_raw(data)
-                sent += 1
-            time.sleep(0.0005)
-        elapsed = time.perf_counter() - start
-        time.sleep(1.0)  # let reliable delivery finish before the writers go away
-    print(json.dumps({"sent": sent, "seconds": elapsed}), flush=True)
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("bench_hand", context=context)
+    pubs = {t: node.create_publisher(rclpy_class(HAND_TOPICS[t]), t, recording(QUEUE_DEPTH)) for t in TOPICS}
+    deadline = time.monotonic() + 30
+    while not all(p.get_subscription_count() for p in pubs.values()):
+        if time.monotonic() > deadline:
+            raise SystemExit("no subscriber matched")
+        time.sleep(0.02)
+    time.sleep(1.0)  # the receiver matches this side on its own
+    start, sent = time.perf_counter(), 0
+    while sent < total:
+        due = min(total, int((time.perf_counter() - start) * rate) + 1)
+        while sent < due:
+            topic, data = messages[sent]
+            pubs[topic].publish(data)
+            sent += 1
+        time.sleep(0.0005)
+    elapsed = time.perf_counter() - start
+    acked = all(p.wait_for_all_acked(Duration(seconds=10)) for p in pubs.values())
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+    print(json.dumps({"sent": sent, "seconds": elapsed, "acked": acked}), flush=True)
 
 
-def role_receiver(kind: str, out_dir: str, stop_file: str, queue_depth: int) -> None:
-    from t42_transfer.nodes.recorder import Recorder, RecorderParams
-    from t42_transfer.ros import qos
-    from t42_transfer.ros.cyclone import CycloneTransport
+def role_receiver(kind: str, out_dir: str, stop_file: str, executor_kind: str) -> None:
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
 
-    class Node(CycloneTransport):
-        def service(self, name, srvtype, handler):  # type: ignore[no-untyped-def]
-            try:
-                super().service(name, srvtype, handler)
-            except NotImplementedError:  # a backend without services: not used here
-                pass
+    from msg_adapters import rclpy_class
+    from t42_transfer.ros.qos import recording
 
-    samples: list[tuple[float, float]] = []
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    # multi: as t42_transfer.ros.runner spins every node
+    executor = (MultiThreadedExecutor if executor_kind == "multi" else SingleThreadedExecutor)(context=context)
     counted = [0]
-    with Node(f"bench_{kind}") as node:
-        if kind == "recorder":
-            recorder = Recorder(node, RecorderParams(out_dir, queue_depth=queue_depth))
-        else:
-            for topic in TOPICS:
-                node.subscribe(topic, HAND_TOPICS[topic], qos.QoSProfile(depth=queue_depth),
-                               lambda data: counted.__setitem__(0, counted[0] + 1), raw=True)
-        t0 = time.monotonic()
-        node.timer(1.0, lambda: samples.append((round(time.monotonic() - t0, 2), round(rss_mb(), 1))))
-        print("ready", flush=True)
-        cpu0 = cpu_s()
-        node.spin(until=lambda: os.path.exists(stop_file))
-        cpu = cpu_s() - cpu0
-        if kind == "recorder":
-            count, dropped = recorder.current_count, recorder.dropped
-            recorder.close()
-            from rosbags.highlevel import AnyReader
+    if kind == "recorder":
+        from t42_transfer.nodes.recorder import Recorder
 
-            with AnyReader(recorder.bags) as reader:
-                in_bag = reader.message_count
-        else:
-            count, dropped, in_bag = counted[0], 0, None
-    print(json.dumps({"received": count, "dropped": dropped, "in_bag": in_bag, "cpu_s": cpu,
-                      "rss_mb": samples}), flush=True)
+        node: Any = Recorder(context=context, parameter_overrides=[Parameter("out_dir", value=out_dir)])
+    else:
+        node = Node("bench_sink", context=context)
+        for topic in TOPICS:
+            node.create_subscription(rclpy_class(HAND_TOPICS[topic]), topic,
+                                     lambda data: counted.__setitem__(0, counted[0] + 1),
+                                     recording(QUEUE_DEPTH), raw=True)
+    executor.add_node(node)
+    samples: list[tuple[float, float, float, int]] = []
+    """Every second: (time since ready, RSS MB, process CPU s, messages handled)."""
+    t0 = time.monotonic()
+    done = threading.Event()
+
+    def handled() -> int:
+        return node.received if kind == "recorder" else counted[0]
+
+    def sample() -> None:
+        while not done.wait(1.0):
+            samples.append((round(time.monotonic() - t0, 2), round(rss_mb(), 1), cpu_s(), handled()))
+
+    threading.Thread(target=sample, daemon=True).start()
+    print("ready", flush=True)
+    cpu0 = cpu_s()
+    while not os.path.exists(stop_file):
+        executor.spin_once(timeout_sec=0.1)
+    cpu = cpu_s() - cpu0
+    done.set()
+    if kind == "recorder":
+        received, dropped = node.received, node.dropped
+        node.close()
+        from rosbags.highlevel import AnyReader
+
+        with AnyReader(node.bags) as reader:
+            in_bag: int | None = reader.message_count
+    else:
+        received, dropped, in_bag = counted[0], 0, None
+    executor.shutdown(timeout_sec=5.0)
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+    print(json.dumps({"received": received, "dropped": dropped, "in_bag": in_bag, "cpu_s": cpu,
+                      "samples": samples}), flush=True)
 
 
 # --------------------------------------------------------------------------- orchestration
-
-
 def _spawn(*args: str, env: dict[str, str]) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, __file__, *args], cwd=REPO, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
-def run_stream(kind: str, rate: float, seconds: float, queue_depth: int) -> dict:
-    """One publisher -> receiver run on a fresh random domain."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)), PYTHONPATH=str(REPO))
-    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-    env.pop("CYCLONEDDS_URI", None)
+def run_stream(kind: str, rate: float, seconds: float, executor: str = "multi") -> dict[str, Any]:
+    """One publisher -> receiver run on a fresh domain."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONPATH=str(REPO))
     with tempfile.TemporaryDirectory() as tmp:
         stop = Path(tmp) / "stop"
-        receiver = _spawn("--role", kind, "--out-dir", tmp, "--stop-file", str(stop),
-                          "--queue-depth", str(queue_depth), env=env)
+        receiver = _spawn("--role", kind, "--out-dir", tmp, "--stop-file", str(stop), "--executor", executor,
+                          env=env)
         assert receiver.stdout is not None
         if receiver.stdout.readline().strip() != "ready":
             raise RuntimeError(f"{kind} did not start: {receiver.communicate()[1][-2000:]}")
         publisher = _spawn("--role", "publisher", "--rate", str(rate), "--seconds", str(seconds), env=env)
         pub_out, pub_err = publisher.communicate(timeout=seconds + 120)
         if publisher.returncode:
+            receiver.kill()
             raise RuntimeError(f"publisher failed: {pub_err[-2000:]}")
+        time.sleep(1.0)  # the last step's messages are handled
         stop.touch()
         rec_out, rec_err = receiver.communicate(timeout=120)
         if receiver.returncode:
             raise RuntimeError(f"{kind} failed: {rec_err[-2000:]}")
     sent, got = json.loads(pub_out), json.loads(rec_out.strip().splitlines()[-1])
-    rss = got.pop("rss_mb")
-    at_10s = next((mb for t, mb in rss if t >= 10), None)
+    samples = got.pop("samples")
+    # CPU while messages flowed: from the last sample before the first message to the first after the last
+    counts = [s[3] for s in samples]
+    first = max((i for i, c in enumerate(counts) if c == 0), default=0)
+    last = next((i for i, c in enumerate(counts) if c == counts[-1]), len(counts) - 1)
+    streamed = counts[last] - counts[first]
     result = {
-        "receiver": kind, "rate_hz": rate, "seconds": seconds, "queue_depth": queue_depth,
-        "sent": sent["sent"], "received": got["received"], "lost": sent["sent"] - got["received"],
-        "in_bag": got["in_bag"], "publish_seconds": round(sent["seconds"], 3),
-        "achieved_msgs_per_s": round(got["received"] / sent["seconds"], 1),
-        "cpu_us_per_msg": round(got["cpu_s"] / max(got["received"], 1) * 1e6, 2),
-        "rss_mb_at_10s": at_10s, "rss_mb_end": rss[-1][1] if rss else None,
-        "rss_mb_peak": max((mb for _, mb in rss), default=None), "rss_mb_samples": rss,
+        "receiver": kind, "executor": executor, "rate_hz": rate, "seconds": seconds, "queue_depth": QUEUE_DEPTH,
+        "sent": sent["sent"], "acked": sent["acked"], "received": got["received"],
+        "lost": sent["sent"] - got["received"], "dropped": got["dropped"], "in_bag": got["in_bag"],
+        "publish_seconds": round(sent["seconds"], 3),
+        "cpu_us_per_msg": round((samples[last][2] - samples[first][2]) / max(streamed, 1) * 1e6, 2),
+        "cpu_us_per_msg_ready_to_stop": round(got["cpu_s"] / max(got["received"], 1) * 1e6, 2),
+        "rss_mb_first": samples[0][1] if samples else None, "rss_mb_end": samples[-1][1] if samples else None,
+        "rss_mb_peak": max((s[1] for s in samples), default=None),
+        "rss_mb_samples": [[s[0], s[1]] for s in samples],
     }
     print(json.dumps({k: v for k, v in result.items() if k != "rss_mb_samples"}), flush=True)
     return result
 
 
-def direct_write_us_per_msg(count: int = 30_000) -> float:
-    """The same messages written straight into a bag in-process (rosbags writer, no DDS)."""
-    from t42_transfer.nodes.recorder import _Bag
+def own_work_us_per_msg(count: int = 30_000) -> float:
+    """The recorder's per-message work without ROS: decode the stamp, group by step, write to a bag."""
+    from msg_adapters import stamp_to_ns
+    from t42_transfer.nodes.recorder import StepBuffer, _Bag
 
     messages = hand_messages(count // 3)
     with tempfile.TemporaryDirectory() as tmp:
-        bag = _Bag(Path(tmp) / "direct", HAND_TOPICS)
+        bag = _Bag(Path(tmp) / "direct", dict(HAND_TOPICS))
+        buffer = StepBuffer(TOPICS, hold_s=1.0)
         start = time.perf_counter()
         for i, (topic, data) in enumerate(messages):
-            bag.write(topic, i, data, i)
+            stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, HAND_TOPICS[topic]).header.stamp)
+            released, _ = buffer.add(topic, stamp, i, data, 0.0)
+            for step in released:
+                bag.write(step)
         bag.close()
         return (time.perf_counter() - start) / len(messages) * 1e6
 
@@ -198,47 +253,53 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--out-dir", default="")
     parser.add_argument("--stop-file", default="")
-    parser.add_argument("--queue-depth", type=int, default=1000)
+    parser.add_argument("--executor", choices=("multi", "single"), default="multi")
     parser.add_argument("--quick", action="store_true", help="5 s runs")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.role == "publisher":
         return role_publisher(args.rate, args.seconds)
     if args.role in ("recorder", "sink"):
-        return role_receiver(args.role, args.out_dir, args.stop_file, args.queue_depth)
+        return role_receiver(args.role, args.out_dir, args.stop_file, args.executor)
 
-    from machine import machine_info  # imports torch: kept out of the measured processes' RSS
+    from machine import machine_info  # imports torch: kept out of the measured processes
 
     long_s, short_s = (5.0, 5.0) if args.quick else (30.0, 10.0)
     info = machine_info()
-    runs = [
-        run_stream("recorder", 1000, long_s, 1000),
-        run_stream("sink", 1000, short_s, 1000),
-        run_stream("recorder", 5000, short_s, 1000),
-        run_stream("sink", 5000, short_s, 1000),
-        run_stream("recorder", 1000, short_s, 10),
-        run_stream("recorder", 5000, short_s, 10),
-        run_stream("recorder", 10000, short_s, 1000),
-    ]
-    direct = direct_write_us_per_msg()
-    rec_5k = runs[2]["cpu_us_per_msg"]
-    sink_5k = runs[3]["cpu_us_per_msg"]
+    runs = [run_stream("recorder", 1000, long_s)]  # the RSS run
+    runs += [run_stream("sink", 1000, short_s)]
+    for executor in ("multi", "single"):
+        for rate in (5000, 10000) if executor == "multi" else (1000, 5000, 10000):
+            runs += [run_stream("recorder", rate, short_s, executor), run_stream("sink", rate, short_s, executor)]
+    own = own_work_us_per_msg()
+
+    def cpu(kind: str, rate: int, executor: str = "multi") -> float:
+        return next(r["cpu_us_per_msg"] for r in runs
+                    if r["receiver"] == kind and r["rate_hz"] == rate and r["executor"] == executor)
+
     result = {
-        "benchmark": "recorder over Cyclone DDS on localhost (publisher and recorder in separate processes)",
+        "benchmark": "recorder node over rclpy (rmw_fastrtps_cpp) on localhost; publisher and receiver in separate "
+                     "processes; receivers spun as t42 node spins them (MultiThreadedExecutor, 'multi') and with a "
+                     "SingleThreadedExecutor ('single')",
         "command": " ".join(shlex.quote(a) for a in [".venv/bin/python", "bench/bench_recorder.py", *sys.argv[1:]]),
         "machine": info,
         "load_average_after": os.getloadavg(),
         "runs": runs,
-        "baseline": {
-            "sink_cpu_us_per_msg_5khz": sink_5k,
-            "direct_bag_write_us_per_msg": round(direct, 2),
-            "recorder_over_sink_cpu_ratio_5khz": round(rec_5k / sink_5k, 2),
-            "recorder_over_direct_write_cpu_ratio_5khz": round(rec_5k / direct, 2),
+        "summary": {
+            **{f"{kind}_sent_recorded_{executor}": {f"{r['rate_hz'] // 1000}khz": f"{r['received'] if r['in_bag'] is None else r['in_bag']}/{r['sent']}"
+                                                   for r in runs if r["receiver"] == kind and r["executor"] == executor}
+               for kind in ("recorder", "sink") for executor in ("multi", "single")},
+            **{f"cpu_us_per_msg_recorder_vs_sink_{executor}": {
+                f"{rate // 1000}khz": [cpu("recorder", rate, executor), cpu("sink", rate, executor),
+                                       round(cpu("recorder", rate, executor) / cpu("sink", rate, executor), 2)]
+                for rate in (1000, 5000, 10000)} for executor in ("multi", "single")},
+            "recorder_rss_mb_30s_run": [runs[0]["rss_mb_first"], runs[0]["rss_mb_peak"], runs[0]["rss_mb_end"]],
+            "recorder_own_work_us_per_msg": round(own, 2),
         },
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result["baseline"], indent=2))
+    print(json.dumps(result["summary"], indent=2))
     print(f"wrote {args.out}")
 
 
