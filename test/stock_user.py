@@ -105,7 +105,7 @@ def graph(user: User) -> dict:
     command = user.create_publisher(JointState, user.name("hand/command"), 10)
     user.wait(lambda: command.get_subscription_count() > 0, 30.0, "the driver's command subscription")
     bad = JointState(name=["actuator_1", "actuator_2"], velocity=[math.nan, 0.0])
-    bad.header.stamp = user.get_clock().now().to_msg()
+    bad.header.stamp = poses[-1].header.stamp  # the graph's time (the driver may be its clock)
     command.publish(bad)
     reset = user.call(Trigger, user.name("hand/reset"), Trigger.Request())
     out["reset"] = [reset.success, reset.message]
@@ -130,6 +130,8 @@ def transfer(user: User) -> dict:
     trajectories: list[JointTrajectory] = []
     paths: list[Path] = []
     statuses: list[String] = []
+    results: list[String] = []
+    user.create_subscription(String, user.name("t42/plan_result"), results.append, 10)
     user.create_subscription(String, user.name("hand/status"), statuses.append,
                              QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     user.create_subscription(PoseStamped, user.name("hand/object_pose"), poses.append, 10)
@@ -144,7 +146,10 @@ def transfer(user: User) -> dict:
     goal.header.stamp = here.header.stamp
     goal.point.x, goal.point.y = here.pose.position.x + 0.004, here.pose.position.y + 0.004
     goal_pub.publish(goal)
-    user.wait(lambda: trajectories and paths, 120.0, "a JointTrajectory and a Path")
+    try:
+        user.wait(lambda: trajectories and paths, 120.0, "a JointTrajectory and a Path")
+    except TimeoutError as err:
+        raise TimeoutError(f"{err}; plan results: {[r.data for r in results]}") from None
     out["trajectory"] = {"joint_names": list(trajectories[0].joint_names), "points": len(trajectories[0].points)}
     out["path"] = {"frame_id": paths[0].header.frame_id, "poses": len(paths[0].poses)}
     # the driver executes it: its status says when the last point is applied

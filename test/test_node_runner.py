@@ -24,6 +24,7 @@ from rclpy.node import Node
 
 from t42_transfer.cli import main
 from t42_transfer.nodes.registry import NODES
+from t42_transfer.ros.launcher import node_sections
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "t42_suite.launch.py"
@@ -74,7 +75,7 @@ def test_registry_setup_py_and_launch_file_agree() -> None:
     executables = list(ast.literal_eval(suite[0].value))
     assert executables == ["mock_driver", "recorder", "transfer_server", "planner"]
     assert set(executables) <= set(scripts)
-    assert set(yaml.safe_load(SUITE.read_text())) == set(executables), "the launch file runs the suite's nodes"
+    assert node_sections(SUITE) == executables, "the launch file runs the suite's nodes"
 
 
 def test_node_list_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
@@ -135,8 +136,8 @@ def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
 # ------------------------------------------------------------------ t42 up
 def _suite_copy(tmp_path: Path, **recorder: Any) -> Path:
     config = yaml.safe_load(SUITE.read_text())
-    config["mock_driver"]["ros__parameters"]["rate_factor"] = 5.0
-    config["recorder"]["ros__parameters"].update(recorder)
+    config["/**/mock_driver"]["ros__parameters"]["rate_factor"] = 5.0
+    config["/**/recorder"]["ros__parameters"].update(recorder)
     path = tmp_path / "suite.yaml"
     path.write_text(yaml.safe_dump(config))
     return path

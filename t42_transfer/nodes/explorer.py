@@ -211,8 +211,8 @@ class Explorer(Node):
         """Stop advancing and drop a pending service call (the owner destroys the node)."""
         if self._closed:
             return
-        self._closed = True
-        self._timer.cancel()
+        self._closed = True  # the timer callback returns at once from now on (cancelling it here would race
+        # a tick the executor already took: "timer is canceled")
         if self._call is not None:
             self._call.cancel()
 

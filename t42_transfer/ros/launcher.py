@@ -2,7 +2,7 @@
 
 Each node with its own section in the params file runs as
 ``python -m t42_transfer.cli node <name> --ros-args --params-file <file>`` (plus
-``-r __ns:=<namespace>`` when one is given), in its
+:func:`namespace_args` when a namespace is given), in its
 own session (so a terminal's Ctrl-C reaches only this supervisor, which then
 stops the children in order).  Their output is forwarded line by line, prefixed
 ``[<name>]``.  On SIGINT/SIGTERM every child gets SIGINT, then SIGTERM after
@@ -42,8 +42,25 @@ class Child:
     forwarder: threading.Thread
 
 
+def namespace_args(namespace: str) -> list[str]:
+    """ROS arguments that put a node into ``namespace`` with that namespace's own ``/clock``.
+
+    Every name the nodes use is relative except ``/clock``; a suite per hand (each driver may be
+    its graph's clock) therefore also remaps ``/clock`` into its namespace, so two simulated hands
+    on one graph do not share a clock.
+    """
+    if not namespace:
+        return []
+    namespace = "/" + namespace.strip("/")
+    return ["-r", f"__ns:={namespace}", "-r", f"/clock:={namespace}/clock"]
+
+
 def node_sections(path: str | Path) -> list[str]:
-    """Names of the nodes a ROS params file has its own section for (wildcards excluded), in file order."""
+    """Names of the nodes a ROS params file has its own section for (wildcards excluded), in file order.
+
+    Write sections as ``/**/name`` to match the node under any namespace (``t42 up --namespace``);
+    a plain ``name`` section matches it only at the root namespace, as in rcl.
+    """
     try:
         doc = yaml.safe_load(Path(path).read_text())
     except OSError as err:
@@ -52,7 +69,14 @@ def node_sections(path: str | Path) -> list[str]:
         raise ValueError(f"params file {path}: not valid YAML ({str(err).splitlines()[0]})") from None
     if not isinstance(doc, dict):
         raise ValueError(f"params file {path}: expected a mapping of node names")
-    return [str(key).lstrip("/") for key in doc if key not in WILDCARDS]
+    names: list[str] = []
+    for key in doc:
+        if key in WILDCARDS:
+            continue
+        name = str(key).rsplit("/", 1)[-1]  # "/**/recorder", "/left/recorder" and "recorder" name the recorder
+        if name not in names:
+            names.append(name)
+    return names
 
 
 def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:
@@ -118,8 +142,7 @@ class Supervisor:
         """Start node ``name`` with its section of the params file (and ``-p`` ``overrides``, ``key:=value``)."""
         cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name, "--ros-args",
                "--params-file", str(self.config)]
-        if self.namespace:
-            cmd += ["-r", f"__ns:={self.namespace}"]
+        cmd += namespace_args(self.namespace)
         for override in overrides:
             cmd += ["-p", override]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
