@@ -3,7 +3,7 @@
 The two hosts are network namespaces made by the test (``ip netns``, as root) and
 joined by a veth pair whose /30 addresses exist only between them; each namespace
 has nothing else but its loopback, so no traffic can reach any other address.  Discovery
-is SUBNET (ROS's default range) on both sides.  A plain rclpy script on the second
+is SUBNET (ROS's default range) on both sides, and data goes over UDP only.  A plain rclpy script on the second
 host drives the story: it sees all four nodes, sets parameters, reads /rosout and the
 hand state, resets the hand, then (after the explorer on the first host recorded its
 episodes) calls the transfer and sends a goal whose trajectory the driver executes.
@@ -24,8 +24,6 @@ import pytest
 from test_stock_graph import STOCK_USER, T42, source_model, suite_file  # noqa: F401  (source_model: fixture)
 
 from ros_rig import REPO
-
-pytestmark = pytest.mark.slow
 
 ADDRESSES = ("10.242.77.1/30", "10.242.77.2/30")
 
@@ -77,12 +75,16 @@ def two_hosts(ros_domain: int) -> Iterator[tuple[str, str]]:
 
 
 def _env() -> dict[str, str]:
-    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", PYTHONUNBUFFERED="1")
+    # UDP only: Fast DDS would otherwise move data between the "hosts" through shared memory (/dev/shm is
+    # common to both namespaces); this way every byte crosses the veth link, as between two machines.
+    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", FASTDDS_BUILTIN_TRANSPORTS="UDPv4",
+                PYTHONUNBUFFERED="1")
 
 
 def _on(host: str, cmd: list[str], log: Path) -> subprocess.Popen:
-    return subprocess.Popen(["ip", "netns", "exec", host, *cmd], cwd=REPO, env=_env(),
-                            stdout=log.open("w"), stderr=subprocess.STDOUT)
+    with log.open("w") as out:
+        return subprocess.Popen(["ip", "netns", "exec", host, *cmd], cwd=REPO, env=_env(), stdout=out,
+                                stderr=subprocess.STDOUT)
 
 
 def _stop(proc: subprocess.Popen) -> int:
