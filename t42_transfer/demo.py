@@ -1,10 +1,10 @@
-"""The README's main job: the whole transfer story on simulated hands, as separate processes over DDS.
+"""The README's main job: the whole transfer story on simulated hands, as separate ROS 2 node processes.
 
 1. **Source model**: random-action episodes of the simulated *source* hand go into
    a rosbag2 bag, and the paper's transition model is trained on it (cached in the
    output directory and reused while the demo's sizes stay the same).
-2. **The suite** starts as separate processes on a private ROS domain, through the
-   supervisor ``t42 up`` uses: the mock driver on the simulated *target* hand, the
+2. **The suite** starts as separate rclpy processes on a private ROS domain (discovery
+   kept on this machine), through the supervisor ``t42 up`` uses: the mock driver on the simulated *target* hand, the
    recorder, the transfer server and the planner.  The driver is the clock of the
    graph (``sim_time``, ``/clock``) and runs ``rate_factor`` times faster than real
    time; every other node runs with ``use_sim_time``.
@@ -39,26 +39,13 @@ from typing import Any
 import numpy as np
 import yaml
 
-from msg_adapters import (
-    APPLIED_ACTION_TOPIC,
-    JOINT_STATE,
-    OBJECT_POSE_TOPIC,
-    POSE_STAMPED,
-    goal_msg,
-    object_xy_mm,
-    path_xy_mm,
-    status_report,
-    stamp_to_ns,
-)
+from msg_adapters import RCLPY, goal_msg, object_xy_mm, path_xy_mm, stamp_to_ns, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.nodes.recorder import END_EVENTS
 
-STRING = "std_msgs/msg/String"
-TRIGGER = "std_srvs/srv/Trigger"
-PATH = "nav_msgs/msg/Path"
-DIAGNOSTICS = "diagnostic_msgs/msg/DiagnosticArray"
 SUITE_NODES = ("mock_driver", "recorder", "transfer_server", "planner")
 TRANSFER_STATUS = "t42_transfer: transfer"
+SERVICES = ("hand/reset", "t42/transfer", "recorder/start", "recorder/stop")
 
 
 @dataclass(frozen=True)
@@ -74,7 +61,7 @@ class DemoSize:
     planner_samples: int
     rate_factor: float
     transfer: dict[str, Any] = field(default_factory=dict)
-    """Overrides of the transfer server's TransferConfig (nested, as its ``config`` parameter)."""
+    """Overrides of the transfer server's TransferConfig (nested; written to the YAML file its ``config`` names)."""
 
 
 FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
@@ -134,101 +121,106 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
 
 # --------------------------------------------------------------------------- 2. the suite
 def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
-    """The params file of the suite (and the explorer) for this run."""
+    """The params file of the suite (and the explorer) for this run; method settings go to their own file."""
+    methods = run_dir / "transfer_methods.yaml"
+    methods.write_text(yaml.safe_dump(size.transfer, sort_keys=False))
+
     def node(**params: Any) -> dict[str, Any]:
         return {"ros__parameters": params}
 
-    return {
+    sections = {
         # Stamps are in simulated time, which runs rate_factor times faster: allow the same wall-time lag.
         "mock_driver": node(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
                             max_command_age_s=0.5 * size.rate_factor),
         "recorder": node(out_dir=str(run_dir / "bags"), mode="episode", start_immediately=False, use_sim_time=True),
         "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
                                 bag_dir=str(run_dir / "bags"), method="cumulative_residual",
-                                config=size.transfer, use_sim_time=True),
+                                config=str(methods), use_sim_time=True),
         "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
         "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,
-                         rate_factor=size.rate_factor, record_start_service="/recorder/start",
-                         record_stop_service="/recorder/stop", use_sim_time=True),
+                         rate_factor=size.rate_factor, record_start_service="recorder/start",
+                         record_stop_service="recorder/stop", use_sim_time=True),
     }
+    return {f"/**/{name}": section for name, section in sections.items()}
 
 
-class Operator:
-    """The demo's own node: watches the hand and the suite's outputs, calls services, sends goals."""
+def _operator_class() -> type:
+    """The demo's own rclpy node class (imported late: ``t42 demo --help`` needs no ROS)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PointStamped, PoseStamped
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
 
-    def __init__(self, transport: Any) -> None:
-        self.t = transport
-        self.lock = threading.Lock()
-        self.poses: list[tuple[int, np.ndarray]] = []
-        self.applied = 0
-        self.statuses: list[str] = []
-        self.results: list[dict[str, Any]] = []
-        self.paths: list[np.ndarray] = []
-        self.diagnostic: dict[str, str] = {}
-        transport.subscribe(OBJECT_POSE_TOPIC, POSE_STAMPED, _qos().DEFAULT, self._on_pose)
-        transport.subscribe(APPLIED_ACTION_TOPIC, JOINT_STATE, _qos().DEFAULT, self._on_applied, raw=True)
-        transport.subscribe("/hand/status", STRING, _qos().TRANSIENT_LOCAL, lambda m: self.statuses.append(m.data))
-        transport.subscribe("/t42/plan_result", STRING, _qos().DEFAULT, lambda m: self.results.append(json.loads(m.data)))
-        transport.subscribe("/t42/planned_path", PATH, _qos().DEFAULT, lambda m: self.paths.append(path_xy_mm(m)))
-        transport.subscribe("/diagnostics", DIAGNOSTICS, _qos().DEFAULT, self._on_diagnostics)
-        self.goal_pub = transport.publisher("/t42/goal", "geometry_msgs/msg/PointStamped")
-        self.clients = {name: transport.client(name, TRIGGER)
-                        for name in ("/hand/reset", "/t42/transfer", "/recorder/start", "/recorder/stop")}
+    from t42_transfer.ros.qos import LATCHED
 
-    def _on_pose(self, msg: Any) -> None:
-        self.poses.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
-        del self.poses[:-2000]
+    class Operator(Node):
+        """Watches the hand and the suite's outputs, calls services, sends goals; spun by a background executor."""
 
-    def _on_applied(self, data: Any) -> None:
-        self.applied += 1
+        def __init__(self, **node_kwargs: Any) -> None:
+            super().__init__("t42_demo", parameter_overrides=[Parameter("use_sim_time", value=True)], **node_kwargs)
+            self.poses: list[tuple[int, np.ndarray]] = []
+            self.applied = 0
+            self.statuses: list[str] = []
+            self.results: list[dict[str, Any]] = []
+            self.paths: list[np.ndarray] = []
+            self.diagnostic: dict[str, str] = {}
+            self.create_subscription(PoseStamped, "hand/object_pose", self._on_pose, 100)
+            self.create_subscription(JointState, "hand/applied_action", self._on_applied, 100, raw=True)
+            self.create_subscription(String, "hand/status", lambda m: self.statuses.append(m.data), LATCHED)
+            self.create_subscription(String, "t42/plan_result", lambda m: self.results.append(json.loads(m.data)), 10)
+            self.create_subscription(PathMsg, "t42/planned_path", lambda m: self.paths.append(path_xy_mm(m)), 10)
+            self.create_subscription(DiagnosticArray, "diagnostics", self._on_diagnostics, 10)
+            self.goal_pub = self.create_publisher(PointStamped, "t42/goal", 10)
+            self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}
 
-    def _on_diagnostics(self, msg: Any) -> None:
-        try:
-            report = status_report(msg, TRANSFER_STATUS)
-        except KeyError:
-            return
-        self.diagnostic = {"message": report.message, **report.values}
+        def _on_pose(self, msg: Any) -> None:
+            self.poses.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
+            del self.poses[:-2000]
 
-    def spin_until(self, cond: Any, timeout_s: float, what: str, alive: Any = None) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not cond():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-            if alive is not None:
-                alive()
-            self.t.spin_once(0.05)
+        def _on_applied(self, data: bytes) -> None:
+            self.applied += 1
 
-    def call(self, service: str, timeout_s: float, alive: Any = None, progress: Any = None) -> Any:
-        """Call a Trigger service from a thread while this node keeps spinning (and showing progress)."""
-        client = self.clients[service]
-        box: dict[str, Any] = {}
-
-        def run() -> None:
+        def _on_diagnostics(self, msg: Any) -> None:
             try:
-                box["response"] = client.call(client.Request(structure_needs_at_least_one_member=0), timeout_s)
-            except Exception as err:
-                box["error"] = err
+                report = status_report(msg, TRANSFER_STATUS)
+            except KeyError:
+                return
+            self.diagnostic = {"message": report.message, **report.values}
 
-        thread = threading.Thread(target=run, daemon=True)
-        thread.start()
-        while thread.is_alive():
-            if alive is not None:
-                alive()
-            if progress is not None:
-                progress()
-            self.t.spin_once(0.1)
-        if "error" in box:
-            raise RuntimeError(f"{service}: {box['error']}")
-        return box["response"]
+        def ready(self) -> bool:
+            return all(c.service_is_ready() for c in self.trigger_clients.values())
 
-    def latest_pose(self) -> tuple[int, np.ndarray]:
-        return self.poses[-1] if self.poses else (-1, np.full(2, np.nan))
+        def wait_until(self, cond: Any, timeout_s: float, what: str, alive: Any = None, progress: Any = None) -> None:
+            """Wait (the executor thread spins) until ``cond()``; ``alive()`` raises if a node died."""
+            deadline = time.monotonic() + timeout_s
+            while not cond():
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+                if alive is not None:
+                    alive()
+                if progress is not None:
+                    progress()
+                time.sleep(0.05)
 
+        def call(self, service: str, timeout_s: float, alive: Any = None, progress: Any = None) -> Any:
+            """Call a Trigger service and wait for its answer (showing progress meanwhile)."""
+            future = self.trigger_clients[service].call_async(Trigger.Request())
+            self.wait_until(future.done, timeout_s, f"the answer of {service}", alive, progress)
+            if future.exception() is not None:
+                raise RuntimeError(f"{service}: {future.exception()}")
+            return future.result()
 
-def _qos() -> Any:
-    from t42_transfer.ros import qos
+        def latest_pose(self) -> tuple[int, np.ndarray]:
+            return self.poses[-1] if self.poses else (-1, np.full(2, np.nan))
 
-    return qos
+        def now_ns(self) -> int:
+            return self.get_clock().now().nanoseconds
+
+    return Operator
 
 
 class _Suite:
@@ -292,11 +284,11 @@ def _grasp_seed(message: str) -> int:
     return int(match.group(1))
 
 
-def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any) -> GoalRun:
+def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any) -> GoalRun:
     from t42_transfer.hand.sim import SimulatedHand
     from t42_transfer.planning.peg_in_hole import reachable_goal
 
-    response = op.call("/hand/reset", 30.0, suite.check)
+    response = op.call("hand/reset", 30.0, suite.check)
     if not response.success:
         raise RuntimeError(f"reset failed: {response.message}")
     seed = _grasp_seed(response.message)
@@ -313,13 +305,13 @@ def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any
         stamp, xy = op.latest_pose()
         return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
 
-    op.spin_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
+    op.wait_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
     start = op.latest_pose()[1]
     results = len(op.results)
     paths = len(op.paths)
     sent = time.perf_counter()
-    op.goal_pub.publish(goal_msg(goal.position, op.t.now_ns()))
-    op.spin_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
+    op.goal_pub.publish(goal_msg(goal.position, op.now_ns(), RCLPY))
+    op.wait_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
     answered_s = time.perf_counter() - sent
     result = op.results[results]
     run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
@@ -328,13 +320,15 @@ def run_goal(op: Operator, suite: _Suite, steps: int, index: int, workspace: Any
     if not run.accepted:
         run.end = "not executed"
         return run
-    op.spin_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
+    op.wait_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
     run.planned = op.paths[paths].tolist()
     plan_stamp = op.latest_pose()[0]
     statuses = len(op.statuses)
     settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
-    op.spin_until(lambda: op.latest_pose()[0] >= settle or len(op.statuses) > statuses, 120.0,
-                  "the plan's execution", suite.check)
+    def ended() -> bool:  # the episode ended (a drop...): trajectory_done is not an end
+        return any(s.split(":")[0] in END_EVENTS for s in op.statuses[statuses:])
+
+    op.wait_until(lambda: op.latest_pose()[0] >= settle or ended(), 120.0, "the plan's execution", suite.check)
     run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
     run.final_mm = op.latest_pose()[1].tolist()
     run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
@@ -394,7 +388,8 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
     lines = [
         "# t42 demo",
         "",
-        f"Run {run_dir.name}: {summary['mode']}; suite over {summary['transport']} on ROS domain {summary['domain']}.",
+        f"Run {run_dir.name}: {summary['mode']}; suite of rclpy nodes over {summary['middleware']} on ROS domain "
+        f"{summary['domain']} (discovery {summary['discovery']}).",
         "",
         "## Data and transfer",
         "",
@@ -422,7 +417,10 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
     """Run the whole story (see the module docstring); 0 when every step completed."""
     from t42_transfer.models.checkpoint import read_metadata
     from t42_transfer.planning.workspace import Workspace
-    from t42_transfer.ros.cyclone import CycloneTransport
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+
+    from t42_transfer.ros.runner import keep_discovery_local
 
     size = QUICK if quick else FULL
     out = Path(out).resolve()
@@ -430,83 +428,90 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
     run_dir = out / time.strftime("%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=False, exist_ok=False)
     started = time.perf_counter()
-    _say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand over DDS -> {run_dir}")
+    _say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand over ROS 2 -> {run_dir}")
     model = source_model(out, size, workers)
     workspace = Workspace.from_dict(read_metadata(model)["extra"]["workspace"])
 
     params_file = run_dir / "suite.yaml"
     params_file.write_text(yaml.safe_dump(suite_params(run_dir, model, size), sort_keys=False))
-    domain = int(os.environ.get("T42_DEMO_DOMAIN", random.randint(100, 230)))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), T42_TRANSPORT="cyclone", PYTHONUNBUFFERED="1")
-    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    domain = int(os.environ.get("T42_DEMO_DOMAIN") or os.environ.get("ROS_DOMAIN_ID") or random.randint(100, 230))
+    discovery = keep_discovery_local()
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
     suite = _Suite(run_dir, params_file, env)
     summary: dict[str, Any] = {"mode": "quick" if quick else "full", "size": asdict(size), "domain": domain,
-                               "transport": "Cyclone DDS", "source_model": str(model), "suite": str(params_file)}
+                               "discovery": discovery, "middleware": "",
+                               "source_model": str(model), "suite": str(params_file)}
     runs: list[GoalRun] = []
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    executor = MultiThreadedExecutor(context=context)
+    spinner = threading.Thread(target=executor.spin, daemon=True)
     try:
+        summary["middleware"] = rclpy.get_rmw_implementation_identifier()
         for name in SUITE_NODES:
             suite.supervisor.start(name)
-        with CycloneTransport("t42_demo", domain_id=domain) as transport:
-            transport.use_sim_time()
-            op = Operator(transport)
-            ready = lambda: all(c.service_is_ready() for c in op.clients.values())  # noqa: E731
-            op.spin_until(ready, 120.0, "the suite's services", suite.check)
-            _say(f"[2/5] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain {domain} "
-                 f"({time.perf_counter() - started:.0f} s); logs in {suite.log_path}")
+        op = _operator_class()(context=context)
+        executor.add_node(op)
+        spinner.start()
+        op.wait_until(op.ready, 120.0, "the suite's services", suite.check)
+        _say(f"[2/5] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain {domain} "
+             f"({time.perf_counter() - started:.0f} s); logs in {suite.log_path}")
 
-            explorer = suite.supervisor.start("explorer")
-            suite.may_end.add("explorer")
-            t0, shown = time.perf_counter(), -1
+        explorer = suite.supervisor.start("explorer")
+        suite.may_end.add("explorer")
+        t0, shown = time.perf_counter(), -1
 
-            def explored() -> bool:
-                nonlocal shown
-                episodes = sum(s.startswith("reset") for s in op.statuses) - 1
-                if episodes != shown and episodes >= 1:
-                    shown = episodes
-                    _say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")
-                return explorer.proc.poll() is not None
+        def explored() -> bool:
+            nonlocal shown
+            episodes = sum(s.startswith("reset") for s in op.statuses) - 1
+            if episodes != shown and episodes >= 1:
+                shown = episodes
+                _say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")
+            return explorer.proc.poll() is not None
 
-            op.spin_until(explored, 60.0 + size.target_episodes * size.target_steps * 0.1 / size.rate_factor * 5,
-                          "the explorer", suite.check)
-            if explorer.proc.returncode != 0:
-                raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
-            bags = sorted(p for p in (run_dir / "bags").glob("episode_*") if (p / "metadata.yaml").is_file())
-            summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
-            _say(f"[3/5] target data: {len(bags)} episode bags recorded through topics "
-                 f"({time.perf_counter() - t0:.0f} s) in {run_dir / 'bags'}")
+        op.wait_until(explored, 60.0 + size.target_episodes * size.target_steps * 0.1 / size.rate_factor * 5,
+                      "the explorer", suite.check)
+        if explorer.proc.returncode != 0:
+            raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
+        bags = sorted(p for p in (run_dir / "bags").glob("episode_*") if (p / "metadata.yaml").is_file())
+        summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
+        _say(f"[3/5] target data: {len(bags)} episode bags recorded through topics "
+             f"({time.perf_counter() - t0:.0f} s) in {run_dir / 'bags'}")
 
-            t0, last = time.perf_counter(), [""]
+        t0, last = time.perf_counter(), [""]
 
-            def progress() -> None:
-                d = op.diagnostic
-                line = f"      transfer: {d.get('stage', 'starting')}"
-                if "epoch" in d:
-                    line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
-                if line != last[0]:
-                    last[0] = line
-                    _say(line)
+        def progress() -> None:
+            d = op.diagnostic
+            line = f"      transfer: {d.get('stage', 'starting')}"
+            if "epoch" in d:
+                line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
+            if line != last[0]:
+                last[0] = line
+                _say(line)
 
-            response = op.call("/t42/transfer", 1800.0, suite.check, progress)
-            summary["transfer"] = {"success": bool(response.success), "message": response.message,
-                                   "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
-            _say(f"[4/5] /t42/transfer ({time.perf_counter() - t0:.0f} s): {response.message}")
-            if not response.success:
-                raise RuntimeError(f"the transfer failed: {response.message}")
+        response = op.call("t42/transfer", 1800.0, suite.check, progress)
+        summary["transfer"] = {"success": bool(response.success), "message": response.message,
+                               "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
+        _say(f"[4/5] /t42/transfer ({time.perf_counter() - t0:.0f} s): {response.message}")
+        if not response.success:
+            raise RuntimeError(f"the transfer failed: {response.message}")
 
-            for index, steps in enumerate(size.goal_steps):
-                run = run_goal(op, suite, steps, index, workspace)
-                runs.append(run)
-                verdict = ("hit" if run.success else "miss") if run.accepted else f"refused: {run.reason}"
-                error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
-                _say(f"      goal {index + 1}/{len(size.goal_steps)} ({steps} steps, {run.start_distance_mm:.1f} mm "
-                     f"away):{error} -> {verdict}")
+        for index, steps in enumerate(size.goal_steps):
+            run = run_goal(op, suite, steps, index, workspace)
+            runs.append(run)
+            verdict = ("hit" if run.success else "miss") if run.accepted else f"refused: {run.reason}"
+            error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
+            _say(f"      goal {index + 1}/{len(size.goal_steps)} ({steps} steps, {run.start_distance_mm:.1f} mm "
+                 f"away):{error} -> {verdict}")
     except (RuntimeError, TimeoutError) as err:
         _say(f"FAILED: {err}")
+        _shutdown(executor, context)
         codes = suite.stop()
         summary["exit_codes"] = codes
         (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
         _tail(suite.log_path)
         return 1
+    _shutdown(executor, context)
     codes = suite.stop()
     summary["exit_codes"] = codes
     summary["goals"] = [asdict(r) for r in runs]
@@ -523,6 +528,16 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
         _say(f"FAILED: nodes did not stop cleanly: {unclean}; see {suite.log_path}")
         return 1
     return 0
+
+
+def _shutdown(executor: Any, context: Any) -> None:
+    import rclpy
+
+    executor.shutdown(timeout_sec=5.0)
+    for node in executor.get_nodes():
+        node.destroy_node()
+    if context.ok():
+        rclpy.shutdown(context=context)
 
 
 def _tail(path: Path, lines: int = 25) -> None:

@@ -1,4 +1,4 @@
-"""End to end: `t42 demo --quick`, the README's main command, as separate processes over DDS.
+"""End to end: `t42 demo --quick`, the README's main command, as separate rclpy node processes.
 
 Checks what a user would: the transfer service answered with a model, a model file
 appeared and was announced, the planner published valid sequences that the driver
@@ -18,7 +18,7 @@ from t42_transfer.data.bag_io import read_bag
 from t42_transfer.models.checkpoint import load_model
 
 
-def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int) -> None:
     assert main(["demo", "--quick", "--out", str(tmp_path), "--workers", "1"]) == 0, capsys.readouterr()
     out = capsys.readouterr().out
     (run_dir,) = [p for p in tmp_path.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
@@ -50,5 +50,8 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
         assert goal["error_mm"] < start_error, goal
     assert all(code == 0 for name, code in summary["exit_codes"].items()), summary["exit_codes"]
     assert (run_dir / "paths.png").stat().st_size > 10_000
-    assert "## Peg-in-hole" in (run_dir / "report.md").read_text()
+    report = (run_dir / "report.md").read_text()
+    assert "## Peg-in-hole" in report
+    assert summary["middleware"] == "rmw_fastrtps_cpp" and "rmw_fastrtps_cpp" in report  # what it actually used
+    assert summary["discovery"] == "LOCALHOST"
     assert "[5/5] peg-in-hole" in out and "report:" in out
