@@ -1,4 +1,4 @@
-"""Issue-level integration over DDS: driver, explorer and recorder as separate `t42 node` processes.
+"""Integration over rclpy: driver, explorer and recorder as separate `t42 node` processes.
 
 The driver runs ten times faster than real time as the graph's clock (sim_time);
 the other nodes use_sim_time.  The recorded episodes must be exactly what the simulated hand did: replaying a
@@ -9,7 +9,6 @@ states bit for bit (float32 on the wire).
 from __future__ import annotations
 
 import os
-import random
 import re
 import signal
 import subprocess
@@ -26,29 +25,23 @@ REPO = Path(__file__).resolve().parents[1]
 T42 = [sys.executable, "-m", "t42_transfer.cli", "node"]
 
 
-def _env(domain: int) -> dict[str, str]:
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), T42_TRANSPORT="cyclone", PYTHONUNBUFFERED="1")
-    env.pop("ROS_AUTOMATIC_DISCOVERY_RANGE", None)
-    return env
-
-
-def _start(args: list[str], domain: int, log: Path) -> subprocess.Popen[bytes]:
+def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
+    """A node process on the test's domain (the ``ros_domain`` fixture set it in the environment)."""
     with log.open("wb") as out:
-        return subprocess.Popen([*T42, *args], cwd=REPO, env=_env(domain), stdout=out, stderr=subprocess.STDOUT)
+        return subprocess.Popen([*T42, *args], cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=out,
+                                stderr=subprocess.STDOUT)
 
 
-def test_driver_explorer_and_recorder_processes_record_what_the_hand_simulated(tmp_path: Path) -> None:
-    domain = random.randint(1, 200)
+def test_driver_explorer_and_recorder_processes_record_what_the_hand_simulated(tmp_path: Path, ros_domain: int) -> None:
     out_dir = tmp_path / "bags"
     logs = {name: tmp_path / f"{name}.log" for name in ("driver", "recorder", "explorer")}
     driver = _start(["mock_driver", "--ros-args", "-p", "rate_factor:=10.0", "-p", "seed:=5", "-p", "sim_time:=true",
-                     "-p", "max_command_age_s:=5.0"], domain, logs["driver"])
+                     "-p", "max_command_age_s:=5.0"], logs["driver"])
     recorder = _start(["recorder", "--ros-args", "-p", f"out_dir:={out_dir}", "-p", "mode:=episode",
-                       "-p", "use_sim_time:=true"], domain,
-                      logs["recorder"])
+                       "-p", "use_sim_time:=true"], logs["recorder"])
     try:
         explorer = _start(["explorer", "--ros-args", "-p", "episodes:=2", "-p", "steps:=40", "-p", "seed:=11",
-                           "-p", "rate_factor:=10.0", "-p", "use_sim_time:=true"], domain, logs["explorer"])
+                           "-p", "rate_factor:=10.0", "-p", "use_sim_time:=true"], logs["explorer"])
         code = explorer.wait(timeout=120)
         time.sleep(0.5)  # the last messages reach the recorder
     finally:
