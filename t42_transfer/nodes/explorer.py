@@ -181,6 +181,8 @@ class Explorer(Node):
         self._reset_ns = 0
         self._angles: np.ndarray | None = None
         self._angles_ns = -1
+        self._applied_ns = -1
+        """Stamp of the latest applied action heard in any phase: proof the driver's writer reaches us."""
         self._actions = np.zeros((0, 2))
         self._applied = 0
         self._mismatched = 0
@@ -233,6 +235,7 @@ class Explorer(Node):
             self._angles, self._angles_ns = angles, stamp
 
     def _on_applied(self, msg: JointState) -> None:
+        self._applied_ns = max(self._applied_ns, stamp_to_ns(msg.header.stamp))
         if self._phase != "running":
             return
         try:
@@ -283,7 +286,10 @@ class Explorer(Node):
                 self._call, self._phase = None, "grasped"
         elif self._phase == "grasped":
             settled = self._angles is not None and self._angles_ns > self._reset_ns
-            if settled and self._matched():
+            # An applied action heard since the reset: the driver's writer has matched our reader too
+            # (discovery matches each side on its own), so none of the episode's actions can be missed.
+            heard = self._applied_ns > self._reset_ns
+            if settled and heard and self._matched():
                 self._send_trajectory()
         elif self._phase == "running":
             self._check_episode_end()
