@@ -77,13 +77,18 @@ class Hand:
 
     def step(self, stamp: int, xy: Any = (1.0, 2.0), loads: Any = (3.0, 4.0), angles: Any = None,
              action: Any = (0.5, -0.5), topics: tuple[str, ...] = (POSE, JOINTS, ACTION)) -> None:
-        """Publish the messages of the step stamped ``stamp`` (``action=None``: none), each received before the next."""
+        """Publish the messages of the step stamped ``stamp`` (``action=None``: none) at once, as a driver does.
+
+        Returns once the recorder handled them (in whatever order its queues gave them).
+        """
         msgs = {POSE: object_pose_msg(xy, stamp), JOINTS: joint_state_msg(loads, angles, stamp)}
         if action is not None:
             msgs[ACTION] = applied_action_msg(action, stamp)
-        for topic in topics:
-            if topic in msgs:
-                self.publish(topic, cdr(topic, msgs[topic]))
+        sent = [t for t in topics if t in msgs]
+        before = self.recorder.received
+        for topic in sent:
+            self.publish(topic, cdr(topic, msgs[topic]), wait=False)
+        assert self.ros.spin_until(lambda: self.recorder.received >= before + len(sent), 10.0), f"{sent} never arrived"
 
     def episode(self, start_ns: int, steps: int, seed: int = 0, last_state: bool = True) -> dict[str, np.ndarray]:
         """Publish ``steps`` transitions (and the final state if ``last_state``); the arrays read_bag should give."""
@@ -270,8 +275,15 @@ def test_step_buffer_releases_whole_steps_in_stamp_order() -> None:
     assert buf.add("j", 10, 0, b"again", 0.3) == ([], True)  # its step was released: too late
     assert buf.add("j", 20, 0, b"j20", 0.4) == ([], False)  # step 20 waits for an action
     assert buf.release(0.9) == []
-    (final,) = buf.release(1.0)  # held hold_s (from its first message): released without one
+    (final,) = buf.release(1.0)  # held hold_s (from its first message), and quiet: released without one
     assert final.stamp == 20 and final.topics == {"p", "j"}
+    buf.add("p", 25, 0, b"p25", 1.0)
+    buf.add("j", 25, 0, b"j25", 1.0)
+    for k in range(1, 30):  # messages keep coming (a backlog, or a topic gone silent): step 25 waits ...
+        assert buf.add("p", 25 + k, 0, b"p", 1.0 + k / 10) == ([], False)
+    released, _ = buf.add("p", 55, 0, b"p", 5.0)  # ... 4 hold_s at most
+    assert [s.stamp for s in released] == [25] and buf.oldest_pending == 26
+    buf = StepBuffer(["p", "j", "a"], hold_s=1.0)
     buf.add("a", 30, 0, b"a30", 1.1)  # the state of step 30 is lost ...
     assert buf.add("p", 40, 0, b"p40", 1.1) == ([], False)
     released, _ = buf.add("j", 40, 0, b"j40", 1.1)  # ... which the later messages of both state topics prove

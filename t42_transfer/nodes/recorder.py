@@ -29,7 +29,9 @@ topic has either delivered its message for the stamp or already delivered a
 later one (one publisher per topic delivers in order, so nothing more will come
 for it); a step still incomplete ``params.step_hold_s`` after its first message
 (an episode's final state waits for an action that never comes) is written as it
-is.  A message for a stamp already written arrives too late and is dropped with a
+is once no message has arrived for ``step_hold_s / 2`` (while messages keep
+coming, a backlog is being worked through and the rest of the step may be in it),
+and after ``HOLD_CAP * step_hold_s`` in any case (a topic that went silent).  A message for a stamp already written arrives too late and is dropped with a
 warning.  Bag changes happen between steps:
 
 * start, stop, split: after the step in progress (the newest stamp received): the
@@ -115,6 +117,8 @@ SPLIT_EVENTS = ("reset", "dropped", "lost_contact", "overload")
 END_EVENTS = ("dropped", "lost_contact", "overload")
 """Split words sent after an episode's final state (the others precede the next episode's first)."""
 
+HOLD_CAP = 4
+"""A step waits at most this many ``step_hold_s`` for the rest of its messages, however busy the topics are."""
 CLOCK_RESTART_NS = 1_000_000_000
 """A stamp this much older than the newest written step means the publisher's clock restarted."""
 
@@ -202,6 +206,8 @@ class StepBuffer:
         self._latest: dict[str, int] = {}
         """Newest stamp delivered per topic."""
         self._pending: dict[int, Step] = {}
+        self._last_add_s = -math.inf
+        """Steady time of the latest message."""
         self.released_stamp: int | None = None
         """Stamp of the newest step released."""
 
@@ -228,16 +234,18 @@ class StepBuffer:
             step = self._pending[stamp] = Step(stamp, now_s)
         step.messages.append((topic, log_ns, data))
         self._latest[topic] = max(stamp, self._latest.get(topic, stamp))
+        self._last_add_s = now_s
         return released + self.release(now_s), False
 
     def _complete(self, step: Step, now_s: float) -> bool:
-        if now_s - step.first_seen_s >= self.hold_s:
+        age = now_s - step.first_seen_s
+        if age >= self.hold_s and (now_s - self._last_add_s >= self.hold_s / 2 or age >= HOLD_CAP * self.hold_s):
             return True
         have = step.topics
         return all(t in have or self._latest.get(t, step.stamp) > step.stamp for t in self.topics)
 
     def release(self, now_s: float) -> list[Step]:
-        """Steps that are complete (or held ``hold_s``), oldest first, up to the first that is not."""
+        """Steps that are complete (or held long enough), oldest first, up to the first that is not."""
         out = []
         while self._pending:
             oldest = min(self._pending)
