@@ -126,11 +126,14 @@ def role_receiver(kind: str, out_dir: str, stop_file: str, executor_kind: str) -
 
     from msg_adapters import rclpy_class
     from t42_transfer.ros.qos import recording
+    from t42_transfer.ros.runner import EXECUTOR_THREADS
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    # multi: as t42_transfer.ros.runner spins every node
-    executor = (MultiThreadedExecutor if executor_kind == "multi" else SingleThreadedExecutor)(context=context)
+    if executor_kind == "multi":  # as t42_transfer.ros.runner spins every node
+        executor: Any = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
+    else:
+        executor = SingleThreadedExecutor(context=context)
     counted = [0]
     if kind == "recorder":
         from t42_transfer.nodes.recorder import Recorder
