@@ -29,6 +29,7 @@ from msg_adapters.hand import (
 )
 from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
+from msg_adapters.status import last_step_stamp, status_event, status_message
 
 __all__ = [
     "DIAGNOSTIC_ARRAY",
@@ -60,6 +61,9 @@ __all__ = [
     "MessageKit",
     "byte_value",
     "rclpy_class",
+    "last_step_stamp",
+    "status_event",
+    "status_message",
     "PATH",
     "POINT_STAMPED",
     "goal_msg",

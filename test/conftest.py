@@ -120,11 +120,16 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
 
 
 @pytest.fixture
-def ros(ros_domain: int) -> Iterator["RosRig"]:
-    """rclpy in this process on the test's own domain: add nodes, spin until a condition; all torn down after."""
+def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator["RosRig"]:
+    """rclpy in this process on the test's own domain: add nodes, spin until a condition; all torn down after.
+
+    One executor thread, as ``t42 node`` gives most nodes; ``@pytest.mark.executor_threads(n)`` asks for
+    a MultiThreadedExecutor (as the transfer server's process has).
+    """
     from ros_rig import RosRig
 
-    rig = RosRig(ros_domain)
+    marker = request.node.get_closest_marker("executor_threads")
+    rig = RosRig(ros_domain, threads=marker.args[0] if marker else 1)
     try:
         yield rig
     finally:

@@ -10,21 +10,23 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rclpy
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from t42_transfer.ros.runner import EXECUTOR_THREADS
 
 N = TypeVar("N", bound=Node)
 REPO = Path(__file__).resolve().parents[1]
 
 
 class RosRig:
-    def __init__(self, domain_id: int) -> None:
+    """``threads > 1``: a MultiThreadedExecutor, for nodes with callbacks that run beside each other."""
+
+    def __init__(self, domain_id: int, threads: int = 1) -> None:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=self.context)
+        self.executor = (SingleThreadedExecutor(context=self.context) if threads <= 1
+                         else MultiThreadedExecutor(num_threads=threads, context=self.context))
         self.nodes: list[Node] = []
 
     def add(self, node_cls: Callable[..., N], params: dict[str, Any] | None = None, **kwargs: Any) -> N:

@@ -27,6 +27,7 @@ from msg_adapters import (
     object_pose_msg,
     rclpy_class,
     stamp_to_ns,
+    status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag_io import RECORD_QOS, read_bag
@@ -379,6 +380,36 @@ def test_episode_mode_splits_on_status(ros: Any, tmp_path: Path) -> None:
         data = read_bag(tmp_path / name)
         assert len(data) == 1
         check_episode(data.trajectories[0], expected, t)
+
+
+def test_a_status_naming_its_last_step_splits_there_even_when_it_arrives_late(ros: Any, tmp_path: Path) -> None:
+    """Topics are not ordered against each other: the driver's reset status may reach the recorder after
+    the new episode's first steps. Its ``[last step ...]`` puts the border where it belongs, and two
+    resets in quick succession (short episodes) make two borders, not one."""
+    rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=2.0)  # steps wait 1 s for a late status
+    hand = Hand(ros, rec)
+    t0 = now_ns()
+    first = hand.episode(t0, 16, seed=1, last_state=False)
+    second_start = t0 + 16 * CONTROL_PERIOD_NS
+    second = hand.episode(second_start, 16, seed=2, last_state=False)
+    third_start = second_start + 16 * CONTROL_PERIOD_NS
+    hand.step(third_start, angles=(0.5, 0.5))  # the third episode began ...
+    hand.status(status_message("reset", "episode 1 grasped (seed 1)", second_start - CONTROL_PERIOD_NS))
+    hand.status(status_message("reset", "episode 2 grasped (seed 2)", third_start - CONTROL_PERIOD_NS))  # ... late
+    hand.status(status_message("reset", "episode 2 grasped (seed 2)", third_start - CONTROL_PERIOD_NS))  # same border
+    hand.episode(third_start + CONTROL_PERIOD_NS, 15, seed=3)
+    hand.settle()
+    rec.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_000", "episode_001", "episode_002"]
+    for name, expected, start in (("episode_000", first, t0), ("episode_001", second, second_start)):
+        data = read_bag(tmp_path / name)
+        assert len(data) == 1
+        traj = data.trajectories[0]  # last_state=False: each ends with its last action's state missing
+        assert traj.start_ns == start
+        np.testing.assert_array_equal(traj.states, expected["states"][:-1])
+        np.testing.assert_array_equal(traj.actions, expected["actions"][:-1])
+    assert steps_in(tmp_path / "episode_002")[0][0] == third_start  # the early step moved to its episode
+    assert len(read_bag(tmp_path / "episode_002")) == 1
 
 
 def test_recording_mode_ignores_status(ros: Any, tmp_path: Path) -> None:

@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 TINY = "cumulative_residual: {train: {epochs: 2}}\n"
 """Method settings (a config file) that train in seconds."""
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.executor_threads(4)]
 
 
 @pytest.fixture(scope="module")

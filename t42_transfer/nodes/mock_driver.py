@@ -55,12 +55,12 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from geometry_msgs.msg import PoseStamped
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
@@ -72,6 +72,7 @@ from msg_adapters import (
     ns_to_stamp,
     object_pose_msg,
     stamp_to_ns,
+    status_message,
 )
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
@@ -190,11 +191,6 @@ def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], no
     return check_actions(actions.reshape(-1, ACTION_DIM), "trajectory action")
 
 
-def status_message(event: str, detail: str = "") -> str:
-    """Text of a ``hand/status`` message: the event word first (``dropped``, ``overload``, ``reset``...)."""
-    return f"{event}: {detail}" if detail else event
-
-
 # --------------------------------------------------------------------------- the node
 class MockDriver(Node):
     """The simulated hand on the driver's topics; see the module docstring for behaviour."""
@@ -214,6 +210,8 @@ class MockDriver(Node):
         self._command: np.ndarray | None = None
         self._plan: list[np.ndarray] = []
         self._closed = False
+        self._last_stamp: int | None = None
+        """Stamp of the last step published (None before the first)."""
 
         self._pose_pub = self.create_publisher(PoseStamped, OBJECT_POSE_TOPIC, 10)
         self._joints_pub = self.create_publisher(JointState, JOINT_STATES_TOPIC, 10)
@@ -248,11 +246,11 @@ class MockDriver(Node):
             self.hand.reset(seed)
         except GraspFailed as err:
             self.running = False
-            self._publish_status(status_message("reset_failed", str(err)))
+            self._publish_status(status_message("reset_failed", str(err), self._last_stamp))
             return False, f"grasp failed: {err}"
         self.running, self.steps = True, 0
         message = f"episode {self.episode} grasped (seed {seed})"
-        self._publish_status(status_message("reset", message))
+        self._publish_status(status_message("reset", message, self._last_stamp))
         return True, message
 
     def now_ns(self) -> int:
@@ -327,7 +325,8 @@ class MockDriver(Node):
         if self._plan:
             action = self._plan.pop(0)
             if not self._plan:
-                self._publish_status(status_message("trajectory_done", f"episode {self.episode} step {self.steps + 1}"))
+                self._publish_status(status_message("trajectory_done", f"episode {self.episode} step {self.steps + 1}",
+                                                    self._last_stamp))
         else:
             action = self._command if self._command is not None else np.zeros(ACTION_DIM)
             self._command = None  # a single-step command is held for one step only
@@ -339,6 +338,7 @@ class MockDriver(Node):
             return
         stamp = self.now_ns()
         state = self.hand.state
+        self._last_stamp = stamp
         self._pose_pub.publish(object_pose_msg(state[:2], stamp, RCLPY))
         self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp, RCLPY))
         if self.hand.done:
@@ -346,7 +346,8 @@ class MockDriver(Node):
             self._command, self._plan = None, []
             reason = self.hand.end_reason
             self.log.warning(f"episode {self.episode} ended after {self.steps} steps: {reason}")
-            self._publish_status(status_message(reason, f"episode {self.episode} ended after {self.steps} steps"))
+            self._publish_status(status_message(reason, f"episode {self.episode} ended after {self.steps} steps",
+                                                stamp))
             return
         action = self._next_action()
         self._action_pub.publish(applied_action_msg(action, stamp, RCLPY))

@@ -91,8 +91,10 @@ from msg_adapters import (
     JOINT_STATES_TOPIC,
     OBJECT_POSE_TOPIC,
     TYPESTORE,
+    last_step_stamp,
     rclpy_class,
     stamp_to_ns,
+    status_event,
 )
 from t42_transfer.data.bag_io import RECORD_QOS, JazzyWriter
 from t42_transfer.ros.params import LiveParams, param
@@ -200,9 +202,12 @@ class StepBuffer:
     in, so the buffer is deterministic in tests.
     """
 
-    def __init__(self, topics: Iterable[str], hold_s: float) -> None:
+    def __init__(self, topics: Iterable[str], hold_s: float, min_age_s: float = 0.0) -> None:
         self.topics = tuple(topics)
         self.hold_s = hold_s
+        self.min_age_s = min_age_s
+        """A complete step still waits this long (steady time) after its first message: room for a status
+        that splits the recording before it to arrive (topics are not ordered against each other)."""
         self._latest: dict[str, int] = {}
         """Newest stamp delivered per topic."""
         self._pending: dict[int, Step] = {}
@@ -241,6 +246,8 @@ class StepBuffer:
         age = now_s - step.first_seen_s
         if age >= self.hold_s and (now_s - self._last_add_s >= self.hold_s / 2 or age >= HOLD_CAP * self.hold_s):
             return True
+        if age < self.min_age_s:
+            return False
         have = step.topics
         return all(t in have or self._latest.get(t, step.stamp) > step.stamp for t in self.topics)
 
@@ -349,7 +356,7 @@ class Recorder(Node):
                                      raw=True)
             self._types[topic] = msgtype
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
-        self._buffer = StepBuffer(self._types, p.step_hold_s)
+        self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
         self.create_subscription(String, STATUS_TOPIC, self._on_status, 10, raw=True)
         self.create_service(Trigger, START_SERVICE, partial(self._answer, self.start))
         self.create_service(Trigger, STOP_SERVICE, partial(self._answer, self.stop))
@@ -561,17 +568,23 @@ class Recorder(Node):
             except Exception as err:
                 self.log.warning(f"ignored a message on {STATUS_TOPIC}: not a {STRING} ({type(err).__name__}: {err})")
                 return
-            words = str(text).split()
-            event = words[0].rstrip(":") if words else ""
+            event = status_event(str(text))
             if event not in self.params.split_on:
                 return
             with self._lock:
-                if self._closed or not self._will_record or any(c.kind == "episode" for c in self._changes):
-                    return  # one split per episode border: a reset right after an end status adds none
-                after = self._buffer.latest_stamp
-                if event in END_EVENTS:  # the final state may still be on its way: stamped before now
-                    now = self.get_clock().now().nanoseconds
-                    after = now if after is None else max(now, after)
+                if self._closed or not self._will_record:
+                    return
+                after = last_step_stamp(str(text))  # the driver says where the border is
+                waiting = [c.after for c in self._changes if c.kind == "episode"]
+                # one split per episode border: a reset right after an end status names the same last step
+                # (a driver that names none: no second split while one waits)
+                if (after in waiting) if after is not None else waiting:
+                    return
+                if after is None:  # a driver that does not: the newest step heard (or, at an end, now)
+                    after = self._buffer.latest_stamp
+                    if event in END_EVENTS:  # the final state may still be on its way: stamped before now
+                        now = self.get_clock().now().nanoseconds
+                        after = now if after is None else max(now, after)
                 self._request("episode", after, f"status {event!r}")
         except Exception as err:  # never raise from a callback
             self.log.error(f"could not handle a message on {STATUS_TOPIC}: {err!r}")
@@ -586,6 +599,11 @@ class Recorder(Node):
         response.success, response.message = ok, message
         return response
 
+    @staticmethod
+    def _status_lag_s(p: RecorderParams) -> float:
+        """In episode mode a whole step waits half ``step_hold_s`` for a status that splits before it."""
+        return p.step_hold_s / 2 if p.mode == "episode" else 0.0
+
     def _on_params(self, old: RecorderParams, new: RecorderParams) -> None:
         # a new period counts from now (rcl keeps the old next call time otherwise)
         if new.flush_period_s != old.flush_period_s:
@@ -594,5 +612,7 @@ class Recorder(Node):
         if new.step_hold_s != old.step_hold_s:
             with self._lock:
                 self._buffer.hold_s = new.step_hold_s
+        with self._lock:
+            self._buffer.min_age_s = self._status_lag_s(new)
             self._hold_timer.timer_period_ns = round(new.step_hold_s / 2 * 1e9)
             self._hold_timer.reset()

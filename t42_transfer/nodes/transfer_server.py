@@ -26,7 +26,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 Concurrency.  Trigger is request/response and the answer is the summary, so the
 service callback returns only when the transfer is done.  The callback is in a
 :class:`~rclpy.callback_groups.ReentrantCallbackGroup`, so on a
-``MultiThreadedExecutor`` (``t42 node`` spins one) a second request runs in
+``MultiThreadedExecutor`` (``t42 node`` spins one for this node: ``executor_threads``) a second request runs in
 another executor thread while the first trains: it fails to take a non-blocking
 lock and answers ``busy`` at once.  The first callback runs the transfer in a
 worker thread and, while waiting for it, publishes the progress itself every
@@ -134,6 +134,9 @@ class TransferServerParams:
 
 class TransferServer(Node):
     """Serves transfers; see the module docstring for behaviour."""
+
+    executor_threads = 4
+    """A MultiThreadedExecutor (``t42 node`` reads this): a second call is answered while one trains."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("transfer_server", **node_kwargs)

@@ -3,9 +3,8 @@
 ``t42 node NAME [--ros-args ...]`` and the console script ``NAME`` (``ros2 run
 t42_transfer NAME``) both end here.  rclpy takes the whole argument list
 (remapping, namespaces, ``-p``, ``--params-file``, ``--log-level``,
-``use_sim_time``); the node declares its parameters.  The node spins on a
-:class:`~rclpy.executors.MultiThreadedExecutor` (nodes put callbacks that must not
-block each other in separate callback groups) until SIGINT or SIGTERM, or until a
+``use_sim_time``); the node declares its parameters.  The node spins on the
+executor :func:`make_executor` picks for it until SIGINT or SIGTERM, or until a
 node with a ``finished`` property (the explorer) is done; then the node's
 ``close()`` runs (a recorder finishes its bag) and the process exits 0.  A bad
 command line or parameter exits 2 with one ``t42: error: ...`` line.
@@ -21,9 +20,23 @@ from collections.abc import Sequence
 from types import FrameType
 
 DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
-EXECUTOR_THREADS = max(4, os.cpu_count() or 1)
-"""Threads of a node process's executor: at least 4, so a long callback in its own group (a transfer)
-never leaves a busy answer or a state update waiting for a free thread, even on one CPU."""
+
+
+def make_executor(node_cls: type, context: object) -> object:
+    """The executor a node class asks for with its ``executor_threads`` attribute (default 1).
+
+    One thread (a SingleThreadedExecutor) unless the node has a callback that must run beside
+    its others (the transfer server's long service call): rclpy's MultiThreadedExecutor spins
+    without sleeping while a mutually exclusive callback runs and another of its group is ready
+    (measured: a driver and a recorder in one such executor made 10 of 200 steps in 2 s), so it is
+    used only where it is needed, with at least as many threads as such callbacks.
+    """
+    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+
+    threads = int(getattr(node_cls, "executor_threads", 1))
+    if threads <= 1:
+        return SingleThreadedExecutor(context=context)
+    return MultiThreadedExecutor(num_threads=threads, context=context)
 
 
 def keep_discovery_local(env: dict[str, str] | os._Environ[str] | None = None) -> str:
@@ -62,7 +75,6 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
     if spec is None:
         return _error(f"unknown node {name!r}; available: {', '.join(NODES)}")
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
@@ -77,11 +89,12 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         rclpy.init(args=["t42"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as err:
         return _error(f"bad --ros-args: {err}")
-    executor = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
+    node_cls = spec.node_class()
+    executor = make_executor(node_cls, context)
     node = None
     try:
         try:
-            node = spec.node_class()(context=context)
+            node = node_cls(context=context)
         except ValueError as err:
             return _error(str(err))
         executor.add_node(node)

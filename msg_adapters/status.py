@@ -1,0 +1,37 @@
+"""``hand/status`` texts (std_msgs/String) <-> (event, detail, last step stamp).
+
+A status is human-readable: the event word first (``reset``, ``dropped``,
+``overload``, ``trajectory_done``...), then a detail, then optionally
+``[last step <ns> ns]``, the stamp of the last step the driver published before
+the event.  Topics are not ordered against each other, so a recorder that splits
+episodes on statuses needs that stamp to split exactly between two steps.
+"""
+
+from __future__ import annotations
+
+import re
+
+LAST_STEP = re.compile(r"\[last step (\d+) ns\]")
+"""How a status names the stamp of the last step before its event."""
+
+
+def status_message(event: str, detail: str = "", last_step_ns: int | None = None) -> str:
+    """Text of a ``hand/status`` message: the event word first (``dropped``, ``overload``, ``reset``...).
+
+    ``last_step_ns`` is the stamp of the last step published before the event: a recorder
+    splits episodes exactly there, whenever the status reaches it relative to the steps.
+    """
+    text = f"{event}: {detail}" if detail else event
+    return text if last_step_ns is None else f"{text} [last step {last_step_ns} ns]"
+
+
+def last_step_stamp(status: str) -> int | None:
+    """The last-step stamp a status names, if any."""
+    match = LAST_STEP.search(status)
+    return None if match is None else int(match.group(1))
+
+
+def status_event(status: str) -> str:
+    """The event word of a status (``"dropped: episode 3 ended"`` -> ``"dropped"``)."""
+    words = status.split()
+    return words[0].rstrip(":") if words else ""
