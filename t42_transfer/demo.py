@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from msg_adapters import RCLPY, goal_msg, object_xy_mm, path_xy_mm, stamp_to_ns, status_report
+from msg_adapters import RCLPY, goal_msg, object_xy_mm, path_xy_mm, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.nodes.recorder import END_EVENTS
 
@@ -325,15 +325,16 @@ def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any) -> 
     plan_stamp = op.latest_pose()[0]
     statuses = len(op.statuses)
     settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
-    def ended() -> bool:  # the episode ended (a drop...): trajectory_done is not an end
-        return any(s.split(":")[0] in END_EVENTS for s in op.statuses[statuses:])
 
-    op.wait_until(lambda: op.latest_pose()[0] >= settle or ended(), 120.0, "the plan's execution", suite.check)
+    def ends() -> list[str]:  # the episode's end events (a drop...): trajectory_done is not one
+        return [e for e in map(status_event, op.statuses[statuses:]) if e in END_EVENTS]
+
+    op.wait_until(lambda: op.latest_pose()[0] >= settle or ends(), 120.0, "the plan's execution", suite.check)
     run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
     run.final_mm = op.latest_pose()[1].tolist()
     run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
-    ended = [s for s in op.statuses[statuses:] if s.split(":")[0] in END_EVENTS]
-    run.end = ended[0].split(":")[0] if ended else "completed"
+    ended = ends()
+    run.end = ended[0] if ended else "completed"
     run.success = not ended and run.error_mm <= TOLERANCE_MM
     return run
 
@@ -463,7 +464,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
 
         def explored() -> bool:
             nonlocal shown
-            episodes = sum(s.startswith("reset") for s in op.statuses) - 1
+            episodes = sum(status_event(s) == "reset" for s in op.statuses) - 1
             if episodes != shown and episodes >= 1:
                 shown = episodes
                 _say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")

@@ -10,7 +10,6 @@ import pytest
 from t42_transfer.cli import main
 from t42_transfer.data.bag_io import read_bag
 from t42_transfer.hand.collect import collect
-from t42_transfer.models.checkpoint import load_model
 
 REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO / "bags"
