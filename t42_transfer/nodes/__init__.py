@@ -1,4 +1,5 @@
-"""ROS nodes over a :class:`~t42_transfer.ros.transport.Transport`: thin wiring of topics to plain modules.
+"""The suite's rclpy nodes: thin wiring of topics, services and parameters to plain modules.
 
-Nodes hold no science and convert messages only through :mod:`msg_adapters`.
+Nodes hold no science and convert messages only through :mod:`msg_adapters`;
+:mod:`t42_transfer.nodes.registry` lists the runnable ones.
 """
