@@ -5,57 +5,46 @@ from __future__ import annotations
 import shutil
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
 
-from msg_adapters import HAND_TOPICS, applied_action_msg, joint_state_msg, object_pose_msg
+from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
 from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag_io import bag_info, read_bag
 from t42_transfer.data.bag_repair import repair_bag
 from t42_transfer.data.errors import BagError
-from t42_transfer.nodes.recorder import Recorder, RecorderParams
-from t42_transfer.ros import qos
-from t42_transfer.ros.inprocess import FakeClock, InProcessBus, InProcessTransport
-from t42_transfer.ros.transport import serialize
 
-T0_NS = 1_000_000_000
 REPO = Path(__file__).resolve().parents[1]
 
 
-def killed_bag(tmp_path: Path, steps: int = 60, unflushed: int = 5) -> tuple[Path, dict[str, list[bytes]]]:
+def killed_bag(ros: Any, tmp_path: Path, steps: int = 60, unflushed: int = 5) -> tuple[Path, dict[str, list[bytes]]]:
     """What a recorder killed mid-bag leaves on disk, and the messages written before its last flush.
 
-    A recorder (flush every second) records ``steps + unflushed`` control steps at
-    10 Hz; the bag directory is copied while it is open: the copy is the state a
+    A recorder (its flush timer an hour away: only this helper's ``flush()`` calls
+    flush) records ``steps + unflushed`` whole control steps, flushed after every
+    10th; the bag directory is copied while it is open: the copy is the state a
     SIGKILL leaves (flushed writes are in the page cache, the open chunk nowhere).
     """
-    clock = FakeClock(T0_NS)
-    bus = InProcessBus(clock=clock)
-    node, tester = InProcessTransport(bus, "recorder"), InProcessTransport(bus, "tester")
-    recorder = Recorder(node, RecorderParams(tmp_path / "live", flush_period_s=1.0))
-    pubs = {topic: tester.publisher(topic, msgtype, qos.DEFAULT) for topic, msgtype in HAND_TOPICS.items()}
+    recorder = add_recorder(ros, tmp_path / "live", mode="recording", flush_period_s=3600.0)
+    hand = Hand(ros, recorder)
     flushed: dict[str, list[bytes]] = {topic: [] for topic in HAND_TOPICS}
-    pending: dict[str, list[bytes]] = {topic: [] for topic in HAND_TOPICS}
     rng = np.random.default_rng(0)
+    t0 = now_ns()
     for k in range(steps + unflushed):
-        stamp = T0_NS + k * CONTROL_PERIOD_NS
-        clock.advance(ns=stamp - clock())
-        for topic, msg in (
-            ("/hand/object_pose", object_pose_msg(rng.uniform(-20, 20, 2), stamp)),
-            ("/hand/joint_states", joint_state_msg(rng.uniform(-200, 200, 2), None, stamp)),
-            ("/hand/applied_action", applied_action_msg(rng.uniform(-1, 1, 2), stamp)),
-        ):
-            data = serialize(HAND_TOPICS[topic], msg)
-            pubs[topic].publish_raw(data)
-            pending[topic].append(data)
-        node.spin_once()  # messages, then the flush timer when a second has passed
-        if k and k % 10 == 0:  # the timer (due every 1 s from T0) fired: what was pending is on disk
-            for topic in flushed:
-                flushed[topic] += pending[topic]
-                pending[topic] = []
+        # returns once the recorder took the step's three messages: a whole step, written at once
+        hand.step(t0 + k * CONTROL_PERIOD_NS, rng.uniform(-20, 20, 2), rng.uniform(-200, 200, 2),
+                  action=rng.uniform(-1, 1, 2))
+        if (k + 1) % 10 == 0 and k < steps:
+            recorder.flush()
+            flushed = {topic: list(sent) for topic, sent in hand.sent.items()}
+    assert recorder.current_count == 3 * (steps + unflushed) and recorder.dropped == 0
     live = recorder.current_bag
     assert live is not None
     bag = tmp_path / live.name
@@ -64,8 +53,21 @@ def killed_bag(tmp_path: Path, steps: int = 60, unflushed: int = 5) -> tuple[Pat
     return bag, flushed
 
 
-def test_a_killed_recorders_bag_is_repaired(tmp_path: Path) -> None:
-    bag, flushed = killed_bag(tmp_path)
+def first_stamp(flushed: dict[str, list[bytes]]) -> int:
+    return stamp_to_ns(TYPESTORE.deserialize_cdr(flushed[JOINT_STATES_TOPIC][0], HAND_TOPICS[JOINT_STATES_TOPIC])
+                       .header.stamp)
+
+
+def mcap_ros_distro(mcap: Path) -> str:
+    """ros_distro of rosbag2's own metadata record in the MCAP file."""
+    with mcap.open("rb") as stream:
+        record = next(r for r in make_reader(stream).iter_metadata() if r.name == "rosbag2")
+    info = yaml.safe_load(record.metadata["serialized_metadata"])
+    return info.get("rosbag2_bagfile_information", info)["ros_distro"]
+
+
+def test_a_killed_recorders_bag_is_repaired(ros: Any, tmp_path: Path) -> None:
+    bag, flushed = killed_bag(ros, tmp_path)
     mcap = bag / f"{bag.name}.mcap"
     assert not (bag / "metadata.yaml").exists()
     with open(mcap, "ab") as stream:  # killed in the middle of writing a chunk
@@ -92,14 +94,15 @@ def test_a_killed_recorders_bag_is_repaired(tmp_path: Path) -> None:
     assert "metadata.yaml is missing" in info["metadata"]["t42_transfer.repaired"]
     meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert meta["message_count"] == report.message_count
-    assert meta["starting_time"]["nanoseconds_since_epoch"] == T0_NS
+    assert meta["ros_distro"] == info["ros_distro"] == mcap_ros_distro(mcap) == "jazzy"  # as the recorder's
+    # logged on receipt, after the first step was stamped (its stamp: the clock floored to a period)
+    assert 0 <= meta["starting_time"]["nanoseconds_since_epoch"] - first_stamp(flushed) < 5_000_000_000
     assert meta["relative_file_paths"] == [mcap.name]
     for entry in meta["topics_with_message_count"]:
         topic = entry["topic_metadata"]
         assert topic["type"] == HAND_TOPICS[topic["name"]]
         assert topic["offered_qos_profiles"][0]["reliability"] == "reliable"  # as recorded
 
-    from rosbags.highlevel import AnyReader
     with AnyReader([bag]) as reader:
         got = {topic: [] for topic in HAND_TOPICS}
         for conn, _, raw in reader.messages():
@@ -124,6 +127,7 @@ def test_stale_metadata_is_rewritten(tmp_path: Path) -> None:
     info = bag_info(bag)
     assert info["metadata"]["t42_transfer.hand"] == "source"  # custom_data survives
     assert info["episodes"] == 6
+    assert info["ros_distro"] == mcap_ros_distro(bag / "source_small.mcap") == "jazzy"  # as the recorder writes
 
 
 def test_bad_inputs_raise_clear_errors(tmp_path: Path) -> None:
@@ -150,16 +154,16 @@ def test_bad_inputs_raise_clear_errors(tmp_path: Path) -> None:
     assert sorted(p.name for p in header_only.iterdir()) == ["header_only.mcap"]  # left as it was
 
 
-def test_an_earlier_repairs_originals_are_never_overwritten(tmp_path: Path) -> None:
-    bag, _ = killed_bag(tmp_path, steps=20, unflushed=0)
+def test_an_earlier_repairs_originals_are_never_overwritten(ros: Any, tmp_path: Path) -> None:
+    bag, _ = killed_bag(ros, tmp_path, steps=20, unflushed=0)
     (bag / f"{bag.name}.mcap.orig").write_text("kept")
     with pytest.raises(FileExistsError):
         repair_bag(bag)
     assert (bag / f"{bag.name}.mcap.orig").read_text() == "kept"
 
 
-def test_cli_bag_repair(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    bag, flushed = killed_bag(tmp_path, steps=30)
+def test_cli_bag_repair(ros: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag, flushed = killed_bag(ros, tmp_path, steps=30)
     assert main(["bag", "repair", str(bag)]) == 0
     out = capsys.readouterr().out
     assert "repaired" in out and f"/hand/joint_states: {len(flushed['/hand/joint_states'])} messages" in out

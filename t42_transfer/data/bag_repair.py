@@ -4,10 +4,11 @@ A recorder killed mid-bag leaves an MCAP without its summary and footer, and no
 (or a stale) ``metadata.yaml``.  :func:`bag_io.read_bag` already recovers such a
 bag's readable prefix, with a warning, every time; repairing it once rewrites the
 readable records (every complete chunk, in file order) as a fresh rosbag2 v9 MCAP
-through rosbags' ``Writer`` -- the same layout the recorder and ``bag_io`` write,
-so ``ros2 bag`` and :mod:`bag_io` read it cleanly -- with ``metadata.yaml`` giving
-per-topic counts, start time, duration, types and each topic's offered QoS as
-recorded in its MCAP channel.  Each original file is kept as ``<name>.orig``.
+through :class:`bag_io.JazzyWriter`, as the recorder and ``bag_io`` write theirs
+(same layout, ``ros_distro: jazzy``), so ``ros2 bag`` and :mod:`bag_io` read it
+cleanly, with ``metadata.yaml`` giving per-topic counts, start time, duration,
+types and each topic's offered QoS as recorded in its MCAP channel.  Each
+original file is kept as ``<name>.orig``.
 ``custom_data`` keeps what the bag had and gains ``REPAIRED_KEY`` (what was
 wrong), so :func:`bag_io.read_bag` still treats a cut-off last step as a cut,
 not an error.
@@ -24,11 +25,11 @@ import yaml
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
 
 from msg_adapters import TYPESTORE
-from t42_transfer.data.bag_io import REPAIRED_KEY, ExactReads
+from t42_transfer.data.bag_io import REPAIRED_KEY, ExactReads, JazzyWriter
 from t42_transfer.data.errors import BagError
 
 ORIG_SUFFIX = ".orig"
@@ -146,7 +147,7 @@ def _summary_counts(files: list[Path]) -> dict[str, int]:
 class _Rewriter:
     """Streams salvaged records into a rosbags writer, one connection per (topic, type, offered QoS)."""
 
-    def __init__(self, writer: Writer) -> None:
+    def __init__(self, writer: JazzyWriter) -> None:
         self.writer = writer
         self.connections: dict[tuple[str, str, str], Any] = {}
         self.counts: dict[str, int] = {}
@@ -196,7 +197,7 @@ class _Rewriter:
 def _rewrite(files: list[Path], rebuilt: Path, problems: str) -> tuple[dict[str, int], str]:
     """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped)."""
     stopped = []
-    with Writer(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    with JazzyWriter(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         rewriter = _Rewriter(writer)
         writer.set_custom_data(REPAIRED_KEY, problems)
         for file in files:
