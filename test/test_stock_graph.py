@@ -205,7 +205,7 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
         assert ros.spin_until(lambda: len(trajectories["/left"]) > explored["/left"], 120.0), \
             suites["/left"].output()[-3000:]
         ros.spin_for(1.0)
-        assert len(trajectories["/right"]) == explored["/right"] >= 3
+        assert len(trajectories["/right"]) == explored["/right"]  # nothing reached the right hand
     finally:
         codes = [suite.stop() for suite in suites.values()]
     assert codes == [0, 0], [s.output()[-3000:] for s in suites.values()]
