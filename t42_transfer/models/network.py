@@ -10,6 +10,7 @@ so it travels with the weights.
 
 from __future__ import annotations
 
+import reprlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,8 @@ from t42_transfer.models.dynamics import LatentDynamics
 
 HIDDEN = 128
 DROPOUT = 0.1
+MAX_HIDDEN = 4096
+"""Widest hidden layer ``from_config`` builds (64 MB of weights): a model file cannot ask for more."""
 _MIN_STD = 1e-6
 
 
@@ -120,4 +123,25 @@ class TransitionModel(LatentDynamics):
 
     @classmethod
     def from_config(cls, config: dict) -> "TransitionModel":
-        return cls(Normalisation.identity(), **config)
+        """Checks types and bounds first: the config comes from a model file, and ``hidden`` sizes the weights."""
+        unknown = set(config) - {"grasp_input", "hidden", "dropout"}
+        if unknown:
+            raise ValueError(f"{cls.kind} has no arguments {reprlib.repr(sorted(unknown))}")
+        grasp_input = config.get("grasp_input", False)
+        if not isinstance(grasp_input, bool):
+            raise TypeError(f"{cls.kind} grasp_input must be true or false, not {reprlib.repr(grasp_input)}")
+        hidden = config_number(config, "hidden", HIDDEN, 1, MAX_HIDDEN, integer=True)
+        dropout = config_number(config, "dropout", DROPOUT, 0.0, 1.0)
+        return cls(Normalisation.identity(), grasp_input, int(hidden), dropout)
+
+
+def config_number(
+    config: dict, key: str, default: float | None, low: float, high: float, *, integer: bool = False
+) -> float:
+    """``config[key]`` (or ``default``; None: required) if it is a number in ``[low, high]`` (an integer if asked)."""
+    value = config.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+        raise TypeError(f"{key} must be {'an integer' if integer else 'a number'}, not {reprlib.repr(value)}")
+    if not low <= value <= high:  # also refuses NaN and infinity
+        raise ValueError(f"{key} must lie in [{low}, {high}], not {reprlib.repr(value)}")
+    return value

@@ -6,19 +6,31 @@ step at a time, the source model's error on target data: ``x' - f_S(x, a)``.
 
 from __future__ import annotations
 
+import reprlib
+import sys
+
 import torch
 from torch import Tensor
 
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
-from t42_transfer.models.network import TransitionModel
+from t42_transfer.models.network import TransitionModel, config_number
 
 
 def _spec(model: LatentDynamics) -> dict:
     return {"kind": model.kind, "config": model.config()}
 
 
-def _build(spec: dict) -> LatentDynamics:
-    return MODEL_KINDS[spec["kind"]].from_config(spec["config"])
+def _build(spec: object, role: str, kinds: dict[str, type[LatentDynamics]] = MODEL_KINDS) -> LatentDynamics:
+    """The model ``spec`` describes, checked first: specs come from model files."""
+    kind = spec.get("kind") if isinstance(spec, dict) else None
+    if not isinstance(kind, str) or kind not in kinds or not isinstance(spec.get("config"), dict):
+        raise ValueError(f"{role} must be {{kind: one of {sorted(kinds)}, config: {{...}}}}, not {reprlib.repr(spec)}")
+    return kinds[kind].from_config(spec["config"])
+
+
+def _weight(config: dict, key: str) -> float:
+    """A required finite float (``alpha``, ``gamma``)."""
+    return float(config_number(config, key, None, -sys.float_info.max, sys.float_info.max))
 
 
 class CumulativeResidualModel(LatentDynamics):
@@ -58,7 +70,8 @@ class CumulativeResidualModel(LatentDynamics):
 
     @classmethod
     def from_config(cls, config: dict) -> "CumulativeResidualModel":
-        return cls(_build(config["source"]), _build(config["residual"]), config["alpha"], config["gamma"])
+        residual = _build(config.get("residual"), "residual", {TransitionModel.kind: TransitionModel})
+        return cls(_build(config.get("source"), "source"), residual, _weight(config, "alpha"), _weight(config, "gamma"))
 
 
 class RecurrentResidualModel(LatentDynamics):
@@ -93,4 +106,5 @@ class RecurrentResidualModel(LatentDynamics):
 
     @classmethod
     def from_config(cls, config: dict) -> "RecurrentResidualModel":
-        return cls(_build(config["source"]), _build(config["residual"]), config["alpha"])
+        residual = _build(config.get("residual"), "residual", {TransitionModel.kind: TransitionModel})
+        return cls(_build(config.get("source"), "source"), residual, _weight(config, "alpha"))
