@@ -4,21 +4,25 @@ Writes bench/results/recorder.json.  A publisher process (rclpy, raw CDR bytes f
 rosbags) sends hand messages (PoseStamped, JointState, JointState for the applied
 action: the three hand topics in turn, one step per three messages) at a fixed
 total rate for N seconds, RELIABLE KEEP_LAST 1000; a receiver process records or
-counts them.  Both receivers run as ``t42 node`` runs a node
-(:mod:`t42_transfer.ros.runner`: a MultiThreadedExecutor spun until stopped):
+counts them.  The main runs spin each receiver as ``t42 node recorder`` does
+(:func:`t42_transfer.ros.runner.make_executor`: the recorder asks for no threads,
+so a SingleThreadedExecutor, ``spin_once`` until stopped):
 
 - ``recorder``: the :class:`~t42_transfer.nodes.recorder.Recorder` node (default
   parameters: queue depth 1000, flush every 1 s, steps grouped by stamp);
-- ``sink`` (baseline): a bare rclpy node whose raw subscriptions (same QoS) only count.
+- ``sink`` (baseline): a bare rclpy node whose raw subscriptions (same QoS) only
+  count, on the executor ``make_executor`` gives a plain node (single-threaded too).
 
 Reported per run: sent vs received vs written to the bag, the receiver's CPU time
 per message while messages flowed (process CPU between the 1 s samples around the
 stream; also from ready to stop, idle spinning included), its RSS every second.
-Two more runs at 5 kHz spin a SingleThreadedExecutor instead, to show what the
-executor costs.  Also the recorder's own per-message work without ROS (decode the stamp,
-group by step, write to the bag) measured in-process.  The machine's load average
-is recorded before and after: on a shared machine the numbers vary with it.
-Each run has its own ROS_DOMAIN_ID and LOCALHOST discovery.
+For comparison only, NOT what the runner uses: both receivers at 5 kHz on a
+MultiThreadedExecutor with 4 threads (``multi4``), which spins busily while a
+mutually exclusive callback runs.  Also the recorder's own per-message work
+without ROS (decode the stamp, group by step, write to the bag) measured
+in-process.  The machine's load average is recorded before and after: on a
+shared machine the numbers vary with it.  Each run has its own ROS_DOMAIN_ID and
+LOCALHOST discovery.
 
     .venv/bin/python bench/bench_recorder.py           # recorder 1 kHz x 30 s; the rest 10 s each
     .venv/bin/python bench/bench_recorder.py --quick   # 5 s runs
@@ -56,6 +60,8 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS  # noqa: E402
 RESULTS = Path(__file__).parent / "results" / "recorder.json"
 TOPICS = list(HAND_TOPICS)
 QUEUE_DEPTH = 1000
+MULTI_THREADS = 4
+"""Threads of the comparison MultiThreadedExecutor (as many as the transfer server asks for)."""
 
 
 def hand_messages(steps: int) -> list[tuple[str, bytes]]:
@@ -120,24 +126,23 @@ def role_publisher(rate: float, seconds: float) -> None:
 
 def role_receiver(kind: str, out_dir: str, stop_file: str, executor_kind: str) -> None:
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+    from rclpy.executors import MultiThreadedExecutor
     from rclpy.node import Node
     from rclpy.parameter import Parameter
 
     from msg_adapters import rclpy_class
+    from t42_transfer.nodes.recorder import Recorder
     from t42_transfer.ros.qos import recording
-    from t42_transfer.ros.runner import EXECUTOR_THREADS
+    from t42_transfer.ros.runner import make_executor
 
     context = rclpy.Context()
     rclpy.init(context=context)
-    if executor_kind == "multi":  # as t42_transfer.ros.runner spins every node
-        executor: Any = MultiThreadedExecutor(num_threads=EXECUTOR_THREADS, context=context)
-    else:
-        executor = SingleThreadedExecutor(context=context)
+    if executor_kind == "runner":  # as t42 node spins this node class
+        executor: Any = make_executor(Recorder if kind == "recorder" else Node, context)
+    else:  # the comparison, not what the runner uses
+        executor = MultiThreadedExecutor(num_threads=MULTI_THREADS, context=context)
     counted = [0]
     if kind == "recorder":
-        from t42_transfer.nodes.recorder import Recorder
-
         node: Any = Recorder(context=context, parameter_overrides=[Parameter("out_dir", value=out_dir)])
     else:
         node = Node("bench_sink", context=context)
@@ -177,8 +182,8 @@ def role_receiver(kind: str, out_dir: str, stop_file: str, executor_kind: str) -
     executor.shutdown(timeout_sec=5.0)
     node.destroy_node()
     rclpy.shutdown(context=context)
-    print(json.dumps({"received": received, "dropped": dropped, "in_bag": in_bag, "cpu_s": cpu,
-                      "samples": samples}), flush=True)
+    print(json.dumps({"executor_class": type(executor).__name__, "received": received, "dropped": dropped,
+                      "in_bag": in_bag, "cpu_s": cpu, "samples": samples}), flush=True)
 
 
 # --------------------------------------------------------------------------- orchestration
@@ -187,7 +192,7 @@ def _spawn(*args: str, env: dict[str, str]) -> subprocess.Popen[str]:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
-def run_stream(kind: str, rate: float, seconds: float, executor: str = "multi") -> dict[str, Any]:
+def run_stream(kind: str, rate: float, seconds: float, executor: str = "runner") -> dict[str, Any]:
     """One publisher -> receiver run on a fresh domain."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=str(REPO))
@@ -216,7 +221,7 @@ def run_stream(kind: str, rate: float, seconds: float, executor: str = "multi") 
     last = next((i for i, c in enumerate(counts) if c == counts[-1]), len(counts) - 1)
     streamed = counts[last] - counts[first]
     result = {
-        "receiver": kind, "executor": executor, "rate_hz": rate, "seconds": seconds, "queue_depth": QUEUE_DEPTH,
+        "receiver": kind, "executor": executor, "executor_class": got["executor_class"], "rate_hz": rate, "seconds": seconds, "queue_depth": QUEUE_DEPTH,
         "sent": sent["sent"], "acked": sent["acked"], "received": got["received"],
         "lost": sent["sent"] - got["received"], "dropped": got["dropped"], "in_bag": got["in_bag"],
         "publish_seconds": round(sent["seconds"], 3),
@@ -256,7 +261,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--out-dir", default="")
     parser.add_argument("--stop-file", default="")
-    parser.add_argument("--executor", choices=("multi", "single"), default="multi")
+    parser.add_argument("--executor", choices=("runner", "multi4"), default="runner")
     parser.add_argument("--quick", action="store_true", help="5 s runs")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -269,35 +274,48 @@ def main() -> None:
 
     long_s, short_s = (5.0, 5.0) if args.quick else (30.0, 10.0)
     info = machine_info()
-    runs = [run_stream("recorder", 1000, long_s)]  # the RSS run
+    runs = [run_stream("recorder", 1000, long_s)]  # also the RSS run
     runs += [run_stream("sink", 1000, short_s)]
-    for executor in ("multi", "single"):
-        for rate in (5000, 10000) if executor == "multi" else (1000, 5000, 10000):
-            runs += [run_stream("recorder", rate, short_s, executor), run_stream("sink", rate, short_s, executor)]
+    for rate in (5000, 10000):
+        runs += [run_stream("recorder", rate, short_s), run_stream("sink", rate, short_s)]
+    runs += [run_stream("recorder", 5000, short_s, "multi4"), run_stream("sink", 5000, short_s, "multi4")]
     own = own_work_us_per_msg()
 
-    def cpu(kind: str, rate: int, executor: str = "multi") -> float:
-        return next(r["cpu_us_per_msg"] for r in runs
-                    if r["receiver"] == kind and r["rate_hz"] == rate and r["executor"] == executor)
+    def run(kind: str, rate: int, executor: str = "runner") -> dict[str, Any]:
+        return next(r for r in runs if r["receiver"] == kind and r["rate_hz"] == rate and r["executor"] == executor)
+
+    def recorded(r: dict[str, Any]) -> str:
+        return f"{r['received'] if r['in_bag'] is None else r['in_bag']}/{r['sent']}"
+
+    def cpu_vs_sink(rate: int, executor: str = "runner") -> list[float]:
+        rec, sink = run("recorder", rate, executor)["cpu_us_per_msg"], run("sink", rate, executor)["cpu_us_per_msg"]
+        return [rec, sink, round(rec / sink, 2)]
 
     result = {
         "benchmark": "recorder node over rclpy (rmw_fastrtps_cpp) on localhost; publisher and receiver in separate "
-                     "processes; receivers spun as t42 node spins them (MultiThreadedExecutor, 'multi') and with a "
-                     "SingleThreadedExecutor ('single')",
+                     "processes; receivers spun as t42 node spins them (make_executor: a SingleThreadedExecutor, "
+                     "executor 'runner'); for comparison only, not what the runner uses: a 4-thread "
+                     "MultiThreadedExecutor at 5 kHz (executor 'multi4')",
         "command": " ".join(shlex.quote(a) for a in [".venv/bin/python", "bench/bench_recorder.py", *sys.argv[1:]]),
         "machine": info,
         "load_average_after": os.getloadavg(),
         "runs": runs,
         "summary": {
-            **{f"{kind}_sent_recorded_{executor}": {f"{r['rate_hz'] // 1000}khz": f"{r['received'] if r['in_bag'] is None else r['in_bag']}/{r['sent']}"
-                                                   for r in runs if r["receiver"] == kind and r["executor"] == executor}
-               for kind in ("recorder", "sink") for executor in ("multi", "single")},
-            **{f"cpu_us_per_msg_recorder_vs_sink_{executor}": {
-                f"{rate // 1000}khz": [cpu("recorder", rate, executor), cpu("sink", rate, executor),
-                                       round(cpu("recorder", rate, executor) / cpu("sink", rate, executor), 2)]
-                for rate in (1000, 5000, 10000)} for executor in ("multi", "single")},
-            "recorder_rss_mb_30s_run": [runs[0]["rss_mb_first"], runs[0]["rss_mb_peak"], runs[0]["rss_mb_end"]],
+            "executor": f"{runs[0]['executor_class']} (recorder), {runs[1]['executor_class']} (sink)",
+            "recorder_sent_recorded": {f"{r['rate_hz'] // 1000}khz": recorded(r) for r in runs
+                                       if r["receiver"] == "recorder" and r["executor"] == "runner"},
+            "sink_sent_counted": {f"{r['rate_hz'] // 1000}khz": recorded(r) for r in runs
+                                  if r["receiver"] == "sink" and r["executor"] == "runner"},
+            "cpu_us_per_msg_recorder_vs_sink_and_ratio": {f"{rate // 1000}khz": cpu_vs_sink(rate)
+                                                          for rate in (1000, 5000, 10000)},
+            "recorder_rss_mb_30s_run_first_peak_end": [runs[0]["rss_mb_first"], runs[0]["rss_mb_peak"],
+                                                       runs[0]["rss_mb_end"]],
             "recorder_own_work_us_per_msg": round(own, 2),
+            "not_the_runner_multi4_5khz": {
+                "recorder_sent_recorded": recorded(run("recorder", 5000, "multi4")),
+                "sink_sent_counted": recorded(run("sink", 5000, "multi4")),
+                "cpu_us_per_msg_recorder_vs_sink_and_ratio": cpu_vs_sink(5000, "multi4"),
+            },
         },
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
