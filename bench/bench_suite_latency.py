@@ -1,14 +1,18 @@
-"""Benchmark: latencies of the online suite over Cyclone DDS, from runs of ``t42 demo``.
+"""Benchmark: latencies of the online suite of rclpy nodes, from a run of ``t42 demo``.
 
-Writes bench/results/suite_latency.json.  Two figures, each against a baseline
-measured in the same run:
+Writes bench/results/suite_latency.json with the middleware the demo ran on (its
+``demo.json`` ``middleware``: rclpy's RMW implementation).  Two figures, each
+against a baseline measured in the same run:
 
 * service call to model ready: wall time of the ``/t42/transfer`` call (until the
   answer, sent after the model was saved and announced) against the server's own
   elapsed time for the transfer (its last diagnostics ``elapsed_s``);
-* goal to published sequence: wall time from publishing a ``PointStamped`` goal to
+* goal to plan result: wall time from publishing a ``PointStamped`` goal to
   receiving its plan result (published after the JointTrajectory and the Path)
   against the planner's own planning time.
+
+The machine's load average is recorded before and after: on a shared machine the
+figures vary with it.
 
     .venv/bin/python bench/bench_suite_latency.py            # the quick demo
     .venv/bin/python bench/bench_suite_latency.py --full     # the full demo
@@ -20,6 +24,7 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -39,6 +44,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="the full demo instead of --quick")
     args = parser.parse_args()
+    machine = machine_info()
     with tempfile.TemporaryDirectory() as tmp:
         log = io.StringIO()
         with contextlib.redirect_stdout(log):
@@ -54,14 +60,16 @@ def main() -> int:
     goal_s = [g["goal_to_result_s"] for g in goals]
     plan_s = [g["planning_time_s"] for g in goals]
     result = {
-        "command": "python bench/bench_suite_latency.py" + (" --full" if args.full else ""),
-        "machine": machine_info(),
+        "command": ".venv/bin/python bench/bench_suite_latency.py" + (" --full" if args.full else ""),
+        "machine": machine,
+        "load_average_after": os.getloadavg(),
         "demo": summary["mode"],
+        "middleware": summary["middleware"],
         "service_call_to_model_ready": {
             "call_s": transfer["seconds"], "server_elapsed_s": server_s,
             "ratio_call_over_server": transfer["seconds"] / server_s if server_s > 0 else None,
         },
-        "goal_to_published_sequence": {
+        "goal_to_plan_result": {
             "goals": len(goals),
             "median_s": statistics.median(goal_s), "max_s": max(goal_s),
             "planning_median_s": statistics.median(plan_s),
