@@ -2,18 +2,136 @@
 
 Each subcommand parses its arguments, calls one library function and prints a
 summary; bad input ends with ``t42: error: <file>: <problem>`` and exit code 2,
-never a traceback.
+never a traceback.  Numbers are checked by the parser (finite, in range, with bounds
+where a number sizes an allocation) and paths before any work starts, so a typo is
+refused in a second instead of after a long run or an 800 GB allocation.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
+import re
+import stat
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from t42_transfer import __version__
+
+MAX_SAMPLES = 1_000_000
+MAX_HORIZON = 10_000
+MAX_SAMPLED_STEPS = 20_000_000
+"""Planner samples x horizon at most: the sampled actions alone are 8 bytes per step (160 MB here)."""
+MAX_REFINE = 1000
+SEED_MAX = 2**32 - 1
+ROS_NAMESPACE = re.compile(r"/?|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*/?")
+
+# ------------------------------------------------------------------ arguments
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one ``t42: error:`` line (exit 2), like every other error."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        command = self.prog.removeprefix("t42").strip()
+        self.exit(2, f"t42: error: {command + ': ' if command else ''}{message} (see {self.prog} --help)\n")
+
+
+def int_arg(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in ``[low, high]``."""
+    wanted = f"an integer from {low} to {high}" if high is not None else f"an integer >= {low}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}")
+        return value
+
+    return parse
+
+
+def float_arg(low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
+    bounds = [f"{'>' if low_open else '>='} {low:g}"] if low > -math.inf else []
+    bounds += [f"<= {high:g}"] if high < math.inf else []
+    wanted = " ".join(["a finite number", " and ".join(bounds)]).strip()
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value > low if low_open else value >= low) and value <= high):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}")
+        return value
+
+    return parse
+
+
+def check_plan_size(samples: int, horizon: int) -> None:
+    """ValueError when samples x horizon would size an allocation beyond :data:`MAX_SAMPLED_STEPS`."""
+    if samples * horizon > MAX_SAMPLED_STEPS:
+        raise ValueError(f"--samples {samples} x --horizon {horizon} is over {MAX_SAMPLED_STEPS} sampled steps")
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    """``path``'s status (following links); None when nothing is there; ValueError for any other failure."""
+    try:
+        return path.stat()
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        raise ValueError(f"{path}: {err.strerror or err}") from None
+
+
+def existing_file(path: Path) -> Path:
+    """``path`` when it is a regular file (a FIFO would block the reader); ValueError naming it otherwise."""
+    info = _stat(path)
+    if info is None:
+        raise ValueError(f"{path}: does not exist")
+    if not stat.S_ISREG(info.st_mode):
+        raise ValueError(f"{path}: not a regular file")
+    return path
+
+
+def existing_dir(path: Path) -> Path:
+    """``path`` when it is a directory; ValueError naming it otherwise."""
+    info = _stat(path)
+    if info is None:
+        raise ValueError(f"{path}: does not exist")
+    if not stat.S_ISDIR(info.st_mode):
+        raise ValueError(f"{path}: not a directory")
+    return path
+
+
+def output_dir(path: Path) -> Path:
+    """``path`` when it is a directory, or can be made one (its nearest existing ancestor is a directory)."""
+    for at in (path, *path.absolute().parents):
+        info = _stat(at)
+        if info is not None:
+            if not stat.S_ISDIR(info.st_mode):
+                raise ValueError(f"{path}: {'' if at == path else f'{at} '}is not a directory")
+            break
+    return path
+
+
+def new_output(path: Path) -> Path:
+    """``path`` when nothing is there yet and its directory can be made; outputs are never overwritten."""
+    if os.path.lexists(path):
+        raise ValueError(f"{path}: exists already; choose a new path")
+    return output_dir(path)
+
+
+def _os_error(err: OSError) -> str:
+    """An OSError as ``<file>: <problem>``."""
+    return f"{err.filename}: {err.strerror}" if err.filename is not None and err.strerror else str(err)
+
 
 # ----------------------------------------------------------------------- commands
 
@@ -21,8 +139,10 @@ from t42_transfer import __version__
 def _cmd_sim_collect(args: argparse.Namespace) -> int:
     from t42_transfer.data.bag_io import assign_start_times, write_bag
     from t42_transfer.data.trajectory import TrajectorySet
-    from t42_transfer.hand.collect import RandomPolicy, collect
+    from t42_transfer.hand.collect import RandomPolicy, check_collection, collect
 
+    check_collection(args.hand, args.episodes, args.steps, args.workers, args.hold_max)
+    new_output(args.out)
     data, stats = collect(
         args.hand, args.episodes, args.steps, seed=args.seed, workers=args.workers,
         policy=RandomPolicy(hold_max=args.hold_max), progress=not args.quiet,
@@ -40,8 +160,13 @@ def _cmd_sim_collect(args: argparse.Namespace) -> int:
 def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
     from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
     from t42_transfer.hand import realism
+    from t42_transfer.hand.params import variant
 
-    folder = args.real_dir or real_data_dir()
+    folder = existing_dir(args.real_dir or real_data_dir())
+    for hand in args.hands:
+        variant(hand)
+    if args.out_dir:
+        output_dir(args.out_dir)
     real = {hand: load_t42_testpaths(folder / name) for hand, name in REAL_FILES.items()}
     rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
     table = realism.markdown_table(rows)
@@ -76,7 +201,7 @@ def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
     from t42_transfer.data.bag_io import read_bag
     from t42_transfer.data.t42_real import import_t42_to_bag
 
-    bag = import_t42_to_bag(args.pickle, args.out)
+    bag = import_t42_to_bag(existing_file(args.pickle), new_output(args.out))
     data = read_bag(bag)
     print(f"{args.pickle} -> {bag}: {len(data)} paths, {data.num_transitions} transitions, hand {data.hand!r}")
     return 0
@@ -85,7 +210,7 @@ def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
 def _cmd_bag_repair(args: argparse.Namespace) -> int:
     from t42_transfer.data.bag_repair import repair_bag
 
-    report = repair_bag(args.bag)
+    report = repair_bag(existing_dir(args.bag))
     if not report.repaired:
         print(f"{report.path}: sound, left as it is ({report.message_count} messages)")
         return 0
@@ -103,7 +228,8 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
     from t42_transfer.ros.runner import keep_discovery_local
 
     topics = tuple(args.topics) if args.topics else None
-    PlayerParams(args.bag, rate=args.rate, loop=args.loop, topics=topics, clock_hz=args.clock)  # bad input: exit 2
+    # bad input: exit 2, before rclpy starts
+    PlayerParams(existing_dir(args.bag), rate=args.rate, loop=args.loop, topics=topics, clock_hz=args.clock)
     keep_discovery_local()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -152,6 +278,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
+    output_dir(args.out)
     rows = run_experiment(cfg, args.out, progress=not args.quiet)
     run_dir = args.out / cfg.name
     print(f"{len(rows)} cells -> {run_dir / 'results.csv'}")
@@ -163,7 +290,8 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from t42_transfer.evaluation.report import write_report
 
-    print(f"report: {write_report(args.run_dir, args.out)}")
+    existing_file(existing_dir(args.run_dir) / "results.json")
+    print(f"report: {write_report(args.run_dir, args.out and output_dir(args.out))}")
     return 0
 
 
@@ -175,7 +303,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from t42_transfer.planning import Planner, PlannerConfig, Workspace
     from t42_transfer.planning.export import write_plan
 
-    model, meta = load_model(args.model)
+    check_plan_size(args.samples, args.horizon)
+    for path in (args.workspace or []):
+        existing_dir(path)
+    output_dir(args.out)
+    model, meta = load_model(existing_file(args.model))
     if args.workspace:
         workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
     else:
@@ -205,7 +337,7 @@ def _cmd_peg_in_hole(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from t42_transfer.demo import run_demo
 
-    return run_demo(args.out, quick=args.quick, workers=args.workers)
+    return run_demo(output_dir(args.out), quick=args.quick, workers=args.workers)
 
 
 def _cmd_node(args: argparse.Namespace) -> int:
@@ -232,7 +364,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="t42",
         description=(
             "t42: transfer learned dynamics models between Yale Model-T42 hands. "
@@ -245,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = commands.add_parser("demo", help="run the main job end to end on simulated hands")
     demo.add_argument("--quick", action="store_true", help="tiny sizes (about a minute), as CI runs it")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
-    demo.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    demo.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
     demo.set_defaults(func=_cmd_demo)
 
     exp = commands.add_parser(
@@ -253,7 +385,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     exp.add_argument("config", type=Path, help="experiment YAML (see configs/)")
     exp.add_argument("--out", type=Path, default=Path("runs"), help="runs directory (default runs/)")
-    exp.add_argument("--workers", type=int, default=None, help="worker processes (default: the config's, else all cores)")
+    exp.add_argument("--workers", type=int_arg(1), default=None,
+                     help="worker processes (default: the config's, else all cores)")
     exp.add_argument("--no-report", action="store_true", help="skip the figures and report.md")
     exp.add_argument("--quiet", action="store_true", help="no progress bars")
     exp.set_defaults(func=_cmd_experiment)
@@ -268,16 +401,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     plan.add_argument("model", type=Path, help="model file (.safetensors)")
     plan.add_argument(
-        "--start", type=float, nargs=4, required=True, metavar=("X", "Y", "LOAD1", "LOAD2"), help="start state (mm, raw loads)"
+        "--start", type=float_arg(), nargs=4, required=True, metavar=("X", "Y", "LOAD1", "LOAD2"), help="start state (mm, raw loads)"
     )
-    plan.add_argument("--goal", type=float, nargs=2, required=True, metavar=("X", "Y"), help="goal object position (mm)")
-    plan.add_argument("--horizon", type=int, default=100, help="steps of 0.1 s (default 100)")
-    plan.add_argument("--samples", type=int, default=1000, help="sampled sequences (default 1000)")
-    plan.add_argument("--seed", type=int, default=0)
+    plan.add_argument("--goal", type=float_arg(), nargs=2, required=True, metavar=("X", "Y"), help="goal object position (mm)")
+    plan.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=100, help="steps of 0.1 s (default 100)")
+    plan.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=1000, help="sampled sequences (default 1000)")
+    plan.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
-    plan.add_argument("--tolerance", type=float, default=2.0, help="predicted error that reaches the goal (mm, default 2)")
+    plan.add_argument("--tolerance", type=float_arg(0, low_open=True), default=2.0, help="predicted error that reaches the goal (mm, default 2)")
     plan.add_argument("--horizon-search", action="store_true", help="return the shortest sequence reaching the goal")
-    plan.add_argument("--refine", type=int, default=0, help="cross-entropy refinement iterations (default 0)")
+    plan.add_argument("--refine", type=int_arg(0, MAX_REFINE), default=0, help="cross-entropy refinement iterations (default 0)")
     plan.add_argument(
         "--workspace", type=Path, nargs="+", default=None, help="bags of the training data (default: stored in the model file)"
     )
@@ -294,11 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
     col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
     col.add_argument("--hand", default="source", help="source, target or family-<seed> (default source)")
-    col.add_argument("--episodes", type=int, default=300, help="episodes (paper: 300)")
-    col.add_argument("--steps", type=int, default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
-    col.add_argument("--seed", type=int, default=0)
-    col.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
-    col.add_argument("--hold-max", type=int, default=5, help="random actions are held 1..N steps (default 5)")
+    col.add_argument("--episodes", type=int_arg(1), default=300, help="episodes (paper: 300)")
+    col.add_argument("--steps", type=int_arg(1), default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
+    col.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    col.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
+    col.add_argument("--hold-max", type=int_arg(1), default=5, help="random actions are held 1..N steps (default 5)")
     col.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     col.add_argument("--quiet", action="store_true", help="no progress bar")
     col.add_argument("--out", type=Path, required=True, help="bag directory to create")
@@ -309,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--real-dir", type=Path, default=None, help="folder of the public T42 pickles (default: $T42_REAL_DATA or ../shared/data/t42_real)"
     )
     cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
-    cmp_.add_argument("--seed", type=int, default=0)
+    cmp_.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
     cmp_.set_defaults(func=_cmd_sim_compare_real)
 
@@ -332,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
     play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
                       help="publish /clock from the bag's time at HZ (40 when HZ is not given), as ros2 bag play --clock")
-    play.add_argument("--wait-subscribers", type=float, default=2.0, metavar="S",
+    play.add_argument("--wait-subscribers", type=float_arg(0, 3600), default=2.0, metavar="S",
                       help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
     play.set_defaults(func=_cmd_bag_play)
 
@@ -347,15 +480,20 @@ def build_parser() -> argparse.ArgumentParser:
     up = commands.add_parser("up", help="run every node of a ROS params file as its own process until Ctrl-C")
     up.add_argument("config", type=Path, help="ROS params file (e.g. configs/suite.yaml); one process per node section")
     up.add_argument("--only", default=None, help="comma-separated node names to run (default: all)")
-    up.add_argument("--stop-timeout", type=float, default=5.0, help="seconds per stop signal (default 5)")
-    up.add_argument("--namespace", default="", help="run every node under this ROS namespace (e.g. /left)")
+    up.add_argument("--stop-timeout", type=float_arg(0, 3600, low_open=True), default=5.0, help="seconds per stop signal (default 5)")
+    up.add_argument("--namespace", type=_namespace, default="", help="run every node under this ROS namespace (e.g. /left)")
     up.set_defaults(func=_cmd_up)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    from t42_transfer.data.errors import DataFileError
+def _namespace(text: str) -> str:
+    if not ROS_NAMESPACE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"expected a ROS namespace such as /left (letters, digits, _ and /; "
+                                         f"no token starting with a digit), got {text[:40]!r}")
+    return text
 
+
+def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["peg-in-hole"]:
         # Its own parser (shared with the module entry point) takes every argument, --help included.
@@ -370,9 +508,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     try:
         return func(args)
-    except (DataFileError, FileExistsError, FileNotFoundError, ValueError) as err:
-        print(f"t42: error: {err}", file=sys.stderr)
-        return 2
+    except OSError as err:  # a path the user gave: missing, unreadable, a directory where a file belongs, ...
+        message = _os_error(err)
+    except ValueError as err:  # DataFileError and CheckpointError included
+        message = str(err)
+    print(f"t42: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -506,15 +506,17 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
                  f"away):{error} -> {verdict}")
     except (RuntimeError, TimeoutError) as err:
         _say(f"FAILED: {err}")
+        failed = True
+    else:
+        failed = False
+    finally:  # whatever happened (Ctrl-C, a bug), no node process outlives the demo
         _shutdown(executor, context)
         codes = suite.stop()
-        summary["exit_codes"] = codes
+    summary["exit_codes"] = codes
+    if failed:
         (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
         _tail(suite.log_path)
         return 1
-    _shutdown(executor, context)
-    codes = suite.stop()
-    summary["exit_codes"] = codes
     summary["goals"] = [asdict(r) for r in runs]
     summary["seconds"] = time.perf_counter() - started
     (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")

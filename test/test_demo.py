@@ -55,3 +55,26 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
     assert summary["middleware"] == "rmw_fastrtps_cpp" and "rmw_fastrtps_cpp" in report  # what it actually used
     assert summary["discovery"] == "LOCALHOST"
     assert "[5/5] peg-in-hole" in out and "report:" in out
+
+
+def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain: int,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    from t42_transfer import demo
+
+    suites: list = []
+
+    class Recorded(demo._Suite):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            suites.append(self)
+
+    def broken() -> type:
+        raise KeyError("a bug after the suite started")
+
+    monkeypatch.setattr(demo, "_Suite", Recorded)
+    monkeypatch.setattr(demo, "_operator_class", broken)
+    with pytest.raises(KeyError):
+        demo.run_demo(tmp_path, quick=True, workers=1)
+    (suite,) = suites
+    children = suite.supervisor.children
+    assert len(children) == len(demo.SUITE_NODES) and all(c.proc.poll() is not None for c in children)
