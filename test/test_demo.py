@@ -77,4 +77,8 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
         demo.run_demo(tmp_path, quick=True, workers=1)
     (suite,) = suites
     children = suite.supervisor.children
-    assert len(children) == len(demo.SUITE_NODES) and all(c.proc.poll() is not None for c in children)
+    alive = [c.name for c in children if c.proc.poll() is None]
+    for child in children:  # never leave one behind, even when the check fails
+        if child.proc.poll() is None:
+            child.proc.kill()
+    assert len(children) == len(demo.SUITE_NODES) and not alive, alive
