@@ -345,3 +345,16 @@ def test_cli_plan_writes_json_csv_png(tmp_path: Path, capsys: pytest.CaptureFixt
         main(["plan", str(bare), "--start", *map(str, START), "--goal", "1", "79", "--out", str(tmp_path / "x")]) == 2
     )
     assert "--workspace" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("stored", [
+    [1, 2], {"lower": "abc", "upper": [1.0, 2.0]}, {"lower": [0.0, 0.0], "upper": [1.0]},
+    {"lower": [0.0, True], "upper": [1.0, 1.0]}, {"lower": [0.0] * 1000, "upper": [1.0] * 1000},
+    {"lower": [0.0, 0.0], "upper": [1.0, 1.0], "load_limit": "x"}, {"lower": [1.0, 1.0], "upper": [0.0, 0.0]},
+    {"lower": [[0.0, 0.0]], "upper": [[1.0, 1.0]]},
+])
+def test_a_malformed_stored_workspace_is_a_one_line_value_error(stored):
+    with pytest.raises(ValueError) as err:
+        Workspace.from_metadata({"extra": {"workspace": stored}})
+    assert "\n" not in str(err.value)
+    assert Workspace.from_metadata({"extra": []}) is None

@@ -37,6 +37,10 @@ def _normals(directions: int) -> np.ndarray:
     return np.stack([np.cos(angles), np.sin(angles)], axis=1)
 
 
+MAX_DIRECTIONS = 360
+"""More bounding directions than any workspace needs (the trained ones use a few dozen); caps stored ones."""
+
+
 @dataclass(frozen=True)
 class Workspace:
     """Bounds ``lower[j] <= n_j . (x, y) <= upper[j]`` (margin included) and ``|load| <= load_limit``.
@@ -99,12 +103,26 @@ class Workspace:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "Workspace":
-        return cls(np.asarray(data["lower"]), np.asarray(data["upper"]), float(data.get("load_limit", OVERLOAD_LOAD)))
+        """The workspace of :meth:`to_dict`'s form; ValueError (one line) for anything else, as files carry it."""
+        if not isinstance(data, Mapping):
+            raise ValueError(f"a stored workspace must be an object, got {type(data).__name__}")
+        bounds = []
+        for key in ("lower", "upper"):
+            value = data.get(key)
+            if not (isinstance(value, list) and 2 <= len(value) <= MAX_DIRECTIONS
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+                raise ValueError(f"a stored workspace's {key!r} must be a list of 2 to {MAX_DIRECTIONS} numbers")
+            bounds.append(np.asarray(value, dtype=np.float64))
+        limit = data.get("load_limit", OVERLOAD_LOAD)
+        if not isinstance(limit, (int, float)) or isinstance(limit, bool):
+            raise ValueError(f"a stored workspace's load_limit must be a number, got {limit!r:.40}")
+        return cls(bounds[0], bounds[1], float(limit))
 
     @classmethod
     def from_metadata(cls, metadata: Mapping[str, Any]) -> "Workspace | None":
-        """The workspace a model file stores under ``extra.workspace``, or None."""
-        stored = (metadata.get("extra") or {}).get("workspace")
+        """The workspace a model file stores under ``extra.workspace``, or None; ValueError if it is malformed."""
+        extra = metadata.get("extra") or {}
+        stored = extra.get("workspace") if isinstance(extra, Mapping) else None
         return None if stored is None else cls.from_dict(stored)
 
     # ---------------------------------------------------------------- testing
