@@ -20,6 +20,13 @@ from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 
 DROP_REASONS = ("dropped", "lost_contact")
 
+MAX_EPISODES = 100_000
+MAX_STEPS = 100_000
+MAX_TRANSITIONS = 10_000_000
+"""Episodes x steps requested at most: 33x the paper's data set, a few GB of trajectories."""
+MAX_WORKERS = 256
+MAX_HOLD = 10_000
+
 
 @dataclass(frozen=True)
 class RandomPolicy:
@@ -97,6 +104,25 @@ def _episode_task(args: tuple[str, int, int, int, RandomPolicy]) -> Trajectory |
         return None
 
 
+def check_collection(hand: str, episodes: int, steps: int, workers: int | None = None, hold_max: int = 1) -> None:
+    """ValueError for settings :func:`collect` cannot honour, before any work or allocation.
+
+    Bounded so that a typo (``--episodes 1000000000``) is refused instead of filling memory.
+    """
+    from t42_transfer.hand.params import variant
+
+    variant(hand)  # ValueError for an unknown name
+    for name, value, high in (("episodes", episodes, MAX_EPISODES), ("steps", steps, MAX_STEPS),
+                              ("hold_max", hold_max, MAX_HOLD)):
+        if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= high:
+            raise ValueError(f"{name} must be an integer from 1 to {high}, got {value!r}")
+    if episodes * steps > MAX_TRANSITIONS:
+        raise ValueError(f"{episodes} episodes x {steps} steps is over {MAX_TRANSITIONS} transitions")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or not 1 <= workers <= MAX_WORKERS):
+        raise ValueError(f"workers must be an integer from 1 to {MAX_WORKERS} (or unset: all cores), got {workers!r}")
+
+
 def collect(
     hand: str,
     episodes: int,
@@ -113,8 +139,7 @@ def collect(
     """
     from tqdm.auto import tqdm
 
-    if episodes < 1 or steps < 1:
-        raise ValueError(f"need at least one episode of one step, got {episodes} x {steps}")
+    check_collection(hand, episodes, steps, workers, policy.hold_max)
     workers = workers or os.cpu_count() or 1
     tasks = [(hand, seed, e, steps, policy) for e in range(episodes)]
     bar = tqdm(total=episodes, desc=f"collect {hand}", unit="ep", disable=not progress)

@@ -18,7 +18,6 @@ only the true hand decides success.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shlex
 import sys
@@ -30,6 +29,7 @@ import numpy as np
 import torch
 
 from t42_transfer.hand.collect import run_episode
+from t42_transfer.hand.params import variant
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.planner import Planner, PlannerConfig
@@ -38,6 +38,8 @@ from t42_transfer.planning.workspace import Workspace
 
 GOAL_ATTEMPTS = 20
 """Goal sequences drawn per goal at most, while the true hand drops the object or ends outside the workspace."""
+MAX_TRIALS = 10_000
+MAX_THREADS = 1024
 
 
 @dataclass(frozen=True)
@@ -259,34 +261,60 @@ def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], Worksp
 
     models, workspace = {}, None
     for spec in paths:
-        name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
-        models[name or Path(file).stem], meta = load_model(file)
+        name, file = _model_spec(spec)
+        models[name], meta = load_model(file)
         workspace = workspace or Workspace.from_metadata(meta)
     return models, workspace
 
 
+def _model_spec(spec: str) -> tuple[str, Path]:
+    """``NAME=PATH`` or ``PATH`` (named by the file's stem) as (name, path)."""
+    name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
+    return name or Path(file).stem, Path(file)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    from t42_transfer.cli import (
+        MAX_HORIZON,
+        MAX_SAMPLES,
+        SEED_MAX,
+        OneLineParser,
+        check_plan_size,
+        existing_dir,
+        existing_file,
+        float_arg,
+        int_arg,
+        output_dir,
+    )
     from t42_transfer.data.bag_io import read_bag
 
-    parser = argparse.ArgumentParser(
-        prog="t42 peg-in-hole", description=__doc__.splitlines()[0]
-    )
+    parser = OneLineParser(prog="t42 peg-in-hole", description=__doc__.splitlines()[0])
     parser.add_argument("models", nargs="+", help="model files, PATH or NAME=PATH")
     parser.add_argument(
         "--workspace", nargs="+", type=Path, default=None,
         help="bags whose states define the trained workspace (default: the one the first model file stores)"
     )
     parser.add_argument("--out", type=Path, required=True, help="directory for peg_in_hole.{json,md,png}")
-    parser.add_argument("--distances", nargs="+", type=int, default=list(PegInHoleConfig.distances))
-    parser.add_argument("--trials", type=int, default=PegInHoleConfig.trials)
-    parser.add_argument("--tolerance", type=float, default=PegInHoleConfig.tolerance_mm, help="success tolerance (mm)")
-    parser.add_argument("--samples", type=int, default=PlannerConfig.samples)
-    parser.add_argument("--horizon", type=int, default=PlannerConfig.horizon)
+    parser.add_argument("--distances", nargs="+", type=int_arg(1, MAX_HORIZON), default=list(PegInHoleConfig.distances))
+    parser.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
+    parser.add_argument("--tolerance", type=float_arg(0, low_open=True), default=PegInHoleConfig.tolerance_mm,
+                        help="success tolerance (mm)")
+    parser.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples)
+    parser.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon)
     parser.add_argument("--hand", default="target")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
+    parser.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    parser.add_argument("--threads", type=int_arg(1, MAX_THREADS), default=1,
+                        help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    # Everything the user gave is checked before a model is loaded or a goal made.
+    check_plan_size(args.samples, args.horizon)
+    variant(args.hand)
+    for spec in args.models:
+        existing_file(_model_spec(spec)[1])
+    for bag in args.workspace or []:
+        existing_dir(bag)
+    output_dir(args.out)
     torch.set_num_threads(args.threads)
 
     models, stored = load_models(args.models)
@@ -319,4 +347,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from t42_transfer.cli import main as t42_main  # one-line errors, as `t42 peg-in-hole`
+
+    sys.exit(t42_main(["peg-in-hole", *sys.argv[1:]]))
