@@ -23,14 +23,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, TextIO
-
-import yaml
+from typing import IO, Any, TextIO
 
 from t42_transfer.nodes.registry import NODES
 from t42_transfer.ros.runner import keep_discovery_local
+from t42_transfer.yaml_files import read_yaml
 
 WILDCARDS = ("/**", "**")
+PARAMS_KEY = "ros__parameters"
 
 POLL_S = 0.1
 
@@ -55,25 +55,79 @@ def namespace_args(namespace: str) -> list[str]:
     return ["-r", f"__ns:={namespace}", "-r", f"/clock:={namespace}/clock"]
 
 
+def read_params_file(path: str | Path) -> dict[str, Any]:
+    """A ROS params file's node sections, checked as rcl's parser checks them; ValueError naming the file.
+
+    Every node process parses the file again (rcl); a file rcl would refuse is refused here
+    first, in one line, instead of by every child in turn.  Each section is ``node: {ros__parameters:
+    {...}}`` (or namespaces around that); parameters are scalars, lists of one scalar type, or
+    mappings of them (dotted names); YAML aliases are refused, as rcl refuses them.
+    """
+    doc = read_yaml(path, "params file", aliases=False)
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: a params file is a mapping of node sections, got {type(doc).__name__}")
+    for key, section in doc.items():
+        _check_section(path, key, section, "")
+    return doc
+
+
+_SCALARS = (bool, int, float, str)
+
+
+def _check_section(path: str | Path, key: Any, section: Any, outer: str) -> None:
+    where = outer + _where(key)
+    if not isinstance(key, str) or not key or key[0].isdigit():
+        raise ValueError(f"{path}: node section {where}: a name is a string not starting with a digit")
+    if not isinstance(section, dict):
+        raise ValueError(f"{path}: node section {where}: expected a mapping with {PARAMS_KEY}, "
+                         f"got {type(section).__name__}")
+    if PARAMS_KEY in section:
+        if len(section) > 1:
+            others = sorted(_where(k) for k in section if k != PARAMS_KEY)
+            raise ValueError(f"{path}: node section {where}: {', '.join(others)} beside {PARAMS_KEY}")
+        _check_params(path, f"{where}.{PARAMS_KEY}", section[PARAMS_KEY])
+        return
+    for inner, value in section.items():  # a namespace around node sections
+        _check_section(path, inner, value, f"{where}.")
+
+
+def _check_params(path: str | Path, where: str, params: Any) -> None:
+    if not isinstance(params, dict):
+        raise ValueError(f"{path}: {where}: expected a mapping of parameters, got {type(params).__name__}")
+    for name, value in params.items():
+        at = f"{where}.{_where(name)}"
+        if not isinstance(name, str):
+            raise ValueError(f"{path}: {at}: a parameter name is a string")
+        if isinstance(value, dict):
+            _check_params(path, at, value)
+        elif isinstance(value, list):
+            kinds = {type(v) for v in value}
+            if len(kinds) > 1 or not kinds <= set(_SCALARS):
+                raise ValueError(f"{path}: {at}: a list parameter holds values of one type (bool, int, float "
+                                 f"or string), got {', '.join(sorted(k.__name__ for k in kinds))}")
+        elif value is not None and not isinstance(value, _SCALARS):
+            raise ValueError(f"{path}: {at}: a parameter is a bool, int, float, string or list, "
+                             f"got {type(value).__name__}")
+
+
+def _where(key: Any) -> str:
+    text = key if isinstance(key, str) and key else repr(key)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def node_sections(path: str | Path) -> list[str]:
     """Names of the nodes a ROS params file has its own section for (wildcards excluded), in file order.
 
     Write sections as ``/**/name`` to match the node under any namespace (``t42 up --namespace``);
     a plain ``name`` section matches it only at the root namespace, as in rcl.
     """
-    try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise ValueError(f"params file {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        raise ValueError(f"params file {path}: not valid YAML ({str(err).splitlines()[0]})") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"params file {path}: expected a mapping of node names")
     names: list[str] = []
-    for key in doc:
+    for key in read_params_file(path):
         if key in WILDCARDS:
             continue
-        name = str(key).rsplit("/", 1)[-1]  # "/**/recorder", "/left/recorder" and "recorder" name the recorder
+        name = key.rsplit("/", 1)[-1]  # "/**/recorder", "/left/recorder" and "recorder" name the recorder
         if name not in names:
             names.append(name)
     return names
