@@ -79,10 +79,14 @@ def test_two_workers_give_the_same_numbers(config_file: Path, tmp_path: Path) ->
     "change, message",
     [
         (lambda t: t.replace("seeds: 2", "seeds: 2\nsedes: 3"), "unknown experiment settings \\['sedes'\\]"),
-        (lambda t: t.replace("[direct,", "[direct, magic,"), "unknown methods \\['magic'\\]"),
+        (lambda t: t.replace("[direct,", "[direct, magic,"), "methods must be one of \\[.*'direct'.*\\], got 'magic'"),
         (lambda t: t.replace("source_training: {epochs: 2}", "source_training: {epoch: 2}"), "unknown TrainConfig settings"),
         (lambda t: t.replace("name: tiny", ""), "needs name, source and target"),
-        (lambda t: "name: [unclosed\n" + t, "cannot read"),
+        (lambda t: "name: [unclosed\n" + t, "not valid YAML: expected ',' or '\\]', but got ':' at line 3, column 5"),
+        (lambda t: t.replace("seeds: 2", "seeds: 0"), "seeds must be in \\[1, 1000\\], got 0"),
+        (lambda t: t.replace("amounts: [1, 2]", "amounts: [.nan]"), "amounts\\[0\\] must be a finite number, got nan"),
+        (lambda t: t.replace("name: tiny", "name: ../../escape"), "name must be one plain path component"),
+        (lambda t: t.replace("gamma: 0.99", "gamma: [0.99]"), "transfer.cumulative_residual.gamma must be a finite"),
     ],
 )
 def test_config_errors_name_the_file_and_setting(config_file: Path, change, message: str) -> None:
@@ -90,6 +94,41 @@ def test_config_errors_name_the_file_and_setting(config_file: Path, change, mess
     with pytest.raises(ValueError, match=message) as err:
         load_config(config_file)
     assert str(config_file) in str(err.value)
+
+
+@pytest.mark.parametrize("shipped", sorted(set((REPO / "configs").rglob("*.yaml")) - {REPO / "configs" / "suite.yaml"}),
+                         ids=lambda p: p.name)
+def test_every_shipped_config_loads(shipped: Path) -> None:
+    cfg = load_config(shipped)
+    assert exp.SAFE_NAME.fullmatch(cfg.name)
+
+
+def test_configs_built_in_code_keep_the_same_rules(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    cfg = load_config(config_file)
+    with pytest.raises(ValueError, match="name must be one plain path component"):
+        dataclasses.replace(cfg, name="../out")
+    for bad in (dict(seeds=0), dict(amounts=(float("nan"),)), dict(workers=0), dict(methods=("direct", "direct"))):
+        with pytest.raises(ValueError):
+            run_experiment(dataclasses.replace(cfg, **bad), tmp_path / "runs", progress=False)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_run_lock_is_released_when_the_run_fails(config_file: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    import dataclasses
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=1)
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("a failing cell")
+
+    monkeypatch.setattr(exp, "transfer", boom)
+    with pytest.raises(RuntimeError, match="a failing cell"):
+        run_experiment(cfg, tmp_path, progress=False)
+    monkeypatch.undo()
+    assert len(run_experiment(cfg, tmp_path, progress=False)) == 1  # not "in use by another run"
 
 
 def test_results_json_holds_the_config(config_file: Path, tmp_path: Path) -> None:

@@ -10,28 +10,44 @@ changed setting reruns only what it touches.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
+import math
 import multiprocessing
 import os
+import re
+import reprlib
 import time
+import types
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Union, get_args, get_origin, get_type_hints
 
 import numpy as np
 import torch
 import yaml
 
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
+from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet, split_by_fraction
+from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, check_collection
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
-from t42_transfer.transfer.config import TransferConfig
+from t42_transfer.transfer.config import (
+    L2FineTuneConfig,
+    NewModelConfig,
+    ResidualConfig,
+    TrajectoryFineTuneConfig,
+    TransferConfig,
+)
 from t42_transfer.transfer.methods import METHODS, transfer
+from t42_transfer.yaml_files import read_yaml
 
 RESULT_COLUMNS = (
     "method", "amount", "seed", "train_episodes", "train_transitions", "test_rollouts", "divergence_mean",
@@ -61,6 +77,7 @@ class DataSpec:
 @dataclass(frozen=True)
 class ExperimentConfig:
     name: str
+    """The run directory's name under ``--out``: one plain path component."""
     source: DataSpec
     target: DataSpec
     methods: tuple[str, ...] = tuple(METHODS)
@@ -78,62 +95,153 @@ class ExperimentConfig:
     transfer: TransferConfig = field(default_factory=TransferConfig)
     workers: int | None = None
 
+    def __post_init__(self) -> None:
+        # The run directory is ``out / name``: anything but one plain component could leave ``out``.
+        if not (isinstance(self.name, str) and SAFE_NAME.fullmatch(self.name)):
+            raise ValueError(f"name must be one plain path component (letters, digits, '.', '_', '-'; "
+                             f"not starting with '.'; at most 100 characters), got {_show(self.name)}")
 
-def _build(cls: type, values: dict[str, Any]) -> Any:
-    """A (nested) frozen dataclass from a dict, refusing unknown keys with their names."""
+
+SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,99}")
+MAX_SEEDS = 1000
+MAX_CELLS = 100_000
+MAX_EVAL_STEPS = 100_000
+"""Bound of every step count of the evaluation (offsets, horizons, windows, epochs)."""
+SEED_RANGE = (0, 2**32 - 1)
+SPLITS = ("fraction", "paths")
+
+_Rule = tuple[Callable[[Any], bool], str]
+
+
+def _between(low: float, high: float, low_open: bool = False, high_open: bool = False) -> _Rule:
+    def ok(v: Any) -> bool:
+        return (low < v if low_open else low <= v) and (v < high if high_open else v <= high)
+    return ok, (f"{'>' if low_open else '>='} {low}" if math.isinf(high) else
+                f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}")
+
+
+_STEPS, _SEED, _FRACTION, _POSITIVE = (_between(1, MAX_EVAL_STEPS), _between(*SEED_RANGE),
+                                       _between(0, 1, True, True), _between(0, math.inf, True))
+RULES: dict[type, dict[str, _Rule]] = {
+    ExperimentConfig: {
+        "seeds": _between(1, MAX_SEEDS), "amounts": _between(0, MAX_EPISODES, True), "test_fraction": _FRACTION,
+        "epsilon_mm": _POSITIVE, "start_offsets": _between(0, MAX_EVAL_STEPS), "horizon": _STEPS,
+        "lyapunov_steps": _STEPS, "workers": _between(1, MAX_WORKERS),
+        "split": (lambda v: v in SPLITS, f"one of {SPLITS}"),
+        "methods": (lambda v: v in METHODS, f"one of {sorted(METHODS)}"),
+    },
+    DataSpec: {"episodes": _between(1, MAX_EPISODES), "steps": _between(1, MAX_STEPS), "seed": _SEED,
+               "real": (lambda v: v in REAL_FILES, f"one of {sorted(REAL_FILES)}")},
+    TrainConfig: {"lr": _POSITIVE, "epochs": _STEPS, "batch_size": _between(1, 2**31 - 1),
+                  "weight_decay": _between(0, math.inf), "grad_clip": _POSITIVE, "patience": _between(0, MAX_EVAL_STEPS),
+                  "seed": _SEED},
+    NewModelConfig: {"val_fraction": _FRACTION},
+    L2FineTuneConfig: {"l2": _between(0, math.inf)},
+    TrajectoryFineTuneConfig: {"horizon": _STEPS, "stride": _STEPS, "cutoff_mm2": _POSITIVE},
+    ResidualConfig: {"alpha": _between(0, math.inf), "gamma": _between(0, 1, True), "val_fraction": _FRACTION},
+}
+"""What each setting must be beyond its type (every element of a list setting)."""
+
+
+def _show(value: Any) -> str:
+    text = reprlib.repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _typed(value: Any, hint: Any, where: str) -> Any:
+    """``value`` from YAML checked against a field's annotation (lists become tuples); ValueError otherwise."""
+    origin, args = get_origin(hint), get_args(hint)
+    if origin in (Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        (hint,) = [a for a in args if a is not type(None)]
+        return _typed(value, hint, where)
+    if origin is tuple:
+        many = len(args) == 2 and args[1] is Ellipsis
+        if not isinstance(value, list) or not value or (not many and len(value) != len(args)):
+            size = "a non-empty list" if many else f"a list of {len(args)}"
+            raise ValueError(f"{where} must be {size}, got {_show(value)}")
+        hints = args[:1] * len(value) if many else args
+        return tuple(_typed(v, h, f"{where}[{i}]") for i, (v, h) in enumerate(zip(value, hints)))
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            raise ValueError(f"{where} must be a mapping of {hint.__name__} settings, got {_show(value)}")
+        return _build(hint, value, f"{where}.")
+    if hint is bool:
+        ok = isinstance(value, bool)
+    elif hint is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif hint is float:  # ints are floats here; NaN and inf never are
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and (
+            isinstance(value, int) or math.isfinite(value))
+    else:
+        ok = isinstance(value, hint)
+    if not ok:
+        kind = {float: "a finite number", int: "an integer", bool: "true or false", str: "a string"}.get(hint, hint)
+        raise ValueError(f"{where} must be {kind}, got {_show(value)}")
+    return value
+
+
+def _build(cls: type, values: dict[Any, Any], prefix: str = "") -> Any:
+    """A (nested) frozen dataclass from a YAML mapping: unknown keys, wrong types and values out of range refused."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - set(fields))
+    unknown = sorted(str(k) for k in values if k not in fields)
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} settings {unknown}; known: {sorted(fields)}")
+        kind = "experiment" if cls is ExperimentConfig else cls.__name__
+        inside = f" in {prefix[:-1]}" if prefix else ""
+        raise ValueError(f"unknown {kind} settings {_show(unknown)}{inside}; known: {sorted(fields)}")
+    hints, rules = get_type_hints(cls), RULES.get(cls, {})
     kwargs = {}
     for key, value in values.items():
-        default = getattr(cls(), key)
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            kwargs[key] = _build(type(default), value)
-        elif isinstance(value, list):
-            kwargs[key] = tuple(value)
-        else:
-            kwargs[key] = value
+        where = f"{prefix}{key}"
+        kwargs[key] = _typed(value, hints[key], where)
+        if key in rules and kwargs[key] is not None:
+            ok, wanted = rules[key]
+            for item in kwargs[key] if isinstance(kwargs[key], tuple) else (kwargs[key],):
+                if not ok(item):
+                    raise ValueError(f"{where} must be {wanted}, got {_show(item)}")
     return cls(**kwargs)
 
 
 def load_config(path: str | os.PathLike[str]) -> ExperimentConfig:
-    """Read an experiment YAML; errors name the file and the offending setting."""
+    """Read an experiment YAML; ValueError naming the file and the offending setting, before anything runs."""
     file = Path(path)
-    try:
-        raw = yaml.safe_load(file.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise ValueError(f"{file}: cannot read the experiment config ({err})") from None
+    raw = read_yaml(file, "experiment config")
     if not isinstance(raw, dict) or "name" not in raw or "source" not in raw or "target" not in raw:
         raise ValueError(f"{file}: an experiment config needs name, source and target")
     try:
-        raw = dict(raw)
-        raw["source"], raw["target"] = _build(DataSpec, raw["source"]), _build(DataSpec, raw["target"])
-        cfg = _build_experiment(raw)
-    except (TypeError, ValueError) as err:
+        cfg = _build(ExperimentConfig, raw)
+        check_config(cfg)
+    except ValueError as err:
         raise ValueError(f"{file}: {err}") from None
-    unknown = sorted(set(cfg.methods) - set(METHODS))
-    if unknown:
-        raise ValueError(f"{file}: unknown methods {unknown}; known: {sorted(METHODS)}")
     return cfg
 
 
-def _build_experiment(raw: dict[str, Any]) -> ExperimentConfig:
-    fields = {f.name for f in dataclasses.fields(ExperimentConfig)}
-    unknown = sorted(set(raw) - fields)
-    if unknown:
-        raise ValueError(f"unknown experiment settings {unknown}; known: {sorted(fields)}")
-    kwargs: dict[str, Any] = {}
-    for key, value in raw.items():
-        if key == "source_training":
-            kwargs[key] = _build(TrainConfig, value)
-        elif key == "transfer":
-            kwargs[key] = _build(TransferConfig, value)
-        elif isinstance(value, list):
-            kwargs[key] = tuple(value)
-        else:
-            kwargs[key] = value
-    return ExperimentConfig(**kwargs)
+def check_config(cfg: ExperimentConfig) -> None:
+    """ValueError unless ``cfg`` keeps every rule of a config file, also when built in code.
+
+    Beyond each setting's type and range: one data source per side, no repeated or too many
+    cells, amounts that fit the split.
+    """
+    _build(ExperimentConfig, _config_dict(cfg))
+    for side in ("source", "target"):
+        spec: DataSpec = getattr(cfg, side)
+        given = [k for k in ("hand", "bag", "real") if getattr(spec, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
+        if spec.hand is not None:
+            check_collection(spec.hand, spec.episodes, spec.steps)
+    for key in ("methods", "amounts"):
+        values = getattr(cfg, key)
+        if len(set(values)) != len(values):
+            raise ValueError(f"{key} repeat an entry: {_show(values)}")
+    cells = len(cfg.methods) * len(cfg.amounts) * cfg.seeds
+    if cells > MAX_CELLS:
+        raise ValueError(f"{cells} cells (methods x amounts x seeds) is over {MAX_CELLS}")
+    if cfg.split == "fraction" and max(cfg.amounts) > 1:
+        raise ValueError(f"amounts are fractions of the target pool with split: fraction, got {max(cfg.amounts)}")
+    if cfg.split == "paths" and not all(float(a).is_integer() for a in cfg.amounts):
+        raise ValueError(f"amounts are numbers of episodes with split: paths, got {_show(cfg.amounts)}")
 
 
 def _digest(obj: Any) -> str:
@@ -151,8 +259,6 @@ def data_cache(run_dir: Path) -> Path:
 def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
     """The trajectories ``spec`` names; simulated sets are collected once and kept as bags in ``cache``."""
     if spec.real:
-        from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
-
         data = load_t42_testpaths(real_data_dir() / REAL_FILES[spec.real])
     elif spec.bag:
         data = read_bag(spec.bag)
@@ -288,16 +394,60 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) ->
 
 
 def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> list[dict[str, Any]]:
-    """Run (or resume) every cell; write ``results.json`` and ``results.csv`` in ``out / cfg.name``."""
-    from tqdm.auto import tqdm
+    """Run (or resume) every cell; write ``results.json`` and ``results.csv`` in ``out / cfg.name``.
 
+    The config is checked first and the run directory locked: a bad setting or a run directory in
+    use is refused before anything is written.
+    """
+    check_config(cfg)
+    for side in ("source", "target"):
+        _check_input(getattr(cfg, side), side)
     run_dir = Path(out) / cfg.name
-    (run_dir / "cells").mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
-    source_path = train_source(cfg, run_dir, progress)
     target = load_data(cfg.target, data_cache(run_dir))
     if len(target) < 2:
         raise ValueError(f"the target set has {len(target)} episodes; need at least 2")
+    if cfg.split == "paths" and max(cfg.amounts) >= len(target):
+        raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
+                         f"{len(target)}: some must stay for testing")
+    (run_dir / "cells").mkdir(parents=True, exist_ok=True)
+    with _run_lock(run_dir):
+        return _run(cfg, run_dir, progress)
+
+
+def _check_input(spec: DataSpec, side: str) -> None:
+    """A missing bag or real-hand file is refused before the run writes anything."""
+    if spec.bag is not None and not Path(spec.bag).is_dir():
+        raise ValueError(f"{side}.bag: {spec.bag}: no bag directory there")
+    if spec.real is not None and not (real_data_dir() / REAL_FILES[spec.real]).is_file():
+        raise ValueError(f"{side}.real: {real_data_dir() / REAL_FILES[spec.real]}: no such file (see $T42_REAL_DATA)")
+
+
+@contextlib.contextmanager
+def _run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold ``run_dir/.lock`` while a run writes there: a second run would interleave cells and results.
+
+    An advisory ``flock``: the kernel drops it when the holder exits, however it ends, so no stale lock.
+    """
+    path = run_dir / ".lock"
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+            raise ValueError(f"{run_dir}: in use by another run ({holder or 'its lock file is held'})") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"pid {os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str, Any]]:
+    from tqdm.auto import tqdm
+
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
+    source_path = train_source(cfg, run_dir, progress)
     cells = [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
     rows: dict[Cell, dict[str, Any]] = {}
     todo = []
