@@ -181,12 +181,13 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
-    from t42_transfer.data.bag_io import bag_info
+    from t42_transfer.data.bag_io import bag_info, verify_bag
 
     info = bag_info(args.bag)
+    mismatches = verify_bag(args.bag) if args.verify else []
     if args.json:
-        print(json.dumps(info, indent=2, default=str))
-        return 0
+        print(json.dumps({**info, "verify": mismatches} if args.verify else info, indent=2, default=str))
+        return 1 if mismatches else 0
     for key, value in info.items():
         if isinstance(value, dict):
             print(f"{key}:")
@@ -194,7 +195,12 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
                 print(f"  {k}: {v}")
         else:
             print(f"{key}: {value}")
-    return 0
+    if args.verify:
+        print(f"verify: {len(mismatches)} mismatches between metadata.yaml and the data" if mismatches
+              else "verify: metadata.yaml agrees with the data")
+        for mismatch in mismatches:
+            print(f"  {mismatch}")
+    return 1 if mismatches else 0
 
 
 def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
@@ -450,6 +456,9 @@ def build_parser() -> argparse.ArgumentParser:
     info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata")
     info.add_argument("bag", type=Path)
     info.add_argument("--json", action="store_true")
+    info.add_argument("--verify", action="store_true",
+                      help="check metadata.yaml's message counts, start time and duration against the data; "
+                           "exit 1 on a mismatch")
     info.set_defaults(func=_cmd_bag_info)
     imp = bag.add_parser("import-t42", help="convert a public T42 test-path pickle into a bag")
     imp.add_argument("pickle", type=Path)

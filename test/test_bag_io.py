@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import tempfile
@@ -12,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+import zstandard
+from fuzz_harness import DecoderWorker
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -21,6 +24,7 @@ from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 import msg_adapters as ma
+from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
 from t42_transfer.data import bag_io
 from t42_transfer.data.bag_io import (
@@ -30,6 +34,7 @@ from t42_transfer.data.bag_io import (
     assign_start_times,
     bag_info,
     read_bag,
+    verify_bag,
     write_bag,
 )
 from t42_transfer.data.errors import BagError
@@ -392,7 +397,7 @@ def test_foreign_type_definition_is_refused(tmp_path, episode):
         }
         for topic, stamp, msg in step_messages(episode):
             writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
-    with pytest.warns(UserWarning, match="hash mismatch"), pytest.raises(BagError, match="type hash RIHS01_0000"):
+    with pytest.raises(BagError, match="type hash RIHS01_0000"):
         read_bag(path)
 
 
@@ -427,22 +432,73 @@ def test_gap_raises_unless_allowed_then_splits(tmp_path, episode):
     assert np.array_equal(second.states, episode.states[24:]) and np.array_equal(second.actions, episode.actions[24:])
 
 
-def test_state_without_pose(tmp_path, episode):
-    stamp = episode.start_ns + 7 * CONTROL_PERIOD_NS
-    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[:2] != (POSE, stamp)])
-    with pytest.raises(BagError, match=f"state at stamp {stamp} ns .* has no /hand/object_pose"):
-        read_bag(path)
+# ------------------------------------------------------------------ partial data: whole steps salvaged
 
 
-def test_state_without_action_and_stray_actions(tmp_path, episode):
-    stamp = episode.start_ns + 7 * CONTROL_PERIOD_NS
-    path = write_messages(tmp_path / "a", [m for m in step_messages(episode) if m[:2] != (ACTION, stamp)])
-    with pytest.raises(BagError, match=f"state at stamp {stamp} ns has no /hand/applied_action"):
-        read_bag(path)
-    stray = episode.start_ns + len(episode) * CONTROL_PERIOD_NS + 300_000_000
-    extra = [*step_messages(episode), (ACTION, stray, ma.applied_action_msg([1.0, 1.0], stray))]
-    with pytest.raises(BagError, match=f"applied_action at stamp {stray} ns matches no"):
-        read_bag(write_messages(tmp_path / "b", extra))
+def assert_slice(got: Trajectory, whole: Trajectory, first: int, last: int) -> None:
+    """``got`` is states ``first..last`` of ``whole`` with their actions, starting at state ``first``'s stamp."""
+    assert got.start_ns == whole.start_ns + first * CONTROL_PERIOD_NS
+    assert np.array_equal(got.states, whole.states[first : last + 1])
+    assert np.array_equal(got.actions, whole.actions[first:last])
+    assert np.array_equal(got.actuator_angles, whole.actuator_angles[first : last + 1])
+
+
+def test_a_recording_begun_between_a_state_and_its_action_keeps_the_rest(tmp_path, episode):
+    """The issue's case: under load the recorder started after step 0's state, so the bag begins with an
+    /hand/applied_action whose state is absent; the whole bag was refused."""
+    start = episode.start_ns
+    messages = [m for m in step_messages(episode) if not (m[1] == start and m[0] != ACTION)]
+    assert messages[0][:2] == (ACTION, start)
+    path = write_messages(tmp_path / "bag", messages)
+    warned = rf"{re.escape(str(path))}: kept the whole steps only; dropped {ACTION} messages with no {JOINTS} " \
+             rf"within 50 ms: 1 \(stamp {start} ns\)$"
+    with pytest.warns(UserWarning, match=warned):
+        (got,) = read_bag(path)
+    assert_slice(got, episode, 1, len(episode))
+
+
+def test_a_recording_ended_mid_step_keeps_the_rest(tmp_path, episode):
+    last = episode.start_ns + len(episode) * CONTROL_PERIOD_NS
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[:2] != (POSE, last)])
+    with pytest.warns(UserWarning, match=f"dropped {JOINTS} messages with no {POSE} within 50 ms, with their "
+                                         f"actions: 1 \\(stamp {last} ns\\)"):
+        (got,) = read_bag(path)
+    assert_slice(got, episode, 0, len(episode) - 1)
+
+
+@pytest.mark.parametrize("lost,fragments,dropped", ids=["pose", "state", "action"], argvalues=[
+    (POSE, [(0, 29), (31, 60)], f"{JOINTS} messages with no {POSE} within 50 ms, with their actions"),
+    (JOINTS, [(0, 29), (31, 60)], f"{POSE} messages with no {JOINTS} within 50 ms"),
+    (ACTION, [(0, 30), (31, 60)], f"the transitions from {JOINTS} messages with no {ACTION} within 50 ms"),
+])
+def test_one_lost_message_splits_its_episode_there(tmp_path, episode, lost, fragments, dropped):
+    stamp = episode.start_ns + 30 * CONTROL_PERIOD_NS
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[:2] != (lost, stamp)])
+    with pytest.warns(UserWarning, match=f"{re.escape(dropped)}: 1 \\(stamp {stamp} ns\\)"):
+        got = read_bag(path)
+    assert len(got) == len(fragments)
+    for traj, (first, last) in zip(got, fragments):
+        assert_slice(traj, episode, first, last)
+
+
+def test_stray_messages_are_dropped_and_named(tmp_path, episode):
+    after = episode.start_ns + len(episode) * CONTROL_PERIOD_NS + 300_000_000
+    extra = [*step_messages(episode), (ACTION, after, ma.applied_action_msg([1.0, 1.0], after)),
+             (POSE, after + 1, ma.object_pose_msg([0.0, 0.0], after + 1))]
+    with pytest.warns(UserWarning, match=f"{ACTION} messages with no {JOINTS} within 50 ms: 1 \\(stamp {after} ns\\); "
+                                         f"{POSE} messages with no {JOINTS} within 50 ms: 1 "
+                                         f"\\(stamp {after + 1} ns\\)"):
+        (got,) = read_bag(write_messages(tmp_path / "bag", extra))
+    assert_slice(got, episode, 0, len(episode))
+
+
+def test_several_actions_for_one_state_are_still_refused(tmp_path, episode):
+    stamp = episode.start_ns + 5 * CONTROL_PERIOD_NS
+    second = stamp + 10_000_000
+    extra = [*step_messages(episode), (ACTION, second, ma.applied_action_msg([0.0, 0.0], second))]
+    extra.sort(key=lambda m: m[1])
+    with pytest.raises(BagError, match=f"several /hand/applied_action messages match the state at stamp {stamp} ns"):
+        read_bag(write_messages(tmp_path / "bag", extra))
 
 
 def test_stamps_closer_than_half_a_period(tmp_path, episode):
@@ -535,7 +591,7 @@ def test_cut_in_the_summary_loses_nothing(tmp_path, big_bag):
 
 def test_missing_metadata_yaml_on_an_intact_bag(tmp_path, small_set):
     copy = damaged_copy(tmp_path, write_bag(tmp_path / "bag", small_set), drop_yaml=True)
-    with pytest.warns(UserWarning, match="no metadata.yaml"):
+    with pytest.warns(UserWarning, match="metadata.yaml is missing"):
         assert_same(read_bag(copy), small_set)  # custom_data comes from the MCAP metadata record
 
 
@@ -571,3 +627,193 @@ def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):
                 assert str(bag) in str(err)
                 outcomes.add("BagError")
     assert "BagError" in outcomes
+
+
+# ------------------------------------------------------------------ hostile bags: one-line errors, no hang, no writes
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET = REPO / "bags" / "target_small"
+
+
+def fixture_copy(tmp_path: Path, edit=None) -> Path:
+    """The target fixture bag copied; ``edit(info)`` changes its rosbag2_bagfile_information in place."""
+    bag = Path(shutil.copytree(TARGET, tmp_path / "target_small"))
+    if edit is not None:
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        edit(meta["rosbag2_bagfile_information"])
+        (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    return bag
+
+
+def nested(depth: int) -> list:
+    value: list = []
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+def refusal(bag: Path, function=read_bag) -> str:
+    """The one-line BagError ``function`` raises for ``bag``."""
+    with pytest.raises(BagError) as err:
+        function(bag)
+    text = str(err.value)
+    assert text.startswith(f"{bag}: ") and "\n" not in text, text
+    return text
+
+
+WRONG_TYPES = {
+    "relative_file_paths a bool": (lambda i: i.update(relative_file_paths=True), "relative_file_paths must be a list"),
+    "a topic entry a string": (lambda i: i.update(topics_with_message_count=["oops"]),
+                               r"topics_with_message_count\[0\] must be a mapping, not str"),
+    "deeply nested custom_data": (lambda i: i["custom_data"].update(deep=nested(100)), "custom_data deep must be text"),
+    "storage_identifier a list": (lambda i: i.update(storage_identifier=["mcap"]), "storage_identifier must be text"),
+    "a file name a number": (lambda i: i.update(relative_file_paths=[7]), "relative_file_paths must list file names"),
+    "custom_data a list": (lambda i: i.update(custom_data=["a"]), "custom_data must be a mapping, not list"),
+    "a count as text": (lambda i: i["topics_with_message_count"][1].update(message_count="many"),
+                        r"topics_with_message_count\[1\].message_count must be an integer"),
+    "a topic name missing": (lambda i: i["topics_with_message_count"][0]["topic_metadata"].pop("name"),
+                             r"topics_with_message_count\[0\] names no topic"),
+    "start time a bool": (lambda i: i["starting_time"].update(nanoseconds_since_epoch=True),
+                          "starting_time.nanoseconds_since_epoch must be an integer, not bool"),
+    "not bag information": (lambda i: i.clear() or i.update(rosbag2_bagfile_information=None),
+                            "no rosbag2_bagfile_information"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(WRONG_TYPES))
+def test_metadata_of_the_wrong_types_is_refused_in_one_line(tmp_path, case):
+    edit, problem = WRONG_TYPES[case]
+    bag = fixture_copy(tmp_path, edit if case != "not bag information" else None)
+    if case == "not bag information":
+        (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: 3\n")
+    for function in (read_bag, bag_info, verify_bag):
+        assert re.search(problem, refusal(bag, function))
+
+
+def test_metadata_nested_beyond_the_parser_is_unreadable_yaml(tmp_path):
+    bag = fixture_copy(tmp_path)
+    deep = f"  custom_data:\n    deep: {'[' * 5000}{']' * 5000}\n"
+    (bag / "metadata.yaml").write_text((bag / "metadata.yaml").read_text().replace("  custom_data:\n", deep))
+    with pytest.warns(UserWarning, match=r"metadata.yaml is unreadable \(RecursionError"):
+        assert len(read_bag(bag)) == 4
+    assert verify_bag(bag)[0].startswith("metadata.yaml is unreadable (RecursionError")
+
+
+def test_a_compressed_bag_is_refused_without_unpacking_it_anywhere(tmp_path, monkeypatch):
+    """rosbags unpacks a compression_mode FILE bag into a temporary folder outside the bag."""
+    bag = fixture_copy(tmp_path, lambda i: i.update(compression_mode="FILE", compression_format="zstd",
+                                                    relative_file_paths=["target_small.mcap.zstd"]))
+    mcap = bag / "target_small.mcap"
+    (bag / "target_small.mcap.zstd").write_bytes(zstandard.ZstdCompressor().compress(mcap.read_bytes()))
+    mcap.unlink()
+    made = []
+    monkeypatch.setattr(tempfile, "mkdtemp", lambda *a, **k: made.append(a) or pytest.fail("a temporary folder"))
+    for function in (read_bag, bag_info, verify_bag):
+        assert "is compressed (compression_mode FILE, compression_format zstd)" in refusal(bag, function)
+    assert made == []
+
+
+@pytest.mark.parametrize("where", ["bag", "storage file", "metadata.yaml", "bare file"])
+@pytest.mark.parametrize("function", ["read_bag", "bag_info", "verify_bag"])
+def test_fifos_are_refused_before_opening(where, function):
+    """A FIFO blocks whoever opens it for reading; each run goes through the fuzz worker, whose alarm ends a hang."""
+    with DecoderWorker(f"t42_transfer.data.bag_io:{function}", timeout_s=10.0) as worker:
+        case = worker.new_case_dir()
+        if where in ("bag", "bare file"):
+            path = case / ("bag" if where == "bag" else "bag.mcap")
+            os.mkfifo(path)
+        else:
+            path = fixture_copy(case)
+            name = "metadata.yaml" if where == "metadata.yaml" else "target_small.mcap"
+            (path / name).unlink()
+            os.mkfifo(path / name)
+        verdict = worker.check_path(path)
+    assert verdict.outcome == "refused" and "FIFO" in verdict.detail, verdict
+
+
+@pytest.mark.parametrize("name", ["metadata.yaml", "target_small.mcap"])
+def test_a_directory_where_a_file_belongs_is_refused(tmp_path, name):
+    bag = fixture_copy(tmp_path)
+    (bag / name).unlink()
+    (bag / name).mkdir()
+    assert f"{name} is a directory, not a regular file" in refusal(bag)
+
+
+@pytest.mark.parametrize("error", [PermissionError(13, "Permission denied"), IsADirectoryError(21, "Is a directory"),
+                                   NotADirectoryError(20, "Not a directory")], ids=lambda e: type(e).__name__)
+@pytest.mark.parametrize("at", ["stat", "read_bytes"])
+def test_os_errors_become_one_line_bag_errors(tmp_path, monkeypatch, error, at):
+    """As an unreadable bag directory, or metadata.yaml, fails for a user without root."""
+    bag = fixture_copy(tmp_path)
+    failing = bag if at == "stat" else bag / "metadata.yaml"
+    original = getattr(Path, at)
+
+    def fail_at(self, *args, **kwargs):
+        if self == failing:
+            raise type(error)(error.errno, error.strerror, str(self))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, at, fail_at)
+    for function in (read_bag, bag_info, verify_bag):
+        assert refusal(bag, function).endswith(f"{error.strerror}: {failing}")
+
+
+def test_metadata_paths_never_lead_out_of_the_bag(tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "target_small.mcap").write_bytes(b"not the bag's")
+    bag = fixture_copy(tmp_path, lambda i: i.update(relative_file_paths=["../outside/target_small.mcap"]))
+    assert len(read_quietly(bag)) == 4  # the bag's own file, by name
+    bag = fixture_copy(tmp_path / "2", lambda i: i.update(relative_file_paths=["/etc/passwd"]))
+    assert "metadata.yaml lists passwd, which is missing" in refusal(bag)
+    bag = fixture_copy(tmp_path / "3", lambda i: i.update(relative_file_paths=[".."]))
+    assert "names no file" in refusal(bag)
+
+
+# ------------------------------------------------------------------ t42 bag info --verify
+
+
+def test_verify_a_sound_bag(tmp_path, small_set, capsys):
+    assert verify_bag(TARGET) == []
+    assert verify_bag(write_bag(tmp_path / "bag", small_set)) == []
+    assert verify_bag(write_bag(tmp_path / "sq", small_set, storage="sqlite3")) == []
+    assert main(["bag", "info", "--verify", str(TARGET)]) == 0
+    assert "verify: metadata.yaml agrees with the data" in capsys.readouterr().out
+
+
+def test_verify_names_each_mismatch(tmp_path, capsys):
+    def edit(info):
+        info["message_count"] = 1000
+        info["topics_with_message_count"][2]["message_count"] = 359
+        info["topics_with_message_count"].pop(0)
+        info["starting_time"]["nanoseconds_since_epoch"] = 5
+        info["duration"]["nanoseconds"] = 7
+
+    bag = fixture_copy(tmp_path, edit)
+    shutil.copy(bag / "target_small.mcap", bag / "extra.mcap")
+    found = verify_bag(bag)
+    assert found == [
+        "metadata.yaml lists files ['target_small.mcap'], the bag holds ['extra.mcap', 'target_small.mcap']",
+        "metadata.yaml counts 359 messages on /hand/applied_action, the data holds 360",
+        "/hand/object_pose: 364 messages in the data, not listed in metadata.yaml",
+        "metadata.yaml counts 1000 messages, the data holds 1088",
+        "metadata.yaml says the bag starts at 5 ns, its first message is logged at 1000000000 ns",
+        "metadata.yaml says the bag lasts 7 ns, its messages span 42000000000 ns",
+    ]
+    assert main(["bag", "info", "--verify", str(bag)]) == 1
+    out = capsys.readouterr().out
+    assert "verify: 6 mismatches between metadata.yaml and the data" in out and all(f in out for f in found)
+    assert main(["bag", "info", "--verify", "--json", str(bag)]) == 1
+    assert json.loads(capsys.readouterr().out)["verify"] == found
+
+
+def test_verify_a_killed_or_cut_bag(tmp_path, big_bag, capsys):
+    bag, _ = big_bag
+    copy = damaged_copy(tmp_path, bag, int((bag / "bag.mcap").stat().st_size * 0.6))
+    (stopped, *rest) = verify_bag(copy)
+    assert stopped.startswith("bag.mcap is unreadable from offset") and rest
+    (copy / "metadata.yaml").unlink()
+    assert verify_bag(copy)[-1] == "metadata.yaml is missing: nothing to verify the data against"
+    assert "is a storage file, not a bag directory" in refusal(copy / "bag.mcap", verify_bag)
+    assert main(["bag", "info", "--verify", str(copy / "bag.mcap")]) == 2
+    assert capsys.readouterr().err.startswith(f"t42: error: {copy / 'bag.mcap'}: is a storage file")

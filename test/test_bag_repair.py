@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -10,14 +11,17 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from fuzz_harness import DecoderWorker
 from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.highlevel import AnyReader
 from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
 
 from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
 from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag_io import bag_info, read_bag
+from t42_transfer.data.bag_io import bag_info, read_bag, verify_bag, write_bag
 from t42_transfer.data.bag_repair import repair_bag
 from t42_transfer.data.errors import BagError
 
@@ -170,4 +174,103 @@ def test_cli_bag_repair(ros: Any, tmp_path: Path, capsys: pytest.CaptureFixture[
     assert main(["bag", "repair", str(bag)]) == 0
     assert "sound" in capsys.readouterr().out
     assert main(["bag", "repair", str(tmp_path / "nope")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    assert str(tmp_path / "nope") in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def chunked_bag(tmp_path_factory: pytest.TempPathFactory, make_set: Any) -> Path:
+    """A bag of about three 1 MiB MCAP chunks (rosbags' chunk size), as the recorder writes them."""
+    return write_bag(tmp_path_factory.mktemp("chunked") / "bag", make_set((450,) * 14, seed=7))
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.62, 0.7, 0.8, 0.95, 0.999])
+def test_a_cut_bag_loses_no_message_of_a_finished_chunk(tmp_path: Path, chunked_bag: Path, fraction: float) -> None:
+    """A writer killed anywhere: the repaired bag holds, byte for byte, every message of each chunk written whole."""
+    bag = Path(shutil.copytree(chunked_bag, tmp_path / "bag"))
+    mcap = bag / "bag.mcap"
+    cut = int(mcap.stat().st_size * fraction)
+    with mcap.open("rb") as stream:  # the mcap library's own reading of the intact file
+        summary = make_reader(stream).get_summary()
+        stream.seek(0)
+        chunks = [r for r in StreamReader(stream, emit_chunks=True).records if isinstance(r, Chunk)]
+    finished = [chunk for index, chunk in zip(summary.chunk_indexes, chunks)
+                if index.chunk_start_offset + index.chunk_length <= cut]
+    kept = [(summary.channels[r.channel_id].topic, r.data)
+            for chunk in finished for r in breakup_chunk(chunk) if isinstance(r, Message)]
+    assert kept
+    mcap.write_bytes(mcap.read_bytes()[:cut])
+    (bag / "metadata.yaml").unlink()
+    assert repair_bag(bag).repaired
+    with AnyReader([bag]) as reader:
+        repaired = [(conn.topic, bytes(raw)) for conn, _, raw in reader.messages()]
+    assert repaired == kept  # in order, byte for byte
+
+
+@pytest.mark.parametrize("where", ["bag", "storage file", "metadata.yaml"])
+def test_fifos_are_refused_before_opening(where: str) -> None:
+    """A FIFO blocks whoever opens it; the fuzz worker's alarm would end a hang."""
+    with DecoderWorker("t42_transfer.data.bag_repair:repair_bag", timeout_s=10.0) as worker:
+        case = worker.new_case_dir()
+        if where == "bag":
+            path = case / "bag"
+            os.mkfifo(path)
+        else:
+            path = Path(shutil.copytree(REPO / "bags" / "target_small", case / "target_small"))
+            name = "metadata.yaml" if where == "metadata.yaml" else "target_small.mcap"
+            (path / name).unlink()
+            os.mkfifo(path / name)
+        verdict = worker.check_path(path)
+    assert verdict.outcome == "refused", verdict
+    assert ("FIFO" if where != "bag" else "not a bag directory") in verdict.detail
+
+
+def test_non_regular_files_and_os_errors_are_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    bag = Path(shutil.copytree(REPO / "bags" / "target_small", tmp_path / "target_small"))
+    (bag / "other.mcap").mkdir()
+    with pytest.raises(BagError, match="other.mcap is a directory, not a regular file"):
+        repair_bag(bag)
+    (bag / "other.mcap").rmdir()
+    (bag / "metadata.yaml").unlink()
+    (bag / "metadata.yaml").mkdir()
+    with pytest.raises(BagError, match="metadata.yaml is a directory, not a regular file"):
+        repair_bag(bag)
+    assert sorted(p.name for p in bag.iterdir()) == ["metadata.yaml", "target_small.mcap"]  # untouched
+    stat = Path.stat
+
+    def denied(self: Path, *args: Any, **kwargs: Any) -> Any:
+        if self == bag:
+            raise PermissionError(13, "Permission denied", str(self))
+        return stat(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "stat", denied)
+    with pytest.raises(BagError, match=f"Permission denied: {bag}$"):
+        repair_bag(bag)
+
+
+@pytest.mark.parametrize("edit", [
+    lambda info: info.update(relative_file_paths=True),
+    lambda info: info.update(topics_with_message_count=["oops"]),
+    lambda info: info.update(compression_mode="FILE", compression_format="zstd"),
+], ids=["paths a bool", "a topic a string", "compressed"])
+def test_unusable_metadata_on_a_sound_mcap_is_rewritten(tmp_path: Path, edit: Any) -> None:
+    bag = Path(shutil.copytree(REPO / "bags" / "target_small", tmp_path / "target_small"))
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+    edit(meta["rosbag2_bagfile_information"])
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    report = repair_bag(bag)
+    assert report.repaired and report.problems[0].startswith("metadata.yaml is unusable (")
+    assert report.message_count == 1088 and not report.stopped
+    assert verify_bag(bag) == [] and not repair_bag(bag).repaired
+
+
+def test_a_recorders_closed_bag_verifies(ros: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``t42 bag info --verify`` on what the recorder writes: metadata.yaml's counts and times are the data's."""
+    recorder = add_recorder(ros, tmp_path / "live", mode="recording")
+    hand = Hand(ros, recorder)
+    hand.episode(now_ns(), 20)
+    hand.settle()
+    recorder.close()
+    (bag,) = recorder.bags
+    assert verify_bag(bag) == []
+    assert main(["bag", "info", "--verify", str(bag)]) == 0
+    assert "verify: metadata.yaml agrees with the data" in capsys.readouterr().out

@@ -10,29 +10,40 @@ The reader aligns the three topics by header stamp, not by log time or order,
 which also makes bags of a real ``ros2 bag record`` readable.  The hand topics
 may lie under one namespace (a recorder run with ``__ns:=/left`` writes
 ``/left/hand/object_pose``...): they are found by suffix; a bag holding the hand
-topics of two namespaces is refused, as it mixes two hands.  A damaged MCAP
-(cut off mid-write, writer killed) is scanned record by record and its readable
-prefix returned with a warning; everything else that is wrong raises
-:class:`BagError` naming the bag and the problem.
+topics of two namespaces is refused, as it mixes two hands.  A step that lost a
+message (a recording begun or ended mid-step, a message dropped under load) is
+left out with a warning naming it, and the other steps are kept.
+
+Bags are untrusted input.  MCAP files are read by scanning their records (every
+read bounded by the file's size, every chunk by its stated size), so a damaged
+MCAP (cut off mid-write, writer killed) gives its readable prefix with a warning;
+sqlite3 files are read through rosbags.  ``metadata.yaml`` is parsed and its
+fields' types checked here, never by rosbags (which would unpack a compressed
+bag into a temporary folder: compressed bags are refused).  Non-regular files
+are refused before anything opens them.  Everything else that is wrong raises
+:class:`BagError`, one line naming the bag and the problem.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import re
 import shutil
+import stat
 import tempfile
 import warnings
-from collections import Counter
-from pathlib import Path
-from typing import Any, BinaryIO, Callable, Iterable, Mapping
+from pathlib import Path, PurePath
+from typing import Any, BinaryIO, Callable, Iterable, Iterator, Mapping
 
+import lz4.frame
 import numpy as np
 import yaml
-from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+import zstandard
+from mcap.records import Channel, Chunk, McapRecord, Message, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -223,26 +234,49 @@ class _Topic:
     digest: str = ""
 
 
+@dataclasses.dataclass(frozen=True)
+class BagMetadata:
+    """What a bag's metadata.yaml says, each field's type checked (an absent field is None)."""
+
+    storage: str | None
+    files: tuple[str, ...]
+    """Names of ``relative_file_paths`` (their directories are ignored: no path leads out of the bag)."""
+    custom: dict[str, str]
+    ros_distro: str | None
+    counts: dict[str, int | None]
+    """Message count by topic."""
+    digests: dict[str, str]
+    """Type hash by topic, where given."""
+    message_count: int | None
+    start_ns: int | None
+    duration_ns: int | None
+
+
 @dataclasses.dataclass
-class _RawBag:
-    """What storage gave: topic facts and the hand topics' CDR payloads in log-time order."""
+class RawBag:
+    """What storage gave: every topic with its messages counted, and the CDR payloads of hand-like topics."""
 
     storage: str
     topics: dict[str, _Topic]
     messages: dict[str, list[tuple[int, bytes]]]
-    """By bag topic: the hand topics found under :attr:`namespace`."""
+    """By bag topic, in log-time order: every topic named like a hand topic (the namespace is chosen later)."""
     custom: dict[str, str]
     ros_distro: str | None
     start_ns: int
     end_ns: int
-    truncated: bool = False
-    """Only a readable prefix was recovered: a cut-off last step is not an error."""
-    namespace: str = ""
-    """Prefix of the hand topics in this bag ("" for ``/hand/...``, ``/left`` for ``/left/hand/...``)."""
+    """First and last log time (0 and 0 without messages)."""
+    stopped: str = ""
+    """Where reading stopped in a damaged file ("" when every file was read to its end)."""
+    unsummarized: tuple[str, ...] = ()
+    """MCAP files read to their end that have no summary statistics."""
+    meta: BagMetadata | None = None
+    problem: str = ""
+    """Why a bag directory's metadata.yaml was not used ("" when it was)."""
 
-    def hand_topic(self, topic: str) -> str:
-        """The bag's name of hand topic ``topic`` (``/hand/object_pose`` -> ``/left/hand/object_pose``)."""
-        return self.namespace + topic
+    @property
+    def cut(self) -> bool:
+        """Only a readable prefix is here (damaged, or repaired from damage): a cut-off last step is no error."""
+        return bool(self.stopped) or REPAIRED_KEY in self.custom
 
 
 def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
@@ -250,22 +284,30 @@ def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
 
     Every joint state is a state; the object pose with the nearest header stamp
     within half a control period gives its x, y; the applied action stamped
-    within half a period gives its action.  Stamp gaps of ``EPISODE_GAP_S`` or more
-    separate episodes; shorter gaps beyond 1.5 periods are missing messages and
-    raise, or with ``allow_gaps`` split the episode with a warning.  An action on
-    an episode's last state has no next state and is not a transition.  Episodes
-    shorter than ``MIN_EPISODE_STEPS`` are dropped with a warning.
+    within half a period gives its action.  A step that lost a message (a
+    recording started or stopped mid-step, a message dropped under load) is left
+    out and its episode split there, with one warning naming what was dropped.
+    Stamp gaps of ``EPISODE_GAP_S`` or more separate episodes; a shorter gap with
+    no message at all on the hand topics raises, or with ``allow_gaps`` splits
+    the episode with a warning.  An action on an episode's last state has no
+    next state and is not a transition.  Episodes shorter than
+    ``MIN_EPISODE_STEPS`` are dropped with a warning.
     """
     bag = Path(path)
-    raw = _load(bag)
-    return _assemble(bag, _decode(bag, raw), raw, allow_gaps)
+    with refusals(bag):
+        raw = _load(bag)
+        _warn_loaded(bag, raw)
+        return _assemble(bag, _decode(bag, raw), raw, allow_gaps)
 
 
 def bag_info(path: str | Path) -> dict[str, Any]:
     """Summary for a CLI; episodes are counted as ``read_bag(path, allow_gaps=True)`` finds them."""
     bag = Path(path)
-    raw = _load(bag)
-    data = _assemble(bag, _decode(bag, raw), raw, allow_gaps=True)
+    with refusals(bag):
+        raw = _load(bag)
+        _warn_loaded(bag, raw)
+        data = _assemble(bag, _decode(bag, raw), raw, allow_gaps=True)
+        namespace = hand_namespace(bag, raw.topics)
     return {
         "path": str(bag),
         "storage": raw.storage,
@@ -273,72 +315,208 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "start_ns": raw.start_ns,
         "duration_s": (raw.end_ns - raw.start_ns) / 1e9,
         "topics": {name: {"type": t.msgtype, "count": t.count} for name, t in sorted(raw.topics.items())},
-        "namespace": raw.namespace or "/",
+        "namespace": namespace or "/",
         "episodes": len(data),
         "transitions": data.num_transitions,
         "hand": data.hand,
         "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
-        "recovered_prefix": raw.truncated,
+        "recovered_prefix": raw.cut,
     }
 
 
-# ----------------------------------------------------------------- reading: storage
+def verify_bag(path: str | Path) -> list[str]:
+    """Where a bag directory's metadata.yaml disagrees with its data; empty when they agree.
+
+    Checked: the storage files present against ``relative_file_paths``, each
+    topic's message count, the total, the start time (first log time) and the
+    duration (last minus first log time), all counted from the messages
+    themselves; a damaged or missing file is reported too.  BagError for what is
+    no bag directory or cannot be read at all.
+    """
+    bag = Path(path)
+    with refusals(bag):
+        raw = _load(bag)
+        if raw.meta is None and not raw.problem:
+            raise BagError(bag, "is a storage file, not a bag directory: it has no metadata.yaml to verify against")
+        found = [raw.stopped] if raw.stopped else []
+        if raw.meta is None:
+            return [*found, f"{raw.problem}: nothing to verify the data against"]
+        return [*found, *metadata_mismatches(bag, raw.meta, raw)]
 
 
-def _load(path: Path) -> _RawBag:
-    """Read through rosbags; fall back to scanning MCAP records when rosbags cannot."""
-    if not path.exists():
-        raise BagError(path, "does not exist")
-    meta, problem = _metadata_yaml(path)
-    storage, files = _storage_files(path, meta)
-    if storage == "mcap" and path.is_dir() and meta is None:
-        return _scan_mcap(path, files, None, problem)  # rosbags opens no bag directory without metadata.yaml
+@contextlib.contextmanager
+def refusals(bag: Path) -> Iterator[None]:
+    """Failures reading ``bag`` as one-line BagErrors.
+
+    OS errors (permission denied, a directory where a file belongs...) become
+    BagErrors naming the file; a problem quoting text with line breaks or other
+    unprintable characters (a topic name from a damaged file) has them escaped.
+    """
     try:
-        raw = _read_with_rosbags([path] if meta is not None else files, storage, meta)
-    except BagError:
+        yield
+    except BagError as err:
+        if err.problem.isprintable():
+            raise
+        raise BagError(err.path, _one_line(err.problem)) from None
+    except FileExistsError:  # a refusal to overwrite, named as such
         raise
-    except Exception as err:  # rosbags, mcap and sqlite3 raise many types on damaged files
-        problem = f"rosbags cannot read it ({type(err).__name__}: {err})"
-        if storage != "mcap":
-            raise BagError(path, problem) from None
-        return _scan_mcap(path, files, meta, problem)
-    if problem:
-        warnings.warn(f"{path}: {problem}; read its storage files directly", stacklevel=3)
-    raw.truncated = REPAIRED_KEY in raw.custom
+    except OSError as err:
+        where = f": {err.filename}" if err.filename else ""
+        raise BagError(bag, _one_line(f"{err.strerror or type(err).__name__}{where}")) from None
+
+
+def _one_line(text: str) -> str:
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+# ----------------------------------------------------------------- reading: files
+
+_MAX_METADATA_BYTES = 1 << 24
+"""A bag's metadata.yaml is kilobytes; a bigger one is refused before it is parsed."""
+_MAX_CHUNK_BYTES = 1 << 28
+"""An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
+_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"),
+          (stat.S_ISCHR, "a device"), (stat.S_ISBLK, "a device"))
+
+
+def path_mode(bag: Path) -> int:
+    """``st_mode`` of the bag path; BagError when there is nothing."""
+    try:
+        return bag.stat().st_mode
+    except FileNotFoundError:
+        raise BagError(bag, "does not exist") from None
+
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "no regular file")
+
+
+def regular_size(bag: Path, file: Path) -> int:
+    """Size of ``file`` in ``bag``; BagError unless it is a regular file (checked before opening: a FIFO blocks)."""
+    info = file.stat()
+    if not stat.S_ISREG(info.st_mode):
+        raise BagError(bag, f"{file.name} is {_kind(info.st_mode)}, not a regular file")
+    return info.st_size
+
+
+def _load(bag: Path) -> RawBag:
+    """The bag's storage files (MCAP scanned record by record, sqlite3 through rosbags) and its metadata.yaml."""
+    mode = path_mode(bag)
+    meta, problem = None, ""
+    if stat.S_ISDIR(mode):
+        meta, problem = metadata_yaml(bag)
+        storage, files = _storage_files(bag, meta)
+    elif not stat.S_ISREG(mode):
+        raise BagError(bag, f"is {_kind(mode)}, not a bag directory or storage file")
+    elif bag.suffix in _SUFFIXES:
+        storage, files = _SUFFIXES[bag.suffix], [bag]
+    else:
+        raise BagError(bag, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
+    raw = scan_mcap(files, meta) if storage == "mcap" else _read_sqlite3(bag, files, meta)
+    raw.meta, raw.problem = meta, problem
     return raw
 
 
-def _metadata_yaml(path: Path) -> tuple[dict[str, Any] | None, str]:
-    """The bag's rosbag2_bagfile_information, or None and why not."""
-    if not path.is_dir():
-        return None, ""
-    file = path / "metadata.yaml"
-    if not file.exists():
-        return None, "it has no metadata.yaml"
+def metadata_yaml(bag: Path) -> tuple[BagMetadata | None, str]:
+    """The bag directory's metadata.yaml, or None and why not (missing, or no YAML: a writer cut off closing).
+
+    BagError when it is no regular file, too big, or not rosbag2 bag information
+    (a field of the wrong type, a compressed bag).
+    """
+    file = bag / "metadata.yaml"
+    if not file.exists() and not file.is_symlink():
+        return None, "metadata.yaml is missing"
+    size = regular_size(bag, file)
+    if size > _MAX_METADATA_BYTES:
+        raise BagError(bag, f"metadata.yaml is {size} bytes, more than the {_MAX_METADATA_BYTES} read of one")
     try:
-        info = yaml.safe_load(file.read_text())["rosbag2_bagfile_information"]
-        if not isinstance(info, dict):
-            raise TypeError(f"expected a mapping, got {type(info).__name__}")
-    except Exception as err:  # any malformed YAML
-        return None, f"its metadata.yaml is unreadable ({type(err).__name__}: {err})"
-    return info, ""
+        doc = yaml.safe_load(file.read_bytes().decode())
+    except (ValueError, yaml.YAMLError, RecursionError) as err:  # not UTF-8, not YAML, nested beyond the stack
+        first = next(iter(str(err).splitlines()), "")
+        return None, f"metadata.yaml is unreadable ({type(err).__name__}: {first})"
+    return _parse_metadata(bag, doc), ""
 
 
-def _storage_files(path: Path, meta: dict[str, Any] | None) -> tuple[str, list[Path]]:
-    if not path.is_dir():
-        if path.suffix not in _SUFFIXES:
-            raise BagError(path, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
-        return _SUFFIXES[path.suffix], [path]
-    if meta is not None:
-        storage = meta.get("storage_identifier")
-        if storage not in _STORAGES:
-            raise BagError(path, f"has storage {storage!r}; readable storages are {sorted(_STORAGES)}")
-        return storage, [path / Path(str(p)).name for p in meta.get("relative_file_paths") or []]
-    for suffix, storage in _SUFFIXES.items():
-        files = sorted(path.glob(f"*{suffix}"))
-        if files:
-            return storage, files
-    raise BagError(path, "is not a rosbag2 bag: no metadata.yaml and no .mcap or .db3 file")
+_EXPECTED = {str: "text", int: "an integer", list: "a list", dict: "a mapping"}
+
+
+def _field(bag: Path, mapping: dict[Any, Any], key: str, kind: type, where: str = "") -> Any:
+    """``mapping[key]`` if it is a ``kind`` (a bool is no integer) or absent (None); BagError otherwise."""
+    value = mapping.get(key)
+    if value is None or (isinstance(value, kind) and not (kind is int and isinstance(value, bool))):
+        return value
+    raise BagError(bag, f"metadata.yaml: {where}{key} must be {_EXPECTED[kind]}, not {type(value).__name__}")
+
+
+def _parse_metadata(bag: Path, doc: Any) -> BagMetadata:
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise BagError(bag, "metadata.yaml holds no rosbag2_bagfile_information mapping")
+    mode = _field(bag, info, "compression_mode", str) or ""
+    if mode.lower() not in ("", "none"):
+        compression = _field(bag, info, "compression_format", str)
+        raise BagError(bag, f"is compressed (compression_mode {mode}, compression_format {compression}); only "
+                            "uncompressed bags are read (ros2 bag convert decompresses one)")
+    paths = _field(bag, info, "relative_file_paths", list) or []
+    if not all(isinstance(p, str) for p in paths):
+        raise BagError(bag, "metadata.yaml: relative_file_paths must list file names")
+    custom = {}
+    for key, value in (_field(bag, info, "custom_data", dict) or {}).items():
+        if isinstance(value, (list, dict, set)):
+            raise BagError(bag, f"metadata.yaml: custom_data {key} must be text, not {type(value).__name__}")
+        custom[str(key)] = "" if value is None else str(value)
+    counts: dict[str, int | None] = {}
+    digests = {}
+    for i, entry in enumerate(_field(bag, info, "topics_with_message_count", list) or []):
+        where = f"topics_with_message_count[{i}]"
+        if not isinstance(entry, dict):
+            raise BagError(bag, f"metadata.yaml: {where} must be a mapping, not {type(entry).__name__}")
+        topic = _field(bag, entry, "topic_metadata", dict, f"{where}.") or {}
+        name = _field(bag, topic, "name", str, f"{where}.topic_metadata.")
+        if name is None:
+            raise BagError(bag, f"metadata.yaml: {where} names no topic")
+        counts[name] = _field(bag, entry, "message_count", int, f"{where}.")
+        digest = _field(bag, topic, "type_description_hash", str, f"{where}.topic_metadata.")
+        if digest:
+            digests[name] = digest
+    return BagMetadata(
+        storage=_field(bag, info, "storage_identifier", str),
+        files=tuple(PurePath(p).name for p in paths),
+        custom=custom,
+        ros_distro=_field(bag, info, "ros_distro", str),
+        counts=counts,
+        digests=digests,
+        message_count=_field(bag, info, "message_count", int),
+        start_ns=_field(bag, _field(bag, info, "starting_time", dict) or {}, "nanoseconds_since_epoch", int,
+                        "starting_time."),
+        duration_ns=_field(bag, _field(bag, info, "duration", dict) or {}, "nanoseconds", int, "duration."),
+    )
+
+
+def _storage_files(bag: Path, meta: BagMetadata | None) -> tuple[str, list[Path]]:
+    """Storage plugin and files of a bag directory: those metadata.yaml lists, else those it holds; all regular."""
+    if meta is None:
+        for suffix, storage in _SUFFIXES.items():
+            files = sorted(bag.glob(f"*{suffix}"))
+            if files:
+                break
+        else:
+            raise BagError(bag, "is not a rosbag2 bag: no metadata.yaml and no .mcap or .db3 file")
+    else:
+        if meta.storage not in _STORAGES:
+            raise BagError(bag, f"has storage {meta.storage!r}; readable storages are {sorted(_STORAGES)}")
+        if not meta.files:
+            raise BagError(bag, "metadata.yaml lists no storage file (relative_file_paths is empty)")
+        storage, files = meta.storage, []
+        for name in meta.files:
+            if name in ("", "..") or "\x00" in name:
+                raise BagError(bag, f"metadata.yaml lists {name!r} in relative_file_paths, which names no file")
+            if not (bag / name).exists() and not (bag / name).is_symlink():
+                raise BagError(bag, f"metadata.yaml lists {name}, which is missing")
+            files.append(bag / name)
+    for file in files:
+        regular_size(bag, file)
+    return storage, files
 
 
 def _add_topic(topics: dict[str, _Topic], topic: str, msgtype: str, count: int, digest: str) -> None:
@@ -366,53 +544,27 @@ def hand_namespace(path: str | Path, topics: Iterable[str]) -> str:
     return next(iter(found), "")
 
 
-def _read_with_rosbags(sources: list[Path], storage: str, meta: dict[str, Any] | None) -> _RawBag:
-    with AnyReader(sources, default_typestore=ma.TYPESTORE) as reader:
-        topics: dict[str, _Topic] = {}
-        for conn in reader.connections:
-            _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest)
-        namespace = hand_namespace(sources[0], topics)
-        messages: dict[str, list[tuple[int, bytes]]] = {namespace + topic: [] for topic in ma.HAND_TOPICS}
-        wanted = [c for c in reader.connections if c.topic in messages]
-        if wanted:  # an empty list would mean "every connection"
-            for conn, log_ns, data in reader.messages(connections=wanted):
-                messages[conn.topic].append((log_ns, bytes(data)))
-        empty = reader.message_count == 0
-        start, end = (0, 0) if empty else (reader.start_time, reader.end_time - 1)
-    if meta is not None:
-        custom, distro = _text_map(meta.get("custom_data")), meta.get("ros_distro")
-    elif storage == "mcap":
-        custom, distro = _mcap_metadata_record(sources[0])
-    else:
-        custom, distro = {}, None
-    return _RawBag(storage, topics, messages, custom, distro, start, end, namespace=namespace)
-
-
-def _text_map(value: Any) -> dict[str, str]:
-    if not isinstance(value, dict):
-        return {}
-    return {str(k): str(v) for k, v in value.items()}
-
-
-def _serialized_metadata(record: Metadata) -> tuple[dict[str, str], str | None]:
-    """custom_data and ros_distro of rosbag2's own MCAP metadata record."""
-    info = yaml.safe_load(record.metadata.get("serialized_metadata", "")) or {}
-    info = info.get("rosbag2_bagfile_information", info)
-    return _text_map(info.get("custom_data")), info.get("ros_distro")
-
-
-def _mcap_metadata_record(file: Path) -> tuple[dict[str, str], str | None]:
+def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> RawBag:
+    """A sqlite3 bag through rosbags (its counts and times are SQL over the stored messages)."""
+    digests = meta.digests if meta else {}
     try:
-        with file.open("rb") as stream:
-            for record in make_reader(stream).iter_metadata():
-                if record.name == "rosbag2":
-                    return _serialized_metadata(record)
-    except Exception:  # the record is a convenience copy; an unreadable one only loses custom_data
-        pass
-    return {}, None
+        with AnyReader(files, default_typestore=ma.TYPESTORE) as reader:
+            topics: dict[str, _Topic] = {}
+            for conn in reader.connections:
+                _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest or digests.get(conn.topic, ""))
+            wanted = [c for c in reader.connections if c.topic.endswith(_HAND_SUFFIXES)]
+            messages: dict[str, list[tuple[int, bytes]]] = {c.topic: [] for c in wanted}
+            if wanted:  # an empty list would mean "every connection"
+                for conn, log_ns, data in reader.messages(connections=wanted):
+                    messages[conn.topic].append((log_ns, bytes(data)))
+            start, end = (0, 0) if reader.message_count == 0 else (reader.start_time, reader.end_time - 1)
+    except Exception as err:  # rosbags and sqlite3 raise many types on damaged files
+        raise BagError(bag, f"rosbags cannot read it ({type(err).__name__}: {err})") from None
+    custom, distro = (meta.custom, meta.ros_distro) if meta else ({}, None)
+    return RawBag("sqlite3", topics, messages, custom, distro, start, end)
 
 
-class ExactReads:
+class _ExactReads:
     """A file view whose reads return all bytes asked for or raise, so a cut-off record is never half-parsed."""
 
     def __init__(self, stream: BinaryIO, size: int) -> None:
@@ -425,72 +577,132 @@ class ExactReads:
         return self._stream.read(n)
 
 
-def _scan_mcap(path: Path, files: list[Path], meta: dict[str, Any] | None, problem: str) -> _RawBag:
-    """Read MCAP records in file order up to the first unreadable one."""
-    schemas: dict[int, str] = {}
-    channels: dict[int, str] = {}
+def mcap_records(stream: BinaryIO, size: int) -> Iterator[McapRecord]:
+    """The records of an MCAP file of ``size`` bytes in file order, chunks opened; raises where it is unreadable.
+
+    No read goes past the file's size and no chunk unpacks beyond its stated size
+    (at most :data:`_MAX_CHUNK_BYTES`), so a damaged length cannot allocate more than the file justifies.
+    """
+    for record in StreamReader(_ExactReads(stream, size), emit_chunks=True, record_size_limit=size).records:
+        if isinstance(record, Chunk):
+            yield from breakup_chunk(_unpacked(record))
+        else:
+            yield record
+
+
+def _unpacked(chunk: Chunk) -> Chunk:
+    size = chunk.uncompressed_size
+    if chunk.compression in ("zstd", "lz4") and size > _MAX_CHUNK_BYTES:
+        raise ValueError(f"a chunk claims {size} bytes unpacked, more than the {_MAX_CHUNK_BYTES} allowed")
+    if chunk.compression == "zstd":
+        data = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data)).read(size + 1)
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"a chunk has unknown compression {chunk.compression!r}")
+    if len(data) != size:
+        raise ValueError(f"a chunk unpacks to {len(data)} bytes, not the {size} it states")
+    return dataclasses.replace(chunk, compression="", data=data)
+
+
+def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
+    """Every record of the MCAP ``files`` in file order, up to the first unreadable one.
+
+    Counts and log times are those of the messages read, whatever a summary says.
+    Without ``meta``, custom_data comes from rosbag2's own metadata record in the MCAP.
+    """
     topics: dict[str, _Topic] = {}
     messages: dict[str, list[tuple[int, bytes]]] = {}
-    """Every topic that may be a hand topic (the namespace is known once all channels are)."""
-    custom, distro = (_text_map(meta.get("custom_data")), meta.get("ros_distro")) if meta else ({}, None)
-    digests = _yaml_digests(meta)
-    counts: Counter[str] = Counter()
+    digests = meta.digests if meta else {}
+    record_meta: tuple[dict[str, str], str | None] | None = None
     log_times: list[int] = []
-    stopped = ""
+    stopped, unsummarized = "", []
     for file in files:
-        try:
-            with file.open("rb") as stream:
-                size = file.stat().st_size
-                for record in StreamReader(ExactReads(stream, size), record_size_limit=size).records:
+        schemas: dict[int, str] = {}
+        channels: dict[int, str] = {}
+        summarized = False
+        with file.open("rb") as stream:
+            try:
+                for record in mcap_records(stream, file.stat().st_size):
                     if isinstance(record, Schema):
                         schemas[record.id] = record.name
                     elif isinstance(record, Channel):
-                        msgtype = schemas.get(record.schema_id, "(no schema)")
                         channels[record.id] = record.topic
                         digest = record.metadata.get("topic_type_hash", digests.get(record.topic, ""))
-                        _add_topic(topics, record.topic, msgtype, 0, digest)
+                        _add_topic(topics, record.topic, schemas.get(record.schema_id, "(no schema)"), 0, digest)
                     elif isinstance(record, Message):
                         topic = channels[record.channel_id]
-                        counts[topic] += 1
+                        topics[topic].count += 1
                         log_times.append(record.log_time)
                         if topic.endswith(_HAND_SUFFIXES):
                             messages.setdefault(topic, []).append((record.log_time, record.data))
-                    elif isinstance(record, Metadata) and record.name == "rosbag2" and meta is None:
-                        custom, distro = _serialized_metadata(record)
-        except Exception as err:  # whatever the damage, what was read before it stands
-            stopped = f"{file.name} is unreadable from there on ({type(err).__name__}: {err})"
-            break
-    namespace = hand_namespace(path, topics)
-    messages = {namespace + topic: messages.get(namespace + topic, []) for topic in ma.HAND_TOPICS}
-    found = sum(len(m) for m in messages.values())
-    if found == 0:
-        detail = f"; {stopped}" if stopped else ""
-        raise BagError(path, f"{problem}, and scanning its MCAP records recovered no hand messages{detail}")
-    if stopped:
-        warnings.warn(
-            f"{path}: {problem}; recovered the readable prefix, {sum(counts.values())} messages up to log time "
-            f"{max(log_times)} ns; {stopped}",
-            stacklevel=4,
-        )
-    else:
-        warnings.warn(f"{path}: {problem}; read it by scanning its MCAP records", stacklevel=4)
-    for topic, info in topics.items():
-        info.count = counts[topic]
+                    elif isinstance(record, Metadata) and record.name == "rosbag2" and record_meta is None:
+                        record_meta = record_metadata(record)
+                    elif isinstance(record, Statistics):
+                        summarized = True
+            except Exception as err:  # whatever the damage, what was read before it stands
+                stopped = f"{file.name} is unreadable from offset {stream.tell()} ({type(err).__name__}: {err})"
+                break
+        if not summarized:
+            unsummarized.append(file.name)
     for received in messages.values():
         received.sort(key=lambda m: m[0])
+    custom, distro = (meta.custom, meta.ros_distro) if meta else record_meta or ({}, None)
     start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
-    return _RawBag("mcap", topics, messages, custom, distro, start, end, truncated=bool(stopped), namespace=namespace)
+    return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized))
 
 
-def _yaml_digests(meta: dict[str, Any] | None) -> dict[str, str]:
-    if not meta:
-        return {}
-    digests = {}
-    for entry in meta.get("topics_with_message_count") or []:
-        topic = (entry or {}).get("topic_metadata") or {}
-        if topic.get("type_description_hash"):
-            digests[str(topic.get("name"))] = str(topic["type_description_hash"])
-    return digests
+def record_metadata(record: Metadata) -> tuple[dict[str, str], str | None]:
+    """custom_data and ros_distro of rosbag2's metadata record in an MCAP: a convenience copy, a bad one is none."""
+    try:
+        doc = yaml.safe_load(record.metadata.get("serialized_metadata", ""))
+        info = doc.get("rosbag2_bagfile_information", doc) if isinstance(doc, dict) else None
+        meta = _parse_metadata(Path(record.name), {"rosbag2_bagfile_information": info})
+    except (BagError, ValueError, yaml.YAMLError, RecursionError):
+        return {}, None
+    return meta.custom, meta.ros_distro
+
+
+def metadata_mismatches(bag: Path, meta: BagMetadata, raw: RawBag) -> list[str]:
+    """Where ``meta`` (the bag's metadata.yaml) disagrees with the data read from the bag directory's files."""
+    found = []
+    suffix = next(x for x, s in _SUFFIXES.items() if s == raw.storage)
+    held = sorted(p.name for p in bag.glob(f"*{suffix}"))
+    if sorted(meta.files) != held:
+        found.append(f"metadata.yaml lists files {sorted(meta.files)}, the bag holds {held}")
+    for name in sorted(set(meta.counts) | set(raw.topics)):
+        count = raw.topics[name].count if name in raw.topics else 0
+        if name not in meta.counts:
+            if count:
+                found.append(f"{name}: {count} messages in the data, not listed in metadata.yaml")
+        elif meta.counts[name] != count:
+            found.append(f"metadata.yaml counts {meta.counts[name]} messages on {name}, the data holds {count}")
+    total = sum(t.count for t in raw.topics.values())
+    if meta.message_count != total:
+        found.append(f"metadata.yaml counts {meta.message_count} messages, the data holds {total}")
+    if total and meta.start_ns != raw.start_ns:
+        found.append(f"metadata.yaml says the bag starts at {meta.start_ns} ns, its first message is logged at "
+                     f"{raw.start_ns} ns")
+    if total and meta.duration_ns != raw.end_ns - raw.start_ns:
+        found.append(f"metadata.yaml says the bag lasts {meta.duration_ns} ns, its messages span "
+                     f"{raw.end_ns - raw.start_ns} ns")
+    return found
+
+
+def _warn_loaded(bag: Path, raw: RawBag) -> None:
+    """Warn of what was read in place of a sound bag; BagError when damage left no hand message."""
+    if raw.problem:
+        warnings.warn(f"{bag}: {raw.problem}; read its storage files directly", stacklevel=3)
+    if raw.stopped:
+        if not any(raw.messages.values()):
+            raise BagError(bag, f"{raw.stopped}; scanning its MCAP records recovered no hand messages")
+        warnings.warn(
+            f"{bag}: recovered the readable prefix, {sum(t.count for t in raw.topics.values())} messages up to "
+            f"log time {raw.end_ns} ns; {raw.stopped}",
+            stacklevel=3,
+        )
 
 
 # ----------------------------------------------------------------- reading: messages
@@ -503,27 +715,28 @@ class _Stream:
     values: list[Any]
 
 
-def _decode(path: Path, raw: _RawBag) -> dict[str, _Stream]:
+def _decode(bag: Path, raw: RawBag) -> dict[str, _Stream]:
     """Hand topics as header-stamped numpy values, checked for type, finiteness and order."""
-    _check_topics(path, raw)
+    namespace = hand_namespace(bag, raw.topics)
+    _check_topics(bag, raw, namespace)
     streams = {}
     for topic, msgtype in ma.HAND_TOPICS.items():
         stamps: list[int] = []
         values = []
-        name = raw.hand_topic(topic)
-        for log_ns, data in raw.messages[name]:
+        name = namespace + topic
+        for log_ns, data in raw.messages.get(name, []):
             try:
                 msg = ma.TYPESTORE.deserialize_cdr(data, msgtype)
             except Exception as err:  # corrupt CDR raises whatever the decoder trips over
-                raise BagError(path, f"{name}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
+                raise BagError(bag, f"{name}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
             stamp = ma.stamp_to_ns(msg.header.stamp)
             try:
                 values.append(_CONVERTERS[topic](msg))
             except ValueError as err:
-                raise BagError(path, f"{name} at stamp {stamp} ns: {err}") from None
+                raise BagError(bag, f"{name} at stamp {stamp} ns: {err}") from None
             if stamps and stamp <= stamps[-1]:
                 raise BagError(
-                    path,
+                    bag,
                     f"{name}: header stamps must increase, but {stamp} ns (logged at {log_ns} ns) "
                     f"follows {stamps[-1]} ns",
                 )
@@ -532,20 +745,20 @@ def _decode(path: Path, raw: _RawBag) -> dict[str, _Stream]:
     return streams
 
 
-def _check_topics(path: Path, raw: _RawBag) -> None:
+def _check_topics(bag: Path, raw: RawBag, namespace: str) -> None:
     topics = raw.topics
     for hand, expected in ma.HAND_TOPICS.items():
-        topic = raw.hand_topic(hand)
+        topic = namespace + hand
         info = topics.get(topic)
         if info is None:
             present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
-            raise BagError(path, f"required topic {topic} ({expected}) is missing; the bag has {present}")
+            raise BagError(bag, f"required topic {topic} ({expected}) is missing; the bag has {present}")
         if info.msgtype != expected:
-            raise BagError(path, f"topic {topic} has type {info.msgtype}, expected {expected}")
+            raise BagError(bag, f"topic {topic} has type {info.msgtype}, expected {expected}")
         jazzy = ma.TYPESTORE.hash_rihs01(expected)
         if info.digest and info.digest != jazzy:
             raise BagError(
-                path, f"topic {topic} declares {expected} with type hash {info.digest}, not ROS 2 Jazzy's {jazzy}"
+                bag, f"topic {topic} declares {expected} with type hash {info.digest}, not ROS 2 Jazzy's {jazzy}"
             )
 
 
@@ -563,51 +776,96 @@ def _nearest(stamps: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _drop_cut_tail(streams: dict[str, _Stream]) -> None:
-    """In a recovered prefix the last step may have lost its pose; that step is cut, not wrong."""
-    poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
+    """In a recovered prefix the last step may be cut after any of its messages; that step is cut, not lost."""
+    poses, joints = streams[_POSE], streams[_JOINTS]
     last_pose = poses.stamps[-1] if len(poses.stamps) else -1
     keep = int(np.searchsorted(joints.stamps, last_pose + _HALF_PERIOD_NS))
     streams[_JOINTS] = _Stream(joints.stamps[:keep], joints.values[:keep])
     last_state = joints.stamps[keep - 1] if keep else -1
-    keep = int(np.searchsorted(actions.stamps, last_state + _HALF_PERIOD_NS))
-    streams[_ACTION] = _Stream(actions.stamps[:keep], actions.values[:keep])
+    for topic in (_POSE, _ACTION):
+        cut = streams[topic]
+        keep = int(np.searchsorted(cut.stamps, last_state + _HALF_PERIOD_NS))
+        streams[topic] = _Stream(cut.stamps[:keep], cut.values[:keep])
 
 
-def _episode_bounds(path: Path, stamps: np.ndarray, allow_gaps: bool) -> list[tuple[int, int]]:
-    """``(first, last)`` state indices of each run of states one control period apart."""
+def _any_between(stamps: np.ndarray, after: int, before: int) -> bool:
+    """Whether a stamp lies strictly between ``after`` and ``before``."""
+    return bool(np.searchsorted(stamps, after, "right") < np.searchsorted(stamps, before, "left"))
+
+
+def _episode_bounds(
+    bag: Path, streams: dict[str, _Stream], allow_gaps: bool
+) -> list[tuple[int, int]]:
+    """``(first, last)`` state indices of each run of states one control period apart.
+
+    A longer step whose missing states left a pose or an action behind lost
+    those states (the salvage drops them); one with no hand message at all is a
+    hole in the recording.
+    """
+    stamps = streams[_JOINTS].stamps
     if len(stamps) == 0:
         return []
     cuts = []
     steps = np.diff(stamps)
     for i in np.flatnonzero((steps < _HALF_PERIOD_NS) | (steps > _MAX_STEP_NS)):
         step, before, after = int(steps[i]), int(stamps[i]), int(stamps[i + 1])
-        if step >= EPISODE_GAP_NS:
+        lost = any(
+            _any_between(streams[t].stamps, before + _HALF_PERIOD_NS, after - _HALF_PERIOD_NS) for t in (_POSE, _ACTION)
+        )
+        if step >= EPISODE_GAP_NS or lost:
             cuts.append(i + 1)
         elif step < _HALF_PERIOD_NS:
             raise BagError(
-                path,
+                bag,
                 f"{_JOINTS} stamps {before} and {after} ns are {step / 1e6:g} ms apart, "
                 f"less than half the {CONTROL_PERIOD_NS / 1e6:g} ms control period",
             )
         elif allow_gaps:
             warnings.warn(
-                f"{path}: {_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns; "
+                f"{bag}: {_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns; "
                 "split the episode there",
                 stacklevel=4,
             )
             cuts.append(i + 1)
         else:
             raise BagError(
-                path,
-                f"{_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns: messages are missing "
-                f"(a gap under {EPISODE_GAP_S} s is not an episode border); pass allow_gaps=True to split there",
+                bag,
+                f"{_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns with no hand message between: "
+                f"messages are missing (a gap under {EPISODE_GAP_S} s is not an episode border); "
+                "pass allow_gaps=True to split there",
             )
     starts = [0, *cuts]
     ends = [c - 1 for c in cuts] + [len(stamps) - 1]
     return list(zip(starts, ends))
 
 
-def _episode_records(path: Path, custom: dict[str, str]) -> dict[int, dict[str, Any]]:
+def _complete_runs(posed: np.ndarray, acted: np.ndarray) -> list[tuple[int, int]]:
+    """``(first, last)`` runs of states with a pose in which every state but the last has an action."""
+    runs, start = [], None
+    for k in range(len(posed)):
+        if not posed[k]:
+            if start is not None:
+                runs.append((start, k - 1))
+            start = None
+            continue
+        start = k if start is None else start
+        if not acted[k] and k < len(posed) - 1:
+            runs.append((start, k))
+            start = None
+    if start is not None:
+        runs.append((start, len(posed) - 1))
+    return runs
+
+
+def _dropped(what: str, stamps: np.ndarray) -> list[str]:
+    """``[what was dropped, with its first stamps]``, or ``[]`` when nothing was."""
+    if not len(stamps):
+        return []
+    shown = ", ".join(str(s) for s in stamps[:3].tolist()) + (", ..." if len(stamps) > 3 else "")
+    return [f"{what}: {len(stamps)} (stamp{'s' if len(stamps) > 1 else ''} {shown} ns)"]
+
+
+def _episode_records(bag: Path, custom: dict[str, str]) -> dict[int, dict[str, Any]]:
     """The writer's per-episode facts by start stamp."""
     if EPISODES_KEY not in custom:
         return {}
@@ -623,77 +881,84 @@ def _episode_records(path: Path, custom: dict[str, str]) -> dict[int, dict[str, 
             ):
                 raise ValueError(f"bad entry {r!r}")
             by_start[r["start_ns"]] = r
-    except (ValueError, TypeError, KeyError) as err:
-        raise BagError(path, f"custom_data {EPISODES_KEY} is malformed ({type(err).__name__}: {err})") from None
+    except (ValueError, TypeError, KeyError, RecursionError) as err:
+        raise BagError(bag, f"custom_data {EPISODES_KEY} is malformed ({type(err).__name__}: {err})") from None
     return by_start
 
 
-def _assemble(path: Path, streams: dict[str, _Stream], raw: _RawBag, allow_gaps: bool) -> TrajectorySet:
-    if raw.truncated:
+def _assemble(bag: Path, streams: dict[str, _Stream], raw: RawBag, allow_gaps: bool) -> TrajectorySet:
+    """Episodes of whole steps; a step missing a message is dropped (and named in one warning)."""
+    if raw.cut:
         _drop_cut_tail(streams)
     poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
     hand = raw.custom.get(HAND_KEY, "")
     pose_of, has_pose = _nearest(poses.stamps, joints.stamps)
-    if not has_pose.all():
-        stamp = joints.stamps[np.argmin(has_pose)]
-        raise BagError(path, f"the state at stamp {stamp} ns on {_JOINTS} has no {_POSE} message {_WITHIN}")
     state_of, has_state = _nearest(joints.stamps, actions.stamps)
-    if not has_state.all():
-        stamp = actions.stamps[np.argmin(has_state)]
-        raise BagError(path, f"the {_ACTION} at stamp {stamp} ns matches no {_JOINTS} message {_WITHIN}")
-    taken, counts = np.unique(state_of, return_counts=True)
+    acting = np.flatnonzero(has_state)
+    taken, counts = np.unique(state_of[acting], return_counts=True)
     if (counts > 1).any():
         stamp = joints.stamps[taken[np.argmax(counts > 1)]]
-        raise BagError(path, f"several {_ACTION} messages match the state at stamp {stamp} ns")
+        raise BagError(bag, f"several {_ACTION} messages match the state at stamp {stamp} ns")
     action_of = np.full(len(joints.stamps), -1)
-    action_of[state_of] = np.arange(len(state_of))
-
-    records = _episode_records(path, raw.custom)
+    action_of[state_of[acting]] = acting
+    posed = np.zeros(len(poses.stamps), bool)
+    posed[pose_of[has_pose]] = True
+    dropped = [
+        *_dropped(f"{_ACTION} messages with no {_JOINTS} {_WITHIN}", actions.stamps[~has_state]),
+        *_dropped(f"{_POSE} messages with no {_JOINTS} {_WITHIN}", poses.stamps[~posed]),
+        *_dropped(f"{_JOINTS} messages with no {_POSE} {_WITHIN}, with their actions", joints.stamps[~has_pose]),
+    ]
+    records = _episode_records(bag, raw.custom)
     episodes = []
-    for first, last in _episode_bounds(path, joints.stamps, allow_gaps):
-        start = int(joints.stamps[first])
-        lacking = np.flatnonzero(action_of[first:last] < 0)
-        if len(lacking):
-            stamp = joints.stamps[first + lacking[0]]
-            raise BagError(
-                path,
-                f"the state at stamp {stamp} ns has no {_ACTION} {_WITHIN}; only an episode's last may lack one",
-            )
-        if last - first < MIN_EPISODE_STEPS:
-            warnings.warn(
-                f"{path}: dropped the episode starting at {start} ns: {last - first} transitions, "
-                f"fewer than MIN_EPISODE_STEPS = {MIN_EPISODE_STEPS}",
-                stacklevel=3,
-            )
-            continue
-        record = records.get(start)
-        complete = record is not None and record["transitions"] == last - first
-        episodes.append(
-            Trajectory(
-                states=np.column_stack(
-                    [
-                        np.stack([poses.values[pose_of[k]] for k in range(first, last + 1)]),
-                        np.stack([joints.values[k][0] for k in range(first, last + 1)]),
-                    ]
-                ),
-                actions=np.stack([actions.values[action_of[k]] for k in range(first, last)]),
-                actuator_angles=_angles(path, joints, first, last),
-                start_ns=start,
-                end_reason=record["end_reason"] if complete else "",
-                hand=record["hand"] if record is not None else hand,
-            )
-        )
-    if raw.truncated and not episodes:
-        raise BagError(path, "its readable prefix holds no complete episode")
+    for first, last in _episode_bounds(bag, streams, allow_gaps):
+        inner = first + np.flatnonzero(has_pose[first:last] & (action_of[first:last] < 0))
+        lacking = f"the transitions from {_JOINTS} messages with no {_ACTION} {_WITHIN}"
+        dropped += _dropped(lacking, joints.stamps[inner])
+        for a, b in _complete_runs(has_pose[first : last + 1], action_of[first : last + 1] >= 0):
+            start, steps = int(joints.stamps[first + a]), b - a
+            if steps < MIN_EPISODE_STEPS:
+                warnings.warn(
+                    f"{bag}: dropped the episode starting at {start} ns: {steps} transitions, "
+                    f"fewer than MIN_EPISODE_STEPS = {MIN_EPISODE_STEPS}",
+                    stacklevel=3,
+                )
+                continue
+            episodes.append(_episode(bag, streams, first + a, first + b, pose_of, action_of, records.get(start), hand))
+    if dropped:
+        warnings.warn(f"{bag}: kept the whole steps only; dropped {'; '.join(dropped)}", stacklevel=3)
+    if raw.cut and not episodes:
+        raise BagError(bag, "its readable prefix holds no complete episode")
     return TrajectorySet(episodes, hand=hand)
 
 
-def _angles(path: Path, joints: _Stream, first: int, last: int) -> np.ndarray | None:
+def _episode(
+    bag: Path, streams: dict[str, _Stream], first: int, last: int, pose_of: np.ndarray, action_of: np.ndarray,
+    record: dict[str, Any] | None, hand: str,
+) -> Trajectory:
+    """States ``first..last`` of the joint states with their poses and actions; the writer's record if it has one."""
+    poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
+    complete = record is not None and record["transitions"] == last - first
+    return Trajectory(
+        states=np.column_stack(
+            [
+                np.stack([poses.values[pose_of[k]] for k in range(first, last + 1)]),
+                np.stack([joints.values[k][0] for k in range(first, last + 1)]),
+            ]
+        ),
+        actions=np.stack([actions.values[action_of[k]] for k in range(first, last)]),
+        actuator_angles=_angles(bag, joints, first, last),
+        start_ns=int(joints.stamps[first]),
+        end_reason=record["end_reason"] if complete else "",
+        hand=record["hand"] if record is not None else hand,
+    )
+
+
+def _angles(bag: Path, joints: _Stream, first: int, last: int) -> np.ndarray | None:
     """Actuator angles of an episode: all there, or none (the real hands do not report them)."""
     angles = [joints.values[k][1] for k in range(first, last + 1)]
     if all(a is None for a in angles):
         return None
     if any(a is None for a in angles):
         missing = joints.stamps[first + next(i for i, a in enumerate(angles) if a is None)]
-        raise BagError(path, f"{_JOINTS} at stamp {missing} ns has no positions while others in its episode do")
+        raise BagError(bag, f"{_JOINTS} at stamp {missing} ns has no positions while others in its episode do")
     return np.stack(angles)

@@ -12,24 +12,40 @@ original file is kept as ``<name>.orig``.
 ``custom_data`` keeps what the bag had and gains ``REPAIRED_KEY`` (what was
 wrong), so :func:`bag_io.read_bag` still treats a cut-off last step as a cut,
 not an error.
+
+What is wrong is found as ``t42 bag info --verify`` finds it (the same scan of
+every record, the same comparison with ``metadata.yaml``), plus files without a
+summary; files are read with :func:`bag_io.mcap_records`'s bounds, and a FIFO
+or a directory where a file belongs is refused, never opened or replaced.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO
 
 import yaml
-from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
 
 from msg_adapters import TYPESTORE
-from t42_transfer.data.bag_io import REPAIRED_KEY, ExactReads, JazzyWriter
+from t42_transfer.data.bag_io import (
+    REPAIRED_KEY,
+    JazzyWriter,
+    RawBag,
+    mcap_records,
+    metadata_mismatches,
+    metadata_yaml,
+    path_mode,
+    record_metadata,
+    refusals,
+    regular_size,
+    scan_mcap,
+)
 from t42_transfer.data.errors import BagError
 
 ORIG_SUFFIX = ".orig"
@@ -59,89 +75,63 @@ class RepairReport:
 def repair_bag(path: str | Path) -> RepairReport:
     """Rewrite a damaged MCAP bag directory in place (originals kept as ``*.mcap.orig``).
 
-    A sound bag (readable footer and summary, ``metadata.yaml`` agreeing with the
-    MCAP statistics) is left as it is.  Raises :class:`BagError` for a path that is
-    no MCAP bag directory or holds nothing readable, and FileExistsError when ``*.orig`` files of an earlier
-    repair are in the way (nothing is ever overwritten).
+    A sound bag (every file read to its summary, ``metadata.yaml`` agreeing with
+    the data in files, counts, start and duration) is left as it is.  Raises
+    :class:`BagError` for a path that is no MCAP bag directory, holds non-regular
+    files where files belong, or holds nothing readable, and FileExistsError when
+    ``*.orig`` files of an earlier repair are in the way (nothing is ever overwritten).
     """
     bag = Path(path)
-    files = _mcap_files(bag)
-    problems = _problems(bag, files)
-    if not problems:
-        return RepairReport(bag, False, (), _summary_counts(files))
-    kept = [f.with_name(f.name + ORIG_SUFFIX) for f in files]
-    in_the_way = [str(k) for k in kept if k.exists() or k.is_symlink()]
-    if in_the_way:
-        raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
-    with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
-        rebuilt = Path(staging) / bag.name
-        counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
-        if not counts:
-            raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
-        for original, orig in zip(files, kept):
-            original.rename(orig)
-        (rebuilt / f"{bag.name}.mcap").rename(files[0])
-        _write_metadata(rebuilt / "metadata.yaml", bag / "metadata.yaml", files[0].name)
+    with refusals(bag):
+        files = _mcap_files(bag)
+        raw = scan_mcap(files, None)
+        problems = _problems(bag, raw)
+        if not problems:
+            return RepairReport(bag, False, (), {topic: t.count for topic, t in raw.topics.items()})
+        kept = [f.with_name(f.name + ORIG_SUFFIX) for f in files]
+        in_the_way = [str(k) for k in kept if k.exists() or k.is_symlink()]
+        if in_the_way:
+            raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
+        with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
+            rebuilt = Path(staging) / bag.name
+            counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
+            if not counts:
+                raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
+            for original, orig in zip(files, kept):
+                original.rename(orig)
+            (rebuilt / f"{bag.name}.mcap").rename(files[0])
+            _write_metadata(rebuilt / "metadata.yaml", bag / "metadata.yaml", files[0].name)
     return RepairReport(bag, True, tuple(problems), counts, tuple(kept), stopped)
 
 
 def _mcap_files(bag: Path) -> list[Path]:
-    if not bag.exists():
-        raise BagError(bag, "does not exist")
-    if not bag.is_dir():
+    if not stat.S_ISDIR(path_mode(bag)):
         raise BagError(bag, "is not a bag directory (repair works on the directory holding the .mcap)")
     files = sorted(bag.glob("*.mcap"))
     if not files:
         raise BagError(bag, "is not an MCAP bag: the directory holds no .mcap file")
     for file in files:
+        regular_size(bag, file)
         with file.open("rb") as stream:
             if stream.read(8) != b"\x89MCAP0\r\n":
                 raise BagError(bag, f"{file.name} is not an MCAP file (bad magic bytes)")
+    meta_file = bag / "metadata.yaml"
+    if meta_file.exists() or meta_file.is_symlink():
+        regular_size(bag, meta_file)  # a FIFO or a directory in its place is refused, never replaced
     return files
 
 
-def _problems(bag: Path, files: list[Path]) -> list[str]:
-    """What is wrong with the bag; empty when its storage and metadata.yaml are sound and agree."""
-    problems = []
-    total = 0
-    for file in files:
-        try:
-            with file.open("rb") as stream:
-                summary = make_reader(stream).get_summary()
-            if summary is None or summary.statistics is None:
-                problems.append(f"{file.name} has no summary")
-            else:
-                total += summary.statistics.message_count
-        except Exception as err:  # mcap raises many types for a cut-off file
-            problems.append(f"{file.name} has no readable footer ({type(err).__name__}: {err})")
-    meta_file = bag / "metadata.yaml"
-    if not meta_file.exists():
-        problems.append("metadata.yaml is missing")
-    elif not problems:
-        try:
-            info = yaml.safe_load(meta_file.read_text())["rosbag2_bagfile_information"]
-            listed = sorted(Path(str(p)).name for p in info["relative_file_paths"])
-            count = int(info["message_count"])
-        except Exception as err:  # any malformed YAML
-            problems.append(f"metadata.yaml is unreadable ({type(err).__name__}: {err})")
-        else:
-            if listed != [f.name for f in files]:
-                problems.append(f"metadata.yaml lists files {listed}, the bag holds {[f.name for f in files]}")
-            if count != total:
-                problems.append(f"metadata.yaml counts {count} messages, the MCAP statistics {total}")
-    return problems
-
-
-def _summary_counts(files: list[Path]) -> dict[str, int]:
-    counts: dict[str, int] = {}
-    for file in files:
-        with file.open("rb") as stream:
-            summary = make_reader(stream).get_summary()
-        assert summary is not None and summary.statistics is not None
-        for channel_id, count in summary.statistics.channel_message_counts.items():
-            topic = summary.channels[channel_id].topic
-            counts[topic] = counts.get(topic, 0) + count
-    return counts
+def _problems(bag: Path, raw: RawBag) -> list[str]:
+    """What is wrong with the bag; empty when its files read to their summaries and metadata.yaml agrees."""
+    problems = [raw.stopped] if raw.stopped else []
+    problems += [f"{name} has no summary" for name in raw.unsummarized]
+    try:
+        meta, problem = metadata_yaml(bag)
+    except BagError as err:  # wrong types, a compressed bag: the rewritten metadata.yaml replaces it
+        meta, problem = None, f"metadata.yaml is unusable ({err.problem})"
+    if meta is None:
+        return [*problems, problem]
+    return [*problems, *metadata_mismatches(bag, meta, raw)]
 
 
 class _Rewriter:
@@ -156,7 +146,7 @@ class _Rewriter:
     def file(self, stream: BinaryIO, size: int) -> None:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Any] = {}
-        for record in StreamReader(ExactReads(stream, size), record_size_limit=size).records:
+        for record in mcap_records(stream, size):
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
@@ -186,11 +176,9 @@ class _Rewriter:
 
     def _custom_data(self, record: Metadata) -> None:
         """custom_data of rosbag2's own metadata record (written only on a clean close)."""
-        info = yaml.safe_load(record.metadata.get("serialized_metadata", "")) or {}
-        info = info.get("rosbag2_bagfile_information", info)
-        for key, value in (info.get("custom_data") or {}).items():
+        for key, value in record_metadata(record)[0].items():
             if key != REPAIRED_KEY:  # this repair's own entry stands
-                self.writer.set_custom_data(str(key), str(value))
+                self.writer.set_custom_data(key, value)
         self.custom_seen = True
 
 
