@@ -17,10 +17,11 @@ from rclpy.parameter import Parameter
 from safetensors.torch import save_file
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from test_bag_io import ACTION, JOINTS, step_messages, write_messages
 
 import t42_transfer.models.checkpoint as checkpoint
 from msg_adapters import DiagnosticReport, status_report
-from t42_transfer.data.bag_io import read_bag, write_bag
+from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
 from t42_transfer.models.checkpoint import FORMAT, load_model, read_metadata, save_model
 from t42_transfer.models.residual import CumulativeResidualModel
 from t42_transfer.models.training import TrainConfig, train_transition_model
@@ -216,11 +217,11 @@ def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_pa
     assert ros.spin_until(lambda: rig.stages()[-1] == "done", 5.0)
 
 
-def _corrupt_bag(bag_dir: Path) -> Path:
-    bag = bag_dir / "episode_000"
+def _corrupt_bag(bag_dir: Path, name: str = "episode_000") -> Path:
+    bag = bag_dir / name
     bag.mkdir()
     (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
-    (bag / "episode_000_0.mcap").write_bytes(b"\x89MCAP0\r\n not really an mcap file")
+    (bag / f"{name}_0.mcap").write_bytes(b"\x89MCAP0\r\n not really an mcap file")
     return bag
 
 
@@ -275,6 +276,38 @@ def test_bad_data_is_refused_in_one_line_and_the_node_serves_on(ros, tmp_path, s
         shutil.rmtree(bag)
     add_target_bag(rig.bag_dir, "episode_009")
     assert rig.call().success
+
+
+def test_an_unreadable_bag_is_skipped_named_and_offered_again(ros, tmp_path, source_model):
+    rig = Rig(ros, tmp_path, source_model)
+    good = add_target_bag(rig.bag_dir)
+    bad = _corrupt_bag(rig.bag_dir, "episode_001")
+    response = rig.call()
+    assert response.success, response.message
+    assert f"; skipped 1 unreadable bag(s): {bad}: " in response.message and "\n" not in response.message
+    assert rig.server.last_result.bags == (good,) and "from 1 bag(s)" in response.message
+    assert json.loads((rig.model_dir / STATE_FILE).read_text())["used_bags"] == [str(good.resolve())]
+    again = rig.call()  # the bad bag is new still, and all there is
+    assert not again.success and again.message.startswith("too little data: 0 episode(s) (0 transitions) in 0 "
+                                                           "readable new bag(s)")
+    assert f"skipped 1 unreadable bag(s): {bad}: " in again.message and rig.reports[-1].level == "WARN"
+
+
+def test_a_bag_begun_mid_step_is_salvaged_not_refused(ros, tmp_path, source_model, make_set):
+    """The issue's case: the recorder started between a step's state and its action, so the bag began with an
+    /hand/applied_action lacking its /hand/joint_states; the whole bag was refused and /t42/transfer failed."""
+    data = make_set((30, 30, 30), seed=5, hand="target")
+    placed = assign_start_times(data)
+    start = placed[0].start_ns
+    messages = [m for traj in placed for m in step_messages(traj) if not (m[1] == start and m[0] != ACTION)]
+    rig = Rig(ros, tmp_path, source_model)
+    write_messages(rig.bag_dir / "episode_000", messages)
+    with pytest.warns(UserWarning, match=f"dropped {ACTION} messages with no {JOINTS} within 50 ms: 1"):
+        response = rig.call()
+    assert response.success, response.message
+    result = rig.server.last_result
+    assert result.episodes + result.held_out_episodes == 3  # the first episode from its second step on
+    assert "skipped" not in response.message
 
 
 @pytest.mark.parametrize("case", sorted(BAD_SOURCES))

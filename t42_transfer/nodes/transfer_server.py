@@ -5,10 +5,11 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``t42/transfer`` (std_srvs/srv/Trigger): runs one transfer
   (:func:`t42_transfer.transfer.online.run_transfer`: new bags, held-out
   scoring, atomic saves, state file) and answers ``success=True`` with a one-line
-  summary (method, data used, held-out divergence time and MSE, model path), or
-  ``success=False`` with a one-line reason (no new bags, too little data, an
-  unreadable bag, an unusable source model or ``config`` file; nothing is written
-  then), or ``busy: ...`` at once while a transfer runs;
+  summary (method, data used, held-out divergence time and MSE, model path, and
+  each new bag it skipped as unreadable, with why: the others are used), or
+  ``success=False`` with a one-line reason (no new bags, too little data in the
+  readable ones, naming the skipped bags; an unusable source model or ``config``
+  file; nothing is written then), or ``busy: ...`` at once while a transfer runs;
 * ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
@@ -231,6 +232,8 @@ class TransferServer(Node):
             return self._not_done(outcome["refused"] if refused else outcome["error"], refused)
         self.last_result = result
         summary = result.summary()
+        if result.skipped:
+            self.log.warning(f"skipped {len(result.skipped)} unreadable bag(s): {'; '.join(result.skipped)}")
         self.log.info(f"transfer done: {summary}")
         if not self._closed:
             self._updates.publish(String(data=str(result.model_path)))

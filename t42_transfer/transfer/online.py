@@ -6,7 +6,8 @@ the rest of the science.  One :func:`run_transfer`:
 1. takes the candidate bags (a configured list, or every finished bag in
    ``bag_dir``: a non-hidden directory with a ``metadata.yaml``) minus those a
    previous successful transfer used, as recorded in ``model_dir/transfer_state.json``;
-2. loads the source model (a plain transition model) and reads the new bags;
+2. loads the source model (a plain transition model) and reads the new bags,
+   skipping (and naming, with why) any it cannot read;
 3. holds out whole target episodes (``holdout_fraction`` of them, at least
    one, never all) and transfers with the rest;
 4. scores the transferred model and, for reference, the source alone on the
@@ -14,9 +15,10 @@ the rest of the science.  One :func:`run_transfer`:
 5. saves ``model_dir/transferred_<NNN>.safetensors``, then replaces
    ``model_dir/current.safetensors``, then records the bags as used.
 
-Every refusal (no new bags, too little data, an unreadable bag, a missing or
+Every refusal (no new bags, too little data in the readable ones, a missing or
 incompatible source model) raises :class:`TransferRefused` before anything is
-written.  Files are written atomically (:func:`save_model`, the state file by
+written.  An unreadable bag is not recorded as used, so once repaired it is
+offered again.  Files are written atomically (:func:`save_model`, the state file by
 rename), and ``current.safetensors`` is the commit point: when replacing it fails
 the new ``transferred_<NNN>`` file is removed again, so a failed call leaves the
 model directory as it was.  The state file is written last, so a crash after the
@@ -101,6 +103,8 @@ class TransferResult:
     source_position_mse_mm2: float
     model_path: Path
     seconds: float
+    skipped: tuple[str, ...] = ()
+    """Why each new bag that could not be read was skipped (each names its bag)."""
 
     def summary(self) -> str:
         """The one-line answer of the transfer service."""
@@ -109,7 +113,7 @@ class TransferResult:
             f"{len(self.bags)} bag(s); on {self.held_out_episodes} held-out episode(s): divergence "
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
             f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2); "
-            f"model {self.model_path}"
+            f"model {self.model_path}{skipped_note(self.skipped)}"
         )
 
 
@@ -271,16 +275,22 @@ def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
     return model, meta
 
 
-def read_target(bags: Sequence[Path]) -> TrajectorySet:
-    """Every episode of ``bags``, in order; TransferRefused naming the first unreadable bag."""
-    sets = []
+def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[str]]:
+    """Every episode of the readable ``bags``, in order; the bags read; why each other one was skipped."""
+    sets, read, skipped = [], [], []
     for bag in bags:
         try:
             sets.append(read_bag(bag))
-        except DataFileError as err:
-            raise TransferRefused(f"unreadable bag: {err}") from None
+            read.append(bag)
+        except DataFileError as err:  # one bad bag leaves the others usable
+            skipped.append(str(err))
     hand = next((s.hand for s in sets if s.hand), "")
-    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand)
+    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand), read, skipped
+
+
+def skipped_note(skipped: Sequence[str]) -> str:
+    """``"; skipped N unreadable bag(s): <bag: why>; ..."`` for an answer, or ``""``."""
+    return f"; skipped {len(skipped)} unreadable bag(s): {'; '.join(skipped)}" if skipped else ""
 
 
 def merged_workspace(source_meta: Mapping[str, Any], target: TrajectorySet) -> Workspace:
@@ -334,17 +344,19 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
             f"no new bags in {where} since the last transfer ({len(candidates)} bag(s), all used already)"
         )
     source, source_meta = load_source(spec.source_model)
-    data = read_target(new)
+    data, readable, skipped = read_target(new)
     if len(data) < spec.min_episodes:
         raise TransferRefused(
-            f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(new)} new "
-            f"bag(s); need at least {spec.min_episodes} (some to train on, one held out)"
+            f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(readable)} "
+            f"readable new bag(s); need at least {spec.min_episodes} (some to train on, one held out)"
+            f"{skipped_note(skipped)}"
         )
     train, held_out = hold_out(data, spec.holdout_fraction, spec.seed)
     workspace = merged_workspace(source_meta, train)
     report("training", {
-        "bags": ",".join(b.name for b in new), "episodes": len(train), "transitions": train.num_transitions,
-        "held_out_episodes": len(held_out), "epoch": 0, "epochs": epoch_budget(spec.method, spec.config),
+        "bags": ",".join(b.name for b in readable), "skipped_bags": len(skipped), "episodes": len(train),
+        "transitions": train.num_transitions, "held_out_episodes": len(held_out), "epoch": 0,
+        "epochs": epoch_budget(spec.method, spec.config),
     })
     try:
         model = transfer(
@@ -357,12 +369,13 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     scores = evaluate_model(model, held_out)
     baseline = evaluate_model(source, held_out)
     report("saving", {})
-    path = _commit(model, spec, state, new, source_meta, train, held_out, workspace, scores)
+    path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace, scores)
     return TransferResult(
-        method=spec.method, bags=tuple(new), episodes=len(train), transitions=train.num_transitions,
+        method=spec.method, bags=tuple(readable), episodes=len(train), transitions=train.num_transitions,
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
         position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
+        skipped=tuple(skipped),
     )
 
 
