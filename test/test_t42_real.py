@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,59 @@ from t42_transfer.data.t42_real import import_t42_to_bag, load_t42_testpaths
 
 FILES = {"cyl35": "testpaths_cyl35_d_v0.pkl", "cyl35_red": "testpaths_cyl35_red_d_v0.pkl"}
 ACTION_SET = {(1, 1), (-1, -1), (-1, 1), (1, -1), (1.5, 0), (-1.5, 0), (0, 1.5), (0, -1.5)}
+
+
+def py2_pickle(actions: list, states: list, name: str, flags: list, dtype: str = "f8") -> bytes:
+    """``[actions, states, name, flags]`` as Python 2's numpy wrote the real files: protocol 0, latin-1 STRINGs.
+
+    ``dtype`` is the name the file gives numpy's dtype; the array bytes stay float64's.
+    """
+    memo: dict[tuple[bytes, bytes], int] = {}
+
+    def glob(module: bytes, name: bytes) -> bytes:  # named once, then taken from the memo as the files do
+        if (module, name) in memo:
+            return b"g%d\n" % memo[module, name]
+        memo[module, name] = len(memo)
+        return b"c%s\n%s\np%d\n" % (module, name, memo[module, name])
+
+    def string(raw: bytes) -> bytes:
+        return b"S" + repr(raw)[1:].encode("latin-1") + b"\n"  # Python 2's repr of a str is Python 3's of bytes
+
+    def array(a: np.ndarray) -> bytes:
+        shape = b"".join(b"I%d\n" % n for n in a.shape)
+        return (
+            glob(b"numpy.core.multiarray", b"_reconstruct")
+            + b"("
+            + glob(b"numpy", b"ndarray")
+            + b"(I0\nt"
+            + string(b"b")
+            + b"tR(I1\n("
+            + shape
+            + b"t"
+            + glob(b"numpy", b"dtype")
+            + b"("
+            + string(dtype.encode())
+            + b"I0\nI1\ntR(I3\n"
+            + string(b"<")
+            + b"NNNI-1\nI-1\nI0\ntbI00\n"
+            + string(np.ascontiguousarray(a, "<f8").tobytes())
+            + b"tb"
+        )
+
+    def listing(items: list) -> bytes:
+        return b"(l" + b"".join(item + b"a" for item in items)
+
+    return (
+        listing(
+            [
+                listing([array(a) for a in actions]),
+                listing([array(s) for s in states]),
+                string(name.encode("latin-1")),
+                listing([b"I01\n" if f else b"I00\n" for f in flags]),
+            ]
+        )
+        + b"."
+    )
 
 
 @pytest.fixture(scope="module", params=sorted(FILES))
@@ -75,12 +129,13 @@ def test_malicious_pickle_is_refused_without_running(tmp_path):
 @pytest.mark.parametrize(
     ("content", "match"),
     [
-        ({"actions": []}, "expected a list"),
+        ((["a"], ["s"], "h", [True]), "expected a list"),
+        ({"actions": []}, "refused pickle opcode EMPTY_DICT"),
         ([[np.zeros((3, 2))], [np.zeros((3, 13))], "h", [True, False]], "differ in number"),
         ([[np.zeros((3, 2))], [np.zeros((3, 5))], "h", [True]], "at least 13 columns"),
         ([[np.zeros((2, 2))], [np.zeros((4, 13))], "h", [True]], "4 states but only 2 actions"),
         ([[np.zeros((4, 2))], [np.full((3, 13), np.nan)], "h", [True]], "non-finite"),
-        ([[np.zeros((4, 2))], [np.zeros((3, 13))], 7, [True]], "hand name must be a string"),
+        ([[np.zeros((4, 2))], [np.zeros((3, 13))], 7, [True]], "hand name must be printable text"),
     ],
 )
 def test_unexpected_layouts_are_named(tmp_path, content, match):
@@ -93,9 +148,39 @@ def test_unexpected_layouts_are_named(tmp_path, content, match):
 def test_unreadable_files(tmp_path):
     with pytest.raises(PickleFileError, match="cannot be read"):
         load_t42_testpaths(tmp_path / "missing.pkl")
+    with pytest.raises(PickleFileError, match="is not a regular file"):
+        load_t42_testpaths(tmp_path)
     (tmp_path / "junk.pkl").write_bytes(b"\x80\x02junk")
     with pytest.raises(PickleFileError, match="not a readable pickle"):
         load_t42_testpaths(tmp_path / "junk.pkl")
+
+
+def test_reading_reserves_no_more_than_the_file_size(tmp_path):
+    """A read of "up to the size limit" reserved 256 MiB for any file; the fuzz run's memory guard caught it."""
+    path = tmp_path / "junk.pkl"
+    path.write_bytes(b"\x80\x02junk")
+    tracemalloc.start()
+    try:
+        with pytest.raises(PickleFileError, match="not a readable pickle"):
+            load_t42_testpaths(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2**20
+
+
+def test_synthetic_file_in_the_python2_layout(tmp_path):
+    """Runs without the shared data: the real files' own encoding (numpy.core globals, latin-1 strings)."""
+    rng = np.random.default_rng(1)
+    states = [rng.normal(size=(n, 13)) for n in (6, 9)]
+    actions = [rng.choice([-1.0, 1.5], size=(n + 2, 2)) for n in (6, 9)]
+    path = tmp_path / "py2.pkl"
+    path.write_bytes(py2_pickle(actions, states, "cyl35", [False, True]))
+    data = load_t42_testpaths(path)
+    assert data.hand == "cyl35" and [len(t) for t in data] == [5, 8]
+    assert [t.end_reason for t in data] == ["dropped", "length"]
+    np.testing.assert_array_equal(data[1].states, states[1][:, (0, 1, 11, 12)].astype(np.float32))
+    np.testing.assert_array_equal(data[0].actions, actions[0][:5].astype(np.float32))
 
 
 def test_synthetic_file_in_the_real_layout(tmp_path):
