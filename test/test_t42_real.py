@@ -135,9 +135,14 @@ def test_malicious_pickle_is_refused_without_running(tmp_path):
         ([[np.zeros((3, 2))], [np.zeros((3, 5))], "h", [True]], "at least 13 columns"),
         ([[np.zeros((2, 2))], [np.zeros((4, 13))], "h", [True]], "4 states but only 2 actions"),
         ([[np.zeros((4, 2))], [np.full((3, 13), np.nan)], "h", [True]], "non-finite"),
+        (
+            [[np.zeros((4, 2))], [np.full((3, 13), 1e300)], "h", [True]],
+            "states has a non-finite float32 value at row 0",
+        ),
         ([[np.zeros((4, 2))], [np.zeros((3, 13))], 7, [True]], "hand name must be printable text"),
     ],
 )
+@pytest.mark.filterwarnings("error")  # refused in one line, without an overflow warning before it
 def test_unexpected_layouts_are_named(tmp_path, content, match):
     path = tmp_path / "odd.pkl"
     path.write_bytes(pickle.dumps(content, protocol=4))

@@ -76,6 +76,8 @@ exponential time), object creation other than REDUCE, extensions and 8-byte leng
 
 _OPCODE_NAMES = {op.code.encode("latin-1")[0]: op.name for op in pickletools.opcodes}
 
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 _DTYPE_STATES = frozenset((3, order, None, None, None, -1, -1, 0) for order in "<>")
 """``np.dtype("f8").__reduce__()[2]`` little- and big-endian: the only dtype states set."""
 
@@ -239,7 +241,7 @@ def _unpickle(path: Path, data: bytes) -> Any:
     except MemoryError:  # the bounds above should make this unreachable: not a verdict on the file
         raise
     except Exception as err:  # a malformed pickle raises whatever its opcodes trip over
-        detail = f"{type(err).__name__}: {err}".replace("\n", " ")[:300]
+        detail = f"{type(err).__name__}: {err}".replace("\n", " ")[:300] if str(err) else type(err).__name__
         raise PickleFileError(path, f"is not a readable pickle ({detail})") from None
 
 
@@ -248,6 +250,14 @@ def _float_table(path: Path, what: str, value: Any, min_cols: int) -> np.ndarray
         shape = value.shape if isinstance(value, np.ndarray) else type(value).__name__
         raise PickleFileError(path, f"{what} must be a 2-D array with at least {min_cols} columns, got {shape}")
     return value
+
+
+def _float32(path: Path, what: str, values: np.ndarray) -> np.ndarray:
+    """``values`` as the float32 a Trajectory holds; a NaN, inf or float64 beyond float32's range is refused first."""
+    bad = ~(np.abs(values) <= _FLOAT32_MAX)
+    if bad.any():
+        raise PickleFileError(path, f"{what} has a non-finite float32 value at row {int(np.argwhere(bad)[0, 0])}")
+    return values.astype(np.float32)
 
 
 def _testpaths(file: Path, data: bytes) -> TrajectorySet:
@@ -277,8 +287,8 @@ def _testpaths(file: Path, data: bytes) -> TrajectorySet:
         try:
             episodes.append(
                 Trajectory(
-                    states=obs[:, STATE_COLUMNS],
-                    actions=acts[: len(obs) - 1, :2],
+                    states=_float32(file, f"path {i} states", obs[:, STATE_COLUMNS]),
+                    actions=_float32(file, f"path {i} actions", acts[: len(obs) - 1, :2]),
                     end_reason="length" if ok else "dropped",
                     hand=name,
                 )
