@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shutil
 import subprocess
 import sys
@@ -41,6 +42,8 @@ from pathlib import Path
 from hypothesis import strategies as st
 
 REPO = Path(__file__).resolve().parents[1]
+PARENT_GRACE_S = 10.0
+"""How much longer than the worker's own alarm the parent waits before it kills the worker."""
 INTERESTING = (b"\x00", b"\xff", b"\x7f", b"\x80", b"\xff\xff\xff\x7f", b"\x00\x00\x00\x80",
                b"\xff\xff\xff\xff\xff\xff\xff\x7f", b"nan", b"-1", b"1e309", b"[", b"{", b"'", b"\n")
 
@@ -122,6 +125,15 @@ class DecoderWorker:
         before = _listing(self.root / "scratch")
         proc.stdin.write(str(path) + "\n")
         proc.stdin.flush()
+        # the worker's own alarm cannot interrupt C code that never checks for signals: a parent-side limit too
+        ready, _, _ = select.select([proc.stdout], [], [], self.timeout_s + PARENT_GRACE_S)
+        if not ready:
+            proc.kill()
+            proc.wait()
+            self._proc = None
+            proc.stdin.close()
+            proc.stdout.close()
+            raise self._escape(case_dir, "hang", f"no answer within {self.timeout_s + PARENT_GRACE_S} s (killed)")
         line = proc.stdout.readline()
         if not line:  # the worker died on this case
             code = proc.wait()
@@ -145,7 +157,10 @@ class DecoderWorker:
         if self.keep_dir is not None:
             self.keep_dir.mkdir(parents=True, exist_ok=True)
             kept = self.keep_dir / f"{kind}_{case_dir.name}"
-            shutil.copytree(case_dir, kept, dirs_exist_ok=True)
+            # regular files only: a case may hold a FIFO, which copying would block on or refuse
+            shutil.copytree(case_dir, kept, dirs_exist_ok=True,
+                            ignore=lambda d, names: [n for n in names if not (Path(d, n).is_file()
+                                                                             or Path(d, n).is_dir())])
         return Escape(f"{self.target}: {kind}: {detail} (input kept at {kept})")
 
 
