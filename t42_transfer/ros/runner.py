@@ -20,6 +20,8 @@ from collections.abc import Sequence
 from types import FrameType
 
 DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+TEARDOWN_TIMEOUT_S = 8.0
+"""How long releasing rclpy's handles may take after the node closed before the process exits regardless."""
 
 
 def make_executor(node_cls: type, context: object) -> object:
@@ -92,6 +94,7 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
     node_cls = spec.node_class()
     executor = make_executor(node_cls, context)
     node = None
+    closed = [False]
     try:
         try:
             node = node_cls(context=context)
@@ -103,10 +106,23 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
             executor.spin_once(timeout_sec=0.1)
         node.close()
         node.get_logger().info("shut down cleanly")
+        closed[0] = True
         return 0
     finally:
+        # The node's own work is closed above; should releasing rclpy's handles block (seen once in a
+        # busy graph, after "shut down cleanly"), the process still ends instead of waiting for SIGKILL.
+        watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _exit_stuck, args=(name, 0 if closed[0] else 1))
+        watchdog.daemon = True
+        watchdog.start()
         executor.shutdown(timeout_sec=5.0)
         if node is not None:
             node.destroy_node()
         if context.ok():
             rclpy.shutdown(context=context)
+        watchdog.cancel()
+
+
+def _exit_stuck(name: str, code: int) -> None:
+    print(f"t42: warning: {name}: releasing ROS resources took over {TEARDOWN_TIMEOUT_S:g} s; exiting anyway",
+          file=sys.stderr, flush=True)
+    os._exit(code)
