@@ -155,7 +155,7 @@ def _operator_class() -> type:
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from t42_transfer.ros.qos import LATCHED
+    from t42_transfer.ros.qos import EVENTS
 
     class Operator(Node):
         """Watches the hand and the suite's outputs, calls services, sends goals; spun by a background executor."""
@@ -170,7 +170,7 @@ def _operator_class() -> type:
             self.diagnostic: dict[str, str] = {}
             self.create_subscription(PoseStamped, "hand/object_pose", self._on_pose, 100)
             self.create_subscription(JointState, "hand/applied_action", self._on_applied, 100, raw=True)
-            self.create_subscription(String, "hand/status", lambda m: self.statuses.append(m.data), LATCHED)
+            self.create_subscription(String, "hand/status", lambda m: self.statuses.append(m.data), EVENTS)
             self.create_subscription(String, "t42/plan_result", lambda m: self.results.append(json.loads(m.data)), 10)
             self.create_subscription(PathMsg, "t42/planned_path", lambda m: self.paths.append(path_xy_mm(m)), 10)
             self.create_subscription(DiagnosticArray, "diagnostics", self._on_diagnostics, 10)

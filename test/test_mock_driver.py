@@ -39,7 +39,7 @@ from t42_transfer.nodes.mock_driver import (
     validate_command,
     validate_trajectory,
 )
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import EVENTS
 
 START_NS = 1_000_000_000
 MAX_AGE_NS = 500_000_000
@@ -60,7 +60,7 @@ class Rig:
         for topic, msgtype in ((OBJECT_POSE_TOPIC, PoseStamped), (JOINT_STATES_TOPIC, JointState),
                                (APPLIED_ACTION_TOPIC, JointState)):
             self.tester.create_subscription(msgtype, topic, self.got[topic].append, 100)
-        self.tester.create_subscription(String, STATUS_TOPIC, self.got[STATUS_TOPIC].append, LATCHED)
+        self.tester.create_subscription(String, STATUS_TOPIC, self.got[STATUS_TOPIC].append, EVENTS)
         self.command_pub = self.tester.create_publisher(JointState, COMMAND_TOPIC, 10)
         self.trajectory_pub = self.tester.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
         self.reset_client = self.tester.create_client(Trigger, RESET_SERVICE)
@@ -177,7 +177,7 @@ def test_params_validated(kwargs):
 
 # --------------------------------------------------------------------------- the node
 def test_publishes_state_and_action_per_step_with_one_stamp(rig):
-    assert rig.statuses() == ["reset: episode 0 grasped (seed 0)"]
+    assert rig.statuses() == ["reset: episode 0 grasped (seed 0) [last step 0 ns]"]
     grasped = rig.driver.hand.state
     rig.tick(5)
     stamps = {topic: [stamp_to_ns(m.header.stamp) for m in rig.got[topic]]
@@ -382,3 +382,17 @@ def test_works_under_a_namespace_with_remapped_names(ros):
     driver.tick()
     assert ros.spin_until(lambda: poses and joints, 5.0)
     assert ros.call(reset, Trigger.Request()).success
+
+
+def test_statuses_are_events_kept_deep_enough_not_to_be_replaced(rig):
+    """A reliable KEEP_LAST 1 writer replaces a status a slow reader has not acknowledged: under load the
+    recorder missed a reset and merged two episodes. Statuses use a deep, latched history instead."""
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    qos = rig.driver._status_pub.qos_profile
+    assert qos.depth >= 50 and qos.reliability == ReliabilityPolicy.RELIABLE
+    assert qos.durability == DurabilityPolicy.TRANSIENT_LOCAL  # a late joiner still hears the last reset
+    for k in range(50):
+        rig.driver._publish_status(f"trajectory_done: burst {k}")
+    assert rig.ros.spin_until(lambda: sum("burst" in s for s in rig.statuses()) == 50, 10.0)
+    assert [s for s in rig.statuses() if "burst" in s] == [f"trajectory_done: burst {k}" for k in range(50)]

@@ -40,6 +40,12 @@ def test_driver_explorer_and_recorder_processes_record_what_the_hand_simulated(t
     recorder = _start(["recorder", "--ros-args", "-p", f"out_dir:={out_dir}", "-p", "mode:=episode",
                        "-p", "use_sim_time:=true"], logs["recorder"])
     try:
+        # the explorer's first reset must find the recorder listening: wait for both to run, then discovery
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not all("running on" in logs[n].read_text() for n in ("driver",
+                                                                                                    "recorder")):
+            time.sleep(0.1)
+        time.sleep(1.0)
         explorer = _start(["explorer", "--ros-args", "-p", "episodes:=2", "-p", "steps:=40", "-p", "seed:=11",
                            "-p", "rate_factor:=10.0", "-p", "use_sim_time:=true"], logs["explorer"])
         code = explorer.wait(timeout=120)

@@ -72,7 +72,7 @@ from t42_transfer.nodes.mock_driver import (
 )
 from t42_transfer.nodes.recorder import END_EVENTS
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import EVENT_READER
 
 TRAJECTORY_DONE = "trajectory_done"
 
@@ -197,7 +197,7 @@ class Explorer(Node):
         self._record_stop = self.create_client(Trigger, p.record_stop_service) if p.record_stop_service else None
         self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state, 10)
         self._applied_sub = self.create_subscription(JointState, APPLIED_ACTION_TOPIC, self._on_applied, 10)
-        self._status_sub = self.create_subscription(String, STATUS_TOPIC, self._on_status, LATCHED)
+        self._status_sub = self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER)
         self._timer = self.create_timer(self.POLL_S, self._on_timer)
 
     @property

@@ -77,7 +77,7 @@ from msg_adapters import (
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import EVENTS
 
 OBJECT_POSE_TOPIC = "hand/object_pose"
 JOINT_STATES_TOPIC = "hand/joint_states"
@@ -210,13 +210,13 @@ class MockDriver(Node):
         self._command: np.ndarray | None = None
         self._plan: list[np.ndarray] = []
         self._closed = False
-        self._last_stamp: int | None = None
-        """Stamp of the last step published (None before the first)."""
+        self._last_stamp = 0
+        """Stamp of the last step published (0 before the first: every step comes after it)."""
 
         self._pose_pub = self.create_publisher(PoseStamped, OBJECT_POSE_TOPIC, 10)
         self._joints_pub = self.create_publisher(JointState, JOINT_STATES_TOPIC, 10)
         self._action_pub = self.create_publisher(JointState, APPLIED_ACTION_TOPIC, 10)
-        self._status_pub = self.create_publisher(String, STATUS_TOPIC, LATCHED)
+        self._status_pub = self.create_publisher(String, STATUS_TOPIC, EVENTS)
         self._sim_ns = self.get_clock().now().nanoseconds
         self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.sim_time else None
         self.create_subscription(JointState, COMMAND_TOPIC, self._on_command, 10)

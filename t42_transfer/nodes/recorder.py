@@ -98,7 +98,7 @@ from msg_adapters import (
 )
 from t42_transfer.data.bag_io import RECORD_QOS, JazzyWriter
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import recording
+from t42_transfer.ros.qos import EVENT_READER, recording
 
 STRING = "std_msgs/msg/String"
 
@@ -346,6 +346,8 @@ class Recorder(Node):
         """Whether a bag is open once every waiting change is carried out."""
         self._lock = threading.RLock()
         self._closed = False
+        self._first_stamp: int | None = None
+        """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
 
         qos = recording(p.queue_depth)
         self._types: dict[str, str] = {}
@@ -357,7 +359,7 @@ class Recorder(Node):
             self._types[topic] = msgtype
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
-        self.create_subscription(String, STATUS_TOPIC, self._on_status, 10, raw=True)
+        self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER, raw=True)
         self.create_service(Trigger, START_SERVICE, partial(self._answer, self.start))
         self.create_service(Trigger, STOP_SERVICE, partial(self._answer, self.stop))
         self.create_service(Trigger, SPLIT_SERVICE, partial(self._answer, self.split))
@@ -535,6 +537,8 @@ class Recorder(Node):
             with self._lock:
                 if self._closed:
                     return
+                if self._first_stamp is None or stamp < self._first_stamp:
+                    self._first_stamp = stamp
                 released, late = self._buffer.add(topic, stamp, log_ns, bytes(data), time.monotonic())
                 if late:
                     self.dropped += 1
@@ -575,6 +579,8 @@ class Recorder(Node):
                 if self._closed or not self._will_record:
                     return
                 after = last_step_stamp(str(text))  # the driver says where the border is
+                if after is not None and (self._first_stamp is None or after < self._first_stamp):
+                    return  # a border before anything recorded (the history a late joiner hears)
                 waiting = [c.after for c in self._changes if c.kind == "episode"]
                 # one split per episode border: a reset right after an end status names the same last step
                 # (a driver that names none: no second split while one waits)
