@@ -12,6 +12,7 @@ command line or parameter exits 2 with one ``t42: error: ...`` line.
 
 from __future__ import annotations
 
+import faulthandler
 import os
 import signal
 import sys
@@ -94,7 +95,6 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
     node_cls = spec.node_class()
     executor = make_executor(node_cls, context)
     node = None
-    closed = [False]
     try:
         try:
             node = node_cls(context=context)
@@ -106,23 +106,16 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
             executor.spin_once(timeout_sec=0.1)
         node.close()
         node.get_logger().info("shut down cleanly")
-        closed[0] = True
         return 0
     finally:
         # The node's own work is closed above; should releasing rclpy's handles block (seen once in a
         # busy graph, after "shut down cleanly"), the process still ends instead of waiting for SIGKILL.
-        watchdog = threading.Timer(TEARDOWN_TIMEOUT_S, _exit_stuck, args=(name, 0 if closed[0] else 1))
-        watchdog.daemon = True
-        watchdog.start()
+        # faulthandler's watchdog runs without the GIL, which a blocked rcl call may hold: it prints where
+        # the process is stuck and exits.
+        faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_S, exit=True)
         executor.shutdown(timeout_sec=5.0)
         if node is not None:
             node.destroy_node()
         if context.ok():
             rclpy.shutdown(context=context)
-        watchdog.cancel()
-
-
-def _exit_stuck(name: str, code: int) -> None:
-    print(f"t42: warning: {name}: releasing ROS resources took over {TEARDOWN_TIMEOUT_S:g} s; exiting anyway",
-          file=sys.stderr, flush=True)
-    os._exit(code)
+        faulthandler.cancel_dump_traceback_later()
