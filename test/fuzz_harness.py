@@ -36,9 +36,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 REPO = Path(__file__).resolve().parents[1]
@@ -166,6 +168,30 @@ class DecoderWorker:
 
 def _listing(directory: Path) -> set[str]:
     return {str(p.relative_to(directory)) for p in directory.rglob("*")} if directory.exists() else set()
+
+
+# --------------------------------------------------------------------------- running
+def fuzz(worker: DecoderWorker, strategy: st.SearchStrategy[bytes], name: str, examples: int) -> dict[str, int]:
+    """``examples`` derandomized cases of ``strategy``, each decoded as a file called ``name``; the counts.
+
+    An escape raises (hypothesis then shrinks it); the accepted/refused counts of this run are printed
+    (``pytest -s``) and returned.
+    """
+    before = dict(worker.counts)
+
+    @settings(max_examples=examples, deadline=None, derandomize=True, database=None,
+              suppress_health_check=list(HealthCheck))
+    @given(strategy)
+    def run(data: bytes) -> None:
+        worker.check_bytes(data, name)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # hypothesis's notes on derandomize are not the subject here
+        run()
+    counts = {kind: worker.counts[kind] - before[kind] for kind in before}
+    print(f"{worker.target} fuzz ({name}): {sum(counts.values())} cases, {counts['accepted']} accepted, "
+          f"{counts['refused']} refused, 0 escapes")
+    return counts
 
 
 # --------------------------------------------------------------------------- mutations

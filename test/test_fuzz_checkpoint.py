@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from fuzz_harness import DecoderWorker, mutated
-from hypothesis import given, settings
+from fuzz_harness import DecoderWorker, fuzz, mutated
 from hypothesis import strategies as st
 from safetensors import safe_open
 from safetensors.torch import save_file
@@ -164,17 +163,7 @@ def mutated_checkpoints(draw: st.DrawFn, seeds: list[bytes]) -> bytes:
 
 
 def _fuzz(worker: DecoderWorker, seeds: list[bytes], examples: int) -> dict[str, int]:
-    before = dict(worker.counts)
-
-    @settings(max_examples=examples, deadline=None, derandomize=True, database=None)
-    @given(mutated_checkpoints(seeds))
-    def run(data: bytes) -> None:
-        worker.check_bytes(data, "model.safetensors")
-
-    run()
-    counts = {k: worker.counts[k] - before[k] for k in before}
-    print(f"checkpoint fuzz: {sum(counts.values())} cases, {counts['accepted']} accepted, "
-          f"{counts['refused']} refused, 0 escapes")
+    counts = fuzz(worker, mutated_checkpoints(seeds), "model.safetensors", examples)
     assert sum(counts.values()) >= examples
     return counts
 

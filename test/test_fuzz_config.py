@@ -11,14 +11,12 @@ per reader and prints the counts.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
-from fuzz_harness import DecoderWorker, mutated
-from hypothesis import HealthCheck, given, settings
+from fuzz_harness import DecoderWorker, fuzz, mutated
 from hypothesis import strategies as st
 
 REPO = Path(__file__).resolve().parents[1]
@@ -93,20 +91,7 @@ def test_crafted_yaml_is_refused_in_one_line(reader: tuple[str, DecoderWorker, b
 
 def _fuzz(reader: tuple[str, DecoderWorker, bytes], examples: int) -> dict[str, int]:
     name, worker, seed = reader
-    before = dict(worker.counts)
-
-    @settings(max_examples=examples, deadline=None, derandomize=True, database=None,
-              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-    @given(mutated_yaml(seed))
-    def run(data: bytes) -> None:
-        worker.check_bytes(data, f"{name}.yaml")
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # hypothesis notes on derandomize are not the subject here
-        run()
-    counts = {k: worker.counts[k] - before[k] for k in before}
-    print(f"{name} fuzz: {sum(counts.values())} cases, {counts['accepted']} accepted, "
-          f"{counts['refused']} refused, 0 escapes")
+    counts = fuzz(worker, mutated_yaml(seed), f"{name}.yaml", examples)
     assert sum(counts.values()) >= examples
     return counts
 

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fuzz_harness import DecoderWorker, mutated
-from hypothesis import HealthCheck, given, settings
+from fuzz_harness import DecoderWorker, fuzz, mutated
 from test_t42_real import py2_pickle
 
 from t42_transfer.data import bag_io
@@ -145,17 +144,7 @@ def _seed(name: str) -> bytes:
 
 def _fuzz(worker: DecoderWorker, seed: bytes, examples: int) -> dict[str, int]:
     """``examples`` mutations of ``seed`` through ``worker``; the accepted/refused counts (an escape raises)."""
-    before = dict(worker.counts)
-
-    @settings(
-        max_examples=examples, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
-    )
-    @given(mutated(seed))
-    def run(data: bytes) -> None:
-        worker.check_bytes(data, "paths.pkl")
-
-    run()
-    return {kind: worker.counts[kind] - before[kind] for kind in before}
+    return fuzz(worker, mutated(seed), "paths.pkl", examples)
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -169,5 +158,4 @@ def test_mutated_pickles_fast_slice(loader, seed):
 @pytest.mark.parametrize("seed", SEEDS)
 def test_mutated_pickles_long_run(loader, seed):
     counts = _fuzz(loader, _seed(seed), 2000)
-    print(f"pickle fuzz, {seed}: {counts['accepted']} accepted, {counts['refused']} refused, 0 escapes")
     assert sum(counts.values()) >= 2000
