@@ -90,24 +90,23 @@ def _stat(path: Path) -> os.stat_result | None:
         raise ValueError(f"{path}: {err.strerror or err}") from None
 
 
-def existing_file(path: Path) -> Path:
-    """``path`` when it is a regular file (a FIFO would block the reader); ValueError naming it otherwise."""
+def _existing(path: Path, is_kind: Callable[[int], bool], kind: str) -> Path:
+    """``path`` when it exists and ``is_kind(st_mode)``; ValueError naming it otherwise."""
     info = _stat(path)
     if info is None:
         raise ValueError(f"{path}: does not exist")
-    if not stat.S_ISREG(info.st_mode):
-        raise ValueError(f"{path}: not a regular file")
+    if not is_kind(info.st_mode):
+        raise ValueError(f"{path}: not {kind}")
     return path
+
+
+def existing_file(path: Path) -> Path:
+    """``path`` when it is a regular file (a FIFO would block the reader)."""
+    return _existing(path, stat.S_ISREG, "a regular file")
 
 
 def existing_dir(path: Path) -> Path:
-    """``path`` when it is a directory; ValueError naming it otherwise."""
-    info = _stat(path)
-    if info is None:
-        raise ValueError(f"{path}: does not exist")
-    if not stat.S_ISDIR(info.st_mode):
-        raise ValueError(f"{path}: not a directory")
-    return path
+    return _existing(path, stat.S_ISDIR, "a directory")
 
 
 def output_dir(path: Path) -> Path:
