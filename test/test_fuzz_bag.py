@@ -16,8 +16,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from fuzz_harness import DecoderWorker, mutated
-from hypothesis import HealthCheck, given, settings
+from fuzz_harness import DecoderWorker, fuzz, mutated
 
 REPO = Path(__file__).resolve().parents[1]
 SEED_BAG = REPO / "bags" / "target_small"
@@ -25,27 +24,23 @@ PARTS = {"mcap": "target_small.mcap", "yaml": "metadata.yaml"}
 DECODERS = ("bag_io:read_bag", "bag_io:bag_info", "bag_io:verify_bag", "bag_repair:repair_bag")
 
 
-def fuzz(decoder: str, part: str, examples: int, keep: Path) -> dict[str, int]:
+def run_fuzz(decoder: str, part: str, examples: int, keep: Path) -> dict[str, int]:
     """``examples`` mutations of the fixture bag's ``part`` through ``decoder``; the accepted/refused counts."""
     seed = (SEED_BAG / PARTS[part]).read_bytes()
     with DecoderWorker(f"t42_transfer.data.{decoder}", keep_dir=keep) as worker:
 
-        @settings(max_examples=examples, deadline=None, derandomize=True, database=None,
-                  suppress_health_check=list(HealthCheck))
-        @given(mutated(seed))
         def case(data: bytes) -> None:
             bag = Path(shutil.copytree(SEED_BAG, worker.new_case_dir() / SEED_BAG.name))
             (bag / PARTS[part]).write_bytes(data)
             worker.check_path(bag)
 
-        case()
-        return worker.counts
+        return fuzz(worker, mutated(seed), PARTS[part], examples, check=case)
 
 
 @pytest.mark.parametrize("part", sorted(PARTS))
 @pytest.mark.parametrize("decoder", DECODERS)
 def test_mutated_bags_never_escape(tmp_path: Path, decoder: str, part: str) -> None:
-    counts = fuzz(decoder, part, 40, tmp_path / "escapes")
+    counts = run_fuzz(decoder, part, 40, tmp_path / "escapes")
     assert sum(counts.values()) == 40
 
 
@@ -53,6 +48,5 @@ def test_mutated_bags_never_escape(tmp_path: Path, decoder: str, part: str) -> N
 @pytest.mark.parametrize("part", sorted(PARTS))
 @pytest.mark.parametrize("decoder", DECODERS)
 def test_mutated_bags_never_escape_long(tmp_path: Path, decoder: str, part: str) -> None:
-    counts = fuzz(decoder, part, 2000, tmp_path / "escapes")
-    print(f"\n{decoder} on mutated {PARTS[part]}: {counts}")
+    counts = run_fuzz(decoder, part, 2000, tmp_path / "escapes")
     assert sum(counts.values()) == 2000
