@@ -55,6 +55,18 @@ class StepInfo:
     """True when a servo move was refused at its travel limit."""
 
 
+@dataclass(frozen=True)
+class HandSnapshot:
+    """A hand's full state at one instant (see :meth:`SimulatedHand.snapshot`)."""
+
+    data: mujoco.MjData
+    servo: np.ndarray
+    state: np.ndarray
+    done: bool
+    end_reason: str
+    rng_state: dict
+
+
 class SimulatedHand:
     """One simulated hand; not thread-safe, cheap to create (one per process)."""
 
@@ -158,6 +170,21 @@ class SimulatedHand:
         self._end_reason = self._check_end(before)
         self._done = bool(self._end_reason)
         return StepInfo(self._done, self._end_reason, refused)
+
+    def snapshot(self) -> "HandSnapshot":
+        """Everything the next steps depend on (physics, servos, sensor-noise generator): :meth:`restore` replays them."""
+        data = mujoco.MjData(self._model)
+        mujoco.mj_copyData(data, self._model, self._data)
+        return HandSnapshot(data, self._servo.copy(), self._state.copy(), self._done, self._end_reason,
+                            self._rng.bit_generator.state)
+
+    def restore(self, snap: "HandSnapshot") -> None:
+        """Back to ``snap``: the same actions then give exactly the same states (a perfect model of this hand)."""
+        mujoco.mj_copyData(self._data, self._model, snap.data)
+        self._servo[:] = snap.servo
+        self._state = snap.state.copy()
+        self._done, self._end_reason = snap.done, snap.end_reason
+        self._rng.bit_generator.state = snap.rng_state
 
     # ------------------------------------------------------------------ internals
     def _apply_servo(self) -> None:
