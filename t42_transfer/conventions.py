@@ -25,6 +25,18 @@ ACTION_LIMIT = 1.5
 RANDOM_POLICY_LIMIT = 1.0
 """The paper's random policy and the planner draw actions in [-1, 1]^2."""
 
+REAL_HAND_ACTIONS = (
+    (1.0, 1.0),
+    (-1.0, -1.0),
+    (-1.0, 1.0),
+    (1.0, -1.0),
+    (1.5, 0.0),
+    (-1.5, 0.0),
+    (0.0, 1.5),
+    (0.0, -1.5),
+)
+"""The real hands' discrete moves: both fingers together, against each other, or one alone."""
+
 LOAD_UNIT_NM = 0.0041
 """Torque (N m) of one raw load unit: 0.1 % of a Dynamixel XM430's 4.1 N m stall torque."""
 

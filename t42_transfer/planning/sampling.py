@@ -16,19 +16,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, RANDOM_POLICY_LIMIT
+from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, RANDOM_POLICY_LIMIT, REAL_HAND_ACTIONS
 
 SAMPLERS = ("uniform", "discrete", "piecewise")
-REAL_HAND_ACTIONS = (
-    (1.0, 1.0),
-    (-1.0, -1.0),
-    (-1.0, 1.0),
-    (1.0, -1.0),
-    (1.5, 0.0),
-    (-1.5, 0.0),
-    (0.0, 1.5),
-    (0.0, -1.5),
-)
 DISCRETE_ACTIONS = torch.tensor(REAL_HAND_ACTIONS) / ACTION_LIMIT
 """The real hand's moves scaled into ``[-1, 1]``, ``[8, 2]``."""
 SAMPLE_BLOCK = 4096
