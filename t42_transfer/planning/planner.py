@@ -21,17 +21,27 @@ tolerance is returned (``status="unreachable"``, ``ok=False``) with that
 predicted error, since executing it is the caller's choice.  Bad arguments
 (wrong shapes, non-finite state or goal) raise ``ValueError``.
 
-Selection.  Without horizon search the cost is the final predicted distance to
-the goal.  With it, a sample's cost is ``t + e / tol`` for the first step ``t``
+Selection.  Without horizon search (fixed-length plans) the cost is the final
+predicted distance to the goal.  With it, a sample's cost is ``t + e / tol`` for the first step ``t``
 at which it is within ``tol`` (shortest first, then nearest), or ``T + 1 + the
 nearest approach`` if it never is.  Refinement (cross-entropy) refits a
 per-step Gaussian to the best samples and redraws the rest; the best samples
 stay in the population, so the returned cost never gets worse.
+
+Uncertainty.  A transferred model is trusted far outside its few target
+episodes.  With ``uncertainty="ensemble"`` (several models) or ``"dropout"``
+(``members`` dropout samples of one model) every sequence is predicted by each
+member; safety and the returned prediction use the members' mean, and the cost
+is risk-averse: ``mean + risk * std`` of the members' final distances.  The
+rollout budget stays ``samples``: ``samples // members`` sequences are drawn,
+so a comparison at equal ``samples`` is at equal compute.  Fixed-length plans
+only.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -49,6 +59,7 @@ CHUNK = 1000
 """Samples rolled out together: the three hidden buffers (1.5 MB) stay in L2, and memory stays bounded
 at any K.  Measured at K = 10k (1 thread): chunks of 500-2000 alike, 5000 -23 %, 10000 -30 %."""
 
+UNCERTAINTY = ("none", "dropout", "ensemble")
 REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "workspace": "left the workspace"}
 """Why a sample was rejected (key: description), in order of precedence at its first bad step."""
 
@@ -70,6 +81,12 @@ class PlannerConfig:
     chunk: int = CHUNK
     fast_path: bool = True
     """Use the fused MLP rollout for plain transition models (fused.py)."""
+    uncertainty: str = "none"
+    """``none``, ``dropout`` (``members`` dropout samples of the model) or ``ensemble`` (one member per model)."""
+    members: int = 1
+    """Dropout samples per sequence; an ensemble has one member per model."""
+    risk: float = 1.0
+    """Weight of the members' spread in the cost (``mean + risk * std`` of the final distances)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -81,6 +98,12 @@ class PlannerConfig:
             raise ValueError(f"tolerance_mm must be positive, got {self.tolerance_mm}")
         if self.refine_iterations < 0 or not 0 < self.elite_fraction < 1:
             raise ValueError("need refine_iterations >= 0 and 0 < elite_fraction < 1")
+        if self.uncertainty not in UNCERTAINTY:
+            raise ValueError(f"uncertainty must be one of {UNCERTAINTY}, got {self.uncertainty!r}")
+        if self.members < 1 or not self.risk >= 0:
+            raise ValueError(f"need members >= 1 and risk >= 0, got {self.members} and {self.risk}")
+        if self.uncertainty != "none" and self.horizon_search:
+            raise ValueError("uncertainty-aware planning scores fixed-length plans: set horizon_search false")
 
 
 @dataclass(frozen=True)
@@ -113,27 +136,51 @@ class Plan:
         return out
 
 
-class Planner:
-    """Plans for one model in one workspace; ``plan`` may be called for any number of (state, goal)."""
+Model = LatentDynamics | TimeMajorRollout
+"""What a planner predicts with: a model of the contract, or a time-major rollout function
+(e.g. the true simulated hand, :mod:`t42_transfer.planning.oracle`)."""
 
-    def __init__(self, model: LatentDynamics, workspace: Workspace, config: PlannerConfig = PlannerConfig()) -> None:
-        self.model = model
+
+class Planner:
+    """Plans for one model (or an ensemble) in one workspace; ``plan`` may be called for any (state, goal)."""
+
+    def __init__(
+        self, model: Model | Sequence[Model], workspace: Workspace, config: PlannerConfig = PlannerConfig()
+    ) -> None:
+        models = list(model) if isinstance(model, Sequence) else [model]
+        if not models:
+            raise ValueError("a planner needs at least one model")
+        if (config.uncertainty == "ensemble") != (len(models) > 1):
+            raise ValueError(f"uncertainty={config.uncertainty!r} with {len(models)} models: "
+                             "an ensemble needs several models, and several models need uncertainty='ensemble'")
+        if config.uncertainty == "dropout" and not isinstance(models[0], LatentDynamics):
+            raise ValueError("dropout samples need a model of the contract")
+        self.models = models
+        self.model = models[0]
         self.workspace = workspace
         self.config = config
 
-    def plan(self, state: np.ndarray | Tensor, goal: np.ndarray | Tensor, seed: int | None = None) -> Plan:
-        """The best sampled sequence from ``state`` towards ``goal`` (``seed`` overrides the config's)."""
+    def plan(
+        self, state: np.ndarray | Tensor, goal: np.ndarray | Tensor, seed: int | None = None,
+        horizon: int | None = None,
+    ) -> Plan:
+        """The best sampled sequence from ``state`` towards ``goal``; ``seed`` and ``horizon`` override the config's."""
         cfg = self.config
         x0 = _vector(state, STATE_DIM, "state")
         target = _vector(goal, 2, "goal")
+        horizon = cfg.horizon if horizon is None else int(horizon)
+        if horizon < 1:
+            raise ValueError(f"horizon must be positive, got {horizon}")
         refused = self._check_ends(x0, target)
         if refused is not None:
             return refused
-        gen = torch.Generator().manual_seed(cfg.seed if seed is None else seed)
-        search = _Search(make_rollout(self.model, cfg.fast_path), self.workspace, x0, target, cfg)
-        actions = sample_actions(cfg.sampler, cfg.samples, cfg.horizon, gen, cfg.hold_steps)
+        seed = cfg.seed if seed is None else seed
+        gen = torch.Generator().manual_seed(seed)
+        search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg)
+        count = max(1, cfg.samples // len(search.rollouts))
+        actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps)
         cost = search.evaluate(actions)
-        elite_count = max(2, int(cfg.elite_fraction * cfg.samples))
+        elite_count = max(2, int(cfg.elite_fraction * count))
         for _ in range(cfg.refine_iterations):
             order = torch.argsort(cost, stable=True)[:elite_count]
             order = order[torch.isfinite(cost[order])]
@@ -141,10 +188,17 @@ class Planner:
                 break
             elites, elite_cost = actions[order], cost[order]
             mean, std = elites.mean(0), elites.std(0).clamp_min(cfg.refine_min_std)
-            noise = torch.randn((max(1, cfg.samples - len(order)), *mean.shape), generator=gen)
+            noise = torch.randn((max(1, count - len(order)), *mean.shape), generator=gen)
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
         return search.result()
+
+    def _rollouts(self, seed: int) -> list[TimeMajorRollout]:
+        cfg = self.config
+        if cfg.uncertainty == "dropout":
+            sampler = _DropoutRollout(self.model, seed)
+            return [sampler] * cfg.members
+        return [m if not isinstance(m, LatentDynamics) else make_rollout(m, cfg.fast_path) for m in self.models]
 
     def _check_ends(self, x0: Tensor, goal: Tensor) -> Plan | None:
         ws = self.workspace
@@ -181,13 +235,33 @@ def _refusal(
     )
 
 
+class _DropoutRollout:
+    """The model's rollout with dropout on: each call draws new masks (one stochastic member).
+
+    The masks come from a generator seeded by the plan's seed, so a plan is reproducible."""
+
+    def __init__(self, model: LatentDynamics, seed: int) -> None:
+        self.model, self.seed, self.calls = model, seed, 0
+
+    def __call__(self, x0: Tensor, actions: Tensor) -> Tensor:
+        self.calls += 1
+        was_training = self.model.training
+        with torch.random.fork_rng(devices=[]), torch.no_grad():
+            torch.manual_seed(hash((self.seed, self.calls)) & 0x7FFF_FFFF)
+            self.model.train()
+            try:
+                return self.model.rollout_with_grad(x0, actions).transpose(0, 1)
+            finally:
+                self.model.train(was_training)
+
+
 class _Search:
     """Rolls out samples chunk by chunk, scores them, and keeps the best (sequence, prediction) seen."""
 
     def __init__(
-        self, rollout: TimeMajorRollout, workspace: Workspace, x0: Tensor, goal: Tensor, cfg: PlannerConfig
+        self, rollouts: list[TimeMajorRollout], workspace: Workspace, x0: Tensor, goal: Tensor, cfg: PlannerConfig
     ) -> None:
-        self.rollout, self.workspace, self.x0, self.goal, self.cfg = rollout, workspace, x0, goal, cfg
+        self.rollouts, self.workspace, self.x0, self.goal, self.cfg = rollouts, workspace, x0, goal, cfg
         self.best_cost = math.inf
         self.best_actions = torch.zeros(0, 2)
         self.best_states = x0[None]
@@ -199,8 +273,12 @@ class _Search:
         costs = []
         for start in range(0, len(actions), self.cfg.chunk):
             chunk = actions[start : start + self.cfg.chunk]
-            states = self.rollout(self.x0.expand(len(chunk), STATE_DIM), chunk)
+            x0 = self.x0.expand(len(chunk), STATE_DIM)
+            members = [rollout(x0, chunk) for rollout in self.rollouts]
+            states = members[0] if len(members) == 1 else torch.stack(members).mean(0)
             cost, length = self._score(states)
+            if len(members) > 1:
+                cost = self._risk_averse(torch.stack(members), cost)
             i = int(torch.argmin(cost))
             if cost[i] < self.best_cost:
                 n = int(length[i])
@@ -210,6 +288,13 @@ class _Search:
             costs.append(cost)
         self.evaluated += len(actions)
         return torch.cat(costs)
+
+    def _risk_averse(self, members: Tensor, cost: Tensor) -> Tensor:
+        """``mean + risk * std`` of the members' final distances (``members[M, T+1, C, 4]``), inf where unsafe."""
+        final = members[:, -1, :, :2].float() - self.goal
+        dist = torch.hypot(final[..., 0], final[..., 1])
+        risky = dist.mean(0) + self.cfg.risk * dist.std(0)
+        return torch.where(torch.isfinite(cost), risky, cost)
 
     def _score(self, states: Tensor) -> tuple[Tensor, Tensor]:
         """Per sample of time-major ``states[T+1, C, 4]``: cost and the length of its prefix; counts rejections."""
