@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from t42_transfer.conventions import GRASP_LOAD, MIN_EPISODE_STEPS, OVERLOAD_LOAD
+from t42_transfer.conventions import GRASP_LOAD, MIN_EPISODE_STEPS, OVERLOAD_LOAD, REAL_HAND_ACTIONS
 from t42_transfer.hand import SimulatedHand, sim, variant
-from t42_transfer.hand.collect import RandomPolicy, collect, run_episode
+from t42_transfer.hand.collect import POLICIES, RandomPolicy, SustainedPolicy, collect, run_episode
+from t42_transfer.hand.params import ABRUPT_REGION, RegionChange
 from t42_transfer.hand.sim import LOAD_GUARD
 
 
@@ -160,3 +163,128 @@ def test_source_data_predicts_the_target_hand_measurably_worse() -> None:
     on_source = _nearest_neighbour_divergence(train, source_test)
     on_target = _nearest_neighbour_divergence(train, target_test)
     assert on_target < 0.8 * on_source, (on_source, on_target)
+
+
+# ------------------------------------------------------------------ the abrupt target
+
+
+def test_region_change_contains_and_refuses_bad_axes() -> None:
+    right = RegionChange(axis="x", threshold_mm=10.0)
+    assert right.contains(np.array([10.5, 0.0])) and not right.contains(np.array([9.5, 99.0]))
+    low = RegionChange(axis="y", threshold_mm=60.0, above=False)
+    assert low.contains(np.array([50.0, 59.0])) and not low.contains(np.array([0.0, 61.0]))
+    with pytest.raises(ValueError, match="axis"):
+        RegionChange(axis="z")
+    abrupt = variant("target_abrupt")
+    assert abrupt.region == ABRUPT_REGION and variant("source").region is None
+    assert abrupt.with_(name="source", region=None) == variant("source")  # the source everywhere else
+
+
+def test_a_region_covering_the_workspace_is_the_same_as_changing_the_hand() -> None:
+    """Every field a region changes reaches the physics: region values everywhere == a hand built with them."""
+    change = RegionChange(axis="y", threshold_mm=0.0, pad_friction=0.5, link_friction=0.6, k_proximal_scale=2.0,
+                          k_distal_scale=0.5)
+    base = variant("source")
+    changed = base.with_(
+        pad_friction=0.5, link_friction=0.6,
+        left=dataclasses.replace(base.left, k_proximal=2.0 * base.left.k_proximal, k_distal=0.5 * base.left.k_distal),
+        right=dataclasses.replace(base.right, k_proximal=2.0 * base.right.k_proximal,
+                                  k_distal=0.5 * base.right.k_distal),
+    )
+    actions = RandomPolicy().sample(np.random.default_rng(6), 80)
+    everywhere = run_episode(SimulatedHand(base.with_(region=change)), actions, seed=5)
+    assert everywhere == run_episode(SimulatedHand(changed), actions, seed=5)
+    unchanged = run_episode(SimulatedHand(base), actions, seed=5)
+    for field in ("pad_friction", "link_friction", "k_proximal_scale", "k_distal_scale"):  # each one reaches it
+        one = RegionChange(axis="y", threshold_mm=0.0, **{field: getattr(change, field)})
+        assert not np.array_equal(run_episode(SimulatedHand(base.with_(region=one)), actions, seed=5).states,
+                                  unchanged.states), field
+
+
+def test_abrupt_target_steps_like_the_source_outside_its_region_only(source_hand: SimulatedHand) -> None:
+    """From the same instant and action, one step of each hand: identical outside the region, not inside."""
+    abrupt = SimulatedHand("target_abrupt")
+    gaps: dict[bool, list[float]] = {True: [], False: []}
+    for episode in range(4):
+        source_hand.reset(seed=40 + episode)
+        actions = RandomPolicy().sample(np.random.default_rng([13, episode]), 150)
+        for action in actions:
+            snap = source_hand.snapshot()
+            abrupt.restore(snap)
+            inside = abrupt.in_region
+            assert inside == (source_hand.object_xy[0] > ABRUPT_REGION.threshold_mm)
+            expected, got = source_hand.step(action), abrupt.step(action)
+            gaps[inside].append(float(np.abs(got - expected).max()))
+            if source_hand.done:
+                break
+    assert len(gaps[False]) > 100 and len(gaps[True]) > 30, {k: len(v) for k, v in gaps.items()}
+    assert max(gaps[False]) == 0.0  # bit for bit: same physics, same sensor noise
+    assert np.median(gaps[True]) > 1.0  # millimetres or load units per step, where steps are ~0.5 mm
+
+
+def test_abrupt_target_replays_source_episodes_until_the_object_enters_the_region() -> None:
+    entered = 0
+    for episode in range(6):
+        actions = SustainedPolicy().sample(np.random.default_rng([14, episode]), 300)
+        source = run_episode(SimulatedHand("source"), actions, seed=episode)
+        abrupt = run_episode(SimulatedHand("target_abrupt"), actions, seed=episode)
+        x = source.states[:, 0]
+        clear = np.flatnonzero(x > ABRUPT_REGION.threshold_mm - 0.5)  # tracker noise is 0.05 mm
+        first = int(clear[0]) if len(clear) else len(x)
+        np.testing.assert_array_equal(abrupt.states[: first + 1], source.states[: first + 1])
+        deep = np.flatnonzero(x > ABRUPT_REGION.threshold_mm + 0.5)
+        if len(deep) and deep[0] + 1 < len(abrupt.states):
+            entered += 1
+            later = slice(deep[0] + 1, min(len(source.states), len(abrupt.states)))
+            assert not np.array_equal(abrupt.states[later], source.states[later])
+    assert entered >= 2
+
+
+# ------------------------------------------------------------------ sustained test paths
+
+
+def _holds(actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first index, length) of every run of equal consecutive actions."""
+    changes = np.flatnonzero(np.any(np.diff(actions, axis=0) != 0, axis=1))
+    starts = np.r_[0, changes + 1]
+    return starts, np.diff(np.r_[starts, len(actions)])
+
+
+def test_sustained_policy_holds_real_moves_for_long() -> None:
+    policy = SustainedPolicy(hold_min=50, hold_max=200)
+    actions = policy.sample(np.random.default_rng(3), 20_000)
+    assert actions.shape == (20_000, 2)
+    moves = {tuple(a) for a in REAL_HAND_ACTIONS}
+    assert {tuple(a) for a in actions} <= moves and np.abs(actions).max() == 1.5
+    starts, lengths = _holds(actions)
+    assert lengths[:-1].min() >= 50 and lengths.max() <= 200  # the last hold may be cut short
+    # Log-uniform lengths: the median hold is near the geometric mean, sqrt(50 * 200) = 100.
+    assert 85 < np.median(lengths[:-1]) < 115
+    # Moves follow the real paths' mix: differential moves about 11 holds in 20, never one twice in a row.
+    chosen = actions[starts]
+    differential = np.mean(chosen[:, 0] * chosen[:, 1] == -1.0)
+    assert 0.45 < differential < 0.65
+    np.testing.assert_array_equal(SustainedPolicy().sample(np.random.default_rng(3), 500),
+                                  SustainedPolicy().sample(np.random.default_rng(3), 500))
+    only_two = SustainedPolicy(hold_min=5, hold_max=5, weights=(0, 0, 1, 1, 0, 0, 0, 0)).sample(
+        np.random.default_rng(0), 40)
+    np.testing.assert_array_equal(only_two[::5], np.array([only_two[0], -only_two[0]] * 4))
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"hold_min": 0}, {"hold_min": 10, "hold_max": 9}, {"hold_max": 10**6}, {"weights": (1.0,) * 7},
+               {"weights": (1, 0, 0, 0, 0, 0, 0, 0)}, {"weights": (1, -1, 1, 1, 1, 1, 1, 1)}],
+)
+def test_sustained_policy_refuses_bad_settings(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        SustainedPolicy(**kwargs)
+
+
+def test_collect_runs_named_policies() -> None:
+    assert set(POLICIES) == {"random", "sustained"}
+    data, stats = collect("target_abrupt", episodes=2, steps=200, seed=0, workers=1, policy=POLICIES["sustained"](),
+                          progress=False)
+    assert stats.requested == 2 and all(t.hand == "target_abrupt" for t in data)
+    for t in data:
+        assert {tuple(a) for a in t.actions} <= {tuple(a) for a in REAL_HAND_ACTIONS}
+        assert _holds(t.actions)[1][0] >= min(len(t.actions), 120)

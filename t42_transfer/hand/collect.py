@@ -1,5 +1,7 @@
-"""Random-policy data collection on simulated hands, parallel across processes.
+"""Data collection on simulated hands, parallel across processes.
 
+Two policies (:data:`POLICIES`): ``random``, the paper's training data, and
+``sustained``, test paths like the real hands' (long holds of the discrete moves).
 Episode ``e`` of a run with seed ``s`` depends only on ``(s, e)`` (grasp jitter,
 sensor noise and actions), so the data set is the same whatever the number of
 worker processes.
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t42_transfer.conventions import ACTION_DIM, MIN_EPISODE_STEPS, RANDOM_POLICY_LIMIT
+from t42_transfer.conventions import ACTION_DIM, MIN_EPISODE_STEPS, RANDOM_POLICY_LIMIT, REAL_HAND_ACTIONS
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 
@@ -47,6 +49,57 @@ class RandomPolicy:
             actions[k : k + hold] = rng.uniform(-self.limit, self.limit, size=ACTION_DIM)
             k += hold
         return actions
+
+
+REAL_PATH_MOVE_WEIGHTS = (4.0, 1.0, 5.5, 5.5, 1.0, 1.0, 1.0, 1.0)
+"""How often the real test paths hold each of ``REAL_HAND_ACTIONS`` (same order): of their 20
+holds, 11 move the fingers against each other, 4 close both, 4 move one finger, 1 opens both."""
+
+
+@dataclass(frozen=True)
+class SustainedPolicy:
+    """Test paths like the real hands': one of their eight discrete moves held for a long time.
+
+    Each hold picks a move other than the one just held, with probabilities in proportion
+    to ``weights`` (by default the real paths' mix, :data:`REAL_PATH_MOVE_WEIGHTS`), for a
+    length log-uniform in ``[hold_min, hold_max]`` steps (rounded down; the last hold is cut
+    at the episode's end).  The defaults span the real paths' complete holds (120-700
+    steps, quartiles about 185, 225 and 400); log-uniform keeps short holds common
+    (quartiles about 185, 290 and 450).
+    """
+
+    hold_min: int = 120
+    hold_max: int = 700
+    weights: tuple[float, ...] = REAL_PATH_MOVE_WEIGHTS
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.hold_min, int) and isinstance(self.hold_max, int)
+                and 1 <= self.hold_min <= self.hold_max <= MAX_HOLD):
+            raise ValueError(f"need integers 1 <= hold_min <= hold_max <= {MAX_HOLD}, "
+                             f"got {self.hold_min!r}, {self.hold_max!r}")
+        w = np.asarray(self.weights, dtype=float)
+        if w.shape != (len(REAL_HAND_ACTIONS),) or not np.all(np.isfinite(w)) or np.any(w < 0) or np.sum(w > 0) < 2:
+            raise ValueError(f"weights must be {len(REAL_HAND_ACTIONS)} non-negative numbers, two or more positive, "
+                             f"got {self.weights!r}")
+
+    def sample(self, rng: np.random.Generator, steps: int) -> np.ndarray:
+        moves = np.array(REAL_HAND_ACTIONS)
+        actions = np.empty((steps, ACTION_DIM))
+        k, last = 0, -1
+        while k < steps:
+            p = np.array(self.weights, dtype=float)
+            if last >= 0:
+                p[last] = 0.0  # a hold ends with a change of move
+            move = int(rng.choice(len(moves), p=p / p.sum()))
+            hold = int(np.exp(rng.uniform(np.log(self.hold_min), np.log(self.hold_max + 1))))
+            actions[k : k + hold] = moves[move]
+            k, last = k + hold, move
+        return actions
+
+
+Policy = RandomPolicy | SustainedPolicy
+POLICIES: dict[str, type[Policy]] = {"random": RandomPolicy, "sustained": SustainedPolicy}
+"""Collection policies by name, each with its default settings: ``POLICIES[name]()``."""
 
 
 @dataclass(frozen=True)
@@ -94,7 +147,7 @@ def run_episode(hand: SimulatedHand, actions: np.ndarray, seed: int) -> Trajecto
     )
 
 
-def _episode_task(args: tuple[str, int, int, int, RandomPolicy]) -> Trajectory | None:
+def _episode_task(args: tuple[str, int, int, int, Policy]) -> Trajectory | None:
     name, seed, episode, steps, policy = args
     episode_seed = int(np.random.SeedSequence([seed, episode]).generate_state(1)[0])
     rng = np.random.default_rng([seed, episode, 1])
@@ -129,10 +182,10 @@ def collect(
     steps: int,
     seed: int = 0,
     workers: int | None = None,
-    policy: RandomPolicy = RandomPolicy(),
+    policy: Policy = RandomPolicy(),
     progress: bool = True,
 ) -> tuple[TrajectorySet, CollectionStats]:
-    """Collect ``episodes`` random-policy episodes of at most ``steps`` steps on ``hand``.
+    """Collect ``episodes`` episodes of at most ``steps`` steps on ``hand`` under ``policy``.
 
     Episodes shorter than ``MIN_EPISODE_STEPS`` are discarded (the paper's rule) and
     counted in the returned stats.

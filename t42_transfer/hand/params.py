@@ -2,8 +2,8 @@
 
 Two 3D-printed copies of the T42 differ in spring stiffness, pad friction, tendon
 routing, link lengths and in which servo drives which finger.  A variant is one
-such copy: ``source`` and ``target`` are fixed, ``family-<seed>`` draws a
-reproducible copy around the nominal design.
+such copy: ``source``, ``target`` and ``target_abrupt`` are fixed, ``family-<seed>``
+draws a reproducible copy around the nominal design.
 """
 
 from __future__ import annotations
@@ -29,6 +29,36 @@ class FingerParams:
     r_distal_mm: float = 3.0
     rest_deg: float = -8.0
     """Spring rest angle of the proximal joint; negative splays the finger outward."""
+
+
+@dataclass(frozen=True)
+class RegionChange:
+    """Parameters that take other values while the object's centre is in one region of the workspace.
+
+    The region is the half-plane ``x > threshold_mm`` (``axis="x"``) or ``y > threshold_mm``
+    (``axis="y"``), with ``above=False`` for the other side, in the hand frame (mm).  Inside
+    it, the listed frictions replace the hand's and the finger springs are scaled; ``None``
+    keeps the hand's value.  MuJoCo has no position-dependent materials, so
+    :class:`~t42_transfer.hand.sim.SimulatedHand` sets these model fields before every
+    control step from where the object is; the dynamics jump where the object crosses.
+    """
+
+    axis: str = "x"
+    threshold_mm: float = 10.0
+    above: bool = True
+    pad_friction: float | None = None
+    link_friction: float | None = None
+    k_proximal_scale: float = 1.0
+    k_distal_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.axis not in ("x", "y"):
+            raise ValueError(f"region axis must be 'x' or 'y', got {self.axis!r}")
+
+    def contains(self, xy_mm: np.ndarray) -> bool:
+        """Whether an object centre ``(x, y)`` (mm, hand frame) lies in the region."""
+        value = float(xy_mm[0 if self.axis == "x" else 1])
+        return value > self.threshold_mm if self.above else value < self.threshold_mm
 
 
 @dataclass(frozen=True)
@@ -63,6 +93,8 @@ class HandParams:
     """Std of the load reading noise, raw units (servo load readings are integers and jittery)."""
     position_noise_mm: float = 0.05
     """Std of the object-tracker noise on x, y."""
+    region: RegionChange | None = None
+    """Where, if anywhere, the hand's materials or springs differ abruptly (see :class:`RegionChange`)."""
 
     def with_(self, **changes: object) -> "HandParams":
         return dataclasses.replace(self, **changes)
@@ -88,6 +120,19 @@ def _target() -> HandParams:
         name="target", left=left, right=right, base_half_width_mm=34.0, pad_friction=1.6, link_friction=0.2,
         joint_damping=0.006, spool_radius_mm=18.0,
     )
+
+
+ABRUPT_REGION = RegionChange(axis="x", threshold_mm=10.0, above=True, k_proximal_scale=2.5)
+"""``target_abrupt``'s compliance jump: beyond x = 10 mm both proximal flexures are 2.5x stiffer."""
+
+
+def _target_abrupt() -> HandParams:
+    # The source hand everywhere but in one region: once the object centre is more than
+    # 10 mm toward the right finger, the proximal flexures stiffen 2.5-fold, as when a bent
+    # flexure comes up against a second band.  The fingers then push the object back, so
+    # it chatters along x = 10 mm; one step from the same state differs by millimetres there
+    # and not at all elsewhere.
+    return HandParams(name="target_abrupt", region=ABRUPT_REGION)
 
 
 def _family(seed: int) -> HandParams:
@@ -116,15 +161,14 @@ def _family(seed: int) -> HandParams:
     )
 
 
-NAMED_VARIANTS = ("source", "target")
+_NAMED = {"source": _source, "target": _target, "target_abrupt": _target_abrupt}
+NAMED_VARIANTS = tuple(_NAMED)
 
 
 def variant(name: str) -> HandParams:
-    """Parameters of a named hand: ``source``, ``target`` or ``family-<seed>``."""
-    if name == "source":
-        return _source()
-    if name == "target":
-        return _target()
+    """Parameters of a named hand: ``source``, ``target``, ``target_abrupt`` or ``family-<seed>``."""
+    if name in _NAMED:
+        return _NAMED[name]()
     if name.startswith("family-"):
         try:
             seed = int(name.split("-", 1)[1])

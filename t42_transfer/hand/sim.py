@@ -83,6 +83,7 @@ class SimulatedHand:
             for s in FINGER_SIDES
         ]
         self._servo_ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"{s}_servo") for s in FINGER_SIDES]
+        self._region_fields = self._region_fields_of(self.params)
         self._spool_m = self.params.spool_radius_mm / 1000.0
         self._slack_length = np.array(
             [-f.r_proximal_mm / 1000.0 * np.radians(f.rest_deg) for f in (self.params.left, self.params.right)]
@@ -134,6 +135,7 @@ class SimulatedHand:
                 break
             self._servo += np.where(closed, 0.0, GRASP_INCREMENT * ACTION_UNIT_RAD)
             self._apply_servo()
+            self._apply_region()
             mujoco.mj_step(self._model, self._data, nstep=self._substeps)
         else:
             raise GraspFailed(f"hand {self.params.name!r} did not reach the grasp load in {GRASP_MAX_STEPS} steps")
@@ -165,6 +167,7 @@ class SimulatedHand:
         self._servo = np.where(blocked, self._servo, target)
         self._apply_servo()
         before = self._state[:2].copy()
+        self._apply_region()
         mujoco.mj_step(self._model, self._data, nstep=self._substeps)
         self._state = self._observe()
         self._end_reason = self._check_end(before)
@@ -186,7 +189,51 @@ class SimulatedHand:
         self._done, self._end_reason = snap.done, snap.end_reason
         self._rng.bit_generator.state = snap.rng_state
 
+    @property
+    def object_xy(self) -> np.ndarray:
+        """True object centre (mm, hand frame), without tracker noise."""
+        return np.array([self._data.qpos[a] for a in self._obj_qpos]) * 1000.0 + np.array(OBJECT_START_MM)
+
+    @property
+    def in_region(self) -> bool:
+        """Whether the object is in the hand's :attr:`~HandParams.region` (always False without one)."""
+        region = self.params.region
+        return region is not None and region.contains(self.object_xy)
+
     # ------------------------------------------------------------------ internals
+    def _region_fields_of(self, p: HandParams) -> list[tuple[np.ndarray, tuple[int, ...], float, float]]:
+        """(model array, index, value outside, value inside) for every model field the region changes."""
+        region = p.region
+        if region is None:
+            return []
+        m = self._model
+        fields = []
+        for side, finger in zip(FINGER_SIDES, (p.left, p.right)):
+            for geom, base, inside in (("distal_pad", p.pad_friction, region.pad_friction),
+                                       ("proximal_link", p.link_friction, region.link_friction)):
+                if inside is not None:
+                    fields.append((m.geom_friction, (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{side}_{geom}"), 0),
+                                   base, inside))
+            for joint, base, scale in (("proximal", finger.k_proximal, region.k_proximal_scale),
+                                       ("distal", finger.k_distal, region.k_distal_scale)):
+                if scale != 1.0:
+                    fields.append((m.jnt_stiffness, (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_{joint}"),),
+                                   base, base * scale))
+        return fields
+
+    def _apply_region(self) -> None:
+        """Set the region's friction and stiffness values for the coming control period.
+
+        Decided once per control period (0.1 s) from the object's true position at its
+        start: the object moves at most a few millimetres in a period, so the boundary is
+        sharp to that, and the 2 ms substeps stay in MuJoCo's C loop.  Contacts read the
+        geom frictions and the passive forces the joint stiffnesses afresh at every substep.
+        """
+        if self._region_fields:
+            inside = self.in_region
+            for array, index, outside_value, inside_value in self._region_fields:
+                array[index] = inside_value if inside else outside_value
+
     def _apply_servo(self) -> None:
         # The servo sets the tendon's rest length: reeling in shortens it.  At servo
         # angle 0 the tendon is just slack with the finger at its spring rest pose.
@@ -199,8 +246,7 @@ class SimulatedHand:
         return tension * self._spool_m / LOAD_UNIT_NM
 
     def _observe(self) -> np.ndarray:
-        xy = np.array([self._data.qpos[a] for a in self._obj_qpos]) * 1000.0 + np.array(OBJECT_START_MM)
-        xy = xy + self._rng.normal(0.0, self.params.position_noise_mm, size=2)
+        xy = self.object_xy + self._rng.normal(0.0, self.params.position_noise_mm, size=2)
         loads = self._tensions_load()[self._order]
         loads = np.round(loads + self._rng.normal(0.0, self.params.load_noise, size=2)) * LOAD_SIGNS
         return np.concatenate([xy, loads])
