@@ -20,18 +20,21 @@ from t42_transfer.planning.peg_in_hole import (
     Goal,
     PegInHoleConfig,
     Trial,
+    contenders_for,
     evaluate,
     main,
     make_goals,
     markdown_table,
     plot_success,
+    progress_towards,
     summarise,
+    verdict,
 )
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
-TINY = PegInHoleConfig(
-    distances=(5, 15), trials=2, planner=PlannerConfig(samples=200, horizon=20, horizon_search=True, tolerance_mm=3.0)
-)
+TINY = PegInHoleConfig(distances=(10, 20), trials=3, tolerances_mm=(10.0, 4.0), min_distance_factor=1.2,
+                       planner=PlannerConfig(samples=120, tolerance_mm=3.0))
+"""Goals at least 12 mm away (factor 1.2 keeps the tiny runs quick; the default is 2)."""
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -53,85 +56,140 @@ def goals() -> list[Goal]:
     return make_goals(TINY)
 
 
-def test_goals_are_made_on_the_true_hand_deterministically(goals: list[Goal], target_data: TrajectorySet) -> None:
-    assert [g.steps for g in goals] == [5, 5, 15, 15]
+@pytest.fixture(scope="module")
+def workspace(target_data: TrajectorySet) -> Workspace:
+    return Workspace.from_trajectories(target_data)
+
+
+@pytest.fixture(scope="module")
+def evaluated(goals: list[Goal], workspace: Workspace, target_model: TransitionModel) -> tuple[list, list[Trial]]:
+    still = TransitionModel(Normalisation.identity())  # zero output layer: predicts the hand never moves
+    torch.nn.init.zeros_(still.net[6].weight)
+    torch.nn.init.zeros_(still.net[6].bias)
+    return evaluate({"trained": target_model, "still": still}, workspace, TINY, goals=goals, progress=False)
+
+
+def test_goals_are_made_on_the_true_hand_deterministically_and_far_enough(
+    goals: list[Goal], target_data: TrajectorySet
+) -> None:
+    assert [g.steps for g in goals] == [10, 10, 10, 20, 20, 20]
+    assert TINY.min_distance_mm == pytest.approx(12.0)
+    assert all(g.distance_mm >= TINY.min_distance_mm and g.still_distance_mm >= TINY.min_distance_mm for g in goals)
+    assert PegInHoleConfig().min_distance_mm == 20.0  # twice the paper's 10 mm tolerance
     tight = Workspace.from_trajectories(target_data, margin_mm=0.0)
     assert all(tight.contains_xy(torch.as_tensor(g.position)) for g in make_goals(TINY, tight))
     assert all(np.array_equal(a.position, b.position) for a, b in zip(goals, make_goals(TINY)))
     hand = SimulatedHand("target")
     # The plan starts from the goal's own grasp (trajectories hold float32).
     assert np.array_equal(hand.reset(goals[0].seed).astype(np.float32), goals[0].grasp.astype(np.float32))
-    assert all(g.distance_mm > 0 for g in goals)
 
 
-def test_peg_in_hole_runs_end_to_end(
-    goals: list[Goal], target_data: TrajectorySet, target_model: TransitionModel
-) -> None:
-    still = TransitionModel(Normalisation.identity())  # zero output layer: predicts the hand never moves
-    torch.nn.init.zeros_(still.net[6].weight)
-    torch.nn.init.zeros_(still.net[6].bias)
-    workspace = Workspace.from_trajectories(target_data)
-    rows, trials = evaluate({"trained": target_model, "still": still}, workspace, TINY, goals=goals, progress=False)
-    assert [(r.model, r.steps) for r in rows] == [("trained", 5), ("trained", 15), ("still", 5), ("still", 15)]
-    assert all(0.0 <= r.success_rate <= 1.0 and r.trials == 2 for r in rows)
-    assert len(trials) == 8 and all(
-        t.success == (t.final_error_mm is not None and t.final_error_mm <= 10.0 and t.end_reason == "length")
-        for t in trials
-    )
-    assert all(t.plan_steps <= 20 for t in trials)
-    # A model that predicts no motion cannot plan towards goals farther than the planning tolerance.
-    assert all(t.status != "ok" for t in trials if t.model == "still" and t.goal_distance_mm > 3.0)
+@pytest.mark.parametrize(
+    ("distance", "error", "progress", "completed", "expected"),
+    [
+        (20.0, 3.0, 18.0, True, "hit"),
+        (20.0, 10.5, 15.0, True, "miss"),  # a near miss at 10 mm
+        (20.0, 10.0, 15.0, True, "hit"),  # on the border
+        (5.0, 5.0, 0.0, True, "no_progress"),  # within 10 mm of a near goal without moving
+        (20.0, 9.0, 9.0, True, "no_progress"),  # within tolerance sideways, but less than half way
+        (20.0, 1.0, 19.0, False, "incomplete"),  # dropped on the way, however close
+        (20.0, None, None, True, "incomplete"),  # nothing executed
+    ],
+)
+def test_the_success_rule_on_hand_made_cases(distance, error, progress, completed, expected) -> None:
+    assert verdict(distance, error, progress, completed, 10.0) == expected
+
+
+def test_progress_is_the_displacement_along_the_start_goal_line() -> None:
+    start, goal = np.array([0.0, 80.0]), np.array([20.0, 80.0])
+    assert progress_towards(start, goal, np.array([10.0, 85.0])) == pytest.approx(10.0)
+    assert progress_towards(start, goal, np.array([-3.0, 80.0])) == pytest.approx(-3.0)
+    assert progress_towards(start, start, start) == 0.0
+
+
+def test_doing_nothing_scores_zero_and_the_oracle_beats_every_learned_model(evaluated) -> None:
+    rows, trials = evaluated
+    by = {(r.model, r.steps, r.tolerance_mm): r for r in rows}
+    assert [m for m in dict.fromkeys(r.model for r in rows)] == ["do_nothing", "oracle", "trained", "still"]
+    for steps in TINY.distances:
+        for tol in TINY.tolerances_mm:
+            assert by["do_nothing", steps, tol].successes == 0
+            oracle = by["oracle", steps, tol]
+            for model in ("trained", "still"):
+                assert oracle.successes >= by[model, steps, tol].successes
+        assert by["oracle", steps, 10.0].final_error_mm < min(by[m, steps, 10.0].final_error_mm for m in ("trained", "still"))
+    still = [t for t in trials if t.model == "do_nothing"]
+    assert all(t.completed and t.plan_steps == t.steps and t.verdict(10.0) != "hit" for t in still)
+    # Same samples, exact predictions: the oracle's pick is the truly best of them, never worse than a model's.
+    oracle = {(t.steps, t.trial): t for t in trials if t.model == "oracle"}
+    better = [oracle[t.steps, t.trial].final_error_mm <= t.final_error_mm + 1e-6
+              for t in trials if t.model == "trained" and t.final_error_mm is not None]
+    assert sum(better) >= len(better) - 1
+    assert all(t.predicted_error_mm == pytest.approx(t.final_error_mm, abs=1e-3) for t in oracle.values())
+
+
+def test_fixed_plans_have_exactly_n_steps_and_rows_carry_wilson_intervals(evaluated) -> None:
+    rows, trials = evaluated
+    assert all(t.plan_steps == t.steps for t in trials if t.completed)
+    for r in rows:
+        assert r.trials == 3 and 0.0 <= r.ci_low <= r.success_rate <= r.ci_high <= 1.0
+        assert sum(r.verdicts.values()) == r.trials and r.verdicts["hit"] == r.successes
+    zero = next(r for r in rows if r.model == "do_nothing")
+    assert zero.ci_low == 0.0 and 0.4 < zero.ci_high < 0.6  # Wilson 95 % of 0/3: [0, 0.56]
+    assert all(r.relative_error is not None and r.relative_error > 0.5 for r in rows if r.model == "do_nothing")
+
+
+def test_closed_loop_contenders_replan_on_the_same_goals(goals: list[Goal], workspace: Workspace,
+                                                        target_model: TransitionModel) -> None:
+    contenders = contenders_for({"trained": target_model}, TINY.planner, mpc=5)
+    assert [c.name for c in contenders] == ["trained", "trained+mpc5"]
+    rows, trials = evaluate(contenders, workspace, TINY, goals=goals[:2], progress=False, baselines=())
+    closed = [t for t in trials if t.model == "trained+mpc5"]
+    assert all(t.plans == 2 for t in closed if t.completed)  # 10 steps, a plan every 5
+    assert all(t.plans == 1 for t in trials if t.model == "trained")
 
 
 def test_peg_in_hole_runs_on_model_files(tmp_path: Path, target_model: TransitionModel) -> None:
     path = save_model(target_model, tmp_path / "target.safetensors", method="new_model")
+    other = save_model(target_model, tmp_path / "again.safetensors", method="new_model")
     argv = [
-        f"few_epochs={path}",
-        "--workspace",
-        str(BAGS / "target_small"),
-        "--out",
-        str(tmp_path / "out"),
-        "--distances",
-        "5",
-        "15",
-        "--trials",
-        "2",
-        "--samples",
-        "200",
-        "--horizon",
-        "20",
+        f"few_epochs={path}", f"again={other}",
+        "--workspace", str(BAGS / "target_small"),
+        "--out", str(tmp_path / "out"),
+        "--distances", "25", "--trials", "2", "--samples", "60", "--tolerances", "10", "4",
+        "--ensemble", "few_epochs", "again", "--dropout", "3", "--variants-of", "few_epochs",
         "--quiet",
     ]
     assert main(argv) == 0
     report = json.loads((tmp_path / "out" / "peg_in_hole.json").read_text())
-    assert [(r["model"], r["steps"]) for r in report["rows"]] == [("few_epochs", 5), ("few_epochs", 15)]
+    names = list(dict.fromkeys(r["model"] for r in report["rows"]))
+    assert names == ["do_nothing", "oracle", "few_epochs", "again", "few_epochs+dropout3", "ensemble2"]
+    assert {(r["model"], r["tolerance_mm"]) for r in report["rows"]} >= {("oracle", 10.0), ("oracle", 4.0)}
     assert all(0.0 <= r["success_rate"] <= 1.0 for r in report["rows"])
-    assert "| few_epochs | 5 |" in (tmp_path / "out" / "peg_in_hole.md").read_text()
+    assert "| do_nothing | 25 |" in (tmp_path / "out" / "peg_in_hole.md").read_text()
     assert (tmp_path / "out" / "peg_in_hole.png").stat().st_size > 0
 
 
 def test_summary_table_and_figure(tmp_path: Path) -> None:
-    def trial(model: str, steps: int, error: float | None, end: str = "length") -> Trial:
-        status = "ok" if error is not None else "no_safe_sequence"
-        return Trial(
-            model, steps, error is not None and error <= 10.0 and end == "length", status, end, 20.0, error, 1.0, 5
-        )
+    def trial(model: str, steps: int, error: float | None, end: str = "length", progress: float = 15.0) -> Trial:
+        return Trial(model, steps, 0, "ok", end, 20.0, error, None if error is None else progress, 1.0, steps, 1, 0.1)
 
     trials = [
         trial("a", 10, 2.0),
         trial("a", 10, 12.0),
         trial("a", 10, 3.0, "dropped"),
-        trial("a", 20, None, "not_executed"),
+        trial("a", 20, None, "refused"),
         trial("b", 10, 1.0),
     ]
-    rows = summarise(trials)
-    assert [(r.model, r.steps, r.successes, r.trials) for r in rows] == [
-        ("a", 10, 1, 3),
-        ("a", 20, 0, 1),
-        ("b", 10, 1, 1),
+    rows = summarise(trials, (10.0, 4.0))
+    assert [(r.model, r.steps, r.tolerance_mm, r.successes, r.trials) for r in rows] == [
+        ("a", 10, 10.0, 1, 3), ("a", 10, 4.0, 1, 3), ("a", 20, 10.0, 0, 1), ("a", 20, 4.0, 0, 1),
+        ("b", 10, 10.0, 1, 1), ("b", 10, 4.0, 1, 1),
     ]
     assert rows[0].success_rate == pytest.approx(1 / 3) and rows[0].final_error_mm == 3.0
-    assert rows[1].refused == 1 and rows[1].final_error_mm is None
+    assert rows[0].verdicts == {"hit": 1, "miss": 1, "no_progress": 0, "incomplete": 1}
+    assert rows[2].verdicts["incomplete"] == 1 and rows[2].final_error_mm is None
     table = markdown_table(rows)
-    assert "| a | 10 | 20.0 | 3 | 33% | 3.0 | 3 | 0 |" in table and "| a | 20 | 20.0 | 1 | 0% | - | 0 | 1 |" in table
-    assert plot_success(rows, tmp_path / "fig.png", 10.0).stat().st_size > 0
+    assert "Tolerance 10 mm" in table and "Tolerance 4 mm" in table
+    assert "| a | 10 | 20.0 | 3 | 1 (33%) |" in table and "| 3.0 | 0.15 | 1 / 0 / 1 |" in table
+    assert plot_success(rows, tmp_path / "fig.png").stat().st_size > 0

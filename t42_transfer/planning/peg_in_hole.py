@@ -1,19 +1,27 @@
-"""Peg-in-hole: plan with a model, execute open loop on the true (simulated) target hand, count hits.
+"""Peg-in-hole: plan with a model, execute on the true (simulated) target hand, and judge honestly.
 
-As in the paper, a goal is ``n`` steps away: it is where the true target hand
-puts the object after a random piecewise-constant sequence of ``n`` steps from
-the grasp, so every goal is reachable and farther goals (larger ``n``) test
-longer open-loop predictions; goals outside the trained workspace are redrawn.
-For each model and goal the planner plans from the grasp state (same reset
-seed, hence the same grasp and sensor noise as when the goal was made); the plan
-is executed open loop on the true hand and succeeds when the final object
-centre is within ``tolerance_mm`` of the goal and the hand did not drop the
-object or stop on overload.  Plans the planner refuses (no safe sequence) count
-as failures; a plan predicted to miss (``unreachable``) is still executed, since
-only the true hand decides success.
+As in the paper, a goal is ``n`` steps away: where the true target hand puts the
+object after a random piecewise-constant sequence of ``n`` steps from the grasp,
+so every goal is reachable.  Goals outside the trained workspace are redrawn,
+and so are goals nearer than ``min_distance_factor`` times the largest
+tolerance to the start or to where the object ends when the hand holds still
+for ``n`` steps: a freshly grasped object sinks into the fingers (about 30 mm
+in 80 steps on the simulated hands), so a plan that does nothing would hit
+goals in that direction.  Each contender plans from the goal's
+grasp (same reset seed, hence the same grasp and sensor noise as when the goal
+was made); the plan runs on the true hand, open loop by default or replanning
+every k steps (``replan_every``).  A trial succeeds at tolerance ``tol`` when
+(see :func:`verdict`) the sequence ran to its end, the object moved at least
+half way towards the goal, and the final object centre is within ``tol``.
 
-    t42 peg-in-hole runs/x/models/*.safetensors \\
-        --workspace bags/source_small bags/target_small --out docs/peg_in_hole
+Plans have exactly ``n`` steps by default (``plan_length="fixed"``): the
+paper's horizon axis, since goal ``n`` then tests an ``n``-step open-loop
+prediction; ``"search"`` keeps the shortest plan predicted to reach the goal.
+Every evaluation carries two baselines on the same goals: ``do_nothing`` (``n``
+zero actions; scores 0 by construction of the goals) and ``oracle`` (the same
+planner with the true hand as its model, :mod:`~t42_transfer.planning.oracle`).
+
+    t42 peg-in-hole runs/x/models/*.safetensors --out docs/experiments/peg_in_hole
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 import json
 import shlex
 import sys
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -28,33 +37,60 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.collect import run_episode
 from t42_transfer.hand.params import variant
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.planning.planner import Planner, PlannerConfig
+from t42_transfer.planning.execution import Execution, execute
+from t42_transfer.planning.oracle import HandRollout
+from t42_transfer.planning.planner import Plan, Planner, PlannerConfig
 from t42_transfer.planning.sampling import sample_actions
 from t42_transfer.planning.workspace import Workspace
 
-GOAL_ATTEMPTS = 20
-"""Goal sequences drawn per goal at most, while the true hand drops the object or ends outside the workspace."""
+GOAL_ATTEMPTS = 50
+"""Goal sequences drawn per goal at most, while the true hand drops the object, ends outside the
+workspace or too near the start."""
 MAX_TRIALS = 10_000
 MAX_THREADS = 1024
+PLAN_LENGTHS = ("fixed", "search")
+DO_NOTHING, ORACLE = "do_nothing", "oracle"
+BASELINES = (DO_NOTHING, ORACLE)
+VERDICTS = ("hit", "miss", "no_progress", "incomplete")
 
 
 @dataclass(frozen=True)
 class PegInHoleConfig:
-    distances: tuple[int, ...] = (10, 20, 40, 60, 80, 100)
+    distances: tuple[int, ...] = (20, 40, 80)
     """Goal distances in control steps from the grasp."""
-    trials: int = 10
+    trials: int = 30
     """Goals per distance."""
-    tolerance_mm: float = 10.0
+    tolerances_mm: tuple[float, ...] = (10.0, 4.0)
+    """Success tolerances; the first is the paper's (10 mm)."""
+    min_distance_factor: float = 2.0
+    """Goals lie at least this many times the largest tolerance from the start."""
     hand: str = "target"
     hold_steps: tuple[int, int] = (5, 40)
     """Holds of the goal-making sequences (the piecewise sampler's)."""
-    planner: PlannerConfig = field(default_factory=lambda: PlannerConfig(horizon_search=True, tolerance_mm=3.0))
-    """Plans aim tighter than the success tolerance: open-loop execution adds error."""
+    plan_length: str = "fixed"
+    """``fixed``: plans of exactly ``n`` steps for goal ``n``; ``search``: the shortest predicted to reach it."""
+    replan_every: int = 0
+    """0: open loop (the paper's setting); k: replan from the measured state every k steps (MPC)."""
+    planner: PlannerConfig = field(default_factory=lambda: PlannerConfig(tolerance_mm=3.0))
+    """Search mode aims tighter than the success tolerance: open-loop execution adds error."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.plan_length not in PLAN_LENGTHS:
+            raise ValueError(f"plan_length must be one of {PLAN_LENGTHS}, got {self.plan_length!r}")
+        if self.replan_every < 0 or (self.replan_every and self.plan_length != "fixed"):
+            raise ValueError("replan_every must be >= 0, and replanning needs fixed-length plans")
+        if not self.tolerances_mm or min(self.tolerances_mm) <= 0:
+            raise ValueError(f"tolerances must be positive, got {self.tolerances_mm}")
+
+    @property
+    def min_distance_mm(self) -> float:
+        return self.min_distance_factor * max(self.tolerances_mm)
 
 
 @dataclass(frozen=True)
@@ -65,42 +101,106 @@ class Goal:
     """Reset seed of the true hand: the same grasp (and noise) for making the goal and executing the plan."""
     grasp: np.ndarray
     position: np.ndarray
+    still: np.ndarray | None = None
+    """Where the object ends when the hand holds still for ``steps`` (same grasp and noise)."""
 
     @property
     def distance_mm(self) -> float:
         return float(np.linalg.norm(self.position - self.grasp[:2]))
+
+    @property
+    def still_distance_mm(self) -> float | None:
+        return None if self.still is None else float(np.linalg.norm(self.position - self.still))
+
+
+@dataclass(frozen=True)
+class Contender:
+    """Something that plans peg-in-hole goals: a model (or an ensemble), a baseline, open or closed loop."""
+
+    name: str
+    models: tuple[LatentDynamics, ...] = ()
+    """Empty for the baselines."""
+    baseline: str = ""
+    """``do_nothing`` or ``oracle`` for a baseline, else ''."""
+    planner: PlannerConfig | None = None
+    """The contender's own planner settings (default: the evaluation's)."""
+    replan_every: int | None = None
+    """Its own execution mode (default: the evaluation's)."""
 
 
 @dataclass(frozen=True)
 class Trial:
     model: str
     steps: int
-    success: bool
+    trial: int
     status: str
-    """The planner's status."""
+    """The (first) plan's status; ``do_nothing`` for that baseline."""
     end_reason: str
-    """How execution ended: 'length', 'dropped', ..., or 'not_executed'."""
+    """How execution ended: 'length', 'dropped', ..., 'refused' (nothing to execute)."""
     goal_distance_mm: float
     final_error_mm: float | None
+    """Distance of the final object centre from the goal; None when nothing was executed."""
+    progress_mm: float | None
+    """How far the object moved towards the goal (along the start-goal line)."""
     predicted_error_mm: float | None
     plan_steps: int
+    """Actions executed."""
+    plans: int
+    """Plans made (1 open loop; more with replanning)."""
+    plan_seconds: float
+
+    @property
+    def completed(self) -> bool:
+        return self.end_reason == "length"
+
+    def verdict(self, tolerance_mm: float) -> str:
+        return verdict(self.goal_distance_mm, self.final_error_mm, self.progress_mm, self.completed, tolerance_mm)
+
+    def success(self, tolerance_mm: float) -> bool:
+        return self.verdict(tolerance_mm) == "hit"
+
+
+def verdict(
+    goal_distance_mm: float, final_error_mm: float | None, progress_mm: float | None, completed: bool,
+    tolerance_mm: float,
+) -> str:
+    """``hit`` only when the run completed, the object moved at least half way towards the goal and ended
+    within the tolerance; else why not (``incomplete``, ``no_progress``, ``miss``)."""
+    if not completed or final_error_mm is None or progress_mm is None:
+        return "incomplete"
+    if progress_mm < 0.5 * goal_distance_mm:
+        return "no_progress"
+    return "hit" if final_error_mm <= tolerance_mm else "miss"
+
+
+def progress_towards(start_xy: np.ndarray, goal_xy: np.ndarray, final_xy: np.ndarray) -> float:
+    """Displacement of the object projected on the start-to-goal direction (mm)."""
+    line = np.asarray(goal_xy, float) - np.asarray(start_xy, float)
+    length = float(np.linalg.norm(line))
+    if length == 0.0:
+        return 0.0
+    return float(np.dot(np.asarray(final_xy, float) - start_xy, line) / length)
 
 
 @dataclass(frozen=True)
 class Row:
     model: str
     steps: int
+    tolerance_mm: float
     trials: int
     successes: int
     success_rate: float
+    ci_low: float
+    ci_high: float
+    """95 % Wilson interval of the success rate."""
     goal_distance_mm: float
-    """Mean straight-line distance of the goals from the grasp."""
+    """Median straight-line distance of the goals from the grasp."""
     final_error_mm: float | None
     """Median true final error over executed plans."""
-    predicted_ok: int
-    """Plans predicted to reach the goal (status ok)."""
-    refused: int
-    """Plans the planner refused (nothing executed)."""
+    relative_error: float | None
+    """Median of final error / goal distance (1: no closer than the start; 0: in the hole)."""
+    verdicts: dict[str, int]
+    """Trials per verdict (hit, miss, no_progress, incomplete)."""
 
 
 def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list[Goal]:
@@ -113,21 +213,20 @@ def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list
     goals = []
     for steps in cfg.distances:
         for trial in range(cfg.trials):
-            goals.append(_make_goal(hand, cfg, steps, trial, workspace))
+            seeds = (int(np.random.SeedSequence([cfg.seed, steps, trial, attempt]).generate_state(1)[0])
+                     for attempt in range(GOAL_ATTEMPTS))
+            goals.append(reachable_goal(hand, steps, cfg.hold_steps, seeds, workspace, trial=trial,
+                                        min_distance_mm=cfg.min_distance_mm))
     return goals
-
-
-def _make_goal(hand: SimulatedHand, cfg: PegInHoleConfig, steps: int, trial: int, workspace: Workspace | None) -> Goal:
-    seeds = (int(np.random.SeedSequence([cfg.seed, steps, trial, attempt]).generate_state(1)[0])
-             for attempt in range(GOAL_ATTEMPTS))
-    return reachable_goal(hand, steps, cfg.hold_steps, seeds, workspace, trial=trial)
 
 
 def reachable_goal(
     hand: SimulatedHand, steps: int, hold_steps: tuple[int, int], action_seeds: Iterable[int],
     workspace: Workspace | None = None, grasp_seed: int | None = None, trial: int = 0, settle_steps: int = 0,
+    min_distance_mm: float = 0.0,
 ) -> Goal:
-    """The first goal ``steps`` away that the true hand reaches without a drop (inside ``workspace``).
+    """The first goal ``steps`` away that the true hand reaches without a drop (inside ``workspace``, at least
+    ``min_distance_mm`` from the start and from where holding still ends).
 
     Each attempt samples a piecewise-constant sequence from the next action seed and
     runs it from a grasp made with ``grasp_seed`` (a driver's reset seed), or with
@@ -144,113 +243,198 @@ def reachable_goal(
             traj = run_episode(hand, np.concatenate([np.zeros((settle_steps, actions.shape[1])), actions]), grasp_with)
         except GraspFailed:
             continue
+        if traj.end_reason != "length" or len(traj) != settle_steps + steps:
+            continue
         start = traj.states[min(settle_steps, len(traj.states) - 1)].astype(np.float64)
-        goal = Goal(steps, trial, grasp_with, start, traj.states[-1, :2].astype(np.float64))
+        still = None
+        if min_distance_mm > 0:
+            held = run_episode(hand, np.zeros((settle_steps + steps, actions.shape[1])), grasp_with)
+            still = held.states[-1, :2].astype(np.float64)
+        goal = Goal(steps, trial, grasp_with, start, traj.states[-1, :2].astype(np.float64), still)
         inside = workspace is None or bool(workspace.contains_xy(torch.as_tensor(goal.position)))
-        if traj.end_reason == "length" and len(traj) == settle_steps + steps and inside:
+        far = goal.distance_mm >= min_distance_mm and (still is None or goal.still_distance_mm >= min_distance_mm)
+        if inside and far:
             return goal
     raise RuntimeError(
-        f"no goal {steps} steps away without a drop (inside the workspace) in {tried} attempts (trial {trial})"
+        f"no goal {steps} steps away without a drop (inside the workspace, at least {min_distance_mm:g} mm from the "
+        f"start and from where holding still ends) in {tried} attempts (trial {trial})"
     )
 
 
-def run_trial(name: str, planner: Planner, hand: SimulatedHand, goal: Goal, tolerance_mm: float) -> Trial:
-    """Plan from the goal's grasp, execute open loop on ``hand``, and score the end."""
-    plan = planner.plan(goal.grasp, goal.position, seed=goal.seed)
-    predicted = None if np.isinf(plan.error_mm) else plan.error_mm
-    if len(plan.actions) == 0:
-        return Trial(name, goal.steps, False, plan.status, "not_executed", goal.distance_mm, None, predicted, 0)
-    traj = run_episode(hand, plan.actions.astype(np.float64), goal.seed)
-    error = float(np.linalg.norm(traj.states[-1, :2] - goal.position))
-    completed = traj.end_reason == "length" and len(traj) == len(plan.actions)
+def run_trial(
+    contender: Contender, workspace: Workspace, hand: SimulatedHand, goal: Goal, cfg: PegInHoleConfig,
+    oracle_hand: SimulatedHand | None = None,
+) -> Trial:
+    """Plan from the goal's grasp, execute on ``hand`` (open loop or replanning), and record the end."""
+    replan = cfg.replan_every if contender.replan_every is None else contender.replan_every
+    pcfg = contender.planner or cfg.planner
+    fixed = cfg.plan_length == "fixed"
+    pcfg = replace(pcfg, horizon_search=not fixed, horizon=goal.steps if fixed else pcfg.horizon)
+    hand.reset(goal.seed)
+    seconds = 0.0
+
+    if contender.baseline == DO_NOTHING:
+        run = execute(hand, lambda state, left: _still(state, goal, left), goal.steps)
+        return _trial(contender.name, goal, run, "do_nothing", None, 0.0)
+    if contender.baseline == ORACLE:
+        oracle = oracle_hand or SimulatedHand(cfg.hand)
+
+        def planner_now() -> Planner:
+            return Planner(HandRollout(oracle, hand.snapshot()), workspace, pcfg)
+    elif contender.baseline:
+        raise ValueError(f"unknown baseline {contender.baseline!r}; known: {BASELINES}")
+    else:
+        planner = Planner(contender.models if len(contender.models) > 1 else contender.models[0], workspace, pcfg)
+
+        def planner_now() -> Planner:
+            return planner
+
+    def plan_at(state: np.ndarray, left: int) -> Plan:
+        nonlocal seconds
+        begin = time.perf_counter()
+        plan = planner_now().plan(state, goal.position, seed=goal.seed, horizon=left if fixed else None)
+        seconds += time.perf_counter() - begin
+        return plan
+
+    if fixed:
+        run = execute(hand, plan_at, goal.steps, replan)
+    else:
+        first = plan_at(hand.state, pcfg.horizon)
+        run = execute(hand, lambda state, left: first, max(1, len(first.actions)))
+    first_plan = run.plans[0]
+    predicted = None if np.isinf(first_plan.error_mm) else first_plan.error_mm
+    return _trial(contender.name, goal, run, first_plan.status, predicted, seconds)
+
+
+def _still(state: np.ndarray, goal: Goal, steps: int) -> Plan:
+    """The do-nothing plan: ``steps`` zero actions, predicted to leave the object where it is."""
+    predicted = np.repeat(np.asarray(state, np.float32)[None], steps + 1, axis=0)
+    error = float(np.linalg.norm(predicted[-1, :2] - goal.position))
+    return Plan(False, "do_nothing", "holds still", np.zeros((steps, 2), np.float32), predicted, error,
+                goal.position.astype(np.float32))
+
+
+def _trial(name: str, goal: Goal, run: Execution, status: str, predicted: float | None, seconds: float) -> Trial:
+    executed = len(run.actions) > 0
+    final = run.states[-1, :2]
     return Trial(
-        name,
-        goal.steps,
-        completed and error <= tolerance_mm,
-        plan.status,
-        traj.end_reason,
-        goal.distance_mm,
-        error,
-        predicted,
-        len(plan.actions),
+        model=name, steps=goal.steps, trial=goal.trial, status=status, end_reason=run.end_reason,
+        goal_distance_mm=goal.distance_mm,
+        final_error_mm=float(np.linalg.norm(final - goal.position)) if executed else None,
+        progress_mm=progress_towards(goal.grasp[:2], goal.position, final) if executed else None,
+        predicted_error_mm=predicted, plan_steps=len(run.actions), plans=len(run.plans), plan_seconds=seconds,
     )
 
 
 def evaluate(
-    models: Mapping[str, LatentDynamics],
+    contenders: Sequence[Contender] | Mapping[str, LatentDynamics],
     workspace: Workspace,
     cfg: PegInHoleConfig = PegInHoleConfig(),
     goals: Sequence[Goal] | None = None,
     progress: bool = True,
+    baselines: Sequence[str] = BASELINES,
 ) -> tuple[list[Row], list[Trial]]:
-    """Success rate per model and distance (rows), and every trial; all models face the same goals."""
+    """Rows per contender, distance and tolerance, and every trial; all contenders face the same goals.
+
+    ``contenders`` may be a mapping of name to model (one open-loop contender each); the ``baselines``
+    are added first.
+    """
     from tqdm.auto import tqdm
 
+    if isinstance(contenders, Mapping):
+        contenders = [Contender(name, (model,)) for name, model in contenders.items()]
+    everyone = [Contender(b, baseline=b) for b in baselines] + list(contenders)
     goals = list(goals) if goals is not None else make_goals(cfg, workspace)
-    hand = SimulatedHand(cfg.hand)
+    hand, oracle_hand = SimulatedHand(cfg.hand), SimulatedHand(cfg.hand)
     trials = []
-    with tqdm(total=len(models) * len(goals), desc="peg-in-hole", unit="plan", disable=not progress) as bar:
-        for name, model in models.items():
-            planner = Planner(model, workspace, cfg.planner)
+    with tqdm(total=len(everyone) * len(goals), desc="peg-in-hole", unit="goal", disable=not progress) as bar:
+        for contender in everyone:
+            bar.set_postfix_str(contender.name)
             for goal in goals:
-                trials.append(run_trial(name, planner, hand, goal, cfg.tolerance_mm))
+                trials.append(run_trial(contender, workspace, hand, goal, cfg, oracle_hand))
                 bar.update()
-    return summarise(trials), trials
+    return summarise(trials, cfg.tolerances_mm), trials
 
 
-def summarise(trials: Sequence[Trial]) -> list[Row]:
-    """One row per (model, distance), in the order first seen."""
+def summarise(trials: Sequence[Trial], tolerances_mm: Sequence[float] = (10.0,)) -> list[Row]:
+    """One row per (model, distance, tolerance), models in the order first seen."""
     groups: dict[tuple[str, int], list[Trial]] = {}
     for t in trials:
         groups.setdefault((t.model, t.steps), []).append(t)
     rows = []
     for (name, steps), group in groups.items():
-        successes = sum(t.success for t in group)
         errors = [t.final_error_mm for t in group if t.final_error_mm is not None]
-        rows.append(
-            Row(
-                model=name,
-                steps=steps,
-                trials=len(group),
-                successes=successes,
-                success_rate=successes / len(group),
-                goal_distance_mm=float(np.mean([t.goal_distance_mm for t in group])),
-                final_error_mm=float(np.median(errors)) if errors else None,
-                predicted_ok=sum(t.status == "ok" for t in group),
-                refused=sum(t.end_reason == "not_executed" for t in group),
+        relative = [t.final_error_mm / t.goal_distance_mm for t in group if t.final_error_mm is not None]
+        for tol in tolerances_mm:
+            verdicts = [t.verdict(tol) for t in group]
+            successes = verdicts.count("hit")
+            low, high = wilson_interval(successes, len(group))
+            rows.append(
+                Row(
+                    model=name, steps=steps, tolerance_mm=float(tol), trials=len(group), successes=successes,
+                    success_rate=successes / len(group), ci_low=low, ci_high=high,
+                    goal_distance_mm=float(np.median([t.goal_distance_mm for t in group])),
+                    final_error_mm=float(np.median(errors)) if errors else None,
+                    relative_error=float(np.median(relative)) if relative else None,
+                    verdicts={v: verdicts.count(v) for v in VERDICTS},
+                )
             )
-        )
     return rows
 
 
 def markdown_table(rows: Sequence[Row]) -> str:
-    head = (
-        "| model | goal steps | goal distance mm | trials | success rate | median final error mm | predicted ok | refused |\n"
-        "|---|---|---|---|---|---|---|---|\n"
-    )
-    lines = [
-        f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} | {r.success_rate:.0%} "
-        f"| {'-' if r.final_error_mm is None else f'{r.final_error_mm:.1f}'} | {r.predicted_ok} | {r.refused} |"
-        for r in rows
-    ]
-    return head + "\n".join(lines) + "\n"
+    """One table per tolerance: success with its Wilson interval beside the median final error."""
+    out = []
+    for tol in dict.fromkeys(r.tolerance_mm for r in rows):
+        out.append(
+            f"Tolerance {tol:g} mm\n\n"
+            "| model | goal steps | median goal distance mm | trials | success | 95 % interval "
+            "| median final error mm | median error / distance | miss / no progress / incomplete |\n"
+            "|---|---|---|---|---|---|---|---|---|\n"
+        )
+        for r in (r for r in rows if r.tolerance_mm == tol):
+            error = "-" if r.final_error_mm is None else f"{r.final_error_mm:.1f}"
+            rel = "-" if r.relative_error is None else f"{r.relative_error:.2f}"
+            v = r.verdicts
+            out.append(
+                f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} | {r.successes} ({r.success_rate:.0%}) "
+                f"| {r.ci_low:.0%}-{r.ci_high:.0%} | {error} | {rel} "
+                f"| {v['miss']} / {v['no_progress']} / {v['incomplete']} |\n"
+            )
+        out.append("\n")
+    return "".join(out)
 
 
-def plot_success(rows: Sequence[Row], path: Path, tolerance_mm: float | None = None) -> Path:
-    """Success rate against goal distance (steps), one line per model."""
+def plot_success(rows: Sequence[Row], path: Path) -> Path:
+    """Per tolerance: success rate (Wilson interval bars) against goal distance; below, median error / distance."""
     from t42_transfer.plots import pyplot, save
 
     plt = pyplot()
-
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for name in dict.fromkeys(r.model for r in rows):
-        mine = sorted((r for r in rows if r.model == name), key=lambda r: r.steps)
-        ax.plot([r.steps for r in mine], [r.success_rate for r in mine], marker="o", label=name)
-    ax.set_xlabel("goal distance (control steps from the grasp)")
-    ax.set_ylabel("success rate")
-    ax.set_ylim(-0.03, 1.03)
-    ax.set_title("Peg-in-hole, open loop" + (f" (tolerance {tolerance_mm:g} mm)" if tolerance_mm else ""), fontsize=10)
-    ax.legend(fontsize=7)
+    tolerances = list(dict.fromkeys(r.tolerance_mm for r in rows))
+    fig, axes = plt.subplots(2, len(tolerances), figsize=(5.2 * len(tolerances), 6.4), squeeze=False, sharex=True)
+    names = list(dict.fromkeys(r.model for r in rows))
+    for col, tol in enumerate(tolerances):
+        top, bottom = axes[0, col], axes[1, col]
+        for name in names:
+            mine = sorted((r for r in rows if r.model == name and r.tolerance_mm == tol), key=lambda r: r.steps)
+            steps = np.array([r.steps for r in mine], float)
+            rate = np.array([r.success_rate for r in mine])
+            err = np.array([[r.success_rate - r.ci_low for r in mine], [r.ci_high - r.success_rate for r in mine]])
+            style = dict(linestyle="--", marker="s") if name in BASELINES else dict(marker="o")
+            top.errorbar(steps, rate, yerr=err, capsize=2, label=name, **style)
+            if col == 0:
+                rel = [np.nan if r.relative_error is None else r.relative_error for r in mine]
+                bottom.plot(steps, rel, label=name, **style)
+        top.set_title(f"Peg-in-hole, tolerance {tol:g} mm (95 % Wilson)", fontsize=9)
+        top.set_ylabel("success rate")
+        top.set_ylim(-0.03, 1.03)
+        bottom.set_xlabel("goal distance (control steps = plan length)")
+        if col == 0:
+            bottom.set_ylabel("median final error / start distance")
+            bottom.axhline(1.0, color="grey", linewidth=0.6)
+        else:
+            bottom.axis("off")
+    axes[0, -1].legend(fontsize=6, loc="best")
     return save(fig, path)
 
 
@@ -271,6 +455,28 @@ def _model_spec(spec: str) -> tuple[str, Path]:
     """``NAME=PATH`` or ``PATH`` (named by the file's stem) as (name, path)."""
     name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
     return name or Path(file).stem, Path(file)
+
+
+def contenders_for(
+    models: Mapping[str, LatentDynamics], planner: PlannerConfig, mpc: int = 0, dropout: int = 0,
+    ensemble: Sequence[str] = (), variants_of: Sequence[str] | None = None, risk: float = 1.0,
+) -> list[Contender]:
+    """Every model open loop as evaluated, plus the asked-for variants of the models in ``variants_of``
+    (default all): closed loop every ``mpc`` steps, ``dropout`` samples per sequence, and one ensemble."""
+    out = [Contender(name, (model,)) for name, model in models.items()]
+    chosen = [n for n in models if variants_of is None or n in variants_of]
+    if dropout:
+        dcfg = replace(planner, uncertainty="dropout", members=dropout, risk=risk)
+        out += [Contender(f"{n}+dropout{dropout}", (models[n],), planner=dcfg) for n in chosen]
+    if ensemble:
+        missing = sorted(set(ensemble) - set(models))
+        if missing or len(ensemble) < 2:
+            raise ValueError(f"an ensemble needs at least two of the given models {sorted(models)}, got {list(ensemble)}")
+        ecfg = replace(planner, uncertainty="ensemble", risk=risk)
+        out.append(Contender(f"ensemble{len(ensemble)}", tuple(models[n] for n in ensemble), planner=ecfg))
+    if mpc:
+        out += [Contender(f"{n}+mpc{mpc}", (models[n],), replan_every=mpc) for n in chosen]
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -297,10 +503,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="directory for peg_in_hole.{json,md,png}")
     parser.add_argument("--distances", nargs="+", type=int_arg(1, MAX_HORIZON), default=list(PegInHoleConfig.distances))
     parser.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
-    parser.add_argument("--tolerance", type=float_arg(0, low_open=True), default=PegInHoleConfig.tolerance_mm,
-                        help="success tolerance (mm)")
+    parser.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True),
+                        default=list(PegInHoleConfig.tolerances_mm), help="success tolerances (mm); the first is the paper's")
+    parser.add_argument("--plan-length", choices=PLAN_LENGTHS, default=PegInHoleConfig.plan_length,
+                        help="fixed: plans of exactly n steps (default); search: the shortest predicted to reach the goal")
+    parser.add_argument("--replan-every", type=int_arg(0, MAX_HORIZON), default=0,
+                        help="0: open loop (default); k: every model replans from the measured state every k steps")
+    parser.add_argument("--mpc", type=int_arg(0, MAX_HORIZON), default=0,
+                        help="also evaluate each model replanning every K steps, beside open loop")
+    parser.add_argument("--dropout", type=int_arg(0, 1000), default=0,
+                        help="also evaluate each model with M dropout samples per sequence, risk-averse (same rollouts)")
+    parser.add_argument("--ensemble", nargs="+", default=(), metavar="NAME",
+                        help="also evaluate an ensemble of these models (their names), risk-averse (same rollouts)")
+    parser.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")
+    parser.add_argument("--variants-of", nargs="+", default=None, metavar="NAME",
+                        help="models that get the --mpc and --dropout variants (default: all)")
     parser.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples)
-    parser.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon)
+    parser.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon,
+                        help="longest plan with --plan-length search")
     parser.add_argument("--hand", default="target")
     parser.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     parser.add_argument("--threads", type=int_arg(1, MAX_THREADS), default=1,
@@ -308,13 +528,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     # Everything the user gave is checked before a model is loaded or a goal made.
-    check_plan_size(args.samples, args.horizon)
+    check_plan_size(args.samples, max(args.horizon, *args.distances))
     variant(args.hand)
+    names = [_model_spec(spec)[0] for spec in args.models]
     for spec in args.models:
         existing_file(_model_spec(spec)[1])
+    for name in [*args.ensemble, *(args.variants_of or [])]:
+        if name not in names:
+            parser.error(f"{name!r} names no model; the models are {names}")
+    if args.ensemble and len(args.ensemble) < 2:
+        parser.error("--ensemble needs at least two models")
     for bag in args.workspace or []:
         existing_dir(bag)
     output_dir(args.out)
+    planner = replace(PegInHoleConfig().planner, samples=args.samples, horizon=args.horizon)
+    try:
+        cfg = PegInHoleConfig(tuple(args.distances), args.trials, tuple(args.tolerances), hand=args.hand,
+                              plan_length=args.plan_length, replan_every=args.replan_every, planner=planner,
+                              seed=args.seed)
+    except ValueError as err:
+        parser.error(str(err))
+    if args.mpc and cfg.plan_length != "fixed":
+        parser.error("--mpc needs --plan-length fixed")
     torch.set_num_threads(args.threads)
 
     models, stored = load_models(args.models)
@@ -324,15 +559,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         workspace = stored
     else:
         parser.error(f"{args.models[0]} stores no workspace: pass --workspace BAG ... (the models' training data)")
-    planner = replace(PegInHoleConfig().planner, samples=args.samples, horizon=args.horizon)
-    cfg = PegInHoleConfig(
-        tuple(args.distances), args.trials, args.tolerance, args.hand, planner=planner, seed=args.seed
-    )
-    rows, trials = evaluate(models, workspace, cfg, progress=not args.quiet)
+    contenders = contenders_for(models, planner, args.mpc, args.dropout, args.ensemble, args.variants_of, args.risk)
+    rows, trials = evaluate(contenders, workspace, cfg, progress=not args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)
     report = {
         "command": shlex.join([*parser.prog.split(), *(sys.argv[1:] if argv is None else argv)]),
         "config": asdict(cfg),
+        "contenders": [{"name": c.name, "baseline": c.baseline, "models": len(c.models),
+                        "planner": asdict(c.planner) if c.planner else None, "replan_every": c.replan_every}
+                       for c in contenders],
         "workspace": workspace.to_dict(),
         "rows": [asdict(r) for r in rows],
         "trials": [asdict(t) for t in trials],
@@ -340,7 +575,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (args.out / "peg_in_hole.json").write_text(json.dumps(report, indent=2) + "\n")
     table = markdown_table(rows)
     (args.out / "peg_in_hole.md").write_text(table)
-    plot_success(rows, args.out / "peg_in_hole.png", cfg.tolerance_mm)
+    plot_success(rows, args.out / "peg_in_hole.png")
     print(table)
     print(f"wrote {args.out / 'peg_in_hole.json'}, .md and .png")
     return 0
