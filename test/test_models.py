@@ -56,7 +56,7 @@ def test_zero_output_layer_moves_by_the_mean_change() -> None:
 
 
 def test_training_is_seeded_learns_and_keeps_the_best_epoch(make_set) -> None:
-    data = make_set([40] * 10, seed=3)
+    data = make_set([40] * 30, seed=3)  # a validation share of 0.1: 3 episodes, enough for early stopping
     cfg = TrainConfig(epochs=6, patience=2, seed=4)
     first, report = train_transition_model(data, cfg)
     again, _ = train_transition_model(data, cfg)
@@ -105,3 +105,17 @@ def test_windows_cover_each_episode_to_its_end(make_set) -> None:
     # 20 -> starts 0, 10; 25 -> 0, 10, 15; 9 is too short
     assert batch.x.shape == (5, 11, 4) and batch.a.shape == (5, 10, 2)
     np.testing.assert_array_equal(batch.x[4].numpy(), data[1].states[15:26])
+
+
+def test_early_stopping_validates_on_three_episodes_or_says_it_cannot(make_set) -> None:
+    from t42_transfer.models.training import MIN_VAL_EPISODES, ValidationWarning, validation_split
+
+    six = make_set([1000] * 6, seed=5)  # the real hands' case: a share of 0.1 is one path
+    with pytest.warns(ValidationWarning, match="would hold 1 of 6 episodes .* source model runs its full epoch"):
+        train, val = validation_split(six, 0.1, seed=0, phase="source model")
+    assert val is None and train is six
+    _, report = train_transition_model(make_set([30] * 4, seed=5), TrainConfig(epochs=2))
+    assert report.val_loss == [] and report.validation.startswith("none: a validation share of 0.1")
+    thirty = make_set([40] * 30, seed=5)
+    train, val = validation_split(thirty, 0.1, seed=0)
+    assert len(val) == MIN_VAL_EPISODES and len(train) == 27

@@ -200,3 +200,39 @@ def test_synthetic_file_in_the_real_layout(tmp_path):
     assert [t.end_reason for t in data] == ["length", "dropped"]
     np.testing.assert_array_equal(data[1].states, states[1][:, (0, 1, 11, 12)].astype(np.float32))
     np.testing.assert_array_equal(data[0].actions, actions[0][:19].astype(np.float32))
+
+
+def test_the_real_files_flagged_stretches(t42_real_dir):
+    """Hand B's path 0 lost tracking for its first 199 steps, then jumped 26.3 mm; nothing else is flagged."""
+    from t42_transfer.data.quality import FROZEN, JUMP, scan
+    from t42_transfer.data.t42_real import quality_lines
+
+    blue, red = (load_t42_testpaths(t42_real_dir / FILES[h]) for h in sorted(FILES))
+    assert scan(blue) == {} and quality_lines(blue) == ["none"]
+    found = scan(red)
+    assert list(found) == [0]
+    frozen, jump = found[0]
+    assert (frozen.kind, frozen.start, frozen.end) == (FROZEN, 0, 199) and frozen.size > 100
+    assert (jump.kind, jump.start, jump.end) == (JUMP, 198, 199) and 26.0 < jump.size < 26.5
+    assert quality_lines(red) == [
+        "path 0: frozen tracking at steps 0-198 (199 steps, loads ranged 102); jump of 26.3 mm at step 198"
+    ]
+
+
+def test_import_records_the_quality_scan_in_the_bag(t42_real_dir, tmp_path):
+    import json
+
+    from t42_transfer.data.bag_io import bag_info
+
+    bag = import_t42_to_bag(t42_real_dir / FILES["cyl35_red"], tmp_path / "bag")
+    quality = json.loads(bag_info(bag)["metadata"]["data_quality"])
+    assert quality["flagged_episodes"] == 1 and [f["kind"] for f in quality["findings"]["0"]] == ["frozen", "jump"]
+
+
+def test_real_file_names_any_public_object():
+    from t42_transfer.data.t42_real import REAL_FILES, real_file
+
+    assert real_file("A") == REAL_FILES["A"] == "testpaths_cyl35_d_v0.pkl"
+    assert real_file("B", "egg50") == "testpaths_egg50_red_d_v0.pkl"
+    with pytest.raises(ValueError, match="the real hands are"):
+        real_file("C")

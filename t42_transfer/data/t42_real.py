@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import math
 import os
 import pickle
@@ -27,10 +28,28 @@ from numpy._core.multiarray import _reconstruct
 
 from t42_transfer.data.bag_io import assign_start_times, write_bag
 from t42_transfer.data.errors import PickleFileError
+from t42_transfer.data.quality import scan, summarise, summary_lines
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
-REAL_FILES = {"A": "testpaths_cyl35_d_v0.pkl", "B": "testpaths_cyl35_red_d_v0.pkl"}
-"""The two real hands' files: A ("blue") and B ("red"), mirror images of each other."""
+REAL_HANDS = {"A": "", "B": "_red"}
+"""The two real hands, A ("blue") and B ("red"), mirror images of each other, and their files' name infix."""
+
+REAL_OBJECT = "cyl35"
+"""The object of the files beside the project (a 35 mm cylinder)."""
+
+REAL_PAIRS = ("cyl35", "egg50", "poly6")
+"""Objects the public repository holds for both hands; others (cyl20, sqr30, ...) were run on hand A only."""
+
+
+def real_file(hand: str, obj: str = REAL_OBJECT) -> str:
+    """The public file name of ``obj``'s test paths on ``hand`` (``A`` or ``B``), as the public repository names it."""
+    if hand not in REAL_HANDS:
+        raise ValueError(f"the real hands are {sorted(REAL_HANDS)}, got {hand!r}")
+    return f"testpaths_{obj}{REAL_HANDS[hand]}_d_v0.pkl"
+
+
+REAL_FILES = {hand: real_file(hand) for hand in REAL_HANDS}
+"""The files beside the project: the 35 mm cylinder on hands A and B."""
 
 MAX_PICKLE_BYTES = 256 * 2**20
 """The real files are 2.6 MB each; a file this size would hold about a hundred times more paths."""
@@ -309,11 +328,23 @@ def load_t42_testpaths(path: str | Path) -> TrajectorySet:
     return _testpaths(file, _read_regular(file))
 
 
+def quality_lines(paths: TrajectorySet) -> list[str]:
+    """What :mod:`~t42_transfer.data.quality` finds in one file's paths, a line per flagged path ("none" if clean).
+
+    Hand B's cylinder file, for one: its path 0 lost tracking for its first 199 steps and then jumped 26.3 mm.
+    """
+    return summary_lines(scan(paths), unit="path")
+
+
 def import_t42_to_bag(pickle_path: str | Path, bag_path: str | Path) -> Path:
-    """Write one hand's test paths as a bag, recording the source file's name and the sha256 of the bytes read."""
+    """Write one hand's test paths as a bag, recording the source file's name, the sha256 of the bytes read
+    and what the quality scan found (``data_quality``, JSON), so the bag carries its flagged stretches along."""
     source = Path(pickle_path)
     data = _read_regular(source)
     paths = _testpaths(source, data)
+    quality = json.dumps(summarise(paths, scan(paths)), separators=(",", ":"))
     return write_bag(
-        bag_path, paths, metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest()}
+        bag_path,
+        paths,
+        metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest(), "data_quality": quality},
     )

@@ -139,6 +139,31 @@ class TrajectorySet:
         return h.hexdigest()
 
 
+def grasp_centre(data: TrajectorySet) -> np.ndarray:
+    """Object x, y (mm) where the hand holds it at rest: the median of the episodes' first positions.
+
+    Every episode starts from the grasp the closing routine made; the median ignores a start whose
+    tracking was stale (hand B's cylinder path 0).
+    """
+    if not len(data):
+        raise ValueError("an empty trajectory set has no grasp")
+    return np.median(np.stack([t.states[0, :2] for t in data]).astype(np.float64), axis=0)
+
+
+SAME_SEQUENCE_OVERLAP = 0.9
+"""Two episodes ran the same action sequence when the shorter, at least this share of the longer, agrees with
+the longer's start: a hand that dropped the object stopped early (hand B's cylinder path 4 ran 795 of 817)."""
+
+
+def same_action_sequence(a: Trajectory, b: Trajectory) -> bool:
+    """True when ``a`` and ``b`` ran one action sequence, up to sign (the mirrored hands' actions are negated)."""
+    n = min(len(a), len(b))
+    if n == 0 or n < SAME_SEQUENCE_OVERLAP * max(len(a), len(b)):
+        return False
+    head_a, head_b = a.actions[:n], b.actions[:n]
+    return bool(np.array_equal(head_a, head_b) or np.array_equal(head_a, -head_b))
+
+
 def split_by_fraction(
     data: TrajectorySet, fraction: float, seed: int
 ) -> tuple[TrajectorySet, TrajectorySet]:

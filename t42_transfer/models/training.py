@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -55,6 +56,8 @@ class TrainReport:
     val_loss: list[float] = field(default_factory=list)
     seconds: float = 0.0
     samples_per_s: float = 0.0
+    validation: str = ""
+    """What early stopping validated on, or why it had nothing (see :func:`validation_split`)."""
 
 
 @dataclass(frozen=True)
@@ -246,12 +249,50 @@ def trajectory_loss(predicted: Tensor, true: Tensor, state_std: Tensor, weights:
     return (per_step * weights).sum(-1).mean()
 
 
-def validation_split(data: TrajectorySet, fraction: float, seed: int, min_episodes: int = 5) -> tuple[TrajectorySet, TrajectorySet | None]:
-    """Hold out whole episodes for early stopping; too few episodes means no validation set."""
-    if len(data) < min_episodes or fraction <= 0.0:
-        return data, None
-    val, train = split_by_fraction(data, fraction, seed)
+MIN_VAL_EPISODES = 3
+"""Early stopping needs a validation share of at least this many whole episodes.  With one, that one path's
+quirks decide when training stops: on the real hands a validation path with a tracking jump held a source
+model at its first epoch.  Three is the fewest where one odd path is outvoted."""
+
+MIN_VAL_TRANSITIONS = 100
+"""...and at least this many transitions (10 s of data): a loss over fewer is mostly noise."""
+
+
+class ValidationWarning(UserWarning):
+    """Training runs without early stopping because its validation share would be too small to trust."""
+
+
+def validation_split(
+    data: TrajectorySet, fraction: float, seed: int, phase: str = "training"
+) -> tuple[TrajectorySet, TrajectorySet | None]:
+    """``(train, validation)``: whole episodes held out for early stopping, if enough.
+
+    The share ``fraction`` of ``data`` (by transitions, at least one episode) must hold MIN_VAL_EPISODES
+    episodes and MIN_VAL_TRANSITIONS transitions and leave an episode to train on; otherwise there is
+    no validation set, training runs its full epoch budget, and a :class:`ValidationWarning` says why.
+    ``fraction`` 0 asks for no validation.
+    """
+    train, val, _ = _validation(data, fraction, seed, phase)
     return train, val
+
+
+def _validation(
+    data: TrajectorySet, fraction: float, seed: int, phase: str
+) -> tuple[TrajectorySet, TrajectorySet | None, str]:
+    """:func:`validation_split` and a note saying which it was, for the training report."""
+    if fraction <= 0.0:
+        return data, None, "none asked for"
+    if len(data) > 1:
+        val, train = split_by_fraction(data, fraction, seed)
+        if len(val) >= MIN_VAL_EPISODES and val.num_transitions >= MIN_VAL_TRANSITIONS and len(train):
+            return train, val, f"{len(val)} episodes, {val.num_transitions} transitions"
+        held = f"would hold {len(val)} of {len(data)} episodes ({val.num_transitions} transitions)"
+    else:
+        held = f"cannot be taken from {len(data)} episode{'' if len(data) == 1 else 's'}"
+    note = (f"none: a validation share of {fraction:g} {held}; early stopping needs at least {MIN_VAL_EPISODES} "
+            f"episodes and {MIN_VAL_TRANSITIONS} transitions, so {phase} runs its full epoch budget")
+    warnings.warn(note, ValidationWarning, stacklevel=3)
+    return data, None, note
 
 
 def train_transition_model(
@@ -263,11 +304,12 @@ def train_transition_model(
     phase: str = "train",
 ) -> tuple[TransitionModel, TrainReport]:
     """A fresh paper MLP fitted single-step to ``data`` (normalisation from the training part)."""
-    train, val = validation_split(data, val_fraction, cfg.seed)
+    train, val, note = _validation(data, val_fraction, cfg.seed, phase)
     x, _, x_next = train.transitions()
     torch.manual_seed(cfg.seed)
     model = TransitionModel(Normalisation.from_transitions(x, x_next), grasp_input=grasp_input)
     report = fit_single_step(model, train, val, cfg, on_epoch=on_epoch, phase=phase)
+    report.validation = note
     return model, report
 
 

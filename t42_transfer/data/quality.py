@@ -1,0 +1,192 @@
+"""Broken stretches in recorded paths: frozen object tracking and one-step jumps.
+
+The real hands' object pose came from a camera tracker.  When it lost the marker
+the pose stayed exactly where it was for hundreds of steps while the hand went
+on moving, and when it found the marker again the pose jumped by up to 26 mm in
+one step (hand B's path 0 in the public files: frozen for steps 0-198, then a
+26.3 mm jump).  Such stretches pass every file check, yet a model rolled out
+along them is scored against positions nobody measured.  This module finds them
+(:func:`find_problems`), summarises them for people (:func:`summarise`) and, on
+request, drops the episodes that hold them or splits the episodes there
+(:func:`handle_flagged`).  Nothing is changed unless asked: ``keep`` is the default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_JUMP_MM, MIN_EPISODE_STEPS
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+
+FROZEN = "frozen"
+JUMP = "jump"
+KINDS = (FROZEN, JUMP)
+
+HANDLING = ("keep", "drop", "split")
+"""What an experiment does with a flagged episode: keep it as it is, drop it, or split it at each flagged stretch."""
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """When a stretch counts as broken; the defaults are set from the public real-hand files and the simulated hands."""
+
+    jump_mm: float = DROP_JUMP_MM
+    """A one-step x,y move above this is a jump: the paper's drop rule (8 mm).  The clean real paths move at
+    most 4.1 mm in a step, the simulated hands 4.7 mm; the tracker's re-acquisitions move 8-26 mm."""
+    frozen_eps_mm: float = 1e-3
+    """Steps that move x,y by at most this count as standing still.  The tracker reports either exactly the same
+    pose or a move of at least 0.05 mm; 1 micrometre is far below any real move and far above float32 rounding."""
+    frozen_min_steps: int = 50
+    """Standing still this many steps in a row (5 s) is suspect.  The camera ran below 10 Hz, so clean real paths
+    stand still for up to 18 steps in a row (a third of their steps show no move); the lost tracking lasted 198."""
+    frozen_min_load_range: float = 10.0
+    """...while the loads range over at least this many raw units (a real hand's loads vary by 100 or more over
+    such a stretch); a hand whose loads and actuators also stay put is holding still, not lost."""
+    frozen_min_angle_range_rad: float = 0.05
+    """...or, where actuator angles are recorded, while an actuator turns at least this far (two action steps)."""
+
+
+THRESHOLDS = Thresholds()
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A broken stretch of one episode: transitions ``start .. end - 1`` are not to be trusted.
+
+    For a jump that is the one transition that jumps (``end = start + 1``); for frozen tracking it
+    is every transition out of a stale pose, the last one included (it holds all the motion the
+    tracker missed).  ``size``: the jump in mm, or for frozen tracking how far the loads ranged.
+    """
+
+    kind: str
+    start: int
+    end: int
+    size: float
+
+    @property
+    def steps(self) -> int:
+        return self.end - self.start
+
+    def describe(self) -> str:
+        if self.kind == JUMP:
+            return f"jump of {self.size:.1f} mm at step {self.start}"
+        last = self.end - 1
+        return f"frozen tracking at steps {self.start}-{last} ({self.steps} steps, loads ranged {self.size:.0f})"
+
+    def as_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``(first, one past last)`` of every run of True in ``mask``."""
+    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+
+
+def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tuple[Finding, ...]:
+    """Every frozen stretch and jump of ``traj``, in order of their start."""
+    xy = traj.states[:, :2].astype(np.float64)
+    moves = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    found = [Finding(JUMP, k, k + 1, float(moves[k])) for k in np.flatnonzero(moves > thresholds.jump_mm).tolist()]
+    for first, last in _runs(moves <= thresholds.frozen_eps_mm):  # states first..last share one pose
+        if last - first < thresholds.frozen_min_steps:
+            continue
+        loads = float(np.ptp(traj.states[first : last + 1, 2:], axis=0).max())
+        turned = traj.actuator_angles is not None and bool(
+            np.ptp(traj.actuator_angles[first : last + 1], axis=0).max() >= thresholds.frozen_min_angle_range_rad
+        )
+        if loads >= thresholds.frozen_min_load_range or turned:
+            found.append(Finding(FROZEN, first, min(last + 1, len(traj)), loads))
+    return tuple(sorted(found, key=lambda f: (f.start, f.kind)))
+
+
+def scan(data: TrajectorySet, thresholds: Thresholds = THRESHOLDS) -> dict[int, tuple[Finding, ...]]:
+    """The findings of every flagged episode, by episode index (clean episodes are left out)."""
+    found = {i: find_problems(traj, thresholds) for i, traj in enumerate(data)}
+    return {i: f for i, f in found.items() if f}
+
+
+def summarise(data: TrajectorySet, findings: dict[int, tuple[Finding, ...]]) -> dict[str, Any]:
+    """A JSON-ready record of what :func:`scan` found: counts and each finding by episode."""
+    flagged = sum(f.steps for fs in findings.values() for f in fs)
+    return {
+        "episodes": len(data),
+        "transitions": data.num_transitions,
+        "flagged_episodes": len(findings),
+        "flagged_transitions": flagged,
+        "findings": {str(i): [f.as_dict() for f in fs] for i, fs in sorted(findings.items())},
+    }
+
+
+def summary_lines(findings: dict[int, tuple[Finding, ...]], unit: str = "episode") -> list[str]:
+    """One line per flagged episode (called ``unit``), for a terminal; ``["none"]`` when nothing was found."""
+    return [f"{unit} {i}: " + "; ".join(f.describe() for f in fs) for i, fs in sorted(findings.items())] or ["none"]
+
+
+@dataclass(frozen=True)
+class Handled:
+    """The data after :func:`handle_flagged`, and where each of its episodes came from."""
+
+    data: TrajectorySet
+    origins: tuple[int, ...]
+    """The index, in the data as given, of the episode each episode here was taken from."""
+    findings: dict[int, tuple[Finding, ...]]
+    """What was found, by index in the data as given."""
+
+
+def _pieces(traj: Trajectory, findings: tuple[Finding, ...]) -> list[Trajectory]:
+    """``traj`` without its flagged transitions: the stretches between them at least MIN_EPISODE_STEPS long."""
+    cuts: list[list[int]] = []
+    for f in findings:  # merge overlapping ranges (a jump often ends a frozen stretch)
+        if cuts and f.start <= cuts[-1][1]:
+            cuts[-1][1] = max(cuts[-1][1], f.end)
+        else:
+            cuts.append([f.start, f.end])
+    bounds, begin = [], 0
+    for start, end in cuts:
+        bounds.append((begin, start))  # states begin..start: transitions begin..start-1 are clean
+        begin = end
+    bounds.append((begin, len(traj)))
+    pieces = []
+    for first, last in bounds:
+        if last - first < MIN_EPISODE_STEPS:
+            continue
+        angles = None if traj.actuator_angles is None else traj.actuator_angles[first : last + 1]
+        pieces.append(
+            Trajectory(
+                states=traj.states[first : last + 1],
+                actions=traj.actions[first:last],
+                actuator_angles=angles,
+                start_ns=traj.start_ns + first * CONTROL_PERIOD_NS,
+                end_reason=traj.end_reason if last == len(traj) else "",
+                hand=traj.hand,
+            )
+        )
+    return pieces
+
+
+def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRESHOLDS) -> Handled:
+    """``data`` with its flagged episodes kept (``keep``), dropped (``drop``) or split at each finding (``split``).
+
+    A split keeps the clean stretches between findings that are at least MIN_EPISODE_STEPS long
+    (the paper's rule for short episodes).
+    """
+    if how not in HANDLING:
+        raise ValueError(f"flagged must be one of {HANDLING}, got {how!r}")
+    findings = scan(data, thresholds)
+    kept: list[Trajectory] = []
+    origins: list[int] = []
+    for i, traj in enumerate(data):
+        if i not in findings or how == "keep":
+            parts = [traj]
+        elif how == "drop":
+            parts = []
+        else:
+            parts = _pieces(traj, findings[i])
+        kept.extend(parts)
+        origins.extend([i] * len(parts))
+    return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), findings)
