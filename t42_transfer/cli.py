@@ -180,11 +180,19 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
-    from t42_transfer.data.bag_io import bag_info, verify_bag
+    import warnings
+
+    from t42_transfer.data.bag_io import bag_info, read_bag, verify_bag
+    from t42_transfer.data.quality import scan, summarise, summary_lines
 
     info = bag_info(args.bag)
+    with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
+        warnings.simplefilter("ignore")
+        data = read_bag(args.bag, allow_gaps=True)
+    findings = scan(data)
     mismatches = verify_bag(args.bag) if args.verify else []
     if args.json:
+        info["quality"] = summarise(data, findings)
         print(json.dumps({**info, "verify": mismatches} if args.verify else info, indent=2, default=str))
         return 1 if mismatches else 0
     for key, value in info.items():
@@ -194,6 +202,9 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
                 print(f"  {k}: {v}")
         else:
             print(f"{key}: {value}")
+    print(f"quality: {len(findings)} of {len(data)} episodes with frozen tracking or jumps")
+    for line in summary_lines(findings) if findings else ():
+        print(f"  {line}")
     if args.verify:
         print(f"verify: {len(mismatches)} mismatches between metadata.yaml and the data" if mismatches
               else "verify: metadata.yaml agrees with the data")
@@ -204,11 +215,12 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
 
 def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
     from t42_transfer.data.bag_io import read_bag
-    from t42_transfer.data.t42_real import import_t42_to_bag
+    from t42_transfer.data.t42_real import import_t42_to_bag, quality_lines
 
     bag = import_t42_to_bag(existing_file(args.pickle), new_output(args.out))
     data = read_bag(bag)
     print(f"{args.pickle} -> {bag}: {len(data)} paths, {data.num_transitions} transitions, hand {data.hand!r}")
+    print("flagged stretches: " + "; ".join(quality_lines(data)))
     return 0
 
 

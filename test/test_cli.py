@@ -86,3 +86,33 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
     assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
 
 
+
+
+def test_bag_info_reports_frozen_tracking_and_jumps(tmp_path: Path, make_set, capsys: pytest.CaptureFixture[str]) -> None:
+    import dataclasses
+
+    from t42_transfer.data.bag_io import write_bag
+
+    data = make_set([80, 80], seed=4, hand="h")
+    states = data[1].states.copy()
+    states[30:, 1] -= 10.0  # transition 29 jumps about 10 mm
+    bag = write_bag(tmp_path / "bag", type(data)([data[0], dataclasses.replace(data[1], states=states)], hand="h"))
+    assert main(["bag", "info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "quality: 1 of 2 episodes with frozen tracking or jumps" in out
+    assert "  episode 1: jump of " in out and "mm at step 29" in out
+    assert main(["bag", "info", str(bag), "--json"]) == 0
+    quality = json.loads(capsys.readouterr().out)["quality"]
+    assert quality["flagged_episodes"] == 1 and quality["findings"]["1"][0]["start"] == 29
+    assert main(["bag", "info", str(FIXTURES / "target_small")]) == 0
+    assert "quality: 0 of 4 episodes" in capsys.readouterr().out
+
+
+@pytest.mark.realdata
+def test_import_names_the_flagged_stretches(t42_real_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = tmp_path / "real_b"
+    assert main(["bag", "import-t42", str(t42_real_dir / "testpaths_cyl35_red_d_v0.pkl"), str(bag)]) == 0
+    assert "flagged stretches: path 0: frozen tracking at steps 0-198" in capsys.readouterr().out
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "  episode 0: frozen tracking at steps 0-198 (199 steps, loads ranged 102); jump of 26.3 mm at step 198" \
+        in capsys.readouterr().out
