@@ -15,12 +15,13 @@ from t42_transfer.evaluation.lyapunov import (
     maximal_lyapunov,
     model_lyapunov,
     model_lyapunov_spectrum,
+    state_scales,
 )
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.network import Normalisation, TransitionModel
 
 HENON_A, HENON_B = 1.4, 0.3
-HENON_EXPONENTS = (0.4196, -1.6236)  # published values for a = 1.4, b = 0.3
+HENON_EXPONENTS = (0.4192, -1.6232)  # a = 1.4, b = 0.3 (Sprott, Chaos and Time-Series Analysis, 2003)
 
 
 def henon(z: Tensor, a: Tensor) -> Tensor:
@@ -39,7 +40,7 @@ def henon_starts(batch: int, seed: int = 0) -> Tensor:
 
 def test_henon_exponents():
     batch, steps = 64, 900
-    spectrum = lyapunov_spectrum(henon, henon_starts(batch), torch.zeros(batch, steps, 1), transient=100)
+    spectrum = lyapunov_spectrum(henon, henon_starts(batch), torch.zeros(batch, steps, 1), burn_in=100)
     assert spectrum.shape == (batch, 2) and spectrum.dtype == torch.float64
     mean = spectrum.mean(dim=0)
     assert mean[0].item() == pytest.approx(HENON_EXPONENTS[0], abs=0.01)
@@ -48,6 +49,51 @@ def test_henon_exponents():
     assert (spectrum[:, 0] - HENON_EXPONENTS[0]).abs().max() < 0.08
     # |det J| = b at every step, so the exponents of every orbit sum to ln b up to rounding.
     torch.testing.assert_close(spectrum.sum(dim=1), torch.full((batch,), math.log(HENON_B), dtype=torch.float64))
+
+
+def test_henon_largest_exponent_after_burn_in_is_tight():
+    """128 orbits of 2000 averaged steps after 200 of burn-in: their mean is within 0.003 of 0.4192."""
+    batch, burn_in, steps = 128, 200, 2200
+    exponent = maximal_lyapunov(henon, henon_starts(batch, seed=5), torch.zeros(batch, steps, 1), burn_in=burn_in)
+    # One finite-time orbit spreads by about 0.008 at this length, so the mean's error is below 0.001.
+    assert exponent.mean().item() == pytest.approx(HENON_EXPONENTS[0], abs=0.003)
+    assert exponent.std().item() < 0.015
+
+
+def test_contracting_linear_map_gives_its_log_eigenvalue_after_burn_in():
+    """``[[0.5, 0], [5, 0.9]]``: exponents ln 0.9 and ln 0.5, but the first column of the starting frame is
+    stretched about 5-fold at first (the matrix is far from normal); burn-in leaves that transient out."""
+    matrix = torch.tensor([[0.5, 0.0], [5.0, 0.9]], dtype=torch.float64)
+
+    def linear(z: Tensor, a: Tensor) -> Tensor:
+        return z @ matrix.T
+
+    z0, actions = torch.ones(1, 2, dtype=torch.float64), torch.zeros(1, 250, 1)
+    expected = torch.tensor([[math.log(0.9), math.log(0.5)]], dtype=torch.float64)
+    torch.testing.assert_close(lyapunov_spectrum(linear, z0, actions, burn_in=200), expected, rtol=0, atol=1e-9)
+    # Without burn-in the 50-step estimate sits far above ln 0.9, although still below 0 after 250 steps.
+    short = lyapunov_spectrum(linear, z0, actions[:, :50])
+    assert short[0, 0] > math.log(0.9) + 0.02
+    # The whole spectrum sums to ln |det| = ln 0.45 with or without burn-in.
+    torch.testing.assert_close(short.sum(dim=1), expected.sum(dim=1), rtol=0, atol=1e-12)
+
+
+def test_scales_analyse_the_map_in_normalised_coordinates():
+    """Exponents with ``scales`` are those of the conjugate map ``u -> f(u * s) / s`` from ``z0 / s``."""
+    scales = torch.tensor([20.0, 0.05], dtype=torch.float64)
+
+    def stretched(z: Tensor, a: Tensor) -> Tensor:  # the Henon map in coordinates z = u * scales
+        return henon(z / scales, a) * scales
+
+    # Short orbits: the chaotic map amplifies the rounding of z / s * s by e^(0.42 t).
+    z0, actions = henon_starts(6, seed=6) * scales, torch.zeros(6, 25, 1)
+    raw = lyapunov_spectrum(stretched, z0, actions)
+    normalised = lyapunov_spectrum(stretched, z0, actions, scales=scales)
+    torch.testing.assert_close(normalised, lyapunov_spectrum(henon, z0 / scales, actions), rtol=0, atol=1e-9)
+    assert (raw[:, 0] - normalised[:, 0]).abs().max() > 1e-3  # over a short orbit the units matter
+    for bad in ([1.0], [1.0, 0.0], [1.0, float("nan")]):
+        with pytest.raises(ValueError, match="scales"):
+            lyapunov_spectrum(stretched, z0, actions, scales=torch.tensor(bad))
 
 
 def test_linear_map_gives_log_abs_eigenvalues():
@@ -91,9 +137,9 @@ def test_lengths_end_orbits_as_if_run_alone():
     batch, steps = 5, 120
     z0, actions = henon_starts(batch, seed=3), torch.zeros(batch, steps, 1)
     lengths = torch.tensor([120, 40, 77, 31, 100])
-    padded = lyapunov_spectrum(henon, z0, actions, transient=30, lengths=lengths)
+    padded = lyapunov_spectrum(henon, z0, actions, burn_in=30, lengths=lengths)
     alone = torch.cat(
-        [lyapunov_spectrum(henon, z0[i : i + 1], actions[i : i + 1, :n], transient=30) for i, n in enumerate(lengths)]
+        [lyapunov_spectrum(henon, z0[i : i + 1], actions[i : i + 1, :n], burn_in=30) for i, n in enumerate(lengths)]
     )
     torch.testing.assert_close(padded, alone, rtol=0, atol=1e-12)
 
@@ -103,7 +149,7 @@ def test_lengths_end_orbits_as_if_run_alone():
     [
         ({"k": 3}, "k must be"),
         ({"k": 0}, "k must be"),
-        ({"transient": 10}, "transient"),
+        ({"burn_in": 10}, "burn_in"),
         ({"lengths": torch.tensor([10, 11])}, "at most"),
     ],
 )
@@ -144,6 +190,42 @@ def test_model_lyapunov_leaves_the_model_alone_and_ignores_dropout(small_set):
     assert first.shape == (len(small_set),) and first.dtype == torch.float64
     torch.testing.assert_close(first, second, rtol=0, atol=0)  # dropout off: deterministic
     assert torch.isfinite(first).all() and first.abs().max() > 1e-3  # a random net is not a translation
+
+
+@pytest.mark.parametrize("grasp_input", [False, True])
+def test_model_exponents_in_the_models_normalised_coordinates(grasp_input):
+    torch.manual_seed(3)
+    norm = Normalisation(
+        np.array([0, 90, 100, -100], np.float32), np.array([20, 10, 50, 50], np.float32),
+        np.zeros(4, np.float32), np.array([0.3, 0.3, 3.0, 3.0], np.float32),
+    )
+    model = TransitionModel(norm, grasp_input=grasp_input).eval().double()
+    std = state_scales(model)
+    np.testing.assert_array_equal(std, [20, 10, 50, 50])
+    x0 = torch.tensor([[0.0, 90.0, 100.0, -100.0]], dtype=torch.float64).repeat(3, 1) + torch.randn(3, 4).double()
+    actions = torch.rand(3, 40, 2, dtype=torch.float64) * 2 - 1
+    latent_scales = torch.tensor(np.tile(std, 2 if grasp_input else 1))
+
+    def in_units_of_std(u: Tensor, a: Tensor) -> Tensor:
+        return model.latent_step(u * latent_scales, a) / latent_scales
+
+    got = model_lyapunov_spectrum(model, (x0, actions), burn_in=10, scales=std)
+    z0 = model.initial_latent(x0) / latent_scales
+    torch.testing.assert_close(got, lyapunov_spectrum(in_units_of_std, z0, actions, burn_in=10), rtol=0, atol=1e-10)
+    assert not torch.allclose(got, model_lyapunov_spectrum(model, (x0, actions), burn_in=10), atol=1e-3)
+    with pytest.raises(ValueError, match="scales must have"):
+        model_lyapunov_spectrum(model, (x0, actions), scales=np.ones(3))
+
+
+def test_state_scales_of_a_residual_model_are_the_sources():
+    from t42_transfer.models import CumulativeResidualModel
+
+    source_norm = Normalisation(np.zeros(4, np.float32), np.array([20, 10, 50, 50], np.float32),
+                                np.zeros(4, np.float32), np.ones(4, np.float32))
+    model = CumulativeResidualModel(TransitionModel(source_norm), TransitionModel(Normalisation.identity()), 0.3, 0.9)
+    np.testing.assert_array_equal(state_scales(model), [20, 10, 50, 50])
+    with pytest.raises(ValueError, match="no transition model"):
+        state_scales(ToySource())
 
 
 def test_episodes_and_explicit_arrays_agree(small_set: TrajectorySet):

@@ -11,6 +11,14 @@ from ``vmap(jacrev)`` and the frames from one batched Householder QR per step.
 A model is analysed through its latent map ``latent_step``, so hidden state
 (e.g. the residual sum of a cumulative residual model) is part of the system, as
 in the paper's theorem.  Exponents are per 0.1 s step, natural log.
+
+Two settings make a finite-time estimate mean something.  ``burn_in`` steps move
+the orbit onto its attractor and turn the frame toward the growing directions
+before anything is averaged.  ``scales`` measure lengths in normalised
+coordinates ``z / scales`` (e.g. the model's stored state std): asymptotically the
+exponents do not depend on a fixed change of coordinates, but over a finite
+orbit in raw units (millimetres beside load units a hundred times larger) the
+starting frame and the transient are dominated by the large coordinates.
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ import torch
 from torch import Tensor
 from torch.func import jacrev, vmap
 
+from t42_transfer.conventions import STATE_DIM
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import model_device
 from t42_transfer.models.dynamics import LatentDynamics
@@ -48,15 +57,18 @@ def lyapunov_spectrum(
     actions: Tensor,
     k: int | None = None,
     *,
-    transient: int = 0,
+    burn_in: int = 0,
     lengths: Tensor | None = None,
+    scales: Tensor | np.ndarray | None = None,
 ) -> Tensor:
     """The ``k`` largest finite-time Lyapunov exponents (all when ``None``) of each orbit, ``[B, k]`` float64.
 
     Orbit ``b`` starts at ``z0[b]`` and follows ``actions[b, t]``; an autonomous map
-    simply ignores its action input.  The first ``transient`` steps move the orbit
+    simply ignores its action input.  The first ``burn_in`` steps move the orbit
     and align the frame but are not averaged.  ``lengths[b]`` (optional) ends orbit
     ``b`` early, for padded batches; the exponent averages over its own steps.
+    ``scales[d]`` (optional, positive) analyses the map in coordinates ``z / scales``:
+    each Jacobian becomes ``diag(1 / scales) J diag(scales)``.
     ``step`` is called with float64 tensors and must not mix batch rows.
     """
     z = z0.to(torch.float64)
@@ -72,8 +84,13 @@ def lyapunov_spectrum(
         if lengths is None
         else torch.as_tensor(lengths, device=z.device).long()
     )
-    if steps.shape != (batch,) or int(steps.max()) > actions.shape[1] or int(steps.min()) <= transient:
-        raise ValueError(f"every orbit needs more than transient={transient} and at most {actions.shape[1]} steps")
+    if steps.shape != (batch,) or int(steps.max()) > actions.shape[1] or int(steps.min()) <= burn_in:
+        raise ValueError(f"every orbit needs more than burn_in={burn_in} and at most {actions.shape[1]} steps")
+    if scales is not None:
+        scales = torch.as_tensor(scales, dtype=torch.float64, device=z.device)
+        if scales.shape != (dim,) or not bool(torch.all(torch.isfinite(scales) & (scales > 0))):
+            raise ValueError(f"scales must be {dim} positive finite numbers, got {scales.tolist()}")
+        similarity = scales[None, :] / scales[:, None]  # (1 / s_i) J_ij s_j
 
     def one(zi: Tensor, ai: Tensor) -> tuple[Tensor, Tensor]:
         out = step(zi[None], ai[None])[0]
@@ -86,17 +103,53 @@ def lyapunov_spectrum(
         for t in range(int(steps.max())):
             # Finished orbits run on through their padding (rows are independent); only their sums stop.
             jac, z = jacobian_and_next(z, actions[:, t])
+            if scales is not None:
+                jac = jac * similarity
             frame, stretch = _orthonormalise(jac @ frame)
-            if t >= transient:
+            if t >= burn_in:
                 total += torch.where((t < steps)[:, None], stretch.log(), 0.0)
-    return total / (steps - transient)[:, None]
+    return total / (steps - burn_in)[:, None]
 
 
 def maximal_lyapunov(
-    step: StepFn, z0: Tensor, actions: Tensor, *, transient: int = 0, lengths: Tensor | None = None
+    step: StepFn,
+    z0: Tensor,
+    actions: Tensor,
+    *,
+    burn_in: int = 0,
+    lengths: Tensor | None = None,
+    scales: Tensor | np.ndarray | None = None,
 ) -> Tensor:
     """The largest finite-time Lyapunov exponent of each orbit, ``[B]`` float64."""
-    return lyapunov_spectrum(step, z0, actions, 1, transient=transient, lengths=lengths)[:, 0]
+    return lyapunov_spectrum(step, z0, actions, 1, burn_in=burn_in, lengths=lengths, scales=scales)[:, 0]
+
+
+def state_scales(model: LatentDynamics) -> np.ndarray:
+    """The state std a model stores (its first transition model's: the source's in a residual model), ``[4]``.
+
+    Passed as ``scales`` it measures exponents in the units the network sees; use the
+    source model's for every model of a comparison, so that all are measured alike.
+    """
+    from t42_transfer.models.network import TransitionModel
+
+    for module in model.modules():
+        if isinstance(module, TransitionModel):
+            return module.state_std.detach().cpu().numpy().astype(np.float64)
+    raise ValueError(f"{type(model).__name__} holds no transition model, so no stored normalisation")
+
+
+def _latent_scales(scales: Tensor | np.ndarray, latent_dim: int) -> np.ndarray:
+    """Per-latent scales: given per latent coordinate, or per hand-state coordinate and repeated.
+
+    Every latent of the project's models is made of hand-state blocks (the state, the
+    grasp state, the residual sum), so state scales repeat over them.
+    """
+    scales = np.asarray(scales, dtype=np.float64).reshape(-1)
+    if len(scales) == STATE_DIM and latent_dim % STATE_DIM == 0:
+        return np.tile(scales, latent_dim // STATE_DIM)
+    if len(scales) != latent_dim:
+        raise ValueError(f"scales must have {STATE_DIM} or {latent_dim} entries for this model, got {len(scales)}")
+    return scales
 
 
 def _starts_and_actions(
@@ -124,13 +177,17 @@ def model_lyapunov_spectrum(
     k: int | None = None,
     *,
     steps: int | None = None,
-    transient: int = 0,
+    burn_in: int = 0,
+    scales: Tensor | np.ndarray | None = None,
 ) -> Tensor:
     """Finite-time Lyapunov exponents ``[B, k]`` of ``model`` along its own open-loop orbits.
 
     Orbits start at ``initial_latent(x0)`` and follow the recorded actions: one
     per episode of a :class:`TrajectorySet` (from its first state, over its own
-    length), or per row of ``(x0[B, 4], actions[B, T, 2])``; ``steps`` crops them.
+    length), or per row of ``(x0[B, 4], actions[B, T, 2])``; ``steps`` crops them,
+    burn-in included (``steps - burn_in`` steps are averaged).  ``scales`` (see
+    :func:`lyapunov_spectrum`) may be per hand-state coordinate (e.g.
+    :func:`state_scales`), repeated over the latent's state blocks.
     The map is ``latent_step`` of a float64 copy in eval mode (dropout off); the
     caller's model is left untouched.  The full spectrum gives the source model's
     smallest exponent, which the paper uses to choose ``gamma``.
@@ -141,7 +198,11 @@ def model_lyapunov_spectrum(
     x0 = x0.to(device=device, dtype=torch.float64)
     with torch.no_grad():
         z0 = analysed.initial_latent(x0)
-    return lyapunov_spectrum(analysed.latent_step, z0, actions.to(device), k, transient=transient, lengths=lengths)
+    if scales is not None:
+        scales = _latent_scales(scales, z0.shape[1])
+    return lyapunov_spectrum(
+        analysed.latent_step, z0, actions.to(device), k, burn_in=burn_in, lengths=lengths, scales=scales
+    )
 
 
 def model_lyapunov(
@@ -149,7 +210,8 @@ def model_lyapunov(
     data: TrajectorySet | tuple[Tensor | np.ndarray, Tensor | np.ndarray],
     *,
     steps: int | None = None,
-    transient: int = 0,
+    burn_in: int = 0,
+    scales: Tensor | np.ndarray | None = None,
 ) -> Tensor:
     """The maximal finite-time Lyapunov exponent ``[B]`` of each open-loop orbit of ``model`` (see above)."""
-    return model_lyapunov_spectrum(model, data, 1, steps=steps, transient=transient)[:, 0]
+    return model_lyapunov_spectrum(model, data, 1, steps=steps, burn_in=burn_in, scales=scales)[:, 0]
