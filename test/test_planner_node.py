@@ -433,3 +433,24 @@ def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_toward
     final = rig.driver.hand.state[:2]
     assert rig.driver.running and rig.driver.pending_actions == 0
     assert np.linalg.norm(final - goal) < np.linalg.norm(start - goal), (start, final, goal)
+
+
+def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_state(ros, toy: Path) -> None:
+    rig = Rig(ros, toy, **{**SMALL, "horizon": 15, "horizon_search": False, "replan_every": 5})
+    rig.tick()
+    rig.publish_goal(START_XY + [6.0, -4.0])
+    assert ros.spin_until(lambda: rig.results, 20.0)
+    result = rig.results[0]
+    assert result["accepted"] and result["horizon"] == 15 and result["replan_every"] == 5, result
+    assert not rig.planner.idle  # the closed loop runs until its last piece is sent
+    for piece in range(3):
+        assert ros.spin_until(lambda: len(rig.trajectories) == piece + 1 and len(rig.paths) == piece + 1, 10.0), piece
+        traj, path = rig.trajectories[-1], rig.paths[-1]
+        assert len(traj.points) == 5
+        assert len(path.poses) == 15 - 5 * piece + 1  # the whole rest is planned, its first 5 steps sent
+        assert np.allclose(path_xy_mm(path)[0], rig.planner._pose[1], atol=1e-3)  # from the measured state
+        assert ros.spin_until(lambda: rig.driver.pending_actions == 5, 5.0)
+        rig.tick(6)  # the piece, then the step that publishes the state after it
+    assert ros.spin_until(lambda: rig.planner.idle, 5.0)
+    ros.spin_for(0.3)
+    assert len(rig.trajectories) == 3 and len(rig.results) == 1  # one result per goal, replans or not

@@ -16,7 +16,20 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
 * ``t42/plan_result`` (std_msgs/msg/String): exactly one JSON line per goal,
-  :class:`PlanResult`: accepted, or refused with a status code and a reason.
+  :class:`PlanResult`: accepted, or refused with a status code and a reason;
+* ``hand/status`` (std_msgs/msg/String): subscribed; with ``replan_every`` the
+  driver's ``trajectory_done`` says when a piece has run.
+
+Open or closed loop.  By default (``replan_every: 0``, the paper's setting) the
+whole plan is sent at once, open loop.  With ``replan_every: k`` the node sends
+the first k steps of an accepted plan, waits for the driver's
+``trajectory_done`` and the state after the piece's last step, plans the rest
+from that measured state (the remaining steps of a fixed-length plan, or a new
+horizon search within what is left of ``horizon``), sends its first k steps,
+and so on (model-predictive control).  The goal's one result describes the
+first plan; each replan is logged and its predicted path published.  A replan
+that finds no safe sequence, a newer goal, or a piece that does not finish in
+``piece_timeout_s`` ends the loop with the hand holding still.
 
 Parameters are :class:`PlannerNodeParams`.  ``model`` is read once at start (later
 models come by announcement); the planner settings and ``max_state_age_s`` may be
@@ -75,16 +88,18 @@ from msg_adapters import (
     actions_to_joint_trajectory,
     goal_xy_mm,
     joint_state_arrays,
+    last_step_stamp,
     object_xy_mm,
     path_msg,
     stamp_to_ns,
+    status_event,
 )
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.nodes.mock_driver import JOINT_STATES_TOPIC, OBJECT_POSE_TOPIC, TRAJECTORY_TOPIC
-from t42_transfer.planning import Planner, PlannerConfig, Workspace
+from t42_transfer.nodes.mock_driver import JOINT_STATES_TOPIC, OBJECT_POSE_TOPIC, STATUS_TOPIC, TRAJECTORY_TOPIC
+from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import EVENT_READER, LATCHED
 
 GOAL_TOPIC = "t42/goal"
 MODEL_UPDATED_TOPIC = "t42/model_updated"
@@ -114,6 +129,10 @@ class PlannerNodeParams:
     seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")
     max_state_age_s: float = param(0.5, "plan only from a hand state at most this old (or this far in the future)",
                                    min=0.0, constraints="positive, finite")
+    replan_every: int = param(0, "0: open loop, the whole plan at once; k: send k steps, then replan the rest "
+                                 "from the measured state (MPC)", min=0)
+    piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
+                                   min=0.0, constraints="positive, finite")
 
     def __post_init__(self) -> None:
         _ = self.planner_config  # PlannerConfig validates the planner fields
@@ -121,6 +140,8 @@ class PlannerNodeParams:
             raise ValueError(f"tolerance_mm must be finite, got {self.tolerance_mm!r}")
         if not (math.isfinite(self.max_state_age_s) and self.max_state_age_s > 0):
             raise ValueError(f"max_state_age_s must be positive and finite, got {self.max_state_age_s!r}")
+        if self.replan_every < 0 or not (math.isfinite(self.piece_timeout_s) and self.piece_timeout_s > 0):
+            raise ValueError("replan_every must be >= 0 and piece_timeout_s positive and finite")
 
     @property
     def planner_config(self) -> PlannerConfig:
@@ -152,6 +173,8 @@ class PlanResult:
     planning_time_s: float = 0.0
     model: str = ""
     method: str = ""
+    replan_every: int = 0
+    """0: the whole plan was sent; k: its first k steps, the rest replanned as they run."""
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), separators=(",", ":"))
@@ -236,6 +259,8 @@ class PlannerNode(Node):
         self._pending: _Goal | None = None
         self._planning = False
         self._stopping = False
+        self._done_stamps: list[int] = []
+        """Last-step stamps of the driver's trajectory_done statuses, newest last."""
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
         self._path_pub = self.create_publisher(PathMsg, PATH_TOPIC, 10)
@@ -250,6 +275,7 @@ class PlannerNode(Node):
         self.create_subscription(String, MODEL_UPDATED_TOPIC, self._on_model_updated, LATCHED,
                                  callback_group=MutuallyExclusiveCallbackGroup())
         self.create_subscription(PointStamped, GOAL_TOPIC, self._on_goal, 10)
+        self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER)
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()
 
@@ -328,6 +354,14 @@ class PlannerNode(Node):
         with self._cond:
             self._joints = joints
 
+    def _on_status(self, msg: String) -> None:
+        if status_event(msg.data) != "trajectory_done":
+            return
+        stamp = last_step_stamp(msg.data)
+        with self._cond:
+            self._done_stamps = [*self._done_stamps[-9:], -1 if stamp is None else stamp]
+            self._cond.notify_all()
+
     def _on_model_updated(self, msg: String) -> None:
         self.load(msg.data.strip())
 
@@ -380,7 +414,9 @@ class PlannerNode(Node):
             self._publish_result(PlanResult(False, refused.status, refused.reason, goal_mm, goal.stamp_ns))
             return
         started = time.perf_counter()
-        plan = loaded.planner(p.planner_config).plan(hand.state, goal.xy)
+        planner = loaded.planner(p.planner_config)
+        plan = planner.plan(hand.state, goal.xy)
+        k = p.replan_every
         result = PlanResult(
             accepted=plan.ok,
             status=plan.status,
@@ -394,6 +430,7 @@ class PlannerNode(Node):
             planning_time_s=time.perf_counter() - started,
             model=loaded.path,
             method=loaded.method,
+            replan_every=k,
         )
         with self._cond:
             if self._stopping:
@@ -401,11 +438,77 @@ class PlannerNode(Node):
             if self._pending is not None:
                 self._publish_result(_superseded(goal, result))
                 return
+            done_before = len(self._done_stamps)
         if plan.ok:
-            stamp = self._now_ns()
-            self._trajectory_pub.publish(actions_to_joint_trajectory(plan.actions, hand.angles, stamp, kit=RCLPY))
-            self._path_pub.publish(path_msg(plan.predicted[:, :2], stamp, kit=RCLPY))
+            self._send(plan, hand, k)
         self._publish_result(result)
+        if plan.ok and k and len(plan.actions) > k:
+            self._replan_loop(goal, planner, plan, k, done_before)
+
+    def _send(self, plan: Plan, hand: HandState, k: int) -> int:
+        """Publish the plan's first ``k`` steps (all with ``k = 0``) and its whole predicted path; the steps sent."""
+        actions = plan.actions[:k] if k else plan.actions
+        stamp = self._now_ns()
+        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, hand.angles, stamp, kit=RCLPY))
+        self._path_pub.publish(path_msg(plan.predicted[:, :2], stamp, kit=RCLPY))
+        return len(actions)
+
+    def _replan_loop(self, goal: _Goal, planner: Planner, first: Plan, k: int, done_before: int) -> None:
+        """Closed loop: after each piece has run, plan the rest from the measured state and send its first k steps."""
+        fixed = not planner.config.horizon_search
+        executed, left = k, len(first.actions) - k if fixed else planner.config.horizon - k
+        while left > 0:
+            hand = self._after_piece(done_before)
+            if hand is None:
+                return
+            with self._cond:
+                done_before = len(self._done_stamps)
+            plan = planner.plan(hand.state, goal.xy, horizon=left)
+            if len(plan.actions) == 0:
+                self.log.warning(f"goal {goal.xy.tolist()} mm: replan after {executed} steps refused "
+                                 f"({plan.status}: {plan.reason}); holding still")
+                return
+            sent = self._send(plan, hand, k if len(plan.actions) > k else 0)
+            self.log.info(f"goal {goal.xy.tolist()} mm: replanned after {executed} steps from "
+                          f"{hand.state[:2].round(2).tolist()} mm, {len(plan.actions)}-step plan ({plan.status}, "
+                          f"predicted error {plan.error_mm:.2f} mm), sent {sent}")
+            if sent == len(plan.actions):
+                return
+            executed += sent
+            left = len(plan.actions) - sent if fixed else left - sent
+
+    def _after_piece(self, done_before: int) -> HandState | None:
+        """The hand state after the piece sent last has run (None: stopping, a newer goal, or a timeout)."""
+        p = self.params
+        deadline = time.monotonic() + p.piece_timeout_s
+
+        def ready() -> bool:
+            return self._stopping or self._pending is not None or len(self._done_stamps) > done_before
+
+        with self._cond:
+            while not ready() and time.monotonic() < deadline:
+                self._cond.wait(timeout=0.05)
+            if self._stopping or self._pending is not None:
+                return None
+            if len(self._done_stamps) <= done_before:
+                self.log.warning(f"a piece did not finish within {p.piece_timeout_s} s; closed loop ends")
+                return None
+            last = self._done_stamps[-1]
+        after = last + 1  # the next state published after the piece's last step: where its last action led
+        while time.monotonic() < deadline:
+            with self._cond:
+                if self._stopping or self._pending is not None:
+                    return None
+                pose, joints = self._pose, self._joints
+            if pose is not None and joints is not None and min(pose[0], joints[0]) >= after:
+                try:
+                    return hand_state(pose, joints, self._now_ns(), p.max_state_age_ns)
+                except Refused as refused:
+                    self.log.warning(f"closed loop ends: {refused.reason}")
+                    return None
+            time.sleep(0.005)
+        self.log.warning("no hand state after the piece in time; closed loop ends")
+        return None
 
     def _publish_result(self, result: PlanResult) -> None:
         if result.accepted:
