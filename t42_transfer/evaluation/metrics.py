@@ -13,11 +13,17 @@ error is zero by construction):
   exceeding, so a model that blows up to NaN diverges.
 * **position MSE**: mean over steps ``1..T`` of the squared x,y distance
   ``dx^2 + dy^2`` (mm^2), so its square root is an RMS distance comparable to ``eps``.
+
+Those are the paper's definitions.  The authors' figure scripts counted and
+averaged differently (:data:`METRIC_DEFINITIONS`): 10 mm, the first crossing
+step itself (one more; ``T + 1`` when censored), and the MSE averaged over x and y
+(half of ``dx^2 + dy^2``).
 """
 
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 from typing import NamedTuple, Sequence
 
 import numpy as np
@@ -32,6 +38,28 @@ ArrayLike = np.ndarray | Tensor
 
 DEFAULT_EPSILON_MM = 4.0
 """The paper's divergence threshold."""
+
+
+@dataclass(frozen=True)
+class MetricDefinition:
+    """How divergence time and position MSE are counted under one definition."""
+
+    epsilon_mm: float
+    """Divergence threshold on the Euclidean x,y error."""
+    count_crossing_step: bool
+    """True: the first step past the threshold counts (the authors' count, one more than the paper's)."""
+    mse_per_coordinate: bool
+    """True: the MSE averages over x and y, ``(dx^2 + dy^2) / 2`` (the authors'); False: ``dx^2 + dy^2``."""
+
+
+METRIC_DEFINITIONS = {
+    # Paper: the caption of its divergence figure (4 mm) and t(x, eps) = max n with d < eps, read as its
+    # prose says ("the number of time-steps before ... differs by more than a given threshold").
+    "paper": MetricDefinition(DEFAULT_EPSILON_MM, count_crossing_step=False, mse_per_coordinate=False),
+    # Authors: lc_bounds.py / learning_curve.py (threshold 10, duration = index of the first crossing in a
+    # state list that starts with x0) and mse_bounds.py (torch MSELoss over x and y).
+    "authors": MetricDefinition(10.0, count_crossing_step=True, mse_per_coordinate=True),
+}
 
 
 def _as_numpy(value: ArrayLike) -> np.ndarray:
@@ -68,32 +96,38 @@ def divergence_time(
     true: ArrayLike,
     epsilon_mm: float = DEFAULT_EPSILON_MM,
     lengths: ArrayLike | Sequence[int] | None = None,
+    count_crossing_step: bool = False,
 ) -> np.ndarray:
     """Steps before the x,y error first exceeds ``epsilon_mm`` (int64 ``[B]``; see the module docstring).
 
     ``lengths`` marks padded batches: rollout ``b`` only has steps ``1..lengths[b]``.
+    ``count_crossing_step`` counts the crossing step too (the authors' count: one more, censored ``T + 1``).
     """
     err = xy_error(predicted, true)
     steps = _steps(lengths, err.shape[0], err.shape[1] - 1)
     k = np.arange(err.shape[1])
     exceeded = ~(err <= epsilon_mm) & (k >= 1) & (k <= steps[:, None])
-    return np.where(exceeded.any(axis=1), exceeded.argmax(axis=1), steps + 1) - 1
+    return np.where(exceeded.any(axis=1), exceeded.argmax(axis=1), steps + 1) - (0 if count_crossing_step else 1)
 
 
 def position_mse_per_rollout(
-    predicted: ArrayLike, true: ArrayLike, lengths: ArrayLike | Sequence[int] | None = None
+    predicted: ArrayLike, true: ArrayLike, lengths: ArrayLike | Sequence[int] | None = None,
+    per_coordinate: bool = False,
 ) -> np.ndarray:
-    """Mean squared x,y distance over steps ``1..T`` (mm^2) of each rollout, ``[B]``."""
+    """Mean squared x,y distance over steps ``1..T`` (mm^2) of each rollout, ``[B]``; halved ``per_coordinate``."""
     err = xy_error(predicted, true)
     steps = _steps(lengths, err.shape[0], err.shape[1] - 1)
     k = np.arange(err.shape[1])
     valid = (k >= 1) & (k <= steps[:, None])
-    return np.where(valid, err**2, 0.0).sum(axis=1) / steps
+    return np.where(valid, err**2, 0.0).sum(axis=1) / steps / (2.0 if per_coordinate else 1.0)
 
 
-def position_mse(predicted: ArrayLike, true: ArrayLike, lengths: ArrayLike | Sequence[int] | None = None) -> float:
+def position_mse(
+    predicted: ArrayLike, true: ArrayLike, lengths: ArrayLike | Sequence[int] | None = None,
+    per_coordinate: bool = False,
+) -> float:
     """Position MSE (mm^2) averaged over rollouts, each weighted equally."""
-    return float(position_mse_per_rollout(predicted, true, lengths).mean())
+    return float(position_mse_per_rollout(predicted, true, lengths, per_coordinate).mean())
 
 
 def model_device(model: LatentDynamics) -> torch.device:
@@ -139,9 +173,10 @@ def _windows(episodes: TrajectorySet, start_offsets: Sequence[int], horizon: int
 def evaluate_model(
     model: LatentDynamics,
     episodes: TrajectorySet,
-    epsilon_mm: float = DEFAULT_EPSILON_MM,
+    epsilon_mm: float | None = None,
     start_offsets: Sequence[int] = (0,),
     horizon: int | None = None,
+    definition: str = "paper",
 ) -> dict:
     """Roll ``model`` out open loop over test episodes and score it against the true states.
 
@@ -153,22 +188,31 @@ def evaluate_model(
     Returns summary floats ``divergence_mean``, ``divergence_median``,
     ``position_mse_mean`` (rollouts weighted equally), counts ``num_rollouts``,
     ``num_episodes``, ``never_diverged`` (rollouts censored at their length),
-    ``epsilon_mm``, and per-rollout arrays ``divergence_steps``, ``position_mse``,
+    ``epsilon_mm``, ``definition``, and per-rollout arrays ``divergence_steps``, ``position_mse``,
     ``steps``, ``episode`` (index into ``episodes``) and ``offset``.
+
+    ``definition`` (``paper`` or ``authors``, :data:`METRIC_DEFINITIONS`) sets how
+    divergence is counted and the MSE averaged, and the threshold unless
+    ``epsilon_mm`` is given.
     """
+    if definition not in METRIC_DEFINITIONS:
+        raise ValueError(f"definition must be one of {tuple(METRIC_DEFINITIONS)}, got {definition!r}")
+    how = METRIC_DEFINITIONS[definition]
+    epsilon_mm = how.epsilon_mm if epsilon_mm is None else epsilon_mm
     win = _windows(episodes, start_offsets, horizon)
     device = model_device(model)
     predicted = model.rollout(
         torch.as_tensor(win.x0, dtype=torch.float32, device=device),
         torch.as_tensor(win.actions, dtype=torch.float32, device=device),
     )
-    divergence = divergence_time(predicted, win.true, epsilon_mm, win.steps)
-    mse = position_mse_per_rollout(predicted, win.true, win.steps)
+    divergence = divergence_time(predicted, win.true, epsilon_mm, win.steps, how.count_crossing_step)
+    mse = position_mse_per_rollout(predicted, win.true, win.steps, how.mse_per_coordinate)
     return {
         "epsilon_mm": float(epsilon_mm),
+        "definition": definition,
         "num_rollouts": len(win.steps),
         "num_episodes": len(np.unique(win.episode)),
-        "never_diverged": int((divergence == win.steps).sum()),
+        "never_diverged": int((divergence == win.steps + int(how.count_crossing_step)).sum()),
         "divergence_mean": float(divergence.mean()),
         "divergence_median": float(np.median(divergence)),
         "position_mse_mean": float(mse.mean()),

@@ -2,10 +2,11 @@
 
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 from t42_transfer.models.network import Normalisation, TransitionModel
-from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
+from t42_transfer.models.residual import AdjustedStateResidualModel, CumulativeResidualModel, RecurrentResidualModel
 
 __all__ = [
     "MODEL_KINDS",
+    "AdjustedStateResidualModel",
     "CumulativeResidualModel",
     "LatentDynamics",
     "Normalisation",

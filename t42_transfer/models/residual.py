@@ -1,7 +1,9 @@
-"""Models that keep the source model and add a learned residual (Algorithm 2 and its recurrent twin).
+"""Models that keep the source model and add a learned residual (Algorithm 2 and its recurrent twins).
 
 The residual network ``g`` has the transition model's architecture and learns, one
 step at a time, the source model's error on target data: ``x' - f_S(x, a)``.
+The recurrent residual comes in the paper's form (:class:`AdjustedStateResidualModel`)
+and the authors' code's (:class:`RecurrentResidualModel`); see docs/transfer_methods.md.
 """
 
 from __future__ import annotations
@@ -75,7 +77,13 @@ class CumulativeResidualModel(LatentDynamics):
 
 
 class RecurrentResidualModel(LatentDynamics):
-    """``x' = f_S(x, a) + alpha g(x, a)`` inside the loop: the residual feeds back on itself."""
+    """The authors' recurrent residual: ``x' = f_S(x, a) + alpha g(x, a)`` inside the loop (g feeds back).
+
+    With ``g`` scaled like the source (its normalisation: the source's states, no
+    mean change, the source's change std) this is the authors' code exactly:
+    ``x' = x + denorm_S(net_S(u) + alpha res(u))`` for the source-normalised input ``u``
+    (TrajNet.forward: ``out = model(x) + res(x) * coeff``).
+    """
 
     kind = "recurrent_residual"
 
@@ -108,3 +116,26 @@ class RecurrentResidualModel(LatentDynamics):
     def from_config(cls, config: dict) -> "RecurrentResidualModel":
         residual = _build(config.get("residual"), "residual", {TransitionModel.kind: TransitionModel})
         return cls(_build(config.get("source"), "source"), residual, _weight(config, "alpha"))
+
+
+class AdjustedStateResidualModel(CumulativeResidualModel):
+    """The paper's recurrent residual: Algorithm 2 with the adjusted state as an additional input of ``g``.
+
+    The source rolls out ``x`` on its own; ``y' = gamma y + alpha g(x, a, x + y)``;
+    shows ``x + y`` (``y`` here is the paper's ``alpha y``, so ``x + y`` is its adjusted
+    state ``x + alpha y``).  ``g`` is a transition model with a second state input
+    (its ``grasp`` slot), which carries the adjusted state: that is the feedback.
+    """
+
+    kind = "adjusted_state_residual"
+
+    def __init__(self, source: LatentDynamics, residual: TransitionModel, alpha: float, gamma: float) -> None:
+        if not residual.grasp_input:
+            raise ValueError("the adjusted-state residual needs a residual net with a second state input")
+        super().__init__(source, residual, alpha, gamma)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        zs, y = z[:, : self.source.latent_dim], z[:, self.source.latent_dim :]
+        x = self.source.observe(zs)
+        y_next = self.gamma * y + self.alpha * self.residual.delta(x, action, x + y)
+        return torch.cat([self.source.latent_step(zs, action), y_next], dim=-1)

@@ -17,7 +17,9 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   ``bags`` and what is known so far; while training, the last finished epoch:
   ``phase`` (what the method trains, e.g. ``residual``), ``epoch`` (0 before the
   first), ``epochs`` (the phase's budget; early stopping may end it sooner),
-  ``train_loss`` and, when the method validates, ``val_loss``.  Published at
+  ``train_loss`` and, when the method validates, ``val_loss``; when done with
+  method ``auto``, ``picked_method`` and one ``candidate.<method>`` per candidate
+  (its held-out score, or why it failed).  Published at
   every stage change, every epoch and every ``progress_period_s`` while running;
 * ``t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
   ``transferred_<NNN>.safetensors`` (a file never rewritten, so a planner can load
@@ -92,7 +94,8 @@ class TransferServerParams:
                              "(empty: use bags)", read_only=True)
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
                                       "transfer are skipped too", read_only=True)
-    method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))}")
+    method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))} (auto: train "
+                                               "the candidates, keep the best on held-out episodes, report all)")
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")
@@ -237,9 +240,13 @@ class TransferServer(Node):
         self.log.info(f"transfer done: {summary}")
         if not self._closed:
             self._updates.publish(String(data=str(result.model_path)))
+        picked = {} if result.selection is None else {
+            "picked_method": result.selection.best,
+            **{f"candidate.{c.method}": c.describe() for c in result.selection.candidates},
+        }
         self._set_status("done", "OK", summary, {
             "divergence_steps": result.divergence_steps, "position_mse_mm2": result.position_mse_mm2,
-            "model": str(result.model_path),
+            "model": str(result.model_path), **picked,
         })
         return True, summary
 

@@ -13,26 +13,30 @@ from __future__ import annotations
 import copy
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from t42_transfer.data.trajectory import TrajectorySet
+from t42_transfer.data.trajectory import TrajectorySet, split_by_fraction
+from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.network import Normalisation, TransitionModel
+from t42_transfer.models.residual import AdjustedStateResidualModel, CumulativeResidualModel, RecurrentResidualModel
 from t42_transfer.models.training import (
+    LOAD_LOSS_WEIGHT,
     ProgressHook,
+    StepBatch,
     TrainConfig,
     fit,
     fit_single_step,
+    step_loss,
     train_transition_model,
-    trajectory_loss,
     trajectory_weights,
     validation_split,
-    windows,
 )
 from t42_transfer.transfer.config import ResidualConfig, TransferConfig
-from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 
 Method = Callable[[TransitionModel, TrajectorySet, TransferConfig, int, ProgressHook | None], LatentDynamics]
 
@@ -87,44 +91,115 @@ def l2_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferCon
 
 
 def trajectory_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
-    """Algorithm 1: fine-tune on open-loop rollouts of target windows, loss weighted 1/i."""
+    """Algorithm 1: fine-tune on open-loop rollouts of whole target episodes from their first true state.
+
+    One episode per update is the algorithm as the paper writes it; a batch of
+    several is cropped to its shortest episode at random start offsets (the
+    authors' batching; offsets drawn from a generator seeded with ``seed``).
+    """
     c = cfg.trajectory_finetune
     model = _copy_trainable(source)
-    shortest = min(len(t) for t in target)
-    horizon = min(c.horizon, shortest)
-    batch = windows(target, horizon, stride=min(c.stride, horizon))
-    weights = trajectory_weights(horizon)
-    cutoff = c.cutoff_mm2
+    episodes = [(torch.from_numpy(t.states.copy()), torch.from_numpy(t.actions.copy())) for t in target if len(t)]
+    offsets = torch.Generator().manual_seed(seed)
 
     def loss_on(idx: Tensor) -> Tensor:
-        true = batch.x[idx]
-        predicted = model.rollout_with_grad(true[:, 0], batch.a[idx])
-        xy_err = ((predicted[:, 1:, :2] - true[:, 1:, :2]) ** 2).sum(-1).detach()
-        # Once a rollout is this far off, later steps only teach noise: leave them out.
-        keep = (torch.cumsum((xy_err > cutoff).float(), dim=1) == 0).float()
-        return trajectory_loss(predicted, true, model.state_std, weights * keep)
+        picked = [episodes[i] for i in idx.tolist()]
+        length = min(len(actions) for _, actions in picked)
+        starts = [int(torch.randint(0, len(a) - length + 1, (1,), generator=offsets)) for _, a in picked]
+        true = torch.stack([x[s : s + length + 1] for (x, _), s in zip(picked, starts)])
+        actions = torch.stack([a[s : s + length] for (_, a), s in zip(picked, starts)])
+        predicted = rollout_until(model, true, actions, c.cutoff_mm2)
+        return trajectory_loss(predicted, true[:, : predicted.shape[1]], model.state_std, c.loss)
 
-    fit(list(model.net.parameters()), model, loss_on, len(batch), None, _seeded(c.train, seed), "trajectory fine-tune", on_epoch)
+    fit(list(model.net.parameters()), model, loss_on, len(episodes), None, _seeded(c.train, seed), "trajectory fine-tune", on_epoch)
     return model
 
 
-def _residual_net(
-    source: TransitionModel, target: TrajectorySet, c: ResidualConfig, seed: int, on_epoch: ProgressHook | None
-) -> TransitionModel:
-    """g fitted single-step to the source model's one-step error on the target data."""
+def rollout_until(model: LatentDynamics, true: Tensor, actions: Tensor, cutoff_mm2: float | None) -> Tensor:
+    """Open-loop rollout ``[B, n + 1, 4]`` from ``true[:, 0]``, with gradients, stopped for the whole batch
+    before the first step ``k >= 2`` whose batch-mean per-coordinate x,y squared error passes ``cutoff_mm2``.
+
+    The authors' rule (TrajNet.run_traj with threshold 150); the first step is always kept.
+    """
+    z = model.initial_latent(true[:, 0])
+    states = [model.observe(z)]
+    for k in range(actions.shape[1]):
+        z = model.latent_step(z, actions[:, k])
+        x = model.observe(z)
+        if cutoff_mm2 is not None and k >= 1:
+            with torch.no_grad():
+                if float(((x[:, :2] - true[:, k + 1, :2]) ** 2).mean()) > cutoff_mm2:
+                    break
+        states.append(x)
+    return torch.stack(states, dim=1)
+
+
+def trajectory_loss(predicted: Tensor, true: Tensor, state_std: Tensor, definition: str = "paper") -> Tensor:
+    """Algorithm 1's loss over steps ``i = 1..n`` of rollouts ``[B, n + 1, 4]``, weighted ``1/i``.
+
+    ``paper``: ``sum_i (1/i) MSE(x_i, x*_i)``, the MSE over the batch and the four
+    state coordinates, each divided by ``state_std``.  ``authors`` (utils_clean_traj.py,
+    ``pointwise``): raw units; step ``i``'s error is the mean over the batch and the
+    (x, load 1), (y, load 2) pairs of ``d_pos^2 + 0.1 d_load^2``; the weighted sum is
+    divided by ``n``.
+    """
+    n = predicted.shape[1] - 1
+    weights = trajectory_weights(n).to(predicted.device)
+    err = predicted[:, 1:] - true[:, 1:]
+    if definition == "paper":
+        return ((err / state_std) ** 2).mean(dim=(0, 2)).mul(weights).sum()
+    if definition == "authors":
+        pairs = err[..., :2] ** 2 + LOAD_LOSS_WEIGHT * err[..., 2:] ** 2
+        return pairs.mean(dim=(0, 2)).mul(weights).sum() / n
+    raise ValueError(f"trajectory loss must be 'paper' or 'authors', got {definition!r}")
+
+
+def _source_prediction(source: TransitionModel) -> Callable[[Tensor, Tensor], Tensor]:
+    """The frozen source's one-step prediction, dropout off."""
 
     @torch.no_grad()
-    def source_prediction(x: Tensor, a: Tensor) -> Tensor:
+    def predict(x: Tensor, a: Tensor) -> Tensor:
         source.eval()
         return source.observe(source.latent_step(source.initial_latent(x), a))
 
-    x, a, x_next = (torch.from_numpy(v) for v in target.transitions())
-    residual = (x_next - source_prediction(x, a)).numpy()
-    norm = Normalisation.from_transitions(x.numpy(), x.numpy() + residual)
+    return predict
+
+
+def _residual_net(
+    source: TransitionModel, target: TrajectorySet, c: ResidualConfig, seed: int, on_epoch: ProgressHook | None,
+    adjusted_input: bool = False,
+) -> TransitionModel:
+    """g fitted single-step to the source model's one-step error ``x' - f_S(x, a)`` on the target data.
+
+    ``c.normalisation`` ``source`` scales g like the source (its state normalisation,
+    outputs in units of its change std, no mean), so ``f_S + g`` is ``net_S + res`` in
+    the source's normalised space.  With ``adjusted_input`` (the paper's recurrent
+    residual) g also reads the adjusted state; a single-step sample has only the true
+    state, so it fills both inputs (the paper does not say; ours).
+    """
+    predict = _source_prediction(source)
+    if c.normalisation == "source":
+        norm = dataclasses.replace(source.norm, delta_mean=np.zeros_like(source.norm.delta_mean))
+    else:
+        x, a, x_next = (torch.from_numpy(v) for v in target.transitions())
+        norm = Normalisation.from_transitions(x.numpy(), x.numpy() + (x_next - predict(x, a)).numpy())
     torch.manual_seed(seed)
-    g = TransitionModel(norm)
+    g = TransitionModel(norm, grasp_input=adjusted_input)
     train, val = validation_split(target, c.val_fraction, seed)
-    fit_single_step(g, train, val, _seeded(c.train, seed), on_epoch=on_epoch, phase="residual", reference=source_prediction)
+    train_cfg = _seeded(c.train, seed)
+    if not adjusted_input:
+        fit_single_step(g, train, val, train_cfg, on_epoch=on_epoch, phase="residual", reference=predict)
+        return g
+
+    def batch_of(data: TrajectorySet) -> StepBatch:
+        x, a, x_next = (torch.from_numpy(v) for v in data.transitions())
+        with torch.no_grad():
+            return StepBatch(g.features(x, a, x), g.normalise_delta(x_next - predict(x, a)))
+
+    batch = batch_of(train)
+    val_batch = batch_of(val) if val is not None and len(val) else None
+    val_fn = None if val_batch is None else (lambda: float(step_loss(g.net, val_batch, slice(None))))
+    fit(list(g.net.parameters()), g, lambda idx: step_loss(g.net, batch, idx), len(batch), val_fn, train_cfg, "residual", on_epoch)
     return g
 
 
@@ -136,10 +211,103 @@ def cumulative_residual(source: TransitionModel, target: TrajectorySet, cfg: Tra
 
 
 def recurrent_residual(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
-    """The same residual network, fed back inside the loop."""
+    """The residual fed back inside the loop: the paper's adjusted-state form or the authors' normalised sum."""
     c = cfg.recurrent_residual
+    if c.form == "adjusted_state":
+        g = _residual_net(source, target, c, seed, on_epoch, adjusted_input=True)
+        return AdjustedStateResidualModel(copy.deepcopy(source), g, c.alpha, c.gamma).eval()
     g = _residual_net(source, target, c, seed, on_epoch)
     return RecurrentResidualModel(copy.deepcopy(source), g, c.alpha).eval()
+
+
+# ------------------------------------------------------------------ auto: pick by held-out evidence
+@dataclass(frozen=True)
+class CandidateScore:
+    """One candidate of :func:`select_method`: its held-out scores, or why it could not be trained."""
+
+    method: str
+    divergence_steps: float | None = None
+    position_mse_mm2: float | None = None
+    error: str = ""
+
+    def describe(self) -> str:
+        if self.error:
+            return f"{self.method} failed ({self.error})"
+        return f"{self.method} {self.divergence_steps:.1f} steps / {self.position_mse_mm2:.2f} mm^2"
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What ``auto`` did: the model it keeps, the method that made it, every candidate's score, and how."""
+
+    model: LatentDynamics
+    best: str
+    candidates: tuple[CandidateScore, ...]
+    train_episodes: int
+    held_out_episodes: int
+    note: str = ""
+    """How the pick was made when it was not by held-out scores (the fallback), else empty."""
+
+    def describe(self) -> str:
+        how = self.note or (f"best held-out divergence of {len(self.candidates)} candidates on "
+                            f"{self.held_out_episodes} held-out episode(s), trained on {self.train_episodes}")
+        return f"auto picked {self.best} ({how}): " + "; ".join(c.describe() for c in self.candidates)
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "best": self.best, "train_episodes": self.train_episodes, "held_out_episodes": self.held_out_episodes,
+            "note": self.note, "candidates": [dataclasses.asdict(c) for c in self.candidates],
+        }
+
+
+def select_method(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int = 0,
+    on_epoch: ProgressHook | None = None,
+) -> Selection:
+    """Train every candidate of ``cfg.auto`` on part of ``target``, score each on the other whole episodes, keep the best.
+
+    Best: the longest mean time before divergence (the paper's metric, 4 mm), then the
+    lower position MSE, then the earlier candidate.  The kept model is the one scored,
+    trained without the held-out episodes.  With fewer than ``cfg.auto.min_episodes``
+    episodes nothing can be held out: ValueError saying so, unless ``cfg.auto.fallback``
+    names a method, which is then trained on all of ``target`` and reported as the fallback.
+    A candidate that cannot use the data is reported with why; if none can, ValueError.
+    """
+    a = cfg.auto
+    unknown = [m for m in (*a.candidates, *([a.fallback] if a.fallback else [])) if m not in METHODS or m == "auto"]
+    if unknown or not a.candidates:
+        raise ValueError(f"auto candidates and fallback must be methods other than auto, one of "
+                         f"{sorted(set(METHODS) - {'auto'})}; got {unknown or 'no candidates'}")
+    if len(target) < a.min_episodes:
+        why = (f"auto needs at least {a.min_episodes} target episodes to train candidates on some and score them on "
+               f"others held out whole; got {len(target)}")
+        if a.fallback is None:
+            raise ValueError(f"{why} (set auto.fallback to use one method instead)")
+        model = METHODS[a.fallback](source, target, cfg, seed, on_epoch).eval()
+        return Selection(model, a.fallback, (), len(target), 0, f"fallback: {why}; nothing scored")
+    held_out, train = split_by_fraction(target, a.holdout_fraction, seed)
+    scores: list[CandidateScore] = []
+    models: dict[str, LatentDynamics] = {}
+    for name in a.candidates:
+        hook = None if on_epoch is None else (
+            lambda p, name=name: on_epoch(dataclasses.replace(p, phase=f"{name}: {p.phase}")))
+        try:
+            models[name] = METHODS[name](source, train, cfg, seed, hook).eval()
+        except ValueError as err:  # a method that cannot use this data is reported, not fatal
+            scores.append(CandidateScore(name, error=str(err)))
+            continue
+        result = evaluate_model(models[name], held_out)
+        scores.append(CandidateScore(name, result["divergence_mean"], result["position_mse_mean"]))
+    scored = [s for s in scores if not s.error]
+    if not scored:
+        raise ValueError("auto: no candidate could be trained: " + "; ".join(s.describe() for s in scores))
+    best = max(scored, key=lambda s: (s.divergence_steps, -s.position_mse_mm2, -a.candidates.index(s.method)))
+    return Selection(models[best.method], best.method, tuple(scores), len(train), len(held_out))
+
+
+def auto(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+    """The candidate method with the best held-out score (:func:`select_method`, which also reports them all)."""
+    return select_method(source, target, cfg, seed, on_epoch).model
 
 
 METHODS: dict[str, Method] = {
@@ -150,8 +318,9 @@ METHODS: dict[str, Method] = {
     "cumulative_residual": cumulative_residual,
     "recurrent_residual": recurrent_residual,
     "l2_finetune": l2_finetune,
+    "auto": auto,
 }
-"""The paper's six methods, in its order, then the authors' L2-constrained fine-tuning."""
+"""The paper's six methods, in its order, the authors' L2-constrained fine-tuning, and the pick by evidence."""
 
 PAPER_METHODS = tuple(list(METHODS)[:6])
 

@@ -9,7 +9,10 @@ the rest of the science.  One :func:`run_transfer`:
 2. loads the source model (a plain transition model) and reads the new bags,
    skipping (and naming, with why) any it cannot read;
 3. holds out whole target episodes (``holdout_fraction`` of them, at least
-   one, never all) and transfers with the rest;
+   one, never all) and transfers with the rest; method ``auto`` trains every
+   candidate on part of the rest, scores each on other whole episodes of it and
+   keeps the best (:func:`~t42_transfer.transfer.methods.select_method`), so the
+   held-out episodes still score a model they did not help choose;
 4. scores the transferred model and, for reference, the source alone on the
    held-out episodes (divergence time at 4 mm, position MSE);
 5. saves ``model_dir/transferred_<NNN>.safetensors``, then replaces
@@ -53,7 +56,7 @@ from t42_transfer.models.network import TransitionModel
 from t42_transfer.models.training import Progress
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.config import TransferConfig
-from t42_transfer.transfer.methods import METHODS, transfer
+from t42_transfer.transfer.methods import METHODS, Selection, select_method, transfer
 
 STATE_FILE = "transfer_state.json"
 CURRENT_MODEL = "current.safetensors"
@@ -105,11 +108,14 @@ class TransferResult:
     seconds: float
     skipped: tuple[str, ...] = ()
     """Why each new bag that could not be read was skipped (each names its bag)."""
+    selection: Selection | None = None
+    """What ``auto`` picked and every candidate's score (None for a named method)."""
 
     def summary(self) -> str:
         """The one-line answer of the transfer service."""
+        picked = "" if self.selection is None else f" ({self.selection.describe()})"
         return (
-            f"{self.method}: trained on {self.episodes} episodes / {self.transitions} transitions from "
+            f"{self.method}{picked}: trained on {self.episodes} episodes / {self.transitions} transitions from "
             f"{len(self.bags)} bag(s); on {self.held_out_episodes} held-out episode(s): divergence "
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
             f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2); "
@@ -165,13 +171,22 @@ def _override(obj: Any, overrides: Mapping[str, Any], where: str) -> Any:
 
 
 def _number(hint: Any, value: Any, where: str) -> Any:
-    """``value`` checked against a numeric field's hint (``int | None`` such as patience also takes None)."""
+    """``value`` checked against a field's hint: numbers, strings, lists of strings (``int | None`` takes None).
+
+    Choices among names (a loss, a form) are checked by the settings' own dataclass.
+    """
+    if typing.get_origin(hint) is tuple:  # a list of names (auto's candidates)
+        if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
+            return tuple(value)
+        raise ValueError(f"{where} expects a non-empty list of names, got {value!r}")
     arms = typing.get_args(hint) or (hint,)
     if value is None and type(None) in arms:
         return None
     if float in arms and isinstance(value, (int, float)) and not isinstance(value, bool):
         return float(value)
     if int in arms and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if str in arms and isinstance(value, str):
         return value
     raise ValueError(f"{where} expects {getattr(hint, '__name__', hint)}, got {value!r}")
 
@@ -358,46 +373,57 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         "transitions": train.num_transitions, "held_out_episodes": len(held_out), "epoch": 0,
         "epochs": epoch_budget(spec.method, spec.config),
     })
+    def on_epoch(progress: Progress) -> None:
+        report("training", epoch_info(progress))
+
+    selection = None
     try:
-        model = transfer(
-            spec.method, source, train, spec.config, seed=spec.seed,
-            on_epoch=lambda progress: report("training", epoch_info(progress)),
-        )
+        if spec.method == "auto":
+            selection = select_method(source, train, spec.config, seed=spec.seed, on_epoch=on_epoch)
+            model = selection.model
+        else:
+            model = transfer(spec.method, source, train, spec.config, seed=spec.seed, on_epoch=on_epoch)
     except ValueError as err:  # the method refuses data it cannot use, with the reason
         raise TransferRefused(f"{spec.method} cannot use this data: {err}") from None
     report("evaluating", {})
     scores = evaluate_model(model, held_out)
     baseline = evaluate_model(source, held_out)
     report("saving", {})
-    path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace, scores)
+    path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace, scores, selection)
     return TransferResult(
         method=spec.method, bags=tuple(readable), episodes=len(train), transitions=train.num_transitions,
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
         position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
-        skipped=tuple(skipped),
+        skipped=tuple(skipped), selection=selection,
     )
 
 
 def _commit(
     model: Any, spec: OnlineTransferSpec, state: Mapping[str, Any], bags: Sequence[Path],
     source_meta: Mapping[str, Any], train: TrajectorySet, held_out: TrajectorySet, workspace: Workspace,
-    scores: Mapping[str, Any],
+    scores: Mapping[str, Any], selection: Selection | None = None,
 ) -> Path:
-    """Save the numbered model, replace ``current`` (the commit point), then record the bags as used."""
+    """Save the numbered model, replace ``current`` (the commit point), then record the bags as used.
+
+    A model ``auto`` picked is saved under the method that made it, with the pick and every candidate's
+    score in its metadata (``extra.selection``) and in the state file.
+    """
     evaluation = {
         "held_out": held_out.fingerprint(), "episodes": len(held_out),
         "divergence_steps": scores["divergence_mean"], "position_mse_mm2": scores["position_mse_mean"],
     }
-    section = getattr(spec.config, spec.method, None)
+    made_by = spec.method if selection is None else selection.best
+    section = getattr(spec.config, made_by, None)
+    picked = {} if selection is None else {"selection": selection.to_dict()}
     kwargs: dict[str, Any] = {
-        "method": spec.method,
+        "method": made_by,
         "hyperparameters": dataclasses.asdict(section) if dataclasses.is_dataclass(section) else {},
         "data": {
             "target": train.fingerprint(), "bags": [bag_key(b) for b in bags],
             "source_model": str(spec.source_model), "source_data": source_meta.get("data", {}),
         },
-        "extra": {"workspace": workspace.to_dict(), "evaluation": evaluation},
+        "extra": {"workspace": workspace.to_dict(), "evaluation": evaluation, **picked},
     }
     path = next_model_path(spec.model_dir)
     save_model(model, path, **kwargs)
@@ -408,7 +434,7 @@ def _commit(
         raise
     record = {
         "model": path.name, "method": spec.method, "bags": [bag_key(b) for b in bags],
-        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **evaluation,
+        "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **evaluation, **picked,
     }
     try:
         write_state(spec.model_dir, {
