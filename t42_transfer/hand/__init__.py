@@ -1,4 +1,4 @@
-"""Simulated Model-T42 hands (MuJoCo): variants, the step interface, random-policy collection.
+"""Simulated Model-T42 hands (MuJoCo): variants, the step interface, random and sustained-action collection.
 
 No ROS and no torch here.
 """
