@@ -152,3 +152,195 @@ def test_cell_models_store_the_planning_workspace(config_file: Path, tmp_path: P
     (model_file,) = (tmp_path / "tiny" / "models").glob("*.safetensors")
     workspace = Workspace.from_metadata(read_metadata(model_file))
     assert workspace is not None and workspace.load_limit == 280.0
+
+
+# ------------------------------------------------------------------ data specs: quality, real pairs, authors' runs
+
+
+def _bag(tmp_path: Path, name: str, data) -> str:  # type: ignore[no-untyped-def]
+    from t42_transfer.data.bag_io import write_bag
+
+    return str(write_bag(tmp_path / name, data))
+
+
+def _with_jump(make_set):  # type: ignore[no-untyped-def]
+    """Four 60-step episodes; episode 1 jumps 12 mm at step 20."""
+    import dataclasses
+
+    import numpy as np
+
+    data = make_set([60] * 4, seed=7, hand="target")
+    states = data[1].states.copy()
+    states[21:, 0] += 12.0
+    episodes = list(data)
+    episodes[1] = dataclasses.replace(episodes[1], states=states)
+    return type(data)(episodes, hand="target"), np
+
+
+def test_new_spec_settings_keep_old_cache_keys() -> None:
+    spec = exp.DataSpec(real="A")
+    assert list(spec.describe()) == ["hand", "episodes", "steps", "seed", "bag", "real", "mirror_x"]
+    assert exp.DataSpec(real="A", flagged="drop").describe()["flagged"] == "drop"
+
+
+@pytest.mark.parametrize("how, episodes, origins", [("keep", 4, (0, 1, 2, 3)), ("drop", 3, (0, 2, 3)),
+                                                    ("split", 5, (0, 1, 1, 2, 3))])
+def test_flagged_episodes_kept_dropped_or_split_by_configuration(tmp_path: Path, make_set, how: str, episodes: int,
+                                                                 origins: tuple[int, ...]) -> None:
+    data, np = _with_jump(make_set)
+    cfg = exp.ExperimentConfig(name="q", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
+                               target=exp.DataSpec(bag=_bag(tmp_path, "t", data), flagged=how), split="paths",
+                               amounts=(1,))
+    side = exp.load_side(cfg, "target", tmp_path / "cache")
+    assert (len(side.data), side.origins) == (episodes, origins)
+    assert side.quality["flagged_episodes"] == 1 and side.quality["kept_episodes"] == episodes
+    assert side.quality["findings"]["1"] == [{"kind": "jump", "start": 20, "end": 21, "size": pytest.approx(12.0, abs=2)}]
+    if how == "keep":  # the default changes nothing
+        assert all(a == b for a, b in zip(side.data, exp.load_data(cfg.target, tmp_path / "cache")))
+    if how == "split":
+        assert [len(t) for t in side.data][1:3] == [20, 39]
+
+
+def test_the_run_records_what_was_found_per_data_set(tmp_path: Path, make_set) -> None:
+    data, _ = _with_jump(make_set)
+    cfg = exp.ExperimentConfig(name="q", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
+                               target=exp.DataSpec(bag=_bag(tmp_path, "t", data), flagged="drop"), methods=("direct",),
+                               split="paths", amounts=(1,), seeds=1, lyapunov_steps=5,
+                               source_training=exp.TrainConfig(epochs=1))
+    rows = run_experiment(cfg, tmp_path / "runs", progress=False)
+    assert rows[0]["test_rollouts"] == 2  # 3 episodes kept, 1 to train
+    recorded = json.loads((tmp_path / "runs" / "q" / "data_quality.json").read_text())
+    assert recorded["source"]["flagged_episodes"] == 0
+    assert (recorded["target"]["flagged_episodes"], recorded["target"]["kept_episodes"]) == (1, 3)
+    results = json.loads((tmp_path / "runs" / "q" / "results.json").read_text())
+    assert results["data_quality"] == recorded
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("{real: C}", "target.real must be one of \\['A', 'B'\\], got 'C'"),
+    ("{real: B, real_object: ../x}", "target.real_object must be an object name"),
+    ("{real: B, real_object: sqr30}", "testpaths_sqr30_red_d_v0.pkl: no such file"),
+    ("{bag: x, real_object: egg50}", "target.real_object names the object of a real-hand file"),
+    ("{real: B, mirror_about: grasp}", "target.mirror_about: grasp needs target.mirror_x: true"),
+    ("{real: B, flagged: fix}", "target.flagged must be one of \\('keep', 'drop', 'split'\\)"),
+    ("{real: B, exclude_test_sequences: true}", "only the source's training leaves test sequences out"),
+])
+def test_bad_data_specs_are_one_line_errors_before_any_run_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str], spec: str,
+                                                                     message: str) -> None:
+    import re
+
+    monkeypatch.setenv("T42_REAL_DATA", str(tmp_path))  # an empty folder: no real file is there
+    (tmp_path / "testpaths_cyl35_d_v0.pkl").write_bytes(b"")
+    config = tmp_path / "c.yaml"
+    config.write_text(f"name: pair\nsource: {{real: A}}\ntarget: {spec}\nsplit: paths\namounts: [1]\n")
+    assert main(["experiment", str(config), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("t42: error: ") and re.search(message, err), err
+    assert not (tmp_path / "out" / "pair").exists()
+
+
+def test_a_second_run_into_a_directory_in_use_is_refused(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+    import fcntl
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=1)
+    run_dir = tmp_path / "tiny"
+    run_dir.mkdir()
+    with open(run_dir / ".lock", "w") as held:  # the lock a running experiment holds
+        held.write("pid 4242\n")
+        held.flush()
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(ValueError, match=f"{run_dir}: in use by another run \\(pid 4242\\)"):
+            run_experiment(cfg, tmp_path, progress=False)
+    assert sorted(p.name for p in run_dir.iterdir()) == [".lock", "cells"]  # nothing of the run was written
+
+
+def test_source_leaves_out_the_episodes_that_ran_a_test_sequence(tmp_path: Path, make_set) -> None:
+    import dataclasses
+
+    source = make_set([40] * 4, seed=8, hand="source")
+    others = make_set([40] * 4, seed=9, hand="target")  # target episode k ran source episode k's actions, negated
+    target = type(others)([dataclasses.replace(t, actions=-s.actions) for s, t in zip(source, others)], hand="target")
+    cfg = exp.ExperimentConfig(
+        name="excl", source=exp.DataSpec(bag=_bag(tmp_path, "s", source), exclude_test_sequences=True),
+        target=exp.DataSpec(bag=_bag(tmp_path, "t", target)), methods=("direct",), split="paths", amounts=(2,),
+        seeds=2, lyapunov_steps=5, source_training=exp.TrainConfig(epochs=1))
+    sides = [exp.load_side(cfg, side, tmp_path / "cache") for side in ("source", "target")]
+    for seed in range(2):
+        cell = exp.Cell("direct", 2, seed)
+        _, test = exp._target_split(cfg, sides[1].data, cell)
+        tested = [i for i, t in enumerate(sides[1].data) if any(t is u for u in test)]
+        assert exp.cell_excluded(cfg, cell, *sides) == tuple(tested) and len(tested) == 2
+    unrelated = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, exclude_test_sequences=False))
+    assert exp.cell_excluded(unrelated, exp.Cell("direct", 2, 0), *sides) == ()
+
+    from t42_transfer.models.checkpoint import read_metadata
+
+    run_experiment(cfg, tmp_path / "runs", progress=False)
+    results = json.loads((tmp_path / "runs" / "excl" / "results.json").read_text())
+    left_out = {tuple(v) for v in results["excluded_source_episodes"].values()}
+    metas = [read_metadata(p) for p in (tmp_path / "runs" / "sources").glob("*.safetensors")]
+    assert {tuple(m["extra"]["excluded_source_episodes"]) for m in metas} == left_out
+    assert all(m["data"]["transitions"] == 40 * 2 for m in metas)  # trained on the two sequences not tested
+
+
+def _real_pair(source: str, target: str, **target_spec) -> exp.ExperimentConfig:  # type: ignore[no-untyped-def]
+    return exp.ExperimentConfig(name="pair", source=exp.DataSpec(real=source),
+                                target=exp.DataSpec(real=target, **target_spec), split="paths", amounts=(1,))
+
+
+@pytest.mark.realdata
+def test_mirror_about_the_grasp_puts_hand_b_on_hand_a(t42_real_dir: Path, tmp_path: Path) -> None:
+    import numpy as np
+
+    from t42_transfer.data.trajectory import grasp_centre
+
+    def gaps(about: str) -> tuple[np.ndarray, np.ndarray]:
+        cfg = _real_pair("A", "B", mirror_x=True, mirror_about=about)
+        a, b = (exp.load_side(cfg, side, tmp_path).data for side in ("source", "target"))
+        starts = np.array([np.linalg.norm(p.states[0, :2] - q.states[0, :2]) for p, q in zip(a, b)])
+        # The same six action sequences: the mirrored B paths follow A's (first 790 steps, the shortest).
+        apart = np.array([np.linalg.norm(p.states[:790, :2] - q.states[:790, :2], axis=1).mean() for p, q in zip(a, b)])
+        return grasp_centre(b) - grasp_centre(a), starts, apart
+
+    offset, starts, apart = gaps("grasp")
+    assert np.abs(offset).max() < 1e-3
+    assert np.median(starts) < 6 and apart.max() < 20 and np.median(apart) < 8
+    offset, starts, apart = gaps("origin")  # the camera origin: B's grasp about 50 mm from A's
+    assert 45 < abs(offset[0]) < 55 and starts.min() > 40 and apart.min() > 40
+
+
+@pytest.mark.realdata
+def test_negated_actions_for_hand_a(t42_real_dir: Path, tmp_path: Path) -> None:
+    import numpy as np
+
+    cfg = _real_pair("B", "A", negate_actions=True)
+    raw = exp.load_data(cfg.target, tmp_path)
+    side = exp.load_side(cfg, "target", tmp_path)
+    assert all(np.array_equal(t.actions, -r.actions) and np.array_equal(t.states, r.states) for t, r in zip(side.data, raw))
+    assert exp.load_side(cfg, "source", tmp_path).data[0] == exp.load_data(cfg.source, tmp_path)[0]
+
+
+@pytest.mark.realdata
+def test_the_authors_b_to_a_keeps_test_sequences_out_of_the_source(t42_real_dir: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    from t42_transfer.models.checkpoint import read_metadata
+
+    cfg = dataclasses.replace(load_config(REPO / "configs" / "real_b_to_a_authors.yaml"), methods=("direct",),
+                              amounts=(3,), seeds=2, lyapunov_steps=5, horizon=50,
+                              source_training=exp.TrainConfig(epochs=1))
+    sides = [exp.load_side(cfg, side, tmp_path) for side in ("source", "target")]
+    for seed in range(2):
+        cell = exp.Cell("direct", 3, seed)
+        _, test = exp._target_split(cfg, sides[1].data, cell)
+        tested = tuple(i for i, t in enumerate(sides[1].data) if any(t is u for u in test))
+        assert exp.cell_excluded(cfg, cell, *sides) == tested  # path i of hand B ran path i of hand A's sequence
+    run_experiment(cfg, tmp_path / "runs", progress=False)
+    results = json.loads((tmp_path / "runs" / "real_b_to_a_authors" / "results.json").read_text())
+    for meta in (read_metadata(p) for p in (tmp_path / "runs" / "sources").glob("*.safetensors")):
+        left_out = meta["extra"]["excluded_source_episodes"]
+        assert len(left_out) == 3 and left_out in results["excluded_source_episodes"].values()
+        kept = [t for t, origin in zip(sides[0].data, sides[0].origins) if origin not in left_out]
+        assert meta["data"]["transitions"] == sum(len(t) for t in kept)

@@ -24,7 +24,7 @@ import time
 import types
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
@@ -33,15 +33,30 @@ import torch
 import yaml
 
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
-from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
-from t42_transfer.data.trajectory import Trajectory, TrajectorySet, split_by_fraction
+from t42_transfer.data.quality import HANDLING, handle_flagged, summarise
+from t42_transfer.data.t42_real import REAL_HANDS, REAL_OBJECT, load_t42_testpaths, real_data_dir, real_file
+from t42_transfer.data.trajectory import (
+    Trajectory,
+    TrajectorySet,
+    grasp_centre,
+    same_action_sequence,
+    split_by_fraction,
+)
+from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
 from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, check_collection
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
 from t42_transfer.transfer.config import (
+    DEFINITIONS,
+    RECURRENT_FORMS,
+    RESIDUAL_NORMALISATIONS,
+    SOURCE_TRAINING,
+    TRAJECTORY_LOSSES,
+    AutoConfig,
     L2FineTuneConfig,
     NewModelConfig,
+    RecurrentResidualConfig,
     ResidualConfig,
     TrajectoryFineTuneConfig,
     TransferConfig,
@@ -58,7 +73,7 @@ RESULT_COLUMNS = (
 
 @dataclass(frozen=True)
 class DataSpec:
-    """Where a hand's data comes from: a simulated hand, a bag, or a public real-hand file."""
+    """Where a hand's data comes from (a simulated hand, a bag, or a public real-hand file) and what is done to it."""
 
     hand: str | None = None
     episodes: int = 300
@@ -66,12 +81,28 @@ class DataSpec:
     seed: int = 0
     bag: str | None = None
     real: str | None = None
-    """``A`` or ``B``: the public T42 test paths of that hand."""
+    """``A`` or ``B``: the public T42 test paths of that hand, of the object ``real_object``."""
     mirror_x: bool = False
-    """Negate x (the real hands are mirror images of each other)."""
+    """Mirror x (the real hands are mirror images of each other), about ``mirror_about``."""
+    real_object: str = REAL_OBJECT
+    """The object of ``real``'s file (``testpaths_<object>[_red]_d_v0.pkl`` in ``$T42_REAL_DATA``): ``cyl35`` lies
+    beside the project; the public repository also holds ``egg50`` and ``poly6`` for both hands."""
+    mirror_about: str = "origin"
+    """``origin``: x -> -x, about the camera's origin.  ``grasp``: about the axis halfway between this side's
+    and the other side's grasp centres, with y shifted by their difference, so both grasps coincide."""
+    negate_actions: bool = False
+    """Negate every action: the authors' B -> A runs gave hand A its actions negated (the hands are mirrored)."""
+    flagged: str = "keep"
+    """Episodes with frozen tracking or jumps (:mod:`t42_transfer.data.quality`): ``keep`` them as they are,
+    ``drop`` them, or ``split`` them at each flagged stretch.  Found stretches are recorded in any case."""
+    exclude_test_sequences: bool = False
+    """Source only: leave out of the source model's training every episode that ran the action sequence of one
+    of the cell's test episodes (both real hands ran the same six), training a source per test set."""
 
     def describe(self) -> dict:
-        return dataclasses.asdict(self)
+        """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
+        values = dataclasses.asdict(self)
+        return {k: v for k, v in values.items() if k in _ORIGINAL_SPEC or v != _SPEC_DEFAULTS[k]}
 
 
 @dataclass(frozen=True)
@@ -80,19 +111,25 @@ class ExperimentConfig:
     """The run directory's name under ``--out``: one plain path component."""
     source: DataSpec
     target: DataSpec
-    methods: tuple[str, ...] = tuple(METHODS)
+    methods: tuple[str, ...] = tuple(m for m in METHODS if m != "auto")
     split: str = "fraction"
     """``fraction``: amounts are fractions of the target pool, a fixed test split held out;
     ``paths``: amounts are numbers of target episodes, the others are the test set."""
     amounts: tuple[float, ...] = (0.005, 0.01, 0.02, 0.05, 0.1)
     seeds: int = 5
     test_fraction: float = 0.2
-    epsilon_mm: float = 4.0
+    definition: str = "paper"
+    """Where the paper's text and its authors' code differ, which one this run follows (``paper`` or
+    ``authors``): the transfer settings, the source training, the threshold and how divergence and MSE count."""
+    epsilon_mm: float | None = None
+    """None: the definition's (paper 4 mm, authors 10 mm)."""
     start_offsets: tuple[int, ...] = (0,)
     horizon: int | None = None
     lyapunov_steps: int = 100
-    source_training: TrainConfig = TrainConfig()
-    transfer: TransferConfig = field(default_factory=TransferConfig)
+    source_training: TrainConfig | None = None
+    """None: the definition's; settings given in a file apply on top of it."""
+    transfer: TransferConfig | None = None
+    """None: ``TransferConfig.for_definition(definition)``; settings given in a file apply on top of it."""
     workers: int | None = None
 
     def __post_init__(self) -> None:
@@ -100,9 +137,25 @@ class ExperimentConfig:
         if not (isinstance(self.name, str) and SAFE_NAME.fullmatch(self.name)):
             raise ValueError(f"name must be one plain path component (letters, digits, '.', '_', '-'; "
                              f"not starting with '.'; at most 100 characters), got {_show(self.name)}")
+        for key, value in _definition_defaults(self.definition).items():
+            if getattr(self, key) is None:
+                object.__setattr__(self, key, value)
+
+
+def _definition_defaults(definition: Any) -> dict[str, Any]:
+    """The settings ``definition`` decides unless a config gives them (ValueError for an unknown definition)."""
+    if not isinstance(definition, str) or definition not in DEFINITIONS:
+        raise ValueError(f"definition must be one of {DEFINITIONS}, got {_show(definition)}")
+    return {"epsilon_mm": METRIC_DEFINITIONS[definition].epsilon_mm, "source_training": SOURCE_TRAINING[definition],
+            "transfer": TransferConfig.for_definition(definition)}
 
 
 SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,99}")
+SAFE_OBJECT = re.compile(r"[a-z][a-z0-9]{0,39}")
+"""The public files' object names (cyl35, egg50, poly6, sqr30...): part of a file name, so nothing else."""
+MIRRORS = ("origin", "grasp")
+_ORIGINAL_SPEC = ("hand", "episodes", "steps", "seed", "bag", "real", "mirror_x")
+_SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}
 MAX_SEEDS = 1000
 MAX_CELLS = 100_000
 MAX_EVAL_STEPS = 100_000
@@ -122,6 +175,10 @@ def _between(low: float, high: float, low_open: bool = False, high_open: bool = 
 
 _STEPS, _SEED, _FRACTION, _POSITIVE = (_between(1, MAX_EVAL_STEPS), _between(*SEED_RANGE),
                                        _between(0, 1, True, True), _between(0, math.inf, True))
+_RESIDUAL_RULES: dict[str, _Rule] = {
+    "alpha": _between(0, math.inf), "gamma": _between(0, 1, True), "val_fraction": _between(0, 1, False, True),
+    "normalisation": (lambda v: v in RESIDUAL_NORMALISATIONS, f"one of {RESIDUAL_NORMALISATIONS}"),
+}
 RULES: dict[type, dict[str, _Rule]] = {
     ExperimentConfig: {
         "seeds": _between(1, MAX_SEEDS), "amounts": _between(0, MAX_EPISODES, True), "test_fraction": _FRACTION,
@@ -129,16 +186,25 @@ RULES: dict[type, dict[str, _Rule]] = {
         "lyapunov_steps": _STEPS, "workers": _between(1, MAX_WORKERS),
         "split": (lambda v: v in SPLITS, f"one of {SPLITS}"),
         "methods": (lambda v: v in METHODS, f"one of {sorted(METHODS)}"),
+        "definition": (lambda v: v in DEFINITIONS, f"one of {DEFINITIONS}"),
     },
     DataSpec: {"episodes": _between(1, MAX_EPISODES), "steps": _between(1, MAX_STEPS), "seed": _SEED,
-               "real": (lambda v: v in REAL_FILES, f"one of {sorted(REAL_FILES)}")},
+               "real": (lambda v: v in REAL_HANDS, f"one of {sorted(REAL_HANDS)}"),
+               "real_object": (lambda v: bool(SAFE_OBJECT.fullmatch(v)), "an object name such as cyl35 or egg50"),
+               "mirror_about": (lambda v: v in MIRRORS, f"one of {MIRRORS}"),
+               "flagged": (lambda v: v in HANDLING, f"one of {HANDLING}")},
     TrainConfig: {"lr": _POSITIVE, "epochs": _STEPS, "batch_size": _between(1, 2**31 - 1),
                   "weight_decay": _between(0, math.inf), "grad_clip": _POSITIVE, "patience": _between(0, MAX_EVAL_STEPS),
                   "seed": _SEED},
-    NewModelConfig: {"val_fraction": _FRACTION},
+    NewModelConfig: {"val_fraction": _between(0, 1, False, True)},
     L2FineTuneConfig: {"l2": _between(0, math.inf)},
-    TrajectoryFineTuneConfig: {"horizon": _STEPS, "stride": _STEPS, "cutoff_mm2": _POSITIVE},
-    ResidualConfig: {"alpha": _between(0, math.inf), "gamma": _between(0, 1, True), "val_fraction": _FRACTION},
+    TrajectoryFineTuneConfig: {"cutoff_mm2": _POSITIVE,
+                               "loss": (lambda v: v in TRAJECTORY_LOSSES, f"one of {TRAJECTORY_LOSSES}")},
+    ResidualConfig: _RESIDUAL_RULES,
+    RecurrentResidualConfig: {**_RESIDUAL_RULES, "form": (lambda v: v in RECURRENT_FORMS, f"one of {RECURRENT_FORMS}")},
+    AutoConfig: {"candidates": (lambda v: v in METHODS and v != "auto", "a method other than auto"),
+                 "fallback": (lambda v: v in METHODS and v != "auto", "a method other than auto"),
+                 "holdout_fraction": _FRACTION, "min_episodes": _between(2, MAX_EPISODES)},
 }
 """What each setting must be beyond its type (every element of a list setting)."""
 
@@ -148,14 +214,17 @@ def _show(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _typed(value: Any, hint: Any, where: str) -> Any:
-    """``value`` from YAML checked against a field's annotation (lists become tuples); ValueError otherwise."""
+def _typed(value: Any, hint: Any, where: str, base: Any = None) -> Any:
+    """``value`` from YAML checked against a field's annotation (lists become tuples); ValueError otherwise.
+
+    A mapping for a settings dataclass applies on top of ``base`` (its settings not given), if any.
+    """
     origin, args = get_origin(hint), get_args(hint)
     if origin in (Union, types.UnionType):
         if value is None and type(None) in args:
             return None
         (hint,) = [a for a in args if a is not type(None)]
-        return _typed(value, hint, where)
+        return _typed(value, hint, where, base)
     if origin is tuple:
         many = len(args) == 2 and args[1] is Ellipsis
         if not isinstance(value, list) or not value or (not many and len(value) != len(args)):
@@ -166,7 +235,7 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
     if dataclasses.is_dataclass(hint):
         if not isinstance(value, dict):
             raise ValueError(f"{where} must be a mapping of {hint.__name__} settings, got {_show(value)}")
-        return _build(hint, value, f"{where}.")
+        return _build(hint, value, f"{where}.", base)
     if hint is bool:
         ok = isinstance(value, bool)
     elif hint is int:
@@ -182,8 +251,12 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
     return value
 
 
-def _build(cls: type, values: dict[Any, Any], prefix: str = "") -> Any:
-    """A (nested) frozen dataclass from a YAML mapping: unknown keys, wrong types and values out of range refused."""
+def _build(cls: type, values: dict[Any, Any], prefix: str = "", base: Any = None) -> Any:
+    """A (nested) frozen dataclass from a YAML mapping: unknown keys, wrong types and values out of range refused.
+
+    Settings not given are ``base``'s (an instance of ``cls``) or the defaults; an experiment's transfer and
+    source-training settings apply on top of its definition's.
+    """
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(str(k) for k in values if k not in fields)
     if unknown:
@@ -191,16 +264,18 @@ def _build(cls: type, values: dict[Any, Any], prefix: str = "") -> Any:
         inside = f" in {prefix[:-1]}" if prefix else ""
         raise ValueError(f"unknown {kind} settings {_show(unknown)}{inside}; known: {sorted(fields)}")
     hints, rules = get_type_hints(cls), RULES.get(cls, {})
+    bases = _definition_defaults(values.get("definition", "paper")) if cls is ExperimentConfig else (
+        {} if base is None else {f: getattr(base, f) for f in fields})
     kwargs = {}
     for key, value in values.items():
         where = f"{prefix}{key}"
-        kwargs[key] = _typed(value, hints[key], where)
+        kwargs[key] = _typed(value, hints[key], where, bases.get(key))
         if key in rules and kwargs[key] is not None:
             ok, wanted = rules[key]
             for item in kwargs[key] if isinstance(kwargs[key], tuple) else (kwargs[key],):
                 if not ok(item):
                     raise ValueError(f"{where} must be {wanted}, got {_show(item)}")
-    return cls(**kwargs)
+    return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
 
 
 def load_config(path: str | os.PathLike[str]) -> ExperimentConfig:
@@ -231,6 +306,14 @@ def check_config(cfg: ExperimentConfig) -> None:
             raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
         if spec.hand is not None:
             check_collection(spec.hand, spec.episodes, spec.steps)
+        if spec.real_object != REAL_OBJECT and spec.real is None:
+            raise ValueError(f"{side}.real_object names the object of a real-hand file: it needs {side}.real")
+        if spec.mirror_about != "origin" and not spec.mirror_x:
+            raise ValueError(f"{side}.mirror_about: {spec.mirror_about} needs {side}.mirror_x: true")
+    if cfg.source.mirror_x and cfg.target.mirror_x and "grasp" in (cfg.source.mirror_about, cfg.target.mirror_about):
+        raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
+    if cfg.target.exclude_test_sequences:
+        raise ValueError("target.exclude_test_sequences: only the source's training leaves test sequences out")
     for key in ("methods", "amounts"):
         values = getattr(cfg, key)
         if len(set(values)) != len(values):
@@ -257,33 +340,78 @@ def data_cache(run_dir: Path) -> Path:
 
 
 def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
-    """The trajectories ``spec`` names; simulated sets are collected once and kept as bags in ``cache``."""
+    """The trajectories ``spec`` names, as stored; simulated sets are collected once and kept as bags in ``cache``.
+
+    The spec's moves (mirror, negated actions) and its handling of flagged episodes are :func:`load_side`'s.
+    """
     if spec.real:
-        data = load_t42_testpaths(real_data_dir() / REAL_FILES[spec.real])
-    elif spec.bag:
-        data = read_bag(spec.bag)
-    elif spec.hand:
+        return load_t42_testpaths(real_data_dir() / real_file(spec.real, spec.real_object))
+    if spec.bag:
+        return read_bag(spec.bag)
+    if spec.hand:
         bag = cache / f"{spec.hand}_{_digest(spec.describe())}"
         if bag.exists():
-            data = read_bag(bag)
-        else:
-            from t42_transfer.hand.collect import collect
+            return read_bag(bag)
+        from t42_transfer.hand.collect import collect
 
-            collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed)
-            data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
-            write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
-    else:
-        raise ValueError("a data spec needs one of hand, bag or real")
+        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed)
+        data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
+        write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
+        return data
+    raise ValueError("a data spec needs one of hand, bag or real")
+
+
+@dataclass(frozen=True)
+class SideData:
+    """One side of an experiment: its data as the spec moves it, and what the experiment uses of it."""
+
+    raw: TrajectorySet
+    """Mirrored and negated as the spec says, before flagged episodes are handled."""
+    data: TrajectorySet
+    """What the experiment trains and tests on: ``raw`` with flagged episodes kept, dropped or split."""
+    origins: tuple[int, ...]
+    """The episode of ``raw`` each episode of ``data`` comes from."""
+    quality: dict[str, Any]
+    """What the quality scan found in ``raw`` and what was kept: the run records it."""
+
+
+def load_side(cfg: ExperimentConfig, side: str, cache: Path) -> SideData:
+    """The ``source`` or ``target`` data of ``cfg``; a mirror about the grasp also reads the other side."""
+    spec: DataSpec = getattr(cfg, side)
+    raw = load_data(spec, cache)
+    if spec.negate_actions:
+        raw = TrajectorySet((dataclasses.replace(t, actions=-t.actions) for t in raw), hand=raw.hand)
     if spec.mirror_x:
-        data = TrajectorySet((_mirror(t) for t in data), hand=data.hand)
-    return data
+        if spec.mirror_about == "grasp":
+            other = load_data(getattr(cfg, "target" if side == "source" else "source"), cache)
+            own, theirs = grasp_centre(raw), grasp_centre(other)
+            axis, shift = (own[0] + theirs[0]) / 2, theirs[1] - own[1]
+        else:
+            axis, shift = 0.0, 0.0
+        raw = TrajectorySet((_mirror(t, axis, shift) for t in raw), hand=raw.hand)
+    handled = handle_flagged(raw, spec.flagged)
+    quality = {**summarise(raw, handled.findings), "flagged": spec.flagged, "kept_episodes": len(handled.data),
+               "kept_transitions": handled.data.num_transitions}
+    return SideData(raw, handled.data, handled.origins, quality)
 
 
-def _mirror(traj: Trajectory) -> Trajectory:
-    """The same episode seen in a mirror: x negated (the real hands A and B are mirror images)."""
-    states = traj.states.copy()
-    states[:, 0] = -states[:, 0]
+def _mirror(traj: Trajectory, axis: float = 0.0, shift_y: float = 0.0) -> Trajectory:
+    """The same episode seen in a mirror about the line x = ``axis``, moved ``shift_y`` along y."""
+    states = traj.states.astype(np.float64)
+    states[:, 0] = 2 * axis - states[:, 0]
+    states[:, 1] += shift_y
     return dataclasses.replace(traj, states=states)
+
+
+def excluded_sources(cfg: ExperimentConfig, source: SideData, target: SideData, test: TrajectorySet) -> tuple[int, ...]:
+    """Episodes of ``source.raw`` that ran the action sequence of a test episode (empty unless the source asks).
+
+    A test episode split off a longer one is compared through the episode it came from.
+    """
+    if not cfg.source.exclude_test_sequences:
+        return ()
+    tested = [target.raw[o] for t, o in zip(target.data, target.origins) if any(t is u for u in test)]
+    return tuple(i for i, s in enumerate(source.raw) if any(same_action_sequence(s, t) for t in tested))
 
 
 # ------------------------------------------------------------------------------ cells
@@ -315,7 +443,7 @@ def _score(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet, cfg
     from t42_transfer.evaluation.lyapunov import model_lyapunov
     from t42_transfer.evaluation.metrics import covering_radius, evaluate_model, max_training_error
 
-    scores = evaluate_model(model, test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon)
+    scores = evaluate_model(model, test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon, cfg.definition)
     lyap = model_lyapunov(model, test, steps=cfg.lyapunov_steps).numpy()
     train_states = np.concatenate([t.states for t in train])
     test_states = np.concatenate([t.states for t in test])
@@ -341,10 +469,13 @@ _WORKER: dict[str, Any] = {}
 def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -> dict[str, Any]:
     cfg, cell, run_dir, source_path, workspace = args
     torch.set_num_threads(1)
-    if "source" not in _WORKER:
-        _WORKER["source"] = load_model(source_path)[0]
-        _WORKER["target"] = load_data(cfg.target, data_cache(run_dir))
-    source, target = _WORKER["source"], _WORKER["target"]
+    sources = _WORKER.setdefault("sources", {})  # one per test set when the source leaves test sequences out
+    if source_path not in sources:
+        sources[source_path] = load_model(source_path)[0]
+    data_key = _digest({"source": cfg.source.describe(), "target": cfg.target.describe(), "run": str(run_dir)})
+    if _WORKER.get("data_key") != data_key:
+        _WORKER["target"], _WORKER["data_key"] = load_side(cfg, "target", data_cache(run_dir)).data, data_key
+    source, target = sources[source_path], _WORKER["target"]
     train, test = _target_split(cfg, target, cell)
     start = time.perf_counter()
     model = transfer(cell.method, source, train, cfg.transfer, seed=cell.seed)
@@ -360,23 +491,47 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     return row
 
 
+def cell_excluded(cfg: ExperimentConfig, cell: Cell, source: SideData, target: SideData) -> tuple[int, ...]:
+    """The source episodes left out of the source model of ``cell``: those that ran one of its test sequences."""
+    return excluded_sources(cfg, source, target, _target_split(cfg, target.data, cell)[1])
+
+
+def _cells(cfg: ExperimentConfig) -> list[Cell]:
+    return [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
+
+
 def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     depends = {
         "cell": dataclasses.asdict(cell), "target": cfg.target.describe(), "split": cfg.split,
         "test_fraction": cfg.test_fraction, "epsilon": cfg.epsilon_mm, "offsets": cfg.start_offsets,
         "horizon": cfg.horizon, "lyapunov_steps": cfg.lyapunov_steps,
-        "method_config": dataclasses.asdict(cfg.transfer), "source": source_path.name,
+        "method_config": dataclasses.asdict(cfg.transfer), "source": source_path.name, "definition": cfg.definition,
     }
     return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
 
 
-def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) -> Path:
-    """The source model of this experiment, trained once and cached by its data and settings."""
-    key = _digest({"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)})
-    path = Path(run_dir).parent / "sources" / f"source-{key}.safetensors"  # shared by experiments with equal source
+def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int, ...] = ()) -> Path:
+    """Where the source model trained without the source episodes ``excluded`` is kept (shared by experiments)."""
+    depends: dict[str, Any] = {"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)}
+    if cfg.source.mirror_about == "grasp":  # mirrored onto the target's grasp
+        depends["onto"] = cfg.target.describe()
+    if excluded:
+        depends["excluded"] = list(excluded)
+    return Path(run_dir).parent / "sources" / f"source-{_digest(depends)}.safetensors"
+
+
+def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, excluded: tuple[int, ...] = ()) -> Path:
+    """The source model of this experiment, trained once and cached by its data and settings.
+
+    ``excluded``: episodes of the source data as loaded (:attr:`SideData.raw`) left out of training.
+    """
+    path = source_model_path(cfg, run_dir, excluded)
     if path.exists():
         return path
-    data = load_data(cfg.source, data_cache(run_dir))
+    side = load_side(cfg, "source", data_cache(run_dir))
+    data = TrajectorySet((t for t, o in zip(side.data, side.origins) if o not in excluded), hand=side.data.hand)
+    if not len(data):
+        raise ValueError(f"no source episode is left to train on once episodes {list(excluded)} are excluded")
     # Minibatches of 64 gain nothing from a second thread, and idle OpenMP threads
     # spinning against other processes cost up to 10x on a busy 2-core machine.
     threads = torch.get_num_threads()
@@ -388,7 +543,8 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True) ->
     save_model(
         model, path, method="source", hyperparameters=dataclasses.asdict(cfg.source_training),
         data={"source": data.fingerprint(), "transitions": data.num_transitions},
-        extra={"epochs_run": report.epochs_run, "best_epoch": report.best_epoch, "val_loss": report.val_loss},
+        extra={"epochs_run": report.epochs_run, "best_epoch": report.best_epoch, "val_loss": report.val_loss,
+               "validation": report.validation, "excluded_source_episodes": list(excluded)},
     )
     return path
 
@@ -403,12 +559,17 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
     for side in ("source", "target"):
         _check_input(getattr(cfg, side), side)
     run_dir = Path(out) / cfg.name
-    target = load_data(cfg.target, data_cache(run_dir))
-    if len(target) < 2:
-        raise ValueError(f"the target set has {len(target)} episodes; need at least 2")
-    if cfg.split == "paths" and max(cfg.amounts) >= len(target):
+    target = load_side(cfg, "target", data_cache(run_dir))
+    if len(target.data) < 2:
+        raise ValueError(f"the target set has {len(target.data)} episodes; need at least 2")
+    if cfg.split == "paths" and max(cfg.amounts) >= len(target.data):
         raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
-                         f"{len(target)}: some must stay for testing")
+                         f"{len(target.data)}: some must stay for testing")
+    if cfg.source.exclude_test_sequences:
+        source = load_side(cfg, "source", data_cache(run_dir))
+        for cell in _cells(cfg):
+            if not set(source.origins) - set(cell_excluded(cfg, cell, source, target)):
+                raise ValueError(f"every source episode ran a test sequence of {cell}: none is left to train on")
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
     with _run_lock(run_dir):
         return _run(cfg, run_dir, progress)
@@ -418,8 +579,9 @@ def _check_input(spec: DataSpec, side: str) -> None:
     """A missing bag or real-hand file is refused before the run writes anything."""
     if spec.bag is not None and not Path(spec.bag).is_dir():
         raise ValueError(f"{side}.bag: {spec.bag}: no bag directory there")
-    if spec.real is not None and not (real_data_dir() / REAL_FILES[spec.real]).is_file():
-        raise ValueError(f"{side}.real: {real_data_dir() / REAL_FILES[spec.real]}: no such file (see $T42_REAL_DATA)")
+    if spec.real is not None and not (real_data_dir() / real_file(spec.real, spec.real_object)).is_file():
+        raise ValueError(f"{side}.real: {real_data_dir() / real_file(spec.real, spec.real_object)}: no such file "
+                         f"(see $T42_REAL_DATA)")
 
 
 @contextlib.contextmanager
@@ -447,27 +609,34 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
     from tqdm.auto import tqdm
 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
-    source_path = train_source(cfg, run_dir, progress)
-    cells = [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
+    cache = data_cache(run_dir)
+    source, target = load_side(cfg, "source", cache), load_side(cfg, "target", cache)
+    quality = {"source": source.quality, "target": target.quality}
+    (run_dir / "data_quality.json").write_text(json.dumps(quality, indent=1))
+    cells = _cells(cfg)
+    excluded = {c: cell_excluded(cfg, c, source, target) for c in cells}
+    sources = {c: source_model_path(cfg, run_dir, excluded[c]) for c in cells}
     rows: dict[Cell, dict[str, Any]] = {}
     todo = []
     for cell in cells:
-        done = run_dir / "cells" / f"{_cell_key(cfg, cell, source_path)}.json"
+        done = run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json"
         if done.exists():
             rows[cell] = json.loads(done.read_text())
         else:
             todo.append(cell)
+    for left_out in sorted({excluded[c] for c in todo}):
+        train_source(cfg, run_dir, progress, left_out)
     workers = cfg.workers or os.cpu_count() or 1
     bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell", disable=not progress)
     # The planner keeps predictions inside the states these models were trained on.
     from t42_transfer.planning.workspace import Workspace
 
-    workspace = Workspace.from_trajectories(load_data(cfg.source, data_cache(run_dir))).to_dict() if todo else {}
-    tasks = [(cfg, c, run_dir, source_path, workspace) for c in todo]
+    workspace = Workspace.from_trajectories(source.data).to_dict() if todo else {}
+    tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]
 
     def keep(cell: Cell, row: dict[str, Any]) -> None:
         rows[cell] = row
-        (run_dir / "cells" / f"{_cell_key(cfg, cell, source_path)}.json").write_text(json.dumps(row, indent=1))
+        (run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json").write_text(json.dumps(row, indent=1))
         bar.update()
 
     if workers == 1 or len(todo) <= 1:
@@ -480,7 +649,10 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
                 keep(task[1], row)
     bar.close()
     ordered = [rows[c] for c in cells]
-    (run_dir / "results.json").write_text(json.dumps({"config": _config_dict(cfg), "rows": ordered}, indent=1))
+    results: dict[str, Any] = {"config": _config_dict(cfg), "rows": ordered, "data_quality": quality}
+    if cfg.source.exclude_test_sequences:
+        results["excluded_source_episodes"] = {f"{c.method}-{c.amount}-{c.seed}": list(excluded[c]) for c in cells}
+    (run_dir / "results.json").write_text(json.dumps(results, indent=1))
     with open(run_dir / "results.csv", "w") as f:
         f.write(",".join(RESULT_COLUMNS) + "\n")
         for row in ordered:

@@ -84,14 +84,21 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
 
     plt = pyplot()
 
-    from t42_transfer.evaluation.experiment import Cell, _cell_key, _target_split, data_cache, load_config, load_data
+    from t42_transfer.evaluation.experiment import (
+        Cell,
+        _cell_key,
+        _target_split,
+        cell_excluded,
+        data_cache,
+        load_config,
+        load_side,
+        source_model_path,
+    )
     from t42_transfer.models.checkpoint import load_model
 
     cfg = load_config(run_dir / "config.yaml")
-    from t42_transfer.evaluation.experiment import train_source
-
-    source = train_source(cfg, run_dir, progress=False)  # cached: finds the experiment's source model
-    target = load_data(cfg.target, data_cache(run_dir))
+    sides = [load_side(cfg, side, data_cache(run_dir)) for side in ("source", "target")]
+    target = sides[1].data
     # Cell keys hash the amount as the config spells it (1 and 1.0 differ).
     amount = next((a for a in cfg.amounts if float(a) == float(amount)), amount)
     cols = min(4, len(cfg.methods))
@@ -101,6 +108,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         ax.set_visible(False)
     for ax, method in zip(axes.flat, cfg.methods):
         cell = Cell(method, amount, 0)
+        source = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, *sides))
         model_file = run_dir / "models" / f"{_cell_key(cfg, cell, source)}.safetensors"
         if not model_file.exists():
             ax.set_title(f"{method}: no model", fontsize=8)
