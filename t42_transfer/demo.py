@@ -15,10 +15,20 @@
    ``/diagnostics``; the answer names the model, which the planner loads when the
    server announces it.
 5. **Peg-in-hole**: for each goal the hand is reset; the goal is a point the true
-   target hand reaches from that grasp in ``n`` steps; it is sent to the planner as
-   a ``PointStamped``; the driver executes the planned ``JointTrajectory`` open
-   loop; the object's resting position after the plan decides success.
-6. **Report**: ``report.md``, ``demo.json`` and ``paths.png`` (planned vs executed
+   target hand reaches from that grasp in ``n`` steps, at least twice the
+   tolerance from the start and from where holding still would leave the object;
+   it is sent to the planner as a ``PointStamped``; the driver executes the
+   planned ``JointTrajectory`` open loop; the rule of
+   :func:`~t42_transfer.planning.peg_in_hole.verdict` decides success (completed,
+   half way towards the goal at least, within the tolerance), and doing nothing
+   is scored by the same rule on the same grasps.  The recorder records these
+   episodes like any other.
+6. **Second round**: ``/t42/transfer`` again, now with the executed plans among
+   the episodes, then new goals of the same kind: does the suite improve with use?
+   Each round's model is also scored on the same held-out target episodes
+   (collected apart, never seen by the suite) beside the source model and the
+   hold-still baseline.
+7. **Report**: ``report.md``, ``demo.json`` and ``paths.png`` (planned vs executed
    paths) in the run directory; node logs in ``logs/``.
 """
 
@@ -60,17 +70,24 @@ class DemoSize:
     """One peg-in-hole goal per entry, that many control steps from the grasp."""
     planner_samples: int
     rate_factor: float
+    rounds: int = 2
+    """Transfer-then-goals rounds; from the second on, the transfer also learns from the executed plans."""
+    heldout_episodes: int = 6
+    """Random-policy target episodes collected apart (never recorded by the suite) to score each round's model."""
     transfer: dict[str, Any] = field(default_factory=dict)
     """Overrides of the transfer server's TransferConfig (nested; written to the YAML file its ``config`` names)."""
 
 
 FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
-                goal_steps=(10, 20, 30, 40, 10, 20, 30, 40), planner_samples=1000, rate_factor=5.0)
+                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=1000, rate_factor=5.0)
 QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
-                 goal_steps=(10, 20, 30), planner_samples=300, rate_factor=10.0,
+                 goal_steps=(30, 40), planner_samples=300, rate_factor=10.0, heldout_episodes=3,
                  transfer={"cumulative_residual": {"train": {"epochs": 20}}})
 TOLERANCE_MM = 10.0
 """The paper's peg-in-hole tolerance."""
+MIN_GOAL_DISTANCE_MM = 2 * TOLERANCE_MM
+"""Goals lie at least this far from the start and from where holding still ends: doing nothing scores 0."""
+HELDOUT_SEED = 99
 HOLD_STEPS = (5, 40)
 SETTLE_STEPS = 80
 """Steps of holding still after a grasp: the simulated object has stopped sinking by then."""
@@ -98,7 +115,7 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
     if path.is_file():
         try:
             if read_metadata(path).get("data", {}).get("demo") == key:
-                _say(f"[1/5] source model: cached {path}")
+                _say(f"[1/{4 + size.rounds}] source model: cached {path}")
                 return path
         except Exception:
             pass
@@ -114,7 +131,8 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
                                            phase="source model")
     extra = {"workspace": Workspace.from_trajectories(data).to_dict()}
     save_model(model, path, method="source", data={"demo": key, "source": data.fingerprint()}, extra=extra)
-    _say(f"[1/5] source model: {len(data)} source-hand episodes ({data.num_transitions} transitions) -> {bag}; "
+    _say(f"[1/{4 + size.rounds}] source model: {len(data)} source-hand episodes ({data.num_transitions} transitions) "
+         f"-> {bag}; "
          f"{report.epochs_run} epochs -> {path} ({time.perf_counter() - start:.0f} s)")
     return path
 
@@ -135,7 +153,7 @@ def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
         "recorder": node(out_dir=str(run_dir / "bags"), mode="episode", start_immediately=False, use_sim_time=True),
         "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
                                 bag_dir=str(run_dir / "bags"), method="cumulative_residual",
-                                config=str(methods), use_sim_time=True),
+                                new_bags_only=False, config=str(methods), use_sim_time=True),
         "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
         "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,
                          rate_factor=size.rate_factor, record_start_service="recorder/start",
@@ -269,6 +287,13 @@ class GoalRun:
     error_mm: float | None = None
     end: str = ""
     success: bool = False
+    verdict: str = ""
+    """:func:`~t42_transfer.planning.peg_in_hole.verdict` at ``TOLERANCE_MM``."""
+    still_error_mm: float = 0.0
+    """Where holding still for the goal's steps leaves the object, from the goal (the same grasp and noise)."""
+    still_verdict: str = ""
+    """The same rule applied to doing nothing."""
+    round: int = 1
     planned: list[list[float]] = field(default_factory=list)
     executed: list[list[float]] = field(default_factory=list)
 
@@ -284,18 +309,21 @@ def _grasp_seed(message: str) -> int:
     return int(match.group(1))
 
 
-def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any) -> GoalRun:
+def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
     from t42_transfer.hand.sim import SimulatedHand
-    from t42_transfer.planning.peg_in_hole import reachable_goal
+    from t42_transfer.planning.peg_in_hole import progress_towards, reachable_goal, verdict
 
     response = op.call("hand/reset", 30.0, suite.check)
     if not response.success:
         raise RuntimeError(f"reset failed: {response.message}")
     seed = _grasp_seed(response.message)
     reset_stamp = op.latest_pose()[0]
-    seeds = (int(np.random.SeedSequence([7, index, attempt]).generate_state(1)[0]) for attempt in range(20))
+    seeds = (int(np.random.SeedSequence([7, round_, index, attempt]).generate_state(1)[0]) for attempt in range(50))
     goal = reachable_goal(SimulatedHand("target"), steps, HOLD_STEPS, seeds, workspace, grasp_seed=seed, trial=index,
-                          settle_steps=SETTLE_STEPS)
+                          settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
+    still_error = float(goal.still_distance_mm)
+    still = verdict(goal.distance_mm, still_error,
+                    progress_towards(goal.grasp[:2], goal.position, goal.still), True, TOLERANCE_MM)
     # After a grasp the object sinks into the fingers for a few seconds: the goal is made from the
     # settled state (the same seed grasps and settles identically here and in the driver), and the
     # goal is sent once the driver's hand has held still that long and rests there.
@@ -316,9 +344,10 @@ def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any) -> 
     result = op.results[results]
     run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
                   result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"],
-                  goal_to_result_s=answered_s)
+                  goal_to_result_s=answered_s, still_error_mm=still_error, still_verdict=still, round=round_)
     if not run.accepted:
         run.end = "not executed"
+        run.verdict = "incomplete"
         return run
     op.wait_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
     run.planned = op.paths[paths].tolist()
@@ -335,7 +364,10 @@ def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any) -> 
     run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
     ended = ends()
     run.end = ended[0] if ended else "completed"
-    run.success = not ended and run.error_mm <= TOLERANCE_MM
+    run.verdict = verdict(run.start_distance_mm, run.error_mm,
+                          progress_towards(np.asarray(run.start_mm), goal.position, np.asarray(run.final_mm)),
+                          not ended, TOLERANCE_MM)
+    run.success = run.verdict == "hit"
     return run
 
 
@@ -358,9 +390,9 @@ def plot_paths(runs: list[GoalRun], path: Path) -> Path:
         ax.plot(*run.start_mm, "ko", ms=4, label="start")
         ax.add_patch(plt.Circle(run.goal_mm, TOLERANCE_MM, color="tab:green", alpha=0.2))
         ax.plot(*run.goal_mm, "g*", ms=10, label="goal")
-        verdict = "hit" if run.success else ("refused" if not run.accepted else "miss")
+        verdict = run.verdict if run.accepted else "refused"
         error = "" if run.error_mm is None else f", {run.error_mm:.1f} mm"
-        ax.set_title(f"{run.steps} steps: {verdict}{error}", fontsize=9)
+        ax.set_title(f"round {run.round}, {run.steps} steps: {verdict}{error}", fontsize=9)
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (mm)", fontsize=8)
         ax.set_ylabel("y (mm)", fontsize=8)
@@ -373,19 +405,41 @@ def plot_paths(runs: list[GoalRun], path: Path) -> Path:
 
 
 def goal_table(runs: list[GoalRun]) -> str:
-    lines = ["| goal | steps | start->goal mm | plan | predicted mm | final error mm | end | success |",
-             "|---:|---:|---:|---|---:|---:|---|---|"]
+    lines = ["| round | goal | steps | start->goal mm | plan | predicted mm | final error mm | end | verdict "
+             "| doing nothing: error mm |",
+             "|---:|---:|---:|---:|---|---:|---:|---|---|---:|"]
     for k, run in enumerate(runs):
         predicted = "" if run.predicted_error_mm is None else f"{run.predicted_error_mm:.1f}"
         error = "" if run.error_mm is None else f"{run.error_mm:.1f}"
         plan = f"{run.horizon} steps" if run.accepted else f"refused ({run.status})"
-        lines.append(f"| {k + 1} | {run.steps} | {run.start_distance_mm:.1f} | {plan} | {predicted} | {error} | "
-                     f"{run.end} | {'yes' if run.success else 'no'} |")
+        lines.append(f"| {run.round} | {k + 1} | {run.steps} | {run.start_distance_mm:.1f} | {plan} | {predicted} "
+                     f"| {error} | {run.end} | {run.verdict} | {run.still_error_mm:.1f} ({run.still_verdict}) |")
     return "\n".join(lines)
 
 
+def rounds_table(rounds: list[dict[str, Any]]) -> str:
+    """Per round: success against doing nothing, and divergence on the held-out episodes against the baselines."""
+    lines = ["| round | target episodes used | goals hit | doing nothing hits | held-out divergence, model (steps) "
+             "| source alone | hold still |",
+             "|---:|---:|---|---|---:|---:|---:|"]
+    for r in rounds:
+        d = r["heldout"]
+        lines.append(f"| {r['round']} | {r['episodes']} | {r['hits']}/{r['goals']} | {r['still_hits']}/{r['goals']} "
+                     f"| {d['model']:.1f} | {d['source']:.1f} | {d['hold_still']:.1f} |")
+    return "\n".join(lines)
+
+
+def heldout_scores(model_path: str | Path, source: str | Path, episodes: Any) -> dict[str, float]:
+    """Mean divergence steps (4 mm) of the round's model, the source and holding still on ``episodes``."""
+    from t42_transfer.evaluation.metrics import evaluate_model
+    from t42_transfer.models.baselines import HoldStill
+    from t42_transfer.models.checkpoint import load_model
+
+    models = {"model": load_model(model_path)[0], "source": load_model(source)[0], "hold_still": HoldStill()}
+    return {name: float(evaluate_model(m, episodes)["divergence_mean"]) for name, m in models.items()}
+
+
 def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) -> Path:
-    hits = sum(r.success for r in runs)
     lines = [
         "# t42 demo",
         "",
@@ -395,13 +449,20 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
         "## Data and transfer",
         "",
         f"- Source model: `{summary['source_model']}`.",
-        f"- Target data: {summary['exploration']['bags']} episode bags recorded through topics in `bags/`.",
-        f"- `/t42/transfer` answered in {summary['transfer']['seconds']:.1f} s: {summary['transfer']['message']}",
+        f"- Target data: {summary['exploration']['bags']} explored episode bags recorded through topics in `bags/`, "
+        "then each goal's episode.",
+        *(f"- Round {r['round']}: `/t42/transfer` answered in {r['transfer']['seconds']:.1f} s: "
+          f"{r['transfer']['message']}" for r in summary["rounds"]),
         "",
-        "## Peg-in-hole",
+        "## Rounds",
         "",
-        f"{hits}/{len(runs)} goals reached within {TOLERANCE_MM:g} mm (open loop, the planned sequence executed by "
-        "the driver).",
+        f"Goals hit within {TOLERANCE_MM:g} mm (open loop; completed, at least half way, within the tolerance), "
+        "doing nothing scored by the same rule on the same grasps, and the divergence time (4 mm) of each "
+        f"round's model on {summary['heldout']['episodes']} held-out target episodes the suite never saw.",
+        "",
+        rounds_table(summary["rounds"]),
+        "",
+        "## Peg-in-hole goals",
         "",
         goal_table(runs),
         "",
@@ -414,13 +475,42 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
 
 
 # --------------------------------------------------------------------------- the story
+def _transfer(op: Any, suite: _Suite, summary: dict[str, Any], round_: int, rounds: int) -> dict[str, Any]:
+    """One call of /t42/transfer with its progress shown; the round's record (the model it made)."""
+    t0, last = time.perf_counter(), [""]
+
+    def progress() -> None:
+        d = op.diagnostic
+        line = f"      transfer: {d.get('stage', 'starting')}"
+        if "epoch" in d:
+            line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
+        if line != last[0]:
+            last[0] = line
+            _say(line)
+
+    response = op.call("t42/transfer", 1800.0, suite.check, progress)
+    transfer = {"success": bool(response.success), "message": response.message,
+                "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
+    _say(f"[{4 + round_ - 1}/{4 + rounds}] round {round_}: /t42/transfer ({transfer['seconds']:.0f} s): "
+         f"{response.message}")
+    if not response.success:
+        raise RuntimeError(f"the transfer failed: {response.message}")
+    match = re.search(r"(\S+\.safetensors)", response.message)
+    if match is None:
+        raise RuntimeError(f"the transfer answer names no model file: {response.message!r}")
+    trained = re.search(r"trained on (\d+) episodes", response.message)
+    return {"round": round_, "transfer": transfer, "model": match.group(1).rstrip(".,;:)"),
+            "episodes": int(trained.group(1)) if trained else None}
+
+
 def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
     """Run the whole story (see the module docstring); 0 when every step completed."""
-    from t42_transfer.models.checkpoint import read_metadata
-    from t42_transfer.planning.workspace import Workspace
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
 
+    from t42_transfer.hand.collect import collect
+    from t42_transfer.models.checkpoint import read_metadata
+    from t42_transfer.planning.workspace import Workspace
     from t42_transfer.ros.runner import keep_discovery_local
 
     size = QUICK if quick else FULL
@@ -455,7 +545,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
         executor.add_node(op)
         spinner.start()
         op.wait_until(op.ready, 120.0, "the suite's services", suite.check)
-        _say(f"[2/5] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain {domain} "
+        _say(f"[2/{4 + size.rounds}] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain {domain} "
              f"({time.perf_counter() - started:.0f} s); logs in {suite.log_path}")
 
         explorer = suite.supervisor.start("explorer")
@@ -476,34 +566,37 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
             raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
         bags = sorted(p for p in (run_dir / "bags").glob("episode_*") if (p / "metadata.yaml").is_file())
         summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
-        _say(f"[3/5] target data: {len(bags)} episode bags recorded through topics "
+        _say(f"[3/{4 + size.rounds}] target data: {len(bags)} episode bags recorded through topics "
              f"({time.perf_counter() - t0:.0f} s) in {run_dir / 'bags'}")
 
-        t0, last = time.perf_counter(), [""]
-
-        def progress() -> None:
-            d = op.diagnostic
-            line = f"      transfer: {d.get('stage', 'starting')}"
-            if "epoch" in d:
-                line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
-            if line != last[0]:
-                last[0] = line
-                _say(line)
-
-        response = op.call("t42/transfer", 1800.0, suite.check, progress)
-        summary["transfer"] = {"success": bool(response.success), "message": response.message,
-                               "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
-        _say(f"[4/5] /t42/transfer ({time.perf_counter() - t0:.0f} s): {response.message}")
-        if not response.success:
-            raise RuntimeError(f"the transfer failed: {response.message}")
-
-        for index, steps in enumerate(size.goal_steps):
-            run = run_goal(op, suite, steps, index, workspace)
-            runs.append(run)
-            verdict = ("hit" if run.success else "miss") if run.accepted else f"refused: {run.reason}"
-            error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
-            _say(f"      goal {index + 1}/{len(size.goal_steps)} ({steps} steps, {run.start_distance_mm:.1f} mm "
-                 f"away):{error} -> {verdict}")
+        heldout, _ = collect("target", size.heldout_episodes, size.target_steps, seed=HELDOUT_SEED, workers=workers)
+        summary["heldout"] = {"episodes": len(heldout), "steps": size.target_steps, "seed": HELDOUT_SEED}
+        summary["rounds"] = []
+        for round_ in range(1, size.rounds + 1):
+            record = _transfer(op, suite, summary, round_, size.rounds)
+            record["heldout"] = heldout_scores(record["model"], model, heldout)
+            _say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
+                 f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
+            ok = op.call("recorder/start", 30.0, suite.check)
+            if not ok.success:
+                raise RuntimeError(f"recorder/start: {ok.message}")
+            mine = []
+            for index, steps in enumerate(size.goal_steps):
+                run = run_goal(op, suite, steps, index, workspace, round_)
+                mine.append(run)
+                error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
+                verdict = run.verdict if run.accepted else f"refused: {run.reason}"
+                _say(f"      round {round_} goal {index + 1}/{len(size.goal_steps)} ({steps} steps, "
+                     f"{run.start_distance_mm:.1f} mm away):{error} -> {verdict} (doing nothing: "
+                     f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
+            op.call("recorder/stop", 30.0, suite.check)
+            runs.extend(mine)
+            record.update(goals=len(mine), hits=sum(r.success for r in mine),
+                          still_hits=sum(r.still_verdict == "hit" for r in mine))
+            summary["rounds"].append(record)
+            _say(f"[{4 + round_ - 1}/{4 + size.rounds}] round {round_}: {record['hits']}/{record['goals']} goals hit "
+                 f"(doing nothing: {record['still_hits']}/{record['goals']})")
+        summary["transfer"] = summary["rounds"][0]["transfer"]
     except (RuntimeError, TimeoutError) as err:
         _say(f"FAILED: {err}")
         failed = True
@@ -522,8 +615,9 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
     (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     plot_paths(runs, run_dir / "paths.png")
     report = write_report(run_dir, summary, runs)
-    hits = sum(r.success for r in runs)
-    _say(f"[5/5] peg-in-hole: {hits}/{len(runs)} goals within {TOLERANCE_MM:g} mm\n")
+    _say(f"[{4 + size.rounds}/{4 + size.rounds}] peg-in-hole, {size.rounds} round(s):\n")
+    _say(rounds_table(summary["rounds"]))
+    _say("")
     _say(goal_table(runs))
     _say(f"\nreport: {report} (plots: {run_dir / 'paths.png'}); {summary['seconds']:.0f} s in all")
     unclean = {n: c for n, c in codes.items() if c != 0 and n != "explorer"}

@@ -171,6 +171,20 @@ def test_bags_are_used_once(ros, tmp_path, source_model, make_set):
     assert ros.spin_until(lambda: rig.updates[-1:] == [latest], 5.0), rig.updates
 
 
+def test_with_new_bags_only_false_every_bag_is_used_once_one_is_new(ros, tmp_path, source_model, make_set):
+    rig = Rig(ros, tmp_path, source_model, new_bags_only=False)
+    first = add_target_bag(rig.bag_dir)
+    assert rig.call().success
+    again = rig.call()
+    assert not again.success and "no new bags" in again.message  # nothing new: nothing to learn
+    new = add_synthetic_bag(rig.bag_dir, make_set, "episode_001")
+    response = rig.call()
+    assert response.success, response.message
+    assert set(rig.server.last_result.bags) == {first, new} and "from 2 bag(s)" in response.message
+    state = json.loads((rig.model_dir / STATE_FILE).read_text())
+    assert len(state["used_bags"]) == 2  # recorded once each
+
+
 def test_a_restarted_server_announces_the_latest_model_to_late_joiners(ros, tmp_path, source_model):
     rig = Rig(ros, tmp_path, source_model)
     add_target_bag(rig.bag_dir)

@@ -94,6 +94,8 @@ class TransferServerParams:
                              "(empty: use bags)", read_only=True)
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
                                       "transfer are skipped too", read_only=True)
+    new_bags_only: bool = param(True, "train on the bags no earlier transfer used; false: on every bag, once one "
+                                      "is new (the suite keeps learning from all it recorded)")
     method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))} (auto: train "
                                                "the candidates, keep the best on held-out episodes, report all)")
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
@@ -131,7 +133,8 @@ class TransferServerParams:
         return OnlineTransferSpec(
             source_model=Path(self.source_model), model_dir=Path(self.model_dir),
             bag_dir=Path(self.bag_dir) if self.bag_dir else None, bags=tuple(Path(b) for b in self.bags),
-            method=self.method, config=self.transfer_config(), holdout_fraction=self.holdout_fraction,
+            new_bags_only=self.new_bags_only, method=self.method, config=self.transfer_config(),
+            holdout_fraction=self.holdout_fraction,
             min_episodes=self.min_episodes, seed=self.seed,
         )
 

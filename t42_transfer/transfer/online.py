@@ -84,6 +84,9 @@ class OnlineTransferSpec:
     bag_dir: Path | None = None
     bags: tuple[Path, ...] = ()
     """Candidate bags; empty means every finished bag in ``bag_dir``."""
+    new_bags_only: bool = True
+    """Train on the bags no earlier transfer used (True), or on every candidate bag once at least one is new
+    (False: the suite keeps learning from all it recorded, e.g. the episodes of executed plans)."""
     method: str = "cumulative_residual"
     config: TransferConfig = TransferConfig()
     holdout_fraction: float = 0.25
@@ -358,6 +361,8 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         raise TransferRefused(
             f"no new bags in {where} since the last transfer ({len(candidates)} bag(s), all used already)"
         )
+    if not spec.new_bags_only:
+        new = candidates
     source, source_meta = load_source(spec.source_model)
     data, readable, skipped = read_target(new)
     if len(data) < spec.min_episodes:
@@ -438,7 +443,7 @@ def _commit(
     }
     try:
         write_state(spec.model_dir, {
-            **state, "used_bags": [*state["used_bags"], *(bag_key(b) for b in bags)],
+            **state, "used_bags": list(dict.fromkeys([*state["used_bags"], *(bag_key(b) for b in bags)])),
             "transfers": [*state["transfers"], record],
         })
     except OSError as err:
