@@ -181,6 +181,85 @@ def test_new_spec_settings_keep_old_cache_keys() -> None:
     spec = exp.DataSpec(real="A")
     assert list(spec.describe()) == ["hand", "episodes", "steps", "seed", "bag", "real", "mirror_x"]
     assert exp.DataSpec(real="A", flagged="drop").describe()["flagged"] == "drop"
+    hand = exp.DataSpec(hand="target", episodes=20, steps=1000, seed=2)
+    assert hand.describe() == {"hand": "target", "episodes": 20, "steps": 1000, "seed": 2, "bag": None, "real": None,
+                               "mirror_x": False}  # the collected bag's name hashes this: random-policy bags stay
+    assert exp.DataSpec(hand="target", policy="sustained").describe()["policy"] == "sustained"
+
+
+def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -> None:
+    import dataclasses
+
+    cfg, cell, source = load_config(config_file), exp.Cell("direct", 1, 0), Path("source-0123.safetensors")
+    before = {  # what a cell's key hashed before configs could name a test set
+        "cell": {"method": "direct", "amount": 1, "seed": 0}, "target": cfg.target.describe(), "split": "paths",
+        "test_fraction": 0.2, "epsilon": 4.0, "offsets": [0], "horizon": None, "lyapunov_steps": 20,
+        "method_config": dataclasses.asdict(cfg.transfer), "source": source.name, "definition": "paper",
+    }
+    assert exp._cell_key(cfg, cell, source) == f"direct-1-0-{exp._digest(before)}"
+    sustained = dataclasses.replace(cfg, test=exp.DataSpec(hand="target", policy="sustained"))
+    random = dataclasses.replace(cfg, test=exp.DataSpec(hand="target"))
+    keys = {exp._cell_key(c, cell, source) for c in (cfg, sustained, random)}
+    assert len(keys) == 3
+
+
+def test_the_sustained_policy_collects_long_holds_of_the_discrete_moves(tmp_path: Path) -> None:
+    import numpy as np
+
+    from t42_transfer.conventions import REAL_HAND_ACTIONS
+
+    spec = exp.DataSpec(hand="target", episodes=2, steps=150, seed=2, policy="sustained")
+    data = exp.load_data(spec, tmp_path)
+    moves = np.array(REAL_HAND_ACTIONS)
+    for episode in data:
+        assert all((moves == a).all(1).any() for a in episode.actions)  # every action one of the eight moves
+        held = min(len(episode), 120)  # the shortest hold
+        assert (episode.actions[:held] == episode.actions[0]).all()
+    random = exp.load_data(exp.DataSpec(hand="target", episodes=2, steps=150, seed=2), tmp_path)
+    assert not any((moves == a).all(1).any() for a in random[0].actions)
+    assert len(list(tmp_path.iterdir())) == 2  # two bags: the policy is part of the collected set's name
+
+
+@pytest.mark.parametrize("split, amounts", [("paths", (1, 3)), ("fraction", (0.2, 0.5))])
+def test_a_test_set_replaces_the_held_out_episodes_and_keeps_the_training_subsets(
+        tmp_path: Path, make_set, split: str, amounts: tuple[float, ...]) -> None:
+    import dataclasses
+
+    target = _bag(tmp_path, "t", make_set([30] * 10, seed=3, hand="target"))
+    test = make_set([50] * 3, seed=4, hand="target")
+    plain = exp.ExperimentConfig(name="t", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
+                                 target=exp.DataSpec(bag=target), split=split, amounts=amounts, seeds=2,
+                                 test_fraction=0.3)
+    with_test = dataclasses.replace(plain, test=exp.DataSpec(bag=_bag(tmp_path, "test", test)))
+    episodes = exp.load_side(plain, "target", tmp_path / "cache").data
+    tested = exp.load_test(with_test, tmp_path / "cache")
+    assert exp.load_test(plain, tmp_path / "cache") is None and len(tested.data) == 3
+    for amount in amounts:
+        for seed in range(2):
+            cell = exp.Cell("direct", amount, seed)
+            train, held_out = exp._target_split(plain, episodes, cell)
+            train_t, test_t = exp._target_split(with_test, episodes, cell, tested.data)
+            assert [t.fingerprint() for t in train_t] == [t.fingerprint() for t in train] and len(train)
+            assert test_t is tested.data and len(held_out) and {len(t) for t in held_out} == {30}  # test: 50 steps
+    with pytest.raises(ValueError, match="exactly when the config names a test set"):
+        exp._target_split(with_test, episodes, exp.Cell("direct", amounts[0], 0))
+
+
+def test_a_run_scores_every_cell_on_the_test_set(config_file: Path, tmp_path: Path, make_set) -> None:
+    import dataclasses
+
+    test = make_set([50] * 2, seed=4, hand="target")
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=2)
+    with_test = dataclasses.replace(cfg, test=exp.DataSpec(bag=_bag(tmp_path, "test", test)))
+    plain_rows = [r for r in run_experiment(cfg, tmp_path / "a", progress=False) if r["method"] == "direct"]
+    rows = [r for r in run_experiment(with_test, tmp_path / "b", progress=False) if r["method"] == "direct"]
+    assert [r["test_rollouts"] for r in plain_rows] == [3, 3] and [r["test_rollouts"] for r in rows] == [2, 2]
+    assert [r["train_transitions"] for r in rows] == [r["train_transitions"] for r in plain_rows]
+    assert rows[0]["divergence_mean"] == rows[1]["divergence_mean"]  # one test set for every seed
+    quality = json.loads((tmp_path / "b" / "tiny" / "data_quality.json").read_text())
+    assert quality["test"]["kept_episodes"] == 2 and "test" not in json.loads(
+        (tmp_path / "a" / "tiny" / "data_quality.json").read_text())
+    assert load_config(tmp_path / "b" / "tiny" / "config.yaml") == with_test
 
 
 @pytest.mark.parametrize("how, episodes, origins", [("keep", 4, (0, 1, 2, 3)), ("drop", 3, (0, 2, 3)),
@@ -224,6 +303,11 @@ def test_the_run_records_what_was_found_per_data_set(tmp_path: Path, make_set) -
     ("{real: B, mirror_about: grasp}", "target.mirror_about: grasp needs target.mirror_x: true"),
     ("{real: B, flagged: fix}", "target.flagged must be one of \\('keep', 'drop', 'split'\\)"),
     ("{real: B, exclude_test_sequences: true}", "only the source's training leaves test sequences out"),
+    ("{hand: target, policy: wander}", "target.policy must be one of \\['random', 'sustained'\\], got 'wander'"),
+    ("{real: B, policy: sustained}", "target.policy drives a simulated hand: it needs target.hand"),
+    ("{real: A}\ntest: {hand: target, policy: Sustained}", "test.policy must be one of .*, got 'Sustained'"),
+    ("{real: A}\ntest: {real: B, real_object: egg50}", "test.real: .*testpaths_egg50_red_d_v0.pkl: no such file"),
+    ("{real: A}\ntest: {real: B, exclude_test_sequences: true}", "test.exclude_test_sequences: only the source"),
 ])
 def test_bad_data_specs_are_one_line_errors_before_any_run_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                                      capsys: pytest.CaptureFixture[str], spec: str,

@@ -43,7 +43,7 @@ from t42_transfer.data.trajectory import (
     split_by_fraction,
 )
 from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
-from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, check_collection
+from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, POLICIES, check_collection
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
@@ -98,6 +98,9 @@ class DataSpec:
     exclude_test_sequences: bool = False
     """Source only: leave out of the source model's training every episode that ran the action sequence of one
     of the cell's test episodes (both real hands ran the same six), training a source per test set."""
+    policy: str = "random"
+    """``hand`` only: how the simulated hand is driven (:data:`t42_transfer.hand.collect.POLICIES`): ``random``,
+    the paper's training data, or ``sustained``, test paths like the real hands' (long holds of discrete moves)."""
 
     def describe(self) -> dict:
         """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
@@ -131,6 +134,9 @@ class ExperimentConfig:
     transfer: TransferConfig | None = None
     """None: ``TransferConfig.for_definition(definition)``; settings given in a file apply on top of it."""
     workers: int | None = None
+    test: DataSpec | None = None
+    """Test episodes of the target hand from their own data set (e.g. sustained-action paths) instead of the
+    held-out target episodes; the training subsets stay those without it, so cells pair across test sets."""
 
     def __post_init__(self) -> None:
         # The run directory is ``out / name``: anything but one plain component could leave ``out``.
@@ -192,7 +198,8 @@ RULES: dict[type, dict[str, _Rule]] = {
                "real": (lambda v: v in REAL_HANDS, f"one of {sorted(REAL_HANDS)}"),
                "real_object": (lambda v: bool(SAFE_OBJECT.fullmatch(v)), "an object name such as cyl35 or egg50"),
                "mirror_about": (lambda v: v in MIRRORS, f"one of {MIRRORS}"),
-               "flagged": (lambda v: v in HANDLING, f"one of {HANDLING}")},
+               "flagged": (lambda v: v in HANDLING, f"one of {HANDLING}"),
+               "policy": (lambda v: v in POLICIES, f"one of {sorted(POLICIES)}")},
     TrainConfig: {"lr": _POSITIVE, "epochs": _STEPS, "batch_size": _between(1, 2**31 - 1),
                   "weight_decay": _between(0, math.inf), "grad_clip": _POSITIVE, "patience": _between(0, MAX_EVAL_STEPS),
                   "seed": _SEED},
@@ -299,21 +306,25 @@ def check_config(cfg: ExperimentConfig) -> None:
     cells, amounts that fit the split.
     """
     _build(ExperimentConfig, _config_dict(cfg))
-    for side in ("source", "target"):
+    for side in sides(cfg):
         spec: DataSpec = getattr(cfg, side)
         given = [k for k in ("hand", "bag", "real") if getattr(spec, k) is not None]
         if len(given) != 1:
             raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
         if spec.hand is not None:
-            check_collection(spec.hand, spec.episodes, spec.steps)
+            check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
+        elif spec.policy != _SPEC_DEFAULTS["policy"]:
+            raise ValueError(f"{side}.policy drives a simulated hand: it needs {side}.hand")
         if spec.real_object != REAL_OBJECT and spec.real is None:
             raise ValueError(f"{side}.real_object names the object of a real-hand file: it needs {side}.real")
         if spec.mirror_about != "origin" and not spec.mirror_x:
             raise ValueError(f"{side}.mirror_about: {spec.mirror_about} needs {side}.mirror_x: true")
-    if cfg.source.mirror_x and cfg.target.mirror_x and "grasp" in (cfg.source.mirror_about, cfg.target.mirror_about):
-        raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
-    if cfg.target.exclude_test_sequences:
-        raise ValueError("target.exclude_test_sequences: only the source's training leaves test sequences out")
+    for side in sides(cfg)[1:]:
+        spec = getattr(cfg, side)
+        if cfg.source.mirror_x and spec.mirror_x and "grasp" in (cfg.source.mirror_about, spec.mirror_about):
+            raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
+        if spec.exclude_test_sequences:
+            raise ValueError(f"{side}.exclude_test_sequences: only the source's training leaves test sequences out")
     for key in ("methods", "amounts"):
         values = getattr(cfg, key)
         if len(set(values)) != len(values):
@@ -325,6 +336,11 @@ def check_config(cfg: ExperimentConfig) -> None:
         raise ValueError(f"amounts are fractions of the target pool with split: fraction, got {max(cfg.amounts)}")
     if cfg.split == "paths" and not all(float(a).is_integer() for a in cfg.amounts):
         raise ValueError(f"amounts are numbers of episodes with split: paths, got {_show(cfg.amounts)}")
+
+
+def sides(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """The data sets ``cfg`` names: source, target, and test when it has its own."""
+    return ("source", "target") if cfg.test is None else ("source", "target", "test")
 
 
 def _digest(obj: Any) -> str:
@@ -354,7 +370,7 @@ def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
             return read_bag(bag)
         from t42_transfer.hand.collect import collect
 
-        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed)
+        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed, policy=POLICIES[spec.policy]())
         data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
         write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
         return data
@@ -376,7 +392,8 @@ class SideData:
 
 
 def load_side(cfg: ExperimentConfig, side: str, cache: Path) -> SideData:
-    """The ``source`` or ``target`` data of ``cfg``; a mirror about the grasp also reads the other side."""
+    """The ``source``, ``target`` or ``test`` data of ``cfg``; a mirror about the grasp also reads the other side
+    (the source's other side is the target; the target's and the test set's is the source)."""
     spec: DataSpec = getattr(cfg, side)
     raw = load_data(spec, cache)
     if spec.negate_actions:
@@ -403,15 +420,16 @@ def _mirror(traj: Trajectory, axis: float = 0.0, shift_y: float = 0.0) -> Trajec
     return dataclasses.replace(traj, states=states)
 
 
-def excluded_sources(cfg: ExperimentConfig, source: SideData, target: SideData, test: TrajectorySet) -> tuple[int, ...]:
+def excluded_sources(cfg: ExperimentConfig, source: SideData, tested: SideData, test: TrajectorySet) -> tuple[int, ...]:
     """Episodes of ``source.raw`` that ran the action sequence of a test episode (empty unless the source asks).
 
-    A test episode split off a longer one is compared through the episode it came from.
+    ``tested``: the side the test episodes come from (the target, or the config's own test set).  A test
+    episode split off a longer one is compared through the episode it came from.
     """
     if not cfg.source.exclude_test_sequences:
         return ()
-    tested = [target.raw[o] for t, o in zip(target.data, target.origins) if any(t is u for u in test)]
-    return tuple(i for i, s in enumerate(source.raw) if any(same_action_sequence(s, t) for t in tested))
+    ran = [tested.raw[o] for t, o in zip(tested.data, tested.origins) if any(t is u for u in test)]
+    return tuple(i for i, s in enumerate(source.raw) if any(same_action_sequence(s, t) for t in ran))
 
 
 # ------------------------------------------------------------------------------ cells
@@ -424,18 +442,26 @@ class Cell:
     seed: int
 
 
-def _target_split(cfg: ExperimentConfig, target: TrajectorySet, cell: Cell) -> tuple[TrajectorySet, TrajectorySet]:
-    """(training subset, test episodes) of a cell."""
+def _target_split(
+    cfg: ExperimentConfig, target: TrajectorySet, cell: Cell, test: TrajectorySet | None = None
+) -> tuple[TrajectorySet, TrajectorySet]:
+    """(training subset, test episodes) of a cell.
+
+    ``test``: the episodes of ``cfg.test`` (required when the config names one); they replace the held-out
+    target episodes, and the training subset is the one the cell has without them.
+    """
+    if (cfg.test is None) != (test is None):
+        raise ValueError("pass the test set's episodes exactly when the config names a test set")
     if cfg.split == "fraction":
-        test, pool = split_by_fraction(target, cfg.test_fraction, seed=12345)
+        held_out, pool = split_by_fraction(target, cfg.test_fraction, seed=12345)
         train, _ = split_by_fraction(pool, float(cell.amount), seed=cell.seed)
-        return train, test
+        return train, held_out if test is None else test
     if cfg.split == "paths":
-        k = int(cell.amount)
-        if not 1 <= k < len(target):
-            raise ValueError(f"paths split needs 1 <= k < {len(target)} target episodes, got {k}")
+        k, limit = int(cell.amount), len(target) + (test is not None)  # with a test set, all may train
+        if not 1 <= k < limit:
+            raise ValueError(f"paths split needs 1 <= k < {limit} with {len(target)} target episodes, got {k}")
         order = np.random.default_rng(cell.seed).permutation(len(target))
-        return target.subset(sorted(order[:k])), target.subset(sorted(order[k:]))
+        return target.subset(sorted(order[:k])), target.subset(sorted(order[k:])) if test is None else test
     raise ValueError(f"split must be 'fraction' or 'paths', got {cfg.split!r}")
 
 
@@ -472,11 +498,14 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     sources = _WORKER.setdefault("sources", {})  # one per test set when the source leaves test sequences out
     if source_path not in sources:
         sources[source_path] = load_model(source_path)[0]
-    data_key = _digest({"source": cfg.source.describe(), "target": cfg.target.describe(), "run": str(run_dir)})
+    data_key = _digest({"data": [dataclasses.asdict(getattr(cfg, side)) for side in sides(cfg)], "run": str(run_dir)})
     if _WORKER.get("data_key") != data_key:
-        _WORKER["target"], _WORKER["data_key"] = load_side(cfg, "target", data_cache(run_dir)).data, data_key
+        test_side = load_test(cfg, data_cache(run_dir))
+        _WORKER["target"] = load_side(cfg, "target", data_cache(run_dir)).data
+        _WORKER["test"] = None if test_side is None else test_side.data
+        _WORKER["data_key"] = data_key
     source, target = sources[source_path], _WORKER["target"]
-    train, test = _target_split(cfg, target, cell)
+    train, test = _target_split(cfg, target, cell, _WORKER["test"])
     start = time.perf_counter()
     model = transfer(cell.method, source, train, cfg.transfer, seed=cell.seed)
     row = {
@@ -491,9 +520,20 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     return row
 
 
-def cell_excluded(cfg: ExperimentConfig, cell: Cell, source: SideData, target: SideData) -> tuple[int, ...]:
-    """The source episodes left out of the source model of ``cell``: those that ran one of its test sequences."""
-    return excluded_sources(cfg, source, target, _target_split(cfg, target.data, cell)[1])
+def load_test(cfg: ExperimentConfig, cache: Path) -> SideData | None:
+    """The config's own test set, if it names one."""
+    return None if cfg.test is None else load_side(cfg, "test", cache)
+
+
+def cell_excluded(
+    cfg: ExperimentConfig, cell: Cell, source: SideData, target: SideData, test: SideData | None = None
+) -> tuple[int, ...]:
+    """The source episodes left out of the source model of ``cell``: those that ran one of its test sequences.
+
+    ``test``: :func:`load_test`'s, when the config names a test set.
+    """
+    episodes = _target_split(cfg, target.data, cell, None if test is None else test.data)[1]
+    return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
 def _cells(cfg: ExperimentConfig) -> list[Cell]:
@@ -507,6 +547,8 @@ def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
         "horizon": cfg.horizon, "lyapunov_steps": cfg.lyapunov_steps,
         "method_config": dataclasses.asdict(cfg.transfer), "source": source_path.name, "definition": cfg.definition,
     }
+    if cfg.test is not None:  # absent otherwise: keys of runs without a test set stay valid
+        depends["test"] = cfg.test.describe()
     return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
 
 
@@ -556,19 +598,22 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
     use is refused before anything is written.
     """
     check_config(cfg)
-    for side in ("source", "target"):
+    for side in sides(cfg):
         _check_input(getattr(cfg, side), side)
     run_dir = Path(out) / cfg.name
     target = load_side(cfg, "target", data_cache(run_dir))
+    test = load_test(cfg, data_cache(run_dir))
     if len(target.data) < 2:
         raise ValueError(f"the target set has {len(target.data)} episodes; need at least 2")
-    if cfg.split == "paths" and max(cfg.amounts) >= len(target.data):
+    if test is not None and not len(test.data):
+        raise ValueError("the test set has no episodes")
+    if cfg.split == "paths" and max(cfg.amounts) >= len(target.data) + (test is not None):
         raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
-                         f"{len(target.data)}: some must stay for testing")
+                         f"{len(target.data)}" + ("" if test is not None else ": some must stay for testing"))
     if cfg.source.exclude_test_sequences:
         source = load_side(cfg, "source", data_cache(run_dir))
         for cell in _cells(cfg):
-            if not set(source.origins) - set(cell_excluded(cfg, cell, source, target)):
+            if not set(source.origins) - set(cell_excluded(cfg, cell, source, target, test)):
                 raise ValueError(f"every source episode ran a test sequence of {cell}: none is left to train on")
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
     with _run_lock(run_dir):
@@ -610,11 +655,13 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
     cache = data_cache(run_dir)
-    source, target = load_side(cfg, "source", cache), load_side(cfg, "target", cache)
+    source, target, test = load_side(cfg, "source", cache), load_side(cfg, "target", cache), load_test(cfg, cache)
     quality = {"source": source.quality, "target": target.quality}
+    if test is not None:
+        quality["test"] = test.quality
     (run_dir / "data_quality.json").write_text(json.dumps(quality, indent=1))
     cells = _cells(cfg)
-    excluded = {c: cell_excluded(cfg, c, source, target) for c in cells}
+    excluded = {c: cell_excluded(cfg, c, source, target, test) for c in cells}
     sources = {c: source_model_path(cfg, run_dir, excluded[c]) for c in cells}
     rows: dict[Cell, dict[str, Any]] = {}
     todo = []

@@ -92,13 +92,15 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         data_cache,
         load_config,
         load_side,
+        load_test,
         source_model_path,
     )
     from t42_transfer.models.checkpoint import load_model
 
     cfg = load_config(run_dir / "config.yaml")
-    sides = [load_side(cfg, side, data_cache(run_dir)) for side in ("source", "target")]
-    target = sides[1].data
+    sides = [load_side(cfg, side, data_cache(run_dir)) for side in ("source", "target")] + [
+        load_test(cfg, data_cache(run_dir))]
+    target, test_set = sides[1].data, None if sides[2] is None else sides[2].data
     # Cell keys hash the amount as the config spells it (1 and 1.0 differ).
     amount = next((a for a in cfg.amounts if float(a) == float(amount)), amount)
     cols = min(4, len(cfg.methods))
@@ -114,7 +116,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
             ax.set_title(f"{method}: no model", fontsize=8)
             continue
         model, _ = load_model(model_file)
-        _, test = _target_split(cfg, target, cell)
+        _, test = _target_split(cfg, target, cell, test_set)
         for i, traj in enumerate(test.trajectories[:episodes]):
             predicted = model.rollout(torch.tensor(traj.states[:1]), torch.tensor(traj.actions[None]))[0].numpy()
             ax.plot(traj.states[:, 0], traj.states[:, 1], color=f"C{i}", lw=1.2, label="true" if i == 0 else None)
