@@ -298,7 +298,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     output_dir(args.out)
     rows = run_experiment(cfg, args.out, progress=not args.quiet)
     run_dir = args.out / cfg.name
-    print(f"{len(rows)} cells -> {run_dir / 'results.csv'}")
+    print(f"{len(rows)} rows (cells and the hold-still baseline) -> {run_dir / 'results.csv'}")
     if not args.no_report:
         print(f"report: {write_report(run_dir)}")
     return 0

@@ -41,9 +41,9 @@ def test_cells_rows_resume_and_report(config_file: Path, tmp_path: Path, monkeyp
     cfg = load_config(config_file)
     assert cfg.transfer.cumulative_residual.gamma == 0.99 and cfg.transfer.cumulative_residual.alpha == 0.3
     rows = run_experiment(cfg, tmp_path / "runs", progress=False)
-    assert len(rows) == 3 * 2 * 2
+    assert len(rows) == (3 + 1) * 2 * 2  # every cell, and the hold-still baseline per amount and seed
     assert {(r["method"], r["amount"], r["seed"]) for r in rows} == {
-        (m, a, s) for m in cfg.methods for a in (1, 2) for s in (0, 1)
+        (m, a, s) for m in (*cfg.methods, "hold_still") for a in (1, 2) for s in (0, 1)
     }
     for row in rows:
         assert row["train_episodes"] == row["amount"] and row["test_rollouts"] == 4 - row["amount"]
@@ -54,15 +54,53 @@ def test_cells_rows_resume_and_report(config_file: Path, tmp_path: Path, monkeyp
     # A second run reads every cell back instead of transferring again.
     monkeypatch.setattr(exp, "transfer", lambda *a, **k: pytest.fail("a cached cell was recomputed"))
     again = run_experiment(cfg, tmp_path / "runs", progress=False)
-    assert again == rows
+    assert again[:12] == rows[:12]  # the hold-still rows are scored again (nothing to cache), to the same numbers
+    assert [{**r, "seconds": 0} for r in again[12:]] == [{**r, "seconds": 0} for r in rows[12:]]
 
     run_dir = tmp_path / "runs" / "tiny"
-    assert (run_dir / "results.csv").read_text().count("\n") == 13
+    assert (run_dir / "results.csv").read_text().count("\n") == 17
     assert main(["report", str(run_dir)]) == 0
     report = (run_dir / "report" / "report.md").read_text()
-    assert "Naive fine-tuning is worse than no adaptation" in report
+    assert "Naive fine-tuning is worse than no adaptation" in report and "Holding still (the object" in report
+    tables = report.split("| method |")[1:]
+    assert len(tables) == 4  # three metrics and the bound's quantities
+    for table in tables:  # each lists the hold-still baseline right after direct
+        methods = [line.split(" |")[0][2:] for line in table.split("\n\n")[0].splitlines()[2:]]
+        assert list(dict.fromkeys(methods)) == ["direct", "hold_still", "naive_finetune", "cumulative_residual"]
     for figure in ("divergence_mean.png", "position_mse_mean.png", "lyapunov_mean.png", "paths.png"):
         assert (run_dir / "report" / figure).stat().st_size > 5000
+
+
+@pytest.mark.parametrize("split, amounts, test_sets", [("paths", (1, 2), 4), ("fraction", (0.3, 0.6), 1)])
+def test_hold_still_is_scored_on_every_test_set_once(config_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     split: str, amounts: tuple[float, ...], test_sets: int) -> None:
+    import csv
+    import dataclasses
+
+    from t42_transfer.evaluation.metrics import evaluate_model
+    from t42_transfer.models.baselines import HoldStill
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct",), split=split, amounts=amounts,
+                              test_fraction=0.25)
+    scored = []
+    scores = exp._test_scores
+    monkeypatch.setattr(exp, "_test_scores", lambda model, test, c: scored.append(model.kind) or scores(model, test, c))
+    rows = run_experiment(cfg, tmp_path, progress=False)
+    assert scored.count("hold_still") == test_sets
+    target = exp.load_side(cfg, "target", tmp_path / "data").data
+    still = {(r["amount"], r["seed"]): r for r in rows if r["method"] == "hold_still"}
+    direct = {(r["amount"], r["seed"]): r for r in rows if r["method"] == "direct"}
+    assert sorted(still) == sorted(direct) == sorted((a, s) for a in amounts for s in range(2))
+    for (amount, seed), row in still.items():
+        _, test = exp._target_split(cfg, target, exp.Cell("direct", amount, seed))
+        expected = evaluate_model(HoldStill(), test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon, cfg.definition)
+        assert row["divergence_mean"] == expected["divergence_mean"]
+        assert row["position_mse_mean"] == expected["position_mse_mean"] and row["lyapunov_mean"] == 0.0
+        assert row["test_rollouts"] == direct[(amount, seed)]["test_rollouts"]
+        assert row["covering_radius"] == direct[(amount, seed)]["covering_radius"]  # the cell's data, not a model's
+    with open(tmp_path / "tiny" / "results.csv") as f:
+        written = [r for r in csv.DictReader(f) if r["method"] == "hold_still"]
+    assert [float(r["divergence_mean"]) for r in written] == [r["divergence_mean"] for r in still.values()]
 
 
 def test_two_workers_give_the_same_numbers(config_file: Path, tmp_path: Path) -> None:
@@ -128,7 +166,7 @@ def test_the_run_lock_is_released_when_the_run_fails(config_file: Path, tmp_path
     with pytest.raises(RuntimeError, match="a failing cell"):
         run_experiment(cfg, tmp_path, progress=False)
     monkeypatch.undo()
-    assert len(run_experiment(cfg, tmp_path, progress=False)) == 1  # not "in use by another run"
+    assert len(run_experiment(cfg, tmp_path, progress=False)) == 2  # not "in use by another run"
 
 
 def test_results_json_holds_the_config(config_file: Path, tmp_path: Path) -> None:
@@ -137,7 +175,7 @@ def test_results_json_holds_the_config(config_file: Path, tmp_path: Path) -> Non
     cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=1)
     run_experiment(cfg, tmp_path, progress=False)
     content = json.loads((tmp_path / "tiny" / "results.json").read_text())
-    assert content["config"]["split"] == "paths" and len(content["rows"]) == 1
+    assert content["config"]["split"] == "paths" and [r["method"] for r in content["rows"]] == ["direct", "hold_still"]
     assert load_config(tmp_path / "tiny" / "config.yaml") == cfg
 
 
@@ -260,6 +298,8 @@ def test_a_run_scores_every_cell_on_the_test_set(config_file: Path, tmp_path: Pa
     assert quality["test"]["kept_episodes"] == 2 and "test" not in json.loads(
         (tmp_path / "a" / "tiny" / "data_quality.json").read_text())
     assert load_config(tmp_path / "b" / "tiny" / "config.yaml") == with_test
+    assert main(["report", str(tmp_path / "b" / "tiny")]) == 0  # its paths figure draws the test set's episodes
+    assert "; test: `" in (tmp_path / "b" / "tiny" / "report" / "report.md").read_text()
 
 
 @pytest.mark.parametrize("how, episodes, origins", [("keep", 4, (0, 1, 2, 3)), ("drop", 3, (0, 2, 3)),

@@ -5,7 +5,9 @@ it with one method to a subset of the target's training pool and scores the
 result on held-out target episodes (divergence time, MSE, Lyapunov exponent,
 and the quantities of the paper's bound).  Cells are cached by a hash of
 everything they depend on, so an interrupted run resumes where it stopped and a
-changed setting reruns only what it touches.
+changed setting reruns only what it touches.  Every run also scores the
+hold-still model (:class:`~t42_transfer.models.baselines.HoldStill`) on the same
+test episodes, the baseline each method's numbers are read against.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from t42_transfer.data.trajectory import (
 )
 from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
 from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, POLICIES, check_collection
+from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
@@ -69,6 +72,8 @@ RESULT_COLUMNS = (
     "divergence_median", "position_mse_mean", "lyapunov_mean", "lyapunov_median", "covering_radius",
     "train_error_normalised", "train_error_xy_mm", "seconds",
 )
+BASELINE = HoldStill.kind
+"""The method name of the hold-still rows every run writes beside its cells'."""
 
 
 @dataclass(frozen=True)
@@ -465,17 +470,13 @@ def _target_split(
     raise ValueError(f"split must be 'fraction' or 'paths', got {cfg.split!r}")
 
 
-def _score(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet, cfg: ExperimentConfig) -> dict[str, Any]:
+def _test_scores(model: LatentDynamics, test: TrajectorySet, cfg: ExperimentConfig) -> dict[str, Any]:
+    """``model``'s open-loop scores on the test episodes: divergence, MSE, Lyapunov exponents."""
     from t42_transfer.evaluation.lyapunov import model_lyapunov
-    from t42_transfer.evaluation.metrics import covering_radius, evaluate_model, max_training_error
+    from t42_transfer.evaluation.metrics import evaluate_model
 
     scores = evaluate_model(model, test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon, cfg.definition)
     lyap = model_lyapunov(model, test, steps=cfg.lyapunov_steps).numpy()
-    train_states = np.concatenate([t.states for t in train])
-    test_states = np.concatenate([t.states for t in test])
-    # One scale for both quantities of the bound: the spread of the target states.
-    scale = np.concatenate([train_states, test_states]).std(0) + 1e-9
-    error = max_training_error(model, train.transitions(), state_scale=scale)
     return {
         "test_rollouts": scores["num_rollouts"],
         "divergence_mean": scores["divergence_mean"],
@@ -483,10 +484,57 @@ def _score(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet, cfg
         "position_mse_mean": scores["position_mse_mean"],
         "lyapunov_mean": float(np.mean(lyap)),
         "lyapunov_median": float(np.median(lyap)),
-        "covering_radius": covering_radius(train_states / scale, test_states / scale),
-        "train_error_normalised": error.normalised,
-        "train_error_xy_mm": error.xy_mm,
     }
+
+
+def _states(data: TrajectorySet) -> np.ndarray:
+    return np.concatenate([t.states for t in data])
+
+
+def _bound_scale(train: TrajectorySet, test: TrajectorySet) -> np.ndarray:
+    """One scale for both quantities of the bound: the spread of the target states."""
+    return np.concatenate([_states(train), _states(test)]).std(0) + 1e-9
+
+
+def _training_error(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet) -> dict[str, float]:
+    from t42_transfer.evaluation.metrics import max_training_error
+
+    error = max_training_error(model, train.transitions(), state_scale=_bound_scale(train, test))
+    return {"train_error_normalised": error.normalised, "train_error_xy_mm": error.xy_mm}
+
+
+def _score(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet, cfg: ExperimentConfig) -> dict[str, Any]:
+    from t42_transfer.evaluation.metrics import covering_radius
+
+    scale = _bound_scale(train, test)
+    radius = covering_radius(_states(train) / scale, _states(test) / scale)
+    return {**_test_scores(model, test, cfg), "covering_radius": radius, **_training_error(model, train, test)}
+
+
+def baseline_rows(
+    cfg: ExperimentConfig, target: TrajectorySet, test_set: TrajectorySet | None, cell_rows: dict[Cell, dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The hold-still model's rows, one per amount and seed (paired with the cells'), nothing trained.
+
+    Its test scores are computed once per distinct test set (once in all with ``split: fraction`` or a
+    config's own test set); the covering radius, a property of a cell's data alone, is that of the cells
+    at the same amount and seed (``cell_rows``).
+    """
+    model, scored, rows = HoldStill(), {}, []
+    for amount in cfg.amounts:
+        for seed in range(cfg.seeds):
+            start = time.perf_counter()
+            train, test = _target_split(cfg, target, Cell(BASELINE, amount, seed), test_set)
+            key = test.fingerprint()
+            if key not in scored:
+                scored[key] = _test_scores(model, test, cfg)
+            paired = next(r for c, r in cell_rows.items() if (c.amount, c.seed) == (amount, seed))
+            rows.append({
+                "method": BASELINE, "amount": amount, "seed": seed, "train_episodes": len(train),
+                "train_transitions": train.num_transitions, **scored[key], "covering_radius": paired["covering_radius"],
+                **_training_error(model, train, test), "seconds": time.perf_counter() - start,
+            })
+    return rows
 
 
 _WORKER: dict[str, Any] = {}
@@ -592,7 +640,8 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
 
 
 def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> list[dict[str, Any]]:
-    """Run (or resume) every cell; write ``results.json`` and ``results.csv`` in ``out / cfg.name``.
+    """Run (or resume) every cell; write its rows and the hold-still rows to ``results.json`` and ``results.csv``
+    in ``out / cfg.name``, and return them.
 
     The config is checked first and the run directory locked: a bad setting or a run directory in
     use is refused before anything is written.
@@ -695,7 +744,7 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
             for task, row in zip(tasks, pool.map(_run_cell, tasks)):
                 keep(task[1], row)
     bar.close()
-    ordered = [rows[c] for c in cells]
+    ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
     results: dict[str, Any] = {"config": _config_dict(cfg), "rows": ordered, "data_quality": quality}
     if cfg.source.exclude_test_sequences:
         results["excluded_source_episodes"] = {f"{c.method}-{c.amount}-{c.seed}": list(excluded[c]) for c in cells}

@@ -5,7 +5,8 @@ amount of target data (mean and standard deviation over seeds), the Lyapunov
 exponent against the amount, and predicted against true paths in the x-y plane.
 The Markdown states the findings in numbers, including whether the paper's
 claims (naive fine-tuning can be worse than no adaptation; cumulative residual
-and trajectory fine-tuning win) hold on this data.
+and trajectory fine-tuning win) hold on this data.  The hold-still baseline
+(the object predicted not to move) stands beside direct in every table and figure.
 """
 
 from __future__ import annotations
@@ -18,6 +19,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from t42_transfer.models.baselines import HoldStill
+
+BASELINE = HoldStill.kind
 METRICS = {
     "divergence_mean": ("time before divergence (steps)", "higher is better"),
     "position_mse_mean": ("position MSE (mm^2)", "lower is better"),
@@ -33,8 +37,17 @@ def load_results(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     return content["config"], content["rows"]
 
 
+def beside_direct(methods: list[str]) -> list[str]:
+    """``methods`` in their order with the hold-still baseline moved next to direct (first without direct)."""
+    rest = [m for m in methods if m != BASELINE]
+    if BASELINE not in methods:
+        return rest
+    at = rest.index("direct") + 1 if "direct" in rest else 0
+    return rest[:at] + [BASELINE] + rest[at:]
+
+
 def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[float, dict[str, tuple[float, float, int]]]]:
-    """method -> amount -> metric -> (mean, std, n) over seeds."""
+    """method -> amount -> metric -> (mean, std, n) over seeds; methods as :func:`beside_direct` orders them."""
     groups: dict[tuple[str, float], list[dict[str, Any]]] = defaultdict(list)
     for row in rows:
         groups[(row["method"], float(row["amount"]))].append(row)
@@ -45,7 +58,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[float, dict[str, tup
             values = np.array([r[key] for r in group], dtype=float)
             stats[key] = (float(values.mean()), float(values.std()), len(values))
         out[method][amount] = stats
-    return out
+    return {m: out[m] for m in beside_direct(list(out))}
 
 
 def _amount_label(config: dict[str, Any]) -> str:
@@ -59,11 +72,13 @@ def plot_metric(summary, metric: str, config: dict[str, Any], path: Path) -> Pat
 
     label, hint = METRICS[metric]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for i, (method, by_amount) in enumerate(summary.items()):
+    colours = iter(f"C{i}" for i in range(len(summary)))
+    for method, by_amount in summary.items():
         amounts = sorted(by_amount)
         mean = np.array([by_amount[a][metric][0] for a in amounts])
         std = np.array([by_amount[a][metric][1] for a in amounts])
-        ax.errorbar(amounts, mean, yerr=std, marker="o", ms=4, capsize=3, label=method, color=f"C{i}")
+        style = dict(color="0.35", ls="--") if method == BASELINE else dict(color=next(colours))
+        ax.errorbar(amounts, mean, yerr=std, marker="o", ms=4, capsize=3, label=method, **style)
     if config.get("split") != "paths":
         ax.set_xscale("log")
     if metric == "position_mse_mean":
@@ -79,7 +94,7 @@ def plot_metric(summary, metric: str, config: dict[str, Any], path: Path) -> Pat
 
 
 def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> Path | None:
-    """Predicted (seed 0) against true x-y paths of the first test episodes, one panel per method."""
+    """Predicted (seed 0) against true x-y paths of the first test episodes, one panel per method and hold-still."""
     from t42_transfer.plots import pyplot, save
 
     plt = pyplot()
@@ -103,19 +118,23 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
     target, test_set = sides[1].data, None if sides[2] is None else sides[2].data
     # Cell keys hash the amount as the config spells it (1 and 1.0 differ).
     amount = next((a for a in cfg.amounts if float(a) == float(amount)), amount)
-    cols = min(4, len(cfg.methods))
-    rows = -(-len(cfg.methods) // cols)
+    methods = beside_direct([*cfg.methods, BASELINE])
+    cols = min(4, len(methods))
+    rows = -(-len(methods) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
-    for ax in axes.flat[len(cfg.methods):]:
+    for ax in axes.flat[len(methods):]:
         ax.set_visible(False)
-    for ax, method in zip(axes.flat, cfg.methods):
+    for ax, method in zip(axes.flat, methods):
         cell = Cell(method, amount, 0)
-        source = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, *sides))
-        model_file = run_dir / "models" / f"{_cell_key(cfg, cell, source)}.safetensors"
-        if not model_file.exists():
-            ax.set_title(f"{method}: no model", fontsize=8)
-            continue
-        model, _ = load_model(model_file)
+        if method == BASELINE:
+            model = HoldStill()
+        else:
+            source = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, *sides))
+            model_file = run_dir / "models" / f"{_cell_key(cfg, cell, source)}.safetensors"
+            if not model_file.exists():
+                ax.set_title(f"{method}: no model", fontsize=8)
+                continue
+            model, _ = load_model(model_file)
         _, test = _target_split(cfg, target, cell, test_set)
         for i, traj in enumerate(test.trajectories[:episodes]):
             predicted = model.rollout(torch.tensor(traj.states[:1]), torch.tensor(traj.actions[None]))[0].numpy()
@@ -175,6 +194,16 @@ def findings(summary, config: dict[str, Any]) -> list[str]:  # type: ignore[no-u
             + (", ".join(str(a) for a in better) if better else "no amount")
             + f" of the {len(amounts)} amounts (paper: at all of them)."
         )
+    if BASELINE in div:
+        still = div[BASELINE]
+        short = {m: [a for a in amounts if a in div[m] and a in still and div[m][a] < still[a]]
+                 for m in div if m != BASELINE}
+        low, high = min(still.values()), max(still.values())
+        lines.append(
+            f"Holding still (the object predicted not to move) lasts {low:.1f}"
+            + (f"-{high:.1f}" if high - low >= 0.05 else "") + " steps before divergence; methods that fall short of it: "
+            + ("; ".join(f"{m} at {', '.join(str(a) for a in at)}" for m, at in short.items() if at) or "none") + "."
+        )
     lyap = {m: {a: summary[m][a]["lyapunov_mean"][0] for a in by} for m, by in summary.items()}
     if "direct" in lyap:
         source_lambda = next(iter(lyap["direct"].values()))
@@ -200,7 +229,8 @@ def write_report(run_dir: Path, out_dir: Path | None = None) -> Path:
     lines = [f"# Experiment `{config['name']}`", ""]
     lines += [
         f"Source: `{json.dumps(config['source'])}`; target: `{json.dumps(config['target'])}`; "
-        f"split `{config['split']}`, amounts {amounts}, {config['seeds']} seeds, epsilon {config['epsilon_mm']} mm.",
+        + (f"test: `{json.dumps(config['test'])}`; " if config.get("test") else "")
+        + f"split `{config['split']}`, amounts {amounts}, {config['seeds']} seeds, epsilon {config['epsilon_mm']} mm.",
         "",
         "## Findings",
         "",
