@@ -1,0 +1,124 @@
+"""The planner-quality benchmark's core on a toy model: report shape and bounds, budgets, time to a rate."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+from bench import bench_planner_quality as bench
+from t42_transfer.models.dynamics import LatentDynamics
+from t42_transfer.planning.peg_in_hole import PegInHoleConfig, make_goals
+from t42_transfer.planning.workspace import Workspace
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+WORKSPACE = Workspace.box(-200.0, 200.0, -100.0, 300.0, load_limit=1e6)
+STEPS = 10
+TOY = bench.Setting(budgets=(20, 320), cem_iterations=2, mppi_iterations=2, refine_iterations=1)
+"""Few iterations keep the tiny runs quick; every optimiser still runs through its whole code path."""
+
+
+class Drift(LatentDynamics):
+    """A toy hand: the object moves ``GAIN`` mm per unit action along x and y; loads stay put."""
+
+    GAIN = 2.0
+
+    def config(self) -> dict:
+        return {}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "Drift":
+        return cls()
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return x0
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        return torch.cat([z[:, :2] + self.GAIN * action, z[:, 2:]], dim=-1)
+
+    def observe(self, z: Tensor) -> Tensor:
+        return z
+
+
+@pytest.fixture(scope="module")
+def goals() -> list:
+    cfg = PegInHoleConfig(distances=(STEPS,), trials=2, min_distance_factor=0.5)
+    return make_goals(cfg, WORKSPACE)
+
+
+@pytest.fixture(scope="module")
+def result(goals: list) -> dict:
+    trials = bench.run(Drift(), WORKSPACE, goals, TOY)
+    return json.loads(json.dumps(bench.report(trials, goals, TOY)))  # JSON-able, as written
+
+
+def test_report_has_every_optimiser_and_budget_with_sound_rates_and_intervals(result: dict) -> None:
+    rows = result["rows"]
+    assert [(r["optimiser"], r["budget"]) for r in rows] == [(o, b) for o in bench.OPTIMISERS for b in TOY.budgets]
+    assert result["goals"]["count"] == 2 and result["goals"]["steps"] == [STEPS]
+    for r in rows:
+        assert r["trials"] == 2
+        assert [s["tolerance_mm"] for s in r["success"]] == [10.0, 4.0]
+        for s in r["success"]:
+            assert 0.0 <= s["ci_low"] <= s["success_rate"] <= s["ci_high"] <= 1.0
+            assert s["successes"] == s["verdicts"]["hit"] and sum(s["verdicts"].values()) == 2
+        # 4 mm is stricter than 10 mm: never more successes
+        assert r["success"][1]["successes"] <= r["success"][0]["successes"]
+        assert r["median_plan_seconds"] > 0 and r["median_final_error_mm"] >= 0
+        assert 2 <= r["median_rollouts"] <= r["budget"] + 1  # MPPI's one extra: the rollout of its plan
+    assert len(result["time_to_rate"]) == len(bench.OPTIMISERS) * 2 * len(TOY.targets)
+    assert len(result["trials"]) == 2 * len(rows)
+    for t in result["trials"]:
+        assert t["end_reason"] == "length" or t["verdicts"]["10"] == "incomplete"
+
+
+def _predicted(name: str, goal, budget: int, seed: int) -> float:
+    x0 = torch.as_tensor(goal.grasp, dtype=torch.float32)
+    target = torch.as_tensor(goal.position, dtype=torch.float32)
+    out = bench.optimise(name, Drift(), WORKSPACE, x0, target, STEPS, budget, seed, TOY)
+    assert out.actions.shape == (STEPS, 2) and np.abs(out.actions).max() <= 1.0
+    return out.predicted_error_mm
+
+
+@pytest.mark.parametrize("name", bench.OPTIMISERS)
+def test_a_larger_budget_predicts_no_worse(name: str, goals: list) -> None:
+    """Random shooting's 320 samples begin with the 20 it draws at budget 20 (same generator), so its best can
+    only improve, seed by seed; the others draw differently per budget, so the property is their average."""
+    small = [_predicted(name, g, 20, seed) for g in goals for seed in range(3)]
+    large = [_predicted(name, g, 320, seed) for g in goals for seed in range(3)]
+    assert all(math.isfinite(e) and e >= 0 for e in small + large)
+    if name == "random_shooting":
+        assert all(b <= a for a, b in zip(small, large))
+    assert np.mean(large) < np.mean(small)
+
+
+@pytest.mark.parametrize("name", ["ours", "ours_cem", "cem", "mppi"])
+def test_each_optimiser_solves_a_reachable_toy_goal(name: str, goals: list) -> None:
+    """The toy moves 2 mm per unit action: a goal 8 mm along x in 10 steps needs mean action 0.4 on x."""
+    x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
+    target = x0[:2] + torch.tensor([8.0, 0.0])
+    out = bench.optimise(name, Drift(), WORKSPACE, x0, target, STEPS, 2000, 0, bench.Setting())
+    assert out.predicted_safe and out.predicted_error_mm < 1.0
+    end = x0[:2].numpy() + Drift.GAIN * out.actions.sum(0)  # the toy's exact answer
+    assert np.linalg.norm(end - target.numpy()) == pytest.approx(out.predicted_error_mm, abs=1e-3)
+
+
+def test_time_to_rate_is_the_fastest_budget_reaching_it() -> None:
+    setting = bench.Setting(budgets=(10, 100, 1000), optimisers=("ours",), tolerances_mm=(10.0,),
+                            targets=(0.5, 0.8, 0.95))
+    rows = [{"optimiser": "ours", "budget": b, "median_plan_seconds": s,
+             "success": [{"tolerance_mm": 10.0, "success_rate": rate}]}
+            for b, s, rate in ((10, 0.01, 0.2), (100, 0.05, 0.6), (1000, 0.2, 0.9))]
+    got = {t["success_rate"]: (t["budget"], t["median_plan_seconds"]) for t in bench.time_to_rate(rows, setting)}
+    assert got == {0.5: (100, 0.05), 0.8: (1000, 0.2), 0.95: (None, None)}
+
+
+def test_without_the_model_it_says_how_to_make_it(tmp_path, capsys: pytest.CaptureFixture) -> None:
+    assert bench.main(["--model", str(tmp_path / "absent.safetensors"), "--out", str(tmp_path / "q.json")]) == 2
+    assert bench.MAKE_MODELS in capsys.readouterr().err
+    assert not (tmp_path / "q.json").exists()
