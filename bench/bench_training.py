@@ -14,9 +14,9 @@ Writes bench/results/training.json.  Two measurements, each with a same-run base
   baseline with ``Adam(fused=True)`` and ``clip_grad_norm_(foreach=True)``,
   measures what that change to ``fit`` would buy (``proposal_fused_adam``).
 * trajectory fine-tuning (the ``trajectory_finetune`` method: backprop through
-  open-loop rollouts) in model-steps/s = windows x horizon x epochs / seconds;
-  the baseline is a plain loop ``s = s + net(cat(norm(s), a)) * std + mean`` over
-  the same windows with the same 1/i-weighted loss, Adam and clipping.
+  open-loop rollouts of whole episodes) in model-steps/s = episodes x steps x epochs
+  / seconds; the baseline is a plain loop ``s = s + net(cat(norm(s), a)) * std + mean``
+  over the same episodes with the same 1/i-weighted loss, Adam and clipping.
 
 Repeats alternate ours and the baseline (fewer once ``--budget-s`` is spent on
 one measurement); the figures are medians.  The machine's load average is
@@ -46,13 +46,7 @@ from torch import nn
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.models.network import Normalisation, TransitionModel, mlp
-from t42_transfer.models.training import (
-    TrainConfig,
-    fit_single_step,
-    step_batch,
-    trajectory_weights,
-    windows,
-)
+from t42_transfer.models.training import TrainConfig, fit_single_step, step_batch, trajectory_weights
 from t42_transfer.transfer.config import TrajectoryFineTuneConfig, TransferConfig
 from t42_transfer.transfer.methods import METHODS
 
@@ -141,7 +135,7 @@ def ours_trajectory(source: TransitionModel, target: TrajectorySet, tcfg: Trajec
 
 
 def reference_trajectory(source: TransitionModel, x: torch.Tensor, a: torch.Tensor, tcfg: TrajectoryFineTuneConfig) -> float:
-    """Seconds of the plain rollout-backprop loop over the same windows (same loss, no cutoff mask)."""
+    """Seconds of the plain rollout-backprop loop over the same episodes (the paper's loss, no cutoff)."""
     net = mlp(6, 4)
     net.load_state_dict(source.net.state_dict())
     net.train()
@@ -160,7 +154,7 @@ def reference_trajectory(source: TransitionModel, x: torch.Tensor, a: torch.Tens
                 s = s + net(torch.cat([(s - mean) / std, acts[:, t]], dim=-1)) * dstd + dmean
                 preds.append(s)
             err = ((torch.stack(preds, 1) - true[:, 1:]) / std) ** 2
-            loss = ((err[..., :2].mean(-1) + 0.1 * err[..., 2:].mean(-1)) * weights).sum(-1).mean()
+            loss = (err.mean(dim=(0, 2)) * weights).sum()
             opt.zero_grad()
             loss.backward()
             nn.utils.clip_grad_norm_(net.parameters(), tcfg.train.grad_clip)
@@ -222,11 +216,11 @@ def main() -> None:
     tcfg = dataclasses.replace(
         TrajectoryFineTuneConfig(), train=dataclasses.replace(TrajectoryFineTuneConfig().train, epochs=args.traj_epochs)
     )
-    horizon = min(tcfg.horizon, min(len(t) for t in target))
-    wb = windows(target, horizon, stride=min(tcfg.stride, horizon))
-    model_steps = args.traj_epochs * len(wb) * horizon
+    x = torch.from_numpy(np.stack([t.states for t in target]))  # random_walk_set's episodes are equally long
+    a = torch.from_numpy(np.stack([t.actions for t in target]))
+    model_steps = args.traj_epochs * a.shape[0] * a.shape[1]
     ours_t, ref_t = alternate(
-        [lambda: ours_trajectory(source, target, tcfg), lambda: reference_trajectory(source, wb.x, wb.a, tcfg)],
+        [lambda: ours_trajectory(source, target, tcfg), lambda: reference_trajectory(source, x, a, tcfg)],
         args.traj_repeats, args.budget_s,
     )
     ours_rate, ref_rate = model_steps / statistics.median(ours_t), model_steps / statistics.median(ref_t)
@@ -244,8 +238,8 @@ def main() -> None:
                 "optimiser": "Adam lr 1e-3 wd 1e-3, clip 10, dropout on",
             },
             "trajectory_finetune": {
-                "episodes": args.traj_episodes, "steps": args.traj_steps, "windows": len(wb), "horizon": horizon,
-                "stride": min(tcfg.stride, horizon), "batch_size": tcfg.train.batch_size, "epochs": args.traj_epochs,
+                "episodes": args.traj_episodes, "steps": args.traj_steps, "whole_episodes": True,
+                "batch_size": tcfg.train.batch_size, "epochs": args.traj_epochs,
                 "repeats": args.traj_repeats, "budget_s": args.budget_s, "model_steps_per_run": model_steps,
             },
         },

@@ -14,7 +14,6 @@ from t42_transfer.models.training import (
     fit,
     train_transition_model,
     trajectory_weights,
-    windows,
 )
 
 
@@ -97,14 +96,6 @@ def test_training_reports_every_epoch_of_its_phase(make_set) -> None:
 
 def test_trajectory_weights_are_one_over_i() -> None:
     np.testing.assert_allclose(trajectory_weights(4).numpy(), [1, 1 / 2, 1 / 3, 1 / 4])
-
-
-def test_windows_cover_each_episode_to_its_end(make_set) -> None:
-    data = make_set([20, 25, 9], seed=1)
-    batch = windows(data, horizon=10, stride=10)
-    # 20 -> starts 0, 10; 25 -> 0, 10, 15; 9 is too short
-    assert batch.x.shape == (5, 11, 4) and batch.a.shape == (5, 10, 2)
-    np.testing.assert_array_equal(batch.x[4].numpy(), data[1].states[15:26])
 
 
 def test_early_stopping_validates_on_three_episodes_or_says_it_cannot(make_set) -> None:

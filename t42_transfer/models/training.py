@@ -1,4 +1,5 @@
-"""Training loops: single-step regression and open-loop trajectory fitting.
+"""Training loops: single-step regression, and the shared loop (:func:`fit`) that trajectory fine-tuning
+(:mod:`t42_transfer.transfer.methods`) also runs.
 
 Both index tensors directly (no DataLoader: it costs 1.5-2.4x here), are seeded,
 report each epoch to an optional progress hook, and keep the weights of the best
@@ -30,8 +31,8 @@ from t42_transfer.models.network import Normalisation, TransitionModel
 if TYPE_CHECKING:
     from tqdm import tqdm
 
-# The authors' trajectory loss weighs loads 0.1 against positions 1.0.
 LOAD_LOSS_WEIGHT = 0.1
+"""The authors' trajectory loss weighs loads 0.1 against positions 1.0."""
 
 
 @dataclass(frozen=True)
@@ -207,46 +208,9 @@ def step_loss(net: nn.Module, batch: StepBatch, idx: Tensor | slice) -> Tensor:
     return torch.mean((net(batch.features[idx]) - batch.target[idx]) ** 2)
 
 
-@dataclass(frozen=True)
-class WindowBatch:
-    """Equal-length windows of target episodes for trajectory training: ``x[N, H+1, 4]``, ``a[N, H, 2]``."""
-
-    x: Tensor
-    a: Tensor
-
-    def __len__(self) -> int:
-        return len(self.x)
-
-
-def windows(data: TrajectorySet, horizon: int, stride: int | None = None) -> WindowBatch:
-    """Cut every episode into windows of ``horizon`` steps (the last window ends at the episode's end)."""
-    stride = stride or horizon
-    xs, acts = [], []
-    for traj in data:
-        n = len(traj)
-        if n < horizon:
-            continue
-        starts = list(range(0, n - horizon + 1, stride))
-        if starts[-1] != n - horizon:
-            starts.append(n - horizon)
-        for s in starts:
-            xs.append(traj.states[s : s + horizon + 1])
-            acts.append(traj.actions[s : s + horizon])
-    if not xs:
-        raise ValueError(f"no episode is at least {horizon} steps long")
-    return WindowBatch(torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(acts)))
-
-
 def trajectory_weights(horizon: int) -> Tensor:
     """Per-step loss weights ``1/i`` for predicted states ``i = 1..horizon`` (Algorithm 1)."""
     return 1.0 / torch.arange(1, horizon + 1, dtype=torch.float32)
-
-
-def trajectory_loss(predicted: Tensor, true: Tensor, state_std: Tensor, weights: Tensor) -> Tensor:
-    """Sum over steps of ``w_i * (MSE(x, y) + 0.1 MSE(loads))`` in normalised units, averaged over the batch."""
-    err = ((predicted[:, 1:] - true[:, 1:]) / state_std) ** 2
-    per_step = err[..., :2].mean(-1) + LOAD_LOSS_WEIGHT * err[..., 2:].mean(-1)
-    return (per_step * weights).sum(-1).mean()
 
 
 MIN_VAL_EPISODES = 3
