@@ -24,6 +24,7 @@ from msg_adapters import (
     stamp_to_ns,
 )
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
+from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.nodes.mock_driver import (
     APPLIED_ACTION_TOPIC,
     COMMAND_TOPIC,
@@ -220,6 +221,9 @@ def test_bad_parameter_values_are_refused_and_the_old_kept(ros):
     described = driver.describe_parameter("rate_factor")
     assert described.type == ParameterType.PARAMETER_DOUBLE and described.description
     assert described.floating_point_range[0].from_value > 0 and driver.describe_parameter("hand").read_only
+    hand = driver.describe_parameter("hand").description
+    assert "target_abrupt" in hand and "family-<seed>" in hand  # every variant hand.params names
+    assert all(name in hand for name in NAMED_VARIANTS)
 
 
 def test_bad_startup_parameters_are_one_line_errors(ros):

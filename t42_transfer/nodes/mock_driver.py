@@ -75,6 +75,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
+from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import EVENTS
@@ -101,7 +102,7 @@ class CommandRejected(ValueError):
 class MockDriverParams:
     """The mock driver's ROS parameters."""
 
-    hand: str = param("target", "simulated hand variant: source, target or family-<seed>", read_only=True)
+    hand: str = param("target", f"simulated hand variant: {', '.join(NAMED_VARIANTS)} or family-<seed>", read_only=True)
     rate_factor: float = param(1.0, "steps run this many times faster than real time (timer 0.1 s / rate_factor)",
                                min=1e-3, max=1000.0)
     seed: int | None = param(0, "seed of the first grasp; reset k uses seed + k (unset: unseeded)")
