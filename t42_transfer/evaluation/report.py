@@ -201,7 +201,8 @@ def findings(summary, config: dict[str, Any]) -> list[str]:  # type: ignore[no-u
         low, high = min(still.values()), max(still.values())
         lines.append(
             f"Holding still (the object predicted not to move) lasts {low:.1f}"
-            + (f"-{high:.1f}" if high - low >= 0.05 else "") + " steps before divergence; methods that fall short of it: "
+            + (f"-{high:.1f}" if high - low >= 0.05 else "")
+            + " steps before divergence; methods that fall short of it: "
             + ("; ".join(f"{m} at {', '.join(str(a) for a in at)}" for m, at in short.items() if at) or "none") + "."
         )
     lyap = {m: {a: summary[m][a]["lyapunov_mean"][0] for a in by} for m, by in summary.items()}
