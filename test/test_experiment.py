@@ -95,6 +95,9 @@ def test_hold_still_is_scored_on_every_test_set_once(config_file: Path, tmp_path
         _, test = exp._target_split(cfg, target, exp.Cell("direct", amount, seed))
         expected = evaluate_model(HoldStill(), test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon, cfg.definition)
         assert row["divergence_mean"] == expected["divergence_mean"]
+        for eps in (4.0, 10.0):  # both thresholds in use, counted by the run's definition
+            at = evaluate_model(HoldStill(), test, eps, cfg.start_offsets, cfg.horizon, cfg.definition)
+            assert row[f"divergence_mean_{eps:g}mm"] == at["divergence_mean"]
         assert row["position_mse_mean"] == expected["position_mse_mean"] and row["lyapunov_mean"] == 0.0
         assert row["test_rollouts"] == direct[(amount, seed)]["test_rollouts"]
         assert row["covering_radius"] == direct[(amount, seed)]["covering_radius"]  # the cell's data, not a model's
