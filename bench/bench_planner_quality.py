@@ -394,14 +394,15 @@ def _fmt(value: float | None) -> str:
 
 
 def default_model() -> Path | None:
-    found = sorted(DEFAULT_MODELS.glob("naive_finetune-*.safetensors"))
-    return found[0] if found else None
+    """The newest naive_finetune model file: a rerun of the experiment leaves its earlier files beside it."""
+    found = sorted(DEFAULT_MODELS.glob("naive_finetune-*.safetensors"), key=lambda f: (f.stat().st_mtime, f.name))
+    return found[-1] if found else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, default=None,
-                        help=f"model file (default: {DEFAULT_MODELS}/naive_finetune-*.safetensors)")
+                        help=f"model file (default: the newest {DEFAULT_MODELS}/naive_finetune-*.safetensors)")
     parser.add_argument("--workspace", nargs="+", type=Path, default=None,
                         help="bags whose states define the trained workspace (default: the one the model file stores)")
     parser.add_argument("--goals", type=int, default=30, help="goals (each with every budget and optimiser)")
@@ -446,13 +447,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
     from t42_transfer.data.bag_io import read_bag
-    from t42_transfer.planning.peg_in_hole import load_models
+    from t42_transfer.models.checkpoint import load_model
 
     torch.set_num_threads(args.threads)
     load_start = os.getloadavg()
     started = time.perf_counter()
-    models, stored = load_models([str(model_path)])
-    model = next(iter(models.values()))
+    model, meta = load_model(model_path)
+    stored = Workspace.from_metadata(meta)
     if args.workspace:
         workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
     elif stored is not None:
@@ -467,7 +468,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "command": shlex.join(["python", *(sys.argv if argv is None else ["bench/bench_planner_quality.py", *argv])]),
         "machine": {**machine_info(), "load_average_at_start": load_start, "load_average_at_end": load_end,
                     "oversubscribed": max(load_start[0], load_end[0]) > (os.cpu_count() or 1)},
-        "model": str(model_path),
+        "model": {"path": str(model_path), "method": meta["method"], "weights_sha256": meta.get("weights_sha256")},
         "workspace": "bags " + " ".join(map(str, args.workspace)) if args.workspace else "stored in the model file",
         "seconds_total": time.perf_counter() - started,
         **report(trials, goals, setting),
