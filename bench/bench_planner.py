@@ -176,6 +176,7 @@ def main() -> None:
         rss_child(*args.rss_child)
         return
 
+    load_start = os.getloadavg()
     k, horizon = args.samples, args.horizon
     model = build_model()
     net = model.net
@@ -231,7 +232,7 @@ def main() -> None:
             "python": platform.python_version(),
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
-            "load_average_at_start": os.getloadavg(),
+            "load_average_at_start": load_start,
         },
         "parameters": {
             "samples": k,
