@@ -320,7 +320,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from t42_transfer.planning import Planner, PlannerConfig, Workspace
     from t42_transfer.planning.export import write_plan
 
-    check_plan_size(args.samples, args.horizon)
+    check_plan_size(PlannerConfig.samples if args.samples is None else args.samples, args.horizon)
     for path in (args.workspace or []):
         existing_dir(path)
     output_dir(args.out)
@@ -332,8 +332,9 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         if workspace is None:
             raise ValueError(f"{args.model}: stores no workspace; pass --workspace BAG (the model's training data)")
     cfg = PlannerConfig(
-        samples=args.samples, horizon=args.horizon, sampler=args.sampler, tolerance_mm=args.tolerance,
-        horizon_search=args.horizon_search, refine_iterations=args.refine, seed=args.seed,
+        samples=PlannerConfig.samples if args.samples is None else args.samples, horizon=args.horizon,
+        sampler=args.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,
+        refine_iterations=PlannerConfig.refine_iterations if args.refine is None else args.refine, seed=args.seed,
     )
     plan = Planner(model, workspace, cfg).plan(args.start, args.goal)
     info = {"model": str(args.model), "method": meta.get("method"), "config": asdict(cfg)}
@@ -422,12 +423,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     plan.add_argument("--goal", type=float_arg(), nargs=2, required=True, metavar=("X", "Y"), help="goal object position (mm)")
     plan.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=100, help="steps of 0.1 s (default 100)")
-    plan.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=1000, help="sampled sequences (default 1000)")
+    plan.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=None,
+                      help="sequences sampled per round (default: PlannerConfig's)")
     plan.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
     plan.add_argument("--tolerance", type=float_arg(0, low_open=True), default=2.0, help="predicted error that reaches the goal (mm, default 2)")
     plan.add_argument("--horizon-search", action="store_true", help="return the shortest sequence reaching the goal")
-    plan.add_argument("--refine", type=int_arg(0, MAX_REFINE), default=0, help="cross-entropy refinement iterations (default 0)")
+    plan.add_argument("--refine", type=int_arg(0, MAX_REFINE), default=None,
+                      help="cross-entropy refinement rounds after the first draw (default: PlannerConfig's)")
     plan.add_argument(
         "--workspace", type=Path, nargs="+", default=None, help="bags of the training data (default: stored in the model file)"
     )

@@ -79,9 +79,9 @@ class DemoSize:
 
 
 FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
-                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=1000, rate_factor=5.0)
+                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=250, rate_factor=5.0)
 QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
-                 goal_steps=(30, 40), planner_samples=300, rate_factor=10.0, heldout_episodes=3,
+                 goal_steps=(30, 40), planner_samples=100, rate_factor=10.0, heldout_episodes=3,
                  transfer={"cumulative_residual": {"train": {"epochs": 20}}})
 TOLERANCE_MM = 10.0
 """The paper's peg-in-hole tolerance."""

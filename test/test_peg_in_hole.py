@@ -25,6 +25,8 @@ from t42_transfer.planning.peg_in_hole import (
     main,
     make_goals,
     markdown_table,
+    paired,
+    paired_table,
     plot_success,
     progress_towards,
     summarise,
@@ -33,7 +35,7 @@ from t42_transfer.planning.peg_in_hole import (
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 TINY = PegInHoleConfig(distances=(10, 20), trials=3, tolerances_mm=(10.0, 4.0), min_distance_factor=1.2,
-                       planner=PlannerConfig(samples=120, tolerance_mm=3.0))
+                       planner=PlannerConfig(samples=40, tolerance_mm=3.0))
 """Goals at least 12 mm away (factor 1.2 keeps the tiny runs quick; the default is 2)."""
 
 
@@ -193,3 +195,24 @@ def test_summary_table_and_figure(tmp_path: Path) -> None:
     assert "Tolerance 10 mm" in table and "Tolerance 4 mm" in table
     assert "| a | 10 | 20.0 | 3 | 1 (33%) |" in table and "| 3.0 | 0.15 | 1 / 0 / 1 |" in table
     assert plot_success(rows, tmp_path / "fig.png").stat().st_size > 0
+
+
+def test_paired_comparisons_match_goals_and_pick_each_variants_own_model(tmp_path: Path) -> None:
+    def trial(model: str, trial: int, error: float) -> Trial:
+        return Trial(model, 20, trial, "ok", "length", 20.0, error, 15.0, error, 20, 1, 0.1)
+
+    errors = {"direct": [2, 12, 12, 12], "a": [2, 2, 2, 12], "a+mpc5": [2, 2, 2, 2], "do_nothing": [20] * 4}
+    trials = [trial(m, i, e) for m, es in errors.items() for i, e in enumerate(es)]
+    comparisons = {(c.model, c.against): c for c in paired(trials, (10.0,))}
+    assert set(comparisons) == {("a", "direct"), ("a+mpc5", "a")}  # baselines are not compared
+    a = comparisons["a", "direct"]
+    assert (a.goals, a.wins, a.losses) == (4, 2, 0) and a.difference == pytest.approx(0.5)
+    assert a.ci_low <= a.difference <= a.ci_high
+    assert comparisons["a+mpc5", "a"].difference == pytest.approx(0.25)
+    assert "| a | direct | 10 | 4 | +50% |" in paired_table(list(comparisons.values()))
+
+    stored = tmp_path / "peg_in_hole.json"
+    stored.write_text(json.dumps({"config": {"tolerances_mm": [10.0]}, "trials": [t.__dict__ for t in trials]}))
+    assert main(["--from-json", str(stored)]) == 0
+    assert "| a+mpc5 | a | 10 |" in (tmp_path / "peg_in_hole.md").read_text()
+    assert (tmp_path / "peg_in_hole.png").stat().st_size > 0

@@ -46,8 +46,8 @@ GRASP.reset(0)
 START_XY = GRASP.state[:2].copy()
 """Where the mock driver (seed 0) holds the object after its first grasp."""
 BOX = Workspace.box(START_XY[0] - 40, START_XY[0] + 40, START_XY[1] - 40, START_XY[1] + 40)
-SMALL = dict(samples=200, horizon=20, tolerance_mm=3.0, max_state_age_s=5.0)
-"""Fast plans; a generous state age, since a loaded 2-core machine may take a while between tick and plan."""
+SMALL = dict(samples=200, refine_iterations=0, horizon=20, tolerance_mm=3.0, max_state_age_s=5.0)
+"""Fast unrefined plans; a generous state age, since a loaded 2-core machine may take a while between tick and plan."""
 SLOW_TIMER = 1e-3
 """The driver's rate_factor that keeps its own timer (100 s period) out of hand-stepped tests."""
 
@@ -341,6 +341,10 @@ def test_parameter_changes_apply_to_the_next_plan_and_bad_values_are_refused(rig
     (ok,) = rig.set(samples=50)
     assert ok.successful and rig.planner.params.samples == 50
     assert rig.goal(START_XY + [2.0, 0.0])["samples_evaluated"] == 50
+    (ok,) = rig.set(refine_iterations=2)
+    assert ok.successful
+    assert rig.goal(START_XY + [2.0, 0.0])["samples_evaluated"] == 50 + 2 * (50 - 2)  # 2 elites kept per round
+    (ok,) = rig.set(refine_iterations=0)
     (ok,) = rig.set(horizon=2)  # at most about 1.4 mm per step: 6 mm is out of reach now
     assert ok.successful
     rig.tick()

@@ -119,7 +119,9 @@ class PlannerNodeParams:
 
     model: str = param("", "model file to start with; empty or missing: wait for t42/model_updated "
                            "(goals are refused meanwhile)", read_only=True)
-    samples: int = param(_DEFAULTS.samples, "action sequences sampled per plan", min=1)
+    samples: int = param(_DEFAULTS.samples, "action sequences sampled per round of a plan", min=1)
+    refine_iterations: int = param(_DEFAULTS.refine_iterations, "cross-entropy rounds after the first draw "
+                                                                "(a plan rolls out samples x (1 + this))", min=0)
     horizon: int = param(_DEFAULTS.horizon, "steps of a sampled sequence (0.1 s each); with horizon_search "
                                             "the longest plan", min=1)
     horizon_search: bool = param(True, "plan the shortest sequence that reaches the goal "
@@ -145,7 +147,8 @@ class PlannerNodeParams:
 
     @property
     def planner_config(self) -> PlannerConfig:
-        return PlannerConfig(samples=self.samples, horizon=self.horizon, horizon_search=self.horizon_search,
+        return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
+                             horizon_search=self.horizon_search,
                              tolerance_mm=self.tolerance_mm, seed=self.seed)
 
     @property

@@ -66,7 +66,8 @@ REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "worksp
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    samples: int = 1000
+    samples: int = 250
+    """Sequences drawn per round; a plan rolls out ``samples * (1 + refine_iterations)`` in all."""
     horizon: int = 100
     sampler: str = "piecewise"
     hold_steps: tuple[int, int] = (5, 40)
@@ -74,7 +75,10 @@ class PlannerConfig:
     tolerance_mm: float = 2.0
     """A prediction within this of the goal reaches it (``ok``; the horizon search's target)."""
     horizon_search: bool = False
-    refine_iterations: int = 0
+    refine_iterations: int = 3
+    """Cross-entropy rounds after the first draw.  At the same 1000 rollouts of 40 steps, 250 samples refined
+    3 times reached a 10 mm peg-in-hole goal on the true target hand 86 % of the time against 73 % for 1000
+    samples unrefined, and dropped the object less (bench/results/planner_quality.json, 100 goals)."""
     elite_fraction: float = 0.05
     refine_min_std: float = 0.05
     """Floor of the refitted action std, so refinement keeps exploring."""
