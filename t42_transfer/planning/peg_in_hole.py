@@ -603,7 +603,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")
     parser.add_argument("--variants-of", nargs="+", default=None, metavar="NAME",
                         help="models that get the --mpc and --dropout variants (default: all)")
-    parser.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples)
+    parser.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples,
+                        help="sequences sampled per round")
+    parser.add_argument("--refine", type=int_arg(0, 100), default=PlannerConfig.refine_iterations,
+                        help="cross-entropy rounds after the first draw")
     parser.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon,
                         help="longest plan with --plan-length search")
     parser.add_argument("--hand", default="target")
@@ -626,7 +629,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     for bag in args.workspace or []:
         existing_dir(bag)
     output_dir(args.out)
-    planner = replace(PegInHoleConfig().planner, samples=args.samples, horizon=args.horizon)
+    planner = replace(PegInHoleConfig().planner, samples=args.samples, refine_iterations=args.refine,
+                      horizon=args.horizon)
     try:
         cfg = PegInHoleConfig(tuple(args.distances), args.trials, tuple(args.tolerances), hand=args.hand,
                               plan_length=args.plan_length, replan_every=args.replan_every, planner=planner,
