@@ -11,8 +11,8 @@ true target hand (:func:`~t42_transfer.planning.execution.execute`) and judged
 by :func:`~t42_transfer.planning.peg_in_hole.verdict` at 10 and 4 mm.  The
 budget B counts B model rollouts of the whole horizon per plan:
 
-- ``ours``: :class:`~t42_transfer.planning.planner.Planner`, piecewise sampler, ``samples = B``;
-- ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)`` (its refinement keeps
+- ``ours``: :class:`~t42_transfer.planning.planner.Planner`, piecewise sampler, ``samples = B``, no refinement;
+- ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)``, the Planner's default since this bench (its refinement keeps
   the elites, so it rolls out slightly fewer than B; ``rollouts`` records how many);
 - ``random_shooting``: the Planner with i.i.d. uniform actions (``sampler="uniform"``), ``samples = B``;
 - ``cem``: a plain cross-entropy method written here: a per-step Gaussian over the sequence (mean 0, std
@@ -236,7 +236,7 @@ def planner_plan(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: 
 def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int,
              budget: int, seed: int, setting: Setting) -> Outcome:
     """Optimiser ``name``'s ``steps``-action plan from ``x0`` towards ``goal`` with ``budget`` rollouts."""
-    base = PegInHoleConfig().planner
+    base = replace(PegInHoleConfig().planner, refine_iterations=0)  # each optimiser sets its own rounds
     if name == "ours":
         return planner_plan(model, workspace, x0, goal, steps, budget, seed, replace(base, samples=budget))
     if name == "ours_cem":
@@ -446,20 +446,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
-    from t42_transfer.data.bag_io import read_bag
     from t42_transfer.models.checkpoint import load_model
 
     torch.set_num_threads(args.threads)
     load_start = os.getloadavg()
     started = time.perf_counter()
     model, meta = load_model(model_path)
-    stored = Workspace.from_metadata(meta)
-    if args.workspace:
-        workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
-    elif stored is not None:
-        workspace = stored
-    else:
-        parser.error(f"{model_path} stores no workspace: pass --workspace BAG ... (the model's training data)")
+    try:
+        workspace = Workspace.for_planning(args.workspace, meta, model_path)
+    except ValueError as err:
+        parser.error(str(err))
     goals = make_goals(PegInHoleConfig(distances=(args.steps,), trials=args.goals, tolerances_mm=setting.tolerances_mm,
                                        seed=args.seed), workspace)
     trials = run(model, workspace, goals, setting, progress=not args.quiet)

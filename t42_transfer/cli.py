@@ -315,7 +315,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_plan(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from t42_transfer.data.bag_io import read_bag
     from t42_transfer.models.checkpoint import load_model
     from t42_transfer.planning import Planner, PlannerConfig, Workspace
     from t42_transfer.planning.export import write_plan
@@ -325,12 +324,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         existing_dir(path)
     output_dir(args.out)
     model, meta = load_model(existing_file(args.model))
-    if args.workspace:
-        workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
-    else:
-        workspace = Workspace.from_metadata(meta)
-        if workspace is None:
-            raise ValueError(f"{args.model}: stores no workspace; pass --workspace BAG (the model's training data)")
+    workspace = Workspace.for_planning(args.workspace, meta, args.model)
     cfg = PlannerConfig(
         samples=PlannerConfig.samples if args.samples is None else args.samples, horizon=args.horizon,
         sampler=args.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,

@@ -517,17 +517,17 @@ def plot_success(rows: Sequence[Row], path: Path) -> Path:
     return save(fig, path)
 
 
-def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], Workspace | None]:
-    """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``, and the
-    workspace the first of them stores (None when it stores none)."""
+def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], dict]:
+    """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``, and the first file's
+    metadata (its stored workspace is the default one)."""
     from t42_transfer.models.checkpoint import load_model
 
-    models, workspace = {}, None
+    models, first = {}, None
     for spec in paths:
         name, file = _model_spec(spec)
         models[name], meta = load_model(file)
-        workspace = workspace or Workspace.from_metadata(meta)
-    return models, workspace
+        first = meta if first is None else first
+    return models, first or {}
 
 
 def _model_spec(spec: str) -> tuple[str, Path]:
@@ -571,7 +571,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         int_arg,
         output_dir,
     )
-    from t42_transfer.data.bag_io import read_bag
 
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--from-json"]:
@@ -641,13 +640,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error("--mpc needs --plan-length fixed")
     torch.set_num_threads(args.threads)
 
-    models, stored = load_models(args.models)
-    if args.workspace:
-        workspace = Workspace.from_trajectories(t for bag in args.workspace for t in read_bag(bag))
-    elif stored is not None:
-        workspace = stored
-    else:
-        parser.error(f"{args.models[0]} stores no workspace: pass --workspace BAG ... (the models' training data)")
+    models, first_meta = load_models(args.models)
+    try:
+        workspace = Workspace.for_planning(args.workspace, first_meta, args.models[0])
+    except ValueError as err:
+        parser.error(str(err))
     contenders = contenders_for(models, planner, args.mpc, args.dropout, args.ensemble, args.variants_of, args.risk)
     rows, trials = evaluate(contenders, workspace, cfg, progress=not args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -15,9 +15,10 @@ and as easy to store (2 D numbers).  Loads are bounded by ``load_limit``
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -124,6 +125,20 @@ class Workspace:
         extra = metadata.get("extra") or {}
         stored = extra.get("workspace") if isinstance(extra, Mapping) else None
         return None if stored is None else cls.from_dict(stored)
+
+    @classmethod
+    def for_planning(cls, bags: Sequence[str | Path] | None, metadata: Mapping[str, Any], model: str | Path) -> "Workspace":
+        """The workspace of the states in ``bags`` when given, else the one ``model``'s file stores (``metadata``).
+
+        ValueError (one line) when neither: no default box can know where a model was trained."""
+        if bags:
+            from t42_transfer.data.bag_io import read_bag
+
+            return cls.from_trajectories(t for bag in bags for t in read_bag(bag))
+        stored = cls.from_metadata(metadata)
+        if stored is None:
+            raise ValueError(f"{model} stores no workspace: pass --workspace BAG ... (the model's training data)")
+        return stored
 
     # ---------------------------------------------------------------- testing
     @property
