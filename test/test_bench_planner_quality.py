@@ -8,10 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
-from torch import Tensor
+from test_planner import Toy
 
 from bench import bench_planner_quality as bench
-from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.peg_in_hole import PegInHoleConfig, make_goals
 from t42_transfer.planning.workspace import Workspace
 
@@ -23,26 +22,12 @@ TOY = bench.Setting(budgets=(20, 320), cem_iterations=2, mppi_iterations=2, refi
 """Few iterations keep the tiny runs quick; every optimiser still runs through its whole code path."""
 
 
-class Drift(LatentDynamics):
-    """A toy hand: the object moves ``GAIN`` mm per unit action along x and y; loads stay put."""
+GAIN = 2.0
+"""The toy hand (test_planner.Toy): the object moves GAIN mm per unit action along x and y; loads stay put."""
 
-    GAIN = 2.0
 
-    def config(self) -> dict:
-        return {}
-
-    @classmethod
-    def from_config(cls, config: dict) -> "Drift":
-        return cls()
-
-    def initial_latent(self, x0: Tensor) -> Tensor:
-        return x0
-
-    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
-        return torch.cat([z[:, :2] + self.GAIN * action, z[:, 2:]], dim=-1)
-
-    def observe(self, z: Tensor) -> Tensor:
-        return z
+def drift() -> Toy:
+    return Toy(gain=GAIN)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +38,7 @@ def goals() -> list:
 
 @pytest.fixture(scope="module")
 def result(goals: list) -> dict:
-    trials = bench.run(Drift(), WORKSPACE, goals, TOY)
+    trials = bench.run(drift(), WORKSPACE, goals, TOY)
     return json.loads(json.dumps(bench.report(trials, goals, TOY)))  # JSON-able, as written
 
 
@@ -80,7 +65,7 @@ def test_report_has_every_optimiser_and_budget_with_sound_rates_and_intervals(re
 def _predicted(name: str, goal, budget: int, seed: int) -> float:
     x0 = torch.as_tensor(goal.grasp, dtype=torch.float32)
     target = torch.as_tensor(goal.position, dtype=torch.float32)
-    out = bench.optimise(name, Drift(), WORKSPACE, x0, target, STEPS, budget, seed, TOY)
+    out = bench.optimise(name, drift(), WORKSPACE, x0, target, STEPS, budget, seed, TOY)
     assert out.actions.shape == (STEPS, 2) and np.abs(out.actions).max() <= 1.0
     return out.predicted_error_mm
 
@@ -102,9 +87,9 @@ def test_each_optimiser_solves_a_reachable_toy_goal(name: str, goals: list) -> N
     """The toy moves 2 mm per unit action: a goal 8 mm along x in 10 steps needs mean action 0.4 on x."""
     x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
     target = x0[:2] + torch.tensor([8.0, 0.0])
-    out = bench.optimise(name, Drift(), WORKSPACE, x0, target, STEPS, 2000, 0, bench.Setting())
+    out = bench.optimise(name, drift(), WORKSPACE, x0, target, STEPS, 2000, 0, bench.Setting())
     assert out.predicted_safe and out.predicted_error_mm < 1.0
-    end = x0[:2].numpy() + Drift.GAIN * out.actions.sum(0)  # the toy's exact answer
+    end = x0[:2].numpy() + GAIN * out.actions.sum(0)  # the toy's exact answer
     assert np.linalg.norm(end - target.numpy()) == pytest.approx(out.predicted_error_mm, abs=1e-3)
 
 
