@@ -90,6 +90,9 @@ def graph(user: User) -> dict:
     out["planner_bad_samples"] = user.set_param("planner", "samples", 0)
     out["planner_good_samples"] = user.set_param("planner", "samples", 64)
     out["planner_samples"] = user.get_param("planner", "samples")
+    out["planner_bad_replan"] = user.set_param("planner", "replan_every", -1)
+    out["planner_good_replan"] = user.set_param("planner", "replan_every", 0)
+    out["planner_refine"] = user.get_param("planner", "refine_iterations")
 
     poses: list[PoseStamped] = []
     joints: list[JointState] = []

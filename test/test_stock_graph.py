@@ -123,13 +123,16 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         assert {"/mock_driver", "/recorder", "/transfer_server", "/planner"} <= set(seen["nodes"])
         params = seen["parameters"]
         assert {"rate_factor", "hand", "seed", "use_sim_time"} <= set(params["mock_driver"])
-        assert {"samples", "tolerance_mm", "use_sim_time"} <= set(params["planner"])
+        assert {"samples", "refine_iterations", "replan_every", "piece_timeout_s", "tolerance_mm",
+                "use_sim_time"} <= set(params["planner"])
         assert "source_model" in params["transfer_server"] and "out_dir" in params["recorder"]
         ok, reason = seen["bad_set"]
         assert not ok and reason and seen["after_bad_set"] == 5.0  # refused, old value kept
         assert seen["good_set"][0] and seen["after_good_set"] == 10.0
         assert not seen["planner_bad_samples"][0] and seen["planner_bad_samples"][1]
         assert seen["planner_good_samples"][0] and seen["planner_samples"] == 64
+        assert not seen["planner_bad_replan"][0] and seen["planner_good_replan"][0]  # MPC off, as the demo runs
+        assert seen["planner_refine"] == 3
         assert seen["pose"]["frame_id"] and 0.0 < abs(seen["pose"]["y_m"]) < 0.5  # metres, not mm
         assert seen["joint_state"]["name"] == ["actuator_1", "actuator_2"] and len(seen["joint_state"]["effort"]) == 2
         assert seen["reset"][0] and "grasped" in seen["reset"][1]
