@@ -9,6 +9,7 @@ import pytest
 import torch
 from test_planner import BOX, START, Toy, hand_norm
 
+from t42_transfer.hand.sim import StepInfo
 from t42_transfer.models import TransitionModel
 from t42_transfer.planning import Planner, PlannerConfig
 from t42_transfer.planning.execution import execute
@@ -26,8 +27,9 @@ class ToyHand:
     gain: float
     state: np.ndarray
 
-    def step_info(self, action: np.ndarray) -> None:
+    def step_info(self, action: np.ndarray) -> StepInfo:
         self.state = self.state + np.concatenate([self.gain * np.asarray(action), [0.0, 0.0]])
+        return StepInfo(done=False, end_reason="", refused=False)
 
 
 def fixed(**overrides: object) -> PlannerConfig:

@@ -14,18 +14,21 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from t42_transfer.planning.planner import Plan
+
+if TYPE_CHECKING:  # the hand's step report; the simulator itself is not needed here
+    from t42_transfer.hand.sim import StepInfo
 
 
 class Steppable(Protocol):
     @property
     def state(self) -> np.ndarray: ...
 
-    def step_info(self, action: np.ndarray) -> object: ...
+    def step_info(self, action: np.ndarray) -> StepInfo: ...
 
 
 PlanAt = Callable[[np.ndarray, int], Plan]
@@ -69,8 +72,8 @@ def execute(hand: Steppable, plan_at: PlanAt, steps: int, replan_every: int = 0)
             info = hand.step_info(np.asarray(action, dtype=np.float64))
             actions.append(np.asarray(action, dtype=np.float64))
             states.append(hand.state.copy())
-            if getattr(info, "done", False):
-                return _done(states, actions, getattr(info, "end_reason", "ended") or "ended", plans)
+            if info.done:
+                return _done(states, actions, info.end_reason, plans)
         if not replan_every and len(queue) == 0 and len(actions) < steps:
             return _done(states, actions, "short_plan", plans)
     return _done(states, actions, "length", plans)
