@@ -182,6 +182,24 @@ def test_results_json_holds_the_config(config_file: Path, tmp_path: Path) -> Non
     assert load_config(tmp_path / "tiny" / "config.yaml") == cfg
 
 
+def test_auto_cells_record_the_pick_and_fall_back_on_one_path(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    from t42_transfer.transfer.config import AutoConfig
+
+    base = load_config(config_file)
+    transfer = dataclasses.replace(base.transfer, auto=AutoConfig(candidates=("direct", "naive_finetune"),
+                                                                    fallback="cumulative_residual"))
+    cfg = dataclasses.replace(base, methods=("auto", "cumulative_residual"), seeds=1, transfer=transfer)
+    run_experiment(cfg, tmp_path, progress=False)
+    rows = {(r["method"], r["amount"]): r for r in json.loads((tmp_path / "tiny" / "results.json").read_text())["rows"]}
+    # One path: nothing to hold out, so the fallback is trained on it: the same model as its own cell.
+    assert rows[("auto", 1)]["auto_picked"] == "cumulative_residual"
+    assert rows[("auto", 1)]["divergence_mean"] == rows[("cumulative_residual", 1)]["divergence_mean"]
+    assert rows[("auto", 2)]["auto_picked"] in ("direct", "naive_finetune")
+    assert "auto_picked" not in rows[("cumulative_residual", 2)]
+
+
 def test_cell_models_store_the_planning_workspace(config_file: Path, tmp_path: Path) -> None:
     import dataclasses
 

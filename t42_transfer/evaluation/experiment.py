@@ -64,7 +64,7 @@ from t42_transfer.transfer.config import (
     TrajectoryFineTuneConfig,
     TransferConfig,
 )
-from t42_transfer.transfer.methods import METHODS, transfer
+from t42_transfer.transfer.methods import METHODS, select_method, transfer
 from t42_transfer.yaml_files import read_yaml
 
 RESULT_COLUMNS = (
@@ -561,11 +561,15 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     source, target = sources[source_path], _WORKER["target"]
     train, test = _target_split(cfg, target, cell, _WORKER["test"])
     start = time.perf_counter()
-    model = transfer(cell.method, source, train, cfg.transfer, seed=cell.seed)
     row = {
         "method": cell.method, "amount": cell.amount, "seed": cell.seed,
         "train_episodes": len(train), "train_transitions": train.num_transitions,
     }
+    if cell.method == "auto":  # keep which candidate the held-out evidence picked (results.json only)
+        selection = select_method(source, train, cfg.transfer, seed=cell.seed)
+        model, row["auto_picked"] = selection.model.eval(), selection.best
+    else:
+        model = transfer(cell.method, source, train, cfg.transfer, seed=cell.seed)
     row.update(_score(model, train, test, cfg))
     row["seconds"] = time.perf_counter() - start
     save_model(model, run_dir / "models" / f"{_cell_key(cfg, cell, source_path)}.safetensors", method=cell.method,
