@@ -28,6 +28,11 @@ from t42_transfer.hand.collect import POLICIES, collect
 from t42_transfer.models.checkpoint import load_model
 
 
+def _label(path: Path) -> str:
+    """``run/file`` for a cell model of an experiment run (``run/models/file``), else the file name."""
+    return f"{path.parent.parent.name}/{path.name}" if path.parent.name == "models" else path.name
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("models", nargs="+", type=Path, help="model files; the first one's state std sets the units")
@@ -63,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         exponents = model_lyapunov(model, kept, steps=args.steps, burn_in=args.burn_in, scales=scales).numpy()
         raw = model_lyapunov(model, kept, steps=args.steps).numpy()
         p10, median, p90 = np.percentile(exponents, [10, 50, 90])
-        print(f"| {path.name} | {meta.get('method', '?')} | {exponents.mean():.4f} | {median:.4f} | {p10:.4f} "
+        print(f"| {_label(path)} | {meta.get('method', '?')} | {exponents.mean():.4f} | {median:.4f} | {p10:.4f} "
               f"| {p90:.4f} | {raw.mean():.4f} |")
     return 0
 

@@ -9,6 +9,17 @@ over amounts: mean difference in steps, 95 % t interval, cells won / lost,
 exact sign-test p; then the mean difference per amount.  Markdown to stdout.
 
     .venv/bin/python scripts/paired_tables.py docs/experiments/abrupt_paper_random docs/experiments/smooth_paper_random
+
+``--grid``: one table, a column per run: each method's mean over the run's cells and,
+in brackets, its paired difference to the reference with the 95 % t interval.
+``--winners``: per run and amount, the method with the longest mean horizon, its lead
+over the runner-up (paired over the seeds, 95 % t interval) and the runner-up.
+``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
+cell, against BASE's reference (e.g. the direct cells of the full run it extends).
+
+    .venv/bin/python scripts/paired_tables.py --grid --metric divergence_mean_10mm docs/experiments/*_paper_random
+    .venv/bin/python scripts/paired_tables.py --variants docs/experiments/abrupt_paper_random \\
+        docs/experiments/abrupt_cumres_*
 """
 
 from __future__ import annotations
@@ -54,14 +65,97 @@ def tables(run_dir: Path) -> str:
     return "".join(out)
 
 
+def _rows(run_dir: Path) -> list[dict]:
+    return json.loads((run_dir / "results.json").read_text())["rows"]
+
+
+def _mean_and_difference(rows: list[dict], metric: str, method: str, reference: str) -> str:
+    own = [r[metric] for r in rows if r["method"] == method]
+    if not own:
+        return "-"
+    if method == reference:
+        return f"{sum(own) / len(own):.1f}"
+    paired = compare_methods(rows, metric, method, reference)["all"]
+    low, high = paired.t_interval
+    return f"{paired.mean_a:.1f} ({paired.mean_difference:+.1f}, {low:+.1f} to {high:+.1f}; {paired.wins}/{paired.losses})"
+
+
+def grid_table(runs: list[Path], metric: str, reference: str) -> str:
+    """Methods down, runs across: mean over the matched cells (paired difference to ``reference``, 95 % t, won/lost)."""
+    stored = {run: _rows(run) for run in runs}
+    methods = list(dict.fromkeys(r["method"] for rows in stored.values() for r in rows))
+    methods.sort(key=lambda m: (m != reference, m != "hold_still"))
+    out = [f"| {METRICS.get(metric, metric)} | " + " | ".join(run.name for run in runs) + " |\n",
+           "|---|" + "---|" * len(runs) + "\n"]
+    for method in methods:
+        out.append(f"| {method} | " + " | ".join(_mean_and_difference(stored[run], metric, method, reference)
+                                                 for run in runs) + " |\n")
+    return "".join(out)
+
+
+SHORT = {"new_model": "new", "direct": "direct", "naive_finetune": "naive", "trajectory_finetune": "trajectory",
+         "cumulative_residual": "cumres", "recurrent_residual": "recres", "l2_finetune": "L2", "hold_still": "hold"}
+
+
+def winners_table(runs: list[Path], metric: str) -> str:
+    """Runs down, amounts across: the best method by mean, and its paired lead over the runner-up."""
+    stored = {run: _rows(run) for run in runs}
+    amounts = sorted({r["amount"] for rows in stored.values() for r in rows})
+    out = [f"| {METRICS.get(metric, metric)}: best (mean), lead over the runner-up (95 % t) | "
+           + " | ".join(f"{a:g}" for a in amounts) + " |\n", "|---|" + "---|" * len(amounts) + "\n"]
+    for run, rows in stored.items():
+        cells = []
+        for amount in amounts:
+            at = [r for r in rows if r["amount"] == amount]
+            means = {m: sum(r[metric] for r in at if r["method"] == m) / sum(1 for r in at if r["method"] == m)
+                     for m in dict.fromkeys(r["method"] for r in at)}
+            if len(means) < 2:
+                cells.append("-")
+                continue
+            best, second = sorted(means, key=means.get, reverse=True)[:2]
+            lead = compare_methods(at, metric, best, second)["all"]
+            low, high = lead.t_interval
+            cells.append(f"{SHORT.get(best, best)} ({means[best]:.0f}), +{lead.mean_difference:.1f} ({low:+.1f} to "
+                         f"{high:+.1f}) over {SHORT.get(second, second)}")
+        out.append(f"| {run.name} | " + " | ".join(cells) + " |\n")
+    return "".join(out)
+
+
+def variants_table(base: Path, runs: list[Path], reference: str) -> str:
+    """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
+    base_rows = [r for r in _rows(base) if r["method"] == reference]
+    out = [f"| run, method | {' | '.join(f'{label} (vs {reference} of {base.name})' for label in METRICS.values())} |\n",
+           "|---|" + "---|" * len(METRICS) + "\n"]
+    for run in runs:
+        rows = [r for r in _rows(run) if r["method"] not in (reference, "hold_still")]
+        for method in dict.fromkeys(r["method"] for r in rows):
+            cells = [_mean_and_difference(base_rows + rows, metric, method, reference) for metric in METRICS]
+            out.append(f"| {run.name}, {method} | " + " | ".join(cells) + " |\n")
+    return "".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="experiment run directories (with results.json)")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--grid", action="store_true", help="one table, a column per run")
+    mode.add_argument("--winners", action="store_true", help="the best method per run and amount")
+    mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
+    parser.add_argument("--metric", choices=sorted(METRICS), default="divergence_mean_4mm", help="for --grid and --winners")
+    parser.add_argument("--reference", default="direct", help="for --grid and --variants (default: direct)")
     args = parser.parse_args(argv)
-    for run in args.runs:
+    for run in [*args.runs, *([args.variants] if args.variants else [])]:
         if not (run / "results.json").is_file():
             parser.error(f"{run}: no results.json")
-        print(tables(run))
+    if args.grid:
+        print(grid_table(args.runs, args.metric, args.reference))
+    elif args.winners:
+        print(winners_table(args.runs, args.metric))
+    elif args.variants:
+        print(variants_table(args.variants, args.runs, args.reference))
+    else:
+        for run in args.runs:
+            print(tables(run))
     return 0
 
 

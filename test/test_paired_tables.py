@@ -1,0 +1,55 @@
+"""scripts/paired_tables.py on hand-made results: the tables behind docs/evaluation.md."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tables():  # type: ignore[no-untyped-def]
+    spec = importlib.util.spec_from_file_location("paired_tables", REPO / "scripts" / "paired_tables.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(root: Path, name: str, scores: dict[str, list[list[float]]]) -> Path:
+    """A run whose ``method`` scores ``scores[method][amount index][seed]`` steps at 4 mm (10 mm: twice that)."""
+    rows = [{"method": m, "amount": a, "seed": s, "divergence_mean_4mm": v, "divergence_mean_10mm": 2 * v}
+            for m, per_amount in scores.items() for a, seeds in zip((0.01, 0.1), per_amount)
+            for s, v in enumerate(seeds)]
+    (root / name).mkdir()
+    (root / name / "results.json").write_text(json.dumps({"config": {}, "rows": rows}))
+    return root / name
+
+
+def test_grid_gives_means_and_paired_differences(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]]})
+    text = tables.grid_table([run], "divergence_mean_4mm", "direct")
+    assert "| direct | 10.0 |" in text
+    # differences 2, 4, 1, 5: mean 3, won 4 of 4
+    assert "| naive_finetune | 13.0 (+3.0, " in text and "; 4/0) |" in text
+    assert "| naive_finetune | 26.0 (+6.0, " in tables.grid_table([run], "divergence_mean_10mm", "direct")
+
+
+def test_winners_name_the_best_per_amount_and_its_lead(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [30, 30]], "naive_finetune": [[12, 14], [20, 22]],
+                               "l2_finetune": [[11, 11], [25, 27]]})
+    row = tables.winners_table([run], "divergence_mean_4mm").splitlines()[-1]
+    first, second = (cell.strip(" |") for cell in row.split(" | ")[1:3])
+    assert first.startswith("naive (13), +2.0") and first.endswith("over L2")
+    assert second.startswith("direct (30), +4.0") and second.endswith("over L2")
+
+
+def test_variants_pair_each_run_with_the_base_reference(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    base = _run(tmp_path, "base", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[50, 50], [50, 50]]})
+    sweep = _run(tmp_path, "sweep", {"cumulative_residual": [[9, 9], [7, 7]]})
+    text = tables.variants_table(base, [sweep], "direct")
+    assert "| sweep, cumulative_residual | 8.0 (-2.0, " in text and "; 0/4) | 16.0 (-4.0, " in text
+    assert "naive_finetune" not in text  # only the variant runs' methods are rows
