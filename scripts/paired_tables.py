@@ -14,6 +14,9 @@ exact sign-test p; then the mean difference per amount.  Markdown to stdout.
 in brackets, its paired difference to the reference with the 95 % t interval.
 ``--winners``: per run and amount, the method with the longest mean horizon, its lead
 over the runner-up (paired over the seeds, 95 % t interval) and the runner-up.
+``--ranking``: a row per run, the methods ordered by their paired difference to the
+reference at each threshold, ``*`` where the 95 % t interval lies above 0 and ``!``
+where it lies below (the verdict's headline table).
 ``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
 cell, against BASE's reference (e.g. the direct cells of the full run it extends).
 
@@ -121,6 +124,29 @@ def winners_table(runs: list[Path], metric: str) -> str:
     return "".join(out)
 
 
+def _ranked(rows: list[dict], metric: str, reference: str) -> str:
+    ranked = []
+    for method in dict.fromkeys(r["method"] for r in rows):
+        if method in (reference, "hold_still"):
+            continue
+        paired = compare_methods(rows, metric, method, reference)["all"]
+        low, high = paired.t_interval
+        mark = "*" if low > 0 else "!" if high < 0 else ""
+        d = paired.mean_difference
+        ranked.append((d, f"{SHORT.get(method, method)} {d:+.{0 if abs(d) >= 10 else 1}f}{mark}"))
+    return ", ".join(text for _, text in sorted(ranked, reverse=True))
+
+
+def ranking_table(runs: list[Path], reference: str) -> str:
+    """Runs down, thresholds across: methods by paired difference to ``reference`` (``*`` above, ``!`` below)."""
+    out = ["| run | " + " | ".join(f"{label}: difference to {reference} (steps)" for label in METRICS.values())
+           + " |\n", "|---|" + "---|" * len(METRICS) + "\n"]
+    for run in runs:
+        rows = _rows(run)
+        out.append(f"| {run.name} | " + " | ".join(_ranked(rows, metric, reference) for metric in METRICS) + " |\n")
+    return "".join(out)
+
+
 def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
     base_rows = [r for r in _rows(base) if r["method"] == reference]
@@ -140,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--grid", action="store_true", help="one table, a column per run")
     mode.add_argument("--winners", action="store_true", help="the best method per run and amount")
+    mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
     parser.add_argument("--metric", choices=sorted(METRICS), default="divergence_mean_4mm", help="for --grid and --winners")
     parser.add_argument("--reference", default="direct", help="for --grid and --variants (default: direct)")
@@ -149,6 +176,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{run}: no results.json")
     if args.grid:
         print(grid_table(args.runs, args.metric, args.reference))
+    elif args.ranking:
+        print(ranking_table(args.runs, args.reference))
     elif args.winners:
         print(winners_table(args.runs, args.metric))
     elif args.variants:

@@ -53,3 +53,12 @@ def test_variants_pair_each_run_with_the_base_reference(tables, tmp_path: Path) 
     text = tables.variants_table(base, [sweep], "direct")
     assert "| sweep, cumulative_residual | 8.0 (-2.0, " in text and "; 0/4) | 16.0 (-4.0, " in text
     assert "naive_finetune" not in text  # only the variant runs' methods are rows
+
+
+def test_ranking_orders_by_difference_and_marks_the_intervals(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]],
+                               "cumulative_residual": [[7, 8], [6, 9]], "trajectory_finetune": [[12, 8], [9, 11]],
+                               "hold_still": [[1, 1], [1, 1]]})
+    row = tables.ranking_table([run], "direct").splitlines()[-1]
+    four_mm = row.split(" | ")[1]
+    assert four_mm == "naive +3.0*, trajectory +0.0, cumres -2.0!"
