@@ -61,4 +61,4 @@ def test_ranking_orders_by_difference_and_marks_the_intervals(tables, tmp_path: 
                                "hold_still": [[1, 1], [1, 1]]})
     row = tables.ranking_table([run], "direct").splitlines()[-1]
     four_mm = row.split(" | ")[1]
-    assert four_mm == "naive +3.0*, trajectory +0.0, cumres -2.0!"
+    assert four_mm == "naive +3.0*, trajectory +0.0, cumres -2.5!"
