@@ -82,7 +82,7 @@ FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_e
                 goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=250, rate_factor=5.0)
 QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
                  goal_steps=(30, 40), planner_samples=100, rate_factor=10.0, heldout_episodes=3,
-                 transfer={"cumulative_residual": {"train": {"epochs": 20}}})
+                 transfer={"l2_finetune": {"train": {"epochs": 10}}})
 TOLERANCE_MM = 10.0
 """The paper's peg-in-hole tolerance."""
 MIN_GOAL_DISTANCE_MM = 2 * TOLERANCE_MM
@@ -152,7 +152,7 @@ def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
                             max_command_age_s=0.5 * size.rate_factor),
         "recorder": node(out_dir=str(run_dir / "bags"), mode="episode", start_immediately=False, use_sim_time=True),
         "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
-                                bag_dir=str(run_dir / "bags"), method="cumulative_residual",
+                                bag_dir=str(run_dir / "bags"),
                                 new_bags_only=False, config=str(methods), use_sim_time=True),
         "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
         "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,

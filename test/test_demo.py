@@ -47,7 +47,7 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
         used = int(re.search(r"from (\d+) bag\(s\)", transfer["message"]).group(1))
         assert fewest <= used <= fewest + (record["round"] > 1), transfer["message"]
         model, meta = load_model(record["model"])
-        assert meta["method"] == "cumulative_residual" and "workspace" in meta.get("extra", {})
+        assert meta["method"] == "l2_finetune" and "workspace" in meta.get("extra", {})
         assert set(record["heldout"]) == {"model", "source", "hold_still"}
         assert all(v >= 0 for v in record["heldout"].values())
         assert record["still_hits"] == 0 and 0 <= record["hits"] <= record["goals"] == len(size["goal_steps"])

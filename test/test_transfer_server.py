@@ -38,7 +38,7 @@ from t42_transfer.transfer.methods import METHODS
 from t42_transfer.transfer.online import CURRENT_MODEL, STATE_FILE, config_from_file, config_with_overrides, hold_out
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = "cumulative_residual: {train: {epochs: 2}}\n"
+TINY = "l2_finetune: {train: {epochs: 2}}\n"
 """Method settings (a config file) that train in seconds."""
 
 pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.executor_threads(4)]
@@ -116,13 +116,13 @@ def test_transfer_answers_with_summary_saves_and_announces(ros, tmp_path, source
     response = rig.call()
     assert response.success, response.message
     model_path = rig.model_dir / "transferred_000.safetensors"
-    for part in ("cumulative_residual", "episodes", "transitions", "held-out", "divergence", "mm^2", str(model_path)):
+    for part in ("l2_finetune", "episodes", "transitions", "held-out", "divergence", "mm^2", str(model_path)):
         assert part in response.message
     assert "\n" not in response.message
     assert ros.spin_until(lambda: rig.updates == [str(model_path)], 5.0), rig.updates
     assert rig.model_files() == [CURRENT_MODEL, STATE_FILE, "transferred_000.safetensors"]
     model, meta = load_model(rig.model_dir / CURRENT_MODEL)
-    assert isinstance(model, CumulativeResidualModel) and meta["method"] == "cumulative_residual"
+    assert type(model) is type(load_model(source_model)[0]) and meta["method"] == "l2_finetune"
     assert meta["data"]["bags"] == [str(bag.resolve())]
     merged = Workspace.from_metadata(meta)
     source = Workspace.from_metadata(read_metadata(source_model))
@@ -134,13 +134,13 @@ def test_transfer_answers_with_summary_saves_and_announces(ros, tmp_path, source
     assert rig.stages() == ["loading", "training", "evaluating", "saving", "done"]
     last = rig.reports[-1]
     assert last.level == "OK" and last.message == response.message
-    assert last.values["method"] == "cumulative_residual" and last.values["bags"] == bag.name
+    assert last.values["method"] == "l2_finetune" and last.values["bags"] == bag.name
     assert last.values["epochs"] == "2" and last.values["model"] == str(model_path)
     assert float(last.values["elapsed_s"]) >= 0.0
 
 
 def test_diagnostics_follow_the_training_epochs(ros, tmp_path, source_model):
-    settings = config_file(tmp_path / "four.yaml", "cumulative_residual: {train: {epochs: 4, patience: null}}\n")
+    settings = config_file(tmp_path / "four.yaml", "l2_finetune: {train: {epochs: 4, patience: null}}\n")
     rig = Rig(ros, tmp_path, source_model, config=settings)
     add_target_bag(rig.bag_dir)
     assert rig.call().success
@@ -148,9 +148,9 @@ def test_diagnostics_follow_the_training_epochs(ros, tmp_path, source_model):
     epochs = [int(r.values["epoch"]) for r in training]
     assert epochs == sorted(epochs) and set(epochs) == {0, 1, 2, 3, 4}
     trained = [r for r in training if int(r.values["epoch"]) > 0]
-    assert all(r.values["phase"] == "residual" and r.values["epochs"] == "4" for r in trained)
+    assert all(r.values["phase"] == "L2 fine-tune" and r.values["epochs"] == "4" for r in trained)
     assert all(math.isfinite(float(r.values["train_loss"])) for r in trained)
-    assert trained[-1].message == "training residual: epoch 4/4"
+    assert trained[-1].message == "training L2 fine-tune: epoch 4/4"
 
 
 def test_bags_are_used_once(ros, tmp_path, source_model, make_set):
@@ -403,10 +403,10 @@ def test_parameters_change_at_run_time_and_take_effect_with_the_next_call(ros, t
     assert "method must be one of" in refused["method"].reason
     assert "missing.yaml" in refused["config"].reason
     assert "read-only" in refused["read-only"].reason
-    assert server.params.method == "cumulative_residual" and server.params.holdout_fraction == 0.25
+    assert server.params.method == "l2_finetune" and server.params.holdout_fraction == 0.25
 
     other = tmp_path / "three.yaml"
-    other.write_text("cumulative_residual: {train: {epochs: 3, patience: null}}\n")
+    other.write_text("l2_finetune: {train: {epochs: 3, patience: null}}\n")
     assert server.set_parameters([Parameter("config", value=str(other))])[0].successful
     add_target_bag(rig.bag_dir)
     assert rig.call().success

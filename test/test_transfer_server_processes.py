@@ -20,7 +20,7 @@ from test_transfer_server import add_target_bag, config_file, source_model  # no
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-LONG = "cumulative_residual: {train: {epochs: 800, patience: null}}\n"
+LONG = "l2_finetune: {train: {epochs: 800, patience: null}}\n"
 """Seconds of training on the fixture bag (a few ms an epoch): time for a second call meanwhile."""
 
 

@@ -96,8 +96,9 @@ class TransferServerParams:
                                       "transfer are skipped too", read_only=True)
     new_bags_only: bool = param(True, "train on the bags no earlier transfer used; false: on every bag, once one "
                                       "is new (the suite keeps learning from all it recorded)")
-    method: str = param("cumulative_residual", f"transfer method, one of {', '.join(sorted(METHODS))} (auto: train "
-                                               "the candidates, keep the best on held-out episodes, report all)")
+    method: str = param("l2_finetune", f"transfer method, one of {', '.join(sorted(METHODS))} (default: the "
+                                       "evaluations' choice, docs/evaluation.md; auto: train the candidates, keep the "
+                                       "best on held-out episodes, report all)")
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")

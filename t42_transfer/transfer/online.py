@@ -87,7 +87,9 @@ class OnlineTransferSpec:
     new_bags_only: bool = True
     """Train on the bags no earlier transfer used (True), or on every candidate bag once at least one is new
     (False: the suite keeps learning from all it recorded, e.g. the episodes of executed plans)."""
-    method: str = "cumulative_residual"
+    method: str = "l2_finetune"
+    """The evaluations' choice (docs/evaluation.md, section 6): best or tied best on most settings and on both real
+    pairs; ``auto`` is the hedge where fine-tuning can fall below no adaptation."""
     config: TransferConfig = TransferConfig()
     holdout_fraction: float = 0.25
     min_episodes: int = 2
