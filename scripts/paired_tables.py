@@ -35,6 +35,7 @@ from pathlib import Path
 from t42_transfer.evaluation.stats import compare_methods
 
 METRICS = {"divergence_mean_4mm": "4 mm", "divergence_mean_10mm": "10 mm"}
+GRID_METRICS = {**METRICS, "position_mse_mean": "position MSE, mm² (lower is better; won = higher)"}
 REFERENCES = ("direct", "naive_finetune")
 
 
@@ -88,7 +89,7 @@ def grid_table(runs: list[Path], metric: str, reference: str) -> str:
     stored = {run: _rows(run) for run in runs}
     methods = list(dict.fromkeys(r["method"] for rows in stored.values() for r in rows))
     methods.sort(key=lambda m: (m != reference, m != "hold_still"))
-    out = [f"| {METRICS.get(metric, metric)} | " + " | ".join(run.name for run in runs) + " |\n",
+    out = [f"| {GRID_METRICS[metric]} | " + " | ".join(run.name for run in runs) + " |\n",
            "|---|" + "---|" * len(runs) + "\n"]
     for method in methods:
         out.append(f"| {method} | " + " | ".join(_mean_and_difference(stored[run], metric, method, reference)
@@ -168,12 +169,15 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--winners", action="store_true", help="the best method per run and amount")
     mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
-    parser.add_argument("--metric", choices=sorted(METRICS), default="divergence_mean_4mm", help="for --grid and --winners")
+    parser.add_argument("--metric", choices=sorted(GRID_METRICS), default="divergence_mean_4mm",
+                        help="for --grid and --winners (position MSE: --grid only)")
     parser.add_argument("--reference", default="direct", help="for --grid and --variants (default: direct)")
     args = parser.parse_args(argv)
     for run in [*args.runs, *([args.variants] if args.variants else [])]:
         if not (run / "results.json").is_file():
             parser.error(f"{run}: no results.json")
+    if args.metric not in METRICS and not args.grid:
+        parser.error("--metric position_mse_mean is for --grid only")
     if args.grid:
         print(grid_table(args.runs, args.metric, args.reference))
     elif args.ranking:
