@@ -21,9 +21,8 @@
    planned ``JointTrajectory`` open loop; the rule of
    :func:`~t42_transfer.planning.peg_in_hole.verdict` decides success (completed,
    half way towards the goal at least, within the tolerance), and doing nothing
-   is scored by the same rule on the same grasps.  The recorder records each
-   goal's episode from the settled grasp to the plan's end (not the settling
-   before it, which would make holding still most of what the next transfer sees).
+   is scored by the same rule on the same grasps.  The recorder records these
+   episodes like any other.
 6. **Second round**: ``/t42/transfer`` again, now with the executed plans among
    the episodes, then new goals of the same kind: does the suite improve with use?
    Each round's model is also scored on the same held-out target episodes
@@ -310,6 +309,17 @@ def _grasp_seed(message: str) -> int:
     return int(match.group(1))
 
 
+def _wait_for_closed_bags(op: Any, suite: _Suite, bag_dir: Path) -> list[Path]:
+    """The episode bags once the recorder has closed them all: a stop completes after the step in progress,
+    and a transfer uses finished bags only."""
+    def bags() -> list[Path]:
+        return sorted(bag_dir.glob("episode_*"))
+
+    op.wait_until(lambda: all((p / "metadata.yaml").is_file() for p in bags()), 30.0,
+                  "the recorder to close its bags", suite.check)
+    return bags()
+
+
 def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
     from t42_transfer.hand.sim import SimulatedHand
     from t42_transfer.planning.peg_in_hole import progress_towards, reachable_goal, verdict
@@ -335,26 +345,6 @@ def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any, rou
         return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
 
     op.wait_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
-    # Only the goal's own steps are recorded, not the settling before it: otherwise holding still makes
-    # up most of a goal episode and the next transfer learns mostly from that.
-    _recorder(op, suite, "start")
-    try:
-        return _execute_goal(op, suite, goal, steps, seed, still_error, still, round_)
-    finally:
-        _recorder(op, suite, "stop")
-
-
-def _recorder(op: Any, suite: _Suite, action: str) -> None:
-    answer = op.call(f"recorder/{action}", 30.0, suite.check)
-    if not answer.success:
-        raise RuntimeError(f"recorder/{action}: {answer.message}")
-
-
-def _execute_goal(op: Any, suite: _Suite, goal: Any, steps: int, seed: int, still_error: float, still: str,
-                  round_: int) -> GoalRun:
-    """Send the goal from the settled grasp, wait for the plan's execution and judge it."""
-    from t42_transfer.planning.peg_in_hole import progress_towards, verdict
-
     start = op.latest_pose()[1]
     results = len(op.results)
     paths = len(op.paths)
@@ -585,7 +575,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
                       "the explorer", suite.check)
         if explorer.proc.returncode != 0:
             raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
-        bags = sorted(p for p in (run_dir / "bags").glob("episode_*") if (p / "metadata.yaml").is_file())
+        bags = _wait_for_closed_bags(op, suite, run_dir / "bags")
         summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
         _say(f"[3/{4 + size.rounds}] target data: {len(bags)} episode bags recorded through topics "
              f"({time.perf_counter() - t0:.0f} s) in {run_dir / 'bags'}")
@@ -598,6 +588,9 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
             record["heldout"] = heldout_scores(record["model"], model, heldout)
             _say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
                  f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
+            ok = op.call("recorder/start", 30.0, suite.check)
+            if not ok.success:
+                raise RuntimeError(f"recorder/start: {ok.message}")
             mine = []
             for index, steps in enumerate(size.goal_steps):
                 run = run_goal(op, suite, steps, index, workspace, round_)
@@ -607,9 +600,8 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
                 _say(f"      round {round_} goal {index + 1}/{len(size.goal_steps)} ({steps} steps, "
                      f"{run.start_distance_mm:.1f} mm away):{error} -> {verdict} (doing nothing: "
                      f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
-            # The transfer of the next round uses finished bags only: wait until the recorder closed the last one.
-            op.wait_until(lambda: all((p / "metadata.yaml").is_file() for p in (run_dir / "bags").glob("episode_*")),
-                          30.0, "the recorder to close the goal episodes' bags", suite.check)
+            op.call("recorder/stop", 30.0, suite.check)
+            _wait_for_closed_bags(op, suite, run_dir / "bags")
             runs.extend(mine)
             record.update(goals=len(mine), hits=sum(r.success for r in mine),
                           still_hits=sum(r.still_verdict == "hit" for r in mine))
