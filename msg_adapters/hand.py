@@ -15,8 +15,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from msg_adapters import names
 from msg_adapters.kit import ROSBAGS, MessageKit
-from t42_transfer.conventions import (
+from msg_adapters.wire import (
     ACTION_DIM,
     ACTION_UNIT_RAD,
     ACTUATOR_NAMES,
@@ -30,9 +31,10 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 
-OBJECT_POSE_TOPIC = "/hand/object_pose"
-JOINT_STATES_TOPIC = "/hand/joint_states"
-APPLIED_ACTION_TOPIC = "/hand/applied_action"
+OBJECT_POSE_TOPIC = "/" + names.OBJECT_POSE
+JOINT_STATES_TOPIC = "/" + names.JOINT_STATES
+APPLIED_ACTION_TOPIC = "/" + names.APPLIED_ACTION
+"""The hand topics as a bag of a suite in the root namespace names them (resolved, absolute)."""
 HAND_TOPICS = {
     OBJECT_POSE_TOPIC: POSE_STAMPED,
     JOINT_STATES_TOPIC: JOINT_STATE,

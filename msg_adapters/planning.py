@@ -21,7 +21,7 @@ from msg_adapters.hand import (
     object_xy_mm,
 )
 from msg_adapters.kit import ROSBAGS, MessageKit
-from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
+from msg_adapters.wire import CONTROL_PERIOD_NS, FRAME_ID
 
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 PATH = "nav_msgs/msg/Path"

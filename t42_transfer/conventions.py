@@ -3,21 +3,26 @@
 Inside the package a hand state is ``(object x mm, object y mm, load1, load2)`` with
 loads in raw servo units, and an action is a pair of normalised actuator-angle
 increments applied for one control period.  On the ROS wire everything is SI
-(REP 103); the conversions live in :mod:`msg_adapters`.
+(REP 103); the conversions live in :mod:`msg_adapters`.  The wire facts (control
+period, actuators, frame, unit scales) and the episode end reasons, which are also
+status words, are defined there, in the layer below, and re-exported here.
 """
 
 from __future__ import annotations
 
+from msg_adapters.names import DROPPED, LOST_CONTACT, OVERLOAD
+from msg_adapters.wire import (
+    ACTION_DIM,
+    ACTION_UNIT_RAD,
+    ACTUATOR_NAMES,
+    CONTROL_PERIOD_NS,
+    CONTROL_PERIOD_S,
+    FRAME_ID,
+    LOAD_UNIT_NM,
+)
+
 STATE_DIM = 4
-ACTION_DIM = 2
 STATE_NAMES = ("x_mm", "y_mm", "load1", "load2")
-
-CONTROL_PERIOD_S = 0.1
-"""The hands run at 10 Hz: one action per 0.1 s."""
-CONTROL_PERIOD_NS = 100_000_000
-
-ACTION_UNIT_RAD = 0.025
-"""Actuator-angle change (rad) of an action component of 1.0 over one control period."""
 
 ACTION_LIMIT = 1.5
 """Largest accepted |action| component: the real hands' discrete set contains +-1.5."""
@@ -37,9 +42,6 @@ REAL_HAND_ACTIONS = (
 )
 """The real hands' discrete moves: both fingers together, against each other, or one alone."""
 
-LOAD_UNIT_NM = 0.0041
-"""Torque (N m) of one raw load unit: 0.1 % of a Dynamixel XM430's 4.1 N m stall torque."""
-
 GRASP_LOAD = 100.0
 """The grasp-closing routine closes until |load| passes this (as the real driver)."""
 
@@ -52,5 +54,7 @@ DROP_JUMP_MM = 8.0
 MIN_EPISODE_STEPS = 15
 """Episodes shorter than this are discarded (paper's data rule)."""
 
-ACTUATOR_NAMES = ("actuator_1", "actuator_2")
-FRAME_ID = "t42_base"
+END_REASONS = ("", "length", DROPPED, OVERLOAD, LOST_CONTACT)
+"""Why an episode ended: not recorded, its planned length, or one of the hand's end events."""
+DROP_REASONS = (DROPPED, LOST_CONTACT)
+"""End reasons that mean the object left the grasp."""

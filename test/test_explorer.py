@@ -13,14 +13,15 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import applied_action
+from msg_adapters import names
 from t42_transfer.data.bag_io import read_bag
 from t42_transfer.data.trajectory import Trajectory
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.nodes.explorer import Explorer
-from t42_transfer.nodes.mock_driver import APPLIED_ACTION_TOPIC, RESET_SERVICE, STATUS_TOPIC, MockDriver
+from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.recorder import Recorder
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import profile
 
 RATE = 10.0
 """The driver steps 10x faster than real time: a 30-step episode takes 0.3 s."""
@@ -36,9 +37,9 @@ class Watcher:
         self.node = ros.node("tester", namespace=namespace)
         self.actions: list[np.ndarray] = []
         self.statuses: list[str] = []
-        self.node.create_subscription(JointState, APPLIED_ACTION_TOPIC,
+        self.node.create_subscription(JointState, names.APPLIED_ACTION,
                                       lambda m: self.actions.append(applied_action(m)), 1000)
-        self.node.create_subscription(String, STATUS_TOPIC, lambda m: self.statuses.append(m.data), LATCHED)
+        self.node.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data), profile(names.LATCHED))
 
     def explored(self) -> np.ndarray:
         """The non-zero applied actions (the driver applies zeros while no trajectory runs)."""
@@ -156,7 +157,7 @@ def test_an_absent_recorder_and_failed_resets_do_not_stop_exploring(ros) -> None
         response.success, response.message = False, "grasp failed: nothing to hold"
         return response
 
-    tester.create_service(Trigger, RESET_SERVICE, refuse)
+    tester.create_service(Trigger, names.HAND_RESET, refuse)
     explorer = ros.add(Explorer, {"episodes": 2, "record_start_service": "nobody/start",
                                   "record_stop_service": "nobody/stop"})
     explorer.SERVICE_TIMEOUT_S = 0.3

@@ -23,16 +23,10 @@ from msg_adapters import (
     joint_state_arrays,
     stamp_to_ns,
 )
+from msg_adapters import names
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.nodes.mock_driver import (
-    APPLIED_ACTION_TOPIC,
-    COMMAND_TOPIC,
-    JOINT_STATES_TOPIC,
-    OBJECT_POSE_TOPIC,
-    RESET_SERVICE,
-    STATUS_TOPIC,
-    TRAJECTORY_TOPIC,
     CommandRejected,
     MockDriver,
     MockDriverParams,
@@ -40,7 +34,7 @@ from t42_transfer.nodes.mock_driver import (
     validate_command,
     validate_trajectory,
 )
-from t42_transfer.ros.qos import EVENTS
+from t42_transfer.ros.qos import profile
 
 START_NS = 1_000_000_000
 MAX_AGE_NS = 500_000_000
@@ -56,26 +50,26 @@ class Rig:
         params.setdefault("rate_factor", SLOW_TIMER)
         self.driver = ros.add(MockDriver, params)
         self.tester = ros.node("tester")
-        self.got: dict[str, list] = {t: [] for t in (OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC,
-                                                      STATUS_TOPIC)}
-        for topic, msgtype in ((OBJECT_POSE_TOPIC, PoseStamped), (JOINT_STATES_TOPIC, JointState),
-                               (APPLIED_ACTION_TOPIC, JointState)):
+        self.got: dict[str, list] = {t: [] for t in (names.OBJECT_POSE, names.JOINT_STATES, names.APPLIED_ACTION,
+                                                      names.HAND_STATUS)}
+        for topic, msgtype in ((names.OBJECT_POSE, PoseStamped), (names.JOINT_STATES, JointState),
+                               (names.APPLIED_ACTION, JointState)):
             self.tester.create_subscription(msgtype, topic, self.got[topic].append, 100)
-        self.tester.create_subscription(String, STATUS_TOPIC, self.got[STATUS_TOPIC].append, EVENTS)
-        self.command_pub = self.tester.create_publisher(JointState, COMMAND_TOPIC, 10)
-        self.trajectory_pub = self.tester.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
-        self.reset_client = self.tester.create_client(Trigger, RESET_SERVICE)
+        self.tester.create_subscription(String, names.HAND_STATUS, self.got[names.HAND_STATUS].append, profile(names.EVENTS))
+        self.command_pub = self.tester.create_publisher(JointState, names.HAND_COMMAND, 10)
+        self.trajectory_pub = self.tester.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
+        self.reset_client = self.tester.create_client(Trigger, names.HAND_RESET)
         # discovery: the driver hears the tester and the tester the driver before the test starts
         assert ros.spin_until(lambda: self.command_pub.get_subscription_count() == 1
                               and self.trajectory_pub.get_subscription_count() == 1
                               and self.driver._pose_pub.get_subscription_count() == 1
-                              and self.got[STATUS_TOPIC], 10.0)
+                              and self.got[names.HAND_STATUS], 10.0)
 
     def clock(self) -> int:
         return self.driver.now_ns()
 
     def _count(self) -> int:
-        return sum(len(v) for k, v in self.got.items() if k != STATUS_TOPIC)
+        return sum(len(v) for k, v in self.got.items() if k != names.HAND_STATUS)
 
     def tick(self, n: int = 1) -> None:
         """``n`` control steps, each delivered to the tester before the next."""
@@ -102,10 +96,10 @@ class Rig:
         return self.clock() if stamp_ns is None else stamp_ns
 
     def applied(self) -> np.ndarray:
-        return np.array([applied_action(m) for m in self.got[APPLIED_ACTION_TOPIC]]).reshape(-1, 2)
+        return np.array([applied_action(m) for m in self.got[names.APPLIED_ACTION]]).reshape(-1, 2)
 
     def statuses(self) -> list[str]:
-        return [m.data for m in self.got[STATUS_TOPIC]]
+        return [m.data for m in self.got[names.HAND_STATUS]]
 
     def reset(self) -> Trigger.Response:
         return self.ros.call(self.reset_client, Trigger.Request())
@@ -182,10 +176,10 @@ def test_publishes_state_and_action_per_step_with_one_stamp(rig):
     grasped = rig.driver.hand.state
     rig.tick(5)
     stamps = {topic: [stamp_to_ns(m.header.stamp) for m in rig.got[topic]]
-              for topic in (OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC)}
-    assert len(stamps[JOINT_STATES_TOPIC]) == 5
-    assert stamps[OBJECT_POSE_TOPIC] == stamps[JOINT_STATES_TOPIC] == stamps[APPLIED_ACTION_TOPIC]
-    loads, angles = joint_state_arrays(rig.got[JOINT_STATES_TOPIC][0])
+              for topic in (names.OBJECT_POSE, names.JOINT_STATES, names.APPLIED_ACTION)}
+    assert len(stamps[names.JOINT_STATES]) == 5
+    assert stamps[names.OBJECT_POSE] == stamps[names.JOINT_STATES] == stamps[names.APPLIED_ACTION]
+    loads, angles = joint_state_arrays(rig.got[names.JOINT_STATES][0])
     np.testing.assert_array_equal(loads, grasped[2:].astype(np.float32))  # state k at stamp k
     assert angles is not None and loads[0] > 0 > loads[1]
     np.testing.assert_array_equal(rig.applied(), np.zeros((5, 2)))  # no command: the hand holds
@@ -240,7 +234,7 @@ def test_single_step_command_moves_angles_once(rig):
     rig.tick()  # held for one step only
     np.testing.assert_allclose(rig.applied(), [[0.8, -0.4], [0.0, 0.0]], atol=1e-7)
     # the published joint state at the second stamp shows the moved angles
-    _, angles = joint_state_arrays(rig.got[JOINT_STATES_TOPIC][1])
+    _, angles = joint_state_arrays(rig.got[names.JOINT_STATES][1])
     np.testing.assert_allclose(angles, before + np.array([0.8, -0.4]) * ACTION_UNIT_RAD, atol=1e-6)
 
 
@@ -343,15 +337,15 @@ def test_drop_publishes_status_and_stops_until_reset(rig):
         rig.statuses()
     assert any("ended" in w for w in log.wait_warnings())
     rig.ros.spin_for(0.1)
-    n_actions, n_states = len(rig.got[APPLIED_ACTION_TOPIC]), len(rig.got[JOINT_STATES_TOPIC])
+    n_actions, n_states = len(rig.got[names.APPLIED_ACTION]), len(rig.got[names.JOINT_STATES])
     assert n_states == n_actions + 1  # the final state has no action
     rig.command([-1.0, -1.0])
     rig.driver.tick()  # no stepping (nor crash) until reset
     rig.ros.spin_for(0.1)
-    assert len(rig.got[JOINT_STATES_TOPIC]) == n_states
+    assert len(rig.got[names.JOINT_STATES]) == n_states
     assert rig.reset().success
     rig.tick()
-    assert len(rig.got[JOINT_STATES_TOPIC]) == n_states + 1 and rig.driver.running
+    assert len(rig.got[names.JOINT_STATES]) == n_states + 1 and rig.driver.running
 
 
 def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros):
@@ -362,8 +356,8 @@ def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros
     start = r.clock()
     for k in range(1, 6):
         r.driver._on_timer()  # the timer callback: /clock first, then the step
-        assert ros.spin_until(lambda: len(r.got[JOINT_STATES_TOPIC]) == len(clocks) == k, 5.0)
-    stamps = [stamp_to_ns(m.header.stamp) for m in r.got[JOINT_STATES_TOPIC]]
+        assert ros.spin_until(lambda: len(r.got[names.JOINT_STATES]) == len(clocks) == k, 5.0)
+    stamps = [stamp_to_ns(m.header.stamp) for m in r.got[names.JOINT_STATES]]
     assert len(stamps) == 5 and np.all(np.diff(stamps) == CONTROL_PERIOD_NS)
     assert [stamp_to_ns(c.clock) for c in clocks] == stamps and stamps[0] == start + CONTROL_PERIOD_NS
     # commands are judged against the simulated clock: one stamped at sim time is fresh

@@ -21,19 +21,17 @@ from test_bag_io import ACTION, JOINTS, step_messages, write_messages
 
 import t42_transfer.models.checkpoint as checkpoint
 from msg_adapters import DiagnosticReport, status_report
+from msg_adapters import names
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
 from t42_transfer.models.checkpoint import FORMAT, load_model, read_metadata, save_model
 from t42_transfer.models.residual import CumulativeResidualModel
 from t42_transfer.models.training import TrainConfig, train_transition_model
 from t42_transfer.nodes.transfer_server import (
-    DIAGNOSTICS_TOPIC,
-    MODEL_TOPIC,
     STATUS_NAME,
-    TRANSFER_SERVICE,
     TransferServer,
 )
 from t42_transfer.planning.workspace import Workspace
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.methods import METHODS
 from t42_transfer.transfer.online import CURRENT_MODEL, STATE_FILE, config_from_file, config_with_overrides, hold_out
 
@@ -82,11 +80,11 @@ class Rig:
         self.tester = ros.node("tester", namespace=namespace)
         self.reports: list[DiagnosticReport] = []
         self.updates: list[str] = []
-        self.tester.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+        self.tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
                                         lambda m: self.reports.append(status_report(m, STATUS_NAME)), 10_000)
-        self.tester.create_subscription(String, MODEL_TOPIC, lambda m: self.updates.append(m.data), LATCHED)
+        self.tester.create_subscription(String, names.MODEL_UPDATED, lambda m: self.updates.append(m.data), profile(names.LATCHED))
         self.server = ros.add(TransferServer, server_params(tmp_path, source, **params), namespace=namespace)
-        self.client = self.tester.create_client(Trigger, TRANSFER_SERVICE)
+        self.client = self.tester.create_client(Trigger, names.TRANSFER)
 
     def call(self, timeout_s: float = 120.0) -> Trigger.Response:
         """One call that runs (not busy); returns once its final status (done or failed) arrived too."""

@@ -14,8 +14,9 @@ from std_srvs.srv import Trigger
 
 from msg_adapters import DiagnosticReport, status_report
 from ros_rig import REPO, start_node, stop
-from t42_transfer.nodes.transfer_server import DIAGNOSTICS_TOPIC, MODEL_TOPIC, STATUS_NAME, TRANSFER_SERVICE
-from t42_transfer.ros.qos import LATCHED
+from msg_adapters import names
+from t42_transfer.nodes.transfer_server import STATUS_NAME
+from t42_transfer.ros.qos import profile
 from test_transfer_server import add_target_bag, config_file, source_model  # noqa: F401  (fixture)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -38,10 +39,10 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
     try:
         tester = ros.node("tester", namespace="/left")
         reports: list[DiagnosticReport] = []
-        tester.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC,
+        tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
                                    lambda m: reports.append(status_report(m, STATUS_NAME)), 10_000)
-        client = tester.create_client(Trigger, TRANSFER_SERVICE)
-        assert tester.resolve_service_name(TRANSFER_SERVICE) == "/left/t42/transfer"
+        client = tester.create_client(Trigger, names.TRANSFER)
+        assert tester.resolve_service_name(names.TRANSFER) == "/left/t42/transfer"
         assert client.wait_for_service(timeout_sec=60.0), log.read_text()
         first = client.call_async(Trigger.Request())
         assert ros.spin_until(lambda: any(r.values["stage"] == "training" for r in reports), 60.0), log.read_text()
@@ -66,7 +67,7 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
         # A listener joining afterwards still gets the announcement (latched).
         late = ros.node("late", namespace="/left")
         updates: list[str] = []
-        late.create_subscription(String, MODEL_TOPIC, lambda m: updates.append(m.data), LATCHED)
+        late.create_subscription(String, names.MODEL_UPDATED, lambda m: updates.append(m.data), profile(names.LATCHED))
         assert ros.spin_until(lambda: updates == [str(model)], 10.0), updates
     finally:
         codes = stop([server])

@@ -14,9 +14,7 @@ from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from t42_transfer.conventions import ACTION_DIM, STATE_DIM
-
-END_REASONS = ("", "length", "dropped", "overload", "lost_contact")
+from t42_transfer.conventions import ACTION_DIM, END_REASONS, STATE_DIM
 
 
 def _as_f32(name: str, value: np.ndarray | Sequence, cols: int) -> np.ndarray:

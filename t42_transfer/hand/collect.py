@@ -16,11 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t42_transfer.conventions import ACTION_DIM, MIN_EPISODE_STEPS, RANDOM_POLICY_LIMIT, REAL_HAND_ACTIONS
+from t42_transfer.conventions import (
+    ACTION_DIM,
+    DROP_REASONS,
+    MIN_EPISODE_STEPS,
+    RANDOM_POLICY_LIMIT,
+    REAL_HAND_ACTIONS,
+)
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
-
-DROP_REASONS = ("dropped", "lost_contact")
 
 MAX_EPISODES = 100_000
 MAX_STEPS = 100_000

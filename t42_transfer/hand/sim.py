@@ -21,8 +21,11 @@ from t42_transfer.conventions import (
     ACTION_UNIT_RAD,
     CONTROL_PERIOD_S,
     DROP_JUMP_MM,
+    DROPPED,
     GRASP_LOAD,
     LOAD_UNIT_NM,
+    LOST_CONTACT,
+    OVERLOAD,
     OVERLOAD_LOAD,
 )
 from t42_transfer.hand.mjcf import FINGER_SIDES, TIMESTEP_S, hand_mjcf
@@ -275,11 +278,11 @@ class SimulatedHand:
     def _check_end(self, before_xy: np.ndarray) -> str:
         touching, capacity = self._contact_forces()
         if np.linalg.norm(self._state[:2] - before_xy) > DROP_JUMP_MM:
-            return "dropped"
+            return DROPPED
         if not touching.all():
-            return "lost_contact"
+            return LOST_CONTACT
         if capacity < self.params.object_mass_kg * 9.81:
-            return "dropped"  # friction can no longer carry the object's weight along its axis
+            return DROPPED  # friction can no longer carry the object's weight along its axis
         if np.any(np.abs(self._state[2:]) > OVERLOAD_LOAD):
-            return "overload"
+            return OVERLOAD
         return ""

@@ -60,21 +60,12 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, stamp_to_ns
+from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, names, stamp_to_ns
 from t42_transfer.conventions import ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S, RANDOM_POLICY_LIMIT
 from t42_transfer.hand.collect import RandomPolicy
-from t42_transfer.nodes.mock_driver import (
-    APPLIED_ACTION_TOPIC,
-    JOINT_STATES_TOPIC,
-    RESET_SERVICE,
-    STATUS_TOPIC,
-    TRAJECTORY_TOPIC,
-)
-from t42_transfer.nodes.recorder import END_EVENTS
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import EVENT_READER
+from t42_transfer.ros.qos import profile
 
-TRAJECTORY_DONE = "trajectory_done"
 
 
 def _check_service_name(field: str, name: str) -> None:
@@ -176,7 +167,7 @@ class Explorer(Node):
         """Episodes started so far."""
         self.completed: list[dict[str, Any]] = []
         """One summary per finished episode: ``episode``, ``applied`` actions, ``end`` (how it ended)."""
-        self._phase = "reset"
+        self._phase = "between_episodes"
         self._call: _Call | None = None
         self._reset_ns = 0
         self._angles: np.ndarray | None = None
@@ -191,13 +182,13 @@ class Explorer(Node):
         self._deadline = 0.0
         self._closed = False
 
-        self._trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
-        self._reset = self.create_client(Trigger, RESET_SERVICE)
+        self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
+        self._reset = self.create_client(Trigger, names.HAND_RESET)
         self._record_start = self.create_client(Trigger, p.record_start_service) if p.record_start_service else None
         self._record_stop = self.create_client(Trigger, p.record_stop_service) if p.record_stop_service else None
-        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state, 10)
-        self._applied_sub = self.create_subscription(JointState, APPLIED_ACTION_TOPIC, self._on_applied, 10)
-        self._status_sub = self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER)
+        self.create_subscription(JointState, names.JOINT_STATES, self._on_joint_state, 10)
+        self._applied_sub = self.create_subscription(JointState, names.APPLIED_ACTION, self._on_applied, 10)
+        self._status_sub = self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._timer = self.create_timer(self.POLL_S, self._on_timer)
 
     @property
@@ -252,7 +243,7 @@ class Explorer(Node):
     def _on_status(self, msg: String) -> None:
         words = msg.data.split()
         event = words[0].rstrip(":") if words else ""
-        if self._phase == "running" and self._ended is None and (event in END_EVENTS or event == TRAJECTORY_DONE):
+        if self._phase == "running" and self._ended is None and (event in names.END_EVENTS or event == names.TRAJECTORY_DONE):
             self._ended = event
             self._done_at = time.monotonic()
 
@@ -271,7 +262,7 @@ class Explorer(Node):
     # ------------------------------------------------------------------ the episode loop
     def _advance(self) -> None:
         p = self.params
-        if self._phase == "reset":
+        if self._phase == "between_episodes":
             if self.episode >= p.episodes:
                 self._phase = "stopping"
                 if self._record_stop is not None:
@@ -317,8 +308,8 @@ class Explorer(Node):
         if not ok:
             why = answer if isinstance(answer, str) else answer.message
             self.log.warning(f"reset failed ({why}); episode {self.episode} skipped")
-            self.completed.append({"episode": self.episode, "applied": 0, "end": "reset_failed"})
-            self._phase = "reset"
+            self.completed.append({"episode": self.episode, "applied": 0, "end": names.RESET_FAILED})
+            self._phase = "between_episodes"
             return
         newest = max(self.get_clock().now().nanoseconds, self._angles_ns)
         self._reset_ns = newest + self.SETTLE_PERIODS * CONTROL_PERIOD_NS
@@ -353,7 +344,7 @@ class Explorer(Node):
         self._phase = "running"
 
     def _check_episode_end(self) -> None:
-        if self._ended == TRAJECTORY_DONE:
+        if self._ended == names.TRAJECTORY_DONE:
             if self._applied == len(self._actions):
                 self._finish_episode("complete")
             elif time.monotonic() > self._done_at + self.DONE_GRACE_S:
@@ -367,4 +358,4 @@ class Explorer(Node):
         self.completed.append({"episode": self.episode, "applied": self._applied, "end": end})
         other = f" ({self._mismatched} other steps)" if self._mismatched else ""
         self.log.info(f"episode {self.episode}/{self.params.episodes}: {self._applied} actions applied{other}, {end}")
-        self._phase = "reset"
+        self._phase = "between_episodes"

@@ -65,6 +65,7 @@ from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
     RCLPY,
+    names,
     applied_action,
     applied_action_msg,
     joint_state_msg,
@@ -78,17 +79,7 @@ from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import EVENTS
-
-OBJECT_POSE_TOPIC = "hand/object_pose"
-JOINT_STATES_TOPIC = "hand/joint_states"
-APPLIED_ACTION_TOPIC = "hand/applied_action"
-COMMAND_TOPIC = "hand/command"
-TRAJECTORY_TOPIC = "hand/trajectory"
-RESET_SERVICE = "hand/reset"
-STATUS_TOPIC = "hand/status"
-CLOCK_TOPIC = "/clock"
-"""Absolute, as every simulator's: rclpy's ``use_sim_time`` reads ``/clock``."""
+from t42_transfer.ros.qos import profile
 
 _LIMIT_SLACK = 1e-6
 """Relative slack on ACTION_LIMIT: wire round trips may land a hair past +-1.5."""
@@ -214,18 +205,18 @@ class MockDriver(Node):
         self._last_stamp = 0
         """Stamp of the last step published (0 before the first: every step comes after it)."""
 
-        self._pose_pub = self.create_publisher(PoseStamped, OBJECT_POSE_TOPIC, 10)
-        self._joints_pub = self.create_publisher(JointState, JOINT_STATES_TOPIC, 10)
-        self._action_pub = self.create_publisher(JointState, APPLIED_ACTION_TOPIC, 10)
-        self._status_pub = self.create_publisher(String, STATUS_TOPIC, EVENTS)
+        self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
+        self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
+        self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
+        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
         self._sim_ns = self.get_clock().now().nanoseconds
-        self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10) if p.sim_time else None
-        self.create_subscription(JointState, COMMAND_TOPIC, self._on_command, 10)
-        self.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self._on_trajectory, 10)
-        self.create_service(Trigger, RESET_SERVICE, self._on_reset)
+        self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
+        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
+        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
+        self.create_service(Trigger, names.HAND_RESET, self._on_reset)
         ok, why = self.reset()
         if not ok:
-            self.log.warning(f"initial grasp failed: {why}; call {self.resolve_service_name(RESET_SERVICE)} to retry")
+            self.log.warning(f"initial grasp failed: {why}; call {self.resolve_service_name(names.HAND_RESET)} to retry")
         self._timer = self.create_timer(p.period_s, self._on_timer)
 
     # ------------------------------------------------------------------ state
@@ -247,11 +238,11 @@ class MockDriver(Node):
             self.hand.reset(seed)
         except GraspFailed as err:
             self.running = False
-            self._publish_status(status_message("reset_failed", str(err), self._last_stamp))
+            self._publish_status(status_message(names.RESET_FAILED, str(err), self._last_stamp))
             return False, f"grasp failed: {err}"
         self.running, self.steps = True, 0
         message = f"episode {self.episode} grasped (seed {seed})"
-        self._publish_status(status_message("reset", message, self._last_stamp))
+        self._publish_status(status_message(names.RESET, message, self._last_stamp))
         return True, message
 
     def now_ns(self) -> int:
@@ -272,10 +263,10 @@ class MockDriver(Node):
         try:
             action = validate_command(msg, self.now_ns(), self.params.max_command_age_ns)
         except CommandRejected as err:
-            self.log.warning(f"rejected {COMMAND_TOPIC}: {err}; keeping the last safe command")
+            self.log.warning(f"rejected {names.HAND_COMMAND}: {err}; keeping the last safe command")
             return
         except Exception as err:  # never raise from a callback
-            self.log.error(f"rejected {COMMAND_TOPIC}: could not read the message ({err!r})")
+            self.log.error(f"rejected {names.HAND_COMMAND}: could not read the message ({err!r})")
             return
         if self._plan:
             self.log.info(f"single-step command cancels a trajectory with {len(self._plan)} points left")
@@ -288,10 +279,10 @@ class MockDriver(Node):
                 msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns
             )
         except CommandRejected as err:
-            self.log.warning(f"rejected {TRAJECTORY_TOPIC}: {err}; keeping the last safe command")
+            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: {err}; keeping the last safe command")
             return
         except Exception as err:
-            self.log.error(f"rejected {TRAJECTORY_TOPIC}: could not read the message ({err!r})")
+            self.log.error(f"rejected {names.HAND_TRAJECTORY}: could not read the message ({err!r})")
             return
         if self._plan:
             self.log.info(f"trajectory with {len(actions)} points pre-empts one with {len(self._plan)} points left")
@@ -317,7 +308,7 @@ class MockDriver(Node):
                 self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
             self.tick()
         except Exception as err:
-            self.log.error(f"step failed ({err!r}); the hand stops until {RESET_SERVICE} is called")
+            self.log.error(f"step failed ({err!r}); the hand stops until {names.HAND_RESET} is called")
             self.running, self._command, self._plan = False, None, []
 
     # ------------------------------------------------------------------ one step
@@ -326,7 +317,7 @@ class MockDriver(Node):
         if self._plan:
             action = self._plan.pop(0)
             if not self._plan:
-                self._publish_status(status_message("trajectory_done", f"episode {self.episode} step {self.steps + 1}",
+                self._publish_status(status_message(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}",
                                                     self._last_stamp))
         else:
             action = self._command if self._command is not None else np.zeros(ACTION_DIM)

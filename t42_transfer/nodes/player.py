@@ -41,11 +41,10 @@ from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from rosgraph_msgs.msg import Clock
 
-from msg_adapters import RCLPY, ns_to_stamp, rclpy_class
+from msg_adapters import RCLPY, names, ns_to_stamp, rclpy_class
 from t42_transfer.data.errors import BagError
 from t42_transfer.ros.params import LiveParams, param
 
-CLOCK_TOPIC = "/clock"
 DEFAULT_QOS = QoSProfile(depth=10)
 """ROS's default (RELIABLE, VOLATILE, KEEP_LAST 10), for a topic whose bag recorded no offered QoS."""
 
@@ -189,7 +188,7 @@ class BagPlayer(Node):
         self._closed = False
         self._clock_pub = None
         if p.clock_hz > 0:
-            self._clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
+            self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10)
             # its own group: /clock keeps its pace whatever else the node's callbacks do
             self.create_timer(1.0 / p.clock_hz, self._publish_clock, callback_group=ReentrantCallbackGroup(),
                               clock=RosClock(clock_type=ClockType.STEADY_TIME))

@@ -86,38 +86,27 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import (
-    APPLIED_ACTION_TOPIC,
     HAND_TOPICS,
-    JOINT_STATES_TOPIC,
-    OBJECT_POSE_TOPIC,
     TYPESTORE,
     last_step_stamp,
+    names,
     rclpy_class,
     stamp_to_ns,
     status_event,
 )
 from t42_transfer.data.bag_io import RECORD_QOS, JazzyWriter
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import EVENT_READER, recording
+from t42_transfer.ros.qos import profile, recording
 
 STRING = "std_msgs/msg/String"
 
-START_SERVICE = "~/start"
-STOP_SERVICE = "~/stop"
-SPLIT_SERVICE = "~/split"
-STATUS_TOPIC = "hand/status"
-
 RECORDABLE = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
 """Relative names the recorder knows the types of (every one has a header stamp)."""
-STATE_TOPICS = (OBJECT_POSE_TOPIC.lstrip("/"), JOINT_STATES_TOPIC.lstrip("/"))
+STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 """The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
-ACTION_TOPIC = APPLIED_ACTION_TOPIC.lstrip("/")
+ACTION_TOPIC = names.APPLIED_ACTION
 
 MODES = ("recording", "episode")
-SPLIT_EVENTS = ("reset", "dropped", "lost_contact", "overload")
-"""First words of a ``hand/status`` message that split (``status_message`` of the mock driver)."""
-END_EVENTS = ("dropped", "lost_contact", "overload")
-"""Split words sent after an episode's final state (the others precede the next episode's first)."""
 
 HOLD_CAP = 4
 """A step waits at most this many ``step_hold_s`` for the rest of its messages, however busy the topics are."""
@@ -138,7 +127,7 @@ class RecorderParams:
     start_immediately: bool = param(True, "open the first bag at start (else wait for ~/start)", read_only=True)
     topics: tuple[str, ...] = param(tuple(RECORDABLE), "recorded topics, relative names (remap to rename): "
                                     + ", ".join(RECORDABLE), read_only=True)
-    split_on: tuple[str, ...] = param(SPLIT_EVENTS, "hand/status first words that split the bag in episode mode")
+    split_on: tuple[str, ...] = param(names.SPLIT_EVENTS, "hand/status first words that split the bag in episode mode")
     flush_period_s: float = param(1.0, "the open chunk reaches the file this often: at most this much "
                                        "recording is lost when the process is killed", min=1e-3, max=3600.0)
     step_hold_s: float = param(0.5, "a step still missing a message this long after its first (steady time) "
@@ -359,10 +348,10 @@ class Recorder(Node):
             self._types[topic] = msgtype
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
-        self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER, raw=True)
-        self.create_service(Trigger, START_SERVICE, partial(self._answer, self.start))
-        self.create_service(Trigger, STOP_SERVICE, partial(self._answer, self.stop))
-        self.create_service(Trigger, SPLIT_SERVICE, partial(self._answer, self.split))
+        self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
+        self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start))
+        self.create_service(Trigger, names.RECORDER_STOP, partial(self._answer, self.stop))
+        self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
@@ -570,7 +559,7 @@ class Recorder(Node):
             try:
                 text = TYPESTORE.deserialize_cdr(data, STRING).data
             except Exception as err:
-                self.log.warning(f"ignored a message on {STATUS_TOPIC}: not a {STRING} ({type(err).__name__}: {err})")
+                self.log.warning(f"ignored a message on {names.HAND_STATUS}: not a {STRING} ({type(err).__name__}: {err})")
                 return
             event = status_event(str(text))
             if event not in self.params.split_on:
@@ -588,12 +577,12 @@ class Recorder(Node):
                     return
                 if after is None:  # a driver that does not: the newest step heard (or, at an end, now)
                     after = self._buffer.latest_stamp
-                    if event in END_EVENTS:  # the final state may still be on its way: stamped before now
+                    if event in names.END_EVENTS:  # the final state may still be on its way: stamped before now
                         now = self.get_clock().now().nanoseconds
                         after = now if after is None else max(now, after)
                 self._request("episode", after, f"status {event!r}")
         except Exception as err:  # never raise from a callback
-            self.log.error(f"could not handle a message on {STATUS_TOPIC}: {err!r}")
+            self.log.error(f"could not handle a message on {names.HAND_STATUS}: {err!r}")
 
     # ------------------------------------------------------------------ services, params
     def _answer(self, action: Any, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

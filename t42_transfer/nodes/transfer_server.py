@@ -56,9 +56,9 @@ from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from msg_adapters import RCLPY, diagnostic_array
+from msg_adapters import RCLPY, diagnostic_array, names
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS
 from t42_transfer.transfer.online import (
@@ -70,9 +70,6 @@ from t42_transfer.transfer.online import (
     run_transfer,
 )
 
-TRANSFER_SERVICE = "t42/transfer"
-MODEL_TOPIC = "t42/model_updated"
-DIAGNOSTICS_TOPIC = "diagnostics"
 STATUS_NAME = "t42_transfer: transfer"
 """Name of the node's status in ``diagnostics``."""
 
@@ -160,9 +157,9 @@ class TransferServer(Node):
         """The method of the running (or last) transfer."""
         self._started = time.monotonic()
         self._closed = False
-        self._diagnostics = self.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, 10)
-        self._updates = self.create_publisher(String, MODEL_TOPIC, LATCHED)
-        self.create_service(Trigger, TRANSFER_SERVICE, self._on_transfer, callback_group=ReentrantCallbackGroup())
+        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self._updates = self.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
+        self.create_service(Trigger, names.TRANSFER, self._on_transfer, callback_group=ReentrantCallbackGroup())
         latest = latest_model(Path(self.params.model_dir))
         if latest is not None:
             self._updates.publish(String(data=str(latest)))

@@ -25,6 +25,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any, TextIO
 
+from msg_adapters import names
 from t42_transfer.nodes.registry import NODES
 from t42_transfer.ros.runner import keep_discovery_local
 from t42_transfer.yaml_files import read_yaml
@@ -52,7 +53,7 @@ def namespace_args(namespace: str) -> list[str]:
     if not namespace:
         return []
     namespace = "/" + namespace.strip("/")
-    return ["-r", f"__ns:={namespace}", "-r", f"/clock:={namespace}/clock"]
+    return ["-r", f"__ns:={namespace}", "-r", f"{names.CLOCK}:={namespace}{names.CLOCK}"]
 
 
 def read_params_file(path: str | Path) -> dict[str, Any]:

@@ -1,0 +1,106 @@
+"""The suite's ROS interface by name: topics, services, status words and QoS, each defined once.
+
+Every node, the demo and the tests take their names from here, so a rename is one
+edit and two nodes cannot disagree.  Names are relative (remappable with
+``--ros-args -r``, prefixed by ``__ns``); only ``/clock`` is absolute, as ROS
+defines it.  ``~/...`` names are private to the node that serves them; others
+reach them as ``<node name>/...`` (:func:`private_of`).
+
+QoS is given as plain data (:class:`Qos`) so this module needs no rclpy: the bag
+and science layers import names too.  ``t42_transfer.ros.qos`` turns a
+:class:`Qos` into an rclpy profile.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+# ------------------------------------------------------------------ the hand driver
+OBJECT_POSE = "hand/object_pose"
+"""geometry_msgs/PoseStamped: the object's position, metres in ``t42_base``, one per step."""
+JOINT_STATES = "hand/joint_states"
+"""sensor_msgs/JointState: actuator angles (rad) and loads as effort (N m), one per step."""
+APPLIED_ACTION = "hand/applied_action"
+"""sensor_msgs/JointState: the action applied at the step, as actuator velocities (rad/s)."""
+HAND_COMMAND = "hand/command"
+"""sensor_msgs/JointState: an actuator-velocity command held until the next one."""
+HAND_TRAJECTORY = "hand/trajectory"
+"""trajectory_msgs/JointTrajectory: actuator-angle targets, one point per control period."""
+HAND_STATUS = "hand/status"
+"""std_msgs/String: the driver's events (:data:`RESET`, :data:`END_EVENTS`, ...)."""
+HAND_RESET = "hand/reset"
+"""std_srvs/Trigger: open the hand, then close it until the grasp load (a new episode)."""
+CLOCK = "/clock"
+"""rosgraph_msgs/Clock: the simulated driver's time, when it runs on sim time."""
+
+HAND_TOPICS = (OBJECT_POSE, JOINT_STATES, APPLIED_ACTION)
+"""The hand's recorded topics, in per-step publish order."""
+
+# ------------------------------------------------------------------ recorder
+RECORDER_START = "~/start"
+RECORDER_STOP = "~/stop"
+RECORDER_SPLIT = "~/split"
+
+# ------------------------------------------------------------------ transfer server
+TRANSFER = "t42/transfer"
+"""std_srvs/Trigger: transfer the source model with the bags recorded since the last call."""
+MODEL_UPDATED = "t42/model_updated"
+"""std_msgs/String (latched): the path of the newest model file."""
+DIAGNOSTICS = "diagnostics"
+"""diagnostic_msgs/DiagnosticArray: progress and state of long work."""
+
+# ------------------------------------------------------------------ planner
+GOAL = "t42/goal"
+"""geometry_msgs/PointStamped: an object goal, metres in ``t42_base``."""
+PLANNED_PATH = "t42/planned_path"
+"""nav_msgs/Path: the predicted object path of the plan being executed."""
+PLAN_RESULT = "t42/plan_result"
+"""std_msgs/String: one JSON line per goal (accepted, or refused with the reason)."""
+
+# ------------------------------------------------------------------ status words
+RESET = "reset"
+"""A grasp closed: a new episode starts after this status."""
+RESET_FAILED = "reset_failed"
+DROPPED = "dropped"
+LOST_CONTACT = "lost_contact"
+OVERLOAD = "overload"
+TRAJECTORY_DONE = "trajectory_done"
+"""The last point of a trajectory has been applied."""
+END_EVENTS = (DROPPED, LOST_CONTACT, OVERLOAD)
+"""Events that end an episode (the hand stops until the next reset)."""
+SPLIT_EVENTS = (RESET, *END_EVENTS)
+"""Events at which an episode-mode recorder closes one bag and opens the next."""
+
+SUPERSEDED = "superseded"
+"""A goal's result when a newer goal replaced it before its plan ran."""
+
+
+def private_of(node: str, private: str) -> str:
+    """How others name ``node``'s private service or topic ``~/name``: ``("recorder", "~/start")`` ->
+    ``"recorder/start"``."""
+    if not private.startswith("~/"):
+        raise ValueError(f"{private!r} is not a private name (~/...)")
+    return f"{node}/{private[2:]}"
+
+
+# ------------------------------------------------------------------ QoS
+class Qos(NamedTuple):
+    """A QoS profile as data: KEEP_LAST ``depth``, RELIABLE; TRANSIENT_LOCAL when ``latched``."""
+
+    depth: int
+    latched: bool = False
+
+
+DEFAULT = Qos(10)
+"""ROS's default (KEEP_LAST 10, RELIABLE, VOLATILE): every topic not named below."""
+LATCHED = Qos(1, latched=True)
+"""A late joiner still gets the last message (model announcements)."""
+EVENTS = Qos(100, latched=True)
+"""``hand/status`` as the driver writes it: none may be lost in a burst, which a depth of 1 allows
+(a reliable KEEP_LAST 1 writer replaces an unacknowledged sample), and a late joiner gets the recent ones."""
+EVENT_READER = Qos(100)
+"""Reading events as they happen: deep, so none is lost in a burst; VOLATILE, so it matches any
+reliable writer (a TRANSIENT_LOCAL reader would not match a real driver that publishes VOLATILE)."""
+RESULTS = Qos(10, latched=True)
+"""Plan results: volatile and latched subscribers both match, a late latched one gets the last
+result, and a ``superseded`` result published just before the plan's is not overwritten."""
