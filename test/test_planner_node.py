@@ -11,33 +11,42 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from geometry_msgs.msg import PointStamped
+from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
 from ros_rig import Rosout
+from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from test_planner_uncertainty import ToyHand
 from torch import Tensor
 from trajectory_msgs.msg import JointTrajectory
 
-from msg_adapters import RCLPY, goal_msg, joint_trajectory_to_actions, path_xy_mm, stamp_to_ns
+from msg_adapters import (
+    RCLPY,
+    goal_msg,
+    joint_state_msg,
+    joint_trajectory_to_actions,
+    names,
+    object_pose_msg,
+    path_xy_mm,
+    stamp_to_ns,
+    status_message,
+)
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models import LatentDynamics
 from t42_transfer.models.checkpoint import save_model
-from t42_transfer.nodes.mock_driver import TRAJECTORY_TOPIC, MockDriver
+from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.planner_node import (
-    GOAL_TOPIC,
-    MODEL_UPDATED_TOPIC,
-    PATH_TOPIC,
-    RESULT_TOPIC,
     PlannerNode,
     PlannerNodeParams,
     Refused,
     hand_state,
 )
-from t42_transfer.planning import Planner, Workspace
-from t42_transfer.ros.qos import LATCHED
+from t42_transfer.planning import Plan, Planner, Workspace
+from t42_transfer.planning.execution import execute
+from t42_transfer.ros.qos import profile
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -93,11 +102,11 @@ class Rig:
         self.results: list[dict] = []
         self.trajectories: list[JointTrajectory] = []
         self.paths: list[PathMsg] = []
-        self.tester.create_subscription(String, RESULT_TOPIC, lambda m: self.results.append(json.loads(m.data)), 10)
-        self.tester.create_subscription(JointTrajectory, TRAJECTORY_TOPIC, self.trajectories.append, 10)
-        self.tester.create_subscription(PathMsg, PATH_TOPIC, self.paths.append, 10)
-        self.goal_pub = self.tester.create_publisher(PointStamped, GOAL_TOPIC, 10)
-        self.model_pub = self.tester.create_publisher(String, MODEL_UPDATED_TOPIC, LATCHED)
+        self.tester.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
+        self.tester.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self.trajectories.append, 10)
+        self.tester.create_subscription(PathMsg, names.PLANNED_PATH, self.paths.append, 10)
+        self.goal_pub = self.tester.create_publisher(PointStamped, names.GOAL, 10)
+        self.model_pub = self.tester.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
         self.setter = self.tester.create_client(SetParameters, "planner/set_parameters")
         self.planner: PlannerNode | None = None
         self.start_planner(model, **params)
@@ -196,7 +205,7 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
 
 def test_a_model_announced_before_the_node_starts_is_loaded_from_the_latched_topic(ros, toy: Path) -> None:
     tester = ros.node("announcer")
-    announcer = tester.create_publisher(String, MODEL_UPDATED_TOPIC, LATCHED)
+    announcer = tester.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
     announcer.publish(String(data=str(toy)))
     rig = Rig(ros, "", **SMALL)
     assert ros.spin_until(lambda: rig.planner.model is not None, 10.0)
@@ -458,3 +467,48 @@ def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_s
     assert ros.spin_until(lambda: rig.planner.idle, 5.0)
     ros.spin_for(0.3)
     assert len(rig.trajectories) == 3 and len(rig.results) == 1  # one result per goal, replans or not
+
+
+def test_a_refused_replan_keeps_the_rest_of_the_previous_plan_as_execute_does(ros, toy: Path) -> None:
+    """The node and :func:`execute` share one MPC rule: a replan without a safe sequence sends on the old plan."""
+    k, horizon = 5, 15
+    rig = Rig(ros, toy, driver=False, **{**SMALL, "horizon": horizon, "horizon_search": False, "replan_every": k})
+    state_pub = rig.tester.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
+    joints_pub = rig.tester.create_publisher(JointState, names.JOINT_STATES, 10)
+    status_pub = rig.tester.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
+    assert ros.spin_until(lambda: state_pub.get_subscription_count() == joints_pub.get_subscription_count()
+                          == status_pub.get_subscription_count() == 1, 10.0), "discovery"
+    angles = np.zeros(2, np.float32)
+
+    def publish_state(xy: np.ndarray, stamp: int) -> None:
+        state_pub.publish(object_pose_msg(xy.astype(np.float32), stamp, RCLPY))
+        joints_pub.publish(joint_state_msg(np.zeros(2, np.float32), angles, stamp, RCLPY))
+
+    start_stamp = rig.now_ns()
+    publish_state(START_XY, start_stamp)
+    assert ros.spin_until(lambda: rig.planner.state_stamp_ns == start_stamp, 5.0)
+    rig.publish_goal(START_XY + [6.0, -4.0])
+    assert ros.spin_until(lambda: rig.results and rig.trajectories, 20.0)
+    assert rig.results[0]["accepted"], rig.results[0]
+    first = np.diff(path_xy_mm(rig.paths[0]), axis=0)  # the toy moves (x, y) by the action: its actions
+    assert len(first) == horizon
+
+    # the piece ran: the hand is now far outside the model's workspace, so every replan is refused
+    status_pub.publish(String(data=status_message(names.TRAJECTORY_DONE, "piece", start_stamp)))
+    publish_state(START_XY + [100.0, 0.0], start_stamp + 1)
+    assert ros.spin_until(lambda: len(rig.trajectories) == 2, 10.0), "no second piece"
+    sent = joint_trajectory_to_actions(rig.trajectories[1], angles)
+    assert np.allclose(sent, first[k:2 * k], atol=1e-3)  # the old plan's next piece, not holding still
+
+    # the same rule in execute(): the first plan, then replans refused
+    plans = iter([first, *[np.zeros((0, 2))] * 2])
+    hand = ToyHand(1.0, np.concatenate([START_XY, [0.0, 0.0]]))
+    run = execute(hand, lambda state, left: _plan_of(next(plans)), horizon, k)
+    assert np.allclose(run.actions, first, atol=1e-6) and run.completed and len(run.plans) == 3
+
+
+def _plan_of(actions: np.ndarray) -> Plan:
+    """A plan of ``actions`` (none: refused, as the planner refuses when no sequence is safe)."""
+    ok = len(actions) > 0
+    return Plan(ok, "ok" if ok else "no_safe_sequence", "", actions.astype(np.float32),
+                np.zeros((len(actions) + 1, 4), np.float32), 0.0 if ok else math.inf, np.zeros(2, np.float32))

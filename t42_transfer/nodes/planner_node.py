@@ -28,8 +28,10 @@ from that measured state (the remaining steps of a fixed-length plan, or a new
 horizon search within what is left of ``horizon``), sends its first k steps,
 and so on (model-predictive control).  The goal's one result describes the
 first plan; each replan is logged and its predicted path published.  A replan
-that finds no safe sequence, a newer goal, or a piece that does not finish in
-``piece_timeout_s`` ends the loop with the hand holding still.
+that finds no safe sequence keeps the rest of the previous plan (the rule of
+:func:`~t42_transfer.planning.execution.receding_horizon`, which the peg-in-hole
+evaluation runs too); a newer goal, or a piece that does not finish in
+``piece_timeout_s``, ends the loop with the hand holding still.
 
 Parameters are :class:`PlannerNodeParams`.  ``model`` is read once at start (later
 models come by announcement); the planner settings and ``max_state_age_s`` may be
@@ -78,7 +80,6 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
@@ -89,6 +90,7 @@ from msg_adapters import (
     goal_xy_mm,
     joint_state_arrays,
     last_step_stamp,
+    names,
     object_xy_mm,
     path_msg,
     stamp_to_ns,
@@ -96,19 +98,11 @@ from msg_adapters import (
 )
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.nodes.mock_driver import JOINT_STATES_TOPIC, OBJECT_POSE_TOPIC, STATUS_TOPIC, TRAJECTORY_TOPIC
 from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
+from t42_transfer.planning.execution import receding_horizon
 from t42_transfer.ros.params import LiveParams, param
-from t42_transfer.ros.qos import EVENT_READER, LATCHED
+from t42_transfer.ros.qos import profile
 
-GOAL_TOPIC = "t42/goal"
-MODEL_UPDATED_TOPIC = "t42/model_updated"
-PATH_TOPIC = "t42/planned_path"
-RESULT_TOPIC = "t42/plan_result"
-
-RESULT_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
-"""See the module docstring: matches volatile and latched subscribers, keeps back-to-back results."""
 
 _DEFAULTS = PlannerConfig()
 
@@ -265,20 +259,20 @@ class PlannerNode(Node):
         self._done_stamps: list[int] = []
         """Last-step stamps of the driver's trajectory_done statuses, newest last."""
 
-        self._trajectory_pub = self.create_publisher(JointTrajectory, TRAJECTORY_TOPIC, 10)
-        self._path_pub = self.create_publisher(PathMsg, PATH_TOPIC, 10)
-        self._result_pub = self.create_publisher(String, RESULT_TOPIC, RESULT_QOS)
+        self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
+        self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
+        self._result_pub = self.create_publisher(String, names.PLAN_RESULT, profile(names.RESULTS))
         model = self.params.model
         if model and Path(model).exists():
             self.load(model)
         else:
             self.log.info(f"no model file {model!r} yet; waiting for {self._model_topic}")
-        self.create_subscription(PoseStamped, OBJECT_POSE_TOPIC, self._on_pose, 10)
-        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joints, 10)
-        self.create_subscription(String, MODEL_UPDATED_TOPIC, self._on_model_updated, LATCHED,
+        self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 10)
+        self.create_subscription(JointState, names.JOINT_STATES, self._on_joints, 10)
+        self.create_subscription(String, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED),
                                  callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_subscription(PointStamped, GOAL_TOPIC, self._on_goal, 10)
-        self.create_subscription(String, STATUS_TOPIC, self._on_status, EVENT_READER)
+        self.create_subscription(PointStamped, names.GOAL, self._on_goal, 10)
+        self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()
 
@@ -307,7 +301,7 @@ class PlannerNode(Node):
 
     @property
     def _model_topic(self) -> str:
-        return self.resolve_topic_name(MODEL_UPDATED_TOPIC)
+        return self.resolve_topic_name(names.MODEL_UPDATED)
 
     def load(self, path: str) -> bool:
         """Plan with the model in ``path`` from now on; on failure keep the current one and log why."""
@@ -343,7 +337,7 @@ class PlannerNode(Node):
         try:
             pose = (stamp_to_ns(msg.header.stamp), object_xy_mm(msg))
         except Exception as err:
-            self.log.warning(f"ignored {OBJECT_POSE_TOPIC}: {err}")
+            self.log.warning(f"ignored {names.OBJECT_POSE}: {err}")
             return
         with self._cond:
             self._pose = pose
@@ -352,13 +346,13 @@ class PlannerNode(Node):
         try:
             joints = (stamp_to_ns(msg.header.stamp), *joint_state_arrays(msg))
         except Exception as err:
-            self.log.warning(f"ignored {JOINT_STATES_TOPIC}: {err}")
+            self.log.warning(f"ignored {names.JOINT_STATES}: {err}")
             return
         with self._cond:
             self._joints = joints
 
     def _on_status(self, msg: String) -> None:
-        if status_event(msg.data) != "trajectory_done":
+        if status_event(msg.data) != names.TRAJECTORY_DONE:
             return
         stamp = last_step_stamp(msg.data)
         with self._cond:
@@ -441,44 +435,56 @@ class PlannerNode(Node):
             if self._pending is not None:
                 self._publish_result(_superseded(goal, result))
                 return
-            done_before = len(self._done_stamps)
-        if plan.ok:
-            self._send(plan, hand, k)
-        self._publish_result(result)
-        if plan.ok and k and len(plan.actions) > k:
-            self._replan_loop(goal, planner, plan, k, done_before)
+        if not plan.ok:
+            self._publish_result(result)
+            return
+        self._execute(goal, planner, plan, hand, result)
 
-    def _send(self, plan: Plan, hand: HandState, k: int) -> int:
-        """Publish the plan's first ``k`` steps (all with ``k = 0``) and its whole predicted path; the steps sent."""
-        actions = plan.actions[:k] if k else plan.actions
-        stamp = self._now_ns()
-        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, hand.angles, stamp, kit=RCLPY))
-        self._path_pub.publish(path_msg(plan.predicted[:, :2], stamp, kit=RCLPY))
-        return len(actions)
+    def _execute(self, goal: _Goal, planner: Planner, first: Plan, hand: HandState, result: PlanResult) -> None:
+        """Send ``first`` whole (open loop) or piece by piece, replanning between pieces (:func:`receding_horizon`).
 
-    def _replan_loop(self, goal: _Goal, planner: Planner, first: Plan, k: int, done_before: int) -> None:
-        """Closed loop: after each piece has run, plan the rest from the measured state and send its first k steps."""
-        fixed = not planner.config.horizon_search
-        executed, left = k, len(first.actions) - k if fixed else planner.config.horizon - k
-        while left > 0:
-            hand = self._after_piece(done_before)
-            if hand is None:
-                return
-            with self._cond:
-                done_before = len(self._done_stamps)
-            plan = planner.plan(hand.state, goal.xy, horizon=left)
+        The goal's result is published right after the first piece is sent; every replan is logged
+        and its predicted path published with the piece sent from it.
+        """
+        k = result.replan_every
+        steps = planner.config.horizon if planner.config.horizon_search else len(first.actions)
+        # the plan the next piece comes from, how much of it was sent, steps sent, pieces done before
+        current, offset, executed, done_before = first, 0, 0, 0
+
+        def plan_at(state: np.ndarray, left: int) -> Plan:
+            nonlocal current, offset
+            plan = planner.plan(state, goal.xy, horizon=left)
             if len(plan.actions) == 0:
                 self.log.warning(f"goal {goal.xy.tolist()} mm: replan after {executed} steps refused "
-                                 f"({plan.status}: {plan.reason}); holding still")
-                return
-            sent = self._send(plan, hand, k if len(plan.actions) > k else 0)
-            self.log.info(f"goal {goal.xy.tolist()} mm: replanned after {executed} steps from "
-                          f"{hand.state[:2].round(2).tolist()} mm, {len(plan.actions)}-step plan ({plan.status}, "
-                          f"predicted error {plan.error_mm:.2f} mm), sent {sent}")
-            if sent == len(plan.actions):
-                return
-            executed += sent
-            left = len(plan.actions) - sent if fixed else left - sent
+                                 f"({plan.status}: {plan.reason}); keeping the rest of the previous plan")
+            else:
+                current, offset = plan, 0
+                self.log.info(f"goal {goal.xy.tolist()} mm: replanned after {executed} steps from "
+                              f"{state[:2].round(2).tolist()} mm, {len(plan.actions)}-step plan ({plan.status}, "
+                              f"predicted error {plan.error_mm:.2f} mm)")
+            return plan
+
+        def send(piece: np.ndarray) -> str:
+            nonlocal offset, executed, done_before
+            with self._cond:
+                done_before = len(self._done_stamps)
+            stamp = self._now_ns()
+            self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
+            self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
+            if executed == 0:
+                self._publish_result(result)
+            offset, executed = offset + len(piece), executed + len(piece)
+            return ""
+
+        def measure() -> np.ndarray | None:
+            nonlocal hand
+            after = self._after_piece(done_before)
+            if after is None:
+                return None
+            hand = after
+            return hand.state
+
+        receding_horizon(plan_at, send, measure, steps, k, first=first)
 
     def _after_piece(self, done_before: int) -> HandState | None:
         """The hand state after the piece sent last has run (None: stopping, a newer goal, or a timeout)."""
@@ -526,4 +532,4 @@ def _superseded(goal: _Goal, planned: PlanResult | None = None) -> PlanResult:
     """The result of a goal a newer one replaced (``planned``: what its finished plan had been)."""
     base = planned or PlanResult(False, "", "", goal.xy.tolist(), goal.stamp_ns)
     reason = "a newer goal arrived" + (" while it was planned; the plan was discarded" if planned else "")
-    return PlanResult(**{**asdict(base), "accepted": False, "status": "superseded", "reason": reason})
+    return PlanResult(**{**asdict(base), "accepted": False, "status": names.SUPERSEDED, "reason": reason})

@@ -4,7 +4,8 @@ Open loop plans once from the start and sends the whole sequence.  With
 ``replan_every = k`` the planner plans the remaining steps from the measured
 state, the hand executes the first ``k`` actions, and so on until the fixed
 number of steps has run: what feedback buys on the same goals.  If a replan is
-refused mid-way, the rest of the previous plan is kept.
+refused mid-way, the rest of the previous plan is kept.  The rule is
+:func:`receding_horizon`, which the planner node runs too.
 
 The hand is anything with a ``state`` and ``step_info(action)`` (a
 :class:`~t42_transfer.hand.sim.SimulatedHand`, or a toy system in tests).
@@ -42,7 +43,8 @@ class Execution:
     states: np.ndarray
     """``[L + 1, 4]`` measured states, from the start."""
     end_reason: str
-    """``length`` when every step ran; the hand's reason ('dropped', ...) or ``refused`` (no plan to execute)."""
+    """How :func:`receding_horizon` ended: ``length`` when every step ran, the hand's reason ('dropped', ...),
+    ``short_plan``, ``refused`` (no plan to execute) or ``no_state``."""
     plans: tuple[Plan, ...]
     """Every plan made, in order (one when open loop)."""
 
@@ -51,33 +53,65 @@ class Execution:
         return self.end_reason == "length"
 
 
-def execute(hand: Steppable, plan_at: PlanAt, steps: int, replan_every: int = 0) -> Execution:
-    """Run ``steps`` actions on ``hand`` from its current state, planning once (``replan_every = 0``) or every k steps."""
+Send = Callable[[np.ndarray], str]
+"""Executes a piece of actions on the hand; the hand's end reason if the episode ended in it, else ``""``."""
+Measure = Callable[[], "np.ndarray | None"]
+"""The measured state after the pieces sent so far (None: no state to plan from, the loop ends)."""
+
+
+def receding_horizon(plan_at: PlanAt, send: Send, measure: Measure, steps: int, replan_every: int = 0,
+                     first: Plan | None = None) -> tuple[list[Plan], str]:
+    """The one MPC rule, for :func:`execute` and the planner node: the plans made and why the loop ended.
+
+    Plan ``steps`` from the measured state (or take ``first``), send the first ``replan_every``
+    actions (all of them with 0: open loop), then plan what is left from the state measured
+    after them, and so on.  A replan without actions (refused: no safe sequence) keeps the
+    rest of the previous plan, which was checked safe when it was made; the loop ends when
+    every step has run (``length``), when the hand ends the episode (its reason), when a
+    plan is used up before ``steps`` (``short_plan``: a plan that reaches early), when there
+    is nothing to send (``refused``) or no state to plan from (``no_state``).
+    """
     if steps < 1 or replan_every < 0:
         raise ValueError(f"need steps >= 1 and replan_every >= 0, got {steps} and {replan_every}")
-    states, actions, plans = [hand.state.copy()], [], []
+    plans: list[Plan] = []
     queue = np.zeros((0, 2))
-    while len(actions) < steps:
-        left = steps - len(actions)
-        if not plans or (replan_every and len(actions) % replan_every == 0):
-            plan = plan_at(states[-1], left)
+    done = 0
+    while done < steps:
+        if not plans or replan_every:
+            if plans or first is None:
+                state = measure()
+                if state is None:
+                    return plans, "no_state"
+                plan = plan_at(state, steps - done)
+            else:
+                plan = first
             plans.append(plan)
             if len(plan.actions):
                 queue = plan.actions
         if len(queue) == 0:
-            return _done(states, actions, "refused", plans)
-        burst = queue[: replan_every or len(queue)]
-        queue = queue[len(burst):]
-        for action in burst:
+            return plans, "refused"
+        piece, queue = queue[: replan_every or len(queue)], queue[replan_every or len(queue):]
+        reason = send(piece)
+        done += len(piece)
+        if reason:
+            return plans, reason
+        if len(queue) == 0 and done < steps:
+            return plans, "short_plan"
+    return plans, "length"
+
+
+def execute(hand: Steppable, plan_at: PlanAt, steps: int, replan_every: int = 0) -> Execution:
+    """Run ``steps`` actions on ``hand`` from its current state, planning once (``replan_every = 0``) or every k steps."""
+    states, actions = [hand.state.copy()], []
+
+    def send(piece: np.ndarray) -> str:
+        for action in piece:
             info = hand.step_info(np.asarray(action, dtype=np.float64))
             actions.append(np.asarray(action, dtype=np.float64))
             states.append(hand.state.copy())
             if info.done:
-                return _done(states, actions, info.end_reason, plans)
-        if not replan_every and len(queue) == 0 and len(actions) < steps:
-            return _done(states, actions, "short_plan", plans)
-    return _done(states, actions, "length", plans)
+                return info.end_reason
+        return ""
 
-
-def _done(states: list, actions: list, reason: str, plans: list[Plan]) -> Execution:
+    plans, reason = receding_horizon(plan_at, send, lambda: states[-1], steps, replan_every)
     return Execution(np.asarray(actions, dtype=np.float64).reshape(-1, 2), np.asarray(states), reason, tuple(plans))
