@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -74,6 +76,29 @@ class RosRig:
             rclpy.shutdown(context=self.context)
 
 
+class Tester:
+    """The test's own node beside the nodes under test: it listens, publishes and calls as a user would,
+    and waits on what the graph shows (publisher and subscriber counts), never on a node's private state."""
+
+    def __init__(self, ros: RosRig, name: str = "tester", namespace: str = "") -> None:
+        self.ros = ros
+        self.tester = ros.node(name, namespace=namespace)
+
+    def listen(self, msgtype: Any, topic: str, qos: Any = 100) -> list[Any]:
+        """Every message on ``topic`` from now on, in arrival order."""
+        got: list[Any] = []
+        self.tester.create_subscription(msgtype, topic, got.append, qos)
+        return got
+
+    def wait_graph(self, publishers: dict[str, int] | None = None, subscribers: dict[str, int] | None = None,
+                   timeout_s: float = 10.0) -> bool:
+        """Spin until, as the tester sees the graph, each topic has (at least) these publishers / subscribers."""
+        def seen() -> bool:
+            return (all(self.tester.count_publishers(t) >= n for t, n in (publishers or {}).items())
+                    and all(self.tester.count_subscribers(t) >= n for t, n in (subscribers or {}).items()))
+        return self.ros.spin_until(seen, timeout_s)
+
+
 def start_node(name: str, *ros_args: str, log: Path | None = None) -> subprocess.Popen:
     """``t42 node NAME --ros-args ...`` as a process (environment inherited: the test's domain)."""
     cmd = [sys.executable, "-u", "-m", "t42_transfer.cli", "node", name]
@@ -85,11 +110,16 @@ def start_node(name: str, *ros_args: str, log: Path | None = None) -> subprocess
         return subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
 
 
-def stop(procs: Sequence[subprocess.Popen], timeout_s: float = 10.0) -> list[int]:
-    """SIGINT each process, then kill what is still running after ``timeout_s``; the exit codes."""
+def unbuffered_env(**extra: str) -> dict[str, str]:
+    """The test's environment (its domain and LOCALHOST discovery, from ``ros_domain``), unbuffered, plus ``extra``."""
+    return dict(os.environ, PYTHONUNBUFFERED="1", **extra)
+
+
+def stop(procs: Sequence[subprocess.Popen], timeout_s: float = 10.0, sig: int = signal.SIGINT) -> list[int]:
+    """``sig`` to each process, then kill what is still running after ``timeout_s``; the exit codes."""
     for proc in procs:
         if proc.poll() is None:
-            proc.send_signal(2)
+            proc.send_signal(sig)
     codes = []
     for proc in procs:
         try:

@@ -23,7 +23,7 @@ import pytest
 
 from test_stock_graph import STOCK_USER, T42, source_model, suite_file  # noqa: F401  (source_model: fixture)
 
-from ros_rig import REPO
+from ros_rig import REPO, stop, unbuffered_env
 
 ADDRESSES = ("10.242.77.1/30", "10.242.77.2/30")
 
@@ -77,24 +77,13 @@ def two_hosts(ros_domain: int) -> Iterator[tuple[str, str]]:
 def _env() -> dict[str, str]:
     # UDP only: Fast DDS would otherwise move data between the "hosts" through shared memory (/dev/shm is
     # common to both namespaces); this way every byte crosses the veth link, as between two machines.
-    return dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", FASTDDS_BUILTIN_TRANSPORTS="UDPv4",
-                PYTHONUNBUFFERED="1")
+    return unbuffered_env(ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET", FASTDDS_BUILTIN_TRANSPORTS="UDPv4")
 
 
 def _on(host: str, cmd: list[str], log: Path) -> subprocess.Popen:
     with log.open("w") as out:
         return subprocess.Popen(["ip", "netns", "exec", host, *cmd], cwd=REPO, env=_env(), stdout=out,
                                 stderr=subprocess.STDOUT)
-
-
-def _stop(proc: subprocess.Popen) -> int:
-    if proc.poll() is None:
-        proc.send_signal(2)
-    try:
-        return proc.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        return proc.wait()
 
 
 def _stock_user(host: str, mode: str, log: Path) -> dict:
@@ -128,7 +117,7 @@ def test_the_story_across_two_hosts(two_hosts: tuple[str, str], tmp_path: Path, 
         try:
             assert explorer.wait(timeout=300) == 0, (tmp_path / "explorer.log").read_text()
         finally:
-            _stop(explorer)
+            stop([explorer], 60.0)[0]
         assert len(list((tmp_path / "bags").glob("episode_*"))) >= 3
 
         seen = _stock_user(server, "transfer", tmp_path / "user_transfer.log")
@@ -136,5 +125,5 @@ def test_the_story_across_two_hosts(two_hosts: tuple[str, str], tmp_path: Path, 
         assert seen["trajectory"]["points"] >= 1 and seen["path"]["poses"] == seen["trajectory"]["points"] + 1
         assert any(s.startswith("trajectory_done") for s in seen["driver_status"])  # executed on the other host
     finally:
-        codes = [_stop(brain), _stop(hand)]
+        codes = [stop([brain], 60.0)[0], stop([hand], 60.0)[0]]
     assert codes == [0, 0], logs()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from torch import Tensor, nn
+from toys import StateIsLatent
 
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.lyapunov import (
@@ -250,28 +251,15 @@ def small_mlp(inputs: int, outputs: int, seed: int, gain: float) -> nn.Sequentia
     return net
 
 
-class ToySource(LatentDynamics):
+class ToySource(StateIsLatent):
     """A contracting source model ``x' = 0.6 x + h(x, a)`` whose maximal exponent is negative."""
 
     def __init__(self) -> None:
         super().__init__()
         self.h = small_mlp(6, 4, seed=0, gain=1.5)
 
-    def config(self) -> dict:
-        return {}
-
-    @classmethod
-    def from_config(cls, config: dict) -> "ToySource":
-        return cls()
-
-    def initial_latent(self, x0: Tensor) -> Tensor:
-        return x0
-
     def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
         return 0.6 * z + self.h(torch.cat([z, action], dim=-1))
-
-    def observe(self, z: Tensor) -> Tensor:
-        return z
 
 
 class ToyCumulativeResidual(LatentDynamics):

@@ -11,7 +11,8 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from torch import Tensor
+
+from toys import Toy
 
 from t42_transfer.cli import main
 from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normalisation, TransitionModel
@@ -27,44 +28,6 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 BOX = Workspace.box(-50.0, 50.0, 40.0, 120.0)
-
-
-class Toy(LatentDynamics):
-    """``(x, y) += gain * a + drift``, loads grow apart by ``load_rate`` per step, NaN once ``x > nan_beyond``."""
-
-    def __init__(
-        self,
-        gain: float = 1.0,
-        drift: tuple[float, float] = (0.0, 0.0),
-        load_rate: float = 0.0,
-        nan_beyond: float = math.inf,
-    ) -> None:
-        super().__init__()
-        self.gain, self.drift, self.load_rate, self.nan_beyond = gain, drift, load_rate, nan_beyond
-
-    def config(self) -> dict:
-        return {}
-
-    @classmethod
-    def from_config(cls, config: dict) -> "Toy":
-        return cls()
-
-    def initial_latent(self, x0: Tensor) -> Tensor:
-        return x0
-
-    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
-        move = torch.cat(
-            [
-                self.gain * action + torch.tensor(self.drift),
-                torch.tensor([self.load_rate, -self.load_rate]).expand_as(action),
-            ],
-            -1,
-        )
-        nxt = z + move
-        return nxt.masked_fill((nxt[:, :1] > self.nan_beyond).expand_as(nxt), math.nan)
-
-    def observe(self, z: Tensor) -> Tensor:
-        return z
 
 
 def hand_norm() -> Normalisation:

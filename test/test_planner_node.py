@@ -15,11 +15,10 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.srv import SetParameters
 from rclpy.parameter import Parameter
-from ros_rig import Rosout
+from ros_rig import Rosout, Tester
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
-from test_planner_uncertainty import ToyHand
-from torch import Tensor
+from toys import Toy, ToyHand
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
@@ -29,13 +28,13 @@ from msg_adapters import (
     joint_trajectory_to_actions,
     names,
     object_pose_msg,
+    object_xy_mm,
     path_xy_mm,
     stamp_to_ns,
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
-from t42_transfer.models import LatentDynamics
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.planner_node import (
@@ -61,50 +60,22 @@ SLOW_TIMER = 1e-3
 """The driver's rate_factor that keeps its own timer (100 s period) out of hand-stepped tests."""
 
 
-class LinearHand(LatentDynamics):
-    """Toy model: ``(x, y) += gain @ a`` mm per step, loads unchanged."""
-
-    kind = "test_planner_node_linear"
-
-    def __init__(self, gain: float = 1.0) -> None:
-        super().__init__()
-        self.register_buffer("gain", torch.eye(2) * gain)
-
-    def config(self) -> dict:
-        return {}
-
-    @classmethod
-    def from_config(cls, config: dict) -> "LinearHand":
-        return cls()
-
-    def initial_latent(self, x0: Tensor) -> Tensor:
-        return x0
-
-    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
-        return torch.cat([z[:, :2] + action @ self.gain.T, z[:, 2:]], -1)
-
-    def observe(self, z: Tensor) -> Tensor:
-        return z
-
-
 def toy_file(path: Path, method: str = "toy", gain: float = 1.0, workspace: Workspace | None = BOX) -> Path:
     extra = {"workspace": workspace.to_dict()} if workspace is not None else None
-    return save_model(LinearHand(gain), path, method=method, extra=extra)
+    return save_model(Toy(gain=gain), path, method=method, extra=extra)
 
 
-class Rig:
+class Rig(Tester):
     """Mock driver (stepped by hand), planner node and a tester node on the test's own domain."""
 
     def __init__(self, ros, model: Path | str = "", driver: bool = True, **params: Any) -> None:
-        self.ros = ros
+        super().__init__(ros)
         self.driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER}) if driver else None
-        self.tester = ros.node("tester")
         self.results: list[dict] = []
-        self.trajectories: list[JointTrajectory] = []
-        self.paths: list[PathMsg] = []
-        self.tester.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
-        self.tester.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self.trajectories.append, 10)
-        self.tester.create_subscription(PathMsg, names.PLANNED_PATH, self.paths.append, 10)
+        self.tester.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)),
+                                        10)
+        self.trajectories: list[JointTrajectory] = self.listen(JointTrajectory, names.HAND_TRAJECTORY, 10)
+        self.paths: list[PathMsg] = self.listen(PathMsg, names.PLANNED_PATH, 10)
         self.goal_pub = self.tester.create_publisher(PointStamped, names.GOAL, 10)
         self.model_pub = self.tester.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
         self.setter = self.tester.create_client(SetParameters, "planner/set_parameters")
@@ -113,14 +84,14 @@ class Rig:
 
     def start_planner(self, model: Path | str = "", **params: Any) -> None:
         self.planner = self.ros.add(PlannerNode, {"model": str(model), **params})
-        planner, driver = self.planner, self.driver
+        hand = (names.OBJECT_POSE, names.JOINT_STATES)
         assert self.ros.spin_until(lambda: self.goal_pub.get_subscription_count() == 1
-                                   and self.model_pub.get_subscription_count() == 1
-                                   and planner._result_pub.get_subscription_count() == 1
-                                   and planner._path_pub.get_subscription_count() == 1
-                                   and planner._trajectory_pub.get_subscription_count() == 1 + (driver is not None)
-                                   and (driver is None or driver._pose_pub.get_subscription_count() == 1
-                                        and driver._joints_pub.get_subscription_count() == 1), 10.0), "discovery"
+                                   and self.model_pub.get_subscription_count() == 1, 10.0), "discovery"
+        assert self.wait_graph(
+            publishers=dict.fromkeys((names.PLAN_RESULT, names.PLANNED_PATH, names.HAND_TRAJECTORY), 1)
+            | (dict.fromkeys(hand, 1) if self.driver is not None else {}),
+            subscribers={names.HAND_TRAJECTORY: (self.driver is not None) + 1, **dict.fromkeys(hand, 1)},
+        ), "discovery"
 
     def tick(self, n: int = 1) -> None:
         """``n`` driver steps, each taken in by the planner before the next."""
@@ -385,7 +356,7 @@ def test_works_under_a_namespace_with_remapped_names(ros) -> None:
     tester.create_subscription(String, "/left/t42/plan_result", lambda m: results.append(json.loads(m.data)), 10)
     goals = tester.create_publisher(PointStamped, "/left/aim", 10)
     assert ros.spin_until(lambda: goals.get_subscription_count() == 1
-                          and planner._result_pub.get_subscription_count() == 1, 10.0)
+                          and tester.count_publishers("/left/t42/plan_result") == 1, 10.0)
     goals.publish(goal_msg(START_XY, tester.get_clock().now().nanoseconds, RCLPY))
     assert ros.spin_until(lambda: results, 10.0)
     assert results[0]["status"] == "no_model" and "/left/t42/model_updated" in results[0]["reason"]
@@ -450,6 +421,8 @@ def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_toward
 
 def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_state(ros, toy: Path) -> None:
     rig = Rig(ros, toy, **{**SMALL, "horizon": 15, "horizon_search": False, "replan_every": 5})
+    poses = rig.listen(PoseStamped, names.OBJECT_POSE)
+    assert rig.wait_graph(subscribers={names.OBJECT_POSE: 2}), "discovery"
     rig.tick()
     rig.publish_goal(START_XY + [6.0, -4.0])
     assert ros.spin_until(lambda: rig.results, 20.0)
@@ -461,7 +434,7 @@ def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_s
         traj, path = rig.trajectories[-1], rig.paths[-1]
         assert len(traj.points) == 5
         assert len(path.poses) == 15 - 5 * piece + 1  # the whole rest is planned, its first 5 steps sent
-        assert np.allclose(path_xy_mm(path)[0], rig.planner._pose[1], atol=1e-3)  # from the measured state
+        assert np.allclose(path_xy_mm(path)[0], object_xy_mm(poses[-1]), atol=1e-3)  # from the measured state
         assert ros.spin_until(lambda: rig.driver.pending_actions == 5, 5.0)
         rig.tick(6)  # the piece, then the step that publishes the state after it
     assert ros.spin_until(lambda: rig.planner.idle, 5.0)

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
-from test_planner import BOX, START, Toy, hand_norm
+from test_planner import BOX, START, hand_norm
+from toys import Toy, ToyHand
 
-from t42_transfer.hand.sim import StepInfo
 from t42_transfer.models import TransitionModel
 from t42_transfer.planning import Planner, PlannerConfig
 from t42_transfer.planning.execution import execute
@@ -18,18 +18,6 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 GOAL = np.array([START[0] + 8.0, START[1]])
 """8 mm across the palm: 10 steps of a = (0.8, 0) for a gain-1 toy."""
-
-
-@dataclass
-class ToyHand:
-    """The true system for closed-loop tests: ``(x, y) += gain * a`` (a model with gain 1 is biased)."""
-
-    gain: float
-    state: np.ndarray
-
-    def step_info(self, action: np.ndarray) -> StepInfo:
-        self.state = self.state + np.concatenate([self.gain * np.asarray(action), [0.0, 0.0]])
-        return StepInfo(done=False, end_reason="", refused=False)
 
 
 def fixed(**overrides: object) -> PlannerConfig:
@@ -46,6 +34,8 @@ def test_an_ensemble_of_one_model_repeated_plans_as_that_model_at_equal_rollouts
 
 class Mapped(Toy):
     """``(x, y) += move(a)`` for a given function of the action."""
+
+    kind = "test_toy_mapped"
 
     def __init__(self, move) -> None:
         super().__init__()

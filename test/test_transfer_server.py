@@ -20,6 +20,8 @@ from std_srvs.srv import Trigger
 from test_bag_io import ACTION, JOINTS, step_messages, write_messages
 
 import t42_transfer.models.checkpoint as checkpoint
+from ros_rig import Tester
+
 from msg_adapters import DiagnosticReport, status_report
 from msg_adapters import names
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
@@ -70,19 +72,19 @@ def server_params(tmp_path: Path, source: Path, **params: Any) -> dict[str, Any]
             "config": config_file(tmp_path / "tiny.yaml"), "progress_period_s": 0.02, **params}
 
 
-class Rig:
+class Rig(Tester):
     """A transfer server and the test's node (Trigger client, diagnostics and model-update subscribers)."""
 
     def __init__(self, ros: Any, tmp_path: Path, source: Path, namespace: str = "", **params: Any) -> None:
-        self.ros = ros
+        super().__init__(ros, namespace=namespace)
         self.bag_dir, self.model_dir = tmp_path / "bags", tmp_path / "models"
         self.bag_dir.mkdir(exist_ok=True)
-        self.tester = ros.node("tester", namespace=namespace)
         self.reports: list[DiagnosticReport] = []
         self.updates: list[str] = []
         self.tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
                                         lambda m: self.reports.append(status_report(m, STATUS_NAME)), 10_000)
-        self.tester.create_subscription(String, names.MODEL_UPDATED, lambda m: self.updates.append(m.data), profile(names.LATCHED))
+        self.tester.create_subscription(String, names.MODEL_UPDATED, lambda m: self.updates.append(m.data),
+                                        profile(names.LATCHED))
         self.server = ros.add(TransferServer, server_params(tmp_path, source, **params), namespace=namespace)
         self.client = self.tester.create_client(Trigger, names.TRANSFER)
 
