@@ -15,17 +15,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from msg_adapters import names
+from msg_adapters import names, wire
 from msg_adapters.kit import ROSBAGS, MessageKit
-from msg_adapters.wire import (
-    ACTION_DIM,
-    ACTION_UNIT_RAD,
-    ACTUATOR_NAMES,
-    CONTROL_PERIOD_NS,
-    CONTROL_PERIOD_S,
-    FRAME_ID,
-    LOAD_UNIT_NM,
-)
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -76,8 +67,8 @@ def _header(stamp_ns: int, frame_id: str, kit: MessageKit) -> Any:
 def _pair(name: str, value: np.ndarray | Sequence[float]) -> np.ndarray:
     """A finite float32 pair widened to float64, ready for SI arithmetic."""
     arr = np.asarray(value, dtype=np.float32)
-    if arr.shape != (ACTION_DIM,):
-        raise ValueError(f"{name} must have shape ({ACTION_DIM},), got {arr.shape}")
+    if arr.shape != (wire.ACTION_DIM,):
+        raise ValueError(f"{name} must have shape ({wire.ACTION_DIM},), got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} has a non-finite value: {arr.tolist()}")
     return arr.astype(np.float64)
@@ -96,10 +87,10 @@ def _to_f32(name: str, value: np.ndarray) -> np.ndarray:
 def _actuator_columns(names: Sequence[str], what: str) -> list[int]:
     """Where each actuator sits in a message's name list (messages may order or add joints)."""
     names = list(names)
-    missing = [n for n in ACTUATOR_NAMES if n not in names]
+    missing = [n for n in wire.ACTUATOR_NAMES if n not in names]
     if missing:
         raise ValueError(f"{what} lacks actuator(s) {missing}; it names {names}")
-    return [names.index(n) for n in ACTUATOR_NAMES]
+    return [names.index(n) for n in wire.ACTUATOR_NAMES]
 
 
 def _per_joint(values: np.ndarray, names: Sequence[str], field: str) -> np.ndarray:
@@ -110,11 +101,11 @@ def _per_joint(values: np.ndarray, names: Sequence[str], field: str) -> np.ndarr
 
 
 def object_pose_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
-    """``PoseStamped`` of the object position (metres in FRAME_ID, z = 0, identity orientation)."""
+    """``PoseStamped`` of the object position (metres in wire.FRAME_ID, z = 0, identity orientation)."""
     x, y = _pair("object position", xy_mm) / _MM_PER_M
     return kit.make(
         POSE_STAMPED,
-        header=_header(stamp_ns, FRAME_ID, kit),
+        header=_header(stamp_ns, wire.FRAME_ID, kit),
         pose=kit.make(
             "geometry_msgs/msg/Pose",
             position=kit.make("geometry_msgs/msg/Point", x=float(x), y=float(y), z=0.0),
@@ -125,8 +116,8 @@ def object_pose_msg(xy_mm: np.ndarray | Sequence[float], stamp_ns: int, kit: Mes
 
 def object_xy_mm(msg: Any) -> np.ndarray:
     """Object ``(x, y)`` in mm (float32) of a ``PoseStamped``; refuses other frames."""
-    if msg.header.frame_id != FRAME_ID:
-        raise ValueError(f"object pose is in frame {msg.header.frame_id!r}, expected {FRAME_ID!r}")
+    if msg.header.frame_id != wire.FRAME_ID:
+        raise ValueError(f"object pose is in frame {msg.header.frame_id!r}, expected {wire.FRAME_ID!r}")
     position = msg.pose.position
     return _to_f32("object position", np.array([position.x, position.y]) * _MM_PER_M)
 
@@ -138,23 +129,23 @@ def joint_state_msg(
     kit: MessageKit = ROSBAGS,
 ) -> Any:
     """``JointState`` of the actuators: effort = loads in N m, position = angles (empty if unknown)."""
-    effort = _pair("loads", loads) * LOAD_UNIT_NM
+    effort = _pair("loads", loads) * wire.LOAD_UNIT_NM
     position = _NO_VALUES if angles is None else _pair("actuator angles", angles)
-    return kit.make(
-        JOINT_STATE,
-        header=_header(stamp_ns, "", kit),
-        name=list(ACTUATOR_NAMES),
-        position=kit.floats(position),
-        velocity=kit.floats(_NO_VALUES),
-        effort=kit.floats(effort),
-    )
+    return _actuator_state(stamp_ns, kit, position=position, effort=effort)
+
+
+def _actuator_state(stamp_ns: int, kit: MessageKit, position: np.ndarray = _NO_VALUES,
+                    velocity: np.ndarray = _NO_VALUES, effort: np.ndarray = _NO_VALUES) -> Any:
+    """A ``JointState`` of the two actuators, in their order; fields not given are empty."""
+    return kit.make(JOINT_STATE, header=_header(stamp_ns, "", kit), name=list(wire.ACTUATOR_NAMES),
+                    position=kit.floats(position), velocity=kit.floats(velocity), effort=kit.floats(effort))
 
 
 def joint_state_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     """``(loads, angles or None)`` in raw load units and rad (float32) of a ``JointState``."""
     cols = _actuator_columns(msg.name, "joint state")
     effort = _per_joint(msg.effort, msg.name, "joint state effort")
-    loads = _to_f32("joint state effort", effort[cols] / LOAD_UNIT_NM)
+    loads = _to_f32("joint state effort", effort[cols] / wire.LOAD_UNIT_NM)
     if len(msg.position) == 0:
         return loads, None
     position = _per_joint(msg.position, msg.name, "joint state position")
@@ -163,22 +154,15 @@ def joint_state_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
 
 def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
     """``JointState`` whose velocity (rad/s) is the action held over one control period."""
-    velocity = _pair("action", action) * ACTION_UNIT_RAD / CONTROL_PERIOD_S
-    return kit.make(
-        JOINT_STATE,
-        header=_header(stamp_ns, "", kit),
-        name=list(ACTUATOR_NAMES),
-        position=kit.floats(_NO_VALUES),
-        velocity=kit.floats(velocity),
-        effort=kit.floats(_NO_VALUES),
-    )
+    velocity = _pair("action", action) * wire.ACTION_UNIT_RAD / wire.CONTROL_PERIOD_S
+    return _actuator_state(stamp_ns, kit, velocity=velocity)
 
 
 def applied_action(msg: Any) -> np.ndarray:
     """Normalised action (float32) of an applied-action ``JointState``."""
     cols = _actuator_columns(msg.name, "applied action")
     velocity = _per_joint(msg.velocity, msg.name, "applied action velocity")
-    return _to_f32("applied action velocity", velocity[cols] * CONTROL_PERIOD_S / ACTION_UNIT_RAD)
+    return _to_f32("applied action velocity", velocity[cols] * wire.CONTROL_PERIOD_S / wire.ACTION_UNIT_RAD)
 
 
 def actions_to_joint_trajectory(
@@ -186,15 +170,15 @@ def actions_to_joint_trajectory(
 ) -> Any:
     """``JointTrajectory`` of actuator-angle targets, one per control period.
 
-    Point ``k`` (at ``(k + 1) * CONTROL_PERIOD_S``) is where the actuators stand
-    after actions ``0..k``: ``start_angles + ACTION_UNIT_RAD * cumsum(actions)[k]``.
+    Point ``k`` (at ``(k + 1) * wire.CONTROL_PERIOD_S``) is where the actuators stand
+    after actions ``0..k``: ``start_angles + wire.ACTION_UNIT_RAD * cumsum(actions)[k]``.
     """
     acts = np.asarray(actions, dtype=np.float32)
-    if acts.ndim != 2 or acts.shape[1] != ACTION_DIM:
-        raise ValueError(f"actions must have shape [T, {ACTION_DIM}], got {acts.shape}")
+    if acts.ndim != 2 or acts.shape[1] != wire.ACTION_DIM:
+        raise ValueError(f"actions must have shape [T, {wire.ACTION_DIM}], got {acts.shape}")
     if not np.all(np.isfinite(acts)):
         raise ValueError("actions have a non-finite value")
-    targets = _pair("start angles", start_angles) + ACTION_UNIT_RAD * np.cumsum(acts.astype(np.float64), axis=0)
+    targets = _pair("start angles", start_angles) + wire.ACTION_UNIT_RAD * np.cumsum(acts.astype(np.float64), axis=0)
     points = [
         kit.make(
             "trajectory_msgs/msg/JointTrajectoryPoint",
@@ -202,11 +186,11 @@ def actions_to_joint_trajectory(
             velocities=kit.floats(_NO_VALUES),
             accelerations=kit.floats(_NO_VALUES),
             effort=kit.floats(_NO_VALUES),
-            time_from_start=_duration((k + 1) * CONTROL_PERIOD_NS, kit),
+            time_from_start=_duration((k + 1) * wire.CONTROL_PERIOD_NS, kit),
         )
         for k, target in enumerate(targets)
     ]
-    return kit.make(JOINT_TRAJECTORY, header=_header(stamp_ns, "", kit), joint_names=list(ACTUATOR_NAMES),
+    return kit.make(JOINT_TRAJECTORY, header=_header(stamp_ns, "", kit), joint_names=list(wire.ACTUATOR_NAMES),
                     points=points)
 
 
@@ -219,17 +203,17 @@ def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[fl
     """
     cols = _actuator_columns(msg.joint_names, "joint trajectory")
     previous = _pair("start angles", start_angles)
-    targets = np.zeros((len(msg.points), ACTION_DIM), np.float64)
+    targets = np.zeros((len(msg.points), wire.ACTION_DIM), np.float64)
     for k, point in enumerate(msg.points):
-        due = (k + 1) * CONTROL_PERIOD_NS
+        due = (k + 1) * wire.CONTROL_PERIOD_NS
         at = stamp_to_ns(point.time_from_start)
         if abs(at - due) > _SPACING_TOLERANCE_NS:
             raise ValueError(
-                f"joint trajectory point {k} is at {at} ns; points must be every {CONTROL_PERIOD_NS} ns, so {due} ns"
+                f"joint trajectory point {k} is at {at} ns; points must be every {wire.CONTROL_PERIOD_NS} ns, so {due} ns"
             )
         positions = _per_joint(point.positions, msg.joint_names, f"joint trajectory point {k} positions")
         if not np.all(np.isfinite(positions[cols])):
             raise ValueError(f"joint trajectory point {k} has a non-finite position: {positions.tolist()}")
         targets[k] = positions[cols]
-    steps = np.diff(np.vstack([previous, targets]), axis=0) / ACTION_UNIT_RAD
+    steps = np.diff(np.vstack([previous, targets]), axis=0) / wire.ACTION_UNIT_RAD
     return _to_f32("joint trajectory actions", steps)

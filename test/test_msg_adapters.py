@@ -9,21 +9,14 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import msg_adapters as ma
-from t42_transfer.conventions import (
-    ACTION_UNIT_RAD,
-    ACTUATOR_NAMES,
-    CONTROL_PERIOD_NS,
-    CONTROL_PERIOD_S,
-    FRAME_ID,
-    LOAD_UNIT_NM,
-)
+from msg_adapters import wire
 
 F32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
 PAIRS = arrays(np.float32, 2, elements=F32)
 STAMPS = st.integers(0, 2**31 * 10**9 - 1)
 
 
-def wire(msg):
+def through_cdr(msg):
     """The message as a subscriber gets it: serialised to CDR and back."""
     return ma.TYPESTORE.deserialize_cdr(ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__), msg.__msgtype__)
 
@@ -34,14 +27,14 @@ def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
 
 @given(xy=PAIRS, stamp=STAMPS)
 def test_object_pose_round_trip_is_bit_exact(xy, stamp):
-    msg = wire(ma.object_pose_msg(xy, stamp))
+    msg = through_cdr(ma.object_pose_msg(xy, stamp))
     assert same_bits(ma.object_xy_mm(msg), xy)
     assert ma.stamp_to_ns(msg.header.stamp) == stamp
 
 
 @given(loads=PAIRS, angles=st.none() | PAIRS, stamp=STAMPS)
 def test_joint_state_round_trip_is_bit_exact(loads, angles, stamp):
-    msg = wire(ma.joint_state_msg(loads, angles, stamp))
+    msg = through_cdr(ma.joint_state_msg(loads, angles, stamp))
     got_loads, got_angles = ma.joint_state_arrays(msg)
     assert same_bits(got_loads, loads)
     assert got_angles is None if angles is None else same_bits(got_angles, angles)
@@ -50,28 +43,28 @@ def test_joint_state_round_trip_is_bit_exact(loads, angles, stamp):
 
 @given(action=PAIRS, stamp=STAMPS)
 def test_applied_action_round_trip_is_bit_exact(action, stamp):
-    msg = wire(ma.applied_action_msg(action, stamp))
+    msg = through_cdr(ma.applied_action_msg(action, stamp))
     assert same_bits(ma.applied_action(msg), action)
     assert ma.stamp_to_ns(msg.header.stamp) == stamp
 
 
 def test_messages_carry_si_units_and_the_hand_layout():
     pose = ma.object_pose_msg([12.5, -40.0], 3_000_000_123)
-    assert pose.header.frame_id == FRAME_ID
+    assert pose.header.frame_id == wire.FRAME_ID
     assert (pose.header.stamp.sec, pose.header.stamp.nanosec) == (3, 123)
     p, q = pose.pose.position, pose.pose.orientation
     assert (p.x, p.y, p.z) == pytest.approx((0.0125, -0.040, 0.0))
     assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
 
     joints = ma.joint_state_msg([100.0, -120.0], [0.5, 0.25], 0)
-    assert joints.name == list(ACTUATOR_NAMES)
-    assert joints.effort == pytest.approx([100.0 * LOAD_UNIT_NM, -120.0 * LOAD_UNIT_NM])
+    assert joints.name == list(wire.ACTUATOR_NAMES)
+    assert joints.effort == pytest.approx([100.0 * wire.LOAD_UNIT_NM, -120.0 * wire.LOAD_UNIT_NM])
     assert list(joints.position) == [0.5, 0.25] and len(joints.velocity) == 0
     assert len(ma.joint_state_msg([1.0, 1.0], None, 0).position) == 0
 
     action = ma.applied_action_msg([1.0, -1.5], 0)
-    assert action.name == list(ACTUATOR_NAMES)
-    rate = ACTION_UNIT_RAD / CONTROL_PERIOD_S
+    assert action.name == list(wire.ACTUATOR_NAMES)
+    rate = wire.ACTION_UNIT_RAD / wire.CONTROL_PERIOD_S
     assert action.velocity == pytest.approx([rate, -1.5 * rate])
     assert len(action.position) == 0 and len(action.effort) == 0
 
@@ -79,7 +72,7 @@ def test_messages_carry_si_units_and_the_hand_layout():
 def test_readers_follow_joint_names_not_positions():
     msg = ma.joint_state_msg([1.0, 2.0], [0.1, 0.2], 0)
     msg.name = ["gripper", "actuator_2", "actuator_1"]
-    msg.effort = np.array([9.0, 2.0, 1.0]) * LOAD_UNIT_NM
+    msg.effort = np.array([9.0, 2.0, 1.0]) * wire.LOAD_UNIT_NM
     msg.position = np.array([7.0, 0.2, 0.1])
     loads, angles = ma.joint_state_arrays(msg)
     assert loads.tolist() == [1.0, 2.0]
@@ -140,7 +133,7 @@ ANGLES = arrays(np.float32, 2, elements=st.floats(-3.0, 3.0, width=32))
 @settings(max_examples=50)
 @given(actions=ACTIONS, start=ANGLES, stamp=STAMPS)
 def test_joint_trajectory_round_trip(actions, start, stamp):
-    msg = wire(ma.actions_to_joint_trajectory(actions, start, stamp))
+    msg = through_cdr(ma.actions_to_joint_trajectory(actions, start, stamp))
     assert ma.stamp_to_ns(msg.header.stamp) == stamp
     back = ma.joint_trajectory_to_actions(msg, start)
     assert back.dtype == np.float32 and back.shape == actions.shape
@@ -150,13 +143,13 @@ def test_joint_trajectory_round_trip(actions, start, stamp):
 def test_joint_trajectory_holds_angle_targets_every_period():
     actions = np.array([[1.0, -1.0], [0.5, 0.0], [-1.5, 1.5]], np.float32)
     msg = ma.actions_to_joint_trajectory(actions, [0.25, 0.5], 7)
-    assert msg.joint_names == list(ACTUATOR_NAMES)
+    assert msg.joint_names == list(wire.ACTUATOR_NAMES)
     assert [ma.stamp_to_ns(p.time_from_start) for p in msg.points] == [
-        CONTROL_PERIOD_NS,
-        2 * CONTROL_PERIOD_NS,
-        3 * CONTROL_PERIOD_NS,
+        wire.CONTROL_PERIOD_NS,
+        2 * wire.CONTROL_PERIOD_NS,
+        3 * wire.CONTROL_PERIOD_NS,
     ]
-    expected = np.array([0.25, 0.5]) + ACTION_UNIT_RAD * np.cumsum(actions, axis=0)
+    expected = np.array([0.25, 0.5]) + wire.ACTION_UNIT_RAD * np.cumsum(actions, axis=0)
     np.testing.assert_allclose([p.positions for p in msg.points], expected, atol=1e-12)
     assert all(len(p.velocities) == len(p.accelerations) == len(p.effort) == 0 for p in msg.points)
 
@@ -177,7 +170,7 @@ def _set_point(index, **fields):
     ("change", "match"),
     [
         (lambda m: setattr(m, "joint_names", ["actuator_1", "wrist"]), "lacks actuator"),
-        (_set_point(1, time_from_start=ma.ns_to_stamp(3 * CONTROL_PERIOD_NS)), "point 1 is at 300000000 ns"),
+        (_set_point(1, time_from_start=ma.ns_to_stamp(3 * wire.CONTROL_PERIOD_NS)), "point 1 is at 300000000 ns"),
         (lambda m: m.points.pop(0), "point 0 is at 200000000 ns"),
         (_set_point(2, positions=np.array([0.1])), "point 2 positions has 1 values"),
         (_set_point(0, positions=np.array([np.nan, 0.0])), "point 0 has a non-finite position"),

@@ -13,12 +13,12 @@ from hypothesis.extra.numpy import arrays
 import msg_adapters as ma
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 
-from test_msg_adapters import F32, PAIRS, STAMPS, same_bits, wire  # noqa: E402  (the shared round-trip helpers)
+from test_msg_adapters import F32, PAIRS, STAMPS, same_bits, through_cdr  # noqa: E402  (the shared round-trip helpers)
 
 
 @given(xy=PAIRS, stamp=STAMPS)
 def test_goal_round_trip_is_bit_exact(xy, stamp):
-    msg = wire(ma.goal_msg(xy, stamp))
+    msg = through_cdr(ma.goal_msg(xy, stamp))
     assert msg.__msgtype__ == ma.POINT_STAMPED and msg.header.frame_id == FRAME_ID
     assert same_bits(ma.goal_xy_mm(msg), xy)
     assert ma.stamp_to_ns(msg.header.stamp) == stamp
@@ -52,7 +52,7 @@ def test_goal_refuses_other_frames_and_float32_overflow():
 @given(xy=arrays(np.float32, st.tuples(st.integers(0, 8), st.just(2)), elements=F32),
        start=st.integers(0, 2**31 * 10**9 - 10**10), period=st.integers(1, 10**9))
 def test_path_round_trip_is_bit_exact_with_stamps_one_period_apart(xy, start, period):
-    msg = wire(ma.path_msg(xy, start, period))
+    msg = through_cdr(ma.path_msg(xy, start, period))
     assert msg.__msgtype__ == ma.PATH and msg.header.frame_id == FRAME_ID
     out = ma.path_xy_mm(msg)
     assert out.shape == xy.shape and same_bits(out, xy)
