@@ -58,14 +58,12 @@ PLAN_RESULT = "t42/plan_result"
 """std_msgs/String: one JSON line per goal (accepted, or refused with the reason)."""
 
 # ------------------------------------------------------------------ status words
-RESET = "reset"
-"""A grasp closed: a new episode starts after this status."""
-RESET_FAILED = "reset_failed"
-DROPPED = "dropped"
-LOST_CONTACT = "lost_contact"
-OVERLOAD = "overload"
+# The first word of a hand/status text (msg_adapters.status): a grasp closed and a new episode starts
+# (reset) or could not (reset_failed); the episode ended (dropped, lost_contact, overload); the last
+# point of a trajectory has been applied (trajectory_done).
+RESET, RESET_FAILED = "reset", "reset_failed"
+DROPPED, LOST_CONTACT, OVERLOAD = "dropped", "lost_contact", "overload"
 TRAJECTORY_DONE = "trajectory_done"
-"""The last point of a trajectory has been applied."""
 END_EVENTS = (DROPPED, LOST_CONTACT, OVERLOAD)
 """Events that end an episode (the hand stops until the next reset)."""
 SPLIT_EVENTS = (RESET, *END_EVENTS)
