@@ -56,7 +56,7 @@ setup(
         "console_scripts": [
             "t42 = t42_transfer.cli:main",
             # One executable per node (`ros2 run t42_transfer <node>`), named as the registry names it.
-            *(f"{name} = t42_transfer.nodes.registry:main" for name in _node_names()),
+            *(f"{name} = t42_transfer.ros.runner:main" for name in _node_names()),
         ],
     },
 )

@@ -63,7 +63,7 @@ def _console_scripts() -> dict[str, str]:
 def test_registry_setup_py_and_launch_file_agree() -> None:
     scripts = _console_scripts()
     assert scripts.pop("t42") == "t42_transfer.cli:main"
-    assert scripts == {name: "t42_transfer.nodes.registry:main" for name in NODES}
+    assert scripts == {name: "t42_transfer.ros.runner:main" for name in NODES}
     for name, spec in NODES.items():
         assert issubclass(spec.node_class(), Node), name
 

@@ -2,16 +2,16 @@
 
 Adding a node is one :data:`NODES` entry.  ``setup.py`` parses this file (so
 NODES stays a literal dict) to install one console script per node,
-``ros2 run t42_transfer <name>``, each pointing at :func:`main`.  Classes are
-named by import path so listing nodes loads none of them.
+``ros2 run t42_transfer <name>``, each pointing at
+:func:`t42_transfer.ros.runner.main`.  Classes are named by import path so listing
+nodes loads none of them.  This module is data only: the runner imports it, never
+the other way round.
 """
 
 from __future__ import annotations
 
 import importlib
-import sys
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 
@@ -45,9 +45,3 @@ NODES: dict[str, NodeSpec] = {
                         "plans open-loop action sequences to goals with the current model"),
 }
 
-
-def main() -> int:
-    """Console script of every node: the node is the executable's name (``ros2 run t42_transfer mock_driver``)."""
-    from t42_transfer.ros.runner import run_node
-
-    return run_node(Path(sys.argv[0]).stem, sys.argv[1:])

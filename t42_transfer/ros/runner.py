@@ -18,7 +18,10 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from pathlib import Path
 from types import FrameType
+
+from t42_transfer.nodes.registry import NODES
 
 DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 TEARDOWN_TIMEOUT_S = 8.0
@@ -71,9 +74,12 @@ def run_node(name: str, argv: Sequence[str]) -> int:
             signal.signal(sig, handler)
 
 
-def _run(name: str, argv: list[str], stop: threading.Event) -> int:
-    from t42_transfer.nodes.registry import NODES
+def main() -> int:
+    """Console script of every node: the node is the executable's name (``ros2 run t42_transfer mock_driver``)."""
+    return run_node(Path(sys.argv[0]).stem, sys.argv[1:])
 
+
+def _run(name: str, argv: list[str], stop: threading.Event) -> int:
     spec = NODES.get(name)
     if spec is None:
         return _error(f"unknown node {name!r}; available: {', '.join(NODES)}")
