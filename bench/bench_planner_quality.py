@@ -8,7 +8,7 @@ sequence whose prediction is NaN, over the load limit or outside the trained
 workspace at any step is unusable (cost inf; for MPPI, whose weights need
 finite costs, a 1000 mm penalty).  Each plan is then executed open loop on the
 true target hand (:func:`~t42_transfer.planning.execution.execute`) and judged
-by :func:`~t42_transfer.planning.peg_in_hole.verdict` at 10 and 4 mm.  The
+by :func:`~t42_transfer.evaluation.peg_in_hole.verdict` at 10 and 4 mm.  The
 budget B counts B model rollouts of the whole horizon per plan:
 
 - ``ours``: :class:`~t42_transfer.planning.planner.Planner`, piecewise sampler, ``samples = B``, no refinement;
@@ -70,7 +70,7 @@ from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
 from t42_transfer.planning.fused import make_rollout
-from t42_transfer.planning.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
+from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
 from t42_transfer.planning.planner import CHUNK, Plan, Planner, PlannerConfig
 from t42_transfer.planning.workspace import Workspace
 

@@ -19,7 +19,7 @@
    tolerance from the start and from where holding still would leave the object;
    it is sent to the planner as a ``PointStamped``; the driver executes the
    planned ``JointTrajectory`` open loop; the rule of
-   :func:`~t42_transfer.planning.peg_in_hole.verdict` decides success (completed,
+   :func:`~t42_transfer.evaluation.peg_in_hole.verdict` decides success (completed,
    half way towards the goal at least, within the tolerance), and doing nothing
    is scored by the same rule on the same grasps.  The recorder records these
    episodes like any other.
@@ -49,13 +49,14 @@ from typing import Any
 import numpy as np
 import yaml
 
-from msg_adapters import RCLPY, goal_msg, object_xy_mm, path_xy_mm, stamp_to_ns, status_event, status_report
+from msg_adapters import RCLPY, goal_msg, names, object_xy_mm, path_xy_mm, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.nodes.recorder import END_EVENTS
 
 SUITE_NODES = ("mock_driver", "recorder", "transfer_server", "planner")
 TRANSFER_STATUS = "t42_transfer: transfer"
-SERVICES = ("hand/reset", "t42/transfer", "recorder/start", "recorder/stop")
+RECORDER_START = names.private_of("recorder", names.RECORDER_START)
+RECORDER_STOP = names.private_of("recorder", names.RECORDER_STOP)
+SERVICES = (names.HAND_RESET, names.TRANSFER, RECORDER_START, RECORDER_STOP)
 
 
 @dataclass(frozen=True)
@@ -156,8 +157,8 @@ def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
                                 new_bags_only=False, config=str(methods), use_sim_time=True),
         "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
         "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,
-                         rate_factor=size.rate_factor, record_start_service="recorder/start",
-                         record_stop_service="recorder/stop", use_sim_time=True),
+                         rate_factor=size.rate_factor, record_start_service=RECORDER_START,
+                         record_stop_service=RECORDER_STOP, use_sim_time=True),
     }
     return {f"/**/{name}": section for name, section in sections.items()}
 
@@ -173,7 +174,7 @@ def _operator_class() -> type:
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from t42_transfer.ros.qos import EVENTS
+    from t42_transfer.ros.qos import profile
 
     class Operator(Node):
         """Watches the hand and the suite's outputs, calls services, sends goals; spun by a background executor."""
@@ -186,13 +187,14 @@ def _operator_class() -> type:
             self.results: list[dict[str, Any]] = []
             self.paths: list[np.ndarray] = []
             self.diagnostic: dict[str, str] = {}
-            self.create_subscription(PoseStamped, "hand/object_pose", self._on_pose, 100)
-            self.create_subscription(JointState, "hand/applied_action", self._on_applied, 100, raw=True)
-            self.create_subscription(String, "hand/status", lambda m: self.statuses.append(m.data), EVENTS)
-            self.create_subscription(String, "t42/plan_result", lambda m: self.results.append(json.loads(m.data)), 10)
-            self.create_subscription(PathMsg, "t42/planned_path", lambda m: self.paths.append(path_xy_mm(m)), 10)
-            self.create_subscription(DiagnosticArray, "diagnostics", self._on_diagnostics, 10)
-            self.goal_pub = self.create_publisher(PointStamped, "t42/goal", 10)
+            self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 100)
+            self.create_subscription(JointState, names.APPLIED_ACTION, self._on_applied, 100, raw=True)
+            self.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data),
+                                     profile(names.EVENTS))
+            self.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
+            self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self.paths.append(path_xy_mm(m)), 10)
+            self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diagnostics, 10)
+            self.goal_pub = self.create_publisher(PointStamped, names.GOAL, 10)
             self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}
 
         def _on_pose(self, msg: Any) -> None:
@@ -288,7 +290,7 @@ class GoalRun:
     end: str = ""
     success: bool = False
     verdict: str = ""
-    """:func:`~t42_transfer.planning.peg_in_hole.verdict` at ``TOLERANCE_MM``."""
+    """:func:`~t42_transfer.evaluation.peg_in_hole.verdict` at ``TOLERANCE_MM``."""
     still_error_mm: float = 0.0
     """Where holding still for the goal's steps leaves the object, from the goal (the same grasp and noise)."""
     still_verdict: str = ""
@@ -322,9 +324,9 @@ def _wait_for_closed_bags(op: Any, suite: _Suite, bag_dir: Path) -> list[Path]:
 
 def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
     from t42_transfer.hand.sim import SimulatedHand
-    from t42_transfer.planning.peg_in_hole import progress_towards, reachable_goal, verdict
+    from t42_transfer.evaluation.peg_in_hole import progress_towards, reachable_goal, verdict
 
-    response = op.call("hand/reset", 30.0, suite.check)
+    response = op.call(names.HAND_RESET, 30.0, suite.check)
     if not response.success:
         raise RuntimeError(f"reset failed: {response.message}")
     seed = _grasp_seed(response.message)
@@ -367,7 +369,7 @@ def run_goal(op: Any, suite: _Suite, steps: int, index: int, workspace: Any, rou
     settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
 
     def ends() -> list[str]:  # the episode's end events (a drop...): trajectory_done is not one
-        return [e for e in map(status_event, op.statuses[statuses:]) if e in END_EVENTS]
+        return [e for e in map(status_event, op.statuses[statuses:]) if e in names.END_EVENTS]
 
     op.wait_until(lambda: op.latest_pose()[0] >= settle or ends(), 120.0, "the plan's execution", suite.check)
     run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
@@ -499,7 +501,7 @@ def _transfer(op: Any, suite: _Suite, summary: dict[str, Any], round_: int, roun
             last[0] = line
             _say(line)
 
-    response = op.call("t42/transfer", 1800.0, suite.check, progress)
+    response = op.call(names.TRANSFER, 1800.0, suite.check, progress)
     transfer = {"success": bool(response.success), "message": response.message,
                 "seconds": time.perf_counter() - t0, "diagnostics": op.diagnostic}
     _say(f"[{4 + round_ - 1}/{4 + rounds}] round {round_}: /t42/transfer ({transfer['seconds']:.0f} s): "
@@ -565,7 +567,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
 
         def explored() -> bool:
             nonlocal shown
-            episodes = sum(status_event(s) == "reset" for s in op.statuses) - 1
+            episodes = sum(status_event(s) == names.RESET for s in op.statuses) - 1
             if episodes != shown and episodes >= 1:
                 shown = episodes
                 _say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")
@@ -588,9 +590,9 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
             record["heldout"] = heldout_scores(record["model"], model, heldout)
             _say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
                  f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
-            ok = op.call("recorder/start", 30.0, suite.check)
+            ok = op.call(RECORDER_START, 30.0, suite.check)
             if not ok.success:
-                raise RuntimeError(f"recorder/start: {ok.message}")
+                raise RuntimeError(f"{RECORDER_START}: {ok.message}")
             mine = []
             for index, steps in enumerate(size.goal_steps):
                 run = run_goal(op, suite, steps, index, workspace, round_)
@@ -600,7 +602,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
                 _say(f"      round {round_} goal {index + 1}/{len(size.goal_steps)} ({steps} steps, "
                      f"{run.start_distance_mm:.1f} mm away):{error} -> {verdict} (doing nothing: "
                      f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
-            op.call("recorder/stop", 30.0, suite.check)
+            op.call(RECORDER_STOP, 30.0, suite.check)
             _wait_for_closed_bags(op, suite, run_dir / "bags")
             runs.extend(mine)
             record.update(goals=len(mine), hits=sum(r.success for r in mine),

@@ -11,7 +11,7 @@ import torch
 from test_planner import Toy
 
 from bench import bench_planner_quality as bench
-from t42_transfer.planning.peg_in_hole import PegInHoleConfig, make_goals
+from t42_transfer.evaluation.peg_in_hole import PegInHoleConfig, make_goals
 from t42_transfer.planning.workspace import Workspace
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -16,22 +16,19 @@ from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.models.training import TrainConfig, train_transition_model
 from t42_transfer.planning import PlannerConfig, Workspace
-from t42_transfer.planning.peg_in_hole import (
+from t42_transfer.cli import main as t42
+from t42_transfer.evaluation.peg_in_hole import (
     Goal,
     PegInHoleConfig,
     Trial,
     contenders_for,
     evaluate,
-    main,
     make_goals,
-    markdown_table,
-    paired,
-    paired_table,
-    plot_success,
     progress_towards,
     summarise,
     verdict,
 )
+from t42_transfer.evaluation.peg_in_hole_report import markdown_table, paired, paired_table, plot_success
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 TINY = PegInHoleConfig(distances=(10, 20), trials=3, tolerances_mm=(10.0, 4.0), min_distance_factor=1.2,
@@ -162,7 +159,7 @@ def test_peg_in_hole_runs_on_model_files(tmp_path: Path, target_model: Transitio
         "--ensemble", "few_epochs", "again", "--dropout", "3", "--variants-of", "few_epochs",
         "--quiet",
     ]
-    assert main(argv) == 0
+    assert t42(["peg-in-hole", *argv]) == 0
     report = json.loads((tmp_path / "out" / "peg_in_hole.json").read_text())
     names = list(dict.fromkeys(r["model"] for r in report["rows"]))
     assert names == ["do_nothing", "oracle", "few_epochs", "again", "few_epochs+dropout3", "ensemble2"]
@@ -213,6 +210,6 @@ def test_paired_comparisons_match_goals_and_pick_each_variants_own_model(tmp_pat
 
     stored = tmp_path / "peg_in_hole.json"
     stored.write_text(json.dumps({"config": {"tolerances_mm": [10.0]}, "trials": [t.__dict__ for t in trials]}))
-    assert main(["--from-json", str(stored)]) == 0
+    assert t42(["peg-in-hole", "--from-json", str(stored)]) == 0
     assert "| a+mpc5 | a | 10 |" in (tmp_path / "peg_in_hole.md").read_text()
     assert (tmp_path / "peg_in_hole.png").stat().st_size > 0

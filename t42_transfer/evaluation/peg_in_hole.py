@@ -26,12 +26,9 @@ planner with the true hand as its model, :mod:`~t42_transfer.planning.oracle`).
 
 from __future__ import annotations
 
-import json
-import shlex
-import sys
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +36,6 @@ import torch
 
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.collect import run_episode
-from t42_transfer.hand.params import variant
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import Execution, execute
@@ -203,6 +199,32 @@ class Row:
     """Trials per verdict (hit, miss, no_progress, incomplete)."""
 
 
+def summarise(trials: Sequence[Trial], tolerances_mm: Sequence[float] = (10.0,)) -> list[Row]:
+    """One row per (model, distance, tolerance), models in the order first seen."""
+    groups: dict[tuple[str, int], list[Trial]] = {}
+    for t in trials:
+        groups.setdefault((t.model, t.steps), []).append(t)
+    rows = []
+    for (name, steps), group in groups.items():
+        errors = [t.final_error_mm for t in group if t.final_error_mm is not None]
+        relative = [t.final_error_mm / t.goal_distance_mm for t in group if t.final_error_mm is not None]
+        for tol in tolerances_mm:
+            verdicts = [t.verdict(tol) for t in group]
+            successes = verdicts.count("hit")
+            low, high = wilson_interval(successes, len(group))
+            rows.append(
+                Row(
+                    model=name, steps=steps, tolerance_mm=float(tol), trials=len(group), successes=successes,
+                    success_rate=successes / len(group), ci_low=low, ci_high=high,
+                    goal_distance_mm=float(np.median([t.goal_distance_mm for t in group])),
+                    final_error_mm=float(np.median(errors)) if errors else None,
+                    relative_error=float(np.median(relative)) if relative else None,
+                    verdicts={v: verdicts.count(v) for v in VERDICTS},
+                )
+            )
+    return rows
+
+
 def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list[Goal]:
     """``cfg.trials`` goals per distance, made on the true hand; deterministic in ``cfg.seed``.
 
@@ -356,167 +378,6 @@ def evaluate(
     return summarise(trials, cfg.tolerances_mm), trials
 
 
-def summarise(trials: Sequence[Trial], tolerances_mm: Sequence[float] = (10.0,)) -> list[Row]:
-    """One row per (model, distance, tolerance), models in the order first seen."""
-    groups: dict[tuple[str, int], list[Trial]] = {}
-    for t in trials:
-        groups.setdefault((t.model, t.steps), []).append(t)
-    rows = []
-    for (name, steps), group in groups.items():
-        errors = [t.final_error_mm for t in group if t.final_error_mm is not None]
-        relative = [t.final_error_mm / t.goal_distance_mm for t in group if t.final_error_mm is not None]
-        for tol in tolerances_mm:
-            verdicts = [t.verdict(tol) for t in group]
-            successes = verdicts.count("hit")
-            low, high = wilson_interval(successes, len(group))
-            rows.append(
-                Row(
-                    model=name, steps=steps, tolerance_mm=float(tol), trials=len(group), successes=successes,
-                    success_rate=successes / len(group), ci_low=low, ci_high=high,
-                    goal_distance_mm=float(np.median([t.goal_distance_mm for t in group])),
-                    final_error_mm=float(np.median(errors)) if errors else None,
-                    relative_error=float(np.median(relative)) if relative else None,
-                    verdicts={v: verdicts.count(v) for v in VERDICTS},
-                )
-            )
-    return rows
-
-
-@dataclass(frozen=True)
-class Paired:
-    """One contender against another on the same goals: the difference of their success rates."""
-
-    model: str
-    against: str
-    tolerance_mm: float
-    goals: int
-    difference: float
-    """Success rate of ``model`` minus that of ``against``."""
-    ci_low: float
-    ci_high: float
-    """95 % bootstrap interval of the difference (goals resampled, fixed seed)."""
-    wins: int
-    """Goals ``model`` hit and ``against`` missed."""
-    losses: int
-    sign_p: float
-    """Exact two-sided sign test on the discordant goals."""
-
-
-def paired(trials: Sequence[Trial], tolerances_mm: Sequence[float], reference: str = "direct") -> list[Paired]:
-    """Every contender against ``reference``, and each variant (``name+...``) against its own model, goal by goal."""
-    from t42_transfer.evaluation.stats import compare_paired
-
-    by_model: dict[str, dict[tuple[int, int], Trial]] = {}
-    for t in trials:
-        by_model.setdefault(t.model, {})[(t.steps, t.trial)] = t
-    out = []
-    for name in by_model:
-        if name in BASELINES:
-            continue
-        against = name.split("+")[0] if "+" in name else reference
-        if against == name or against not in by_model:
-            continue
-        goals = sorted(set(by_model[name]) & set(by_model[against]))
-        if len(goals) < 2:
-            continue
-        for tol in tolerances_mm:
-            a = [float(by_model[name][g].success(tol)) for g in goals]
-            b = [float(by_model[against][g].success(tol)) for g in goals]
-            c = compare_paired(a, b)
-            out.append(Paired(name, against, float(tol), len(goals), c.mean_difference, *c.bootstrap_interval,
-                              c.wins, c.losses, c.sign_p))
-    return out
-
-
-def paired_table(comparisons: Sequence[Paired]) -> str:
-    if not comparisons:
-        return ""
-    lines = ["Paired on the same goals (all distances): success-rate difference, 95 % bootstrap interval, "
-             "goals won / lost, exact sign test\n\n",
-             "| model | against | tolerance mm | goals | difference | 95 % interval | won / lost | sign p |\n",
-             "|---|---|---|---|---|---|---|---|\n"]
-    for c in comparisons:
-        lines.append(f"| {c.model} | {c.against} | {c.tolerance_mm:g} | {c.goals} | {c.difference:+.0%} "
-                     f"| {c.ci_low:+.0%} to {c.ci_high:+.0%} | {c.wins} / {c.losses} | {c.sign_p:.2g} |\n")
-    return "".join(lines) + "\n"
-
-
-def markdown_table(rows: Sequence[Row]) -> str:
-    """One table per tolerance: success with its Wilson interval beside the median final error."""
-    out = []
-    for tol in dict.fromkeys(r.tolerance_mm for r in rows):
-        out.append(
-            f"Tolerance {tol:g} mm\n\n"
-            "| model | goal steps | median goal distance mm | trials | success | 95 % interval "
-            "| median final error mm | median error / distance | miss / no progress / incomplete |\n"
-            "|---|---|---|---|---|---|---|---|---|\n"
-        )
-        for r in (r for r in rows if r.tolerance_mm == tol):
-            error = "-" if r.final_error_mm is None else f"{r.final_error_mm:.1f}"
-            rel = "-" if r.relative_error is None else f"{r.relative_error:.2f}"
-            v = r.verdicts
-            out.append(
-                f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} | {r.successes} ({r.success_rate:.0%}) "
-                f"| {r.ci_low:.0%}-{r.ci_high:.0%} | {error} | {rel} "
-                f"| {v['miss']} / {v['no_progress']} / {v['incomplete']} |\n"
-            )
-        out.append("\n")
-    return "".join(out)
-
-
-def plot_success(rows: Sequence[Row], path: Path) -> Path:
-    """Per tolerance: success rate (Wilson interval bars) against goal distance; below, median error / distance.
-
-    Baselines are dashed squares; variants of a model (``name+...``) share its colour, dotted (closed loop)
-    or dash-dotted (uncertainty-aware); the legend has its own panel."""
-    from t42_transfer.plots import pyplot, save
-
-    plt = pyplot()
-    tolerances = list(dict.fromkeys(r.tolerance_mm for r in rows))
-    columns = max(2, len(tolerances))
-    fig, axes = plt.subplots(2, columns, figsize=(5.2 * columns, 6.8), squeeze=False)
-    names = list(dict.fromkeys(r.model for r in rows))
-    bases = list(dict.fromkeys(n.split("+")[0] for n in names))
-    tab20 = plt.get_cmap("tab20").colors
-    palette = [tab20[j] for j in (*range(0, 20, 2), *range(1, 20, 2)) if j not in (14, 15)]  # no greys
-    colour = {b: palette[i % len(palette)] for i, b in enumerate(bases)}
-
-    def style(name: str) -> dict:
-        base, _, variant = name.partition("+")
-        if name in BASELINES:
-            return dict(linestyle="--", marker="s", color="black" if name == DO_NOTHING else "grey")
-        line = ":" if variant.startswith("mpc") else "-." if variant else "-"
-        marker = "^" if variant.startswith("mpc") else "v" if variant else "o"
-        return dict(linestyle=line, marker=marker, color=colour[base], markersize=4)
-
-    for col, tol in enumerate(tolerances):
-        top = axes[0, col]
-        for name in names:
-            mine = sorted((r for r in rows if r.model == name and r.tolerance_mm == tol), key=lambda r: r.steps)
-            steps = np.array([r.steps for r in mine], float)
-            rate = np.array([r.success_rate for r in mine])
-            err = np.array([[r.success_rate - r.ci_low for r in mine], [r.ci_high - r.success_rate for r in mine]])
-            top.errorbar(steps, rate, yerr=err, capsize=2, elinewidth=0.6, label=name, **style(name))
-        top.set_title(f"Peg-in-hole, tolerance {tol:g} mm (95 % Wilson)", fontsize=9)
-        top.set_ylabel("success rate")
-        top.set_xlabel("goal distance (control steps = plan length)")
-        top.set_ylim(-0.03, 1.03)
-    bottom = axes[1, 0]
-    for name in names:
-        mine = sorted((r for r in rows if r.model == name and r.tolerance_mm == tolerances[0]), key=lambda r: r.steps)
-        rel = [np.nan if r.relative_error is None else r.relative_error for r in mine]
-        bottom.plot([r.steps for r in mine], rel, label=name, **style(name))
-    bottom.set_xlabel("goal distance (control steps = plan length)")
-    bottom.set_ylabel("median final error / start distance")
-    bottom.axhline(1.0, color="grey", linewidth=0.6)
-    for ax in axes[1, 1:]:
-        ax.axis("off")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    axes[1, -1].legend(handles, labels, fontsize=7, loc="center", ncol=2, frameon=False)
-    fig.tight_layout()
-    return save(fig, path)
-
-
 def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], dict]:
     """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``, and the first file's
     metadata (its stored workspace is the default one)."""
@@ -524,13 +385,13 @@ def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], dict]:
 
     models, first = {}, None
     for spec in paths:
-        name, file = _model_spec(spec)
+        name, file = model_spec(spec)
         models[name], meta = load_model(file)
         first = meta if first is None else first
     return models, first or {}
 
 
-def _model_spec(spec: str) -> tuple[str, Path]:
+def model_spec(spec: str) -> tuple[str, Path]:
     """``NAME=PATH`` or ``PATH`` (named by the file's stem) as (name, path)."""
     name, _, file = spec.partition("=") if "=" in spec else ("", "", spec)
     return name or Path(file).stem, Path(file)
@@ -556,131 +417,3 @@ def contenders_for(
     if mpc:
         out += [Contender(f"{n}+mpc{mpc}", (models[n],), replan_every=mpc) for n in chosen]
     return out
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from t42_transfer.cli import (
-        MAX_HORIZON,
-        MAX_SAMPLES,
-        SEED_MAX,
-        OneLineParser,
-        check_plan_size,
-        existing_dir,
-        existing_file,
-        float_arg,
-        int_arg,
-        output_dir,
-    )
-
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["--from-json"]:
-        if len(argv) != 2:
-            raise SystemExit("t42 peg-in-hole --from-json PATH: rebuild the .md and .png of one stored peg_in_hole.json")
-        return report_from_json(existing_file(Path(argv[1])))
-    parser = OneLineParser(prog="t42 peg-in-hole", description=__doc__.splitlines()[0],
-                           epilog="t42 peg-in-hole --from-json DIR/peg_in_hole.json rebuilds its tables and figure")
-    parser.add_argument("models", nargs="+", help="model files, PATH or NAME=PATH")
-    parser.add_argument(
-        "--workspace", nargs="+", type=Path, default=None,
-        help="bags whose states define the trained workspace (default: the one the first model file stores)"
-    )
-    parser.add_argument("--out", type=Path, required=True, help="directory for peg_in_hole.{json,md,png}")
-    parser.add_argument("--distances", nargs="+", type=int_arg(1, MAX_HORIZON), default=list(PegInHoleConfig.distances))
-    parser.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
-    parser.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True),
-                        default=list(PegInHoleConfig.tolerances_mm), help="success tolerances (mm); the first is the paper's")
-    parser.add_argument("--plan-length", choices=PLAN_LENGTHS, default=PegInHoleConfig.plan_length,
-                        help="fixed: plans of exactly n steps (default); search: the shortest predicted to reach the goal")
-    parser.add_argument("--replan-every", type=int_arg(0, MAX_HORIZON), default=0,
-                        help="0: open loop (default); k: every model replans from the measured state every k steps")
-    parser.add_argument("--mpc", type=int_arg(0, MAX_HORIZON), default=0,
-                        help="also evaluate each model replanning every K steps, beside open loop")
-    parser.add_argument("--dropout", type=int_arg(0, 1000), default=0,
-                        help="also evaluate each model with M dropout samples per sequence, risk-averse (same rollouts)")
-    parser.add_argument("--ensemble", nargs="+", default=(), metavar="NAME",
-                        help="also evaluate an ensemble of these models (their names), risk-averse (same rollouts)")
-    parser.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")
-    parser.add_argument("--variants-of", nargs="+", default=None, metavar="NAME",
-                        help="models that get the --mpc and --dropout variants (default: all)")
-    parser.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples,
-                        help="sequences sampled per round")
-    parser.add_argument("--refine", type=int_arg(0, 100), default=PlannerConfig.refine_iterations,
-                        help="cross-entropy rounds after the first draw")
-    parser.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon,
-                        help="longest plan with --plan-length search")
-    parser.add_argument("--hand", default="target")
-    parser.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
-    parser.add_argument("--threads", type=int_arg(1, MAX_THREADS), default=1,
-                        help="torch threads (default 1: robust on a busy machine)")
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    # Everything the user gave is checked before a model is loaded or a goal made.
-    check_plan_size(args.samples, max(args.horizon, *args.distances))
-    variant(args.hand)
-    names = [_model_spec(spec)[0] for spec in args.models]
-    for spec in args.models:
-        existing_file(_model_spec(spec)[1])
-    for name in [*args.ensemble, *(args.variants_of or [])]:
-        if name not in names:
-            parser.error(f"{name!r} names no model; the models are {names}")
-    if args.ensemble and len(args.ensemble) < 2:
-        parser.error("--ensemble needs at least two models")
-    for bag in args.workspace or []:
-        existing_dir(bag)
-    output_dir(args.out)
-    planner = replace(PegInHoleConfig().planner, samples=args.samples, refine_iterations=args.refine,
-                      horizon=args.horizon)
-    try:
-        cfg = PegInHoleConfig(tuple(args.distances), args.trials, tuple(args.tolerances), hand=args.hand,
-                              plan_length=args.plan_length, replan_every=args.replan_every, planner=planner,
-                              seed=args.seed)
-    except ValueError as err:
-        parser.error(str(err))
-    if args.mpc and cfg.plan_length != "fixed":
-        parser.error("--mpc needs --plan-length fixed")
-    torch.set_num_threads(args.threads)
-
-    models, first_meta = load_models(args.models)
-    try:
-        workspace = Workspace.for_planning(args.workspace, first_meta, args.models[0])
-    except ValueError as err:
-        parser.error(str(err))
-    contenders = contenders_for(models, planner, args.mpc, args.dropout, args.ensemble, args.variants_of, args.risk)
-    rows, trials = evaluate(contenders, workspace, cfg, progress=not args.quiet)
-    args.out.mkdir(parents=True, exist_ok=True)
-    report = {
-        "command": shlex.join([*parser.prog.split(), *(sys.argv[1:] if argv is None else argv)]),
-        "config": asdict(cfg),
-        "contenders": [{"name": c.name, "baseline": c.baseline, "models": len(c.models),
-                        "planner": asdict(c.planner) if c.planner else None, "replan_every": c.replan_every}
-                       for c in contenders],
-        "workspace": workspace.to_dict(),
-        "rows": [asdict(r) for r in rows],
-        "trials": [asdict(t) for t in trials],
-    }
-    (args.out / "peg_in_hole.json").write_text(json.dumps(report, indent=2) + "\n")
-    return write_report(args.out, rows, trials, cfg.tolerances_mm)
-
-
-def write_report(out: Path, rows: Sequence[Row], trials: Sequence[Trial], tolerances_mm: Sequence[float]) -> int:
-    """``peg_in_hole.md`` (tables, paired comparisons) and ``.png`` beside the JSON; prints the tables."""
-    table = markdown_table(rows) + paired_table(paired(trials, tolerances_mm))
-    (out / "peg_in_hole.md").write_text(table)
-    plot_success(rows, out / "peg_in_hole.png")
-    print(table)
-    print(f"wrote {out / 'peg_in_hole.json'}, .md and .png")
-    return 0
-
-
-def report_from_json(path: Path) -> int:
-    """Rebuild the tables and the figure from a stored ``peg_in_hole.json`` (nothing is planned again)."""
-    stored = json.loads(Path(path).read_text())
-    trials = [Trial(**t) for t in stored["trials"]]
-    tolerances = tuple(stored["config"]["tolerances_mm"])
-    return write_report(Path(path).parent, summarise(trials, tolerances), trials, tolerances)
-
-
-if __name__ == "__main__":
-    from t42_transfer.cli import main as t42_main  # one-line errors, as `t42 peg-in-hole`
-
-    sys.exit(t42_main(["peg-in-hole", *sys.argv[1:]]))

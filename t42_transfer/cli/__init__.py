@@ -1,0 +1,57 @@
+"""The ``t42`` command: one entry point whose subcommands reach every layer.
+
+Each subcommand lives in the module of its group (``demo``, ``experiment``, ``plan``,
+``sim``, ``bag``, ``node``), parses its arguments with the shared checks of
+:mod:`t42_transfer.cli.args`, calls one library function and prints a summary; bad
+input ends with ``t42: error: <file>: <problem>`` and exit code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from t42_transfer import __version__
+from t42_transfer.cli import bag, demo, experiment, node, plan, sim
+from t42_transfer.cli.args import OneLineParser, os_error
+
+GROUPS = (demo, experiment, plan, sim, bag, node)
+"""Command modules, in the order ``t42 --help`` lists them."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineParser(
+        prog="t42",
+        description=(
+            "t42: transfer learned dynamics models between Yale Model-T42 hands. "
+            "Simulate hands, collect random-policy data, and move trajectories in and out of rosbag2 bags."
+        ),
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for group in GROUPS:
+        group.add_commands(commands)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func = getattr(args, "func", None)
+    if func is None:
+        # `t42` or `t42 sim` alone: show the help of the level reached.
+        chosen = [a for a in (args.command, getattr(args, "sim_command", None), getattr(args, "bag_command", None))
+                  if a]
+        parser.parse_args([*chosen, "--help"]) if chosen else parser.print_help()
+        return 0
+    args.argv = argv
+    try:
+        return func(args)
+    except OSError as err:  # a path the user gave: missing, unreadable, a directory where a file belongs, ...
+        message = os_error(err)
+    except ValueError as err:  # DataFileError and CheckpointError included
+        message = str(err)
+    print(f"t42: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2

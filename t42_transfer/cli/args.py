@@ -1,0 +1,142 @@
+"""The checks every ``t42`` command shares: one-line errors, bounded numbers, paths checked before work starts.
+
+Numbers are checked by the parser (finite, in range, with bounds where a number sizes an
+allocation) and paths before any work starts, so a typo is refused in a second instead of
+after a long run or an 800 GB allocation.  A regular file is checked by
+:mod:`t42_transfer.files`, with the message every reader gives.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import stat
+from collections.abc import Callable
+from pathlib import Path
+
+from t42_transfer.files import not_regular_reason
+
+MAX_SAMPLES = 1_000_000
+MAX_HORIZON = 10_000
+MAX_SAMPLED_STEPS = 20_000_000
+"""Planner samples x horizon at most: the sampled actions alone are 8 bytes per step (160 MB here)."""
+MAX_REFINE = 1000
+SEED_MAX = 2**32 - 1
+ROS_NAMESPACE = re.compile(r"/?|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*/?")
+
+# ------------------------------------------------------------------ arguments
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one ``t42: error:`` line (exit 2), like every other error."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        command = self.prog.removeprefix("t42").strip()
+        self.exit(2, f"t42: error: {command + ': ' if command else ''}{message} (see {self.prog} --help)\n")
+
+
+def int_arg(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argparse type: an integer in ``[low, high]``."""
+    wanted = f"an integer from {low} to {high}" if high is not None else f"an integer >= {low}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}")
+        return value
+
+    return parse
+
+
+def float_arg(low: float = -math.inf, high: float = math.inf, low_open: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
+    bounds = [f"{'>' if low_open else '>='} {low:g}"] if low > -math.inf else []
+    bounds += [f"<= {high:g}"] if high < math.inf else []
+    wanted = " ".join(["a finite number", " and ".join(bounds)]).strip()
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and (value > low if low_open else value >= low) and value <= high):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text[:40]!r}")
+        return value
+
+    return parse
+
+
+def check_plan_size(samples: int, horizon: int) -> None:
+    """ValueError when samples x horizon would size an allocation beyond :data:`MAX_SAMPLED_STEPS`."""
+    if samples * horizon > MAX_SAMPLED_STEPS:
+        raise ValueError(f"--samples {samples} x --horizon {horizon} is over {MAX_SAMPLED_STEPS} sampled steps")
+
+
+def _stat(path: Path) -> os.stat_result | None:
+    """``path``'s status (following links); None when nothing is there; ValueError for any other failure."""
+    try:
+        return path.stat()
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        raise ValueError(f"{path}: {err.strerror or err}") from None
+
+
+def _existing(path: Path, is_kind: Callable[[int], bool], kind: str) -> Path:
+    """``path`` when it exists and ``is_kind(st_mode)``; ValueError naming it otherwise."""
+    info = _stat(path)
+    if info is None:
+        raise ValueError(f"{path}: does not exist")
+    if not is_kind(info.st_mode):
+        raise ValueError(f"{path}: not {kind}")
+    return path
+
+
+def existing_file(path: Path) -> Path:
+    """``path`` when it is a regular file (a FIFO would block the reader)."""
+    info = _stat(path)
+    if info is None:
+        raise ValueError(f"{path}: does not exist")
+    reason = not_regular_reason(info.st_mode)
+    if reason is not None:
+        raise ValueError(f"{path}: {reason}")
+    return path
+
+
+def existing_dir(path: Path) -> Path:
+    return _existing(path, stat.S_ISDIR, "a directory")
+
+
+def output_dir(path: Path) -> Path:
+    """``path`` when it is a directory, or can be made one (its nearest existing ancestor is a directory)."""
+    for at in (path, *path.absolute().parents):
+        info = _stat(at)
+        if info is not None:
+            if not stat.S_ISDIR(info.st_mode):
+                raise ValueError(f"{path}: {'' if at == path else f'{at} '}is not a directory")
+            break
+    return path
+
+
+def new_output(path: Path) -> Path:
+    """``path`` when nothing is there yet and its directory can be made; outputs are never overwritten."""
+    if os.path.lexists(path):
+        raise ValueError(f"{path}: exists already; choose a new path")
+    return output_dir(path)
+
+
+def os_error(err: OSError) -> str:
+    """An OSError as ``<file>: <problem>``."""
+    return f"{err.filename}: {err.strerror}" if err.filename is not None and err.strerror else str(err)
+
+
+def namespace_arg(text: str) -> str:
+    if not ROS_NAMESPACE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"expected a ROS namespace such as /left (letters, digits, _ and /; "
+                                         f"no token starting with a digit), got {text[:40]!r}")
+    return text

@@ -1,0 +1,145 @@
+"""``t42 bag``: inspect, import, repair and play rosbag2 bags."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from t42_transfer.cli.args import existing_dir, existing_file, float_arg, new_output
+
+
+def _cmd_bag_info(args: argparse.Namespace) -> int:
+    import warnings
+
+    from t42_transfer.data.bag_io import bag_info, read_bag, verify_bag
+    from t42_transfer.data.quality import scan, summarise, summary_lines
+
+    info = bag_info(args.bag)
+    with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
+        warnings.simplefilter("ignore")
+        data = read_bag(args.bag, allow_gaps=True)
+    findings = scan(data)
+    mismatches = verify_bag(args.bag) if args.verify else []
+    if args.json:
+        info["quality"] = summarise(data, findings)
+        print(json.dumps({**info, "verify": mismatches} if args.verify else info, indent=2, default=str))
+        return 1 if mismatches else 0
+    for key, value in info.items():
+        if isinstance(value, dict):
+            print(f"{key}:")
+            for k, v in value.items():
+                print(f"  {k}: {v}")
+        else:
+            print(f"{key}: {value}")
+    print(f"quality: {len(findings)} of {len(data)} episodes with frozen tracking or jumps")
+    for line in summary_lines(findings) if findings else ():
+        print(f"  {line}")
+    if args.verify:
+        print(f"verify: {len(mismatches)} mismatches between metadata.yaml and the data" if mismatches
+              else "verify: metadata.yaml agrees with the data")
+        for mismatch in mismatches:
+            print(f"  {mismatch}")
+    return 1 if mismatches else 0
+
+
+def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.data.t42_real import import_t42_to_bag, quality_lines
+
+    bag = import_t42_to_bag(existing_file(args.pickle), new_output(args.out))
+    data = read_bag(bag)
+    print(f"{args.pickle} -> {bag}: {len(data)} paths, {data.num_transitions} transitions, hand {data.hand!r}")
+    print("flagged stretches: " + "; ".join(quality_lines(data)))
+    return 0
+
+
+def _cmd_bag_repair(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_repair import repair_bag
+
+    report = repair_bag(existing_dir(args.bag))
+    if not report.repaired:
+        print(f"{report.path}: sound, left as it is ({report.message_count} messages)")
+        return 0
+    print(f"{report.path}: repaired ({'; '.join(report.problems)})")
+    if report.stopped:
+        print(f"  salvaged up to where {report.stopped}")
+    for topic, count in sorted(report.counts.items()):
+        print(f"  {topic}: {count} messages")
+    print(f"  originals kept as {', '.join(str(p) for p in report.originals)}")
+    return 0
+
+
+def _cmd_bag_play(args: argparse.Namespace) -> int:
+    from t42_transfer.nodes.player import PlayerParams
+    from t42_transfer.ros.runner import keep_discovery_local
+
+    topics = tuple(args.topics) if args.topics else None
+    # bad input: exit 2, before rclpy starts
+    PlayerParams(existing_dir(args.bag), rate=args.rate, loop=args.loop, topics=topics, clock_hz=args.clock)
+    keep_discovery_local()
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+
+    from t42_transfer.nodes.player import BagPlayer
+
+    overrides = [Parameter("bag", value=str(args.bag)), Parameter("rate", value=float(args.rate)),
+                 Parameter("loop", value=args.loop), Parameter("clock_hz", value=float(args.clock)),
+                 Parameter("start_paused", value=True)]
+    if topics:
+        overrides.append(Parameter("topics", value=list(topics)))
+    context = rclpy.Context()
+    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        player = BagPlayer(context=context, parameter_overrides=overrides)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(player)
+        try:
+            if not player.wait_for_subscribers(args.wait_subscribers, settle_s=0.5):
+                print(f"not every topic had a subscriber within {args.wait_subscribers} s; playing anyway",
+                      file=sys.stderr)
+            player.resume()
+            while not player.finished:
+                executor.spin_once(timeout_sec=0.1)
+            player.wait_for_acks(5.0)
+        except KeyboardInterrupt:
+            pass
+        finally:
+            player.close()
+            executor.shutdown(timeout_sec=2.0)
+            player.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+    print(f"{args.bag}: published {player.published} messages on {len(player.topic_publishers)} topics")
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    bag = commands.add_parser("bag", help="rosbag2 bags").add_subparsers(dest="bag_command", metavar="ACTION")
+    info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata")
+    info.add_argument("bag", type=Path)
+    info.add_argument("--json", action="store_true")
+    info.add_argument("--verify", action="store_true",
+                      help="check metadata.yaml's message counts, start time and duration against the data; "
+                           "exit 1 on a mismatch")
+    info.set_defaults(func=_cmd_bag_info)
+    imp = bag.add_parser("import-t42", help="convert a public T42 test-path pickle into a bag")
+    imp.add_argument("pickle", type=Path)
+    imp.add_argument("out", type=Path, help="bag directory to create")
+    imp.set_defaults(func=_cmd_bag_import_t42)
+    rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (originals kept as *.orig)")
+    rep.add_argument("bag", type=Path, help="bag directory")
+    rep.set_defaults(func=_cmd_bag_repair)
+    play = bag.add_parser("play", help="publish a bag's messages on their topics over ROS 2 (rclpy), as ros2 bag play")
+    play.add_argument("bag", type=Path, help="bag directory")
+    play.add_argument("--rate", type=float, default=1.0, help="speed factor (default 1.0)")
+    play.add_argument("--topics", nargs="+", default=None, help="play only these topics (as named in the bag)")
+    play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
+    play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
+                      help="publish /clock from the bag's time at HZ (40 when HZ is not given), as ros2 bag play --clock")
+    play.add_argument("--wait-subscribers", type=float_arg(0, 3600), default=2.0, metavar="S",
+                      help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
+    play.set_defaults(func=_cmd_bag_play)

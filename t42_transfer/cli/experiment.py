@@ -1,0 +1,53 @@
+"""``t42 experiment`` and ``t42 report``: run a transfer experiment, and report on a run."""
+
+from __future__ import annotations
+
+import argparse
+
+from pathlib import Path
+
+from t42_transfer.cli.args import existing_dir, existing_file, int_arg, output_dir
+
+
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from t42_transfer.evaluation.experiment import load_config, run_experiment
+    from t42_transfer.evaluation.report import write_report
+
+    cfg = load_config(args.config)
+    if args.workers is not None:
+        cfg = dataclasses.replace(cfg, workers=args.workers)
+    output_dir(args.out)
+    rows = run_experiment(cfg, args.out, progress=not args.quiet)
+    run_dir = args.out / cfg.name
+    print(f"{len(rows)} rows (cells and the hold-still baseline) -> {run_dir / 'results.csv'}")
+    if not args.no_report:
+        print(f"report: {write_report(run_dir)}")
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from t42_transfer.evaluation.report import write_report
+
+    existing_file(existing_dir(args.run_dir) / "results.json")
+    print(f"report: {write_report(args.run_dir, args.out and output_dir(args.out))}")
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    exp = commands.add_parser(
+        "experiment", help="run (or resume) a transfer experiment from a YAML config, then write its report"
+    )
+    exp.add_argument("config", type=Path, help="experiment YAML (see configs/)")
+    exp.add_argument("--out", type=Path, default=Path("runs"), help="runs directory (default runs/)")
+    exp.add_argument("--workers", type=int_arg(1), default=None,
+                     help="worker processes (default: the config's, else all cores)")
+    exp.add_argument("--no-report", action="store_true", help="skip the figures and report.md")
+    exp.add_argument("--quiet", action="store_true", help="no progress bars")
+    exp.set_defaults(func=_cmd_experiment)
+
+    rep = commands.add_parser("report", help="figures and a Markdown report from an experiment run directory")
+    rep.add_argument("run_dir", type=Path)
+    rep.add_argument("--out", type=Path, default=None, help="output directory (default RUN_DIR/report)")
+    rep.set_defaults(func=_cmd_report)

@@ -1,0 +1,77 @@
+"""``t42 sim``: simulated hands (collect episodes, compare with the real hands)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from t42_transfer.cli.args import SEED_MAX, existing_dir, int_arg, new_output, output_dir
+
+
+def _cmd_sim_collect(args: argparse.Namespace) -> int:
+    from t42_transfer.data.bag_io import assign_start_times, write_bag
+    from t42_transfer.data.trajectory import TrajectorySet
+    from t42_transfer.hand.collect import RandomPolicy, check_collection, collect
+
+    check_collection(args.hand, args.episodes, args.steps, args.workers, args.hold_max)
+    new_output(args.out)
+    data, stats = collect(
+        args.hand, args.episodes, args.steps, seed=args.seed, workers=args.workers,
+        policy=RandomPolicy(hold_max=args.hold_max), progress=not args.quiet,
+    )
+    placed = TrajectorySet(assign_start_times(data), hand=data.hand)
+    meta = {"collector": "t42 sim collect", "seed": str(args.seed), "steps": str(args.steps)}
+    bag = write_bag(args.out, placed, storage=args.storage, metadata=meta)
+    print(
+        f"{args.hand}: kept {stats.kept}/{stats.requested} episodes ({placed.num_transitions} transitions; "
+        f"{stats.too_short} too short, {stats.grasp_failed} grasp failures; ends {stats.end_reasons}) -> {bag}"
+    )
+    return 0
+
+
+def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
+    from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
+    from t42_transfer.hand import realism
+    from t42_transfer.hand.params import variant
+
+    folder = existing_dir(args.real_dir or real_data_dir())
+    for hand in args.hands:
+        variant(hand)
+    if args.out_dir:
+        output_dir(args.out_dir)
+    real = {hand: load_t42_testpaths(folder / name) for hand, name in REAL_FILES.items()}
+    rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
+    table = realism.markdown_table(rows)
+    print(table)
+    if args.out_dir:
+        args.out_dir.mkdir(parents=True, exist_ok=True)
+        (args.out_dir / "sim_vs_real.md").write_text(table)
+        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(realism.rows_as_dicts(rows), indent=2) + "\n")
+        figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
+        print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json and {figure}")
+    return 0
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
+    col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
+    col.add_argument("--hand", default="source", help="source, target or family-<seed> (default source)")
+    col.add_argument("--episodes", type=int_arg(1), default=300, help="episodes (paper: 300)")
+    col.add_argument("--steps", type=int_arg(1), default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
+    col.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    col.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
+    col.add_argument("--hold-max", type=int_arg(1), default=5, help="random actions are held 1..N steps (default 5)")
+    col.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    col.add_argument("--quiet", action="store_true", help="no progress bar")
+    col.add_argument("--out", type=Path, required=True, help="bag directory to create")
+    col.set_defaults(func=_cmd_sim_collect)
+
+    cmp_ = sim.add_parser("compare-real", help="replay the real T42 test paths' actions on simulated hands")
+    cmp_.add_argument(
+        "--real-dir", type=Path, default=None, help="folder of the public T42 pickles (default: $T42_REAL_DATA or ../shared/data/t42_real)"
+    )
+    cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
+    cmp_.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
+    cmp_.set_defaults(func=_cmd_sim_compare_real)
