@@ -38,6 +38,7 @@ from t42_transfer.evaluation import experiment
 from t42_transfer.evaluation.experiment import Cell, DataSpec, ExperimentConfig, _run_cell, _score, _target_split, load_data, train_source
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.training import TrainConfig
+from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.methods import METHODS, transfer
 
 from machine import machine_info  # bench/machine.py (scripts run from bench/)
@@ -93,9 +94,11 @@ def main() -> None:
     source_path = train_source(cfg, run_dir, progress=False)
     setup["source_training_s"] = time.perf_counter() - start
 
+    # what run_experiment hands every cell: the planner's workspace of the source data
+    workspace = Workspace.from_trajectories(source_data).to_dict()
     experiment._WORKER.clear()
     start = time.perf_counter()
-    _run_cell((cfg, Cell("direct", args.amount, 0), run_dir, source_path))  # fills the worker cache; sets 1 thread
+    _run_cell((cfg, Cell("direct", args.amount, 0), run_dir, source_path, workspace))  # fills the worker cache; sets 1 thread
     setup["warmup_cell_s"] = time.perf_counter() - start
     cell_threads = torch.get_num_threads()
 
@@ -104,7 +107,7 @@ def main() -> None:
         walls, own = [], []
         for _ in range(args.repeats):
             start = time.perf_counter()
-            row = _run_cell((cfg, Cell(method, args.amount, 0), run_dir, source_path))
+            row = _run_cell((cfg, Cell(method, args.amount, 0), run_dir, source_path, workspace))
             walls.append(time.perf_counter() - start)
             own.append(row["seconds"])
         entry = {

@@ -308,7 +308,7 @@ def _testpaths(file: Path, data: bytes) -> TrajectorySet:
                 Trajectory(
                     states=_float32(file, f"path {i} states", obs[:, STATE_COLUMNS]),
                     actions=_float32(file, f"path {i} actions", acts[: len(obs) - 1, :2]),
-                    end_reason="length" if ok else "dropped",
+                    end_reason="length" if ok else DROPPED,
                     hand=name,
                 )
             )
