@@ -372,6 +372,7 @@ def test_a_crash_while_saving_keeps_the_old_current_model(ros, tmp_path, source_
     ({"method": "nope"}, "method"),
     ({"config": "cumulative_residual: {train: {epochs: 1.5}}\n"}, "epochs"),
     ({"config": "nope: {}\n"}, "nope"),
+    ({"config": "l2_finetune: {train: {lr: -1}}\n"}, "transfer.l2_finetune.train.lr must be > 0, got -1"),
     ({"config": "[unclosed\n"}, "YAML"),
     ({"holdout_fraction": 1.0}, "holdout_fraction"),
     ({"min_episodes": 1}, "min_episodes"),

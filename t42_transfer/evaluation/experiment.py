@@ -17,26 +17,22 @@ import dataclasses
 import fcntl
 import hashlib
 import json
-import math
 import multiprocessing
 import os
-import re
-import reprlib
 import time
-import types
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Union, get_args, get_origin, get_type_hints
+from typing import Any
 
 import numpy as np
 import torch
 import yaml
 
 from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
-from t42_transfer.data.quality import HANDLING, handle_flagged, summarise
-from t42_transfer.data.t42_real import REAL_HANDS, REAL_OBJECT, load_t42_testpaths, real_data_dir, real_file
+from t42_transfer.data.quality import handle_flagged, summarise
+from t42_transfer.data.t42_real import load_t42_testpaths, real_data_dir, real_file
 from t42_transfer.data.trajectory import (
     Trajectory,
     TrajectorySet,
@@ -44,28 +40,26 @@ from t42_transfer.data.trajectory import (
     same_action_sequence,
     split_by_fraction,
 )
-from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
-from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, POLICIES, check_collection
+from t42_transfer.evaluation.experiment_config import (
+    SAFE_NAME,
+    DataSpec,
+    ExperimentConfig,
+    check_config,
+    config_dict,
+    load_config,
+    sides,
+)
+from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
-from t42_transfer.transfer.config import (
-    DEFINITIONS,
-    RECURRENT_FORMS,
-    RESIDUAL_NORMALISATIONS,
-    SOURCE_TRAINING,
-    TRAJECTORY_LOSSES,
-    AutoConfig,
-    L2FineTuneConfig,
-    NewModelConfig,
-    RecurrentResidualConfig,
-    ResidualConfig,
-    TrajectoryFineTuneConfig,
-    TransferConfig,
-)
-from t42_transfer.transfer.methods import METHODS, select_method, transfer
-from t42_transfer.yaml_files import read_yaml
+from t42_transfer.transfer.methods import select_method, transfer
+
+__all__ = [
+    "SAFE_NAME", "DataSpec", "ExperimentConfig", "TrainConfig", "check_config", "load_config", "run_experiment", "sides",
+]
+"""Besides this module's own: the config names its callers have always found here."""
 
 RESULT_COLUMNS = (
     "method", "amount", "seed", "train_episodes", "train_transitions", "test_rollouts", "divergence_mean",
@@ -77,278 +71,6 @@ THRESHOLDS_MM = (4.0, 10.0)
 counted by the experiment's definition, since the threshold alone can flip a ranking."""
 BASELINE = HoldStill.kind
 """The method name of the hold-still rows every run writes beside its cells'."""
-
-
-@dataclass(frozen=True)
-class DataSpec:
-    """Where a hand's data comes from (a simulated hand, a bag, or a public real-hand file) and what is done to it."""
-
-    hand: str | None = None
-    episodes: int = 300
-    steps: int = 1000
-    seed: int = 0
-    bag: str | None = None
-    real: str | None = None
-    """``A`` or ``B``: the public T42 test paths of that hand, of the object ``real_object``."""
-    mirror_x: bool = False
-    """Mirror x (the real hands are mirror images of each other), about ``mirror_about``."""
-    real_object: str = REAL_OBJECT
-    """The object of ``real``'s file (``testpaths_<object>[_red]_d_v0.pkl`` in ``$T42_REAL_DATA``): ``cyl35`` lies
-    beside the project; the public repository also holds ``egg50`` and ``poly6`` for both hands."""
-    mirror_about: str = "origin"
-    """``origin``: x -> -x, about the camera's origin.  ``grasp``: about the axis halfway between this side's
-    and the other side's grasp centres, with y shifted by their difference, so both grasps coincide."""
-    negate_actions: bool = False
-    """Negate every action: the authors' B -> A runs gave hand A its actions negated (the hands are mirrored)."""
-    flagged: str = "keep"
-    """Episodes with frozen tracking or jumps (:mod:`t42_transfer.data.quality`): ``keep`` them as they are,
-    ``drop`` them, or ``split`` them at each flagged stretch.  Found stretches are recorded in any case."""
-    exclude_test_sequences: bool = False
-    """Source only: leave out of the source model's training every episode that ran the action sequence of one
-    of the cell's test episodes (both real hands ran the same six), training a source per test set."""
-    policy: str = "random"
-    """``hand`` only: how the simulated hand is driven (:data:`t42_transfer.hand.collect.POLICIES`): ``random``,
-    the paper's training data, or ``sustained``, test paths like the real hands' (long holds of discrete moves)."""
-
-    def describe(self) -> dict:
-        """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
-        values = dataclasses.asdict(self)
-        return {k: v for k, v in values.items() if k in _ORIGINAL_SPEC or v != _SPEC_DEFAULTS[k]}
-
-
-@dataclass(frozen=True)
-class ExperimentConfig:
-    name: str
-    """The run directory's name under ``--out``: one plain path component."""
-    source: DataSpec
-    target: DataSpec
-    methods: tuple[str, ...] = tuple(m for m in METHODS if m != "auto")
-    split: str = "fraction"
-    """``fraction``: amounts are fractions of the target pool, a fixed test split held out;
-    ``paths``: amounts are numbers of target episodes, the others are the test set."""
-    amounts: tuple[float, ...] = (0.005, 0.01, 0.02, 0.05, 0.1)
-    seeds: int = 5
-    test_fraction: float = 0.2
-    definition: str = "paper"
-    """Where the paper's text and its authors' code differ, which one this run follows (``paper`` or
-    ``authors``): the transfer settings, the source training, the threshold and how divergence and MSE count."""
-    epsilon_mm: float | None = None
-    """None: the definition's (paper 4 mm, authors 10 mm)."""
-    start_offsets: tuple[int, ...] = (0,)
-    horizon: int | None = None
-    lyapunov_steps: int = 100
-    source_training: TrainConfig | None = None
-    """None: the definition's; settings given in a file apply on top of it."""
-    transfer: TransferConfig | None = None
-    """None: ``TransferConfig.for_definition(definition)``; settings given in a file apply on top of it."""
-    workers: int | None = None
-    test: DataSpec | None = None
-    """Test episodes of the target hand from their own data set (e.g. sustained-action paths) instead of the
-    held-out target episodes; the training subsets stay those without it, so cells pair across test sets."""
-
-    def __post_init__(self) -> None:
-        # The run directory is ``out / name``: anything but one plain component could leave ``out``.
-        if not (isinstance(self.name, str) and SAFE_NAME.fullmatch(self.name)):
-            raise ValueError(f"name must be one plain path component (letters, digits, '.', '_', '-'; "
-                             f"not starting with '.'; at most 100 characters), got {_show(self.name)}")
-        for key, value in _definition_defaults(self.definition).items():
-            if getattr(self, key) is None:
-                object.__setattr__(self, key, value)
-
-
-def _definition_defaults(definition: Any) -> dict[str, Any]:
-    """The settings ``definition`` decides unless a config gives them (ValueError for an unknown definition)."""
-    if not isinstance(definition, str) or definition not in DEFINITIONS:
-        raise ValueError(f"definition must be one of {DEFINITIONS}, got {_show(definition)}")
-    return {"epsilon_mm": METRIC_DEFINITIONS[definition].epsilon_mm, "source_training": SOURCE_TRAINING[definition],
-            "transfer": TransferConfig.for_definition(definition)}
-
-
-SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,99}")
-SAFE_OBJECT = re.compile(r"[a-z][a-z0-9]{0,39}")
-"""The public files' object names (cyl35, egg50, poly6, sqr30...): part of a file name, so nothing else."""
-MIRRORS = ("origin", "grasp")
-_ORIGINAL_SPEC = ("hand", "episodes", "steps", "seed", "bag", "real", "mirror_x")
-_SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}
-MAX_SEEDS = 1000
-MAX_CELLS = 100_000
-MAX_EVAL_STEPS = 100_000
-"""Bound of every step count of the evaluation (offsets, horizons, windows, epochs)."""
-SEED_RANGE = (0, 2**32 - 1)
-SPLITS = ("fraction", "paths")
-
-_Rule = tuple[Callable[[Any], bool], str]
-
-
-def _between(low: float, high: float, low_open: bool = False, high_open: bool = False) -> _Rule:
-    def ok(v: Any) -> bool:
-        return (low < v if low_open else low <= v) and (v < high if high_open else v <= high)
-    return ok, (f"{'>' if low_open else '>='} {low}" if math.isinf(high) else
-                f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}")
-
-
-_STEPS, _SEED, _FRACTION, _POSITIVE = (_between(1, MAX_EVAL_STEPS), _between(*SEED_RANGE),
-                                       _between(0, 1, True, True), _between(0, math.inf, True))
-_RESIDUAL_RULES: dict[str, _Rule] = {
-    "alpha": _between(0, math.inf), "gamma": _between(0, 1, True), "val_fraction": _between(0, 1, False, True),
-    "normalisation": (lambda v: v in RESIDUAL_NORMALISATIONS, f"one of {RESIDUAL_NORMALISATIONS}"),
-}
-RULES: dict[type, dict[str, _Rule]] = {
-    ExperimentConfig: {
-        "seeds": _between(1, MAX_SEEDS), "amounts": _between(0, MAX_EPISODES, True), "test_fraction": _FRACTION,
-        "epsilon_mm": _POSITIVE, "start_offsets": _between(0, MAX_EVAL_STEPS), "horizon": _STEPS,
-        "lyapunov_steps": _STEPS, "workers": _between(1, MAX_WORKERS),
-        "split": (lambda v: v in SPLITS, f"one of {SPLITS}"),
-        "methods": (lambda v: v in METHODS, f"one of {sorted(METHODS)}"),
-        "definition": (lambda v: v in DEFINITIONS, f"one of {DEFINITIONS}"),
-    },
-    DataSpec: {"episodes": _between(1, MAX_EPISODES), "steps": _between(1, MAX_STEPS), "seed": _SEED,
-               "real": (lambda v: v in REAL_HANDS, f"one of {sorted(REAL_HANDS)}"),
-               "real_object": (lambda v: bool(SAFE_OBJECT.fullmatch(v)), "an object name such as cyl35 or egg50"),
-               "mirror_about": (lambda v: v in MIRRORS, f"one of {MIRRORS}"),
-               "flagged": (lambda v: v in HANDLING, f"one of {HANDLING}"),
-               "policy": (lambda v: v in POLICIES, f"one of {sorted(POLICIES)}")},
-    TrainConfig: {"lr": _POSITIVE, "epochs": _STEPS, "batch_size": _between(1, 2**31 - 1),
-                  "weight_decay": _between(0, math.inf), "grad_clip": _POSITIVE, "patience": _between(0, MAX_EVAL_STEPS),
-                  "seed": _SEED},
-    NewModelConfig: {"val_fraction": _between(0, 1, False, True)},
-    L2FineTuneConfig: {"l2": _between(0, math.inf)},
-    TrajectoryFineTuneConfig: {"cutoff_mm2": _POSITIVE,
-                               "loss": (lambda v: v in TRAJECTORY_LOSSES, f"one of {TRAJECTORY_LOSSES}")},
-    ResidualConfig: _RESIDUAL_RULES,
-    RecurrentResidualConfig: {**_RESIDUAL_RULES, "form": (lambda v: v in RECURRENT_FORMS, f"one of {RECURRENT_FORMS}")},
-    AutoConfig: {"candidates": (lambda v: v in METHODS and v != "auto", "a method other than auto"),
-                 "fallback": (lambda v: v in METHODS and v != "auto", "a method other than auto"),
-                 "holdout_fraction": _FRACTION, "min_episodes": _between(2, MAX_EPISODES)},
-}
-"""What each setting must be beyond its type (every element of a list setting)."""
-
-
-def _show(value: Any) -> str:
-    text = reprlib.repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _typed(value: Any, hint: Any, where: str, base: Any = None) -> Any:
-    """``value`` from YAML checked against a field's annotation (lists become tuples); ValueError otherwise.
-
-    A mapping for a settings dataclass applies on top of ``base`` (its settings not given), if any.
-    """
-    origin, args = get_origin(hint), get_args(hint)
-    if origin in (Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        (hint,) = [a for a in args if a is not type(None)]
-        return _typed(value, hint, where, base)
-    if origin is tuple:
-        many = len(args) == 2 and args[1] is Ellipsis
-        if not isinstance(value, list) or not value or (not many and len(value) != len(args)):
-            size = "a non-empty list" if many else f"a list of {len(args)}"
-            raise ValueError(f"{where} must be {size}, got {_show(value)}")
-        hints = args[:1] * len(value) if many else args
-        return tuple(_typed(v, h, f"{where}[{i}]") for i, (v, h) in enumerate(zip(value, hints)))
-    if dataclasses.is_dataclass(hint):
-        if not isinstance(value, dict):
-            raise ValueError(f"{where} must be a mapping of {hint.__name__} settings, got {_show(value)}")
-        return _build(hint, value, f"{where}.", base)
-    if hint is bool:
-        ok = isinstance(value, bool)
-    elif hint is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif hint is float:  # ints are floats here; NaN and inf never are
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and (
-            isinstance(value, int) or math.isfinite(value))
-    else:
-        ok = isinstance(value, hint)
-    if not ok:
-        kind = {float: "a finite number", int: "an integer", bool: "true or false", str: "a string"}.get(hint, hint)
-        raise ValueError(f"{where} must be {kind}, got {_show(value)}")
-    return value
-
-
-def _build(cls: type, values: dict[Any, Any], prefix: str = "", base: Any = None) -> Any:
-    """A (nested) frozen dataclass from a YAML mapping: unknown keys, wrong types and values out of range refused.
-
-    Settings not given are ``base``'s (an instance of ``cls``) or the defaults; an experiment's transfer and
-    source-training settings apply on top of its definition's.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(str(k) for k in values if k not in fields)
-    if unknown:
-        kind = "experiment" if cls is ExperimentConfig else cls.__name__
-        inside = f" in {prefix[:-1]}" if prefix else ""
-        raise ValueError(f"unknown {kind} settings {_show(unknown)}{inside}; known: {sorted(fields)}")
-    hints, rules = get_type_hints(cls), RULES.get(cls, {})
-    bases = _definition_defaults(values.get("definition", "paper")) if cls is ExperimentConfig else (
-        {} if base is None else {f: getattr(base, f) for f in fields})
-    kwargs = {}
-    for key, value in values.items():
-        where = f"{prefix}{key}"
-        kwargs[key] = _typed(value, hints[key], where, bases.get(key))
-        if key in rules and kwargs[key] is not None:
-            ok, wanted = rules[key]
-            for item in kwargs[key] if isinstance(kwargs[key], tuple) else (kwargs[key],):
-                if not ok(item):
-                    raise ValueError(f"{where} must be {wanted}, got {_show(item)}")
-    return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
-
-
-def load_config(path: str | os.PathLike[str]) -> ExperimentConfig:
-    """Read an experiment YAML; ValueError naming the file and the offending setting, before anything runs."""
-    file = Path(path)
-    raw = read_yaml(file, "experiment config")
-    if not isinstance(raw, dict) or "name" not in raw or "source" not in raw or "target" not in raw:
-        raise ValueError(f"{file}: an experiment config needs name, source and target")
-    try:
-        cfg = _build(ExperimentConfig, raw)
-        check_config(cfg)
-    except ValueError as err:
-        raise ValueError(f"{file}: {err}") from None
-    return cfg
-
-
-def check_config(cfg: ExperimentConfig) -> None:
-    """ValueError unless ``cfg`` keeps every rule of a config file, also when built in code.
-
-    Beyond each setting's type and range: one data source per side, no repeated or too many
-    cells, amounts that fit the split.
-    """
-    _build(ExperimentConfig, _config_dict(cfg))
-    for side in sides(cfg):
-        spec: DataSpec = getattr(cfg, side)
-        given = [k for k in ("hand", "bag", "real") if getattr(spec, k) is not None]
-        if len(given) != 1:
-            raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
-        if spec.hand is not None:
-            check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
-        elif spec.policy != _SPEC_DEFAULTS["policy"]:
-            raise ValueError(f"{side}.policy drives a simulated hand: it needs {side}.hand")
-        if spec.real_object != REAL_OBJECT and spec.real is None:
-            raise ValueError(f"{side}.real_object names the object of a real-hand file: it needs {side}.real")
-        if spec.mirror_about != "origin" and not spec.mirror_x:
-            raise ValueError(f"{side}.mirror_about: {spec.mirror_about} needs {side}.mirror_x: true")
-    for side in sides(cfg)[1:]:
-        spec = getattr(cfg, side)
-        if cfg.source.mirror_x and spec.mirror_x and "grasp" in (cfg.source.mirror_about, spec.mirror_about):
-            raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
-        if spec.exclude_test_sequences:
-            raise ValueError(f"{side}.exclude_test_sequences: only the source's training leaves test sequences out")
-    for key in ("methods", "amounts"):
-        values = getattr(cfg, key)
-        if len(set(values)) != len(values):
-            raise ValueError(f"{key} repeat an entry: {_show(values)}")
-    cells = len(cfg.methods) * len(cfg.amounts) * cfg.seeds
-    if cells > MAX_CELLS:
-        raise ValueError(f"{cells} cells (methods x amounts x seeds) is over {MAX_CELLS}")
-    if cfg.split == "fraction" and max(cfg.amounts) > 1:
-        raise ValueError(f"amounts are fractions of the target pool with split: fraction, got {max(cfg.amounts)}")
-    if cfg.split == "paths" and not all(float(a).is_integer() for a in cfg.amounts):
-        raise ValueError(f"amounts are numbers of episodes with split: paths, got {_show(cfg.amounts)}")
-
-
-def sides(cfg: ExperimentConfig) -> tuple[str, ...]:
-    """The data sets ``cfg`` names: source, target, and test when it has its own."""
-    return ("source", "target") if cfg.test is None else ("source", "target", "test")
 
 
 def _digest(obj: Any) -> str:
@@ -712,7 +434,7 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
 def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(_config_dict(cfg), sort_keys=False))
+    (run_dir / "config.yaml").write_text(yaml.safe_dump(config_dict(cfg), sort_keys=False))
     cache = data_cache(run_dir)
     source, target, test = load_side(cfg, "source", cache), load_side(cfg, "target", cache), load_test(cfg, cache)
     quality = {"source": source.quality, "target": target.quality}
@@ -755,7 +477,7 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
                 keep(task[1], row)
     bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
-    results: dict[str, Any] = {"config": _config_dict(cfg), "rows": ordered, "data_quality": quality}
+    results: dict[str, Any] = {"config": config_dict(cfg), "rows": ordered, "data_quality": quality}
     if cfg.source.exclude_test_sequences:
         results["excluded_source_episodes"] = {f"{c.method}-{c.amount}-{c.seed}": list(excluded[c]) for c in cells}
     (run_dir / "results.json").write_text(json.dumps(results, indent=1))
@@ -765,6 +487,3 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
             f.write(",".join(str(row[c]) for c in RESULT_COLUMNS) + "\n")
     return ordered
 
-
-def _config_dict(cfg: ExperimentConfig) -> dict[str, Any]:
-    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))

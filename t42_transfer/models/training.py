@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from t42_transfer.config import MAX_EVAL_STEPS, NON_NEGATIVE, POSITIVE, SEED, STEPS, Rule, between, check
 from t42_transfer.data.trajectory import TrajectorySet, split_by_fraction
 from t42_transfer.models.network import Normalisation, TransitionModel
 
@@ -47,6 +48,16 @@ class TrainConfig:
     patience: int | None = 10
     """Stop after this many epochs without validation improvement (None: run all epochs)."""
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        check(self, TRAIN_RULES)  # here, so file, server and code configs keep the same ranges
+
+
+TRAIN_RULES: dict[str, Rule] = {
+    "lr": POSITIVE, "epochs": STEPS, "batch_size": between(1, 2**31 - 1), "weight_decay": NON_NEGATIVE,
+    "grad_clip": POSITIVE, "patience": between(0, MAX_EVAL_STEPS), "seed": SEED,
+}
+"""What each :class:`TrainConfig` setting must be beyond its type."""
 
 
 @dataclass

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from t42_transfer.config import FRACTION, NON_NEGATIVE, Rule, between, check, one_of
 from t42_transfer.conventions import RANDOM_POLICY_LIMIT, STATE_DIM
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.fused import TimeMajorRollout, make_rollout
@@ -94,20 +95,18 @@ class PlannerConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.samples < 1 or self.horizon < 1 or self.chunk < 1:
-            raise ValueError("samples, horizon and chunk must be positive")
-        if self.sampler not in SAMPLERS:
-            raise ValueError(f"sampler must be one of {SAMPLERS}, got {self.sampler!r}")
-        if not self.tolerance_mm > 0:
-            raise ValueError(f"tolerance_mm must be positive, got {self.tolerance_mm}")
-        if self.refine_iterations < 0 or not 0 < self.elite_fraction < 1:
-            raise ValueError("need refine_iterations >= 0 and 0 < elite_fraction < 1")
-        if self.uncertainty not in UNCERTAINTY:
-            raise ValueError(f"uncertainty must be one of {UNCERTAINTY}, got {self.uncertainty!r}")
-        if self.members < 1 or not self.risk >= 0:
-            raise ValueError(f"need members >= 1 and risk >= 0, got {self.members} and {self.risk}")
+        check(self, PLANNER_RULES)  # here, so the CLI, the planner node and code share one message
         if self.uncertainty != "none" and self.horizon_search:
             raise ValueError("uncertainty-aware planning scores fixed-length plans: set horizon_search false")
+
+
+_AT_LEAST_ONE = between(1, math.inf)
+PLANNER_RULES: dict[str, Rule] = {
+    "samples": _AT_LEAST_ONE, "horizon": _AT_LEAST_ONE, "chunk": _AT_LEAST_ONE, "sampler": one_of(SAMPLERS),
+    "tolerance_mm": ((lambda v: v > 0), "positive"), "refine_iterations": between(0, math.inf), "elite_fraction": FRACTION,
+    "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
+}
+"""What each :class:`PlannerConfig` setting must be beyond its type."""
 
 
 @dataclass(frozen=True)

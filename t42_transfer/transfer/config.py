@@ -11,8 +11,10 @@ ours and marked.  docs/transfer_methods.md names the source of every setting.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
+from t42_transfer.config import FRACTION, NON_NEGATIVE, POSITIVE, Rule, between, check, one_of
 from t42_transfer.models.training import TrainConfig
 
 DEFINITIONS = ("paper", "authors")
@@ -37,6 +39,15 @@ def _check(name: str, value: object, allowed: tuple[str, ...]) -> None:
         raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
 
 
+VAL_FRACTION = between(0, 1, high_open=True)
+OTHER_THAN_AUTO: Rule = ((lambda v: v != "auto"), "a method other than auto")
+"""Whether a name is a registered method is :func:`~t42_transfer.transfer.methods.select_method`'s to say."""
+_RESIDUAL_RULES: dict[str, Rule] = {
+    "alpha": NON_NEGATIVE, "gamma": between(0, 1, low_open=True), "val_fraction": VAL_FRACTION,
+    "normalisation": one_of(RESIDUAL_NORMALISATIONS),
+}
+
+
 @dataclass(frozen=True)
 class NewModelConfig:
     """Train a fresh model on target data only."""
@@ -44,6 +55,9 @@ class NewModelConfig:
     train: TrainConfig = TrainConfig()
     val_fraction: float = 0.2
     """Episodes held out for early stopping (0: none, train all epochs)."""
+
+    def __post_init__(self) -> None:
+        check(self, {"val_fraction": VAL_FRACTION})
 
 
 @dataclass(frozen=True)
@@ -63,6 +77,9 @@ class L2FineTuneConfig:
 
     train: TrainConfig = TrainConfig(lr=1e-4, epochs=30, patience=None)
     l2: float = 1e-2
+
+    def __post_init__(self) -> None:
+        check(self, {"l2": NON_NEGATIVE})
 
 
 @dataclass(frozen=True)
@@ -85,7 +102,7 @@ class TrajectoryFineTuneConfig:
     stops there and later steps are left out (authors: 150; the paper: none)."""
 
     def __post_init__(self) -> None:
-        _check("trajectory_finetune.loss", self.loss, TRAJECTORY_LOSSES)
+        check(self, {"cutoff_mm2": POSITIVE, "loss": one_of(TRAJECTORY_LOSSES)})
 
 
 @dataclass(frozen=True)
@@ -103,7 +120,7 @@ class ResidualConfig:
     of its state-change std (the authors' code: g reads the source's normalised input)."""
 
     def __post_init__(self) -> None:
-        _check("normalisation", self.normalisation, RESIDUAL_NORMALISATIONS)
+        check(self, _RESIDUAL_RULES)
 
 
 @dataclass(frozen=True)
@@ -115,8 +132,7 @@ class RecurrentResidualConfig(ResidualConfig):
     of g; ``normalised_sum`` (the authors' code): ``net_S(x) + alpha res(x)`` in the source's normalised space."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        _check("recurrent_residual.form", self.form, RECURRENT_FORMS)
+        check(self, {**_RESIDUAL_RULES, "form": one_of(RECURRENT_FORMS)})
 
 
 @dataclass(frozen=True)
@@ -133,6 +149,10 @@ class AutoConfig:
     """Fewer target episodes cannot be split into training and held-out ones."""
     fallback: str | None = None
     """Method used, and reported as a fallback, when there are too few episodes; None: refuse instead."""
+
+    def __post_init__(self) -> None:
+        check(self, {"candidates": OTHER_THAN_AUTO, "fallback": OTHER_THAN_AUTO, "holdout_fraction": FRACTION,
+                     "min_episodes": between(2, math.inf)})
 
 
 @dataclass(frozen=True)

@@ -34,19 +34,19 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import math
 import os
 import re
 import tempfile
 import time
-import typing
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
 from t42_transfer.data.bag_io import read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.trajectory import TrajectorySet
@@ -57,6 +57,7 @@ from t42_transfer.models.training import Progress
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import METHODS, Selection, select_method, transfer
+from t42_transfer.yaml_files import read_yaml
 
 STATE_FILE = "transfer_state.json"
 CURRENT_MODEL = "current.safetensors"
@@ -95,6 +96,14 @@ class OnlineTransferSpec:
     min_episodes: int = 2
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        check(self, SPEC_RULES)  # the method's name is run_transfer's to check: the registry can grow
+
+
+SPEC_RULES: dict[str, Rule] = {"holdout_fraction": FRACTION, "min_episodes": between(2, math.inf),
+                               "seed": between(0, math.inf)}
+"""What each :class:`OnlineTransferSpec` setting must be beyond its type."""
+
 
 @dataclass(frozen=True)
 class TransferResult:
@@ -132,9 +141,10 @@ class TransferResult:
 def config_with_overrides(overrides: Mapping[str, Any]) -> TransferConfig:
     """:class:`TransferConfig` defaults with nested ``overrides`` (e.g. ``{"cumulative_residual": {"train": {"epochs": 5}}}``).
 
-    Unknown keys and values of the wrong type are a ValueError naming the dotted key.
+    Built by the one config layer (:func:`~t42_transfer.config.from_mapping`), so a setting an experiment's
+    ``transfer`` section refuses is refused here with the same message: ValueError naming the dotted key.
     """
-    return _override(TransferConfig(), overrides, "config")
+    return from_mapping(TransferConfig, overrides, "transfer")
 
 
 def config_from_file(path: str | Path) -> TransferConfig:
@@ -142,58 +152,15 @@ def config_from_file(path: str | Path) -> TransferConfig:
 
     The file holds what :func:`config_with_overrides` takes, e.g.
     ``cumulative_residual: {train: {epochs: 50}}``.  ValueError (one line naming the
-    file) when it cannot be read, is not YAML, or has an unknown key or a wrong type.
+    file) when it cannot be read, is not YAML, or has an unknown key, a wrong type or a value out of range.
     """
     if not str(path):
         return TransferConfig()
-    try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise ValueError(f"transfer config {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        raise ValueError(f"transfer config {path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    doc = read_yaml(path, "transfer config")
     try:
         return config_with_overrides({} if doc is None else doc)
     except ValueError as err:
-        raise ValueError(f"transfer config {path}: {err}") from None
-
-
-def _override(obj: Any, overrides: Mapping[str, Any], where: str) -> Any:
-    if not isinstance(overrides, Mapping):
-        raise ValueError(f"{where} must be a mapping, got {overrides!r}")
-    hints = typing.get_type_hints(type(obj))
-    changes = {}
-    for key, value in overrides.items():
-        path = f"{where}.{key}"
-        if key not in hints:
-            raise ValueError(f"unknown transfer config key {path}; expected one of {sorted(hints)}")
-        current = getattr(obj, key)
-        if dataclasses.is_dataclass(current):
-            changes[key] = _override(current, value, path)
-        else:
-            changes[key] = _number(hints[key], value, path)
-    return dataclasses.replace(obj, **changes)
-
-
-def _number(hint: Any, value: Any, where: str) -> Any:
-    """``value`` checked against a field's hint: numbers, strings, lists of strings (``int | None`` takes None).
-
-    Choices among names (a loss, a form) are checked by the settings' own dataclass.
-    """
-    if typing.get_origin(hint) is tuple:  # a list of names (auto's candidates)
-        if isinstance(value, list) and value and all(isinstance(v, str) for v in value):
-            return tuple(value)
-        raise ValueError(f"{where} expects a non-empty list of names, got {value!r}")
-    arms = typing.get_args(hint) or (hint,)
-    if value is None and type(None) in arms:
-        return None
-    if float in arms and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if int in arms and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if str in arms and isinstance(value, str):
-        return value
-    raise ValueError(f"{where} expects {getattr(hint, '__name__', hint)}, got {value!r}")
+        raise ValueError(f"{path}: {err}") from None
 
 
 def epoch_budget(method: str, cfg: TransferConfig) -> int:

@@ -1,0 +1,242 @@
+"""An experiment's config: the data of each side, the grid of cells, and reading both from YAML.
+
+Every setting's range is its dataclass's own (``__post_init__``, with :func:`t42_transfer.config.check`),
+so a config built in code keeps the rules of a config file; :func:`load_config` reads a file through the
+one config layer (:func:`t42_transfer.config.from_mapping`) and :func:`check_config` adds the rules that
+span settings (one data source per side, cells that fit the split).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from t42_transfer.config import (
+    FRACTION,
+    MAX_EVAL_STEPS,
+    POSITIVE,
+    SEED,
+    SEED_RANGE,
+    STEPS,
+    Rule,
+    between,
+    check,
+    from_mapping,
+    one_of,
+    show,
+)
+from t42_transfer.data.quality import HANDLING
+from t42_transfer.data.t42_real import REAL_HANDS, REAL_OBJECT
+from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
+from t42_transfer.hand.collect import MAX_EPISODES, MAX_STEPS, MAX_WORKERS, POLICIES, check_collection
+from t42_transfer.models.training import TrainConfig
+from t42_transfer.transfer.config import DEFINITIONS, SOURCE_TRAINING, TransferConfig
+from t42_transfer.transfer.methods import METHODS
+from t42_transfer.yaml_files import read_yaml
+
+__all__ = [
+    "MAX_EVAL_STEPS", "SEED_RANGE", "DataSpec", "ExperimentConfig", "TrainConfig", "TransferConfig", "check_config",
+    "config_dict", "load_config", "sides",
+]
+
+SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,99}")
+SAFE_OBJECT = re.compile(r"[a-z][a-z0-9]{0,39}")
+"""The public files' object names (cyl35, egg50, poly6, sqr30...): part of a file name, so nothing else."""
+MIRRORS = ("origin", "grasp")
+MAX_SEEDS = 1000
+MAX_CELLS = 100_000
+SPLITS = ("fraction", "paths")
+_ORIGINAL_SPEC = ("hand", "episodes", "steps", "seed", "bag", "real", "mirror_x")
+
+DATA_RULES: dict[str, Rule] = {
+    "episodes": between(1, MAX_EPISODES), "steps": between(1, MAX_STEPS), "seed": SEED, "real": one_of(REAL_HANDS),
+    "real_object": ((lambda v: bool(SAFE_OBJECT.fullmatch(v))), "an object name such as cyl35 or egg50"),
+    "mirror_about": one_of(MIRRORS), "flagged": one_of(HANDLING), "policy": one_of(POLICIES),
+}
+"""What each :class:`DataSpec` setting must be beyond its type."""
+EXPERIMENT_RULES: dict[str, Rule] = {
+    "seeds": between(1, MAX_SEEDS), "amounts": between(0, MAX_EPISODES, True), "test_fraction": FRACTION,
+    "epsilon_mm": POSITIVE, "start_offsets": between(0, MAX_EVAL_STEPS), "horizon": STEPS, "lyapunov_steps": STEPS,
+    "workers": between(1, MAX_WORKERS), "split": one_of(SPLITS), "methods": one_of(METHODS),
+    "definition": one_of(DEFINITIONS),
+}
+"""What each :class:`ExperimentConfig` setting must be beyond its type (every element of a list setting)."""
+_REGISTERED: Rule = ((lambda v: v in METHODS and v != "auto"), "a method other than auto")
+AUTO_RULES: dict[str, Rule] = {"candidates": _REGISTERED, "fallback": _REGISTERED,
+                               "min_episodes": between(2, MAX_EPISODES)}
+"""An experiment's ``transfer.auto`` beyond :class:`AutoConfig`'s own: registered methods, a bounded size."""
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """Where a hand's data comes from (a simulated hand, a bag, or a public real-hand file) and what is done to it."""
+
+    hand: str | None = None
+    episodes: int = 300
+    steps: int = 1000
+    seed: int = 0
+    bag: str | None = None
+    real: str | None = None
+    """``A`` or ``B``: the public T42 test paths of that hand, of the object ``real_object``."""
+    mirror_x: bool = False
+    """Mirror x (the real hands are mirror images of each other), about ``mirror_about``."""
+    real_object: str = REAL_OBJECT
+    """The object of ``real``'s file (``testpaths_<object>[_red]_d_v0.pkl`` in ``$T42_REAL_DATA``): ``cyl35`` lies
+    beside the project; the public repository also holds ``egg50`` and ``poly6`` for both hands."""
+    mirror_about: str = "origin"
+    """``origin``: x -> -x, about the camera's origin.  ``grasp``: about the axis halfway between this side's
+    and the other side's grasp centres, with y shifted by their difference, so both grasps coincide."""
+    negate_actions: bool = False
+    """Negate every action: the authors' B -> A runs gave hand A its actions negated (the hands are mirrored)."""
+    flagged: str = "keep"
+    """Episodes with frozen tracking or jumps (:mod:`t42_transfer.data.quality`): ``keep`` them as they are,
+    ``drop`` them, or ``split`` them at each flagged stretch.  Found stretches are recorded in any case."""
+    exclude_test_sequences: bool = False
+    """Source only: leave out of the source model's training every episode that ran the action sequence of one
+    of the cell's test episodes (both real hands ran the same six), training a source per test set."""
+    policy: str = "random"
+    """``hand`` only: how the simulated hand is driven (:data:`t42_transfer.hand.collect.POLICIES`): ``random``,
+    the paper's training data, or ``sustained``, test paths like the real hands' (long holds of discrete moves)."""
+
+    def describe(self) -> dict:
+        """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
+        values = dataclasses.asdict(self)
+        return {k: v for k, v in values.items() if k in _ORIGINAL_SPEC or v != _SPEC_DEFAULTS[k]}
+
+    def __post_init__(self) -> None:
+        check(self, DATA_RULES)
+
+
+_SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """Methods x amounts of target data x seeds on one source and one target hand."""
+
+    config_kind = "experiment"
+    """How messages name these settings ("unknown experiment settings ...")."""
+    name: str
+    """The run directory's name under ``--out``: one plain path component."""
+    source: DataSpec
+    target: DataSpec
+    methods: tuple[str, ...] = tuple(m for m in METHODS if m != "auto")
+    split: str = "fraction"
+    """``fraction``: amounts are fractions of the target pool, a fixed test split held out;
+    ``paths``: amounts are numbers of target episodes, the others are the test set."""
+    amounts: tuple[float, ...] = (0.005, 0.01, 0.02, 0.05, 0.1)
+    seeds: int = 5
+    test_fraction: float = 0.2
+    definition: str = "paper"
+    """Where the paper's text and its authors' code differ, which one this run follows (``paper`` or
+    ``authors``): the transfer settings, the source training, the threshold and how divergence and MSE count."""
+    epsilon_mm: float | None = None
+    """None: the definition's (paper 4 mm, authors 10 mm)."""
+    start_offsets: tuple[int, ...] = (0,)
+    horizon: int | None = None
+    lyapunov_steps: int = 100
+    source_training: TrainConfig | None = None
+    """None: the definition's; settings given in a file apply on top of it."""
+    transfer: TransferConfig | None = None
+    """None: ``TransferConfig.for_definition(definition)``; settings given in a file apply on top of it."""
+    workers: int | None = None
+    test: DataSpec | None = None
+    """Test episodes of the target hand from their own data set (e.g. sustained-action paths) instead of the
+    held-out target episodes; the training subsets stay those without it, so cells pair across test sets."""
+
+    def __post_init__(self) -> None:
+        # The run directory is ``out / name``: anything but one plain component could leave ``out``.
+        if not (isinstance(self.name, str) and SAFE_NAME.fullmatch(self.name)):
+            raise ValueError(f"name must be one plain path component (letters, digits, '.', '_', '-'; "
+                             f"not starting with '.'; at most 100 characters), got {show(self.name)}")
+        for key, value in _definition_defaults(self.definition).items():
+            if getattr(self, key) is None:
+                object.__setattr__(self, key, value)
+        check(self, EXPERIMENT_RULES)
+        try:
+            if isinstance(self.transfer, TransferConfig):  # another type is check_config's to refuse
+                check(self.transfer.auto, AUTO_RULES)
+        except ValueError as err:
+            raise ValueError(f"transfer.auto.{err}") from None
+
+    @classmethod
+    def config_bases(cls, values: Mapping[Any, Any]) -> dict[str, Any]:
+        """What a file's ``transfer`` and ``source_training`` apply on top of: its definition's settings."""
+        return _definition_defaults(values.get("definition", "paper"))
+
+
+def _definition_defaults(definition: Any) -> dict[str, Any]:
+    """The settings ``definition`` decides unless a config gives them (ValueError for an unknown definition)."""
+    if not isinstance(definition, str) or definition not in DEFINITIONS:
+        raise ValueError(f"definition must be one of {DEFINITIONS}, got {show(definition)}")
+    return {"epsilon_mm": METRIC_DEFINITIONS[definition].epsilon_mm, "source_training": SOURCE_TRAINING[definition],
+            "transfer": TransferConfig.for_definition(definition)}
+
+
+def load_config(path: str | os.PathLike[str]) -> ExperimentConfig:
+    """Read an experiment YAML; ValueError naming the file and the offending setting, before anything runs."""
+    file = Path(path)
+    raw = read_yaml(file, "experiment config")
+    if not isinstance(raw, dict) or "name" not in raw or "source" not in raw or "target" not in raw:
+        raise ValueError(f"{file}: an experiment config needs name, source and target")
+    try:
+        cfg = from_mapping(ExperimentConfig, raw)
+        check_config(cfg)
+    except ValueError as err:
+        raise ValueError(f"{file}: {err}") from None
+    return cfg
+
+
+def check_config(cfg: ExperimentConfig) -> None:
+    """ValueError unless ``cfg`` keeps every rule of a config file, also when built in code.
+
+    Beyond each setting's type and range: one data source per side, no repeated or too many
+    cells, amounts that fit the split.
+    """
+    from_mapping(ExperimentConfig, config_dict(cfg))
+    for side in sides(cfg):
+        spec: DataSpec = getattr(cfg, side)
+        given = [k for k in ("hand", "bag", "real") if getattr(spec, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
+        if spec.hand is not None:
+            check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
+        elif spec.policy != _SPEC_DEFAULTS["policy"]:
+            raise ValueError(f"{side}.policy drives a simulated hand: it needs {side}.hand")
+        if spec.real_object != REAL_OBJECT and spec.real is None:
+            raise ValueError(f"{side}.real_object names the object of a real-hand file: it needs {side}.real")
+        if spec.mirror_about != "origin" and not spec.mirror_x:
+            raise ValueError(f"{side}.mirror_about: {spec.mirror_about} needs {side}.mirror_x: true")
+    for side in sides(cfg)[1:]:
+        spec = getattr(cfg, side)
+        if cfg.source.mirror_x and spec.mirror_x and "grasp" in (cfg.source.mirror_about, spec.mirror_about):
+            raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
+        if spec.exclude_test_sequences:
+            raise ValueError(f"{side}.exclude_test_sequences: only the source's training leaves test sequences out")
+    for key in ("methods", "amounts"):
+        values = getattr(cfg, key)
+        if len(set(values)) != len(values):
+            raise ValueError(f"{key} repeat an entry: {show(values)}")
+    cells = len(cfg.methods) * len(cfg.amounts) * cfg.seeds
+    if cells > MAX_CELLS:
+        raise ValueError(f"{cells} cells (methods x amounts x seeds) is over {MAX_CELLS}")
+    if cfg.split == "fraction" and max(cfg.amounts) > 1:
+        raise ValueError(f"amounts are fractions of the target pool with split: fraction, got {max(cfg.amounts)}")
+    if cfg.split == "paths" and not all(float(a).is_integer() for a in cfg.amounts):
+        raise ValueError(f"amounts are numbers of episodes with split: paths, got {show(cfg.amounts)}")
+
+
+def sides(cfg: ExperimentConfig) -> tuple[str, ...]:
+    """The data sets ``cfg`` names: source, target, and test when it has its own."""
+    return ("source", "target") if cfg.test is None else ("source", "target", "test")
+
+
+def config_dict(cfg: ExperimentConfig) -> dict[str, Any]:
+    """``cfg`` as plain JSON types: what ``config.yaml`` and ``results.json`` hold, and a file would give."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg), default=str))
