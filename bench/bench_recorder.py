@@ -21,11 +21,12 @@ MultiThreadedExecutor with 4 threads (``multi4``), which spins busily while a
 mutually exclusive callback runs.  Also the recorder's own per-message work
 without ROS (decode the stamp, group by step, write to the bag) measured
 in-process.  The machine's load average is recorded before and after: on a
-shared machine the numbers vary with it.  Each run has its own ROS_DOMAIN_ID and
-LOCALHOST discovery.
+shared machine the numbers vary with it.  Each run has its own ROS_DOMAIN_ID (random in
+100-200 unless ROS_DOMAIN_ID is set) and LOCALHOST discovery.
 
     .venv/bin/python bench/bench_recorder.py           # recorder 1 kHz x 30 s; the rest 10 s each
     .venv/bin/python bench/bench_recorder.py --quick   # 5 s runs
+    .venv/bin/python bench/bench_recorder.py --run-seconds 0.5   # a smoke run
 """
 
 from __future__ import annotations
@@ -193,8 +194,9 @@ def _spawn(*args: str, env: dict[str, str]) -> subprocess.Popen[str]:
 
 
 def run_stream(kind: str, rate: float, seconds: float, executor: str = "runner") -> dict[str, Any]:
-    """One publisher -> receiver run on a fresh domain."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+    """One publisher -> receiver run on its own domain (the caller's ROS_DOMAIN_ID when set)."""
+    domain = os.environ.get("ROS_DOMAIN_ID") or str(random.randint(100, 200))  # a caller's (a test's) own
+    env = dict(os.environ, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONPATH=str(REPO))
     with tempfile.TemporaryDirectory() as tmp:
         stop = Path(tmp) / "stop"
@@ -238,18 +240,20 @@ def run_stream(kind: str, rate: float, seconds: float, executor: str = "runner")
 def own_work_us_per_msg(count: int = 30_000) -> float:
     """The recorder's per-message work without ROS: decode the stamp, group by step, write to a bag."""
     from msg_adapters import stamp_to_ns
-    from t42_transfer.nodes.recorder import StepBuffer, _Bag
+    from t42_transfer.data.bag import BagWriter
+    from t42_transfer.data.bag.steps import StepBuffer
 
     messages = hand_messages(count // 3)
     with tempfile.TemporaryDirectory() as tmp:
-        bag = _Bag(Path(tmp) / "direct", dict(HAND_TOPICS))
+        bag = BagWriter(Path(tmp) / "direct", dict(HAND_TOPICS))
         buffer = StepBuffer(TOPICS, hold_s=1.0)
         start = time.perf_counter()
         for i, (topic, data) in enumerate(messages):
             stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, HAND_TOPICS[topic]).header.stamp)
             released, _ = buffer.add(topic, stamp, i, data, 0.0)
             for step in released:
-                bag.write(step)
+                for message in step.messages:
+                    bag.write(*message)
         bag.close()
         return (time.perf_counter() - start) / len(messages) * 1e6
 
@@ -263,6 +267,8 @@ def main() -> None:
     parser.add_argument("--stop-file", default="")
     parser.add_argument("--executor", choices=("runner", "multi4"), default="runner")
     parser.add_argument("--quick", action="store_true", help="5 s runs")
+    parser.add_argument("--run-seconds", type=float, default=None,
+                        help="every run this long (overrides --quick)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.role == "publisher":
@@ -273,6 +279,8 @@ def main() -> None:
     from machine import machine_info  # imports torch: kept out of the measured processes
 
     long_s, short_s = (5.0, 5.0) if args.quick else (30.0, 10.0)
+    if args.run_seconds is not None:
+        long_s = short_s = args.run_seconds
     info = machine_info()
     runs = [run_stream("recorder", 1000, long_s)]  # also the RSS run
     runs += [run_stream("sink", 1000, short_s)]

@@ -29,7 +29,7 @@ from msg_adapters.hand import (
 )
 from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
-from msg_adapters.status import last_step_stamp, status_event, status_message
+from msg_adapters.status import grasp_detail, grasp_seed, last_step_stamp, status_event, status_message
 
 __all__ = [
     "DIAGNOSTIC_ARRAY",
@@ -62,6 +62,8 @@ __all__ = [
     "byte_value",
     "rclpy_class",
     "last_step_stamp",
+    "grasp_detail",
+    "grasp_seed",
     "status_event",
     "status_message",
     "PATH",

@@ -13,6 +13,8 @@ import re
 
 LAST_STEP = re.compile(r"\[last step (\d+) ns\]")
 """How a status names the stamp of the last step before its event."""
+GRASP_SEED = re.compile(r"\(seed (\d+)\)")
+"""How a reset's detail names the seed of its grasp (a simulated hand's; a real hand has none)."""
 
 
 def status_message(event: str, detail: str = "", last_step_ns: int | None = None) -> str:
@@ -35,3 +37,14 @@ def status_event(status: str) -> str:
     """The event word of a status (``"dropped: episode 3 ended"`` -> ``"dropped"``)."""
     words = status.split()
     return words[0].rstrip(":") if words else ""
+
+
+def grasp_detail(episode: int, seed: int | None) -> str:
+    """A reset's detail (its answer and its ``reset`` status): the episode begun and the grasp's seed, if any."""
+    return f"episode {episode} grasped" + ("" if seed is None else f" (seed {seed})")
+
+
+def grasp_seed(text: str) -> int | None:
+    """The grasp seed a reset's answer or status names (:func:`grasp_detail`); None when it names none."""
+    match = GRASP_SEED.search(text)
+    return None if match is None else int(match.group(1))

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.lyapunov import model_lyapunov, state_scales
 from t42_transfer.hand.collect import POLICIES, collect

@@ -104,7 +104,7 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
     """The source model for ``size`` under ``out`` (trained unless a matching one is cached)."""
     import torch
 
-    from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
+    from t42_transfer.data.bag import assign_start_times, read_bag, write_bag
     from t42_transfer.data.trajectory import TrajectorySet
     from t42_transfer.hand.collect import collect
     from t42_transfer.models.checkpoint import read_metadata, save_model

@@ -13,10 +13,9 @@ import numpy as np
 import pytest
 
 from t42_transfer.conventions import ACTION_UNIT_RAD
-from t42_transfer.data.bag_io import assign_start_times
+from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.t42_real import REAL_FILES, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-
 
 sys.path.insert(0, str(Path(__file__).parent))  # test helpers (ros_rig)
 if TYPE_CHECKING:
@@ -64,6 +63,19 @@ def make_set() -> MakeSet:
 def small_set() -> TrajectorySet:
     """Three episodes (20, 25, 16 transitions), angles on the first and last."""
     return _synthetic_set()
+
+
+@pytest.fixture(scope="module")
+def episode(make_set) -> Trajectory:
+    """One 60-transition episode with actuator angles."""
+    return make_set((60,), angles=True)[0]
+
+
+@pytest.fixture(scope="module")
+def big_bag(tmp_path_factory, make_set) -> tuple[Path, TrajectorySet]:
+    """A bag of about three 1 MiB MCAP chunks (rosbags' chunk size)."""
+    data = make_set((450,) * 14, seed=7)
+    return write_bag(tmp_path_factory.mktemp("big") / "bag", data), data
 
 
 @pytest.fixture(scope="session")

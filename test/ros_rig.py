@@ -80,6 +80,8 @@ class Tester:
     """The test's own node beside the nodes under test: it listens, publishes and calls as a user would,
     and waits on what the graph shows (publisher and subscriber counts), never on a node's private state."""
 
+    __test__ = False  # a helper, not a test class
+
     def __init__(self, ros: RosRig, name: str = "tester", namespace: str = "") -> None:
         self.ros = ros
         self.tester = ros.node(name, namespace=namespace)

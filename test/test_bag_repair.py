@@ -21,8 +21,8 @@ from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand
 from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
 from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag_io import bag_info, read_bag, verify_bag, write_bag
-from t42_transfer.data.bag_repair import repair_bag
+from t42_transfer.data.bag import bag_info, read_bag, verify_bag, write_bag
+from t42_transfer.data.bag.repair import repair_bag
 from t42_transfer.data.errors import BagError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -209,7 +209,7 @@ def test_a_cut_bag_loses_no_message_of_a_finished_chunk(tmp_path: Path, chunked_
 @pytest.mark.parametrize("where", ["bag", "storage file", "metadata.yaml"])
 def test_fifos_are_refused_before_opening(where: str) -> None:
     """A FIFO blocks whoever opens it; the fuzz worker's alarm would end a hang."""
-    with DecoderWorker("t42_transfer.data.bag_repair:repair_bag", timeout_s=10.0) as worker:
+    with DecoderWorker("t42_transfer.data.bag.repair:repair_bag", timeout_s=10.0) as worker:
         case = worker.new_case_dir()
         if where == "bag":
             path = case / "bag"

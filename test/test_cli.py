@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from t42_transfer.cli import main
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.hand.collect import collect
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,7 +91,7 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
 def test_bag_info_reports_frozen_tracking_and_jumps(tmp_path: Path, make_set, capsys: pytest.CaptureFixture[str]) -> None:
     import dataclasses
 
-    from t42_transfer.data.bag_io import write_bag
+    from t42_transfer.data.bag import write_bag
 
     data = make_set([80, 80], seed=4, hand="h")
     states = data[1].states.copy()

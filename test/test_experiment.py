@@ -217,7 +217,7 @@ def test_cell_models_store_the_planning_workspace(config_file: Path, tmp_path: P
 
 
 def _bag(tmp_path: Path, name: str, data) -> str:  # type: ignore[no-untyped-def]
-    from t42_transfer.data.bag_io import write_bag
+    from t42_transfer.data.bag import write_bag
 
     return str(write_bag(tmp_path / name, data))
 

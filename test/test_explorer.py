@@ -14,7 +14,7 @@ from std_srvs.srv import Trigger
 
 from msg_adapters import applied_action
 from msg_adapters import names
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import Trajectory
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.hand.sim import SimulatedHand

@@ -21,7 +21,7 @@ from fuzz_harness import DecoderWorker, fuzz, mutated
 REPO = Path(__file__).resolve().parents[1]
 SEED_BAG = REPO / "bags" / "target_small"
 PARTS = {"mcap": "target_small.mcap", "yaml": "metadata.yaml"}
-DECODERS = ("bag_io:read_bag", "bag_io:bag_info", "bag_io:verify_bag", "bag_repair:repair_bag")
+DECODERS = ("bag:read_bag", "bag:bag_info", "bag:verify_bag", "bag.repair:repair_bag")
 
 
 def run_fuzz(decoder: str, part: str, examples: int, keep: Path) -> dict[str, int]:

@@ -15,7 +15,7 @@ import pytest
 from fuzz_harness import DecoderWorker, fuzz, mutated
 from test_t42_real import py2_pickle
 
-from t42_transfer.data import bag_io
+from t42_transfer.data.bag import JazzyWriter
 from t42_transfer.data.t42_real import REAL_FILES, import_t42_to_bag, load_t42_testpaths, real_data_dir
 
 MEM_MB = 64
@@ -110,7 +110,7 @@ def test_a_failed_write_leaves_no_staging_folder(tmp_path, monkeypatch):
     def disk_full(*args: object, **kwargs: object) -> None:
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(bag_io.JazzyWriter, "write", disk_full)
+    monkeypatch.setattr(JazzyWriter, "write", disk_full)
     with pytest.raises(OSError, match="No space left"):
         import_t42_to_bag(source, tmp_path / "out" / "bag")
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == []

@@ -193,3 +193,11 @@ def test_joint_trajectory_rejects_bad_inputs():
     assert ma.joint_trajectory_to_actions(
         ma.actions_to_joint_trajectory(np.zeros((0, 2), np.float32), [0.0, 0.0], 0), [0.0, 0.0]
     ).shape == (0, 2)
+
+
+def test_a_reset_names_its_grasp_seed_in_one_format() -> None:
+    from msg_adapters import grasp_detail, grasp_seed, status_message
+
+    assert grasp_seed(grasp_detail(3, 17)) == 17
+    assert grasp_seed(status_message("reset", grasp_detail(3, 0), 100)) == 0
+    assert grasp_seed(grasp_detail(3, None)) is None and grasp_seed("episode 3 grasped") is None

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models import Normalisation, TransitionModel

@@ -390,7 +390,7 @@ def test_params_validate_planner_fields(kwargs: dict) -> None:
 # --------------------------------------------------------------------------- closed loop
 def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_towards_the_goal(ros,
                                                                                            tmp_path: Path) -> None:
-    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.data.bag import read_bag
     from t42_transfer.models.training import TrainConfig, train_transition_model
     from t42_transfer.planning.sampling import sample_actions
 

@@ -28,7 +28,7 @@ from msg_adapters import (
 )
 from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.ros.qos import recording
 
 from ros_rig import REPO, start_node, stop

@@ -25,7 +25,7 @@ def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A source model trained for 1 epoch on the source fixture bag, with its workspace."""
     import torch
 
-    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.data.bag import read_bag
     from t42_transfer.models.checkpoint import save_model
     from t42_transfer.models.training import TrainConfig, train_transition_model
     from t42_transfer.planning.workspace import Workspace

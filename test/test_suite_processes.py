@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.hand.sim import SimulatedHand
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag_io import EPISODE_GAP_NS, read_bag
+from t42_transfer.data.bag import EPISODE_GAP_NS, read_bag
 from t42_transfer.data.errors import PickleFileError
 from t42_transfer.data.t42_real import import_t42_to_bag, load_t42_testpaths
 
@@ -222,7 +222,7 @@ def test_the_real_files_flagged_stretches(t42_real_dir):
 def test_import_records_the_quality_scan_in_the_bag(t42_real_dir, tmp_path):
     import json
 
-    from t42_transfer.data.bag_io import bag_info
+    from t42_transfer.data.bag import bag_info
 
     bag = import_t42_to_bag(t42_real_dir / FILES["cyl35_red"], tmp_path / "bag")
     quality = json.loads(bag_info(bag)["metadata"]["data_quality"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from t42_transfer.data.bag_io import assign_start_times, write_bag
+from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet, split_by_fraction
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.models.checkpoint import load_model, save_model

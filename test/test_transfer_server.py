@@ -12,19 +12,17 @@ from typing import Any
 
 import pytest
 import torch
+from bag_builders import ACTION, JOINTS, step_messages, write_messages
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.parameter import Parameter
+from ros_rig import Tester
 from safetensors.torch import save_file
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from test_bag_io import ACTION, JOINTS, step_messages, write_messages
 
 import t42_transfer.models.checkpoint as checkpoint
-from ros_rig import Tester
-
-from msg_adapters import DiagnosticReport, status_report
-from msg_adapters import names
-from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
+from msg_adapters import DiagnosticReport, names, status_report
+from t42_transfer.data.bag import assign_start_times, read_bag, write_bag
 from t42_transfer.models.checkpoint import FORMAT, load_model, read_metadata, save_model
 from t42_transfer.models.residual import CumulativeResidualModel
 from t42_transfer.models.training import TrainConfig, train_transition_model
@@ -35,7 +33,13 @@ from t42_transfer.nodes.transfer_server import (
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.methods import METHODS
-from t42_transfer.transfer.online import CURRENT_MODEL, STATE_FILE, config_from_file, config_with_overrides, hold_out
+from t42_transfer.transfer.online import (
+    CURRENT_MODEL,
+    STATE_FILE,
+    config_from_file,
+    config_with_overrides,
+    hold_out,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = "l2_finetune: {train: {epochs: 2}}\n"

@@ -13,7 +13,7 @@ from t42_transfer.cli.args import existing_dir, existing_file, float_arg, new_ou
 def _cmd_bag_info(args: argparse.Namespace) -> int:
     import warnings
 
-    from t42_transfer.data.bag_io import bag_info, read_bag, verify_bag
+    from t42_transfer.data.bag import bag_info, read_bag, verify_bag
     from t42_transfer.data.quality import scan, summarise, summary_lines
 
     info = bag_info(args.bag)
@@ -45,7 +45,7 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
-    from t42_transfer.data.bag_io import read_bag
+    from t42_transfer.data.bag import read_bag
     from t42_transfer.data.t42_real import import_t42_to_bag, quality_lines
 
     bag = import_t42_to_bag(existing_file(args.pickle), new_output(args.out))
@@ -56,7 +56,7 @@ def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
 
 
 def _cmd_bag_repair(args: argparse.Namespace) -> int:
-    from t42_transfer.data.bag_repair import repair_bag
+    from t42_transfer.data.bag.repair import repair_bag
 
     report = repair_bag(existing_dir(args.bag))
     if not report.repaired:

@@ -10,7 +10,7 @@ from t42_transfer.cli.args import SEED_MAX, existing_dir, int_arg, new_output, o
 
 
 def _cmd_sim_collect(args: argparse.Namespace) -> int:
-    from t42_transfer.data.bag_io import assign_start_times, write_bag
+    from t42_transfer.data.bag import assign_start_times, write_bag
     from t42_transfer.data.trajectory import TrajectorySet
     from t42_transfer.hand.collect import RandomPolicy, check_collection, collect
 

@@ -27,7 +27,7 @@ import numpy as np
 from numpy._core.multiarray import _reconstruct
 
 from t42_transfer.conventions import DROPPED
-from t42_transfer.data.bag_io import assign_start_times, write_bag
+from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.errors import PickleFileError
 from t42_transfer.data.quality import scan, summarise, summary_lines
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import yaml
 
-from t42_transfer.data.bag_io import assign_start_times, read_bag, write_bag
+from t42_transfer.data.bag import assign_start_times, read_bag, write_bag
 from t42_transfer.data.quality import handle_flagged, summarise
 from t42_transfer.data.t42_real import load_t42_testpaths, real_data_dir, real_file
 from t42_transfer.data.trajectory import (

@@ -17,7 +17,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
 A step stamped ``t`` (ROS time) publishes the current state (pose and
 joint states) and, if the episode is still running, the action applied from that
-state, all with stamp ``t`` (the bag convention of :mod:`t42_transfer.data.bag_io`:
+state, all with stamp ``t`` (the bag convention of :mod:`t42_transfer.data.bag`:
 state ``k`` and action ``k`` share a stamp), then steps the hand with that action.
 When a step ends the episode (drop, lost contact, overload) the next timer tick
 publishes the final state without an action, publishes ``hand/status`` and stops
@@ -68,6 +68,7 @@ from msg_adapters import (
     names,
     applied_action,
     applied_action_msg,
+    grasp_detail,
     joint_state_msg,
     joint_trajectory_to_actions,
     ns_to_stamp,
@@ -241,7 +242,7 @@ class MockDriver(Node):
             self._publish_status(status_message(names.RESET_FAILED, str(err), self._last_stamp))
             return False, f"grasp failed: {err}"
         self.running, self.steps = True, 0
-        message = f"episode {self.episode} grasped (seed {seed})"
+        message = grasp_detail(self.episode, seed)
         self._publish_status(status_message(names.RESET, message, self._last_stamp))
         return True, message
 

@@ -7,7 +7,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   types): subscribed raw with a ``params.queue_depth`` deep RELIABLE queue; each
   message's CDR bytes are written UNCHANGED, logged at its receive time (the
   node's ROS time), under the topic's fully resolved name (``/left/hand/object_pose``
-  under namespace ``/left``), which :func:`t42_transfer.data.bag_io.read_bag` finds;
+  under namespace ``/left``), which :func:`t42_transfer.data.bag.read_bag` finds;
 * ``~/start``, ``~/stop``, ``~/split`` (std_srvs/srv/Trigger): private names, as
   ``ros2 bag record``'s own services (``~/split_bagfile``...), so they are
   ``/recorder/start`` for the default node name and follow a renamed node
@@ -20,11 +20,11 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 
 Steps.  A control step is the state (object pose and joint states) and the action
 applied from it, all with ONE header stamp (the mock driver's and the bag
-convention of :mod:`t42_transfer.data.bag_io`).  Each topic has its own queue, so
+convention of :mod:`t42_transfer.data.bag`).  Each topic has its own queue, so
 the messages of a step arrive in any order and interleaved with the next step's;
 a bag begun or ended "now" could hold an action without its state (a transfer
 refuses such a bag).  So messages are grouped by stamp (:class:`StepBuffer`) and
-whole steps are written, in stamp order.  A step is complete once every recorded
+whole steps are written, in stamp order (:mod:`t42_transfer.data.bag.steps`).  A step is complete once every recorded
 topic has either delivered its message for the stamp or already delivered a
 later one (one publisher per topic delivers in order, so nothing more will come
 for it); a step still incomplete ``params.step_hold_s`` after its first message
@@ -50,7 +50,7 @@ A bag never begins with a step whose state was not received (an action alone, a
 pose alone: dropped with a warning), and on close only steps holding their whole
 state are written.
 
-Bags are written as :mod:`t42_transfer.data.bag_io` writes them (rosbags
+Bags are written as :mod:`t42_transfer.data.bag` writes them (rosbags
 ``Writer(version=9)``, MCAP, ``ros_distro: jazzy``, ``offered_qos_profiles=[RECORD_QOS]``,
 one connection per recorded topic, ``metadata.yaml`` on close) and are named
 ``<prefix>_<NNN>`` in ``out_dir``: ``NNN`` counts on from the highest index
@@ -74,14 +74,13 @@ import re
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rosbags.rosbag2 import StoragePlugin
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -94,7 +93,8 @@ from msg_adapters import (
     stamp_to_ns,
     status_event,
 )
-from t42_transfer.data.bag_io import RECORD_QOS, JazzyWriter
+from t42_transfer.data.bag import BagWriter
+from t42_transfer.data.bag.steps import Step, StepBuffer
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile, recording
 
@@ -108,10 +108,6 @@ ACTION_TOPIC = names.APPLIED_ACTION
 
 MODES = ("recording", "episode")
 
-HOLD_CAP = 4
-"""A step waits at most this many ``step_hold_s`` for the rest of its messages, however busy the topics are."""
-CLOCK_RESTART_NS = 1_000_000_000
-"""A stamp this much older than the newest written step means the publisher's clock restarted."""
 
 _PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -168,138 +164,6 @@ def next_bag_path(out_dir: str | Path, prefix: str) -> Path:
     return directory / f"{prefix}_{max(taken, default=-1) + 1:03d}"
 
 
-# --------------------------------------------------------------------------- steps (no ROS)
-@dataclass
-class Step:
-    """The messages of one header stamp: ``(topic, log_ns, cdr)`` in arrival order."""
-
-    stamp: int
-    first_seen_s: float
-    """Steady time of its first message."""
-    messages: list[tuple[str, int, bytes]] = field(default_factory=list)
-
-    @property
-    def topics(self) -> set[str]:
-        return {topic for topic, _, _ in self.messages}
-
-
-class StepBuffer:
-    """Groups messages by header stamp and releases whole steps in stamp order (see the module docstring).
-
-    ``topics`` are the recorded topics; a step is complete once each of them
-    delivered its message for the stamp or a later one.  Steady times are passed
-    in, so the buffer is deterministic in tests.
-    """
-
-    def __init__(self, topics: Iterable[str], hold_s: float, min_age_s: float = 0.0) -> None:
-        self.topics = tuple(topics)
-        self.hold_s = hold_s
-        self.min_age_s = min_age_s
-        """A complete step still waits this long (steady time) after its first message: room for a status
-        that splits the recording before it to arrive (topics are not ordered against each other)."""
-        self._latest: dict[str, int] = {}
-        """Newest stamp delivered per topic."""
-        self._pending: dict[int, Step] = {}
-        self._last_add_s = -math.inf
-        """Steady time of the latest message."""
-        self.released_stamp: int | None = None
-        """Stamp of the newest step released."""
-
-    @property
-    def latest_stamp(self) -> int | None:
-        """The newest stamp received on any topic (released or not)."""
-        return max(self._latest.values(), default=None)
-
-    @property
-    def oldest_pending(self) -> int | None:
-        return min(self._pending, default=None)
-
-    def add(self, topic: str, stamp: int, log_ns: int, data: bytes, now_s: float) -> tuple[list[Step], bool]:
-        """File one message; (the steps now released in stamp order, whether the message came too late)."""
-        released: list[Step] = []
-        if self.released_stamp is not None and stamp <= self.released_stamp:
-            if stamp > self.released_stamp - CLOCK_RESTART_NS:
-                return [], True
-            released = self.drain()  # the publisher's clock restarted: what waits is all there will be
-            self._latest.clear()
-            self.released_stamp = None
-        step = self._pending.get(stamp)
-        if step is None:
-            step = self._pending[stamp] = Step(stamp, now_s)
-        step.messages.append((topic, log_ns, data))
-        self._latest[topic] = max(stamp, self._latest.get(topic, stamp))
-        self._last_add_s = now_s
-        return released + self.release(now_s), False
-
-    def _complete(self, step: Step, now_s: float) -> bool:
-        age = now_s - step.first_seen_s
-        if age >= self.hold_s and (now_s - self._last_add_s >= self.hold_s / 2 or age >= HOLD_CAP * self.hold_s):
-            return True
-        if age < self.min_age_s:
-            return False
-        have = step.topics
-        return all(t in have or self._latest.get(t, step.stamp) > step.stamp for t in self.topics)
-
-    def release(self, now_s: float) -> list[Step]:
-        """Steps that are complete (or held long enough), oldest first, up to the first that is not."""
-        out = []
-        while self._pending:
-            oldest = min(self._pending)
-            if not self._complete(self._pending[oldest], now_s):
-                break
-            out.append(self._pending.pop(oldest))
-            self.released_stamp = oldest
-        return out
-
-    def drain(self) -> list[Step]:
-        """Every waiting step, oldest first (the recording ends)."""
-        out = [self._pending.pop(stamp) for stamp in sorted(self._pending)]
-        if out:
-            self.released_stamp = out[-1].stamp
-        return out
-
-
-# --------------------------------------------------------------------------- bags
-class _Bag:
-    """One open bag: its writer, connections by resolved topic, and what was written."""
-
-    def __init__(self, path: Path, types: dict[str, str]) -> None:
-        self.path = path
-        self.writer = JazzyWriter(path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self.writer.open()
-        try:
-            self.connections = {
-                topic: self.writer.add_connection(topic, msgtype, typestore=TYPESTORE,
-                                                  offered_qos_profiles=[RECORD_QOS])
-                for topic, msgtype in types.items()
-            }
-        except Exception:
-            self.writer.abort()
-            raise
-        self.count = 0
-
-    def write(self, step: Step) -> None:
-        for topic, log_ns, data in step.messages:
-            self.writer.write(self.connections[topic], log_ns, data)
-            self.count += 1
-
-    def flush(self) -> None:
-        """Write the open chunk and flush the file (no fsync: SIGKILL keeps the page cache).
-
-        rosbags' MCAP writer (0.11.9) has no public flush; its storage closes a
-        chunk only at 1 MiB, so this closes it through the storage object.
-        """
-        storage = self.writer.storage
-        if storage is None:
-            return
-        if storage.chunk.msgs:
-            storage.close_chunk()
-        storage.bio.flush()
-
-    def close(self) -> None:
-        self.writer.close()
-
-
 @dataclass(frozen=True)
 class _Change:
     """A bag change waiting for the steps up to ``after`` (a stamp) to be written."""
@@ -329,7 +193,7 @@ class Recorder(Node):
         """Messages received on the recorded topics and handled (counted when their callback ends)."""
         self.dropped = 0
         """Messages not written (undecodable bytes, too late for their step, orphans, a failed write)."""
-        self._bag: _Bag | None = None
+        self._bag: BagWriter | None = None
         self._changes: deque[_Change] = deque()
         self._will_record = False
         """Whether a bag is open once every waiting change is carried out."""
@@ -476,7 +340,7 @@ class Recorder(Node):
 
     def _open_bag(self) -> Path:
         p = self.params
-        bag = _Bag(next_bag_path(p.out_dir, p.bag_prefix), self._types)
+        bag = BagWriter(next_bag_path(p.out_dir, p.bag_prefix), self._types)
         self._bag = bag
         self.log.info(f"recording to {bag.path}")
         return bag.path
@@ -508,7 +372,8 @@ class Recorder(Node):
                                  "bag began, or lost)")
                 continue
             try:
-                bag.write(step)
+                for topic, log_ns, data in step.messages:
+                    bag.write(topic, log_ns, data)
             except Exception as err:
                 self.dropped += len(step.messages)
                 self.log.error(f"could not write the step stamped {step.stamp} ns to {bag.path}: {err!r}")

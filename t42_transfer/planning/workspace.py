@@ -132,7 +132,7 @@ class Workspace:
 
         ValueError (one line) when neither: no default box can know where a model was trained."""
         if bags:
-            from t42_transfer.data.bag_io import read_bag
+            from t42_transfer.data.bag import read_bag
 
             return cls.from_trajectories(t for bag in bags for t in read_bag(bag))
         stored = cls.from_metadata(metadata)

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model

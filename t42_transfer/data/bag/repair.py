@@ -1,21 +1,21 @@
 """Make a bag whose writer died (SIGKILL, power cut) whole again: ``t42 bag repair``.
 
 A recorder killed mid-bag leaves an MCAP without its summary and footer, and no
-(or a stale) ``metadata.yaml``.  :func:`bag_io.read_bag` already recovers such a
+(or a stale) ``metadata.yaml``.  :func:`~t42_transfer.data.bag.read_bag` already recovers such a
 bag's readable prefix, with a warning, every time; repairing it once rewrites the
 readable records (every complete chunk, in file order) as a fresh rosbag2 v9 MCAP
-through :class:`bag_io.JazzyWriter`, as the recorder and ``bag_io`` write theirs
-(same layout, ``ros_distro: jazzy``), so ``ros2 bag`` and :mod:`bag_io` read it
+through :class:`~.writer.JazzyWriter`, as the recorder and :mod:`.writer` write theirs
+(same layout, ``ros_distro: jazzy``), so ``ros2 bag`` and :mod:`t42_transfer.data.bag` read it
 cleanly, with ``metadata.yaml`` giving per-topic counts, start time, duration,
 types and each topic's offered QoS as recorded in its MCAP channel.  Each
 original file is kept as ``<name>.orig``.
 ``custom_data`` keeps what the bag had and gains ``REPAIRED_KEY`` (what was
-wrong), so :func:`bag_io.read_bag` still treats a cut-off last step as a cut,
+wrong), so :func:`~t42_transfer.data.bag.read_bag` still treats a cut-off last step as a cut,
 not an error.
 
 What is wrong is found as ``t42 bag info --verify`` finds it (the same scan of
 every record, the same comparison with ``metadata.yaml``), plus files without a
-summary; files are read with :func:`bag_io.mcap_records`'s bounds, and a FIFO
+summary; files are read with :func:`~.storage.mcap_records`'s bounds, and a FIFO
 or a directory where a file belongs is refused, never opened or replaced.
 """
 
@@ -33,19 +33,17 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
 
 from msg_adapters import TYPESTORE
-from t42_transfer.data.bag_io import (
-    REPAIRED_KEY,
-    JazzyWriter,
+from t42_transfer.data.bag.metadata import REPAIRED_KEY, metadata_yaml, record_metadata
+from t42_transfer.data.bag.reader import refusals
+from t42_transfer.data.bag.storage import (
     RawBag,
     mcap_records,
     metadata_mismatches,
-    metadata_yaml,
     path_mode,
-    record_metadata,
-    refusals,
     regular_size,
     scan_mcap,
 )
+from t42_transfer.data.bag.writer import JazzyWriter
 from t42_transfer.data.errors import BagError
 
 ORIG_SUFFIX = ".orig"

@@ -1,0 +1,308 @@
+"""Episodes from a bag's hand messages: align the three topics by header stamp, find borders, drop cut steps.
+
+A bag holds, per control step ``k`` of an episode, an object pose, a joint state and (except after the
+last state) the applied action, all stamped ``start_ns + k * CONTROL_PERIOD_NS``.  Episodes lie at least
+``EPISODE_GAP_S`` apart, so their borders come from stamps alone.  Aligning by header stamp, not log time
+or order, also makes bags of a real ``ros2 bag record`` readable; the hand topics may lie under one
+namespace, found by suffix.  A step that lost a message is left out with a warning naming it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+import msg_adapters as ma
+from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
+from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
+from t42_transfer.data.bag.storage import RawBag
+from t42_transfer.data.errors import BagError
+from t42_transfer.data.trajectory import END_REASONS, Trajectory, TrajectorySet
+
+EPISODE_GAP_S = 1.0
+"""A stamp gap at least this long separates episodes; shorter gaps are lost messages."""
+EPISODE_GAP_NS = round(EPISODE_GAP_S * 1e9)
+_HALF_PERIOD_NS = CONTROL_PERIOD_NS // 2
+_MAX_STEP_NS = 3 * CONTROL_PERIOD_NS // 2
+_WITHIN = f"within {_HALF_PERIOD_NS / 1e6:g} ms"
+_POSE, _JOINTS, _ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC
+_CONVERTERS: dict[str, Callable[[Any], Any]] = {
+    _POSE: ma.object_xy_mm,
+    _JOINTS: ma.joint_state_arrays,
+    _ACTION: ma.applied_action,
+}
+
+
+def hand_namespace(path: str | Path, topics: Iterable[str]) -> str:
+    """The one namespace the hand topics among ``topics`` lie under ("" for the root); BagError for several.
+
+    A hand topic is found by suffix: ``/hand/object_pose`` or ``<ns>/hand/object_pose``.
+    """
+    found: dict[str, list[str]] = {}
+    for name in topics:
+        for hand in ma.HAND_TOPICS:
+            if name.endswith(hand):
+                found.setdefault(name[: -len(hand)], []).append(name)
+    if len(found) > 1:
+        listed = "; ".join(f"{ns or '/'} ({', '.join(sorted(names))})" for ns, names in sorted(found.items()))
+        raise BagError(path, f"holds hand topics under {len(found)} namespaces: {listed}; "
+                             "a bag must hold one hand's topics (filter it to one namespace)")
+    return next(iter(found), "")
+
+
+@dataclasses.dataclass
+class _Stream:
+    stamps: np.ndarray
+    """Header stamps (int64 ns), strictly increasing."""
+    values: list[Any]
+
+
+def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
+    """Hand topics as header-stamped numpy values, checked for type, finiteness and order."""
+    namespace = hand_namespace(bag, raw.topics)
+    _check_topics(bag, raw, namespace)
+    streams = {}
+    for topic, msgtype in ma.HAND_TOPICS.items():
+        stamps: list[int] = []
+        values = []
+        name = namespace + topic
+        for log_ns, data in raw.messages.get(name, []):
+            try:
+                msg = ma.TYPESTORE.deserialize_cdr(data, msgtype)
+            except Exception as err:  # corrupt CDR raises whatever the decoder trips over
+                raise BagError(bag, f"{name}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
+            stamp = ma.stamp_to_ns(msg.header.stamp)
+            try:
+                values.append(_CONVERTERS[topic](msg))
+            except ValueError as err:
+                raise BagError(bag, f"{name} at stamp {stamp} ns: {err}") from None
+            if stamps and stamp <= stamps[-1]:
+                raise BagError(
+                    bag,
+                    f"{name}: header stamps must increase, but {stamp} ns (logged at {log_ns} ns) "
+                    f"follows {stamps[-1]} ns",
+                )
+            stamps.append(stamp)
+        streams[topic] = _Stream(np.array(stamps, dtype=np.int64), values)
+    return streams
+
+
+def _check_topics(bag: Path, raw: RawBag, namespace: str) -> None:
+    topics = raw.topics
+    for hand, expected in ma.HAND_TOPICS.items():
+        topic = namespace + hand
+        info = topics.get(topic)
+        if info is None:
+            present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
+            raise BagError(bag, f"required topic {topic} ({expected}) is missing; the bag has {present}")
+        if info.msgtype != expected:
+            raise BagError(bag, f"topic {topic} has type {info.msgtype}, expected {expected}")
+        jazzy = ma.TYPESTORE.hash_rihs01(expected)
+        if info.digest and info.digest != jazzy:
+            raise BagError(
+                bag, f"topic {topic} declares {expected} with type hash {info.digest}, not ROS 2 Jazzy's {jazzy}"
+            )
+
+
+def _nearest(stamps: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the stamp nearest each target, and whether it lies within half a control period."""
+    if len(stamps) == 0:
+        return np.zeros(len(targets), np.int64), np.zeros(len(targets), bool)
+    right = np.searchsorted(stamps, targets).clip(0, len(stamps) - 1)
+    left = (right - 1).clip(0, len(stamps) - 1)
+    pick = np.where(np.abs(stamps[right] - targets) < np.abs(stamps[left] - targets), right, left)
+    return pick, np.abs(stamps[pick] - targets) < _HALF_PERIOD_NS
+
+
+def _drop_cut_tail(streams: dict[str, _Stream]) -> None:
+    """In a recovered prefix the last step may be cut after any of its messages; that step is cut, not lost."""
+    poses, joints = streams[_POSE], streams[_JOINTS]
+    last_pose = poses.stamps[-1] if len(poses.stamps) else -1
+    keep = int(np.searchsorted(joints.stamps, last_pose + _HALF_PERIOD_NS))
+    streams[_JOINTS] = _Stream(joints.stamps[:keep], joints.values[:keep])
+    last_state = joints.stamps[keep - 1] if keep else -1
+    for topic in (_POSE, _ACTION):
+        cut = streams[topic]
+        keep = int(np.searchsorted(cut.stamps, last_state + _HALF_PERIOD_NS))
+        streams[topic] = _Stream(cut.stamps[:keep], cut.values[:keep])
+
+
+def _any_between(stamps: np.ndarray, after: int, before: int) -> bool:
+    """Whether a stamp lies strictly between ``after`` and ``before``."""
+    return bool(np.searchsorted(stamps, after, "right") < np.searchsorted(stamps, before, "left"))
+
+
+def _episode_bounds(
+    bag: Path, streams: dict[str, _Stream], allow_gaps: bool
+) -> list[tuple[int, int]]:
+    """``(first, last)`` state indices of each run of states one control period apart.
+
+    A longer step whose missing states left a pose or an action behind lost
+    those states (the salvage drops them); one with no hand message at all is a
+    hole in the recording.
+    """
+    stamps = streams[_JOINTS].stamps
+    if len(stamps) == 0:
+        return []
+    cuts = []
+    steps = np.diff(stamps)
+    for i in np.flatnonzero((steps < _HALF_PERIOD_NS) | (steps > _MAX_STEP_NS)):
+        step, before, after = int(steps[i]), int(stamps[i]), int(stamps[i + 1])
+        lost = any(
+            _any_between(streams[t].stamps, before + _HALF_PERIOD_NS, after - _HALF_PERIOD_NS) for t in (_POSE, _ACTION)
+        )
+        if step >= EPISODE_GAP_NS or lost:
+            cuts.append(i + 1)
+        elif step < _HALF_PERIOD_NS:
+            raise BagError(
+                bag,
+                f"{_JOINTS} stamps {before} and {after} ns are {step / 1e6:g} ms apart, "
+                f"less than half the {CONTROL_PERIOD_NS / 1e6:g} ms control period",
+            )
+        elif allow_gaps:
+            warnings.warn(
+                f"{bag}: {_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns; "
+                "split the episode there",
+                stacklevel=4,
+            )
+            cuts.append(i + 1)
+        else:
+            raise BagError(
+                bag,
+                f"{_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns with no hand message between: "
+                f"messages are missing (a gap under {EPISODE_GAP_S} s is not an episode border); "
+                "pass allow_gaps=True to split there",
+            )
+    starts = [0, *cuts]
+    ends = [c - 1 for c in cuts] + [len(stamps) - 1]
+    return list(zip(starts, ends))
+
+
+def _complete_runs(posed: np.ndarray, acted: np.ndarray) -> list[tuple[int, int]]:
+    """``(first, last)`` runs of states with a pose in which every state but the last has an action."""
+    runs, start = [], None
+    for k in range(len(posed)):
+        if not posed[k]:
+            if start is not None:
+                runs.append((start, k - 1))
+            start = None
+            continue
+        start = k if start is None else start
+        if not acted[k] and k < len(posed) - 1:
+            runs.append((start, k))
+            start = None
+    if start is not None:
+        runs.append((start, len(posed) - 1))
+    return runs
+
+
+def _dropped(what: str, stamps: np.ndarray) -> list[str]:
+    """``[what was dropped, with its first stamps]``, or ``[]`` when nothing was."""
+    if not len(stamps):
+        return []
+    shown = ", ".join(str(s) for s in stamps[:3].tolist()) + (", ..." if len(stamps) > 3 else "")
+    return [f"{what}: {len(stamps)} (stamp{'s' if len(stamps) > 1 else ''} {shown} ns)"]
+
+
+def _episode_records(bag: Path, custom: dict[str, str]) -> dict[int, dict[str, Any]]:
+    """The writer's per-episode facts by start stamp."""
+    if EPISODES_KEY not in custom:
+        return {}
+    try:
+        records = json.loads(custom[EPISODES_KEY])
+        by_start = {}
+        for r in records:
+            if not (
+                isinstance(r["start_ns"], int)
+                and isinstance(r["transitions"], int)
+                and r["end_reason"] in END_REASONS
+                and isinstance(r["hand"], str)
+            ):
+                raise ValueError(f"bad entry {r!r}")
+            by_start[r["start_ns"]] = r
+    except (ValueError, TypeError, KeyError, RecursionError) as err:
+        raise BagError(bag, f"custom_data {EPISODES_KEY} is malformed ({type(err).__name__}: {err})") from None
+    return by_start
+
+
+def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag, allow_gaps: bool) -> TrajectorySet:
+    """Episodes of whole steps; a step missing a message is dropped (and named in one warning)."""
+    if raw.cut:
+        _drop_cut_tail(streams)
+    poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
+    hand = raw.custom.get(HAND_KEY, "")
+    pose_of, has_pose = _nearest(poses.stamps, joints.stamps)
+    state_of, has_state = _nearest(joints.stamps, actions.stamps)
+    acting = np.flatnonzero(has_state)
+    taken, counts = np.unique(state_of[acting], return_counts=True)
+    if (counts > 1).any():
+        stamp = joints.stamps[taken[np.argmax(counts > 1)]]
+        raise BagError(bag, f"several {_ACTION} messages match the state at stamp {stamp} ns")
+    action_of = np.full(len(joints.stamps), -1)
+    action_of[state_of[acting]] = acting
+    posed = np.zeros(len(poses.stamps), bool)
+    posed[pose_of[has_pose]] = True
+    dropped = [
+        *_dropped(f"{_ACTION} messages with no {_JOINTS} {_WITHIN}", actions.stamps[~has_state]),
+        *_dropped(f"{_POSE} messages with no {_JOINTS} {_WITHIN}", poses.stamps[~posed]),
+        *_dropped(f"{_JOINTS} messages with no {_POSE} {_WITHIN}, with their actions", joints.stamps[~has_pose]),
+    ]
+    records = _episode_records(bag, raw.custom)
+    episodes = []
+    for first, last in _episode_bounds(bag, streams, allow_gaps):
+        inner = first + np.flatnonzero(has_pose[first:last] & (action_of[first:last] < 0))
+        lacking = f"the transitions from {_JOINTS} messages with no {_ACTION} {_WITHIN}"
+        dropped += _dropped(lacking, joints.stamps[inner])
+        for a, b in _complete_runs(has_pose[first : last + 1], action_of[first : last + 1] >= 0):
+            start, steps = int(joints.stamps[first + a]), b - a
+            if steps < MIN_EPISODE_STEPS:
+                warnings.warn(
+                    f"{bag}: dropped the episode starting at {start} ns: {steps} transitions, "
+                    f"fewer than MIN_EPISODE_STEPS = {MIN_EPISODE_STEPS}",
+                    stacklevel=3,
+                )
+                continue
+            episodes.append(_episode(bag, streams, first + a, first + b, pose_of, action_of, records.get(start), hand))
+    if dropped:
+        warnings.warn(f"{bag}: kept the whole steps only; dropped {'; '.join(dropped)}", stacklevel=3)
+    if raw.cut and not episodes:
+        raise BagError(bag, "its readable prefix holds no complete episode")
+    return TrajectorySet(episodes, hand=hand)
+
+
+def _episode(
+    bag: Path, streams: dict[str, _Stream], first: int, last: int, pose_of: np.ndarray, action_of: np.ndarray,
+    record: dict[str, Any] | None, hand: str,
+) -> Trajectory:
+    """States ``first..last`` of the joint states with their poses and actions; the writer's record if it has one."""
+    poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
+    complete = record is not None and record["transitions"] == last - first
+    return Trajectory(
+        states=np.column_stack(
+            [
+                np.stack([poses.values[pose_of[k]] for k in range(first, last + 1)]),
+                np.stack([joints.values[k][0] for k in range(first, last + 1)]),
+            ]
+        ),
+        actions=np.stack([actions.values[action_of[k]] for k in range(first, last)]),
+        actuator_angles=_angles(bag, joints, first, last),
+        start_ns=int(joints.stamps[first]),
+        end_reason=record["end_reason"] if complete else "",
+        hand=record["hand"] if record is not None else hand,
+    )
+
+
+def _angles(bag: Path, joints: _Stream, first: int, last: int) -> np.ndarray | None:
+    """Actuator angles of an episode: all there, or none (the real hands do not report them)."""
+    angles = [joints.values[k][1] for k in range(first, last + 1)]
+    if all(a is None for a in angles):
+        return None
+    if any(a is None for a in angles):
+        missing = joints.stamps[first + next(i for i, a in enumerate(angles) if a is None)]
+        raise BagError(bag, f"{_JOINTS} at stamp {missing} ns has no positions while others in its episode do")
+    return np.stack(angles)

@@ -1,0 +1,122 @@
+"""Reading a bag whole: episodes (:func:`read_bag`), a summary (:func:`bag_info`), a check (:func:`verify_bag`).
+
+Everything wrong with a bag is one :class:`BagError` line naming the bag and the problem; what was read
+in place of a sound bag (a damaged file's prefix, a missing metadata.yaml) is a warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from pathlib import Path
+from typing import Any, Iterator
+
+from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, hand_namespace
+from t42_transfer.data.bag.metadata import EPISODES_KEY
+from t42_transfer.data.bag.storage import RawBag, load_raw, metadata_mismatches
+from t42_transfer.data.errors import BagError
+from t42_transfer.data.trajectory import TrajectorySet
+
+
+def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
+    """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s).
+
+    Every joint state is a state; the object pose with the nearest header stamp
+    within half a control period gives its x, y; the applied action stamped
+    within half a period gives its action.  A step that lost a message (a
+    recording started or stopped mid-step, a message dropped under load) is left
+    out and its episode split there, with one warning naming what was dropped.
+    Stamp gaps of ``EPISODE_GAP_S`` or more separate episodes; a shorter gap with
+    no message at all on the hand topics raises, or with ``allow_gaps`` splits
+    the episode with a warning.  An action on an episode's last state has no
+    next state and is not a transition.  Episodes shorter than
+    ``MIN_EPISODE_STEPS`` are dropped with a warning.
+    """
+    bag = Path(path)
+    with refusals(bag):
+        raw = load_raw(bag)
+        _warn_loaded(bag, raw)
+        return assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps)
+
+
+def bag_info(path: str | Path) -> dict[str, Any]:
+    """Summary for a CLI; episodes are counted as ``read_bag(path, allow_gaps=True)`` finds them."""
+    bag = Path(path)
+    with refusals(bag):
+        raw = load_raw(bag)
+        _warn_loaded(bag, raw)
+        data = assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps=True)
+        namespace = hand_namespace(bag, raw.topics)
+    return {
+        "path": str(bag),
+        "storage": raw.storage,
+        "ros_distro": raw.ros_distro,
+        "start_ns": raw.start_ns,
+        "duration_s": (raw.end_ns - raw.start_ns) / 1e9,
+        "topics": {name: {"type": t.msgtype, "count": t.count} for name, t in sorted(raw.topics.items())},
+        "namespace": namespace or "/",
+        "episodes": len(data),
+        "transitions": data.num_transitions,
+        "hand": data.hand,
+        "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
+        "recovered_prefix": raw.cut,
+    }
+
+
+def verify_bag(path: str | Path) -> list[str]:
+    """Where a bag directory's metadata.yaml disagrees with its data; empty when they agree.
+
+    Checked: the storage files present against ``relative_file_paths``, each
+    topic's message count, the total, the start time (first log time) and the
+    duration (last minus first log time), all counted from the messages
+    themselves; a damaged or missing file is reported too.  BagError for what is
+    no bag directory or cannot be read at all.
+    """
+    bag = Path(path)
+    with refusals(bag):
+        raw = load_raw(bag)
+        if raw.meta is None and not raw.problem:
+            raise BagError(bag, "is a storage file, not a bag directory: it has no metadata.yaml to verify against")
+        found = [raw.stopped] if raw.stopped else []
+        if raw.meta is None:
+            return [*found, f"{raw.problem}: nothing to verify the data against"]
+        return [*found, *metadata_mismatches(bag, raw.meta, raw)]
+
+
+@contextlib.contextmanager
+def refusals(bag: Path) -> Iterator[None]:
+    """Failures reading ``bag`` as one-line BagErrors.
+
+    OS errors (permission denied, a directory where a file belongs...) become
+    BagErrors naming the file; a problem quoting text with line breaks or other
+    unprintable characters (a topic name from a damaged file) has them escaped.
+    """
+    try:
+        yield
+    except BagError as err:
+        if err.problem.isprintable():
+            raise
+        raise BagError(err.path, _one_line(err.problem)) from None
+    except FileExistsError:  # a refusal to overwrite, named as such
+        raise
+    except OSError as err:
+        where = f": {err.filename}" if err.filename else ""
+        raise BagError(bag, _one_line(f"{err.strerror or type(err).__name__}{where}")) from None
+
+
+def _one_line(text: str) -> str:
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _warn_loaded(bag: Path, raw: RawBag) -> None:
+    """Warn of what was read in place of a sound bag; BagError when damage left no hand message."""
+    if raw.problem:
+        warnings.warn(f"{bag}: {raw.problem}; read its storage files directly", stacklevel=3)
+    if raw.stopped:
+        if not any(raw.messages.values()):
+            raise BagError(bag, f"{raw.stopped}; scanning its MCAP records recovered no hand messages")
+        warnings.warn(
+            f"{bag}: recovered the readable prefix, {sum(t.count for t in raw.topics.values())} messages up to "
+            f"log time {raw.end_ns} ns; {raw.stopped}",
+            stacklevel=3,
+        )

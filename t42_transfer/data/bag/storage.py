@@ -1,0 +1,270 @@
+"""A bag's storage files read into a :class:`RawBag`: MCAP scanned record by record, sqlite3 through rosbags.
+
+Bags are untrusted input.  Every MCAP read is bounded by the file's size and every chunk by its stated
+size, so a damaged MCAP (cut off mid-write, writer killed) gives its readable prefix; non-regular files
+are refused before anything opens them.  Which messages make episodes is :mod:`.episodes`'s business.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import stat
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+import lz4.frame
+import zstandard
+from mcap.records import Channel, Chunk, McapRecord, Message, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader, breakup_chunk
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin
+
+import msg_adapters as ma
+from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
+from t42_transfer.data.errors import BagError
+from t42_transfer.files import file_kind, not_regular_reason
+
+STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
+HAND_SUFFIXES = tuple(ma.HAND_TOPICS)
+_MAX_CHUNK_BYTES = 1 << 28
+"""An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
+
+
+def path_mode(bag: Path) -> int:
+    """``st_mode`` of the bag path; BagError when there is nothing."""
+    try:
+        return bag.stat().st_mode
+    except FileNotFoundError:
+        raise BagError(bag, "does not exist") from None
+
+
+def regular_size(bag: Path, file: Path) -> int:
+    """Size of ``file`` in ``bag``; BagError unless it is a regular file (checked before opening: a FIFO blocks)."""
+    info = file.stat()
+    if not stat.S_ISREG(info.st_mode):
+        raise BagError(bag, f"{file.name} {not_regular_reason(info.st_mode)}")
+    return info.st_size
+
+
+@dataclasses.dataclass
+class _Topic:
+    msgtype: str
+    count: int
+    digest: str = ""
+
+
+@dataclasses.dataclass
+class RawBag:
+    """What storage gave: every topic with its messages counted, and the CDR payloads of hand-like topics."""
+
+    storage: str
+    topics: dict[str, _Topic]
+    messages: dict[str, list[tuple[int, bytes]]]
+    """By bag topic, in log-time order: every topic named like a hand topic (the namespace is chosen later)."""
+    custom: dict[str, str]
+    ros_distro: str | None
+    start_ns: int
+    end_ns: int
+    """First and last log time (0 and 0 without messages)."""
+    stopped: str = ""
+    """Where reading stopped in a damaged file ("" when every file was read to its end)."""
+    unsummarized: tuple[str, ...] = ()
+    """MCAP files read to their end that have no summary statistics."""
+    meta: BagMetadata | None = None
+    problem: str = ""
+    """Why a bag directory's metadata.yaml was not used ("" when it was)."""
+
+    @property
+    def cut(self) -> bool:
+        """Only a readable prefix is here (damaged, or repaired from damage): a cut-off last step is no error."""
+        return bool(self.stopped) or REPAIRED_KEY in self.custom
+
+
+def load_raw(bag: Path) -> RawBag:
+    """The bag's storage files (MCAP scanned record by record, sqlite3 through rosbags) and its metadata.yaml."""
+    mode = path_mode(bag)
+    meta, problem = None, ""
+    if stat.S_ISDIR(mode):
+        meta, problem = metadata_yaml(bag)
+        storage, files = _storage_files(bag, meta)
+    elif not stat.S_ISREG(mode):
+        raise BagError(bag, f"is {file_kind(mode)}, not a bag directory or storage file")
+    elif bag.suffix in SUFFIXES:
+        storage, files = SUFFIXES[bag.suffix], [bag]
+    else:
+        raise BagError(bag, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
+    raw = scan_mcap(files, meta) if storage == "mcap" else _read_sqlite3(bag, files, meta)
+    raw.meta, raw.problem = meta, problem
+    return raw
+
+
+def _storage_files(bag: Path, meta: BagMetadata | None) -> tuple[str, list[Path]]:
+    """Storage plugin and files of a bag directory: those metadata.yaml lists, else those it holds; all regular."""
+    if meta is None:
+        for suffix, storage in SUFFIXES.items():
+            files = sorted(bag.glob(f"*{suffix}"))
+            if files:
+                break
+        else:
+            raise BagError(bag, "is not a rosbag2 bag: no metadata.yaml and no .mcap or .db3 file")
+    else:
+        if meta.storage not in STORAGES:
+            raise BagError(bag, f"has storage {meta.storage!r}; readable storages are {sorted(STORAGES)}")
+        if not meta.files:
+            raise BagError(bag, "metadata.yaml lists no storage file (relative_file_paths is empty)")
+        storage, files = meta.storage, []
+        for name in meta.files:
+            if name in ("", "..") or "\x00" in name:
+                raise BagError(bag, f"metadata.yaml lists {name!r} in relative_file_paths, which names no file")
+            if not (bag / name).exists() and not (bag / name).is_symlink():
+                raise BagError(bag, f"metadata.yaml lists {name}, which is missing")
+            files.append(bag / name)
+    for file in files:
+        regular_size(bag, file)
+    return storage, files
+
+
+def _add_topic(topics: dict[str, _Topic], topic: str, msgtype: str, count: int, digest: str) -> None:
+    """Merge one connection into the topic table; a topic with several types keeps them all for the error."""
+    known = topics.setdefault(topic, _Topic(msgtype, 0, digest))
+    if msgtype not in known.msgtype.split(" and "):
+        known.msgtype = f"{known.msgtype} and {msgtype}"
+    known.count += count
+
+
+def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> RawBag:
+    """A sqlite3 bag through rosbags (its counts and times are SQL over the stored messages)."""
+    digests = meta.digests if meta else {}
+    try:
+        with AnyReader(files, default_typestore=ma.TYPESTORE) as reader:
+            topics: dict[str, _Topic] = {}
+            for conn in reader.connections:
+                _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest or digests.get(conn.topic, ""))
+            wanted = [c for c in reader.connections if c.topic.endswith(HAND_SUFFIXES)]
+            messages: dict[str, list[tuple[int, bytes]]] = {c.topic: [] for c in wanted}
+            if wanted:  # an empty list would mean "every connection"
+                for conn, log_ns, data in reader.messages(connections=wanted):
+                    messages[conn.topic].append((log_ns, bytes(data)))
+            start, end = (0, 0) if reader.message_count == 0 else (reader.start_time, reader.end_time - 1)
+    except Exception as err:  # rosbags and sqlite3 raise many types on damaged files
+        raise BagError(bag, f"rosbags cannot read it ({type(err).__name__}: {err})") from None
+    custom, distro = (meta.custom, meta.ros_distro) if meta else ({}, None)
+    return RawBag("sqlite3", topics, messages, custom, distro, start, end)
+
+
+class _ExactReads:
+    """A file view whose reads return all bytes asked for or raise, so a cut-off record is never half-parsed."""
+
+    def __init__(self, stream: BinaryIO, size: int) -> None:
+        self._stream, self._size = stream, size
+
+    def read(self, n: int) -> bytes:
+        at = self._stream.tell()
+        if at + n > self._size:
+            raise EOFError(f"a record needs {n} bytes at offset {at}, but the file ends at {self._size}")
+        return self._stream.read(n)
+
+
+def mcap_records(stream: BinaryIO, size: int) -> Iterator[McapRecord]:
+    """The records of an MCAP file of ``size`` bytes in file order, chunks opened; raises where it is unreadable.
+
+    No read goes past the file's size and no chunk unpacks beyond its stated size
+    (at most :data:`_MAX_CHUNK_BYTES`), so a damaged length cannot allocate more than the file justifies.
+    """
+    for record in StreamReader(_ExactReads(stream, size), emit_chunks=True, record_size_limit=size).records:
+        if isinstance(record, Chunk):
+            yield from breakup_chunk(_unpacked(record))
+        else:
+            yield record
+
+
+def _unpacked(chunk: Chunk) -> Chunk:
+    size = chunk.uncompressed_size
+    if chunk.compression in ("zstd", "lz4") and size > _MAX_CHUNK_BYTES:
+        raise ValueError(f"a chunk claims {size} bytes unpacked, more than the {_MAX_CHUNK_BYTES} allowed")
+    if chunk.compression == "zstd":
+        data = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data)).read(size + 1)
+    elif chunk.compression == "lz4":
+        data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"a chunk has unknown compression {chunk.compression!r}")
+    if len(data) != size:
+        raise ValueError(f"a chunk unpacks to {len(data)} bytes, not the {size} it states")
+    return dataclasses.replace(chunk, compression="", data=data)
+
+
+def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
+    """Every record of the MCAP ``files`` in file order, up to the first unreadable one.
+
+    Counts and log times are those of the messages read, whatever a summary says.
+    Without ``meta``, custom_data comes from rosbag2's own metadata record in the MCAP.
+    """
+    topics: dict[str, _Topic] = {}
+    messages: dict[str, list[tuple[int, bytes]]] = {}
+    digests = meta.digests if meta else {}
+    record_meta: tuple[dict[str, str], str | None] | None = None
+    log_times: list[int] = []
+    stopped, unsummarized = "", []
+    for file in files:
+        schemas: dict[int, str] = {}
+        channels: dict[int, str] = {}
+        summarized = False
+        with file.open("rb") as stream:
+            try:
+                for record in mcap_records(stream, file.stat().st_size):
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record.name
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record.topic
+                        digest = record.metadata.get("topic_type_hash", digests.get(record.topic, ""))
+                        _add_topic(topics, record.topic, schemas.get(record.schema_id, "(no schema)"), 0, digest)
+                    elif isinstance(record, Message):
+                        topic = channels[record.channel_id]
+                        topics[topic].count += 1
+                        log_times.append(record.log_time)
+                        if topic.endswith(HAND_SUFFIXES):
+                            messages.setdefault(topic, []).append((record.log_time, record.data))
+                    elif isinstance(record, Metadata) and record.name == "rosbag2" and record_meta is None:
+                        record_meta = record_metadata(record)
+                    elif isinstance(record, Statistics):
+                        summarized = True
+            except Exception as err:  # whatever the damage, what was read before it stands
+                stopped = f"{file.name} is unreadable from offset {stream.tell()} ({type(err).__name__}: {err})"
+                break
+        if not summarized:
+            unsummarized.append(file.name)
+    for received in messages.values():
+        received.sort(key=lambda m: m[0])
+    custom, distro = (meta.custom, meta.ros_distro) if meta else record_meta or ({}, None)
+    start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
+    return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized))
+
+
+def metadata_mismatches(bag: Path, meta: BagMetadata, raw: RawBag) -> list[str]:
+    """Where ``meta`` (the bag's metadata.yaml) disagrees with the data read from the bag directory's files."""
+    found = []
+    suffix = next(x for x, s in SUFFIXES.items() if s == raw.storage)
+    held = sorted(p.name for p in bag.glob(f"*{suffix}"))
+    if sorted(meta.files) != held:
+        found.append(f"metadata.yaml lists files {sorted(meta.files)}, the bag holds {held}")
+    for name in sorted(set(meta.counts) | set(raw.topics)):
+        count = raw.topics[name].count if name in raw.topics else 0
+        if name not in meta.counts:
+            if count:
+                found.append(f"{name}: {count} messages in the data, not listed in metadata.yaml")
+        elif meta.counts[name] != count:
+            found.append(f"metadata.yaml counts {meta.counts[name]} messages on {name}, the data holds {count}")
+    total = sum(t.count for t in raw.topics.values())
+    if meta.message_count != total:
+        found.append(f"metadata.yaml counts {meta.message_count} messages, the data holds {total}")
+    if total and meta.start_ns != raw.start_ns:
+        found.append(f"metadata.yaml says the bag starts at {meta.start_ns} ns, its first message is logged at "
+                     f"{raw.start_ns} ns")
+    if total and meta.duration_ns != raw.end_ns - raw.start_ns:
+        found.append(f"metadata.yaml says the bag lasts {meta.duration_ns} ns, its messages span "
+                     f"{raw.end_ns - raw.start_ns} ns")
+    return found

@@ -1,0 +1,93 @@
+"""Bags for tests of the bag package and its users: hand messages as the driver sends them, copies of the fixture bag."""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from pathlib import Path
+
+import pytest
+import yaml
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+import msg_adapters as ma
+from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.data.bag import (
+    read_bag,
+)
+from t42_transfer.data.errors import BagError
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+
+POSE, JOINTS, ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC
+
+
+def assert_same(got: TrajectorySet, want: TrajectorySet) -> None:
+    assert got.hand == want.hand
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        assert a == b  # bit-exact arrays, start_ns, end_reason, hand
+
+
+def read_quietly(path, **kwargs) -> TrajectorySet:
+    """read_bag that fails the test on any warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return read_bag(path, **kwargs)
+
+
+def step_messages(traj: Trajectory) -> list[tuple[str, int, object]]:
+    """The hand's messages of one episode, as write_bag publishes them: (topic, stamp, message)."""
+    out = []
+    for k, state in enumerate(traj.states):
+        stamp = traj.start_ns + k * CONTROL_PERIOD_NS
+        angles = None if traj.actuator_angles is None else traj.actuator_angles[k]
+        out.append((POSE, stamp, ma.object_pose_msg(state[:2], stamp)))
+        out.append((JOINTS, stamp, ma.joint_state_msg(state[2:], angles, stamp)))
+        if k < len(traj):
+            out.append((ACTION, stamp, ma.applied_action_msg(traj.actions[k], stamp)))
+    return out
+
+
+def write_messages(path: Path, messages, types=ma.HAND_TOPICS, custom=None) -> Path:
+    """A bag of arbitrary messages, written with rosbags directly (log time = the given stamp)."""
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        for key, value in (custom or {}).items():
+            writer.set_custom_data(key, value)
+        conns = {t: writer.add_connection(t, types[t], typestore=ma.TYPESTORE) for t in types}
+        for topic, stamp, msg in messages:
+            writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+def damaged_copy(tmp_path: Path, bag: Path, size: int | None = None, drop_yaml: bool = False) -> Path:
+    copy = tmp_path / "copy"
+    shutil.copytree(bag, copy)
+    mcap = copy / "bag.mcap"
+    if size is not None:
+        mcap.write_bytes(mcap.read_bytes()[:size])
+    if drop_yaml:
+        (copy / "metadata.yaml").unlink()
+    return copy
+
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET = REPO / "bags" / "target_small"
+
+
+def fixture_copy(tmp_path: Path, edit=None) -> Path:
+    """The target fixture bag copied; ``edit(info)`` changes its rosbag2_bagfile_information in place."""
+    bag = Path(shutil.copytree(TARGET, tmp_path / "target_small"))
+    if edit is not None:
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        edit(meta["rosbag2_bagfile_information"])
+        (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    return bag
+
+
+def refusal(bag: Path, function=read_bag) -> str:
+    """The one-line BagError ``function`` raises for ``bag``."""
+    with pytest.raises(BagError) as err:
+        function(bag)
+    text = str(err.value)
+    assert text.startswith(f"{bag}: ") and "\n" not in text, text
+    return text

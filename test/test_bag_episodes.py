@@ -1,0 +1,309 @@
+"""data.bag.episodes: bags as ``ros2 bag record`` writes them, and every way their messages can make bad episodes."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+import yaml
+from bag_builders import ACTION, JOINTS, POSE, assert_same, read_quietly, step_messages, write_messages
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+import msg_adapters as ma
+from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
+from t42_transfer.data.bag import (
+    EPISODES_KEY,
+    bag_info,
+    read_bag,
+    write_bag,
+)
+from t42_transfer.data.errors import BagError
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+
+
+def test_reads_a_bag_made_like_ros2_bag_record(tmp_path, make_set):
+    """MCAP written with the mcap library as rosbag2_storage_mcap does (Jazzy), header stamps
+    jittered, log times (receive times) later and interleaved, an extra topic, no custom_data."""
+    data = make_set((30, 18), seed=3, angles=False)
+    rng = np.random.default_rng(1)
+    records = []  # (log time, topic, message)
+    first_states = []
+    for traj in data:
+        for topic, stamp, msg in step_messages(traj):
+            jitter = int(rng.integers(-3_000_000, 3_000_000)) if topic == JOINTS else 0
+            skew = {POSE: 7_000_000, JOINTS: 0, ACTION: 1_000_000}[topic]
+            msg.header.stamp = ma.ns_to_stamp(stamp + skew + jitter)
+            records.append((stamp + int(rng.integers(1_000_000, 40_000_000)), topic, msg))
+            if topic == JOINTS and stamp == traj.start_ns:
+                first_states.append(stamp + jitter)
+    chatter = ma.TYPESTORE.types["std_msgs/msg/String"](data="hello")
+    records.append((data[0].start_ns + 5, "/chatter", chatter))
+    records.sort(key=lambda r: r[0])
+    types = {**ma.HAND_TOPICS, "/chatter": "std_msgs/msg/String"}
+    qos = yaml.safe_dump(
+        [
+            {
+                "history": "keep_last",
+                "depth": 10,
+                "reliability": "reliable",
+                "durability": "volatile",
+                "deadline": {"sec": 9223372036, "nsec": 854775807},
+                "lifespan": {"sec": 9223372036, "nsec": 854775807},
+                "liveliness": "automatic",
+                "liveliness_lease_duration": {"sec": 9223372036, "nsec": 854775807},
+                "avoid_ros_namespace_conventions": False,
+            }
+        ]
+    )
+    bag = tmp_path / "rosbag2_2025_01_01-00_00_00"
+    bag.mkdir()
+    file = bag / "rosbag2_2025_01_01-00_00_00_0.mcap"
+    with file.open("wb") as stream:
+        mcap = McapWriter(stream, compression=CompressionType.ZSTD)
+        mcap.start(profile="ros2", library="libmcap 1.4.0")
+        schemas = {
+            msgtype: mcap.register_schema(
+                name=msgtype,
+                encoding="ros2msg",
+                data=ma.TYPESTORE.generate_msgdef(msgtype, ros_version=2)[0].encode(),
+            )
+            for msgtype in set(types.values())
+        }
+        channels = {
+            topic: mcap.register_channel(
+                topic=topic,
+                message_encoding="cdr",
+                schema_id=schemas[msgtype],
+                metadata={"offered_qos_profiles": qos, "topic_type_hash": ma.TYPESTORE.hash_rihs01(msgtype)},
+            )
+            for topic, msgtype in types.items()
+        }
+        for seq, (log_ns, topic, msg) in enumerate(records):
+            raw = ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__)
+            mcap.add_message(channels[topic], log_time=log_ns, data=raw, publish_time=log_ns, sequence=seq)
+        mcap.add_metadata("rosbag2", {"serialized_metadata": "custom_data: ~\nros_distro: jazzy\n"})
+        mcap.finish()
+    counts = {t: sum(1 for r in records if r[1] == t) for t in types}
+    first, last = records[0][0], records[-1][0]
+    metadata = {
+        "rosbag2_bagfile_information": {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": last - first},
+            "starting_time": {"nanoseconds_since_epoch": first},
+            "message_count": len(records),
+            "topics_with_message_count": [
+                {
+                    "topic_metadata": {
+                        "name": topic,
+                        "type": msgtype,
+                        "serialization_format": "cdr",
+                        "offered_qos_profiles": yaml.safe_load(qos),
+                        "type_description_hash": ma.TYPESTORE.hash_rihs01(msgtype),
+                    },
+                    "message_count": counts[topic],
+                }
+                for topic, msgtype in types.items()
+            ],
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [file.name],
+            "files": [
+                {
+                    "path": file.name,
+                    "starting_time": {"nanoseconds_since_epoch": first},
+                    "duration": {"nanoseconds": last - first},
+                    "message_count": len(records),
+                }
+            ],
+            "custom_data": None,
+            "ros_distro": "jazzy",
+        }
+    }
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(metadata, sort_keys=False))
+
+    got = read_quietly(bag)
+    assert got.hand == "" and len(got) == 2
+    for recorded, original, start in zip(got, data, first_states):
+        assert np.array_equal(recorded.states, original.states)
+        assert np.array_equal(recorded.actions, original.actions)
+        assert recorded.actuator_angles is None and recorded.end_reason == "" and recorded.hand == ""
+        assert recorded.start_ns == start
+    info = bag_info(bag)
+    assert info["ros_distro"] == "jazzy" and info["topics"]["/chatter"]["count"] == 1
+
+
+def test_reads_bags_without_custom_data_and_bare_storage_files(tmp_path, episode):
+    path = write_messages(tmp_path / "bag", step_messages(episode))
+    (got,) = read_quietly(path)
+    assert np.array_equal(got.states, episode.states) and got.end_reason == "" and got.hand == ""
+    (got,) = read_quietly(path / "bag.mcap")
+    assert np.array_equal(got.actions, episode.actions)
+    sqlite = write_bag(tmp_path / "sq", TrajectorySet([episode], hand="h"), storage="sqlite3")
+    (got,) = read_quietly(sqlite / "sq.db3")
+    assert got.start_ns == episode.start_ns
+
+
+def test_missing_topic_is_named_with_what_the_bag_has(tmp_path, episode):
+    types = {POSE: ma.POSE_STAMPED, JOINTS: ma.JOINT_STATE}
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[0] != ACTION], types)
+    with pytest.raises(BagError, match="required topic /hand/applied_action .* is missing") as err:
+        read_bag(path)
+    assert "/hand/joint_states (sensor_msgs/msg/JointState)" in str(err.value)
+    assert str(path) in str(err.value)
+
+
+def test_unexpected_topic_type(tmp_path, episode):
+    types = {**ma.HAND_TOPICS, ACTION: "std_msgs/msg/String"}
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[0] != ACTION], types)
+    with pytest.raises(BagError, match="/hand/applied_action has type std_msgs/msg/String"):
+        read_bag(path)
+
+
+def test_foreign_type_definition_is_refused(tmp_path, episode):
+    path = tmp_path / "bag"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {
+            topic: writer.add_connection(
+                topic,
+                msgtype,
+                msgdef=ma.TYPESTORE.generate_msgdef(msgtype, ros_version=2)[0],
+                rihs01="RIHS01_" + "0" * 64,
+            )
+            for topic, msgtype in ma.HAND_TOPICS.items()
+        }
+        for topic, stamp, msg in step_messages(episode):
+            writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    with pytest.raises(BagError, match="type hash RIHS01_0000"):
+        read_bag(path)
+
+
+def test_nan_is_named_by_topic_and_stamp(tmp_path, episode):
+    messages = step_messages(episode)
+    topic, stamp, msg = messages[3 * 5 + 1]
+    assert topic == JOINTS
+    msg.effort = np.array([np.nan, 1.0])
+    path = write_messages(tmp_path / "bag", messages)
+    with pytest.raises(BagError, match=f"/hand/joint_states at stamp {stamp} ns: .*non-finite"):
+        read_bag(path)
+
+
+def test_header_stamps_must_increase(tmp_path, episode):
+    messages = step_messages(episode)
+    a, b = messages[3 * 5 + 1][2], messages[3 * 6 + 1][2]
+    a.header, b.header = b.header, a.header
+    path = write_messages(tmp_path / "bag", messages)
+    with pytest.raises(BagError, match="/hand/joint_states: header stamps must increase"):
+        read_bag(path)
+
+
+def test_gap_raises_unless_allowed_then_splits(tmp_path, episode):
+    gone = {episode.start_ns + k * CONTROL_PERIOD_NS for k in range(20, 24)}  # a 0.5 s hole
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[1] not in gone])
+    with pytest.raises(BagError, match="skips 500 ms .* allow_gaps=True"):
+        read_bag(path)
+    with pytest.warns(UserWarning, match="skips 500 ms"):
+        first, second = read_bag(path, allow_gaps=True)
+    assert np.array_equal(first.states, episode.states[:20]) and np.array_equal(first.actions, episode.actions[:19])
+    assert second.start_ns == episode.start_ns + 24 * CONTROL_PERIOD_NS
+    assert np.array_equal(second.states, episode.states[24:]) and np.array_equal(second.actions, episode.actions[24:])
+
+
+def assert_slice(got: Trajectory, whole: Trajectory, first: int, last: int) -> None:
+    """``got`` is states ``first..last`` of ``whole`` with their actions, starting at state ``first``'s stamp."""
+    assert got.start_ns == whole.start_ns + first * CONTROL_PERIOD_NS
+    assert np.array_equal(got.states, whole.states[first : last + 1])
+    assert np.array_equal(got.actions, whole.actions[first:last])
+    assert np.array_equal(got.actuator_angles, whole.actuator_angles[first : last + 1])
+
+
+def test_a_recording_begun_between_a_state_and_its_action_keeps_the_rest(tmp_path, episode):
+    """The issue's case: under load the recorder started after step 0's state, so the bag begins with an
+    /hand/applied_action whose state is absent; the whole bag was refused."""
+    start = episode.start_ns
+    messages = [m for m in step_messages(episode) if not (m[1] == start and m[0] != ACTION)]
+    assert messages[0][:2] == (ACTION, start)
+    path = write_messages(tmp_path / "bag", messages)
+    warned = rf"{re.escape(str(path))}: kept the whole steps only; dropped {ACTION} messages with no {JOINTS} " \
+             rf"within 50 ms: 1 \(stamp {start} ns\)$"
+    with pytest.warns(UserWarning, match=warned):
+        (got,) = read_bag(path)
+    assert_slice(got, episode, 1, len(episode))
+
+
+def test_a_recording_ended_mid_step_keeps_the_rest(tmp_path, episode):
+    last = episode.start_ns + len(episode) * CONTROL_PERIOD_NS
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[:2] != (POSE, last)])
+    with pytest.warns(UserWarning, match=f"dropped {JOINTS} messages with no {POSE} within 50 ms, with their "
+                                         f"actions: 1 \\(stamp {last} ns\\)"):
+        (got,) = read_bag(path)
+    assert_slice(got, episode, 0, len(episode) - 1)
+
+
+@pytest.mark.parametrize("lost,fragments,dropped", ids=["pose", "state", "action"], argvalues=[
+    (POSE, [(0, 29), (31, 60)], f"{JOINTS} messages with no {POSE} within 50 ms, with their actions"),
+    (JOINTS, [(0, 29), (31, 60)], f"{POSE} messages with no {JOINTS} within 50 ms"),
+    (ACTION, [(0, 30), (31, 60)], f"the transitions from {JOINTS} messages with no {ACTION} within 50 ms"),
+])
+def test_one_lost_message_splits_its_episode_there(tmp_path, episode, lost, fragments, dropped):
+    stamp = episode.start_ns + 30 * CONTROL_PERIOD_NS
+    path = write_messages(tmp_path / "bag", [m for m in step_messages(episode) if m[:2] != (lost, stamp)])
+    with pytest.warns(UserWarning, match=f"{re.escape(dropped)}: 1 \\(stamp {stamp} ns\\)"):
+        got = read_bag(path)
+    assert len(got) == len(fragments)
+    for traj, (first, last) in zip(got, fragments):
+        assert_slice(traj, episode, first, last)
+
+
+def test_stray_messages_are_dropped_and_named(tmp_path, episode):
+    after = episode.start_ns + len(episode) * CONTROL_PERIOD_NS + 300_000_000
+    extra = [*step_messages(episode), (ACTION, after, ma.applied_action_msg([1.0, 1.0], after)),
+             (POSE, after + 1, ma.object_pose_msg([0.0, 0.0], after + 1))]
+    with pytest.warns(UserWarning, match=f"{ACTION} messages with no {JOINTS} within 50 ms: 1 \\(stamp {after} ns\\); "
+                                         f"{POSE} messages with no {JOINTS} within 50 ms: 1 "
+                                         f"\\(stamp {after + 1} ns\\)"):
+        (got,) = read_bag(write_messages(tmp_path / "bag", extra))
+    assert_slice(got, episode, 0, len(episode))
+
+
+def test_several_actions_for_one_state_are_still_refused(tmp_path, episode):
+    stamp = episode.start_ns + 5 * CONTROL_PERIOD_NS
+    second = stamp + 10_000_000
+    extra = [*step_messages(episode), (ACTION, second, ma.applied_action_msg([0.0, 0.0], second))]
+    extra.sort(key=lambda m: m[1])
+    with pytest.raises(BagError, match=f"several /hand/applied_action messages match the state at stamp {stamp} ns"):
+        read_bag(write_messages(tmp_path / "bag", extra))
+
+
+def test_stamps_closer_than_half_a_period(tmp_path, episode):
+    messages = step_messages(episode)
+    stamp = episode.start_ns + 3 * CONTROL_PERIOD_NS + 20_000_000
+    messages.insert(3 * 3 + 3, (JOINTS, stamp, ma.joint_state_msg([1.0, 1.0], [0.0, 0.0], stamp)))
+    with pytest.raises(BagError, match="20 ms apart"):
+        read_bag(write_messages(tmp_path / "bag", messages))
+
+
+def test_episode_mixing_known_and_unknown_angles(tmp_path, episode):
+    messages = step_messages(episode)
+    topic, stamp, msg = messages[3 * 4 + 1]
+    msg.position = np.zeros(0)
+    with pytest.raises(BagError, match=f"at stamp {stamp} ns has no positions"):
+        read_bag(write_messages(tmp_path / "bag", messages))
+
+
+def test_malformed_custom_data(tmp_path, episode):
+    path = write_messages(tmp_path / "bag", step_messages(episode), custom={EPISODES_KEY: "[{"})
+    with pytest.raises(BagError, match="t42_transfer.episodes is malformed"):
+        read_bag(path)
+
+
+def test_short_episodes_are_dropped_with_a_warning(tmp_path, make_set):
+    data = make_set((MIN_EPISODE_STEPS - 1, MIN_EPISODE_STEPS))
+    path = write_bag(tmp_path / "bag", data)
+    expected = rf"{re.escape(str(path))}: dropped the episode starting at {data[0].start_ns} ns"
+    with pytest.warns(UserWarning, match=expected):
+        got = read_bag(path)
+    assert_same(got, TrajectorySet([data[1]], hand=data.hand))

@@ -1,0 +1,44 @@
+"""data.bag.steps: messages of interleaved topics become whole steps, released in stamp order."""
+
+from __future__ import annotations
+
+from t42_transfer.data.bag.steps import CLOCK_RESTART_NS, HOLD_CAP, StepBuffer
+
+
+def test_step_buffer_releases_whole_steps_in_stamp_order() -> None:
+    """Each topic delivers in stamp order; topics interleave in any order."""
+    buf = StepBuffer(["p", "j", "a"], hold_s=1.0)
+    assert buf.add("p", 10, 0, b"p10", 0.0) == ([], False)
+    assert buf.add("p", 20, 0, b"p20", 0.0) == ([], False)
+    assert buf.add("a", 10, 0, b"a10", 0.1) == ([], False)  # step 10 still lacks its joint states
+    released, late = buf.add("j", 10, 0, b"j10", 0.2)
+    assert not late and [(s.stamp, [m[2] for m in s.messages]) for s in released] == [(10, [b"p10", b"a10", b"j10"])]
+    assert buf.add("j", 10, 0, b"again", 0.3) == ([], True)  # its step was released: too late
+    assert buf.add("j", 20, 0, b"j20", 0.4) == ([], False)  # step 20 waits for an action
+    assert buf.release(0.9) == []
+    (final,) = buf.release(1.0)  # held hold_s (from its first message), and quiet: released without one
+    assert final.stamp == 20 and final.topics == {"p", "j"}
+    buf.add("p", 25, 0, b"p25", 1.0)
+    buf.add("j", 25, 0, b"j25", 1.0)
+    for k in range(1, 30):  # messages keep coming (a backlog, or a topic gone silent): step 25 waits ...
+        assert buf.add("p", 25 + k, 0, b"p", 1.0 + k / 10) == ([], False)
+    assert HOLD_CAP == 4
+    released, _ = buf.add("p", 55, 0, b"p", 5.0)  # ... HOLD_CAP hold_s at most
+    assert [s.stamp for s in released] == [25] and buf.oldest_pending == 26
+    buf = StepBuffer(["p", "j", "a"], hold_s=1.0)
+    buf.add("a", 30, 0, b"a30", 1.1)  # the state of step 30 is lost ...
+    assert buf.add("p", 40, 0, b"p40", 1.1) == ([], False)
+    released, _ = buf.add("j", 40, 0, b"j40", 1.1)  # ... which the later messages of both state topics prove
+    assert [(s.stamp, s.topics) for s in released] == [(30, {"a"})]
+    released, _ = buf.add("a", 40, 0, b"a40", 1.1)
+    assert [(s.stamp, s.topics) for s in released] == [(40, {"p", "j", "a"})]
+    assert buf.latest_stamp == 40 and buf.oldest_pending is None
+    released, late = buf.add("p", 40 - 2 * CLOCK_RESTART_NS, 0, b"restart", 2.0)  # the publisher's clock restarted
+    assert released == [] and not late and buf.released_stamp is None and buf.oldest_pending == 40 - 2 * CLOCK_RESTART_NS
+
+
+def test_a_message_just_older_than_the_released_step_is_late_not_a_clock_restart() -> None:
+    buf = StepBuffer(["p"], hold_s=1.0)
+    (step,) = buf.add("p", CLOCK_RESTART_NS, 0, b"p", 0.0)[0]
+    assert buf.add("p", 1, 0, b"old", 0.1) == ([], True)  # within CLOCK_RESTART_NS of the newest: late
+    assert buf.released_stamp == step.stamp

@@ -1,0 +1,130 @@
+"""data.bag.storage: damaged MCAP and sqlite3 files give their readable prefix; non-regular files are never opened."""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from bag_builders import assert_same, damaged_copy, fixture_copy, refusal
+from fuzz_harness import DecoderWorker
+
+from t42_transfer.data.bag import (
+    bag_info,
+    read_bag,
+    verify_bag,
+    write_bag,
+)
+from t42_transfer.data.errors import BagError
+from t42_transfer.data.trajectory import TrajectorySet
+
+
+def assert_prefix_of(got: TrajectorySet, original: TrajectorySet, with_custom_data: bool) -> None:
+    """Recovered episodes are the originals in order, only the last possibly cut short; without
+    custom_data (a killed writer never wrote it) end reasons and hands are unknown."""
+    assert [t.start_ns for t in got] == [t.start_ns for t in original[: len(got)]]
+    for traj, whole in zip(got, original):
+        n = len(traj)
+        assert n == len(whole) or traj is got[-1]
+        assert np.array_equal(traj.states, whole.states[: n + 1]) and np.array_equal(traj.actions, whole.actions[:n])
+        cut = n < len(whole)
+        assert traj.end_reason == ("" if cut or not with_custom_data else whole.end_reason)
+        assert traj.hand == (whole.hand if with_custom_data else "")
+
+
+@pytest.mark.parametrize("drop_yaml", [False, True], ids=["cut", "killed"])
+@pytest.mark.parametrize("fraction", [0.0001, 0.25, 0.6, 0.9])
+def test_truncated_mcap_gives_its_readable_prefix(tmp_path, big_bag, fraction, drop_yaml):
+    bag, data = big_bag
+    size = int((bag / "bag.mcap").stat().st_size * fraction)
+    copy = damaged_copy(tmp_path, bag, size, drop_yaml)
+    if fraction < 0.3:  # inside the first chunk: nothing is readable
+        with pytest.raises(BagError, match="recovered no hand messages"):
+            read_bag(copy)
+        return
+    with pytest.warns(UserWarning, match=rf"{re.escape(str(copy))}: .*recovered the readable prefix"):
+        got = read_bag(copy)
+    assert len(got) >= 4 and got.hand == ("" if drop_yaml else data.hand)
+    assert_prefix_of(got, data, with_custom_data=not drop_yaml)
+
+
+def test_cut_in_the_summary_loses_nothing(tmp_path, big_bag):
+    bag, data = big_bag
+    copy = damaged_copy(tmp_path, bag, (bag / "bag.mcap").stat().st_size - 10)
+    with pytest.warns(UserWarning, match="recovered the readable prefix"):
+        assert_same(read_bag(copy), data)
+
+
+def test_corrupt_sqlite3_bag(tmp_path, small_set):
+    bag = write_bag(tmp_path / "bag", small_set, storage="sqlite3")
+    (bag / "bag.db3").write_bytes(b"SQLite format 3\x00" + bytes(200))
+    with pytest.raises(BagError, match="rosbags cannot read it") as err:
+        read_bag(bag)
+    assert str(bag) in str(err.value)
+
+
+def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):
+    bag = write_bag(tmp_path / "bag", small_set)
+    original = (bag / "bag.mcap").read_bytes()
+    offsets = sorted({*range(0, 40, 3), *np.linspace(40, len(original) - 1, 24).astype(int).tolist()})
+    outcomes = set()
+    for offset in offsets:
+        damaged = bytearray(original)
+        damaged[offset] ^= 0xFF
+        (bag / "bag.mcap").write_bytes(bytes(damaged))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                outcomes.add(type(read_bag(bag)).__name__)
+            except BagError as err:
+                assert str(bag) in str(err)
+                outcomes.add("BagError")
+    assert "BagError" in outcomes
+
+
+@pytest.mark.parametrize("where", ["bag", "storage file", "metadata.yaml", "bare file"])
+@pytest.mark.parametrize("function", ["read_bag", "bag_info", "verify_bag"])
+def test_fifos_are_refused_before_opening(where, function):
+    """A FIFO blocks whoever opens it for reading; each run goes through the fuzz worker, whose alarm ends a hang."""
+    with DecoderWorker(f"t42_transfer.data.bag:{function}", timeout_s=10.0) as worker:
+        case = worker.new_case_dir()
+        if where in ("bag", "bare file"):
+            path = case / ("bag" if where == "bag" else "bag.mcap")
+            os.mkfifo(path)
+        else:
+            path = fixture_copy(case)
+            name = "metadata.yaml" if where == "metadata.yaml" else "target_small.mcap"
+            (path / name).unlink()
+            os.mkfifo(path / name)
+        verdict = worker.check_path(path)
+    assert verdict.outcome == "refused" and "FIFO" in verdict.detail, verdict
+
+
+@pytest.mark.parametrize("name", ["metadata.yaml", "target_small.mcap"])
+def test_a_directory_where_a_file_belongs_is_refused(tmp_path, name):
+    bag = fixture_copy(tmp_path)
+    (bag / name).unlink()
+    (bag / name).mkdir()
+    assert f"{name} is a directory, not a regular file" in refusal(bag)
+
+
+@pytest.mark.parametrize("error", [PermissionError(13, "Permission denied"), IsADirectoryError(21, "Is a directory"),
+                                   NotADirectoryError(20, "Not a directory")], ids=lambda e: type(e).__name__)
+@pytest.mark.parametrize("at", ["stat", "read_bytes"])
+def test_os_errors_become_one_line_bag_errors(tmp_path, monkeypatch, error, at):
+    """As an unreadable bag directory, or metadata.yaml, fails for a user without root."""
+    bag = fixture_copy(tmp_path)
+    failing = bag if at == "stat" else bag / "metadata.yaml"
+    original = getattr(Path, at)
+
+    def fail_at(self, *args, **kwargs):
+        if self == failing:
+            raise type(error)(error.errno, error.strerror, str(self))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, at, fail_at)
+    for function in (read_bag, bag_info, verify_bag):
+        assert refusal(bag, function).endswith(f"{error.strerror}: {failing}")

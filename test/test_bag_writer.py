@@ -1,0 +1,144 @@
+"""data.bag.writer: exact round trips, the wire layout, episodes laid out in time, writes that fail leave nothing."""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from bag_builders import ACTION, JOINTS, POSE, assert_same, read_quietly
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+from rosbags.highlevel import AnyReader
+
+import msg_adapters as ma
+from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
+from t42_transfer.data.bag import (
+    EPISODE_GAP_NS,
+    EPISODES_KEY,
+    HAND_KEY,
+    assign_start_times,
+    write_bag,
+)
+from t42_transfer.data.bag import writer as bag_writer
+from t42_transfer.data.trajectory import END_REASONS, Trajectory, TrajectorySet
+
+F32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_round_trip_is_exact(tmp_path, small_set, storage):
+    path = write_bag(tmp_path / "bag", small_set, storage=storage)
+    assert path == tmp_path / "bag"
+    assert_same(read_quietly(path), small_set)
+
+
+@st.composite
+def trajectory_sets(draw) -> TrajectorySet:
+    hand = draw(st.text(max_size=12).filter(lambda s: "\x85" not in s))
+    episodes = []
+    for _ in range(draw(st.integers(1, 3))):
+        steps = draw(st.integers(MIN_EPISODE_STEPS, MIN_EPISODE_STEPS + 4))
+        episodes.append(
+            Trajectory(
+                states=draw(arrays(np.float32, (steps + 1, 4), elements=F32)),
+                actions=draw(arrays(np.float32, (steps, 2), elements=F32)),
+                actuator_angles=draw(st.none() | arrays(np.float32, (steps + 1, 2), elements=F32)),
+                end_reason=draw(st.sampled_from(END_REASONS)),
+                hand=draw(st.sampled_from([hand, "other"])),
+            )
+        )
+    t0 = draw(st.integers(0, 10**15))
+    gap = draw(st.integers(EPISODE_GAP_NS, 3 * EPISODE_GAP_NS))
+    return TrajectorySet(assign_start_times(episodes, t0, gap), hand=hand)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(data=trajectory_sets())
+def test_round_trip_property(data):
+    with tempfile.TemporaryDirectory() as tmp:
+        assert_same(read_quietly(write_bag(Path(tmp) / "bag", data)), data)
+
+
+def test_bag_layout_matches_the_wire_format(tmp_path, small_set):
+    path = write_bag(tmp_path / "bag", small_set, metadata={"operator": "ada"})
+    with AnyReader([path]) as reader:
+        topics = {t: (i.msgtype, i.msgcount) for t, i in reader.topics.items()}
+        states = sum(len(t) + 1 for t in small_set)
+        assert topics == {
+            POSE: (ma.POSE_STAMPED, states),
+            JOINTS: (ma.JOINT_STATE, states),
+            ACTION: (ma.JOINT_STATE, small_set.num_transitions),
+        }
+        for conn, log_ns, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            assert ma.stamp_to_ns(msg.header.stamp) == log_ns
+    meta = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 9 and meta["storage_identifier"] == "mcap"
+    for entry in meta["topics_with_message_count"]:
+        (qos,) = entry["topic_metadata"]["offered_qos_profiles"]
+        assert (qos["reliability"], qos["history"], qos["depth"], qos["durability"]) == (
+            "reliable",
+            "keep_last",
+            10,
+            "volatile",
+        )
+    custom = meta["custom_data"]
+    assert custom["operator"] == "ada" and custom[HAND_KEY] == "sim_a"
+    assert [e["start_ns"] for e in json.loads(custom[EPISODES_KEY])] == [t.start_ns for t in small_set]
+
+
+def test_assign_start_times_lays_episodes_end_to_end(small_set):
+    placed = assign_start_times(small_set, t0_ns=5, gap_ns=EPISODE_GAP_NS)
+    assert placed[0].start_ns == 5
+    for before, after in zip(placed, placed[1:]):
+        assert after.start_ns == before.start_ns + len(before) * CONTROL_PERIOD_NS + EPISODE_GAP_NS
+    assert [np.array_equal(a.states, b.states) for a, b in zip(placed, small_set)] == [True] * 3
+    with pytest.raises(ValueError, match="gap_ns"):
+        assign_start_times(small_set, gap_ns=EPISODE_GAP_NS - 1)
+
+
+@pytest.mark.parametrize("offset_ns", [-CONTROL_PERIOD_NS, 0, EPISODE_GAP_NS - 1])
+def test_write_refuses_overlapping_or_close_episodes(tmp_path, small_set, offset_ns):
+    first, second = small_set[0], small_set[1]
+    too_close = second.__class__(
+        second.states, second.actions, start_ns=first.start_ns + len(first) * CONTROL_PERIOD_NS + offset_ns
+    )
+    with pytest.raises(ValueError, match="at least 1.0 s apart"):
+        write_bag(tmp_path / "bag", TrajectorySet([first, too_close]))
+    assert not (tmp_path / "bag").exists()
+
+
+def test_write_refuses_existing_paths_and_bad_arguments(tmp_path, small_set):
+    (tmp_path / "taken").mkdir()
+    with pytest.raises(FileExistsError):
+        write_bag(tmp_path / "taken", small_set)
+    with pytest.raises(ValueError, match="reserved"):
+        write_bag(tmp_path / "a", small_set, metadata={HAND_KEY: "x"})
+    with pytest.raises(ValueError, match="strings"):
+        write_bag(tmp_path / "b", small_set, metadata={"n": 3})
+    with pytest.raises(ValueError, match="storage"):
+        write_bag(tmp_path / "c", small_set, storage="rosbag1")
+    with pytest.raises(ValueError, match="U\\+0085"):
+        write_bag(tmp_path / "d", TrajectorySet(small_set, hand="a\x85b"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+
+
+def test_failed_write_leaves_nothing(tmp_path, small_set, monkeypatch):
+    calls = []
+    write = bag_writer.JazzyWriter.write
+
+    def fail_in_the_second_episode(writer, connection, log_ns, data):  # the storage layer: rosbags' writer
+        calls.append(log_ns)
+        if len(calls) > 3 * len(small_set[0]) + 5:
+            raise RuntimeError("disk full")
+        write(writer, connection, log_ns, data)
+
+    monkeypatch.setattr(bag_writer.JazzyWriter, "write", fail_in_the_second_episode)
+    with pytest.raises(RuntimeError, match="disk full"):
+        write_bag(tmp_path / "bag", small_set)
+    assert list(tmp_path.iterdir()) == []
