@@ -117,11 +117,6 @@ def test_msg_adapters_is_the_layer_below_and_imports_nothing_of_t42_transfer() -
     assert {m: d for m, d in upward.items() if d} == {}
 
 
-NOT_YET_SPLIT = {"t42_transfer.demo", "t42_transfer.demo.run_demo"}
-"""Issue 18 splits these next (the demo package); each leaves this set when it is split, and the test
-fails should one be listed that is no longer long."""
-
-
 def test_modules_and_functions_stay_readable_in_size() -> None:
     too_long = []
     for module, file in MODULES.items():
@@ -133,8 +128,7 @@ def test_modules_and_functions_stay_readable_in_size() -> None:
                 length = node.end_lineno - node.lineno + 1
                 if length > MAX_FUNCTION_LINES and LONG_ON_PURPOSE not in (ast.get_docstring(node) or ""):
                     too_long.append(f"{module}.{node.name}: {length} lines")
-    assert sorted(entry for entry in too_long if entry.split(":")[0] not in NOT_YET_SPLIT) == []
-    assert {entry.split(":")[0] for entry in too_long} == NOT_YET_SPLIT  # a split one leaves the list
+    assert sorted(too_long) == []
 
 
 # ------------------------------------------------------------------ one place per name

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from t42_transfer.cli import main
-from t42_transfer.data.bag_io import read_bag
+from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import load_model
 
 
@@ -82,28 +82,35 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
     assert "[6/6] peg-in-hole, 2 round(s)" in out and "report:" in out
 
 
+def node_processes_of(run_root: Path) -> list[str]:
+    """Command lines of live processes started with a params file under ``run_root`` (the suite's nodes)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            state = (proc / "stat").read_text().split(") ", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if str(run_root) in cmdline and "--params-file" in cmdline and state != "Z":
+            found.append(cmdline)
+    return found
+
+
 def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain: int,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    from t42_transfer import demo
+    """A bug once the suite's processes run (here rclpy refusing the demo's node) leaves none of them behind."""
+    from rclpy.executors import MultiThreadedExecutor
 
-    suites: list = []
+    from t42_transfer.demo import run_demo
 
-    class Recorded(demo._Suite):
-        def __init__(self, *args, **kwargs) -> None:
-            super().__init__(*args, **kwargs)
-            suites.append(self)
+    started: list[str] = []
 
-    def broken() -> type:
+    def broken(executor: MultiThreadedExecutor, node: object) -> None:
+        started.extend(node_processes_of(tmp_path))
         raise KeyError("a bug after the suite started")
 
-    monkeypatch.setattr(demo, "_Suite", Recorded)
-    monkeypatch.setattr(demo, "_operator_class", broken)
+    monkeypatch.setattr(MultiThreadedExecutor, "add_node", broken)
     with pytest.raises(KeyError):
-        demo.run_demo(tmp_path, quick=True, workers=1)
-    (suite,) = suites
-    children = suite.supervisor.children
-    alive = [c.name for c in children if c.proc.poll() is None]
-    for child in children:  # never leave one behind, even when the check fails
-        if child.proc.poll() is None:
-            child.proc.kill()
-    assert len(children) == len(demo.SUITE_NODES) and not alive, alive
+        run_demo(tmp_path, quick=True, workers=1)
+    assert len(started) == 4, started  # the suite was up: mock driver, recorder, transfer server, planner
+    assert node_processes_of(tmp_path) == []

@@ -247,7 +247,7 @@ class TransferServer(Node):
         }
         self._set_status("done", "OK", summary, {
             "divergence_steps": result.divergence_steps, "position_mse_mm2": result.position_mse_mm2,
-            "model": str(result.model_path), **picked,
+            "model": str(result.model_path), "episodes": result.episodes, "transitions": result.transitions, **picked,
         })
         return True, summary
 

@@ -1,0 +1,130 @@
+"""One peg-in-hole goal on the running suite: reset, a reachable goal, the plan, its open-loop execution, the verdict."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from msg_adapters import RCLPY, goal_msg, grasp_seed, names, status_event
+from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.demo.settings import (
+    GRASP_MATCH_MM,
+    HOLD_STEPS,
+    MIN_GOAL_DISTANCE_MM,
+    SETTLE_STEPS,
+    TOLERANCE_MM,
+)
+from t42_transfer.demo.suite import Suite
+
+
+@dataclass
+class GoalRun:
+    steps: int
+    grasp_seed: int
+    goal_mm: list[float]
+    start_mm: list[float]
+    accepted: bool
+    status: str
+    reason: str
+    horizon: int = 0
+    predicted_error_mm: float | None = None
+    planning_time_s: float = 0.0
+    """The planner's own planning time."""
+    goal_to_result_s: float = 0.0
+    """Wall time from publishing the goal to receiving the plan result (published after the sequence)."""
+    final_mm: list[float] | None = None
+    error_mm: float | None = None
+    end: str = ""
+    success: bool = False
+    verdict: str = ""
+    """:func:`~t42_transfer.evaluation.peg_in_hole.verdict` at ``TOLERANCE_MM``."""
+    still_error_mm: float = 0.0
+    """Where holding still for the goal's steps leaves the object, from the goal (the same grasp and noise)."""
+    still_verdict: str = ""
+    """The same rule applied to doing nothing."""
+    round: int = 1
+    planned: list[list[float]] = field(default_factory=list)
+    executed: list[list[float]] = field(default_factory=list)
+
+    @property
+    def start_distance_mm(self) -> float:
+        return float(np.linalg.norm(np.subtract(self.goal_mm, self.start_mm)))
+
+
+def wait_for_closed_bags(op: Any, suite: Suite, bag_dir: Path) -> list[Path]:
+    """The episode bags once the recorder has closed them all: a stop completes after the step in progress,
+    and a transfer uses finished bags only."""
+    def bags() -> list[Path]:
+        return sorted(bag_dir.glob("episode_*"))
+
+    op.wait_until(lambda: all((p / "metadata.yaml").is_file() for p in bags()), 30.0,
+                  "the recorder to close its bags", suite.check)
+    return bags()
+
+
+def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
+    from t42_transfer.evaluation.peg_in_hole import progress_towards, reachable_goal, verdict
+    from t42_transfer.hand.sim import SimulatedHand
+
+    response = op.call(names.HAND_RESET, 30.0, suite.check)
+    if not response.success:
+        raise RuntimeError(f"reset failed: {response.message}")
+    seed = grasp_seed(response.message)
+    if seed is None:
+        raise RuntimeError(f"the reset answer names no grasp seed: {response.message!r} (the driver runs unseeded)")
+    reset_stamp = op.latest_pose()[0]
+    seeds = (int(np.random.SeedSequence([7, round_, index, attempt]).generate_state(1)[0]) for attempt in range(50))
+    goal = reachable_goal(SimulatedHand("target"), steps, HOLD_STEPS, seeds, workspace, grasp_seed=seed, trial=index,
+                          settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
+    still_error = float(goal.still_distance_mm)
+    still = verdict(goal.distance_mm, still_error,
+                    progress_towards(goal.grasp[:2], goal.position, goal.still), True, TOLERANCE_MM)
+    # After a grasp the object sinks into the fingers for a few seconds: the goal is made from the
+    # settled state (the same seed grasps and settles identically here and in the driver), and the
+    # goal is sent once the driver's hand has held still that long and rests there.
+    settled = reset_stamp + SETTLE_STEPS * CONTROL_PERIOD_NS
+
+    def at_grasp() -> bool:
+        stamp, xy = op.latest_pose()
+        return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
+
+    op.wait_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
+    start = op.latest_pose()[1]
+    results = len(op.results)
+    paths = len(op.paths)
+    sent = time.perf_counter()
+    op.goal_pub.publish(goal_msg(goal.position, op.now_ns(), RCLPY))
+    op.wait_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
+    answered_s = time.perf_counter() - sent
+    result = op.results[results]
+    run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
+                  result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"],
+                  goal_to_result_s=answered_s, still_error_mm=still_error, still_verdict=still, round=round_)
+    if not run.accepted:
+        run.end = "not executed"
+        run.verdict = "incomplete"
+        return run
+    op.wait_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
+    run.planned = op.paths[paths].tolist()
+    plan_stamp = op.latest_pose()[0]
+    statuses = len(op.statuses)
+    settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
+
+    def ends() -> list[str]:  # the episode's end events (a drop...): trajectory_done is not one
+        return [e for e in map(status_event, op.statuses[statuses:]) if e in names.END_EVENTS]
+
+    op.wait_until(lambda: op.latest_pose()[0] >= settle or ends(), 120.0, "the plan's execution", suite.check)
+    run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
+    run.final_mm = op.latest_pose()[1].tolist()
+    run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
+    ended = ends()
+    run.end = ended[0] if ended else "completed"
+    run.verdict = verdict(run.start_distance_mm, run.error_mm,
+                          progress_towards(np.asarray(run.start_mm), goal.position, np.asarray(run.final_mm)),
+                          not ended, TOLERANCE_MM)
+    run.success = run.verdict == "hit"
+    return run

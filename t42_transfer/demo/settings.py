@@ -1,0 +1,51 @@
+"""The demo's sizes (quick and full), the rule's tolerance, and the names of the suite it starts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from msg_adapters import names
+
+SUITE_NODES = ("mock_driver", "recorder", "transfer_server", "planner")
+TRANSFER_STATUS = "t42_transfer: transfer"
+"""The transfer server's status name on ``/diagnostics``."""
+RECORDER_START = names.private_of("recorder", names.RECORDER_START)
+RECORDER_STOP = names.private_of("recorder", names.RECORDER_STOP)
+SERVICES = (names.HAND_RESET, names.TRANSFER, RECORDER_START, RECORDER_STOP)
+
+
+@dataclass(frozen=True)
+class DemoSize:
+    source_episodes: int
+    source_steps: int
+    source_epochs: int
+    target_episodes: int
+    """Episodes the explorer collects from the target hand (a quarter is held out for scoring)."""
+    target_steps: int
+    goal_steps: tuple[int, ...]
+    """One peg-in-hole goal per entry, that many control steps from the grasp."""
+    planner_samples: int
+    rate_factor: float
+    rounds: int = 2
+    """Transfer-then-goals rounds; from the second on, the transfer also learns from the executed plans."""
+    heldout_episodes: int = 6
+    """Random-policy target episodes collected apart (never recorded by the suite) to score each round's model."""
+    transfer: dict[str, Any] = field(default_factory=dict)
+    """Overrides of the transfer server's TransferConfig (nested; written to the YAML file its ``config`` names)."""
+
+
+FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
+                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=250, rate_factor=5.0)
+QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
+                 goal_steps=(30, 40), planner_samples=100, rate_factor=10.0, heldout_episodes=3,
+                 transfer={"l2_finetune": {"train": {"epochs": 10}}})
+TOLERANCE_MM = 10.0
+"""The paper's peg-in-hole tolerance."""
+MIN_GOAL_DISTANCE_MM = 2 * TOLERANCE_MM
+"""Goals lie at least this far from the start and from where holding still ends: doing nothing scores 0."""
+HELDOUT_SEED = 99
+HOLD_STEPS = (5, 40)
+SETTLE_STEPS = 80
+"""Steps of holding still after a grasp: the simulated object has stopped sinking by then."""
+GRASP_MATCH_MM = 1.0

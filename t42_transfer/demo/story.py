@@ -1,0 +1,250 @@
+"""The demo's story in phases (see :mod:`t42_transfer.demo`): start the suite, explore, transfer and plan in rounds."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from msg_adapters import names, status_event
+from t42_transfer.demo.goals import GoalRun, run_goal, wait_for_closed_bags
+from t42_transfer.demo.report import goal_table, plot_paths, rounds_table, write_report
+from t42_transfer.demo.settings import (
+    FULL,
+    HELDOUT_SEED,
+    QUICK,
+    RECORDER_START,
+    RECORDER_STOP,
+    SUITE_NODES,
+    DemoSize,
+)
+from t42_transfer.demo.suite import Suite, say, source_model, suite_params
+
+
+@dataclass
+class Story:
+    """What the phases of one run share: its sizes, directory, source model, suite and the operator node."""
+
+    size: DemoSize
+    run_dir: Path
+    model: Path
+    workspace: Any
+    suite: Suite
+    op: Any = None
+    heldout: Any = None
+    """Target episodes collected apart (never recorded by the suite) that score each round's model."""
+    summary: dict[str, Any] = field(default_factory=dict)
+    runs: list[GoalRun] = field(default_factory=list)
+
+    @property
+    def phases(self) -> int:
+        """Numbered lines of the story: source, suite, data, one per round, the report."""
+        return 4 + self.size.rounds
+
+
+def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
+    """Run the whole story (see the package docstring); 0 when every step completed."""
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+
+    from t42_transfer.models.checkpoint import read_metadata
+    from t42_transfer.planning.workspace import Workspace
+    from t42_transfer.ros.runner import keep_discovery_local
+
+    size = QUICK if quick else FULL
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    run_dir = out / time.strftime("%Y%m%d-%H%M%S")
+    run_dir.mkdir(parents=False, exist_ok=False)
+    started = time.perf_counter()
+    say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand over ROS 2 -> {run_dir}")
+    model = source_model(out, size, workers)
+    params_file = run_dir / "suite.yaml"
+    params_file.write_text(yaml.safe_dump(suite_params(run_dir, model, size), sort_keys=False))
+    domain = int(os.environ.get("T42_DEMO_DOMAIN") or os.environ.get("ROS_DOMAIN_ID") or random.randint(100, 230))
+    discovery = keep_discovery_local()
+    suite = Suite(run_dir, params_file, dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1"))
+    story = Story(size, run_dir, model, Workspace.from_dict(read_metadata(model)["extra"]["workspace"]), suite)
+    story.summary = {"mode": "quick" if quick else "full", "size": asdict(size), "domain": domain,
+                     "discovery": discovery, "middleware": "", "source_model": str(model), "suite": str(params_file)}
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    executor = MultiThreadedExecutor(context=context)
+    failed = True
+    try:
+        story.summary["middleware"] = rclpy.get_rmw_implementation_identifier()
+        _start_suite(story, executor, context, started)
+        _explore(story, workers)
+        for round_ in range(1, size.rounds + 1):
+            _round(story, round_)
+        story.summary["transfer"] = story.summary["rounds"][0]["transfer"]
+        failed = False
+    except (RuntimeError, TimeoutError) as err:
+        say(f"FAILED: {err}")
+    finally:  # whatever happened (Ctrl-C, a bug), no node process outlives the demo
+        _shutdown(executor, context)
+        story.summary["exit_codes"] = suite.stop()
+    return _finish(story, failed, started)
+
+
+def _start_suite(story: Story, executor: Any, context: Any, started: float) -> None:
+    from t42_transfer.demo.operator import Operator
+
+    for name in SUITE_NODES:
+        story.suite.supervisor.start(name)
+    story.op = Operator(context=context)
+    executor.add_node(story.op)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    story.op.wait_until(story.op.ready, 120.0, "the suite's services", story.suite.check)
+    say(f"[2/{story.phases}] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain "
+        f"{story.summary['domain']} ({time.perf_counter() - started:.0f} s); logs in {story.suite.log_path}")
+
+
+def _explore(story: Story, workers: int | None) -> None:
+    """The explorer node records target episodes through topics; held-out episodes are collected apart."""
+    from t42_transfer.hand.collect import collect
+
+    op, suite, size = story.op, story.suite, story.size
+    explorer = suite.supervisor.start("explorer")
+    suite.may_end.add("explorer")
+    t0, shown = time.perf_counter(), -1
+
+    def explored() -> bool:
+        nonlocal shown
+        episodes = sum(status_event(s) == names.RESET for s in op.statuses) - 1
+        if episodes != shown and episodes >= 1:
+            shown = episodes
+            say(f"      exploring: episode {min(episodes, size.target_episodes)}/{size.target_episodes}")
+        return explorer.proc.poll() is not None
+
+    op.wait_until(explored, 60.0 + size.target_episodes * size.target_steps * 0.1 / size.rate_factor * 5,
+                  "the explorer", suite.check)
+    if explorer.proc.returncode != 0:
+        raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
+    bags = wait_for_closed_bags(op, suite, story.run_dir / "bags")
+    story.summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
+    say(f"[3/{story.phases}] target data: {len(bags)} episode bags recorded through topics "
+        f"({time.perf_counter() - t0:.0f} s) in {story.run_dir / 'bags'}")
+    heldout, _ = collect("target", size.heldout_episodes, size.target_steps, seed=HELDOUT_SEED, workers=workers)
+    story.summary["heldout"] = {"episodes": len(heldout), "steps": size.target_steps, "seed": HELDOUT_SEED}
+    story.summary["rounds"] = []
+    story.heldout = heldout
+
+
+def _round(story: Story, round_: int) -> None:
+    """Transfer, score the model on the held-out episodes, then the round's goals, recorded like any episode."""
+    op, suite, size = story.op, story.suite, story.size
+    record = transfer(story, round_)
+    record["heldout"] = heldout_scores(record["model"], story.model, story.heldout)
+    say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
+        f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
+    ok = op.call(RECORDER_START, 30.0, suite.check)
+    if not ok.success:
+        raise RuntimeError(f"{RECORDER_START}: {ok.message}")
+    mine = []
+    for index, steps in enumerate(size.goal_steps):
+        run = run_goal(op, suite, steps, index, story.workspace, round_)
+        mine.append(run)
+        error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
+        verdict = run.verdict if run.accepted else f"refused: {run.reason}"
+        say(f"      round {round_} goal {index + 1}/{len(size.goal_steps)} ({steps} steps, "
+            f"{run.start_distance_mm:.1f} mm away):{error} -> {verdict} (doing nothing: "
+            f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
+    op.call(RECORDER_STOP, 30.0, suite.check)
+    wait_for_closed_bags(op, suite, story.run_dir / "bags")
+    story.runs.extend(mine)
+    record.update(goals=len(mine), hits=sum(r.success for r in mine),
+                  still_hits=sum(r.still_verdict == "hit" for r in mine))
+    story.summary["rounds"].append(record)
+    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: {record['hits']}/{record['goals']} goals hit "
+        f"(doing nothing: {record['still_hits']}/{record['goals']})")
+
+
+def transfer(story: Story, round_: int) -> dict[str, Any]:
+    """One call of ``t42/transfer`` with its progress shown; the round's record.
+
+    The model is the path the server announces on ``t42/model_updated`` and the episodes it trained on
+    are the ``episodes`` of its final diagnostics: nothing is read out of the answer's text.
+    """
+    op, suite = story.op, story.suite
+    t0, last, announced = time.perf_counter(), [""], len(op.models)
+
+    def progress() -> None:
+        d = op.diagnostic
+        line = f"      transfer: {d.get('stage', 'starting')}"
+        if "epoch" in d:
+            line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
+        if line != last[0]:
+            last[0] = line
+            say(line)
+
+    response = op.call(names.TRANSFER, 1800.0, suite.check, progress)
+    seconds = time.perf_counter() - t0
+    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: /t42/transfer ({seconds:.0f} s): {response.message}")
+    if not response.success:
+        raise RuntimeError(f"the transfer failed: {response.message}")
+    op.wait_until(lambda: len(op.models) > announced and op.diagnostic.get("stage") == "done", 10.0,
+                  f"the new model on {names.MODEL_UPDATED} and the final diagnostics", suite.check)
+    return {"round": round_, "model": op.models[-1], "episodes": int(op.diagnostic["episodes"]),
+            "transfer": {"success": True, "message": response.message, "seconds": seconds,
+                         "diagnostics": dict(op.diagnostic)}}
+
+
+def heldout_scores(model_path: str | Path, source: str | Path, episodes: Any) -> dict[str, float]:
+    """Mean divergence steps (4 mm) of the round's model, the source and holding still on ``episodes``."""
+    from t42_transfer.evaluation.metrics import evaluate_model
+    from t42_transfer.models.baselines import HoldStill
+    from t42_transfer.models.checkpoint import load_model
+
+    models = {"model": load_model(model_path)[0], "source": load_model(source)[0], "hold_still": HoldStill()}
+    return {name: float(evaluate_model(m, episodes)["divergence_mean"]) for name, m in models.items()}
+
+
+def _finish(story: Story, failed: bool, started: float) -> int:
+    """demo.json always; on success also the figure and report.md, and the tables on stdout."""
+    summary, run_dir, suite = story.summary, story.run_dir, story.suite
+    if failed:
+        (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+        _tail(suite.log_path)
+        return 1
+    summary["goals"] = [asdict(r) for r in story.runs]
+    summary["seconds"] = time.perf_counter() - started
+    (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    plot_paths(story.runs, run_dir / "paths.png")
+    report = write_report(run_dir, summary, story.runs)
+    say(f"[{story.phases}/{story.phases}] peg-in-hole, {story.size.rounds} round(s):\n")
+    say(rounds_table(summary["rounds"]))
+    say("")
+    say(goal_table(story.runs))
+    say(f"\nreport: {report} (plots: {run_dir / 'paths.png'}); {summary['seconds']:.0f} s in all")
+    unclean = {n: c for n, c in summary["exit_codes"].items() if c != 0 and n != "explorer"}
+    if unclean:
+        say(f"FAILED: nodes did not stop cleanly: {unclean}; see {suite.log_path}")
+        return 1
+    return 0
+
+
+def _shutdown(executor: Any, context: Any) -> None:
+    import rclpy
+
+    executor.shutdown(timeout_sec=5.0)
+    for node in executor.get_nodes():
+        node.destroy_node()
+    if context.ok():
+        rclpy.shutdown(context=context)
+
+
+def _tail(path: Path, lines: int = 25) -> None:
+    try:
+        text = path.read_text().splitlines()[-lines:]
+    except OSError:
+        return
+    print("\n".join(["--- last node log lines ---", *text]), file=sys.stderr)
