@@ -1,0 +1,229 @@
+"""Every benchmark in bench/ at its smallest sensible setting: it exits 0 and writes the JSON it documents.
+
+Each runs as the README runs it (``python bench/X.py ...`` from the repository root), in a subprocess of
+its own session (a timeout kills it and whatever it started), writing to the test's ``tmp_path``.
+bench_cell.py has its own test (test_bench_cell.py).  The figures themselves are not judged (they vary
+with the machine's load): only that every documented field is there and sound.  Benchmarks that start
+ROS nodes run on the test's own ``ros_domain`` (ROS_DOMAIN_ID, LOCALHOST discovery).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_bench(script: str, *args: str, out: Path, timeout_s: float = 120.0) -> dict:
+    """Run ``bench/<script> *args --out <out>``; fail with its output unless it exits 0; the JSON it wrote."""
+    cmd = [sys.executable, str(REPO / "bench" / script), *args, "--out", str(out)]
+    env = dict(os.environ)
+    env.pop("T42_DEMO_DOMAIN", None)  # the demo would take it over the test's ROS_DOMAIN_ID
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        stdout, stderr = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)  # its own session: the ROS processes it started go too
+        stdout, stderr = proc.communicate()
+        pytest.fail(f"{script} ran past {timeout_s} s\n{stdout[-2000:]}\n{stderr[-3000:]}")
+    assert proc.returncode == 0, f"{script} exited {proc.returncode}\n{stdout[-2000:]}\n{stderr[-3000:]}"
+    assert out.is_file(), f"{script} wrote no {out}"
+    return json.loads(out.read_text())
+
+
+def positive(value: object) -> bool:
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return number and math.isfinite(value) and value > 0
+
+
+# --------------------------------------------------------------------------- no ROS
+
+
+def test_bench_collect(tmp_path: Path) -> None:
+    result = run_bench("bench_collect.py", "--episodes", "1", "--steps", "20", "--workers", "1",
+                       out=tmp_path / "collect.json")
+    assert result["benchmark"] == "collect"
+    hands = {"source", "target"}
+    for key in ("control_steps_per_s_per_core", "baseline_bare_physics_steps_per_s", "ratio_to_bare_physics"):
+        assert set(result[key]) == hands and all(positive(v) for v in result[key].values()), key
+    dataset = result["dataset"]
+    assert (dataset["episodes"], dataset["steps"], dataset["workers"]) == (1, 20, 1)
+    assert set(dataset["per_hand"]) == hands
+    for run in dataset["per_hand"].values():
+        assert positive(run["wall_s"]) and 0 <= run["episodes_kept"] <= 1 and 0 <= run["transitions"] <= 20
+        assert sum(run["end_reasons"].values()) == run["episodes_kept"]
+        assert {"too_short", "grasp_failed"} <= set(run)
+    assert positive(result["dataset_wall_s_both_hands"]) and result["dataset_control_steps_per_s"] >= 0
+    assert result["target_wall_s"] == 600.0 and result["meets_target"] is True
+    assert {"command", "machine", "load_average_at_end"} <= set(result)
+
+
+def test_bench_planner(tmp_path: Path) -> None:
+    result = run_bench("bench_planner.py", "--samples", "50", "--horizon", "5", "--repeats", "1",
+                       "--rss-samples", "200", "--threads", "1", out=tmp_path / "planner.json")
+    assert result["benchmark"] == "planner"
+    params = result["parameters"]
+    assert (params["samples"], params["horizon"], params["repeats"]) == (50, 5, 1)
+    cases = {"planner", "fused_rollout", "eager_loop", "matmul_bound"}
+    cases |= set() if "mppi" in result["notes"] else {"mppi"}  # a note instead when pytorch_mppi is absent
+    for key in ("sample_steps_per_s", "best_sample_steps_per_s", "ms_per_call", "repeats_s"):
+        assert set(result[key]) == cases, key
+    assert all(positive(v) for v in result["sample_steps_per_s"].values())
+    assert all(len(ts) == 1 for ts in result["repeats_s"].values())
+    pairs = {"planner_vs_eager_loop", "planner_vs_matmul_bound", "fused_rollout_vs_matmul_bound"}
+    assert set(result["ratios"]) == pairs | ({"planner_vs_mppi"} if "mppi" in cases else set())
+    assert all(positive(v) for v in result["ratios"].values())
+    assert set(result["targets"]) == {"planner_vs_mppi >= 2", "planner_vs_matmul_bound >= 0.5"}
+    assert [(r["samples"], r["chunk"]) for r in result["peak_rss"]] == [(200, params["chunk"]), (200, 200)]
+    for r in result["peak_rss"]:
+        assert r["peak_rss_mib"] >= r["rss_mib_before"] > 0 and positive(r["seconds"])
+    assert result["machine"]["threads"] == 1 and "load_average_at_end" in result["machine"]
+
+
+def test_bench_planner_quality(tmp_path: Path) -> None:
+    """An untrained model file storing a wide workspace stands in for the experiment's transferred model."""
+    import torch
+
+    from t42_transfer.models import Normalisation, TransitionModel
+    from t42_transfer.models.checkpoint import save_model
+    from t42_transfer.planning.workspace import Workspace
+
+    torch.manual_seed(0)
+    norm = Normalisation(
+        state_mean=np.array([0.0, 80.0, 120.0, -120.0], np.float32),
+        state_std=np.array([15.0, 10.0, 30.0, 30.0], np.float32),
+        delta_mean=np.zeros(4, np.float32),
+        delta_std=np.array([0.4, 0.4, 2.0, 2.0], np.float32),
+    )
+    model = save_model(TransitionModel(norm), tmp_path / "m.safetensors", method="naive_finetune",
+                       extra={"workspace": Workspace.box(-200, 200, -100, 300).to_dict()})
+    result = run_bench("bench_planner_quality.py", "--model", str(model), "--goals", "1", "--steps", "10",
+                       "--budgets", "4", "--refine-iterations", "1", "--cem-iterations", "1",
+                       "--mppi-iterations", "1", "--targets", "0.5", "--quiet",
+                       out=tmp_path / "planner_quality.json")
+    assert result["benchmark"] == "planner_quality"
+    optimisers = ["ours", "ours_cem", "random_shooting", "cem", "mppi"]
+    assert result["setting"]["budgets"] == [4] and result["setting"]["optimisers"] == optimisers
+    assert result["model"]["path"] == str(model) and result["model"]["method"] == "naive_finetune"
+    assert result["workspace"] == "stored in the model file" and positive(result["seconds_total"])
+    assert result["goals"]["count"] == 1 and result["goals"]["steps"] == [10]
+    assert [(r["optimiser"], r["budget"]) for r in result["rows"]] == [(o, 4) for o in optimisers]
+    for r in result["rows"]:
+        assert r["trials"] == 1 and [s["tolerance_mm"] for s in r["success"]] == [10.0, 4.0]
+        for s in r["success"]:
+            assert 0.0 <= s["ci_low"] <= s["success_rate"] <= s["ci_high"] <= 1.0
+        assert positive(r["median_plan_seconds"]) and r["median_rollouts"] >= 1
+    assert len(result["time_to_rate"]) == len(optimisers) * 2  # x tolerances, one target rate
+    assert len(result["trials"]) == len(optimisers)
+    assert {"command", "machine"} <= set(result)
+
+
+def test_bench_rollout(tmp_path: Path) -> None:
+    result = run_bench("bench_rollout.py", "--batch", "10", "--horizon", "5", "--repeats", "1",
+                       "--threads", "1", out=tmp_path / "rollout.json")
+    assert result["benchmark"] == "rollout"
+    assert result["parameters"]["batch"] == 10 and result["parameters"]["horizon"] == 5
+    kinds = {"transition", "transition_grasp_input", "cumulative_residual", "recurrent_residual"}
+    for key in ("results", "ratios", "ratios_per_mlp_call", "details"):
+        assert set(result[key]) == kinds, key
+    assert all(positive(v) for v in result["results"].values())
+    assert all(positive(v) for v in result["ratios"].values())
+    for d in result["details"].values():
+        assert positive(d["ms_per_rollout"]) and d["mlp_calls_per_step"] in (1, 2)
+        assert len(d["repeats_s"]["model"]) == len(d["repeats_s"]["baseline"]) == 1
+    assert positive(result["baseline"]["sample_steps_per_s"])
+    assert set(result["method_to_kind"].values()) <= kinds
+    assert result["machine"]["threads"] == 1
+
+
+def test_bench_training(tmp_path: Path) -> None:
+    result = run_bench("bench_training.py", "--episodes", "2", "--steps", "50", "--batches", "64",
+                       "--repeats", "1", "--traj-episodes", "2", "--traj-steps", "20", "--traj-epochs", "1",
+                       "--traj-repeats", "1", "--threads", "1", out=tmp_path / "training.json")
+    assert result["benchmark"] == "training"
+    single = result["parameters"]["single_step"]
+    assert single["transitions"] == 100 and single["batch_sizes"] == [64]
+    assert result["parameters"]["trajectory_finetune"]["model_steps_per_run"] == 2 * 20
+    res, base, ratios = result["results"], result["baseline"], result["ratios"]
+    fused = result["proposal_fused_adam"]
+    for per_batch in (res["single_step_samples_per_s"], res["single_step_end_to_end_samples_per_s"],
+                      base["single_step_samples_per_s"], ratios["single_step_loop_ours_over_baseline"],
+                      ratios["single_step_end_to_end_ours_over_baseline"],
+                      ratios["single_step_loop_median_paired_ratio"], fused["samples_per_s"],
+                      fused["over_baseline"]):
+        assert set(per_batch) == {"64"} and positive(per_batch["64"])
+    assert positive(res["trajectory_finetune_model_steps_per_s"])
+    assert positive(base["trajectory_model_steps_per_s"])
+    assert positive(ratios["trajectory_finetune_ours_over_baseline"])
+    assert len(result["details"]["trajectory_seconds"]["ours"]) == 1
+    assert result["machine"]["threads"] == 1
+
+
+# --------------------------------------------------------------------------- ROS nodes
+
+
+def test_bench_pubsub_latency(tmp_path: Path, ros_domain: int) -> None:
+    result = run_bench("bench_pubsub_latency.py", "--trips", "10", "--warmup", "2",
+                       out=tmp_path / "pubsub.json")
+    assert result["ros"]["domain_id"] == ros_domain and result["ros"]["discovery_range"] == "LOCALHOST"
+    assert result["ros"]["rmw"] and (result["round_trips_per_case"], result["warmup_per_case"]) == (10, 2)
+    for kind in ("geometry_msgs/PoseStamped", "sensor_msgs/JointState"):
+        per = result[kind]
+        for case in ("ours_msg_adapters", "baseline_bare_rclpy"):
+            stats = per[case]
+            assert set(stats) == {"median_ms", "p90_ms", "p99_ms", "mean_ms", "max_ms"}
+            assert 0 < stats["median_ms"] <= stats["p90_ms"] <= stats["p99_ms"] <= stats["max_ms"]
+        assert set(per["ratio_ours_over_bare"]) == {"median_ms", "p90_ms", "p99_ms"}
+        assert all(positive(v) for v in per["ratio_ours_over_bare"].values())
+    assert positive(result["wall_s"])
+
+
+@pytest.mark.slow
+def test_bench_recorder(tmp_path: Path, ros_domain: int) -> None:
+    """Eight publisher -> receiver runs of 0.5 s (each rate and executor the summary compares): a minute+."""
+    result = run_bench("bench_recorder.py", "--run-seconds", "0.5", out=tmp_path / "recorder.json",
+                       timeout_s=480)
+    expected = [("recorder", 1000, "runner"), ("sink", 1000, "runner"), ("recorder", 5000, "runner"),
+                ("sink", 5000, "runner"), ("recorder", 10000, "runner"), ("sink", 10000, "runner"),
+                ("recorder", 5000, "multi4"), ("sink", 5000, "multi4")]
+    runs = result["runs"]
+    assert [(r["receiver"], r["rate_hz"], r["executor"]) for r in runs] == expected
+    for r in runs:
+        assert r["seconds"] == 0.5 and r["sent"] == int(r["rate_hz"] * 0.5)
+        assert 0 < r["received"] <= r["sent"] and r["lost"] == r["sent"] - r["received"]
+        assert (r["in_bag"] is None) == (r["receiver"] == "sink")
+        assert r["rss_mb_peak"] is not None and r["rss_mb_peak"] > 0
+    summary = result["summary"]
+    rates = {"1khz", "5khz", "10khz"}
+    assert set(summary["recorder_sent_recorded"]) == set(summary["sink_sent_counted"]) == rates
+    assert set(summary["cpu_us_per_msg_recorder_vs_sink_and_ratio"]) == rates
+    assert all(len(v) == 3 for v in summary["cpu_us_per_msg_recorder_vs_sink_and_ratio"].values())
+    assert len(summary["recorder_rss_mb_30s_run_first_peak_end"]) == 3
+    assert positive(summary["recorder_own_work_us_per_msg"])
+    assert set(summary["not_the_runner_multi4_5khz"]) == {"recorder_sent_recorded", "sink_sent_counted",
+                                                          "cpu_us_per_msg_recorder_vs_sink_and_ratio"}
+    assert "SingleThreadedExecutor" in summary["executor"]
+
+
+@pytest.mark.slow
+def test_bench_suite_latency(tmp_path: Path, ros_domain: int) -> None:
+    """The whole quick demo (a source model trained, the suite as node processes, two rounds): minutes."""
+    result = run_bench("bench_suite_latency.py", out=tmp_path / "suite_latency.json", timeout_s=900)
+    assert result["demo"] == "quick" and result["middleware"]
+    call = result["service_call_to_model_ready"]
+    assert all(positive(call[k]) for k in ("call_s", "server_elapsed_s", "ratio_call_over_server"))
+    goals = result["goal_to_plan_result"]
+    assert goals["goals"] >= 1
+    assert 0 < goals["median_s"] <= goals["max_s"] and positive(goals["planning_median_s"])
+    assert positive(goals["ratio_median_over_planning"]) and positive(result["whole_demo_s"])
+    assert {"command", "machine", "load_average_after"} <= set(result)
