@@ -285,9 +285,9 @@ def test_digest_covers_names_dtypes_and_shapes() -> None:
 def test_fifo_and_directory_are_refused_before_opening(tmp_path: Path) -> None:
     fifo = tmp_path / "model.safetensors"
     os.mkfifo(fifo)  # opening it for reading would block forever
-    for path in (fifo, tmp_path):
+    for path, kind in ((fifo, "a FIFO"), (tmp_path, "a directory")):
         for reader in (load_model, read_metadata):
-            with pytest.raises(CheckpointError, match="is not a regular file"):
+            with pytest.raises(CheckpointError, match=f"is {kind}, not a regular file"):  # files.py's words
                 reader(path)
 
 

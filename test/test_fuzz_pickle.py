@@ -100,7 +100,7 @@ def test_a_fifo_is_refused_without_waiting_for_a_writer(loader):
     fifo = loader.new_case_dir() / "paths.pkl"
     os.mkfifo(fifo)
     verdict = loader.check_path(fifo)  # the old importer blocked in open() until the worker's alarm
-    assert verdict.outcome == "refused" and "is not a regular file" in verdict.detail, verdict
+    assert verdict.outcome == "refused" and "is a FIFO, not a regular file" in verdict.detail, verdict
 
 
 def test_a_failed_write_leaves_no_staging_folder(tmp_path, monkeypatch):

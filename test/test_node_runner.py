@@ -19,8 +19,8 @@ from typing import Any
 import pytest
 import setuptools
 import yaml
-
 from rclpy.node import Node
+from ros_rig import unbuffered_env
 
 from t42_transfer.cli import main
 from t42_transfer.nodes.registry import NODES
@@ -31,11 +31,6 @@ LAUNCH = REPO / "launch" / "t42_suite.launch.py"
 SUITE = REPO / "configs" / "suite.yaml"
 T42 = [sys.executable, "-m", "t42_transfer.cli"]
 ROS_LOG = re.compile(r"^\[(INFO|WARN|ERROR|DEBUG|FATAL)\] \[\d+\.\d{9}\] \[[A-Za-z0-9_.]+\]: ")
-
-
-def _env() -> dict[str, str]:
-    """The test's environment (its domain and LOCALHOST discovery, from ``ros_domain``), unbuffered."""
-    return dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGINT, timeout_s: float = 10.0) -> tuple[int, float, str]:
@@ -94,7 +89,7 @@ def _run_driver_until_poses(ros, *ros_args: str) -> tuple[list[Any], int, float,
     ros.node("pose_probe").create_subscription(PoseStamped, "/arm/hand/object_pose", poses.append, 10)
     proc = subprocess.Popen(
         [*T42, "node", "mock_driver", "--ros-args", "-p", "rate_factor:=5.0", "-r", "__ns:=/arm", *ros_args],
-        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:
         ros.spin_until(lambda: len(poses) >= 3 or proc.poll() is not None, 40.0)
@@ -127,7 +122,7 @@ def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
         (["mock_driver", "--ros-args", "--params-file", "/nonexistent.yaml"], "ros-args"),
         (["no_such_node"], "unknown node"),
     ):
-        proc = subprocess.run([*T42, "node", *args], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
+        proc = subprocess.run([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), capture_output=True, text=True, timeout=60)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
         errors = [line for line in proc.stderr.splitlines() if line.startswith("t42: error:")]
         assert len(errors) == 1 and match in errors[0] and "Traceback" not in proc.stderr, (args, proc.stderr)
@@ -149,7 +144,7 @@ def test_t42_up_runs_the_suite_and_stops_it_cleanly(tmp_path: Path, ros_domain: 
     out_dir = tmp_path / "recordings"
     config = _suite_copy(tmp_path, out_dir=str(out_dir))
     proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver,recorder", "--stop-timeout", "10"], cwd=tmp_path,
-                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env=unbuffered_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     try:
         deadline = time.monotonic() + 40
@@ -174,7 +169,7 @@ def test_t42_up_fails_when_a_child_dies(tmp_path: Path, ros_domain: int) -> None
     not_a_dir.write_text("in the way")
     config = _suite_copy(tmp_path, out_dir=str(not_a_dir))
     started = time.monotonic()
-    proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path, env=_env(),
+    proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path, env=unbuffered_env(),
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert re.search(r"recorder exited with code [1-9]\d* unexpectedly: stopping the others", proc.stdout), proc.stdout

@@ -153,7 +153,7 @@ def test_unexpected_layouts_are_named(tmp_path, content, match):
 def test_unreadable_files(tmp_path):
     with pytest.raises(PickleFileError, match="cannot be read"):
         load_t42_testpaths(tmp_path / "missing.pkl")
-    with pytest.raises(PickleFileError, match="is not a regular file"):
+    with pytest.raises(PickleFileError, match="is a directory, not a regular file"):
         load_t42_testpaths(tmp_path)
     (tmp_path / "junk.pkl").write_bytes(b"\x80\x02junk")
     with pytest.raises(PickleFileError, match="not a readable pickle"):

@@ -19,7 +19,6 @@ import math
 import os
 import pickle
 import pickletools
-import stat
 from pathlib import Path
 from typing import Any, Callable, NoReturn
 
@@ -31,6 +30,7 @@ from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.errors import PickleFileError
 from t42_transfer.data.quality import scan, summarise, summary_lines
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+from t42_transfer.files import not_regular_reason
 
 REAL_HANDS = {"A": "", "B": "_red"}
 """The two real hands, A ("blue") and B ("red"), mirror images of each other, and their files' name infix."""
@@ -232,8 +232,9 @@ _RestrictedUnpickler.dispatch = _Dispatch(
 
 
 def _require_regular(path: Path, mode: int) -> None:
-    if not stat.S_ISREG(mode):
-        raise PickleFileError(path, "is not a regular file")
+    reason = not_regular_reason(mode)
+    if reason is not None:
+        raise PickleFileError(path, reason)
 
 
 def _read_regular(path: Path) -> bytes:

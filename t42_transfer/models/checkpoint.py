@@ -28,7 +28,6 @@ import hashlib
 import json
 import os
 import reprlib
-import stat
 import tempfile
 import time
 import warnings
@@ -44,6 +43,7 @@ from torch import Tensor
 from t42_transfer import __version__
 from t42_transfer.conventions import STATE_NAMES
 from t42_transfer.data.errors import DataFileError
+from t42_transfer.files import not_regular_reason
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 
 FORMAT = "t42_transfer.model/1"
@@ -157,8 +157,9 @@ def _regular_file(path: str | os.PathLike[str]) -> Path:
         raise CheckpointError(file, "does not exist") from None
     except (OSError, ValueError) as err:
         raise CheckpointError(file, f"cannot be read ({getattr(err, 'strerror', None) or err})") from None
-    if not stat.S_ISREG(mode):
-        raise CheckpointError(file, "is not a regular file")
+    reason = not_regular_reason(mode)
+    if reason is not None:
+        raise CheckpointError(file, reason)
     return file
 
 
