@@ -21,19 +21,13 @@ from msg_adapters import (
     applied_action,
     applied_action_msg,
     joint_state_arrays,
+    names,
     stamp_to_ns,
 )
-from msg_adapters import names
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
+from t42_transfer.driver.commands import CommandRejected, check_stamp, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
-from t42_transfer.nodes.mock_driver import (
-    CommandRejected,
-    MockDriver,
-    MockDriverParams,
-    check_stamp,
-    validate_command,
-    validate_trajectory,
-)
+from t42_transfer.nodes.mock_driver import MockDriver, MockDriverParams
 from t42_transfer.ros.qos import profile
 
 START_NS = 1_000_000_000

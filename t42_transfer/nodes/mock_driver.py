@@ -44,15 +44,15 @@ Bad input (NaN/inf, ``|a| > ACTION_LIMIT``, missing actuators or value counts
 that do not match the names, trajectory points not one period apart, unset,
 stale or future stamps) is rejected: the callback logs the reason with
 the node's logger and leaves the pending command as it was.  No
-callback raises.  The checks are the pure functions :func:`validate_command`,
-:func:`validate_trajectory` and :func:`check_stamp`.
+callback raises.  The checks and the queue are :mod:`t42_transfer.driver.commands`, shared with the
+real hand's driver.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -65,29 +65,20 @@ from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
     RCLPY,
-    names,
-    applied_action,
     applied_action_msg,
     grasp_detail,
     joint_state_msg,
-    joint_trajectory_to_actions,
+    names,
     ns_to_stamp,
     object_pose_msg,
-    stamp_to_ns,
     status_message,
 )
-from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
+from t42_transfer.driver.commands import ActionQueue, CommandRejected, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
-
-_LIMIT_SLACK = 1e-6
-"""Relative slack on ACTION_LIMIT: wire round trips may land a hair past +-1.5."""
-
-
-class CommandRejected(ValueError):
-    """An input message the driver will not execute; the message says why."""
 
 
 @dataclass(frozen=True)
@@ -121,69 +112,6 @@ class MockDriverParams:
         return round(self.max_command_age_s * 1e9)
 
 
-# --------------------------------------------------------------------------- pure checks
-def check_stamp(stamp_ns: int, now_ns: int, max_age_ns: int, what: str = "command") -> None:
-    """Refuse an unset (zero), stale (older than ``max_age_ns``) or future (beyond ``max_age_ns``) stamp."""
-    if stamp_ns == 0:
-        raise CommandRejected(f"{what} header stamp is unset (0)")
-    age = now_ns - stamp_ns
-    if age > max_age_ns:
-        raise CommandRejected(f"{what} is stale: stamped {age / 1e9:.3f} s ago, limit {max_age_ns / 1e9:.3f} s")
-    if -age > max_age_ns:
-        raise CommandRejected(
-            f"{what} is stamped {-age / 1e9:.3f} s in the future, limit {max_age_ns / 1e9:.3f} s"
-        )
-
-
-def check_actions(actions: np.ndarray, what: str = "action") -> np.ndarray:
-    """``actions`` ([..., 2]) clipped onto the limit if within slack; CommandRejected if non-finite or too large."""
-    acts = np.asarray(actions, dtype=np.float64)
-    if acts.shape[-1:] != (ACTION_DIM,):
-        raise CommandRejected(f"{what} must have {ACTION_DIM} components, got shape {acts.shape}")
-    if not np.all(np.isfinite(acts)):
-        raise CommandRejected(f"{what} has a non-finite value: {acts.tolist()}")
-    too_big = np.abs(acts) > ACTION_LIMIT * (1.0 + _LIMIT_SLACK)
-    if np.any(too_big):
-        where = np.argwhere(too_big)[0].tolist()
-        raise CommandRejected(
-            f"{what} {acts[tuple(where)]:.6g} at index {where} is outside [-{ACTION_LIMIT}, {ACTION_LIMIT}]"
-        )
-    return np.clip(acts, -ACTION_LIMIT, ACTION_LIMIT)
-
-
-def validate_command(msg: Any, now_ns: int, max_age_ns: int) -> np.ndarray:
-    """The single-step action (float64 [2]) of a command ``JointState``, or CommandRejected saying why.
-
-    The action is decoded from ``velocity`` by :func:`msg_adapters.applied_action`
-    (velocity = action * ACTION_UNIT_RAD / CONTROL_PERIOD_S per actuator).
-    """
-    check_stamp(stamp_to_ns(msg.header.stamp), now_ns, max_age_ns, "command")
-    try:
-        action = applied_action(msg)
-    except ValueError as err:
-        raise CommandRejected(f"command: {err}") from None
-    return check_actions(action, "command action")
-
-
-def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], now_ns: int,
-                        max_age_ns: int) -> np.ndarray:
-    """Actions ``[T, 2]`` (float64) of a ``JointTrajectory`` started from ``start_angles``, or CommandRejected.
-
-    Decoded by :func:`msg_adapters.joint_trajectory_to_actions` (points every
-    control period, actuator-angle targets).  A zero header stamp means "start
-    now" (ROS convention); any other stamp must be fresh as for commands.  An
-    empty trajectory is valid and gives ``T = 0``.
-    """
-    stamp = stamp_to_ns(msg.header.stamp)
-    if stamp != 0:
-        check_stamp(stamp, now_ns, max_age_ns, "trajectory")
-    try:
-        actions = joint_trajectory_to_actions(msg, start_angles)
-    except ValueError as err:
-        raise CommandRejected(f"trajectory: {err}") from None
-    return check_actions(actions.reshape(-1, ACTION_DIM), "trajectory action")
-
-
 # --------------------------------------------------------------------------- the node
 class MockDriver(Node):
     """The simulated hand on the driver's topics; see the module docstring for behaviour."""
@@ -200,8 +128,7 @@ class MockDriver(Node):
         """Steps taken in the current episode."""
         self.running = False
         """Whether the timer steps the hand (False after an episode end until a reset)."""
-        self._command: np.ndarray | None = None
-        self._plan: list[np.ndarray] = []
+        self.queue = ActionQueue()
         self._closed = False
         self._last_stamp = 0
         """Stamp of the last step published (0 before the first: every step comes after it)."""
@@ -228,11 +155,11 @@ class MockDriver(Node):
     @property
     def pending_actions(self) -> int:
         """Trajectory points still to execute."""
-        return len(self._plan)
+        return self.queue.pending
 
     def reset(self) -> tuple[bool, str]:
         """Re-open the hand, re-grasp (seed ``params.seed + episode``) and start stepping; (success, message)."""
-        self._command, self._plan = None, []
+        self.queue.clear()
         self.episode += 1
         seed = None if self.params.seed is None else self.params.seed + self.episode
         try:
@@ -269,10 +196,9 @@ class MockDriver(Node):
         except Exception as err:  # never raise from a callback
             self.log.error(f"rejected {names.HAND_COMMAND}: could not read the message ({err!r})")
             return
-        if self._plan:
-            self.log.info(f"single-step command cancels a trajectory with {len(self._plan)} points left")
-        self._plan = []
-        self._command = action
+        cancelled = self.queue.set_command(action)
+        if cancelled:
+            self.log.info(f"single-step command cancels a trajectory with {cancelled} points left")
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         try:
@@ -285,10 +211,9 @@ class MockDriver(Node):
         except Exception as err:
             self.log.error(f"rejected {names.HAND_TRAJECTORY}: could not read the message ({err!r})")
             return
-        if self._plan:
-            self.log.info(f"trajectory with {len(actions)} points pre-empts one with {len(self._plan)} points left")
-        self._plan = list(actions)
-        self._command = None
+        pre_empted = self.queue.set_plan(actions)
+        if pre_empted:
+            self.log.info(f"trajectory with {len(actions)} points pre-empts one with {pre_empted} points left")
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
@@ -310,20 +235,17 @@ class MockDriver(Node):
             self.tick()
         except Exception as err:
             self.log.error(f"step failed ({err!r}); the hand stops until {names.HAND_RESET} is called")
-            self.running, self._command, self._plan = False, None, []
+            self.running = False
+            self.queue.clear()
 
     # ------------------------------------------------------------------ one step
     def _next_action(self) -> np.ndarray:
         """The action of this step, as float32 values (what the applied-action topic can carry exactly)."""
-        if self._plan:
-            action = self._plan.pop(0)
-            if not self._plan:
-                self._publish_status(status_message(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}",
-                                                    self._last_stamp))
-        else:
-            action = self._command if self._command is not None else np.zeros(ACTION_DIM)
-            self._command = None  # a single-step command is held for one step only
-        return np.asarray(action, np.float32).astype(np.float64)
+        action, last = self.queue.next()
+        if last:
+            self._publish_status(status_message(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}",
+                                                self._last_stamp))
+        return action
 
     def tick(self) -> None:
         """One control step: publish the state (and the action applied from it), then step the hand."""
@@ -336,7 +258,7 @@ class MockDriver(Node):
         self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp, RCLPY))
         if self.hand.done:
             self.running = False
-            self._command, self._plan = None, []
+            self.queue.clear()
             reason = self.hand.end_reason
             self.log.warning(f"episode {self.episode} ended after {self.steps} steps: {reason}")
             self._publish_status(status_message(reason, f"episode {self.episode} ended after {self.steps} steps",
