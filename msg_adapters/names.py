@@ -32,6 +32,11 @@ HAND_RESET = "hand/reset"
 """std_srvs/Trigger: open the hand, then close it until the grasp load (a new episode)."""
 CLOCK = "/clock"
 """rosgraph_msgs/Clock: the simulated driver's time, when it runs on sim time."""
+TRACKER_POSE = "tracker/object_pose"
+"""geometry_msgs/PoseStamped: the object as a tracker or motion capture sees it, at its own rate; the real
+driver publishes the newest fresh one each step as :data:`OBJECT_POSE`."""
+SIM_POSE = "sim/object_pose"
+"""geometry_msgs/PoseStamped: the emulated hand's true object pose, for checks only."""
 
 HAND_TOPICS = (OBJECT_POSE, JOINT_STATES, APPLIED_ACTION)
 """The hand's recorded topics, in per-step publish order."""
@@ -64,9 +69,12 @@ PLAN_RESULT = "t42/plan_result"
 RESET, RESET_FAILED = "reset", "reset_failed"
 DROPPED, LOST_CONTACT, OVERLOAD = "dropped", "lost_contact", "overload"
 TRAJECTORY_DONE = "trajectory_done"
+# The real driver's: a servo fault stopped the hand (fault) or cleared (recovered); no fresh object pose
+# this step, so none was published (stale).
+FAULT, RECOVERED, STALE = "fault", "recovered", "stale"
 END_EVENTS = (DROPPED, LOST_CONTACT, OVERLOAD)
 """Events that end an episode (the hand stops until the next reset)."""
-SPLIT_EVENTS = (RESET, *END_EVENTS)
+SPLIT_EVENTS = (RESET, *END_EVENTS, FAULT)
 """Events at which an episode-mode recorder closes one bag and opens the next."""
 
 SUPERSEDED = "superseded"

@@ -118,18 +118,23 @@ class SimulatedHand:
     def end_reason(self) -> str:
         return self._end_reason
 
-    def reset(self, seed: int | None = None) -> np.ndarray:
-        """Open the hand, place the object near the centre, and close on it."""
+    def place(self, seed: int | None = None) -> None:
+        """Open the hand and place the object near the centre, as a person at the bench does before a grasp."""
         self._rng = np.random.default_rng(seed)
         mujoco.mj_resetData(self._model, self._data)
         jitter = self._rng.uniform(-START_JITTER_MM, START_JITTER_MM, size=2) / 1000.0
-        for adr, offset in zip(self._obj_qpos, jitter):
+        for adr, offset in zip(self._obj_qpos, jitter, strict=True):
             self._data.qpos[adr] = offset
         self._servo[:] = 0.0
         self._apply_servo()
         mujoco.mj_forward(self._model, self._data)
         self._done = False
         self._end_reason = ""
+        self._state = np.concatenate([self.object_xy, np.zeros(2)])  # no sensor draw: reset's noise stays as it was
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Open the hand, place the object near the centre, and close on it."""
+        self.place(seed)
         closed = np.zeros(2, dtype=bool)
         for _ in range(GRASP_MAX_STEPS):
             loads = self._tensions_load()
@@ -166,16 +171,40 @@ class SimulatedHand:
         target = self._servo + delta
         straining = (delta > 0) & (self._tensions_load() > LOAD_GUARD)
         blocked = (target < 0.0) | (target > SERVO_MAX_RAD) | straining
-        refused = bool(np.any(blocked))
         self._servo = np.where(blocked, self._servo, target)
+        return self._advance(bool(np.any(blocked)))
+
+    def hold(self, angles: np.ndarray | tuple[float, float]) -> StepInfo:
+        """One control period with the servos at absolute ``angles`` (rad, action order), as a servo bus sets them.
+
+        Angles are clamped to the servos' travel; no load guard applies (a real driver keeps its own).  Unlike
+        :meth:`step_info` it runs after an episode ended too: the object lies where it fell until :meth:`place`.
+        """
+        a = np.asarray(angles, dtype=float)
+        if a.shape != (ACTION_DIM,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"angles must be 2 finite numbers, got {angles!r}")
+        target = np.zeros(2)
+        target[self._order] = a
+        clamped = np.clip(target, 0.0, SERVO_MAX_RAD)
+        self._servo = clamped
+        return self._advance(bool(np.any(clamped != target)), keep_done=True)
+
+    def _advance(self, refused: bool, keep_done: bool = False) -> StepInfo:
+        """One control period of physics with the servos where they are; the end of the episode checked."""
         self._apply_servo()
         before = self._state[:2].copy()
         self._apply_region()
         mujoco.mj_step(self._model, self._data, nstep=self._substeps)
         self._state = self._observe()
-        self._end_reason = self._check_end(before)
-        self._done = bool(self._end_reason)
+        if not (keep_done and self._done):
+            self._end_reason = self._check_end(before)
+            self._done = bool(self._end_reason)
         return StepInfo(self._done, self._end_reason, refused)
+
+    @property
+    def loads(self) -> np.ndarray:
+        """True servo loads (raw units, signed as the state's), in action order, without sensor noise."""
+        return self._tensions_load()[self._order] * LOAD_SIGNS
 
     def snapshot(self) -> "HandSnapshot":
         """Everything the next steps depend on (physics, servos, sensor-noise generator): :meth:`restore` replays them."""

@@ -35,6 +35,8 @@ class NodeSpec:
 NODES: dict[str, NodeSpec] = {
     "mock_driver": NodeSpec("t42_transfer.nodes.mock_driver:MockDriver",
                             "simulated hand behind the real driver's topics"),
+    "dynamixel_driver": NodeSpec("t42_transfer.nodes.dynamixel_driver:DynamixelDriver",
+                                 "a real T42's Dynamixel servos behind the driver's topics (a lifecycle node)"),
     "recorder": NodeSpec("t42_transfer.nodes.recorder:Recorder",
                          "records the hand topics into rosbag2 MCAP bags"),
     "explorer": NodeSpec("t42_transfer.nodes.explorer:Explorer",

@@ -1,0 +1,192 @@
+"""The hand's two servos through dynamixel-sdk: open, check, configure, one sync read and one sync write a step.
+
+Every failure is a :class:`ServoFault` naming the servo and what went wrong, in one of four kinds: the port
+(gone, or not a serial port), no answer (timeout), a garbled answer (CRC), or a Hardware Error Status bit
+(decoded).  pyserial's own errors never escape.  Nothing here needs ROS; the driver node wraps it.
+"""
+
+from __future__ import annotations
+
+import termios
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import serial
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncWrite,
+    PacketHandler,
+    PortHandler,
+)
+
+from t42_transfer.hardware import protocol as p
+from t42_transfer.hardware import xm430 as xm
+
+PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED = "port", "timeout", "corrupt", "hardware", "refused"
+FAULT_KINDS = (PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED)
+_PORT_ERRORS = (OSError, termios.error, serial.SerialException, ValueError)
+
+
+class ServoFault(RuntimeError):
+    """``kind`` (one of :data:`FAULT_KINDS`) on servo ``servo_id`` (None: the port); one line."""
+
+    def __init__(self, kind: str, servo_id: int | None, detail: str) -> None:
+        where = "the port" if servo_id is None else f"servo {servo_id}"
+        super().__init__(f"{kind} on {where}: {detail}")
+        self.kind, self.servo_id, self.detail = kind, servo_id, detail
+
+
+@dataclass(frozen=True)
+class ServoState:
+    """One sync read: Present Position (ticks) and Present Current (units) per servo id."""
+
+    positions: dict[int, int]
+    currents: dict[int, int]
+
+
+class HandServos:
+    """The servos ``ids`` on ``port`` at ``baud``, protocol 2.0."""
+
+    def __init__(self, port: str, baud: int, ids: Sequence[int]) -> None:
+        self.port_name, self.baud, self.ids = port, baud, tuple(ids)
+        self._port: PortHandler | None = None
+        self._packets = PacketHandler(2.0)
+
+    # ------------------------------------------------------------------ port
+    def open(self) -> None:
+        port = PortHandler(self.port_name)
+        try:
+            opened = port.openPort() and port.setBaudRate(self.baud)
+        except _PORT_ERRORS as err:
+            raise ServoFault(PORT, None, f"cannot open {self.port_name}: {err}") from None
+        if not opened:
+            raise ServoFault(PORT, None, f"cannot open {self.port_name} at {self.baud} baud")
+        self._port = port
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.closePort()
+            except _PORT_ERRORS:
+                pass
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    def _need_port(self) -> PortHandler:
+        if self._port is None:
+            raise ServoFault(PORT, None, "the port is not open")
+        return self._port
+
+    # ------------------------------------------------------------------ single-servo exchanges
+    def _check(self, servo_id: int, result: int, error: int, what: str) -> None:
+        if result == COMM_RX_TIMEOUT:
+            raise ServoFault(TIMEOUT, servo_id, f"no answer to {what}")
+        if result == COMM_RX_CORRUPT:
+            raise ServoFault(CORRUPT, servo_id, f"garbled answer to {what} (CRC or framing)")
+        if result != COMM_SUCCESS:
+            raise ServoFault(TIMEOUT, servo_id, f"{what}: {self._packets.getTxRxResult(result)}")
+        if error & p.ALERT:
+            raise ServoFault(HARDWARE, servo_id, ", ".join(xm.hardware_errors(self.hardware_status(servo_id)))
+                             or "alert without an error bit")
+        if error:
+            raise ServoFault(REFUSED, servo_id, f"{what} refused ({self._packets.getRxPacketError(error)})")
+
+    def _call(self, servo_id: int, what: str, fn, *args) -> tuple:  # type: ignore[no-untyped-def]
+        try:
+            return fn(self._need_port(), servo_id, *args)
+        except _PORT_ERRORS as err:
+            raise ServoFault(PORT, None, f"{what}: {err}") from None
+
+    def ping(self, servo_id: int) -> int:
+        """The servo's Model Number."""
+        model, result, error = self._call(servo_id, "ping", self._packets.ping)
+        self._check(servo_id, result, error & ~p.ALERT, "ping")
+        return model
+
+    def read(self, servo_id: int, f: xm.Field) -> int:
+        fn = {1: self._packets.read1ByteTxRx, 2: self._packets.read2ByteTxRx, 4: self._packets.read4ByteTxRx}[f.size]
+        value, result, error = self._call(servo_id, f"read of {f.address}", fn, f.address)
+        self._check(servo_id, result, error, f"read of address {f.address}")
+        return f.decode(int(value).to_bytes(f.size, "little", signed=False))
+
+    def write(self, servo_id: int, f: xm.Field, value: int) -> None:
+        fn = {1: self._packets.write1ByteTxRx, 2: self._packets.write2ByteTxRx,
+              4: self._packets.write4ByteTxRx}[f.size]
+        unsigned = int.from_bytes(f.encode(value), "little")
+        result, error = self._call(servo_id, f"write of {f.address}", fn, f.address, unsigned)
+        self._check(servo_id, result, error, f"write of {value} to address {f.address}")
+
+    def hardware_status(self, servo_id: int) -> int:
+        """Hardware Error Status, read without raising on the alert it causes."""
+        value, result, _ = self._call(servo_id, "read of the error status", self._packets.read1ByteTxRx,
+                                      xm.HARDWARE_ERROR_STATUS.address)
+        if result != COMM_SUCCESS:
+            raise ServoFault(TIMEOUT, servo_id, "no answer to the read of Hardware Error Status")
+        return int(value)
+
+    def reboot(self, servo_id: int) -> None:
+        result, error = self._call(servo_id, "reboot", self._packets.reboot)
+        self._check(servo_id, result, error & ~p.ALERT, "reboot")
+
+    # ------------------------------------------------------------------ the hand
+    def check(self) -> dict[int, int]:
+        """Ping every servo; the Model Number of each.  A servo that is no XM430-W350 is refused."""
+        models = {i: self.ping(i) for i in self.ids}
+        wrong = {i: m for i, m in models.items() if m != xm.XM430_W350}
+        if wrong:
+            raise ServoFault(REFUSED, next(iter(wrong)), f"model {wrong} is no XM430-W350 ({xm.XM430_W350})")
+        return models
+
+    def configure(self, mode: int, limits: dict[int, tuple[int, int]]) -> None:
+        """Torque off, then the operating mode and position limits (EEPROM: written only without torque)."""
+        for i in self.ids:
+            self.write(i, xm.TORQUE_ENABLE, 0)
+            if self.read(i, xm.OPERATING_MODE) != mode:
+                self.write(i, xm.OPERATING_MODE, mode)
+            low, high = limits[i]
+            self.write(i, xm.MIN_POSITION_LIMIT, low)
+            self.write(i, xm.MAX_POSITION_LIMIT, high)
+
+    def torque(self, on: bool) -> None:
+        for i in self.ids:
+            self.write(i, xm.TORQUE_ENABLE, int(on))
+
+    def read_state(self) -> ServoState:
+        """One sync read of Present Current, Velocity and Position of every servo, each answer's error byte checked.
+
+        dynamixel-sdk's GroupSyncRead drops the error byte (where a Hardware Error Status alert shows), so
+        the sync read is sent and its answers taken with the packet handler's own calls.
+        """
+        port = self._need_port()
+        address, length = xm.STATE_BLOCK
+        positions, currents = {}, {}
+        try:
+            result = self._packets.syncReadTx(port, address, length, list(self.ids), len(self.ids), False)
+            if result != COMM_SUCCESS:
+                raise ServoFault(PORT, None, f"sync read: {self._packets.getTxRxResult(result)}")
+            answers = {i: self._packets.readRx(port, i, length) for i in self.ids}  # all, before any other exchange
+        except _PORT_ERRORS as err:
+            raise ServoFault(PORT, None, f"sync read: {err}") from None
+        for i, (data, result, error) in answers.items():
+            self._check(i, result, error, "sync read")
+            block = bytes(data)
+            positions[i] = xm.PRESENT_POSITION.decode(block[xm.PRESENT_POSITION.address - address:])
+            currents[i] = xm.PRESENT_CURRENT.decode(block[xm.PRESENT_CURRENT.address - address:])
+        return ServoState(positions, currents)
+
+    def write_goals(self, goals: dict[int, int]) -> None:
+        """One sync write of Goal Position (no answer comes: limits are the caller's to keep)."""
+        group = GroupSyncWrite(self._need_port(), self._packets, xm.GOAL_POSITION.address, xm.GOAL_POSITION.size)
+        for i, goal in goals.items():
+            group.addParam(i, xm.GOAL_POSITION.encode(goal))
+        try:
+            result = group.txPacket()
+        except _PORT_ERRORS as err:
+            raise ServoFault(PORT, None, f"sync write: {err}") from None
+        if result != COMM_SUCCESS:
+            raise ServoFault(PORT, None, f"sync write: {self._packets.getTxRxResult(result)}")

@@ -1,0 +1,400 @@
+"""Dynamixel driver: a real T42's two XM430 servos behind the mock driver's topics, as a lifecycle node.
+
+Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
+
+* configure: open ``port`` at ``baud``, ping both servos (an XM430-W350 each), torque off, set the
+  operating mode and the position limits, read where the fingers stand;
+* activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
+* deactivate: hold the position, stop stepping (torque stays on);
+* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM) is a shutdown.
+
+Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
+loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
+``hand/status``, ``hand/reset``), the same step convention (one sync read, publish the state and the action
+applied from it with one stamp, one sync write), and the same command rules
+(:mod:`t42_transfer.driver.commands`).  ``hand/reset`` runs the authors' grasp: open, then close each finger
+until its load passes ``grasp_load``; it answers once the grasp closed (the steps run meanwhile).
+
+Object pose: the newest ``tracker/object_pose`` (remappable) is published each step, stamped with the step,
+unless it is older than ``max_pose_age_s``: then no pose goes out for the step, and ``hand/status`` says
+``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves it out and
+splits the episode there, saying so).
+
+Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
+reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
+and the error bits decoded.  Recovery is automatic: once a second the driver reopens the port if it went,
+pings, reboots a servo that raised an error bit, turns the torque back on and holds; ``recovered`` then says
+the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from rclpy.task import Future
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from msg_adapters import (
+    RCLPY,
+    applied_action_msg,
+    diagnostic_array,
+    grasp_detail,
+    joint_state_msg,
+    names,
+    object_pose_msg,
+    object_xy_mm,
+    stamp_to_ns,
+    status_message,
+)
+from t42_transfer.conventions import CONTROL_PERIOD_S
+from t42_transfer.driver.commands import ActionQueue, CommandRejected, validate_command, validate_trajectory
+from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
+from t42_transfer.hardware import xm430 as xm
+from t42_transfer.hardware.servos import HARDWARE, PORT, HandServos, ServoFault
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import profile
+
+STATUS_NAME = "t42_transfer: dynamixel_driver"
+RETRY_PERIOD_S = 1.0
+LATE_FRACTION = 0.5
+"""A step more than this many periods after the previous one is late."""
+
+
+@dataclass(frozen=True)
+class DynamixelDriverParams:
+    """The driver's ROS parameters (the hand's geometry is checked by :class:`HandGeometry`)."""
+
+    port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", read_only=True)
+    baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, read_only=True)
+    servo_ids: tuple[int, ...] = param((1, 2), "servo ids in action order (hands A and B are mirrored)",
+                                       read_only=True)
+    open_ticks: tuple[int, ...] = param((2048, 2048), "Present Position of each servo with its finger open",
+                                        read_only=True)
+    directions: tuple[int, ...] = param((1, 1), "+1: ticks above open close the finger, -1: below", read_only=True)
+    rad_per_action: float = param(0.025, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
+    max_angle_rad: tuple[float, ...] = param((3.0, 3.0), "position limit of each servo from open (rad)")
+    load_limit: float = param(280.0, "no finger closes further with a load over this", min=1.0, max=2000.0)
+    grasp_load: float = param(100.0, "a reset closes each finger until its load passes this", min=1.0, max=2000.0)
+    max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
+                                  min=0.01, max=10.0)
+    max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
+                                     min=1e-3, max=3600.0)
+    watchdog_s: float = param(1.0, "with no command or trajectory for this long the hand holds", min=0.1,
+                              max=3600.0)
+
+    def geometry(self) -> HandGeometry:
+        return HandGeometry(tuple(self.servo_ids), tuple(self.open_ticks), tuple(self.directions),  # type: ignore[arg-type]
+                            self.rad_per_action, tuple(self.max_angle_rad), self.load_limit,  # type: ignore[arg-type]
+                            self.grasp_load)
+
+    def __post_init__(self) -> None:
+        self.geometry()  # ValueError naming the setting, as ros2 param set reports it
+
+
+class DynamixelDriver(LifecycleNode):
+    """A real (or emulated) T42 on the driver topics; see the module docstring."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("dynamixel_driver", **node_kwargs)
+        self._params = LiveParams(self, DynamixelDriverParams)
+        self.log = self.get_logger()
+        self.hand: ServoHand | None = None
+        self.queue = ActionQueue()
+        self.episode = -1
+        self.steps = 0
+        self.running = False
+        self.late_steps = 0
+        self.fault: ServoFault | None = None
+        self._grasp: Grasp | None = None
+        self._grasp_answer: Future | None = None
+        self._stepping = False
+        self._last_step_s: float | None = None
+        self._last_stamp = 0
+        self._last_input_s = time.monotonic()
+        self._pose: tuple[int, np.ndarray] | None = None
+        self._stale = False
+        self._next_retry_s = 0.0
+        self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
+        self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
+        self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
+        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
+        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10)
+        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
+        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
+        # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
+        self.create_service(Trigger, names.HAND_RESET, self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
+        self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
+
+    @property
+    def params(self) -> DynamixelDriverParams:
+        return self._params.value
+
+    def now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    # ------------------------------------------------------------------ lifecycle
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        p = self.params
+        servos = HandServos(p.port, p.baud, p.servo_ids)
+        try:
+            servos.open()
+            models = servos.check()
+            geometry = p.geometry()
+            servos.configure(xm.POSITION_MODE, geometry.limits())
+            self.hand = ServoHand(servos, geometry)
+            self.hand.start_from_present()
+        except (ServoFault, ValueError) as err:
+            servos.close()
+            self.log.error(f"configure failed: {err}")
+            return TransitionCallbackReturn.FAILURE
+        self.log.info(f"configured {p.port}: servos {models} in position mode, limits {geometry.limits()}")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        try:
+            self._need_hand().start_from_present()
+            self._need_hand().servos.torque(True)
+            self._need_hand().hold()
+        except ServoFault as err:
+            self.log.error(f"activate failed: {err}")
+            return TransitionCallbackReturn.FAILURE
+        self._stepping, self._last_step_s = True, None
+        self.log.info("active: torque on, holding; call hand/reset to grasp")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._stop_episode("deactivated")
+        self._stepping = False
+        try:
+            self._need_hand().hold()
+        except ServoFault as err:
+            self.log.warning(f"could not hold on deactivate: {err}")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def close(self) -> None:
+        """Torque off and the port closed, whatever state the node is in (the process exits)."""
+        self._release()
+
+    def _release(self) -> None:
+        self._stepping = False
+        self._stop_episode("the driver stopped")
+        hand, self.hand = self.hand, None
+        if hand is None:
+            return
+        try:
+            hand.servos.torque(False)
+        except ServoFault as err:
+            self.log.error(f"could not turn the torque off: {err}")
+        hand.servos.close()
+
+    def _need_hand(self) -> ServoHand:
+        if self.hand is None:
+            raise ServoFault(PORT, None, "the driver is not configured")
+        return self.hand
+
+    # ------------------------------------------------------------------ inputs
+    def _on_pose(self, msg: PoseStamped) -> None:
+        stamp = stamp_to_ns(msg.header.stamp) or self.now_ns()
+        self._pose = (stamp, object_xy_mm(msg).astype(np.float64))
+
+    def _on_command(self, msg: JointState) -> None:
+        try:
+            action = validate_command(msg, self.now_ns(), round(self.params.max_command_age_s * 1e9))
+        except CommandRejected as err:
+            self.log.warning(f"rejected {names.HAND_COMMAND}: {err}")
+            return
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"rejected {names.HAND_COMMAND}: could not read the message ({err!r})")
+            return
+        self.queue.set_command(action)
+        self._last_input_s = time.monotonic()
+
+    def _on_trajectory(self, msg: JointTrajectory) -> None:
+        hand = self.hand
+        if hand is None:
+            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
+            return
+        try:
+            actions = validate_trajectory(msg, hand.goal, self.now_ns(), round(self.params.max_command_age_s * 1e9))
+        except CommandRejected as err:
+            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: {err}")
+            return
+        except Exception as err:
+            self.log.error(f"rejected {names.HAND_TRAJECTORY}: could not read the message ({err!r})")
+            return
+        self.queue.set_plan(actions)
+        self._last_input_s = time.monotonic()
+
+    async def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Open, then close until the grasp load; answered when the grasp closed (the steps run it)."""
+        if not self._stepping or self.hand is None:
+            response.success, response.message = False, "the driver is not active (configure and activate it)"
+            return response
+        if self.fault is not None:
+            response.success, response.message = False, f"the hand has a fault: {self.fault}"
+            return response
+        self._stop_episode("a new reset")
+        self._grasp, self._grasp_answer = Grasp(self.hand), Future()
+        response.success, response.message = await self._grasp_answer
+        return response
+
+    # ------------------------------------------------------------------ steps
+    def _on_timer(self) -> None:
+        if not self._stepping:
+            return
+        now_s = time.monotonic()
+        if self._last_step_s is not None and now_s - self._last_step_s > (1 + LATE_FRACTION) * CONTROL_PERIOD_S:
+            self.late_steps += 1
+        self._last_step_s = now_s
+        try:
+            if self.fault is not None:
+                self._try_recover(now_s)
+                return
+            self.step()
+        except ServoFault as err:
+            self._on_fault(err)
+        except Exception as err:  # a bug must not leave the hand moving
+            self.log.error(f"step failed ({err!r}); holding")
+            self._on_fault(ServoFault(PORT, None, repr(err)))
+
+    def step(self) -> None:
+        """One control step: read, publish the state and the action applied from it, write the goals."""
+        hand = self._need_hand()
+        angles, loads = hand.read()
+        if self._grasp is not None:
+            self._grasp_step()
+            return
+        if not self.running:
+            hand.hold()
+            return
+        stamp = self.now_ns()
+        self._last_stamp = stamp
+        self._publish_pose(stamp)
+        self._joints_pub.publish(joint_state_msg(loads, angles, stamp, RCLPY))
+        if time.monotonic() - self._last_input_s > self.params.watchdog_s and self.queue.pending == 0:
+            self.queue.clear()  # nothing came for a while: the hand holds
+        action, last = self.queue.next()
+        if last:
+            self._status(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}")
+        self._action_pub.publish(applied_action_msg(action, stamp, RCLPY))
+        refused = hand.apply(action)
+        self.steps += 1
+        if refused:
+            self.log.warning(f"step {self.steps}: {refused}", throttle_duration_sec=1.0)
+
+    def _publish_pose(self, stamp: int) -> None:
+        pose = self._pose
+        age_s = None if pose is None else (stamp - pose[0]) / 1e9
+        if pose is None or age_s is None or age_s > self.params.max_pose_age_s:
+            if not self._stale:
+                self._stale = True
+                why = "no pose received" if pose is None else f"the newest is {age_s:.2f} s old"
+                self._status(names.STALE, f"no fresh object pose on {names.TRACKER_POSE} ({why}): "
+                                          "steps go out without one")
+            return
+        self._stale = False
+        self._pose_pub.publish(object_pose_msg(pose[1], stamp, RCLPY))
+
+    def _grasp_step(self) -> None:
+        grasp = self._grasp
+        assert grasp is not None
+        grasp.step()
+        if not (grasp.done or grasp.failed):
+            return
+        self._grasp = None
+        if grasp.done:
+            self.episode += 1
+            self.running, self.steps = True, 0
+            self.queue.clear()
+            self._last_input_s = time.monotonic()
+            message = grasp_detail(self.episode, None)
+            self._status(names.RESET, message)
+            self._answer(True, message)
+        else:
+            self._status(names.RESET_FAILED, grasp.failed)
+            self._answer(False, f"grasp failed: {grasp.failed}")
+
+    def _answer(self, ok: bool, message: str) -> None:
+        answer, self._grasp_answer = self._grasp_answer, None
+        if answer is not None and not answer.done():
+            answer.set_result((ok, message))
+
+    def _stop_episode(self, why: str) -> None:
+        self.queue.clear()
+        self.running = False
+        if self._grasp is not None:
+            self._grasp = None
+            self._answer(False, f"reset interrupted: {why}")
+
+    # ------------------------------------------------------------------ faults
+    def _on_fault(self, fault: ServoFault) -> None:
+        first = self.fault is None
+        self.fault = fault
+        self._stop_episode(str(fault))
+        self._next_retry_s = time.monotonic() + RETRY_PERIOD_S
+        if first:
+            self.log.error(f"{fault}; holding, retrying every {RETRY_PERIOD_S:g} s")
+            self._status(names.FAULT, str(fault))
+        self._publish_diagnostics("ERROR", str(fault))
+        if self.hand is not None:
+            try:
+                self.hand.hold()
+            except ServoFault:
+                pass
+
+    def _try_recover(self, now_s: float) -> None:
+        if now_s < self._next_retry_s:
+            return
+        self._next_retry_s = now_s + RETRY_PERIOD_S
+        hand = self._need_hand()
+        fault = self.fault
+        assert fault is not None
+        servos = hand.servos
+        if fault.kind == PORT:
+            servos.close()
+            servos.open()
+        servos.check()
+        for i in servos.ids:
+            if servos.hardware_status(i):
+                servos.reboot(i)
+        servos.torque(True)
+        hand.start_from_present()
+        hand.hold()
+        self.fault = None
+        self.log.info(f"recovered from: {fault}")
+        self._status(names.RECOVERED, f"{fault}; the hand holds (call hand/reset for a new episode)")
+        self._publish_diagnostics("OK", f"back from: {fault}")
+
+    # ------------------------------------------------------------------ reports
+    def _status(self, event: str, detail: str) -> None:
+        self._status_pub.publish(String(data=status_message(event, detail, self._last_stamp or None)))
+
+    def _publish_diagnostics(self, level: str, message: str) -> None:
+        fault = self.fault
+        values: dict[str, object] = {"late_steps": self.late_steps, "episode": self.episode, "steps": self.steps}
+        if fault is not None:
+            values.update(fault_kind=fault.kind, servo_id="" if fault.servo_id is None else fault.servo_id)
+            if fault.kind == HARDWARE:
+                values["hardware_errors"] = fault.detail
+        self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, values, self.now_ns(),
+                                                   hardware_id=self.params.port, kit=RCLPY))
+

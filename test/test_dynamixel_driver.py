@@ -1,0 +1,217 @@
+"""The Dynamixel driver node on the emulated servo bus, the simulated hand behind it, driven as a user would.
+
+The lifecycle goes through the stock ``change_state`` / ``get_state`` services; the hand's tracker pose
+comes from the test, as a camera node would send it.  The emulator's plant steps on its own thread at the
+control rate, unsynchronised with the driver, as a real hand is.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rclpy.parameter import Parameter
+from ros_rig import RosRig, Tester
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from msg_adapters import RCLPY, names, object_pose_msg, status_event
+from msg_adapters.wire import ACTUATOR_NAMES
+from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM
+from t42_transfer.hand.sim import SimulatedHand
+from t42_transfer.hardware import xm430 as xm
+from t42_transfer.hardware.emulator import PtyBus, t42_bus
+from t42_transfer.hardware.hand_plant import HandPlant
+from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
+from t42_transfer.ros.qos import profile
+
+
+class Bench:
+    """The emulated hand: its bus on a pty, and a thread stepping its physics and sending tracker poses."""
+
+    def __init__(self, tester: Any) -> None:
+        self.plant = HandPlant(SimulatedHand("target"))
+        self.bus = PtyBus(t42_bus(plant=self.plant))
+        self.tracking = True
+        self._pose_pub = tester.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
+        self._clock = tester.get_clock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(CONTROL_PERIOD_S):
+            self.plant.tick()
+            if self.tracking:
+                stamp = self._clock.now().nanoseconds
+                self._pose_pub.publish(object_pose_msg(self.plant.hand.object_xy, stamp, RCLPY))
+
+    def torque(self) -> list[bool]:
+        return [s.torque for s in self.bus.bus.servos.values()]
+
+    def goals(self) -> list[int]:
+        return [s.get(xm.GOAL_POSITION) for s in self.bus.bus.servos.values()]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.bus.close_port()
+
+
+class Rig(Tester):
+    def __init__(self, ros: RosRig) -> None:
+        super().__init__(ros)
+        self.bench = Bench(self.tester)
+        self.driver = ros.add(DynamixelDriver, {"port": self.bench.bus.port})
+        self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
+        self.joints = self.listen(JointState, names.JOINT_STATES)
+        self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
+        self.actions = self.listen(JointState, names.APPLIED_ACTION)
+        self.change = self.tester.create_client(ChangeState, "dynamixel_driver/change_state")
+        self.get = self.tester.create_client(GetState, "dynamixel_driver/get_state")
+        self.reset_client = self.tester.create_client(Trigger, names.HAND_RESET)
+        self.trajectory_pub = self.tester.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
+
+    def transition(self, transition_id: int) -> bool:
+        request = ChangeState.Request()
+        request.transition.id = transition_id
+        return self.ros.call(self.change, request).success
+
+    def state(self) -> str:
+        return self.ros.call(self.get, GetState.Request()).current_state.label
+
+    def events(self) -> list[str]:
+        return [status_event(s.data) for s in self.statuses]
+
+    def reset(self) -> Any:
+        return self.ros.call(self.reset_client, Trigger.Request(), timeout_s=60.0)
+
+
+@pytest.fixture
+def rig(ros: RosRig) -> Iterator[Rig]:
+    r = Rig(ros)
+    yield r
+    r.driver.close()  # torque off while the bus is still there
+    r.bench.close()
+
+
+def test_the_lifecycle_drives_the_torque(rig: Rig) -> None:
+    assert rig.state() == "unconfigured"
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.state() == "inactive"
+    assert rig.bench.torque() == [False, False]
+    assert rig.transition(Transition.TRANSITION_ACTIVATE) and rig.state() == "active"
+    assert rig.bench.torque() == [True, True]
+    assert rig.transition(Transition.TRANSITION_DEACTIVATE) and rig.bench.torque() == [True, True]  # holds
+    assert rig.transition(Transition.TRANSITION_CLEANUP) and rig.state() == "unconfigured"
+    assert rig.bench.torque() == [False, False]
+
+
+def test_configure_fails_on_a_port_without_servos(ros: RosRig, tmp_path) -> None:
+    bogus = tmp_path / "no_bus"
+    bogus.write_text("")
+    driver = ros.add(DynamixelDriver, {"port": str(bogus)})
+    tester = Tester(ros, "probe")
+    change = tester.tester.create_client(ChangeState, "dynamixel_driver/change_state")
+    request = ChangeState.Request()
+    request.transition.id = Transition.TRANSITION_CONFIGURE
+    assert not ros.call(change, request).success
+    assert driver.hand is None
+
+
+def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(rig: Rig) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    answer = rig.reset()
+    assert answer.success, answer.message
+    assert rig.events()[-1:] == [names.RESET] or rig.ros.spin_until(lambda: names.RESET in rig.events(), 2.0)
+    loads = np.abs(rig.bench.plant.hand.loads)
+    assert np.all(loads > 80), loads  # the fingers closed on the object
+    start = len(rig.joints)
+    rig.ros.spin_for(2.0)
+    joints, poses = rig.joints[start:], rig.poses
+    assert 15 <= len(joints) <= 25  # 10 Hz
+    stamps = [j.header.stamp.sec * 10**9 + j.header.stamp.nanosec for j in joints]
+    assert all(0.05e9 < b - a < 0.2e9 for a, b in zip(stamps, stamps[1:], strict=False))
+    by_stamp = {p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in poses}
+    assert sum(s in by_stamp for s in stamps) >= len(stamps) - 1  # state k's pose shares its stamp
+    assert all(np.all(np.abs(j.effort) > 50 * LOAD_UNIT_NM) for j in joints[-3:])  # effort in N m
+
+
+def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_the_limits(rig: Rig) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.reset().success
+    rig.ros.spin_for(0.5)
+    start = np.array(rig.driver.hand.goal)
+    msg = JointTrajectory(joint_names=list(ACTUATOR_NAMES))
+    targets = [start + np.array([0.0, -0.02]) * (k + 1) for k in range(10)]  # open finger 2 a little
+    for k, t in enumerate(targets):
+        point = JointTrajectoryPoint(positions=[float(v) for v in t])
+        point.time_from_start.nanosec = int((k + 1) * CONTROL_PERIOD_S * 1e9)
+        msg.points.append(point)
+    rig.trajectory_pub.publish(msg)
+    assert rig.ros.spin_until(lambda: names.TRAJECTORY_DONE in rig.events(), 5.0), rig.events()
+    rig.ros.spin_for(0.3)
+    assert np.allclose(rig.driver.hand.goal, targets[-1], atol=2 * xm.RAD_PER_TICK)
+    for bad in ([float("nan"), 0.0], [0.0, 1e9], [-1e9, 0.0]):
+        command = JointState(name=list(ACTUATOR_NAMES), velocity=bad)
+        command.header.stamp = rig.tester.get_clock().now().to_msg()
+        rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10).publish(command)
+    wrong = JointTrajectory(joint_names=["elbow", "wrist"], points=[JointTrajectoryPoint(positions=[9.0, 9.0])])
+    rig.trajectory_pub.publish(wrong)
+    rig.ros.spin_for(0.5)
+    low, high = zip(*rig.driver.hand.geometry.limits().values(), strict=True)
+    assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True)), rig.bench.goals()
+
+
+def test_with_the_tracker_stopped_no_fresh_looking_pose_goes_out(rig: Rig) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.reset().success
+    rig.ros.spin_for(0.5)
+    rig.bench.tracking = False
+    rig.ros.spin_for(0.6)
+    poses, joints = len(rig.poses), len(rig.joints)
+    rig.ros.spin_for(1.0)
+    assert len(rig.joints) >= joints + 7 and len(rig.poses) == poses  # steps go on, poses do not
+    assert names.STALE in rig.events()
+
+
+@pytest.mark.parametrize("inject", [
+    lambda bus: setattr(bus.bus.faults, "drop_replies", 3),
+    lambda bus: setattr(bus.bus.faults, "corrupt_replies", 2),
+    lambda bus: bus.bus.servos[2].raise_error(1 << 5),
+], ids=["dropped replies", "corruption", "error bit"])
+def test_a_fault_is_reported_then_the_driver_recovers(rig: Rig, inject) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.reset().success
+    inject(rig.bench.bus)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 1.5), rig.events()
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
+    assert rig.state() == "active" and rig.bench.torque() == [True, True]
+    assert rig.reset().success  # and a new episode steps
+    count = len(rig.joints)
+    rig.ros.spin_for(0.5)
+    assert len(rig.joints) > count
+
+
+def test_parameters_are_declared_and_bad_ones_refused(rig: Rig) -> None:
+    driver = rig.driver
+    assert driver.get_parameter("load_limit").value == 280.0
+    refused = driver.set_parameters([Parameter("grasp_load", value=500.0)])[0]  # above the load limit
+    assert not refused.successful and "grasp_load must be below load_limit" in refused.reason
+    assert driver.set_parameters([Parameter("load_limit", value=250.0)])[0].successful
+
+
+def test_cleanup_and_close_turn_the_torque_off(rig: Rig) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.bench.torque() == [True, True]
+    rig.driver.close()  # what the runner calls on SIGINT / SIGTERM
+    assert rig.bench.torque() == [False, False]
+    time.sleep(0.1)

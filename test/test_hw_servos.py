@@ -1,0 +1,95 @@
+"""hardware.servos against the emulated bus: what the driver does each step, and each fault as one ServoFault."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from t42_transfer.conventions import GRASP_LOAD, LOAD_UNIT_NM
+from t42_transfer.hand.sim import SimulatedHand
+from t42_transfer.hardware import servos as s
+from t42_transfer.hardware import xm430 as xm
+from t42_transfer.hardware.emulator import PtyBus, t42_bus
+from t42_transfer.hardware.hand_plant import T42_MOUNTS, HandPlant
+
+LIMITS = {1: (2048, 3400), 2: (2048, 3400)}
+
+
+@pytest.fixture
+def hand() -> Iterator[tuple[PtyBus, s.HandServos]]:
+    with PtyBus(t42_bus()) as bus:
+        servos = s.HandServos(bus.port, 1_000_000, (1, 2))
+        servos.open()
+        try:
+            yield bus, servos
+        finally:
+            servos.close()
+
+
+def test_check_configure_torque_and_one_step(hand) -> None:
+    bus, servos = hand
+    assert servos.check() == {1: xm.XM430_W350, 2: xm.XM430_W350}
+    servos.configure(xm.POSITION_MODE, LIMITS)
+    assert all(servos.read(i, xm.MIN_POSITION_LIMIT) == 2048 for i in (1, 2))
+    servos.torque(True)
+    servos.write_goals({1: 2100, 2: 2200})
+    state = servos.read_state()
+    assert state.positions == {1: 2100, 2: 2200} and state.currents == {1: 0, 2: 0}
+    servos.torque(False)
+    assert [bus.bus.servos[i].torque for i in (1, 2)] == [False, False]
+
+
+@pytest.mark.parametrize("inject, kind, servo", [
+    (lambda bus: setattr(bus.bus.faults, "drop_replies", 1), s.TIMEOUT, 1),
+    (lambda bus: setattr(bus.bus.faults, "corrupt_replies", 1), s.CORRUPT, 1),
+    (lambda bus: bus.bus.faults.dead.add(2), s.TIMEOUT, 2),
+    (lambda bus: bus.bus.servos[2].raise_error(1 << 5), s.HARDWARE, 2),
+    (lambda bus: bus.close_port(), s.PORT, None),
+], ids=["dropped", "corrupt", "dead", "error bit", "unplugged"])
+def test_each_fault_is_one_servo_fault_naming_the_servo(hand, inject, kind: str, servo: int | None) -> None:
+    bus, servos = hand
+    servos.torque(True)
+    inject(bus)
+    with pytest.raises(s.ServoFault) as fault:
+        servos.read_state()
+    assert (fault.value.kind, fault.value.servo_id) == (kind, servo), fault.value
+    if kind == s.HARDWARE:
+        assert "overload error" in str(fault.value)
+        servos.reboot(2)
+        assert servos.hardware_status(2) == 0 and servos.read_state().positions[2] == xm.ZERO_TICK
+
+
+def test_a_port_that_is_no_dynamixel_bus(tmp_path) -> None:
+    plain = tmp_path / "not_a_port"
+    plain.write_text("")
+    servos = s.HandServos(str(plain), 1_000_000, (1, 2))
+    with pytest.raises(s.ServoFault) as fault:
+        servos.open()
+        servos.check()
+    assert fault.value.kind in (s.PORT, s.TIMEOUT)
+
+
+def test_a_grasp_through_the_bus_closes_until_the_load() -> None:
+    """Behind the bus the simulated hand closes on the object; its loads come back through Present Current."""
+    plant = HandPlant(SimulatedHand("target"))
+    with PtyBus(t42_bus(plant=plant)) as bus:
+        servos = s.HandServos(bus.port, 1_000_000, (1, 2))
+        servos.open()
+        servos.torque(True)
+        goals, closed = {1: xm.ZERO_TICK, 2: xm.ZERO_TICK}, {1: False, 2: False}
+        for _ in range(200):
+            state = servos.read_state()
+            loads = {i: xm.current_to_load(state.currents[i], LOAD_UNIT_NM) for i in (1, 2)}
+            closed = {i: closed[i] or abs(loads[i]) > GRASP_LOAD for i in (1, 2)}
+            if all(closed.values()):
+                break
+            goals = {i: g + (0 if closed[i] else 7) for i, g in goals.items()}
+            servos.write_goals(goals)
+            plant.tick()
+        servos.close()
+    assert all(closed.values())
+    true_loads = plant.hand.loads
+    assert np.all(np.abs(true_loads) > GRASP_LOAD * 0.8)
+    assert [np.sign(loads[m.servo_id]) for m in T42_MOUNTS] == list(np.sign(true_loads))
