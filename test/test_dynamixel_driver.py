@@ -7,6 +7,7 @@ control rate, unsynchronised with the driver, as a real hand is.
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -18,7 +19,7 @@ from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
-from ros_rig import RosRig, Tester
+from ros_rig import RosRig, Tester, start_node, stop
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -215,3 +216,23 @@ def test_cleanup_and_close_turn_the_torque_off(rig: Rig) -> None:
     rig.driver.close()  # what the runner calls on SIGINT / SIGTERM
     assert rig.bench.torque() == [False, False]
     time.sleep(0.1)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: int) -> None:
+    """``t42 node dynamixel_driver`` with autostart on the emulated bus; the signal ends it, the torque goes off."""
+    bus = PtyBus(t42_bus())
+    proc = start_node("dynamixel_driver", "-p", f"port:={bus.port}", "-p", "autostart:=true")
+    try:
+        deadline = time.monotonic() + 30.0
+        while [s.torque for s in bus.bus.servos.values()] != [True, True]:
+            assert time.monotonic() < deadline and proc.poll() is None, "the driver never turned the torque on"
+            time.sleep(0.05)
+        handled = bus.bus.handled
+        time.sleep(0.5)
+        assert bus.bus.handled > handled + 5  # it steps: one sync read and one sync write each period
+        assert stop([proc], timeout_s=10.0, sig=sig) == [0]
+        assert [s.torque for s in bus.bus.servos.values()] == [False, False]
+    finally:
+        stop([proc])
+        bus.close_port()

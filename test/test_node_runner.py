@@ -78,7 +78,7 @@ def test_node_list_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     out = capsys.readouterr().out
     assert all(name in out for name in NODES)
     assert main(["node", "no_such_node"]) == 2
-    assert "available: mock_driver, recorder" in capsys.readouterr().err
+    assert f"available: {', '.join(NODES)}" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ one node process

@@ -6,7 +6,9 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
   operating mode and the position limits, read where the fingers stand;
 * activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
 * deactivate: hold the position, stop stepping (torque stays on);
-* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM) is a shutdown.
+* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM) turns the torque
+  off too, whatever the state.  ``autostart`` configures and activates at start, for a suite run without a
+  lifecycle manager (``t42 up``).
 
 Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
@@ -91,6 +93,8 @@ class DynamixelDriverParams:
                                      min=1e-3, max=3600.0)
     watchdog_s: float = param(1.0, "with no command or trajectory for this long the hand holds", min=0.1,
                               max=3600.0)
+    autostart: bool = param(False, "configure and activate at start (a suite without a lifecycle manager)",
+                            read_only=True)
 
     def geometry(self) -> HandGeometry:
         return HandGeometry(tuple(self.servo_ids), tuple(self.open_ticks), tuple(self.directions),  # type: ignore[arg-type]
@@ -135,6 +139,14 @@ class DynamixelDriver(LifecycleNode):
         # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
         self.create_service(Trigger, names.HAND_RESET, self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
+        if self.params.autostart:
+            self._autostart = self.create_timer(0.0, self._start)
+
+    def _start(self) -> None:
+        """``autostart``: configure, then activate, once the executor spins."""
+        self._autostart.cancel()
+        if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
+            self.trigger_activate()
 
     @property
     def params(self) -> DynamixelDriverParams:

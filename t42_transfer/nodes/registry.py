@@ -37,6 +37,8 @@ NODES: dict[str, NodeSpec] = {
                             "simulated hand behind the real driver's topics"),
     "dynamixel_driver": NodeSpec("t42_transfer.nodes.dynamixel_driver:DynamixelDriver",
                                  "a real T42's Dynamixel servos behind the driver's topics (a lifecycle node)"),
+    "hw_emulator": NodeSpec("t42_transfer.nodes.hw_emulator:HwEmulator",
+                            "emulated T42 hardware: servo bus on a pty with the simulated hand, and a tracker"),
     "recorder": NodeSpec("t42_transfer.nodes.recorder:Recorder",
                          "records the hand topics into rosbag2 MCAP bags"),
     "explorer": NodeSpec("t42_transfer.nodes.explorer:Explorer",

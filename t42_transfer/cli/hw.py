@@ -1,0 +1,51 @@
+"""``t42 hw emulate``: emulated T42 hardware (a servo bus on a pty, the simulated hand, a tracker) as a node."""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from t42_transfer.cli.args import SEED_MAX, float_arg, int_arg
+
+FAULT = re.compile(r"^(drop_replies|corrupt_replies|dead_servos|error_bits|port_closed)=(\S+)$")
+"""``--fault NAME=VALUE``: one of the emulator's fault parameters (see ``t42_transfer.nodes.hw_emulator``)."""
+
+
+def fault_arg(text: str) -> str:
+    """An argparse type: ``NAME=VALUE`` naming a fault parameter, returned as a ROS ``-p`` argument."""
+    match = FAULT.match(text)
+    if match is None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of drop_replies, "
+                                         "corrupt_replies, dead_servos, error_bits, port_closed")
+    return f"{match.group(1)}:={match.group(2)}"
+
+
+def _cmd_emulate(args: argparse.Namespace) -> int:
+    from t42_transfer.ros.runner import keep_discovery_local, run_node
+
+    params = [f"rate_factor:={args.rate_factor}", f"seed:={args.seed}", f"pose_rate_hz:={args.pose_rate}",
+              f"sim_time:={str(args.sim_time).lower()}", f"hand:={args.hand}", *args.fault]
+    if args.link:
+        params.append(f"link:={args.link.absolute()}")
+    keep_discovery_local()
+    ros_args = ["--ros-args"] + [a for p in params for a in ("-p", p)] + list(args.ros_args)
+    return run_node("hw_emulator", ros_args)
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    hw = commands.add_parser("hw", help="T42 hardware: an emulated hand to drive").add_subparsers(
+        dest="hw_command", metavar="ACTION")
+    emu = hw.add_parser("emulate", help="two XM430 servos on a pty with the simulated hand behind them, and a "
+                                        "tracker on tracker/object_pose, until Ctrl-C")
+    emu.add_argument("--link", type=Path, default=None, help="symlink to the servo bus (e.g. /tmp/ttyT42)")
+    emu.add_argument("--hand", default="target", help="simulated hand behind the servos (default target)")
+    emu.add_argument("--rate-factor", type=float_arg(0, 100, low_open=True), default=1.0,
+                     help="run this many times faster than real time (with --sim-time)")
+    emu.add_argument("--sim-time", action="store_true", help="publish /clock: the graph runs on the emulator's time")
+    emu.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    emu.add_argument("--pose-rate", type=float_arg(0.1, 100), default=6.0, help="tracker frames per second (6)")
+    emu.add_argument("--fault", type=fault_arg, action="append", default=[], metavar="NAME=VALUE",
+                     help="inject a fault from the start, e.g. drop_replies=5, error_bits=[0,32], port_closed=true")
+    emu.add_argument("ros_args", nargs=argparse.REMAINDER, help="more ROS arguments after --ros-args")
+    emu.set_defaults(func=_cmd_emulate)

@@ -1,0 +1,158 @@
+"""Emulated T42 hardware: two XM430 servos on a pseudo-terminal with the simulated hand behind them, and a tracker.
+
+What a driver meets where a real hand would be (``t42 hw emulate``):
+
+* the servo bus on a pty (``link`` makes a stable symlink to it): Dynamixel protocol 2.0, the servos'
+  control tables, :mod:`t42_transfer.hardware.emulator`; Goal Position drives the simulated hand's tendons,
+  Present Position and Present Current come from its physics, stepped once per control period;
+* ``tracker/object_pose`` (geometry_msgs/PoseStamped): the object as the real hands' camera saw it, at
+  ``pose_rate_hz`` (the public test paths show 34-53 % of 10 Hz steps with no new pose), stamped at capture,
+  ``pose_latency_s`` late, each frame lost with probability ``pose_dropout``;
+* ``sim/object_pose``: the true object position every step, for checks only;
+* with ``sim_time``, ``/clock``: one control period per tick, ``rate_factor`` times faster than real time.
+
+Faults are parameters, so they are injected at start (``-p drop_replies:=5``) or at run time
+(``ros2 param set``): ``drop_replies`` and ``corrupt_replies`` count down as replies go, ``dead_servos``
+never answer, ``error_bits`` sets a Hardware Error Status on the servos in id order (e.g. ``[0, 32]``:
+overload on the second), ``port_closed`` takes the terminal away (and back when set false: a new pty at
+the same link).
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass
+from typing import Any
+
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from msg_adapters import RCLPY, names, ns_to_stamp, object_pose_msg
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
+from t42_transfer.hand.params import NAMED_VARIANTS
+from t42_transfer.hand.sim import SimulatedHand
+from t42_transfer.hardware.emulator import PtyBus, t42_bus
+from t42_transfer.hardware.hand_plant import HandPlant
+from t42_transfer.ros.params import LiveParams, param
+
+
+@dataclass(frozen=True)
+class HwEmulatorParams:
+    """The emulator's ROS parameters."""
+
+    link: str = param("", "symlink to the servo bus's pty (empty: none; the log names the pty)", read_only=True)
+    hand: str = param("target", f"simulated hand behind the servos: {', '.join(NAMED_VARIANTS)}", read_only=True)
+    seed: int = param(0, "seed of the first object placement; each placement after uses the next", min=0,
+                      read_only=True)
+    rate_factor: float = param(1.0, "physics runs this many times faster than real time", min=1e-3, max=100.0)
+    sim_time: bool = param(False, "be the graph's clock: /clock advances one control period per tick",
+                           read_only=True)
+    pose_rate_hz: float = param(6.0, "tracker frames per second of (sim) time", min=0.1, max=100.0)
+    pose_latency_s: float = param(0.03, "a frame goes out this long after it was captured", min=0.0, max=1.0)
+    pose_dropout: float = param(0.0, "probability that a frame is lost", min=0.0, max=1.0)
+    drop_replies: int = param(0, "replies still to drop", min=0, max=1_000_000)
+    corrupt_replies: int = param(0, "replies still to corrupt (one byte flipped)", min=0, max=1_000_000)
+    dead_servos: tuple[int, ...] = param((0,), "ids of servos that no longer answer (0: none)")
+    error_bits: tuple[int, ...] = param((0, 0), "Hardware Error Status to raise on the servos, in id order")
+    port_closed: bool = param(False, "the adapter unplugged: the pty goes away until set false")
+
+    def __post_init__(self) -> None:
+        if any(not 0 <= b <= 255 for b in self.error_bits):
+            raise ValueError(f"error_bits must be bytes (0-255), got {list(self.error_bits)}")
+
+
+class HwEmulator(Node):
+    """The emulated hand on its bus, and its tracker; see the module docstring."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("hw_emulator", **node_kwargs)
+        self._params = LiveParams(self, HwEmulatorParams, self._on_params)
+        p = self.params
+        self.log = self.get_logger()
+        self.plant = HandPlant(SimulatedHand(p.hand), seed=p.seed)
+        self.bus = t42_bus(plant=self.plant)
+        self.pty: PtyBus | None = PtyBus(self.bus, link=p.link or None)
+        self._rng = random.Random(p.seed)
+        self._sim_ns = self.get_clock().now().nanoseconds
+        self._next_frame_ns = self._sim_ns
+        self._pending: list[tuple[int, int, Any]] = []
+        """Frames captured and not yet out: (due, capture stamp, xy)."""
+        self._tracker = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
+        self._truth = self.create_publisher(PoseStamped, names.SIM_POSE, 10)
+        self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
+        self._apply_faults(p)
+        self._timer = self.create_timer(CONTROL_PERIOD_S / p.rate_factor, self._on_timer)
+        self.log.info(f"servo bus on {self.port} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
+
+    @property
+    def params(self) -> HwEmulatorParams:
+        return self._params.value
+
+    @property
+    def port(self) -> str:
+        return "" if self.pty is None else self.pty.port
+
+    def now_ns(self) -> int:
+        return self._sim_ns if self._clock_pub is not None else self.get_clock().now().nanoseconds
+
+    def close(self) -> None:
+        self._timer.cancel()
+        if self.pty is not None:
+            self.pty.close_port()
+            self.pty = None
+
+    # ------------------------------------------------------------------ faults
+    def _on_params(self, old: HwEmulatorParams, new: HwEmulatorParams) -> None:
+        if new.rate_factor != old.rate_factor:
+            self._timer.timer_period_ns = round(CONTROL_PERIOD_S / new.rate_factor * 1e9)
+        self._apply_faults(new)
+
+    def _apply_faults(self, p: HwEmulatorParams) -> None:
+        faults = self.bus.faults
+        with self.bus.lock:
+            faults.drop_replies, faults.corrupt_replies = p.drop_replies, p.corrupt_replies
+            faults.dead = {i for i in p.dead_servos if i}
+            for servo, bits in zip(sorted(self.bus.servos), p.error_bits, strict=False):
+                if bits:
+                    self.bus.servos[servo].raise_error(bits)
+        if p.port_closed and self.pty is not None:
+            self.log.warning(f"port {self.pty.port} closed (the adapter unplugged)")
+            self.pty.close_port()
+            self.pty = None
+        elif not p.port_closed and self.pty is None:
+            self.pty = PtyBus(self.bus, link=p.link or None)
+            self.log.info(f"port back on {self.pty.port}")
+
+    # ------------------------------------------------------------------ one tick
+    def _on_timer(self) -> None:
+        try:
+            if self._clock_pub is not None:
+                self._sim_ns += CONTROL_PERIOD_NS
+                self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
+            self.plant.tick()
+            now = self.now_ns()
+            self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
+            self._camera(now)
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"emulator tick failed: {err!r}", throttle_duration_sec=1.0)
+
+    def _camera(self, now: int) -> None:
+        """Frames at the tracker's rate, with a little jitter: each captured now, sent after the latency."""
+        p = self.params
+        period_ns = round(1e9 / p.pose_rate_hz)
+        while self._next_frame_ns <= now:
+            jitter = self._rng.uniform(-0.1, 0.1) * period_ns
+            self._next_frame_ns += max(1, round(period_ns + jitter))
+            if self._rng.random() >= p.pose_dropout:
+                xy = self.plant.hand.state[:2]
+                self._pending.append((now + round(p.pose_latency_s * 1e9), now, xy))
+        due, self._pending = self._pending, []
+        for frame in due:
+            if frame[0] > now + CONTROL_PERIOD_NS // 2:  # not yet: its latency runs past this tick
+                self._pending.append(frame)
+                continue
+            _, stamp, xy = frame
+            if math.isfinite(float(xy[0])):
+                self._tracker.publish(object_pose_msg(xy, stamp, RCLPY))

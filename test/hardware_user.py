@@ -1,0 +1,132 @@
+"""A ROS 2 user's plain rclpy script against the suite on (emulated) hardware; it imports nothing of the project.
+
+    python hardware_user.py
+
+Drives the Dynamixel driver's lifecycle to active (if autostart has not), lists and sets parameters, resets
+the hand, counts the hand topics, sends a JointTrajectory and bad commands.  Prints one JSON object with
+what it saw; exit 0 when every step got an answer.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+
+import rclpy
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import PoseStamped
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
+from rcl_interfaces.msg import Log, Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import ListParameters, SetParameters
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+DRIVER = "/dynamixel_driver"
+
+
+class User(Node):
+    def __init__(self) -> None:
+        super().__init__("hardware_user")
+        self.joints: list[JointState] = []
+        self.poses: list[PoseStamped] = []
+        self.actions: list[JointState] = []
+        self.statuses: list[str] = []
+        self.logs: list[Log] = []
+        self.create_subscription(JointState, "/hand/joint_states", self.joints.append, 100)
+        self.create_subscription(PoseStamped, "/hand/object_pose", self.poses.append, 100)
+        self.create_subscription(JointState, "/hand/applied_action", self.actions.append, 100)
+        self.create_subscription(String, "/hand/status", lambda m: self.statuses.append(m.data),
+                                 QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.create_subscription(Log, "/rosout", self.logs.append, 1000)
+        self.trajectory = self.create_publisher(JointTrajectory, "/hand/trajectory", 10)
+        self.command = self.create_publisher(JointState, "/hand/command", 10)
+
+    def spin_for(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            rclpy.spin_once(self, timeout_sec=0.02)
+
+    def call(self, srv_type, name: str, request, timeout_s: float = 30.0):  # noqa: ANN001
+        client = self.create_client(srv_type, name)
+        if not client.wait_for_service(timeout_sec=timeout_s):
+            raise RuntimeError(f"no service {name}")
+        future = client.call_async(request)
+        end = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > end:
+                raise RuntimeError(f"no answer from {name}")
+            rclpy.spin_once(self, timeout_sec=0.05)
+        return future.result()
+
+
+def double(name: str, value: float) -> Parameter:
+    return Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
+
+
+def main() -> int:
+    rclpy.init()
+    user = User()
+    seen: dict = {}
+    try:
+        state = ""
+        for _ in range(100):
+            state = user.call(GetState, f"{DRIVER}/get_state", GetState.Request()).current_state.label
+            if state == "active":
+                break
+            if state == "unconfigured":
+                user.call(ChangeState, f"{DRIVER}/change_state",
+                          ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
+            elif state == "inactive":
+                user.call(ChangeState, f"{DRIVER}/change_state",
+                          ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE)))
+            user.spin_for(0.2)
+        seen["state"] = state
+        seen["parameters"] = sorted(user.call(ListParameters, f"{DRIVER}/list_parameters",
+                                              ListParameters.Request()).result.names)
+        results = user.call(SetParameters, f"{DRIVER}/set_parameters",
+                            SetParameters.Request(parameters=[double("load_limit", 250.0), double("grasp_load", 400.0)]))
+        seen["set"] = [(r.successful, r.reason) for r in results.results]
+        reset = user.call(Trigger, "/hand/reset", Trigger.Request(), timeout_s=60.0)
+        seen["reset"] = [reset.success, reset.message]
+        counts = len(user.joints), len(user.poses), len(user.actions)
+        user.spin_for(2.0)
+        seen["rates_hz"] = [(n - c) / 2.0 for n, c in zip((len(user.joints), len(user.poses), len(user.actions)),
+                                                             counts, strict=True)]
+        last = user.joints[-1]
+        names, start = list(last.name), list(last.position)
+        msg = JointTrajectory(joint_names=names)
+        targets = [[start[0], max(0.0, start[1] - 0.015 * (k + 1))] for k in range(10)]
+        for k, target in enumerate(targets):
+            msg.points.append(JointTrajectoryPoint(positions=target,
+                                                   time_from_start=Duration(nanosec=(k + 1) * 100_000_000)))
+        user.trajectory.publish(msg)
+        end = time.monotonic() + 5.0
+        while not any(s.startswith("trajectory_done") for s in user.statuses) and time.monotonic() < end:
+            rclpy.spin_once(user, timeout_sec=0.05)
+        user.spin_for(0.5)
+        seen["trajectory_done"] = any(s.startswith("trajectory_done") for s in user.statuses)
+        seen["followed"] = [list(user.joints[-1].position), targets[-1]]
+        for velocity, joint_names in (([math.nan, 0.0], names), ([0.0, 1e9], names), ([0.1, 0.1], ["elbow", "wrist"])):
+            bad = JointState(name=joint_names, velocity=velocity)
+            bad.header.stamp = user.get_clock().now().to_msg()
+            user.command.publish(bad)
+        user.spin_for(1.0)
+        seen["rejections"] = sum("rejected hand/command" in log.msg for log in user.logs if log.name == "dynamixel_driver")
+        seen["positions_after"] = [list(j.position) for j in user.joints[-5:]]
+    except RuntimeError as err:
+        seen["error"] = str(err)
+    print(json.dumps(seen))
+    user.destroy_node()
+    rclpy.shutdown()
+    return 1 if "error" in seen else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

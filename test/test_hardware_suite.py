@@ -1,0 +1,46 @@
+"""``t42 up configs/hardware_emulated.yaml`` (emulator and Dynamixel driver) used by a plain rclpy script."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+from ros_rig import REPO, stop
+
+USER = Path(__file__).with_name("hardware_user.py")
+T42 = [sys.executable, "-u", "-m", "t42_transfer.cli"]
+
+
+def test_a_plain_rclpy_script_drives_the_emulated_hand(ros_domain: int, tmp_path: Path) -> None:
+    config = yaml.safe_load((REPO / "configs" / "hardware_emulated.yaml").read_text())
+    link = str(tmp_path / "ttyT42")  # the test's own port: parallel runs do not share /tmp/t42_servos
+    config["/**/hw_emulator"]["ros__parameters"]["link"] = link
+    config["/**/dynamixel_driver"]["ros__parameters"]["port"] = link
+    params = tmp_path / "hardware.yaml"
+    params.write_text(yaml.safe_dump(config))
+    suite = subprocess.Popen([*T42, "up", str(params), "--only", "hw_emulator,dynamixel_driver"], cwd=tmp_path,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        user = subprocess.run([sys.executable, str(USER)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    finally:
+        codes = stop([suite], timeout_s=15.0)
+    out = suite.stdout.read() if suite.stdout else ""
+    if suite.stdout:
+        suite.stdout.close()
+    assert user.returncode == 0, (user.stdout, user.stderr, out[-3000:])
+    seen = json.loads(user.stdout.strip().splitlines()[-1])
+    assert seen["state"] == "active"
+    assert {"port", "servo_ids", "load_limit", "grasp_load", "max_pose_age_s"} <= set(seen["parameters"])
+    (ok, _), (refused, reason) = seen["set"]
+    assert ok and not refused and "grasp_load must be below load_limit" in reason
+    assert seen["reset"][0], seen["reset"]
+    assert all(8.0 <= r <= 12.0 for r in seen["rates_hz"]), seen["rates_hz"]
+    assert seen["trajectory_done"]
+    final, target = seen["followed"]
+    assert abs(final[1] - target[1]) < 0.03 and abs(final[0] - target[0]) < 0.03, seen["followed"]
+    assert seen["rejections"] >= 3
+    assert all(0.0 <= a <= 3.0 + 1e-3 for pos in seen["positions_after"] for a in pos)
+    assert codes == [0], out[-3000:]

@@ -1,0 +1,90 @@
+"""The emulated hardware node with the Dynamixel driver on its port: the suite's hand without a hand."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from geometry_msgs.msg import PoseStamped
+from lifecycle_msgs.srv import GetState
+from rclpy.parameter import Parameter
+from ros_rig import RosRig, Tester
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from msg_adapters import names, stamp_to_ns, status_event
+from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
+from t42_transfer.nodes.hw_emulator import HwEmulator
+from t42_transfer.ros.qos import profile
+
+
+class Rig(Tester):
+    def __init__(self, ros: RosRig, link: Path) -> None:
+        super().__init__(ros)
+        self.emulator = ros.add(HwEmulator, {"link": str(link)})
+        self.driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True})
+        self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
+        self.tracker = self.listen(PoseStamped, names.TRACKER_POSE)
+        self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
+        self.joints = self.listen(JointState, names.JOINT_STATES)
+        self.get = self.tester.create_client(GetState, "dynamixel_driver/get_state")
+        self.reset_client = self.tester.create_client(Trigger, names.HAND_RESET)
+
+    def events(self) -> list[str]:
+        return [status_event(s.data) for s in self.statuses]
+
+    def active(self) -> bool:
+        return self.ros.call(self.get, GetState.Request()).current_state.label == "active"
+
+    def reset(self) -> bool:
+        answer = self.ros.call(self.reset_client, Trigger.Request(), timeout_s=60.0)
+        return bool(answer.success)
+
+    def inject(self, **faults: object) -> None:
+        result = self.emulator.set_parameters([Parameter(k, value=v) for k, v in faults.items()])
+        assert all(r.successful for r in result), result
+
+
+@pytest.fixture
+def rig(ros: RosRig, tmp_path: Path) -> Iterator[Rig]:
+    r = Rig(ros, tmp_path / "ttyT42")
+    yield r
+    r.driver.close()
+    r.emulator.close()
+
+
+def test_the_driver_runs_the_emulated_hand_with_the_trackers_rate(rig: Rig) -> None:
+    assert rig.ros.spin_until(rig.active, 10.0)
+    assert rig.reset()
+    start_joints, start_tracker = len(rig.joints), len(rig.tracker)
+    rig.ros.spin_for(3.0)
+    steps, frames = len(rig.joints) - start_joints, len(rig.tracker) - start_tracker
+    assert 25 <= steps <= 35
+    assert 0.3 <= 1 - frames / steps <= 0.6, (frames, steps)  # steps without a new frame: 34-53 % on the real hands
+    joint_stamps = {stamp_to_ns(j.header.stamp) for j in rig.joints[start_joints:]}
+    pose_stamps = [stamp_to_ns(p.header.stamp) for p in rig.poses]
+    assert sum(s in joint_stamps for s in pose_stamps) >= steps - 2  # one pose per step, stamped with it
+
+
+@pytest.mark.parametrize("fault, clear", [
+    ({"drop_replies": 4}, {}),
+    ({"corrupt_replies": 3}, {}),
+    ({"error_bits": [0, 32]}, {"error_bits": [0, 0]}),
+    ({"dead_servos": [2]}, {"dead_servos": [0]}),
+    ({"port_closed": True}, {"port_closed": False}),
+], ids=["dropped replies", "corruption", "error bit", "dead servo", "port closed"])
+def test_each_injected_fault_shows_within_a_second_and_the_driver_comes_back(rig: Rig, fault: dict,
+                                                                              clear: dict) -> None:
+    assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()
+    rig.inject(**fault)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 1.0), rig.events()
+    assert rig.driver.get_parameter("port").value and rig.active()  # alive and still active
+    if clear:
+        rig.inject(**clear)
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
+    assert rig.reset()
+    count = len(rig.joints)
+    rig.ros.spin_for(0.5)
+    assert len(rig.joints) > count
