@@ -15,6 +15,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import names, stamp_to_ns, status_event
+from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 from t42_transfer.nodes.hw_emulator import HwEmulator
 from t42_transfer.ros.qos import profile
@@ -88,3 +89,28 @@ def test_each_injected_fault_shows_within_a_second_and_the_driver_comes_back(rig
     count = len(rig.joints)
     rig.ros.spin_for(0.5)
     assert len(rig.joints) > count
+
+
+def test_steps_without_a_fresh_pose_are_left_out_of_the_recorded_episode_with_a_warning(rig: Rig, ros: RosRig,
+                                                                                          tmp_path: Path) -> None:
+    from t42_transfer.data.bag import read_bag
+    from t42_transfer.nodes.recorder import Recorder
+
+    assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()
+    recorder = ros.add(Recorder, {"out_dir": str(tmp_path / "bags")})
+    rig.ros.spin_for(2.5)
+    rig.inject(pose_dropout=1.0)  # the camera loses the object for a second
+    assert rig.ros.spin_until(lambda: names.STALE in rig.events(), 2.0)
+    rig.ros.spin_for(1.0)
+    rig.inject(pose_dropout=0.0)
+    rig.ros.spin_for(2.5)
+    (bag,) = [recorder.current_bag]
+    recorder.close()
+    with pytest.warns(UserWarning, match="dropped|left out|missing"):
+        data = read_bag(bag, allow_gaps=True)
+    assert len(data) == 2  # split where the poses went stale
+    stale = [stamp_to_ns(j.header.stamp) for j in rig.joints if stamp_to_ns(j.header.stamp) not in
+             {stamp_to_ns(p.header.stamp) for p in rig.poses}]
+    assert len(stale) >= 5  # steps went out without a pose ...
+    kept = {t.start_ns + k * CONTROL_PERIOD_NS for t in data for k in range(len(t) + 1)}
+    assert not kept & set(stale)  # ... and none of them is in the recorded episodes
