@@ -236,3 +236,15 @@ def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: 
     finally:
         stop([proc])
         bus.close_port()
+
+
+@pytest.mark.parametrize("config", ["hardware_real.yaml", "hardware_emulated.yaml"])
+def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> None:
+    import yaml
+    from ros_rig import REPO
+
+    from t42_transfer.nodes.dynamixel_driver import DynamixelDriverParams
+
+    section = yaml.safe_load((REPO / "configs" / config).read_text())["/**/dynamixel_driver"]["ros__parameters"]
+    params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})
+    assert params.geometry().limits()  # the geometry checks itself: servo range, grasp below the load limit
