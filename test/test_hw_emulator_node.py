@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.srv import GetState
 from rclpy.parameter import Parameter
@@ -14,9 +16,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from msg_adapters import names, stamp_to_ns, status_event
+from msg_adapters import names, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
+from t42_transfer.nodes.dynamixel_driver import STATUS_NAME, DynamixelDriver
 from t42_transfer.nodes.hw_emulator import HwEmulator
 from t42_transfer.ros.qos import profile
 
@@ -30,8 +32,21 @@ class Rig(Tester):
         self.tracker = self.listen(PoseStamped, names.TRACKER_POSE)
         self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
         self.joints = self.listen(JointState, names.JOINT_STATES)
+        self.diagnostics = self.listen(DiagnosticArray, names.DIAGNOSTICS)
         self.get = self.tester.create_client(GetState, "dynamixel_driver/get_state")
         self.reset_client = self.tester.create_client(Trigger, names.HAND_RESET)
+
+    def reports(self, level: str) -> list[Any]:
+        """The driver's diagnostics at ``level`` so far."""
+        found = []
+        for array in self.diagnostics:
+            try:
+                report = status_report(array, STATUS_NAME)
+            except KeyError:
+                continue
+            if report.level == level:
+                found.append(report)
+        return found
 
     def events(self) -> list[str]:
         return [status_event(s.data) for s in self.statuses]
@@ -80,7 +95,11 @@ def test_each_injected_fault_shows_within_a_second_and_the_driver_comes_back(rig
                                                                               clear: dict) -> None:
     assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()
     rig.inject(**fault)
-    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 1.0), rig.events()
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events() and rig.reports("ERROR"), 1.0), rig.events()
+    values = rig.reports("ERROR")[0].values
+    assert values["fault_kind"] in ("timeout", "corrupt", "hardware", "port")
+    if "error_bits" in fault:
+        assert values["servo_id"] == "2" and "overload error" in values["hardware_errors"]
     assert rig.driver.get_parameter("port").value and rig.active()  # alive and still active
     if clear:
         rig.inject(**clear)

@@ -70,6 +70,8 @@ STATUS_NAME = "t42_transfer: dynamixel_driver"
 RETRY_PERIOD_S = 1.0
 LATE_FRACTION = 0.5
 """A step more than this many periods after the previous one is late."""
+DIAGNOSTICS_EVERY = 10
+"""Steps between two diagnostics while all is well (faults are reported at once)."""
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,7 @@ class DynamixelDriver(LifecycleNode):
         self._pose: tuple[int, np.ndarray] | None = None
         self._stale = False
         self._next_retry_s = 0.0
+        self._ticks = 0
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
         self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
@@ -277,6 +280,10 @@ class DynamixelDriver(LifecycleNode):
         if self._last_step_s is not None and now_s - self._last_step_s > (1 + LATE_FRACTION) * CONTROL_PERIOD_S:
             self.late_steps += 1
         self._last_step_s = now_s
+        self._ticks += 1
+        if self._ticks % DIAGNOSTICS_EVERY == 0 and self.fault is None:
+            stale = self._stale
+            self._publish_diagnostics("WARN" if stale else "OK", "stale object pose" if stale else "stepping")
         try:
             if self.fault is not None:
                 self._try_recover(now_s)
@@ -402,7 +409,8 @@ class DynamixelDriver(LifecycleNode):
 
     def _publish_diagnostics(self, level: str, message: str) -> None:
         fault = self.fault
-        values: dict[str, object] = {"late_steps": self.late_steps, "episode": self.episode, "steps": self.steps}
+        values: dict[str, object] = {"late_steps": self.late_steps, "episode": self.episode, "steps": self.steps,
+                                     "pose_stale": self._stale}
         if fault is not None:
             values.update(fault_kind=fault.kind, servo_id="" if fault.servo_id is None else fault.servo_id)
             if fault.kind == HARDWARE:
