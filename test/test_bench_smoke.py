@@ -227,3 +227,13 @@ def test_bench_suite_latency(tmp_path: Path, ros_domain: int) -> None:
     assert 0 < goals["median_s"] <= goals["max_s"] and positive(goals["planning_median_s"])
     assert positive(goals["ratio_median_over_planning"]) and positive(result["whole_demo_s"])
     assert {"command", "machine", "load_average_after"} <= set(result)
+
+
+def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
+    result = run_bench("bench_driver.py", "--seconds", "2", out=tmp_path / "driver.json")
+    driver, bare = result["driver"], result["bare_sdk_loop"]
+    assert result["seconds"] == 2.0 and 10 <= driver["steps"] <= 30 and 10 <= bare["steps"] <= 30
+    assert all(positive(driver[k]) for k in ("cpu_ms_per_step",)) and positive(bare["round_trip_ms"])
+    assert set(driver["interval_ms"]) == {"mean", "std", "p99", "max"} and 80 < driver["interval_ms"]["mean"] < 130
+    assert isinstance(driver["late_steps"], int) and positive(result["cpu_ratio_driver_to_bare"])
+    assert result["target"] == {"cpu_ratio_max": 1.5, "late_steps": 0} and "load_average" in result["machine"]

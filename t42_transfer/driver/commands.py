@@ -10,14 +10,15 @@ trajectory pre-empts a running one; an empty trajectory just cancels.  Nothing h
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
 
 import numpy as np
 
 from msg_adapters import applied_action, joint_trajectory_to_actions, stamp_to_ns
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT
 
+T = TypeVar("T")
 _LIMIT_SLACK = 1e-6
 """Relative slack on ACTION_LIMIT: wire round trips may land a hair past +-1.5."""
 
@@ -86,6 +87,17 @@ def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], no
     except ValueError as err:
         raise CommandRejected(f"trajectory: {err}") from None
     return check_actions(actions.reshape(-1, ACTION_DIM), "trajectory action")
+
+
+def accept(log: Any, topic: str, check: Callable[[], T]) -> T | None:
+    """What ``check()`` returns, or None with the reason logged on ``log``: a driver's callback never raises."""
+    try:
+        return check()
+    except CommandRejected as err:
+        log.warning(f"rejected {topic}: {err}; keeping the last safe command")
+    except Exception as err:  # a message no check foresaw
+        log.error(f"rejected {topic}: could not read the message ({err!r})")
+    return None
 
 
 class ActionQueue:

@@ -59,7 +59,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_S
-from t42_transfer.driver.commands import ActionQueue, CommandRejected, validate_command, validate_trajectory
+from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, HandServos, ServoFault
@@ -232,32 +232,23 @@ class DynamixelDriver(LifecycleNode):
         self._pose = (stamp, object_xy_mm(msg).astype(np.float64))
 
     def _on_command(self, msg: JointState) -> None:
-        try:
-            action = validate_command(msg, self.now_ns(), round(self.params.max_command_age_s * 1e9))
-        except CommandRejected as err:
-            self.log.warning(f"rejected {names.HAND_COMMAND}: {err}")
-            return
-        except Exception as err:  # never raise from a callback
-            self.log.error(f"rejected {names.HAND_COMMAND}: could not read the message ({err!r})")
-            return
-        self.queue.set_command(action)
-        self._last_input_s = time.monotonic()
+        max_age = round(self.params.max_command_age_s * 1e9)
+        action = accept(self.log, names.HAND_COMMAND, lambda: validate_command(msg, self.now_ns(), max_age))
+        if action is not None:
+            self.queue.set_command(action)
+            self._last_input_s = time.monotonic()
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         hand = self.hand
         if hand is None:
             self.log.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
             return
-        try:
-            actions = validate_trajectory(msg, hand.goal, self.now_ns(), round(self.params.max_command_age_s * 1e9))
-        except CommandRejected as err:
-            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: {err}")
-            return
-        except Exception as err:
-            self.log.error(f"rejected {names.HAND_TRAJECTORY}: could not read the message ({err!r})")
-            return
-        self.queue.set_plan(actions)
-        self._last_input_s = time.monotonic()
+        max_age = round(self.params.max_command_age_s * 1e9)
+        actions = accept(self.log, names.HAND_TRAJECTORY,
+                         lambda: validate_trajectory(msg, hand.goal, self.now_ns(), max_age))
+        if actions is not None:
+            self.queue.set_plan(actions)
+            self._last_input_s = time.monotonic()
 
     async def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Open, then close until the grasp load; answered when the grasp closed (the steps run it)."""

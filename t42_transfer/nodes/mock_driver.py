@@ -74,7 +74,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
-from t42_transfer.driver.commands import ActionQueue, CommandRejected, validate_command, validate_trajectory
+from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.params import LiveParams, param
@@ -188,28 +188,18 @@ class MockDriver(Node):
             self.log.info(f"rate_factor {old.rate_factor} -> {new.rate_factor}: a step every {new.period_s:.4f} s")
 
     def _on_command(self, msg: JointState) -> None:
-        try:
-            action = validate_command(msg, self.now_ns(), self.params.max_command_age_ns)
-        except CommandRejected as err:
-            self.log.warning(f"rejected {names.HAND_COMMAND}: {err}; keeping the last safe command")
-            return
-        except Exception as err:  # never raise from a callback
-            self.log.error(f"rejected {names.HAND_COMMAND}: could not read the message ({err!r})")
+        action = accept(self.log, names.HAND_COMMAND,
+                        lambda: validate_command(msg, self.now_ns(), self.params.max_command_age_ns))
+        if action is None:
             return
         cancelled = self.queue.set_command(action)
         if cancelled:
             self.log.info(f"single-step command cancels a trajectory with {cancelled} points left")
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
-        try:
-            actions = validate_trajectory(
-                msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns
-            )
-        except CommandRejected as err:
-            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: {err}; keeping the last safe command")
-            return
-        except Exception as err:
-            self.log.error(f"rejected {names.HAND_TRAJECTORY}: could not read the message ({err!r})")
+        actions = accept(self.log, names.HAND_TRAJECTORY, lambda: validate_trajectory(
+            msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns))
+        if actions is None:
             return
         pre_empted = self.queue.set_plan(actions)
         if pre_empted:
