@@ -33,15 +33,23 @@ import time
 from pathlib import Path
 
 import torch
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
 from t42_transfer.evaluation import experiment
-from t42_transfer.evaluation.experiment import Cell, DataSpec, ExperimentConfig, _run_cell, _score, _target_split, load_data, train_source
+from t42_transfer.evaluation.experiment import (
+    Cell,
+    DataSpec,
+    ExperimentConfig,
+    _run_cell,
+    _score,
+    _target_split,
+    load_data,
+    train_source,
+)
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.training import TrainConfig
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.methods import METHODS, transfer
-
-from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
 RESULTS = Path(__file__).parent / "results" / "cell.json"
 
@@ -98,7 +106,8 @@ def main() -> None:
     workspace = Workspace.from_trajectories(source_data).to_dict()
     experiment._WORKER.clear()
     start = time.perf_counter()
-    _run_cell((cfg, Cell("direct", args.amount, 0), run_dir, source_path, workspace))  # fills the worker cache; sets 1 thread
+    # fills the worker cache; sets 1 thread
+    _run_cell((cfg, Cell("direct", args.amount, 0), run_dir, source_path, workspace))
     setup["warmup_cell_s"] = time.perf_counter() - start
     cell_threads = torch.get_num_threads()
 

@@ -211,7 +211,7 @@ def main() -> None:
 
     def paired(a: str, b: str) -> float:
         """Median over rounds of throughput a / throughput b: both ran back to back under the same load."""
-        return statistics.median(tb / ta for ta, tb in zip(times[a], times[b]))
+        return statistics.median(tb / ta for ta, tb in zip(times[a], times[b], strict=True))
 
     pairs = [("planner", "eager_loop"), ("planner", "matmul_bound"), ("fused_rollout", "matmul_bound")]
     pairs += [("planner", "mppi")] if "mppi" in times else []

@@ -12,8 +12,9 @@ by :func:`~t42_transfer.evaluation.peg_in_hole.verdict` at 10 and 4 mm.  The
 budget B counts B model rollouts of the whole horizon per plan:
 
 - ``ours``: :class:`~t42_transfer.planning.planner.Planner`, piecewise sampler, ``samples = B``, no refinement;
-- ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)``, the Planner's default since this bench (its refinement keeps
-  the elites, so it rolls out slightly fewer than B; ``rollouts`` records how many);
+- ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)``, the Planner's default
+  since this bench (its refinement keeps the elites, so it rolls out slightly fewer than B; ``rollouts``
+  records how many);
 - ``random_shooting``: the Planner with i.i.d. uniform actions (``sampler="uniform"``), ``samples = B``;
 - ``cem``: a plain cross-entropy method written here: a per-step Gaussian over the sequence (mean 0, std
   ``cem_std``) clipped to the box, ``B / cem_iterations`` samples per iteration, refitted to the best 10 %
@@ -65,12 +66,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
 from t42_transfer.planning.fused import make_rollout
-from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
 from t42_transfer.planning.planner import CHUNK, Plan, Planner, PlannerConfig
 from t42_transfer.planning.workspace import Workspace
 

@@ -210,7 +210,7 @@ def role_ping(trips: int, warmup: int, rate: float) -> None:
                 start = time.perf_counter_ns()
                 msg, expected = case.build(i)
                 pubs[case.kind].publish(msg)
-                if not spin_until(lambda: case.kind in replies, 5.0):
+                if not spin_until(lambda case=case: case.kind in replies, 5.0):
                     raise SystemExit(f"{name} trip {i}: no echo within 5 s")
                 got = case.read(replies.pop(case.kind))
                 elapsed = time.perf_counter_ns() - start

@@ -223,7 +223,8 @@ def run_stream(kind: str, rate: float, seconds: float, executor: str = "runner")
     last = next((i for i, c in enumerate(counts) if c == counts[-1]), len(counts) - 1)
     streamed = counts[last] - counts[first]
     result = {
-        "receiver": kind, "executor": executor, "executor_class": got["executor_class"], "rate_hz": rate, "seconds": seconds, "queue_depth": QUEUE_DEPTH,
+        "receiver": kind, "executor": executor, "executor_class": got["executor_class"], "rate_hz": rate,
+        "seconds": seconds, "queue_depth": QUEUE_DEPTH,
         "sent": sent["sent"], "acked": sent["acked"], "received": got["received"],
         "lost": sent["sent"] - got["received"], "dropped": got["dropped"], "in_bag": got["in_bag"],
         "publish_seconds": round(sent["seconds"], 3),

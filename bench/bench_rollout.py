@@ -43,11 +43,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
 from torch import nn
 
-from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normalisation, RecurrentResidualModel, TransitionModel
-
-from machine import machine_info  # bench/machine.py (scripts run from bench/)
+from t42_transfer.models import (
+    CumulativeResidualModel,
+    LatentDynamics,
+    Normalisation,
+    RecurrentResidualModel,
+    TransitionModel,
+)
 
 RESULTS = Path(__file__).parent / "results" / "rollout.json"
 
@@ -105,7 +110,8 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1000)
     parser.add_argument("--horizon", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--budget-s", type=float, default=30.0, help="per model kind: stop repeating (after 3) past this")
+    parser.add_argument("--budget-s", type=float, default=30.0,
+                        help="per model kind: stop repeating (after 3) past this")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -113,11 +119,13 @@ def main() -> None:
     load_start = os.getloadavg()
 
     gen = torch.Generator().manual_seed(0)
-    x0 = torch.randn(args.batch, 4, generator=gen) * torch.tensor([15.0, 10.0, 30.0, 30.0]) + torch.tensor([0.0, 80.0, 120.0, 120.0])
+    x0 = (torch.randn(args.batch, 4, generator=gen) * torch.tensor([15.0, 10.0, 30.0, 30.0])
+          + torch.tensor([0.0, 80.0, 120.0, 120.0]))
     actions = torch.rand(args.batch, args.horizon, 2, generator=gen) * 2 - 1
     models = build_models()
     reference = models["transition"][0]
-    base_net = copy.deepcopy(reference.net).eval()  # the same MLP and weights; a copy, so rollout's train/eval toggling cannot reach it
+    # the same MLP and weights; a copy, so rollout's train/eval toggling cannot reach it
+    base_net = copy.deepcopy(reference.net).eval()
     base_x0 = (x0 - reference.state_mean) / reference.state_std
     sample_steps = args.batch * args.horizon
 
@@ -131,12 +139,13 @@ def main() -> None:
         for r in range(args.repeats):
             if r >= 3 and time.perf_counter() - begun > args.budget_s:
                 break
-            pair = [("ours", lambda: model.rollout(x0, actions)), ("base", lambda: baseline_rollout(base_net, base_x0, actions))]
+            pair = [("ours", lambda model=model: model.rollout(x0, actions)),
+                    ("base", lambda: baseline_rollout(base_net, base_x0, actions))]
             for who, fn in pair if r % 2 == 0 else pair[::-1]:
                 (ours if who == "ours" else base).append(timed(fn))
         baseline_all += base
         m_ours, m_base = statistics.median(ours), statistics.median(base)
-        pair_ratios = [b / o for o, b in zip(ours, base)]
+        pair_ratios = [b / o for o, b in zip(ours, base, strict=True)]
         per_kind[name] = {
             "sample_steps_per_s": sample_steps / m_ours,
             "ms_per_rollout": 1e3 * m_ours,
@@ -154,8 +163,8 @@ def main() -> None:
         "command": " ".join(["python", *map(shlex.quote, sys.argv)]),
         "machine": {**machine_info(), "load_average_at_start": load_start, "load_average_at_end": os.getloadavg(),
                     "oversubscribed": max(load_start[0], os.getloadavg()[0]) > (os.cpu_count() or 1)},
-        "parameters": {"batch": args.batch, "horizon": args.horizon, "repeats": args.repeats, "budget_s": args.budget_s, "dtype": "float32",
-                       "hidden": 128, "weights": "random (seeded)"},
+        "parameters": {"batch": args.batch, "horizon": args.horizon, "repeats": args.repeats, "budget_s": args.budget_s,
+                       "dtype": "float32", "hidden": 128, "weights": "random (seeded)"},
         "results": {k: v["sample_steps_per_s"] for k, v in per_kind.items()},
         "baseline": {
             "description": "no_grad eager loop s = s + net(cat(s, a)), same MLP, s0 = normalised x0",

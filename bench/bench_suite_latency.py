@@ -35,6 +35,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from machine import machine_info  # noqa: E402
+
 from t42_transfer.demo import run_demo  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results" / "suite_latency.json"

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
 from torch import nn
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
@@ -49,8 +50,6 @@ from t42_transfer.models.network import Normalisation, TransitionModel, mlp
 from t42_transfer.models.training import TrainConfig, fit_single_step, step_batch, trajectory_weights
 from t42_transfer.transfer.config import TrajectoryFineTuneConfig, TransferConfig
 from t42_transfer.transfer.methods import METHODS
-
-from machine import machine_info  # bench/machine.py (scripts run from bench/)
 
 RESULTS = Path(__file__).parent / "results" / "training.json"
 
@@ -134,7 +133,9 @@ def ours_trajectory(source: TransitionModel, target: TrajectorySet, tcfg: Trajec
     return time.perf_counter() - start
 
 
-def reference_trajectory(source: TransitionModel, x: torch.Tensor, a: torch.Tensor, tcfg: TrajectoryFineTuneConfig) -> float:
+def reference_trajectory(
+    source: TransitionModel, x: torch.Tensor, a: torch.Tensor, tcfg: TrajectoryFineTuneConfig
+) -> float:
     """Seconds of the plain rollout-backprop loop over the same episodes (the paper's loss, no cutoff)."""
     net = mlp(6, 4)
     net.load_state_dict(source.net.state_dict())
@@ -168,7 +169,8 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=1000, help="steps per synthetic episode")
     parser.add_argument("--batches", type=int, nargs="+", default=[64, 1024])
     parser.add_argument("--epochs", type=int, default=1, help="epochs per timed single-step run")
-    parser.add_argument("--repeats", type=int, default=5, help="alternating ours/baseline pairs (fewer past --budget-s)")
+    parser.add_argument("--repeats", type=int, default=5,
+                        help="alternating ours/baseline pairs (fewer past --budget-s)")
     parser.add_argument("--budget-s", type=float, default=60.0, help="stop repeating a measurement after this long")
     parser.add_argument("--traj-episodes", type=int, default=8)
     parser.add_argument("--traj-steps", type=int, default=200)
@@ -187,9 +189,9 @@ def main() -> None:
     for bs in args.batches:
         runs, ref, fused = alternate(
             [
-                lambda: ours_single_step(data, bs, args.epochs),
-                lambda: reference_single_step(X, Y, bs, args.epochs),
-                lambda: reference_single_step(X, Y, bs, args.epochs, fused=True),
+                lambda bs=bs: ours_single_step(data, bs, args.epochs),
+                lambda bs=bs: reference_single_step(X, Y, bs, args.epochs),
+                lambda bs=bs: reference_single_step(X, Y, bs, args.epochs, fused=True),
             ],
             args.repeats, args.budget_s,
         )
@@ -202,7 +204,7 @@ def main() -> None:
             "baseline_samples_per_s": m_ref,
             "ratio_loop": m_loop / m_ref,
             "ratio_end_to_end": m_e2e / m_ref,
-            "median_paired_ratio_loop": statistics.median(o / r for o, r in zip(loop, ref)),
+            "median_paired_ratio_loop": statistics.median(o / r for o, r in zip(loop, ref, strict=True)),
             "seconds_per_epoch_ours_loop": len(X) / m_loop,
             "seconds_per_epoch_baseline": len(X) / m_ref,
             "baseline_fused_adam_samples_per_s": m_fused,
@@ -234,7 +236,8 @@ def main() -> None:
             "single_step": {
                 "data": "synthetic random-walk episodes",
                 "episodes": args.episodes, "steps": args.steps, "transitions": len(X),
-                "batch_sizes": args.batches, "epochs_per_run": args.epochs, "repeats": args.repeats, "budget_s": args.budget_s,
+                "batch_sizes": args.batches, "epochs_per_run": args.epochs, "repeats": args.repeats,
+                "budget_s": args.budget_s,
                 "optimiser": "Adam lr 1e-3 wd 1e-3, clip 10, dropout on",
             },
             "trajectory_finetune": {
@@ -245,7 +248,9 @@ def main() -> None:
         },
         "results": {
             "single_step_samples_per_s": {bs: v["ours_loop_samples_per_s"] for bs, v in single.items()},
-            "single_step_end_to_end_samples_per_s": {bs: v["ours_end_to_end_samples_per_s"] for bs, v in single.items()},
+            "single_step_end_to_end_samples_per_s": {
+                bs: v["ours_end_to_end_samples_per_s"] for bs, v in single.items()
+            },
             "trajectory_finetune_model_steps_per_s": ours_rate,
         },
         "baseline": {
@@ -259,7 +264,8 @@ def main() -> None:
             "trajectory_finetune_ours_over_baseline": ours_rate / ref_rate,
         },
         "proposal_fused_adam": {
-            "description": "the baseline loop with torch.optim.Adam(..., fused=True) and clip_grad_norm_(..., foreach=True)",
+            "description": "the baseline loop with torch.optim.Adam(..., fused=True) and "
+                           "clip_grad_norm_(..., foreach=True)",
             "samples_per_s": {bs: v["baseline_fused_adam_samples_per_s"] for bs, v in single.items()},
             "over_baseline": {bs: v["fused_adam_over_baseline"] for bs, v in single.items()},
         },

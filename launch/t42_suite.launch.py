@@ -15,7 +15,6 @@ from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-
 NODES = ("mock_driver", "recorder", "transfer_server", "planner")
 """The suite: every node of configs/suite.yaml (the explorer is run on its own, it ends when done)."""
 

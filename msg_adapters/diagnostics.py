@@ -9,7 +9,8 @@ and :func:`status_report` hands back strings for the caller to parse.
 
 from __future__ import annotations
 
-from typing import Any, Mapping, NamedTuple
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 from msg_adapters.hand import ns_to_stamp
 from msg_adapters.kit import ROSBAGS, MessageKit, byte_value
@@ -70,5 +71,6 @@ def status_report(array: Any, name: str) -> DiagnosticReport:
     """The status called ``name`` in a ``DiagnosticArray``; KeyError when it holds none (another node's report)."""
     for status in array.status:
         if status.name == name:
-            return DiagnosticReport(level_name(status.level), status.message, {kv.key: kv.value for kv in status.values})
+            return DiagnosticReport(level_name(status.level), status.message,
+                                    {kv.key: kv.value for kv in status.values})
     raise KeyError(f"no diagnostic status named {name!r}")

@@ -11,7 +11,8 @@ Builders make rosbags objects by default and rclpy's with ``kit=RCLPY``
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -209,7 +210,8 @@ def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[fl
         at = stamp_to_ns(point.time_from_start)
         if abs(at - due) > _SPACING_TOLERANCE_NS:
             raise ValueError(
-                f"joint trajectory point {k} is at {at} ns; points must be every {wire.CONTROL_PERIOD_NS} ns, so {due} ns"
+                f"joint trajectory point {k} is at {at} ns; "
+                f"points must be every {wire.CONTROL_PERIOD_NS} ns, so {due} ns"
             )
         positions = _per_joint(point.positions, msg.joint_names, f"joint trajectory point {k} positions")
         if not np.all(np.isfinite(positions[cols])):

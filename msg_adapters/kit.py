@@ -14,7 +14,7 @@ from __future__ import annotations
 import array
 import importlib
 from abc import ABC, abstractmethod
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -64,7 +64,7 @@ class RclpyKit(MessageKit):
         return bytes([int(value)])
 
 
-@lru_cache(maxsize=None)
+@cache
 def rclpy_class(typename: str) -> type:
     """rclpy's generated class of ``pkg/msg/Name`` or ``pkg/srv/Name`` (imported on first use)."""
     package, kind, name = typename.split("/")

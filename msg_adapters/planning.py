@@ -8,7 +8,8 @@ values with a ``ValueError`` that says why.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -64,7 +64,8 @@ def main() -> None:
           "| load median, p90 |\n|---|---|---|---|---|---|---|")
     for policy in ("random", "sustained"):
         print(one_step_gaps(policy))
-    print("\n| hand | time in region | boundary crossings | p99 step in region | episodes dropped |\n|---|---|---|---|---|")
+    print("\n| hand | time in region | boundary crossings | p99 step in region | episodes dropped |"
+          "\n|---|---|---|---|---|")
     for hand in ("source", "target_abrupt"):
         print(on_its_own(hand))
 

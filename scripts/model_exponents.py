@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
           f"burn-in {args.burn_in}; units: state std {np.round(scales, 3).tolist()} of {args.models[0].name}")
     print("| model | method | normalised, burn-in: mean | median | p10 | p90 | raw units, no burn-in: mean |")
     print("|---|---|---|---|---|---|---|")
-    for path, (model, meta) in zip(args.models, models):
+    for path, (model, meta) in zip(args.models, models, strict=True):
         exponents = model_lyapunov(model, kept, steps=args.steps, burn_in=args.burn_in, scales=scales).numpy()
         raw = model_lyapunov(model, kept, steps=args.steps).numpy()
         p10, median, p90 = np.percentile(exponents, [10, 50, 90])

@@ -81,7 +81,8 @@ def _mean_and_difference(rows: list[dict], metric: str, method: str, reference: 
         return f"{sum(own) / len(own):.1f}"
     paired = compare_methods(rows, metric, method, reference)["all"]
     low, high = paired.t_interval
-    return f"{paired.mean_a:.1f} ({paired.mean_difference:+.1f}, {low:+.1f} to {high:+.1f}; {paired.wins}/{paired.losses})"
+    return (f"{paired.mean_a:.1f} ({paired.mean_difference:+.1f}, {low:+.1f} to {high:+.1f}; "
+            f"{paired.wins}/{paired.losses})")
 
 
 def grid_table(runs: list[Path], metric: str, reference: str) -> str:
@@ -151,7 +152,8 @@ def ranking_table(runs: list[Path], reference: str) -> str:
 def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
     base_rows = [r for r in _rows(base) if r["method"] == reference]
-    out = [f"| run, method | {' | '.join(f'{label} (vs {reference} of {base.name})' for label in METRICS.values())} |\n",
+    labels = " | ".join(f"{label} (vs {reference} of {base.name})" for label in METRICS.values())
+    out = [f"| run, method | {labels} |\n",
            "|---|" + "---|" * len(METRICS) + "\n"]
     for run in runs:
         rows = [r for r in _rows(run) if r["method"] not in (reference, "hold_still")]

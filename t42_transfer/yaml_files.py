@@ -57,7 +57,9 @@ def read_yaml(path: str | os.PathLike[str], what: str, aliases: bool = True) -> 
     except yaml.MarkedYAMLError as err:
         mark = err.problem_mark or err.context_mark
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ValueError(f"{file}: the {what} is not valid YAML: {_one_line(err.problem or err.context)}{where}") from None
+        raise ValueError(
+            f"{file}: the {what} is not valid YAML: {_one_line(err.problem or err.context)}{where}"
+        ) from None
     except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as err:
         # ValueError/OverflowError: a scalar PyYAML cannot convert (a 13th month, a 5000-digit int);
         # RecursionError: nesting deeper than the composer's recursion.

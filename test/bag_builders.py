@@ -1,4 +1,5 @@
-"""Bags for tests of the bag package and its users: hand messages as the driver sends them, copies of the fixture bag."""
+"""Bags for tests of the bag package and its users: hand messages as the driver sends them,
+copies of the fixture bag."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ POSE, JOINTS, ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_A
 def assert_same(got: TrajectorySet, want: TrajectorySet) -> None:
     assert got.hand == want.hand
     assert len(got) == len(want)
-    for a, b in zip(got, want):
+    for a, b in zip(got, want, strict=True):
         assert a == b  # bit-exact arrays, start_ns, end_reason, hand
 
 

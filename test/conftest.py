@@ -6,8 +6,9 @@ import fcntl
 import os
 import random
 import sys
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -132,7 +133,7 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
 
 
 @pytest.fixture
-def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator["RosRig"]:
+def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[RosRig]:
     """rclpy in this process on the test's own domain: add nodes, spin until a condition; all torn down after.
 
     One executor thread, as ``t42 node`` gives most nodes; ``@pytest.mark.executor_threads(n)`` asks for

@@ -101,7 +101,7 @@ class DecoderWorker:
             self._proc.stdout.close()
         shutil.rmtree(self.root, ignore_errors=True)
 
-    def __enter__(self) -> "DecoderWorker":
+    def __enter__(self) -> DecoderWorker:
         return self
 
     def __exit__(self, *exc: object) -> None:

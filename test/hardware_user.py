@@ -91,7 +91,8 @@ def main() -> int:
         seen["parameters"] = sorted(user.call(ListParameters, f"{DRIVER}/list_parameters",
                                               ListParameters.Request()).result.names)
         results = user.call(SetParameters, f"{DRIVER}/set_parameters",
-                            SetParameters.Request(parameters=[double("load_limit", 250.0), double("grasp_load", 400.0)]))
+                            SetParameters.Request(parameters=[double("load_limit", 250.0),
+                                                              double("grasp_load", 400.0)]))
         seen["set"] = [(r.successful, r.reason) for r in results.results]
         reset = user.call(Trigger, "/hand/reset", Trigger.Request(), timeout_s=60.0)
         seen["reset"] = [reset.success, reset.message]
@@ -118,7 +119,8 @@ def main() -> int:
             bad.header.stamp = user.get_clock().now().to_msg()
             user.command.publish(bad)
         user.spin_for(1.0)
-        seen["rejections"] = sum("rejected hand/command" in log.msg for log in user.logs if log.name == "dynamixel_driver")
+        seen["rejections"] = sum("rejected hand/command" in log.msg
+                                 for log in user.logs if log.name == "dynamixel_driver")
         seen["positions_after"] = [list(j.position) for j in user.joints[-5:]]
     except RuntimeError as err:
         seen["error"] = str(err)

@@ -16,7 +16,6 @@ from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-
 N = TypeVar("N", bound=Node)
 REPO = Path(__file__).resolve().parents[1]
 

@@ -20,10 +20,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
-from test_stock_graph import STOCK_USER, T42, source_model, suite_file  # noqa: F401  (source_model: fixture)
-
 from ros_rig import REPO, stop, unbuffered_env
+from test_stock_graph import STOCK_USER, T42, source_model, suite_file  # noqa: F401  (source_model: fixture)
 
 ADDRESSES = ("10.242.77.1/30", "10.242.77.2/30")
 
@@ -62,7 +60,7 @@ def two_hosts(ros_domain: int) -> Iterator[tuple[str, str]]:
             _ip("netns", "add", host)
             made.append(host)
         _ip("link", "add", links[0], "type", "veth", "peer", "name", links[1])
-        for host, link, address in zip(hosts, links, ADDRESSES):
+        for host, link, address in zip(hosts, links, ADDRESSES, strict=True):
             _ip("link", "set", link, "netns", host)
             _ip("-n", host, "addr", "add", address, "dev", link)
             _ip("-n", host, "link", "set", "lo", "up")

@@ -127,7 +127,7 @@ def test_reads_a_bag_made_like_ros2_bag_record(tmp_path, make_set):
 
     got = read_quietly(bag)
     assert got.hand == "" and len(got) == 2
-    for recorded, original, start in zip(got, data, first_states):
+    for recorded, original, start in zip(got, data, first_states, strict=True):
         assert np.array_equal(recorded.states, original.states)
         assert np.array_equal(recorded.actions, original.actions)
         assert recorded.actuator_angles is None and recorded.end_reason == "" and recorded.hand == ""
@@ -254,7 +254,7 @@ def test_one_lost_message_splits_its_episode_there(tmp_path, episode, lost, frag
     with pytest.warns(UserWarning, match=f"{re.escape(dropped)}: 1 \\(stamp {stamp} ns\\)"):
         got = read_bag(path)
     assert len(got) == len(fragments)
-    for traj, (first, last) in zip(got, fragments):
+    for traj, (first, last) in zip(got, fragments, strict=True):
         assert_slice(traj, episode, first, last)
 
 

@@ -1,4 +1,5 @@
-"""data.bag.metadata: metadata.yaml of the wrong types, nested, compressed or pointing out of the bag is refused in one line."""
+"""data.bag.metadata: metadata.yaml of the wrong types, nested, compressed or pointing out of the bag
+is refused in one line."""
 
 from __future__ import annotations
 

@@ -193,7 +193,7 @@ def test_a_cut_bag_loses_no_message_of_a_finished_chunk(tmp_path: Path, chunked_
         summary = make_reader(stream).get_summary()
         stream.seek(0)
         chunks = [r for r in StreamReader(stream, emit_chunks=True).records if isinstance(r, Chunk)]
-    finished = [chunk for index, chunk in zip(summary.chunk_indexes, chunks)
+    finished = [chunk for index, chunk in zip(summary.chunk_indexes, chunks, strict=True)
                 if index.chunk_start_offset + index.chunk_length <= cut]
     kept = [(summary.channels[r.channel_id].topic, r.data)
             for chunk in finished for r in breakup_chunk(chunk) if isinstance(r, Message)]

@@ -26,7 +26,7 @@ def assert_prefix_of(got: TrajectorySet, original: TrajectorySet, with_custom_da
     """Recovered episodes are the originals in order, only the last possibly cut short; without
     custom_data (a killed writer never wrote it) end reasons and hands are unknown."""
     assert [t.start_ns for t in got] == [t.start_ns for t in original[: len(got)]]
-    for traj, whole in zip(got, original):
+    for traj, whole in zip(got, original, strict=False):
         n = len(traj)
         assert n == len(whole) or traj is got[-1]
         assert np.array_equal(traj.states, whole.states[: n + 1]) and np.array_equal(traj.actions, whole.actions[:n])

@@ -95,9 +95,9 @@ def test_bag_layout_matches_the_wire_format(tmp_path, small_set):
 def test_assign_start_times_lays_episodes_end_to_end(small_set):
     placed = assign_start_times(small_set, t0_ns=5, gap_ns=EPISODE_GAP_NS)
     assert placed[0].start_ns == 5
-    for before, after in zip(placed, placed[1:]):
+    for before, after in zip(placed, placed[1:], strict=False):
         assert after.start_ns == before.start_ns + len(before) * CONTROL_PERIOD_NS + EPISODE_GAP_NS
-    assert [np.array_equal(a.states, b.states) for a, b in zip(placed, small_set)] == [True] * 3
+    assert [np.array_equal(a.states, b.states) for a, b in zip(placed, small_set, strict=True)] == [True] * 3
     with pytest.raises(ValueError, match="gap_ns"):
         assign_start_times(small_set, gap_ns=EPISODE_GAP_NS - 1)
 

@@ -78,7 +78,7 @@ def test_a_larger_budget_predicts_no_worse(name: str, goals: list) -> None:
     large = [_predicted(name, g, 320, seed) for g in goals for seed in range(3)]
     assert all(math.isfinite(e) and e >= 0 for e in small + large)
     if name == "random_shooting":
-        assert all(b <= a for a, b in zip(small, large))
+        assert all(b <= a for a, b in zip(small, large, strict=True))
     assert np.mean(large) < np.mean(small)
 
 

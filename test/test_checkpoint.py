@@ -42,7 +42,8 @@ def _models() -> dict[str, torch.nn.Module]:
 @pytest.mark.parametrize("name", list(_models()))
 def test_round_trip_gives_the_same_predictions(name: str, tmp_path: Path) -> None:
     model = _models()[name]
-    path = save_model(model, tmp_path / "m.safetensors", method=name, hyperparameters={"lr": 2.5e-5}, data={"target": "abc"})
+    path = save_model(model, tmp_path / "m.safetensors", method=name, hyperparameters={"lr": 2.5e-5},
+                      data={"target": "abc"})
     loaded, meta = load_model(path, expect_method=name)
     assert type(loaded) is type(model) and meta["method"] == name and meta["data"] == {"target": "abc"}
     assert meta["hyperparameters"] == {"lr": 2.5e-5} and "torch" in meta["versions"]
@@ -154,7 +155,7 @@ def test_sizes_out_of_bounds_are_refused_before_building(saved: Path) -> None:
     for hidden, match in [(30000, r"hidden must lie in \[1, 4096\], not 30000"), (-1, "hidden must lie in"),
                           (1e6, "hidden must be an integer, not 1000000.0"), ("128", "hidden must be an integer"),
                           (10**400, "hidden must lie in"), (True, "hidden must be an integer")]:
-        _rewrite_metadata(saved, lambda meta, _: meta["config"].update(hidden=hidden))
+        _rewrite_metadata(saved, lambda meta, _, hidden=hidden: meta["config"].update(hidden=hidden))
         _refused(saved, "cannot build .*" + match)
 
 

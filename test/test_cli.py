@@ -34,7 +34,7 @@ def test_sim_collect_round_trips_exactly_through_the_bag(tmp_path: Path) -> None
     direct, _ = collect("target", 3, 40, seed=7, workers=1, progress=False)
     back = read_bag(out)
     assert len(back) == len(direct) == 3
-    for got, want in zip(back, direct):
+    for got, want in zip(back, direct, strict=True):
         assert (got.states == want.states).all() and (got.actions == want.actions).all()
         assert (got.actuator_angles == want.actuator_angles).all()
         assert got.end_reason == want.end_reason and got.hand == "target"
@@ -88,7 +88,9 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
 
 
 
-def test_bag_info_reports_frozen_tracking_and_jumps(tmp_path: Path, make_set, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bag_info_reports_frozen_tracking_and_jumps(
+    tmp_path: Path, make_set, capsys: pytest.CaptureFixture[str]
+) -> None:
     import dataclasses
 
     from t42_transfer.data.bag import write_bag
@@ -109,7 +111,9 @@ def test_bag_info_reports_frozen_tracking_and_jumps(tmp_path: Path, make_set, ca
 
 
 @pytest.mark.realdata
-def test_import_names_the_flagged_stretches(t42_real_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_import_names_the_flagged_stretches(
+    t42_real_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     bag = tmp_path / "real_b"
     assert main(["bag", "import-t42", str(t42_real_dir / "testpaths_cyl35_red_d_v0.pkl"), str(bag)]) == 0
     assert "flagged stretches: path 0: frozen tracking at steps 0-198" in capsys.readouterr().out

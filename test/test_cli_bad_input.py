@@ -121,8 +121,10 @@ CASES = {
     "plan --goal nan": ("plan {model} --start 0 80 120 -120 --goal 1 nan --out {out}", "--goal"),
     "plan --sampler bogus": (PLAN + " --sampler bogus", "--sampler"),
     "plan model missing": ("plan {missing} --start 0 80 120 -120 --goal 1 85 --out {out}", "{missing}: does not exist"),
-    "plan model is a directory": ("plan {dir} --start 0 80 120 -120 --goal 1 85 --out {out}", "{dir}: is a directory, not a regular file"),
-    "plan model is a FIFO": ("plan {fifo} --start 0 80 120 -120 --goal 1 85 --out {out}", "{fifo}: is a FIFO, not a regular file"),
+    "plan model is a directory": ("plan {dir} --start 0 80 120 -120 --goal 1 85 --out {out}",
+                                  "{dir}: is a directory, not a regular file"),
+    "plan model is a FIFO": ("plan {fifo} --start 0 80 120 -120 --goal 1 85 --out {out}",
+                             "{fifo}: is a FIFO, not a regular file"),
     "plan --workspace missing": (PLAN + " --workspace {missing}", "{missing}: does not exist"),
     "plan --workspace is a file": (PLAN + " --workspace {file}", "{file}: not a directory"),
     "plan --out is a file": ("plan {model} --start 0 80 120 -120 --goal 1 85 --out {file}", "{file}"),
@@ -406,7 +408,8 @@ def test_up_refuses_a_bad_params_file_in_one_line(case: str, tmp_path: Path,
 
 
 def test_up_only_a_node_the_file_lacks(capsys: pytest.CaptureFixture[str]) -> None:
-    assert "--only toaster: not in" in refused(["up", str(REPO / "configs" / "suite.yaml"), "--only", "toaster"], capsys)
+    assert "--only toaster: not in" in refused(["up", str(REPO / "configs" / "suite.yaml"), "--only", "toaster"],
+                                               capsys)
 
 
 # ------------------------------------------------------------------ OS errors on the user's paths

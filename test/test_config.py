@@ -88,7 +88,8 @@ def test_the_same_bad_value_says_the_same_thing_in_an_experiment_a_server_file_a
     assert str(from_file.value) == f"{server_file}: {expected}"
 
     experiment = tmp_path / "exp.yaml"
-    experiment.write_text("name: bad\nsource: {hand: source}\ntarget: {hand: target}\ntransfer: {l2_finetune: {train: {lr: -1}}}\n")
+    experiment.write_text("name: bad\nsource: {hand: source}\ntarget: {hand: target}\n"
+                          "transfer: {l2_finetune: {train: {lr: -1}}}\n")
     assert t42(["experiment", str(experiment), "--out", str(tmp_path / "runs")]) == 2
     assert capsys.readouterr().err.strip() == f"t42: error: {experiment}: {expected}"
     assert not (tmp_path / "runs" / "bad").exists(), "nothing ran"

@@ -42,13 +42,14 @@ def _norm(state_mean, state_std, delta_mean, delta_std) -> Normalisation:
 
 
 SOURCE_NORM = _norm([10, -5, 60, 70], [30, 12, 60, 50], [0.02, -0.01, 0.5, -0.3], [0.1, 0.06, 3.0, 2.5])
+IDENTITY_NORM = Normalisation.identity()
 
 
 def _source() -> TransitionModel:
     return _hand_made(TransitionModel(SOURCE_NORM, hidden=4, dropout=0.0), 0.5)
 
 
-def _zero_change(norm: Normalisation = Normalisation.identity()) -> TransitionModel:
+def _zero_change(norm: Normalisation = IDENTITY_NORM) -> TransitionModel:
     model = TransitionModel(norm, hidden=4, dropout=0.0)
     with torch.no_grad():
         for p in model.net.parameters():
@@ -97,7 +98,8 @@ def test_metric_and_experiment_definitions_agree_and_differ_only_where_named() -
     assert (paper.epsilon_mm, paper.count_crossing_step, paper.mse_per_coordinate) == (4.0, False, False)
     assert (authors.epsilon_mm, authors.count_crossing_step, authors.mse_per_coordinate) == (10.0, True, True)
     assert SOURCE_TRAINING["authors"] == TrainConfig(lr=2.5e-6, epochs=300, patience=None)
-    built = {d: ExperimentConfig("x", DataSpec(hand="source"), DataSpec(hand="target"), definition=d) for d in DEFINITIONS}
+    built = {d: ExperimentConfig("x", DataSpec(hand="source"), DataSpec(hand="target"), definition=d)
+             for d in DEFINITIONS}
     a, p = _flat(built["authors"]), _flat(built["paper"])
     assert {k.split(".")[0] for k in a if a[k] != p[k]} == {"definition", "epsilon_mm", "source_training", "transfer"}
     assert built["authors"].transfer == AUTHORS and built["authors"].epsilon_mm == 10.0

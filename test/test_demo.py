@@ -38,11 +38,13 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
     assert size["rounds"] * len(size["goal_steps"]) <= goal_bags <= size["rounds"] * (2 * len(size["goal_steps"]) + 1)
     episodes = [len(read_bag(bag)) for bag in bags]
     assert episodes[: size["target_episodes"]] == [1] * size["target_episodes"] and max(episodes) == 1
-    assert sum(episodes[size["target_episodes"]:]) >= size["rounds"] * len(size["goal_steps"])  # (that bag may be empty)
+    # (that bag may be empty)
+    assert sum(episodes[size["target_episodes"]:]) >= size["rounds"] * len(size["goal_steps"])
 
     # each round's service call answered with a model that exists and loads; the second also learned
     # from the episodes of the first round's executed plans
-    for record, fewest in zip(rounds, (size["target_episodes"], size["target_episodes"] + len(size["goal_steps"]))):
+    fewest_episodes = (size["target_episodes"], size["target_episodes"] + len(size["goal_steps"]))
+    for record, fewest in zip(rounds, fewest_episodes, strict=True):
         transfer = record["transfer"]
         assert transfer["success"] and "divergence" in transfer["message"] and "MSE" in transfer["message"]
         used = int(re.search(r"from (\d+) bag\(s\)", transfer["message"]).group(1))

@@ -12,8 +12,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from msg_adapters import applied_action
-from msg_adapters import names
+from msg_adapters import applied_action, names
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import Trajectory
 from t42_transfer.hand.collect import RandomPolicy
@@ -39,7 +38,8 @@ class Watcher:
         self.statuses: list[str] = []
         self.node.create_subscription(JointState, names.APPLIED_ACTION,
                                       lambda m: self.actions.append(applied_action(m)), 1000)
-        self.node.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data), profile(names.LATCHED))
+        self.node.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data),
+                                      profile(names.LATCHED))
 
     def explored(self) -> np.ndarray:
         """The non-zero applied actions (the driver applies zeros while no trajectory runs)."""

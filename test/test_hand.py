@@ -131,7 +131,7 @@ def test_collection_is_deterministic_whatever_the_worker_count() -> None:
     serial, stats = collect("target", episodes=6, steps=80, seed=9, workers=1, progress=False)
     parallel, _ = collect("target", episodes=6, steps=80, seed=9, workers=2, progress=False)
     assert len(serial) == len(parallel) > 0
-    assert all(a == b for a, b in zip(serial, parallel))
+    assert all(a == b for a, b in zip(serial, parallel, strict=True))
     assert stats.kept + stats.too_short + stats.grasp_failed == stats.requested
     assert all(len(t) >= MIN_EPISODE_STEPS and t.hand == "target" for t in serial)
     assert all(t.actuator_angles is not None for t in serial)

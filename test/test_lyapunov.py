@@ -275,7 +275,7 @@ class ToyCumulativeResidual(LatentDynamics):
         return {"gamma": self.gamma, "alpha": self.alpha}
 
     @classmethod
-    def from_config(cls, config: dict) -> "ToyCumulativeResidual":
+    def from_config(cls, config: dict) -> ToyCumulativeResidual:
         return cls(ToySource(), **config)
 
     def initial_latent(self, x0: Tensor) -> Tensor:

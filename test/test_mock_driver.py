@@ -71,7 +71,7 @@ class Rig(Tester):
             before, running = self._count(), self.driver.running
             self.driver.tick()
             if running:
-                assert self.ros.spin_until(lambda: self._count() > before + 1, 5.0), "step not delivered"
+                assert self.ros.spin_until(lambda before=before: self._count() > before + 1, 5.0), "step not delivered"
                 self.ros.spin_for(0.02)
 
     def deliver(self, what: list | None = None) -> None:
@@ -186,7 +186,8 @@ def test_timer_runs_at_rate_factor_and_rate_changes_at_run_time(ros):
     fast = driver.steps
     assert 40 <= fast <= 110, fast  # shared machine: generous bounds around 100
     setter = ros.node("setter").create_client(SetParameters, "mock_driver/set_parameters")
-    result = ros.call(setter, SetParameters.Request(parameters=[Parameter("rate_factor", value=1.0).to_parameter_msg()]))
+    result = ros.call(setter,
+                      SetParameters.Request(parameters=[Parameter("rate_factor", value=1.0).to_parameter_msg()]))
     assert result.results[0].successful
     ros.spin_for(0.05)
     before = driver.steps
@@ -204,7 +205,8 @@ def test_bad_parameter_values_are_refused_and_the_old_kept(ros):
         result = ros.call(setter, SetParameters.Request(parameters=[p.to_parameter_msg()]))
         assert not result.results[0].successful and result.results[0].reason, p.name
     assert driver.params == MockDriverParams(rate_factor=SLOW_TIMER)
-    ok = ros.call(setter, SetParameters.Request(parameters=[Parameter("max_command_age_s", value=2.0).to_parameter_msg()]))
+    ok = ros.call(setter,
+                  SetParameters.Request(parameters=[Parameter("max_command_age_s", value=2.0).to_parameter_msg()]))
     assert ok.results[0].successful and driver.params.max_command_age_s == 2.0
     described = driver.describe_parameter("rate_factor")
     assert described.type == ParameterType.PARAMETER_DOUBLE and described.description
@@ -350,7 +352,7 @@ def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros
     start = r.clock()
     for k in range(1, 6):
         r.driver._on_timer()  # the timer callback: /clock first, then the step
-        assert ros.spin_until(lambda: len(r.got[names.JOINT_STATES]) == len(clocks) == k, 5.0)
+        assert ros.spin_until(lambda k=k: len(r.got[names.JOINT_STATES]) == len(clocks) == k, 5.0)
     stamps = [stamp_to_ns(m.header.stamp) for m in r.got[names.JOINT_STATES]]
     assert len(stamps) == 5 and np.all(np.diff(stamps) == CONTROL_PERIOD_NS)
     assert [stamp_to_ns(c.clock) for c in clocks] == stamps and stamps[0] == start + CONTROL_PERIOD_NS

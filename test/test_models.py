@@ -59,7 +59,7 @@ def test_training_is_seeded_learns_and_keeps_the_best_epoch(make_set) -> None:
     cfg = TrainConfig(epochs=6, patience=2, seed=4)
     first, report = train_transition_model(data, cfg)
     again, _ = train_transition_model(data, cfg)
-    for p, q in zip(first.parameters(), again.parameters()):
+    for p, q in zip(first.parameters(), again.parameters(), strict=True):
         assert torch.equal(p, q)
     assert report.train_loss[-1] < report.train_loss[0]
     assert report.best_epoch == int(np.argmin(report.val_loss))

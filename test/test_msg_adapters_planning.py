@@ -9,11 +9,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from test_msg_adapters import F32, PAIRS, STAMPS, same_bits, through_cdr  # noqa: E402  (the shared round-trip helpers)
 
 import msg_adapters as ma
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
-
-from test_msg_adapters import F32, PAIRS, STAMPS, same_bits, through_cdr  # noqa: E402  (the shared round-trip helpers)
 
 
 @given(xy=PAIRS, stamp=STAMPS)

@@ -122,7 +122,8 @@ def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
         (["mock_driver", "--ros-args", "--params-file", "/nonexistent.yaml"], "ros-args"),
         (["no_such_node"], "unknown node"),
     ):
-        proc = subprocess.run([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), capture_output=True, text=True, timeout=60)
+        proc = subprocess.run([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), capture_output=True, text=True,
+                              timeout=60)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
         errors = [line for line in proc.stderr.splitlines() if line.startswith("t42: error:")]
         assert len(errors) == 1 and match in errors[0] and "Traceback" not in proc.stderr, (args, proc.stderr)
@@ -143,7 +144,8 @@ def test_t42_up_runs_the_suite_and_stops_it_cleanly(tmp_path: Path, ros_domain: 
 
     out_dir = tmp_path / "recordings"
     config = _suite_copy(tmp_path, out_dir=str(out_dir))
-    proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver,recorder", "--stop-timeout", "10"], cwd=tmp_path,
+    proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver,recorder", "--stop-timeout", "10"],
+                            cwd=tmp_path,
                             env=unbuffered_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     try:
@@ -169,8 +171,8 @@ def test_t42_up_fails_when_a_child_dies(tmp_path: Path, ros_domain: int) -> None
     not_a_dir.write_text("in the way")
     config = _suite_copy(tmp_path, out_dir=str(not_a_dir))
     started = time.monotonic()
-    proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path, env=unbuffered_env(),
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path,
+                          env=unbuffered_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert re.search(r"recorder exited with code [1-9]\d* unexpectedly: stopping the others", proc.stdout), proc.stdout
     assert "[mock_driver]" in proc.stdout and time.monotonic() - started < 60

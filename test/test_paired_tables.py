@@ -22,7 +22,7 @@ def tables():  # type: ignore[no-untyped-def]
 def _run(root: Path, name: str, scores: dict[str, list[list[float]]]) -> Path:
     """A run whose ``method`` scores ``scores[method][amount index][seed]`` steps at 4 mm (10 mm: twice that)."""
     rows = [{"method": m, "amount": a, "seed": s, "divergence_mean_4mm": v, "divergence_mean_10mm": 2 * v}
-            for m, per_amount in scores.items() for a, seeds in zip((0.01, 0.1), per_amount)
+            for m, per_amount in scores.items() for a, seeds in zip((0.01, 0.1), per_amount, strict=True)
             for s, v in enumerate(seeds)]
     (root / name).mkdir()
     (root / name / "results.json").write_text(json.dumps({"config": {}, "rows": rows}))

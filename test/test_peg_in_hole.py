@@ -9,14 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from t42_transfer.cli import main as t42
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import TrajectorySet
-from t42_transfer.hand.sim import SimulatedHand
-from t42_transfer.models import Normalisation, TransitionModel
-from t42_transfer.models.checkpoint import save_model
-from t42_transfer.models.training import TrainConfig, train_transition_model
-from t42_transfer.planning import PlannerConfig, Workspace
-from t42_transfer.cli import main as t42
 from t42_transfer.evaluation.peg_in_hole import (
     Goal,
     PegInHoleConfig,
@@ -29,6 +24,11 @@ from t42_transfer.evaluation.peg_in_hole import (
     verdict,
 )
 from t42_transfer.evaluation.peg_in_hole_report import markdown_table, paired, paired_table, plot_success
+from t42_transfer.hand.sim import SimulatedHand
+from t42_transfer.models import Normalisation, TransitionModel
+from t42_transfer.models.checkpoint import save_model
+from t42_transfer.models.training import TrainConfig, train_transition_model
+from t42_transfer.planning import PlannerConfig, Workspace
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 TINY = PegInHoleConfig(distances=(10, 20), trials=3, tolerances_mm=(10.0, 4.0), min_distance_factor=1.2,
@@ -77,7 +77,7 @@ def test_goals_are_made_on_the_true_hand_deterministically_and_far_enough(
     assert PegInHoleConfig().min_distance_mm == 20.0  # twice the paper's 10 mm tolerance
     tight = Workspace.from_trajectories(target_data, margin_mm=0.0)
     assert all(tight.contains_xy(torch.as_tensor(g.position)) for g in make_goals(TINY, tight))
-    assert all(np.array_equal(a.position, b.position) for a, b in zip(goals, make_goals(TINY)))
+    assert all(np.array_equal(a.position, b.position) for a, b in zip(goals, make_goals(TINY), strict=True))
     hand = SimulatedHand("target")
     # The plan starts from the goal's own grasp (trajectories hold float32).
     assert np.array_equal(hand.reset(goals[0].seed).astype(np.float32), goals[0].grasp.astype(np.float32))
@@ -116,7 +116,8 @@ def test_doing_nothing_scores_zero_and_the_oracle_beats_every_learned_model(eval
             oracle = by["oracle", steps, tol]
             for model in ("trained", "still"):
                 assert oracle.successes >= by[model, steps, tol].successes
-        assert by["oracle", steps, 10.0].final_error_mm < min(by[m, steps, 10.0].final_error_mm for m in ("trained", "still"))
+        assert by["oracle", steps, 10.0].final_error_mm < min(by[m, steps, 10.0].final_error_mm
+                                                              for m in ("trained", "still"))
     still = [t for t in trials if t.model == "do_nothing"]
     assert all(t.completed and t.plan_steps == t.steps and t.verdict(10.0) != "hit" for t in still)
     # Same samples, exact predictions: the oracle's pick is the truly best of them, never worse than a model's.

@@ -1,4 +1,5 @@
-"""The Monte Carlo planner: bounds, seeds, optimality on a linear model, every safety rejection, fast path, chunking, CLI."""
+"""The Monte Carlo planner: bounds, seeds, optimality on a linear model, every safety rejection, fast path,
+chunking, CLI."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from toys import Toy
 
 from t42_transfer.cli import main

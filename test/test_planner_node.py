@@ -98,7 +98,8 @@ class Rig(Tester):
         for _ in range(n):
             before = self.planner.state_stamp_ns
             self.driver.tick()
-            assert self.ros.spin_until(lambda: self.planner.state_stamp_ns != before, 5.0), "state not delivered"
+            assert self.ros.spin_until(lambda before=before: self.planner.state_stamp_ns != before, 5.0), \
+                "state not delivered"
 
     def now_ns(self) -> int:
         return self.tester.get_clock().now().nanoseconds
@@ -350,7 +351,7 @@ def test_bad_startup_parameters_are_one_line_errors(ros) -> None:
 
 
 def test_works_under_a_namespace_with_remapped_names(ros) -> None:
-    planner = ros.add(PlannerNode, {"model": ""}, namespace="/left", cli_args=["--ros-args", "-r", "t42/goal:=aim"])
+    ros.add(PlannerNode, {"model": ""}, namespace="/left", cli_args=["--ros-args", "-r", "t42/goal:=aim"])
     tester = ros.node("ns_tester")
     results: list[dict] = []
     tester.create_subscription(String, "/left/t42/plan_result", lambda m: results.append(json.loads(m.data)), 10)
@@ -430,7 +431,8 @@ def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_s
     assert result["accepted"] and result["horizon"] == 15 and result["replan_every"] == 5, result
     assert not rig.planner.idle  # the closed loop runs until its last piece is sent
     for piece in range(3):
-        assert ros.spin_until(lambda: len(rig.trajectories) == piece + 1 and len(rig.paths) == piece + 1, 10.0), piece
+        assert ros.spin_until(lambda piece=piece: len(rig.trajectories) == piece + 1 and len(rig.paths) == piece + 1,
+                              10.0), piece
         traj, path = rig.trajectories[-1], rig.paths[-1]
         assert len(traj.points) == 5
         assert len(path.poses) == 15 - 5 * piece + 1  # the whole rest is planned, its first 5 steps sent

@@ -75,7 +75,8 @@ def test_dropout_samples_are_seeded_and_differ_from_the_deterministic_plan() -> 
     assert np.array_equal(first.actions, again.actions) and first.evaluated == 300 // 5
     plain = Planner(model, BOX, PlannerConfig(samples=60, horizon=8)).plan(START, GOAL, seed=11)
     assert first.actions.shape == plain.actions.shape == (8, 2)
-    deterministic = model.rollout(torch.as_tensor(START, dtype=torch.float32)[None], torch.as_tensor(first.actions)[None])
+    deterministic = model.rollout(torch.as_tensor(START, dtype=torch.float32)[None],
+                                  torch.as_tensor(first.actions)[None])
     assert not np.allclose(first.predicted, deterministic[0].numpy(), atol=1e-4)  # the members' mean, not eval mode
     assert not model.training  # dropout is on only inside the planner's rollouts
 

@@ -40,7 +40,9 @@ def freeze(states: np.ndarray, first: int, last: int, loads: bool = False) -> np
     return out
 
 
-def episode(states: np.ndarray, angles: np.ndarray | None = None, start_ns: int = 0, reason: str = "length") -> Trajectory:
+def episode(
+    states: np.ndarray, angles: np.ndarray | None = None, start_ns: int = 0, reason: str = "length"
+) -> Trajectory:
     actions = np.tile([1.0, -1.0], (len(states) - 1, 1))
     return Trajectory(states=states, actions=actions, actuator_angles=angles, start_ns=start_ns, end_reason=reason)
 
@@ -127,7 +129,7 @@ def test_scan_summary_and_lines() -> None:
 def test_keep_drop_and_split() -> None:
     data = _flagged_set()
     kept = handle_flagged(data, "keep")
-    assert all(a is b for a, b in zip(kept.data, data)) and kept.origins == (0, 1)
+    assert all(a is b for a, b in zip(kept.data, data, strict=True)) and kept.origins == (0, 1)
 
     dropped = handle_flagged(data, "drop")
     assert len(dropped.data) == 1 and dropped.data[0] is data[0] and dropped.origins == (0,)

@@ -195,7 +195,8 @@ def test_a_bag_of_two_namespaces_is_refused(tmp_path: Path) -> None:
     with Writer(bag, version=9) as writer:
         for ns in ("/left", "/right"):
             for topic, msgtype in HAND_TOPICS.items():
-                conn = writer.add_connection(ns + topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=[RECORD_QOS])
+                conn = writer.add_connection(ns + topic, msgtype, typestore=TYPESTORE,
+                                             offered_qos_profiles=[RECORD_QOS])
                 writer.write(conn, 1, cdr(topic, joint_state_msg((1.0, 2.0), None, 1)) if topic != POSE
                              else cdr(topic, object_pose_msg((1.0, 2.0), 1)))
     with pytest.raises(BagError, match=r"2 namespaces: /left \(.*\); /right"):

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from ros_rig import REPO, start_node, stop
 from rosbags.highlevel import AnyReader
 
 from msg_adapters import (
@@ -30,8 +31,6 @@ from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import read_bag
 from t42_transfer.ros.qos import recording
-
-from ros_rig import REPO, start_node, stop
 
 BAG = REPO / "bags" / "target_small"
 

@@ -56,8 +56,10 @@ def test_declares_every_field_with_its_descriptor(ros) -> None:
 def test_params_file_then_overrides(ros, tmp_path: Path) -> None:
     params_file = tmp_path / "p.yaml"
     params_file.write_text("/**:\n  ros__parameters:\n    rate: 2.0\n    count: 5\n"
-                           "demo:\n  ros__parameters:\n    out: results\n    rate: 3.0\n    names: [left, right]\n    seed: 7\n")
-    node = ros.add(DemoNode, {"count": 6, "extra": ["z"]}, cli_args=["--ros-args", "--params-file", str(params_file)])
+                           "demo:\n  ros__parameters:\n    out: results\n    rate: 3.0\n"
+                           "    names: [left, right]\n    seed: 7\n")
+    node = ros.add(DemoNode, {"count": 6, "extra": ["z"]},
+                   cli_args=["--ros-args", "--params-file", str(params_file)])
     assert node.live.value == Demo(out=Path("results"), rate=3.0, count=6, names=("left", "right"), seed=7,
                                    extra=("z",))
 
@@ -78,7 +80,8 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     client = ros.node("setter").create_client(SetParameters, "demo/set_parameters")
 
     def set_(**values):
-        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()])
+        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                    for k, v in values.items()])
         return [(r.successful, r.reason) for r in ros.call(client, request).results]
 
     assert set_(count=40) == [(False, "count 40 is more than the gains allow")]

@@ -180,7 +180,7 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
     for ns in roots:
         probe.create_subscription(JointTrajectory, f"{ns}/hand/trajectory", trajectories[ns].append, 10)
     try:
-        for ns, suite in suites.items():
+        for _ns, suite in suites.items():
             assert suite.explore() == 0, suite.output()
         for ns, root in roots.items():
             bags = sorted((root / "bags").glob("episode_*"))

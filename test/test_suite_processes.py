@@ -56,7 +56,8 @@ def test_driver_explorer_and_recorder_processes_record_what_the_hand_simulated(t
         codes = [proc.wait(timeout=30) for proc in (driver, recorder)]
     text = {name: log.read_text() for name, log in logs.items()}
     assert code == 0 and codes == [0, 0], text
-    assert len(re.findall(r"40 actions applied( \(\d+ other steps\))?, complete", text["explorer"])) == 2, text["explorer"]
+    applied = re.findall(r"40 actions applied( \(\d+ other steps\))?, complete", text["explorer"])
+    assert len(applied) == 2, text["explorer"]
 
     bags = sorted(out_dir.glob("episode_*"))
     assert all((bag / "metadata.yaml").is_file() for bag in bags)

@@ -89,13 +89,13 @@ def test_real_files_become_six_episodes_per_hand(real):
         loads = traj.states[:, 2:]
         assert np.median(loads[:, 0]) > 0 > np.median(loads[:, 1])  # load1 > 0, load2 < 0 (README)
         assert 0 < np.median(np.abs(loads)) < 280
-    for before, after in zip(data, data[1:]):
+    for before, after in zip(data, data[1:], strict=False):
         assert after.start_ns == before.start_ns + len(before) * CONTROL_PERIOD_NS + 2 * EPISODE_GAP_NS
 
 
 def test_both_hands_received_the_same_actions(t42_real_dir):
     blue, red = (load_t42_testpaths(t42_real_dir / FILES[h]) for h in sorted(FILES))
-    for a, b in zip(blue, red):
+    for a, b in zip(blue, red, strict=True):
         n = min(len(a), len(b))
         assert np.array_equal(a.actions[:n], b.actions[:n])
 
@@ -105,7 +105,7 @@ def test_import_survives_a_bag_round_trip_exactly(real, tmp_path):
     bag = import_t42_to_bag(source, tmp_path / "bag")
     got = read_bag(bag)
     assert got.hand == data.hand and len(got) == len(data)
-    assert all(a == b for a, b in zip(got, data))
+    assert all(a == b for a, b in zip(got, data, strict=True))
 
 
 class _RunsShell:

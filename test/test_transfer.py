@@ -15,7 +15,9 @@ from t42_transfer.transfer import METHODS, PAPER_METHODS, TransferConfig, transf
 
 FAST = TransferConfig(
     new_model=dataclasses.replace(TransferConfig().new_model, train=TrainConfig(epochs=2)),
-    naive_finetune=dataclasses.replace(TransferConfig().naive_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)),
+    naive_finetune=dataclasses.replace(
+        TransferConfig().naive_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)
+    ),
     l2_finetune=dataclasses.replace(TransferConfig().l2_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)),
     trajectory_finetune=dataclasses.replace(
         TransferConfig().trajectory_finetune, train=TrainConfig(lr=1e-3, epochs=2, batch_size=1, patience=None)

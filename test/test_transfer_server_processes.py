@@ -9,15 +9,14 @@ from pathlib import Path
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
+from ros_rig import REPO, start_node, stop
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from test_transfer_server import add_target_bag, config_file, source_model  # noqa: F401  (fixture)
 
-from msg_adapters import DiagnosticReport, status_report
-from ros_rig import REPO, start_node, stop
-from msg_adapters import names
+from msg_adapters import DiagnosticReport, names, status_report
 from t42_transfer.nodes.transfer_server import STATUS_NAME
 from t42_transfer.ros.qos import profile
-from test_transfer_server import add_target_bag, config_file, source_model  # noqa: F401  (fixture)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -139,7 +139,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     play.add_argument("--topics", nargs="+", default=None, help="play only these topics (as named in the bag)")
     play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
     play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
-                      help="publish /clock from the bag's time at HZ (40 when HZ is not given), as ros2 bag play --clock")
+                      help="publish /clock from the bag's time at HZ (40 when HZ is not given), "
+                           "as ros2 bag play --clock")
     play.add_argument("--wait-subscribers", type=float_arg(0, 3600), default=2.0, metavar="S",
                       help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
     play.set_defaults(func=_cmd_bag_play)

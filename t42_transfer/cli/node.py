@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-
 from pathlib import Path
 
 from t42_transfer.cli.args import float_arg, namespace_arg
@@ -44,6 +43,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     up = commands.add_parser("up", help="run every node of a ROS params file as its own process until Ctrl-C")
     up.add_argument("config", type=Path, help="ROS params file (e.g. configs/suite.yaml); one process per node section")
     up.add_argument("--only", default=None, help="comma-separated node names to run (default: all)")
-    up.add_argument("--stop-timeout", type=float_arg(0, 3600, low_open=True), default=5.0, help="seconds per stop signal (default 5)")
-    up.add_argument("--namespace", type=namespace_arg, default="", help="run every node under this ROS namespace (e.g. /left)")
+    up.add_argument("--stop-timeout", type=float_arg(0, 3600, low_open=True), default=5.0,
+                    help="seconds per stop signal (default 5)")
+    up.add_argument("--namespace", type=namespace_arg, default="",
+                    help="run every node under this ROS namespace (e.g. /left)")
     up.set_defaults(func=_cmd_up)

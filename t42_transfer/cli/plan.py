@@ -1,4 +1,4 @@
-"""``t42 plan`` and ``t42 peg-in-hole``: open-loop plans from a model file, and their evaluation on the simulated hand."""
+"""``t42 plan`` and ``t42 peg-in-hole``: open-loop plans from a model file, and their evaluation on a simulated hand."""
 
 from __future__ import annotations
 
@@ -6,7 +6,18 @@ import argparse
 import sys
 from pathlib import Path
 
-from t42_transfer.cli.args import MAX_HORIZON, MAX_REFINE, MAX_SAMPLES, SEED_MAX, check_plan_size, existing_dir, existing_file, float_arg, int_arg, output_dir
+from t42_transfer.cli.args import (
+    MAX_HORIZON,
+    MAX_REFINE,
+    MAX_SAMPLES,
+    SEED_MAX,
+    check_plan_size,
+    existing_dir,
+    existing_file,
+    float_arg,
+    int_arg,
+    output_dir,
+)
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
@@ -31,7 +42,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     info = {"model": str(args.model), "method": meta.get("method"), "config": asdict(cfg)}
     files = write_plan(plan, args.out, workspace, info)
     if plan.ok:
-        print(f"plan: {len(plan.actions)} steps, predicted final error {plan.error_mm:.2f} mm -> {files[0]}, .csv, .png")
+        print(f"plan: {len(plan.actions)} steps, predicted final error {plan.error_mm:.2f} mm "
+              f"-> {files[0]}, .csv, .png")
         return 0
     print(f"t42: plan not ok ({plan.status}): {plan.reason} -> {files[0]}", file=sys.stderr)
     return 1
@@ -122,20 +134,24 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     plan.add_argument("model", type=Path, help="model file (.safetensors)")
     plan.add_argument(
-        "--start", type=float_arg(), nargs=4, required=True, metavar=("X", "Y", "LOAD1", "LOAD2"), help="start state (mm, raw loads)"
+        "--start", type=float_arg(), nargs=4, required=True, metavar=("X", "Y", "LOAD1", "LOAD2"),
+                                  help="start state (mm, raw loads)"
     )
-    plan.add_argument("--goal", type=float_arg(), nargs=2, required=True, metavar=("X", "Y"), help="goal object position (mm)")
+    plan.add_argument("--goal", type=float_arg(), nargs=2, required=True, metavar=("X", "Y"),
+                      help="goal object position (mm)")
     plan.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=100, help="steps of 0.1 s (default 100)")
     plan.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=None,
                       help="sequences sampled per round (default: PlannerConfig's)")
     plan.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
-    plan.add_argument("--tolerance", type=float_arg(0, low_open=True), default=2.0, help="predicted error that reaches the goal (mm, default 2)")
+    plan.add_argument("--tolerance", type=float_arg(0, low_open=True), default=2.0,
+                      help="predicted error that reaches the goal (mm, default 2)")
     plan.add_argument("--horizon-search", action="store_true", help="return the shortest sequence reaching the goal")
     plan.add_argument("--refine", type=int_arg(0, MAX_REFINE), default=None,
                       help="cross-entropy refinement rounds after the first draw (default: PlannerConfig's)")
     plan.add_argument(
-        "--workspace", type=Path, nargs="+", default=None, help="bags of the training data (default: stored in the model file)"
+        "--workspace", type=Path, nargs="+", default=None,
+        help="bags of the training data (default: stored in the model file)"
     )
     plan.add_argument("--out", type=Path, required=True, help="directory for plan.json, plan.csv, plan.png")
     plan.set_defaults(func=_cmd_plan)
@@ -144,7 +160,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     from t42_transfer.planning.planner import PlannerConfig
 
     peg = commands.add_parser(
-        "peg-in-hole", help="plan with saved models, execute open loop on the simulated target hand, success vs distance",
+        "peg-in-hole",
+        help="plan with saved models, execute open loop on the simulated target hand, success vs distance",
         description="Peg-in-hole: plan with a model, execute on the true (simulated) target hand, and judge honestly.",
         epilog="t42 peg-in-hole --from-json DIR/peg_in_hole.json rebuilds its tables and figure",
     )
@@ -159,15 +176,18 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     peg.add_argument("--distances", nargs="+", type=int_arg(1, MAX_HORIZON), default=list(PegInHoleConfig.distances))
     peg.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
     peg.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True),
-                        default=list(PegInHoleConfig.tolerances_mm), help="success tolerances (mm); the first is the paper's")
+                        default=list(PegInHoleConfig.tolerances_mm),
+                                     help="success tolerances (mm); the first is the paper's")
     peg.add_argument("--plan-length", choices=PLAN_LENGTHS, default=PegInHoleConfig.plan_length,
-                        help="fixed: plans of exactly n steps (default); search: the shortest predicted to reach the goal")
+                        help="fixed: plans of exactly n steps (default); "
+                             "search: the shortest predicted to reach the goal")
     peg.add_argument("--replan-every", type=int_arg(0, MAX_HORIZON), default=0,
                         help="0: open loop (default); k: every model replans from the measured state every k steps")
     peg.add_argument("--mpc", type=int_arg(0, MAX_HORIZON), default=0,
                         help="also evaluate each model replanning every K steps, beside open loop")
     peg.add_argument("--dropout", type=int_arg(0, 1000), default=0,
-                        help="also evaluate each model with M dropout samples per sequence, risk-averse (same rollouts)")
+                        help="also evaluate each model with M dropout samples per sequence, "
+                             "risk-averse (same rollouts)")
     peg.add_argument("--ensemble", nargs="+", default=(), metavar="NAME",
                         help="also evaluate an ensemble of these models (their names), risk-averse (same rollouts)")
     peg.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")

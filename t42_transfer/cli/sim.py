@@ -69,7 +69,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
 
     cmp_ = sim.add_parser("compare-real", help="replay the real T42 test paths' actions on simulated hands")
     cmp_.add_argument(
-        "--real-dir", type=Path, default=None, help="folder of the public T42 pickles (default: $T42_REAL_DATA or ../shared/data/t42_real)"
+        "--real-dir", type=Path, default=None,
+        help="folder of the public T42 pickles (default: $T42_REAL_DATA or ../shared/data/t42_real)"
     )
     cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
     cmp_.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)

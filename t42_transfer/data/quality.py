@@ -84,7 +84,7 @@ class Finding:
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """``(first, one past last)`` of every run of True in ``mask``."""
     edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist()))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
 
 
 def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tuple[Finding, ...]:

@@ -19,8 +19,9 @@ import math
 import os
 import pickle
 import pickletools
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy._core.multiarray import _reconstruct
@@ -127,7 +128,8 @@ def _is_placeholder(args: Any) -> bool:
 
 
 def _float64(args: Any) -> np.dtype:
-    """``np.dtype("f8", align, copy)``: the one dtype the real files name (a datetime one without its unit segfaults)."""
+    """``np.dtype("f8", align, copy)``: the one dtype the real files name
+    (a datetime one without its unit segfaults)."""
     if not (type(args) is tuple and len(args) == 3 and type(args[0]) is str):
         raise _Refused("a dtype must be given as (name, align, copy)")
     if args[0] != "f8":
@@ -154,7 +156,8 @@ class _RestrictedUnpickler(pickle._Unpickler):
             return _GLOBALS[(module, name)]
         except KeyError:
             raise _Refused(
-                f"refused to load global {_text(module)}.{_text(name)}: only numpy arrays, lists and scalars are allowed"
+                f"refused to load global {_text(module)}.{_text(name)}: "
+                "only numpy arrays, lists and scalars are allowed"
             ) from None
 
     def _reduce(self) -> None:
@@ -295,7 +298,7 @@ def _testpaths(file: Path, data: bytes) -> TrajectorySet:
             file, f"{len(actions)} action arrays, {len(states)} state arrays and {len(flags)} flags differ in number"
         )
     episodes, array_bytes = [], 0
-    for i, (acts, obs, ok) in enumerate(zip(actions, states, flags)):
+    for i, (acts, obs, ok) in enumerate(zip(actions, states, flags, strict=True)):
         obs = _float_table(file, f"path {i} states", obs, max(STATE_COLUMNS) + 1)
         acts = _float_table(file, f"path {i} actions", acts, 2)
         if len(acts) < len(obs) - 1:

@@ -9,8 +9,8 @@ through SI units on the ROS wire (float64) exact.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -116,7 +116,7 @@ class TrajectorySet:
     def num_transitions(self) -> int:
         return sum(len(t) for t in self.trajectories)
 
-    def subset(self, indices: Iterable[int]) -> "TrajectorySet":
+    def subset(self, indices: Iterable[int]) -> TrajectorySet:
         return TrajectorySet((self.trajectories[i] for i in indices), hand=self.hand)
 
     def transitions(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,7 +128,7 @@ class TrajectorySet:
                 np.zeros((0, STATE_DIM), np.float32),
             )
         parts = [t.transitions() for t in self.trajectories]
-        return tuple(np.concatenate(p) for p in zip(*parts))  # type: ignore[return-value]
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))  # type: ignore[return-value]
 
     def fingerprint(self) -> str:
         h = hashlib.sha256()

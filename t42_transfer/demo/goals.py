@@ -1,4 +1,5 @@
-"""One peg-in-hole goal on the running suite: reset, a reachable goal, the plan, its open-loop execution, the verdict."""
+"""One peg-in-hole goal on the running suite: reset, a reachable goal, the plan, its open-loop execution,
+the verdict."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ def plot_paths(runs: list[GoalRun], path: Path) -> Path:
     cols = min(4, max(1, len(runs)))
     rows = (len(runs) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
-    for ax, run in zip(axes.flat, runs):
+    for ax, run in zip(axes.flat, runs, strict=False):
         if run.planned:
             planned = np.asarray(run.planned)
             ax.plot(planned[:, 0], planned[:, 1], "--", color="tab:blue", label="planned")

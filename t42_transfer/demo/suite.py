@@ -42,7 +42,8 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
     bag_dir = out / f"source_bag_{size.source_episodes}x{size.source_steps}"
     if bag_dir.exists():
         shutil.rmtree(bag_dir)
-    bag = write_bag(bag_dir, TrajectorySet(assign_start_times(data), hand=data.hand), metadata={"collector": "t42 demo"})
+    bag = write_bag(bag_dir, TrajectorySet(assign_start_times(data), hand=data.hand),
+                    metadata={"collector": "t42 demo"})
     data = read_bag(bag)
     torch.set_num_threads(1)
     model, report = train_transition_model(data, TrainConfig(epochs=size.source_epochs), on_epoch=ProgressBar(),

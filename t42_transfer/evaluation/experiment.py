@@ -57,7 +57,8 @@ from t42_transfer.models.training import ProgressBar, TrainConfig, train_transit
 from t42_transfer.transfer.methods import select_method, transfer
 
 __all__ = [
-    "SAFE_NAME", "DataSpec", "ExperimentConfig", "TrainConfig", "check_config", "load_config", "run_experiment", "sides",
+    "SAFE_NAME", "DataSpec", "ExperimentConfig", "TrainConfig", "check_config", "load_config", "run_experiment",
+    "sides",
 ]
 """Besides this module's own: the config names its callers have always found here."""
 
@@ -158,7 +159,7 @@ def excluded_sources(cfg: ExperimentConfig, source: SideData, tested: SideData, 
     """
     if not cfg.source.exclude_test_sequences:
         return ()
-    ran = [tested.raw[o] for t, o in zip(tested.data, tested.origins) if any(t is u for u in test)]
+    ran = [tested.raw[o] for t, o in zip(tested.data, tested.origins, strict=True) if any(t is u for u in test)]
     return tuple(i for i, s in enumerate(source.raw) if any(same_action_sequence(s, t) for t in ran))
 
 
@@ -351,7 +352,8 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
     if path.exists():
         return path
     side = load_side(cfg, "source", data_cache(run_dir))
-    data = TrajectorySet((t for t, o in zip(side.data, side.origins) if o not in excluded), hand=side.data.hand)
+    data = TrajectorySet((t for t, o in zip(side.data, side.origins, strict=True) if o not in excluded),
+                         hand=side.data.hand)
     if not len(data):
         raise ValueError(f"no source episode is left to train on once episodes {list(excluded)} are excluded")
     # Minibatches of 64 gain nothing from a second thread, and idle OpenMP threads
@@ -359,7 +361,8 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        model, report = train_transition_model(data, cfg.source_training, on_epoch=ProgressBar() if progress else None, phase="source model")
+        model, report = train_transition_model(data, cfg.source_training,
+                                               on_epoch=ProgressBar() if progress else None, phase="source model")
     finally:
         torch.set_num_threads(threads)
     save_model(
@@ -473,7 +476,7 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
     else:
         ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for task, row in zip(tasks, pool.map(_run_cell, tasks)):
+            for task, row in zip(tasks, pool.map(_run_cell, tasks), strict=True):
                 keep(task[1], row)
     bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)

@@ -24,7 +24,7 @@ starting frame and the transient are dominated by the large coordinates.
 from __future__ import annotations
 
 import copy
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -163,7 +163,7 @@ def _starts_and_actions(
             raise ValueError("no episodes to analyse")
         lengths = torch.tensor([min(len(ep), steps or len(ep)) for ep in data])
         actions = torch.zeros(len(data), int(lengths.max()), data[0].actions.shape[1], dtype=torch.float64)
-        for row, (ep, n) in enumerate(zip(data, lengths.tolist())):
+        for row, (ep, n) in enumerate(zip(data, lengths.tolist(), strict=True)):
             actions[row, :n] = torch.tensor(ep.actions[:n])
         x0 = torch.as_tensor(np.stack([ep.states[0] for ep in data]))
         return x0, actions, lengths

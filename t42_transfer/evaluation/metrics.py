@@ -23,8 +23,9 @@ step itself (one more; ``T + 1`` when censored), and the MSE averaged over x and
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -166,7 +167,7 @@ def _windows(episodes: TrajectorySet, start_offsets: Sequence[int], horizon: int
     for row, (i, o, n) in enumerate(picked):
         actions[row, :n] = episodes[i].actions[o : o + n]
         true[row, : n + 1] = episodes[i].states[o : o + n + 1]
-    episode, offset, steps = (np.array(col, dtype=np.int64) for col in zip(*picked))
+    episode, offset, steps = (np.array(col, dtype=np.int64) for col in zip(*picked, strict=True))
     return _Windows(true[:, 0].copy(), actions, true, steps, episode, offset)
 
 

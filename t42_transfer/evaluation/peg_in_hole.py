@@ -411,7 +411,8 @@ def contenders_for(
     if ensemble:
         missing = sorted(set(ensemble) - set(models))
         if missing or len(ensemble) < 2:
-            raise ValueError(f"an ensemble needs at least two of the given models {sorted(models)}, got {list(ensemble)}")
+            raise ValueError(f"an ensemble needs at least two of the given models {sorted(models)}, "
+                             f"got {list(ensemble)}")
         ecfg = replace(planner, uncertainty="ensemble", risk=risk)
         out.append(Contender(f"ensemble{len(ensemble)}", tuple(models[n] for n in ensemble), planner=ecfg))
     if mpc:

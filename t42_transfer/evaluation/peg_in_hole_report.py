@@ -90,7 +90,8 @@ def markdown_table(rows: Sequence[Row]) -> str:
             rel = "-" if r.relative_error is None else f"{r.relative_error:.2f}"
             v = r.verdicts
             out.append(
-                f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} | {r.successes} ({r.success_rate:.0%}) "
+                f"| {r.model} | {r.steps} | {r.goal_distance_mm:.1f} | {r.trials} "
+                f"| {r.successes} ({r.success_rate:.0%}) "
                 f"| {r.ci_low:.0%}-{r.ci_high:.0%} | {error} | {rel} "
                 f"| {v['miss']} / {v['no_progress']} / {v['incomplete']} |\n"
             )

@@ -124,7 +124,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.2 * rows), squeeze=False)
     for ax in axes.flat[len(methods):]:
         ax.set_visible(False)
-    for ax, method in zip(axes.flat, methods):
+    for ax, method in zip(axes.flat, methods, strict=False):
         cell = Cell(method, amount, 0)
         if method == BASELINE:
             model = HoldStill()
@@ -139,7 +139,8 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         for i, traj in enumerate(test.trajectories[:episodes]):
             predicted = model.rollout(torch.tensor(traj.states[:1]), torch.tensor(traj.actions[None]))[0].numpy()
             ax.plot(traj.states[:, 0], traj.states[:, 1], color=f"C{i}", lw=1.2, label="true" if i == 0 else None)
-            ax.plot(predicted[:, 0], predicted[:, 1], color=f"C{i}", lw=1.0, ls="--", label="predicted" if i == 0 else None)
+            ax.plot(predicted[:, 0], predicted[:, 1], color=f"C{i}", lw=1.0, ls="--",
+                    label="predicted" if i == 0 else None)
             ax.plot(*traj.states[0, :2], "k.", ms=5)
         ax.set_title(method, fontsize=8)
         ax.set_xlabel("x (mm)", fontsize=7)
@@ -188,7 +189,8 @@ def findings(summary, config: dict[str, Any]) -> list[str]:  # type: ignore[no-u
             + f" of the {len(amounts)} amounts (paper: at all of them)."
         )
     if "trajectory_finetune" in div and "naive_finetune" in div:
-        better = [a for a in amounts if div["trajectory_finetune"].get(a, -np.inf) > div["naive_finetune"].get(a, np.inf)]
+        better = [a for a in amounts
+                  if div["trajectory_finetune"].get(a, -np.inf) > div["naive_finetune"].get(a, np.inf)]
         lines.append(
             "Trajectory fine-tuning beats naive fine-tuning at "
             + (", ".join(str(a) for a in better) if better else "no amount")

@@ -250,7 +250,8 @@ def matched_scores(
             raise ValueError(f"a {row['method']} row lacks {missing}")
         cell = tuple(row[k] for k in match)
         if cell in scores[row["method"]]:
-            raise ValueError(f"two {row['method']} rows share {dict(zip(match, cell))}: match on more keys")
+            raise ValueError(f"two {row['method']} rows share {dict(zip(match, cell, strict=True))}: "
+                             "match on more keys")
         scores[row["method"]][cell] = float(row[metric])
     cells = sorted(set(scores[method]) & set(scores[baseline]), key=repr)
     return (cells, np.array([scores[method][c] for c in cells]), np.array([scores[baseline][c] for c in cells]))

@@ -69,15 +69,16 @@ def hand_mjcf(p: HandParams, object_start_mm: tuple[float, float]) -> str:
     """MJCF of hand ``p`` with the object's reference position at ``object_start_mm``."""
     radius = _mm(p.object_radius_mm)
     inertia = 0.5 * p.object_mass_kg * radius**2
-    fingers = "".join(_finger_xml(s, f, p) for s, f in zip(FINGER_SIDES, (p.left, p.right)))
-    tendons = "".join(_tendon_xml(s, f) for s, f in zip(FINGER_SIDES, (p.left, p.right)))
+    fingers = "".join(_finger_xml(s, f, p) for s, f in zip(FINGER_SIDES, (p.left, p.right), strict=True))
+    tendons = "".join(_tendon_xml(s, f) for s, f in zip(FINGER_SIDES, (p.left, p.right), strict=True))
     servos = "".join(_servo_xml(s, p) for s in FINGER_SIDES)
     x0, y0 = (_mm(v) for v in object_start_mm)
+    half_height, half_width = _mm(p.palm_height_mm) / 2, _mm(p.base_half_width_mm) - 0.009
     return f"""<mujoco model="t42_{p.name}">
   <compiler angle="radian"/>
   <option timestep="{TIMESTEP_S}" gravity="0 0 0" integrator="implicitfast" cone="elliptic"/>
   <worldbody>
-    <geom name="palm" type="box" pos="0 {_mm(p.palm_height_mm) / 2:.6f} 0" size="{_mm(p.base_half_width_mm) - 0.009:.6f} {_mm(p.palm_height_mm) / 2:.6f} 0.02"
+    <geom name="palm" type="box" pos="0 {half_height:.6f} 0" size="{half_width:.6f} {half_height:.6f} 0.02"
           contype="2" conaffinity="1"
           friction="0.3 0.005 0.0001"/>{fingers}
     <body name="object" pos="{x0:.6f} {y0:.6f} 0">

@@ -96,7 +96,7 @@ class HandParams:
     region: RegionChange | None = None
     """Where, if anywhere, the hand's materials or springs differ abruptly (see :class:`RegionChange`)."""
 
-    def with_(self, **changes: object) -> "HandParams":
+    def with_(self, **changes: object) -> HandParams:
         return dataclasses.replace(self, **changes)
 
 

@@ -10,9 +10,9 @@ extents are compared as spans, not coordinates.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -80,12 +80,13 @@ def compare(
     first = sets[0]
     for name, other in real_sets.items():
         same = len(other) == len(first) and all(
-            np.array_equal(a.actions, b.actions[: len(a.actions)]) or np.array_equal(b.actions, a.actions[: len(b.actions)])
-            for a, b in zip(first, other)
+            np.array_equal(a.actions, b.actions[: len(a.actions)])
+            or np.array_equal(b.actions, a.actions[: len(b.actions)])
+            for a, b in zip(first, other, strict=True)
         )
         if not same:
             raise ValueError(f"real set {name!r} ran other action sequences than {next(iter(real_sets))!r}")
-    longest = TrajectorySet(max((t for t in group), key=len) for group in zip(*sets))
+    longest = TrajectorySet(max((t for t in group), key=len) for group in zip(*sets, strict=True))
     rows = [summarise(f"real {name}", data) for name, data in real_sets.items()]
     replays = {f"sim {hand}": replay(longest, hand, seed) for hand in hands}
     rows += [summarise(f"{key} (same actions)", data) for key, data in replays.items()]
@@ -115,7 +116,7 @@ def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, Trajector
 
     panels = [(f"real {k}", v) for k, v in real_sets.items()] + [(f"{k} (same actions)", v) for k, v in replays.items()]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.0 * len(panels), 3.8), squeeze=False)
-    for ax, (title, data) in zip(axes.flat, panels):
+    for ax, (title, data) in zip(axes.flat, panels, strict=True):
         for i, t in enumerate(data):
             ax.plot(t.states[:, 0], t.states[:, 1], lw=0.8, color=f"C{i}", label=f"path {i}")
             ax.plot(*t.states[0, :2], "k.", ms=4)

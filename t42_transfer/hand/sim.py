@@ -79,7 +79,8 @@ class SimulatedHand:
         self._data = mujoco.MjData(self._model)
         self._substeps = int(round(CONTROL_PERIOD_S / TIMESTEP_S))
         m = self._model
-        self._obj_qpos = [m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)] for n in ("object_x", "object_y")]
+        self._obj_qpos = [m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]
+                          for n in ("object_x", "object_y")]
         self._obj_geom = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "object")
         self._finger_geoms = [
             {mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{s}_{g}") for g in ("proximal_link", "distal_pad")}
@@ -206,14 +207,15 @@ class SimulatedHand:
         """True servo loads (raw units, signed as the state's), in action order, without sensor noise."""
         return self._tensions_load()[self._order] * LOAD_SIGNS
 
-    def snapshot(self) -> "HandSnapshot":
-        """Everything the next steps depend on (physics, servos, sensor-noise generator): :meth:`restore` replays them."""
+    def snapshot(self) -> HandSnapshot:
+        """Everything the next steps depend on (physics, servos, sensor-noise generator):
+        :meth:`restore` replays them."""
         data = mujoco.MjData(self._model)
         mujoco.mj_copyData(data, self._model, self._data)
         return HandSnapshot(data, self._servo.copy(), self._state.copy(), self._done, self._end_reason,
                             self._rng.bit_generator.state)
 
-    def restore(self, snap: "HandSnapshot") -> None:
+    def restore(self, snap: HandSnapshot) -> None:
         """Back to ``snap``: the same actions then give exactly the same states (a perfect model of this hand)."""
         mujoco.mj_copyData(self._data, self._model, snap.data)
         self._servo[:] = snap.servo
@@ -240,16 +242,18 @@ class SimulatedHand:
             return []
         m = self._model
         fields = []
-        for side, finger in zip(FINGER_SIDES, (p.left, p.right)):
+        for side, finger in zip(FINGER_SIDES, (p.left, p.right), strict=True):
             for geom, base, inside in (("distal_pad", p.pad_friction, region.pad_friction),
                                        ("proximal_link", p.link_friction, region.link_friction)):
                 if inside is not None:
-                    fields.append((m.geom_friction, (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{side}_{geom}"), 0),
+                    fields.append((m.geom_friction,
+                                   (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{side}_{geom}"), 0),
                                    base, inside))
             for joint, base, scale in (("proximal", finger.k_proximal, region.k_proximal_scale),
                                        ("distal", finger.k_distal, region.k_distal_scale)):
                 if scale != 1.0:
-                    fields.append((m.jnt_stiffness, (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_{joint}"),),
+                    fields.append((m.jnt_stiffness,
+                                   (mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_{joint}"),),
                                    base, base * scale))
         return fields
 

@@ -22,7 +22,7 @@ class HoldStill(LatentDynamics):
         return {}
 
     @classmethod
-    def from_config(cls, config: dict) -> "HoldStill":
+    def from_config(cls, config: dict) -> HoldStill:
         if config:
             raise ValueError(f"{cls.kind} takes no arguments, got {sorted(config)}")
         return cls()

@@ -21,8 +21,7 @@ from torch import Tensor, nn
 
 from t42_transfer.conventions import ACTION_DIM, STATE_DIM
 
-
-MODEL_KINDS: dict[str, type["LatentDynamics"]] = {}
+MODEL_KINDS: dict[str, type[LatentDynamics]] = {}
 """Every concrete model class by its ``kind``: checkpoints rebuild models through it."""
 
 
@@ -50,7 +49,7 @@ class LatentDynamics(nn.Module, abc.ABC):
 
     @classmethod
     @abc.abstractmethod
-    def from_config(cls, config: dict) -> "LatentDynamics":
+    def from_config(cls, config: dict) -> LatentDynamics:
         """An untrained model of the architecture ``config`` describes."""
 
     @abc.abstractmethod

@@ -37,7 +37,7 @@ class Normalisation:
     delta_std: np.ndarray
 
     @classmethod
-    def from_transitions(cls, x: np.ndarray, x_next: np.ndarray) -> "Normalisation":
+    def from_transitions(cls, x: np.ndarray, x_next: np.ndarray) -> Normalisation:
         if len(x) < 2:
             raise ValueError(f"need at least 2 transitions to normalise, got {len(x)}")
         delta = x_next - x
@@ -49,7 +49,7 @@ class Normalisation:
         )
 
     @classmethod
-    def identity(cls) -> "Normalisation":
+    def identity(cls) -> Normalisation:
         zeros, ones = np.zeros(STATE_DIM, np.float32), np.ones(STATE_DIM, np.float32)
         return cls(zeros, ones, zeros, ones)
 
@@ -71,7 +71,9 @@ class TransitionModel(LatentDynamics):
 
     kind = "transition"
 
-    def __init__(self, norm: Normalisation, grasp_input: bool = False, hidden: int = HIDDEN, dropout: float = DROPOUT) -> None:
+    def __init__(
+        self, norm: Normalisation, grasp_input: bool = False, hidden: int = HIDDEN, dropout: float = DROPOUT
+    ) -> None:
         super().__init__()
         self.grasp_input = grasp_input
         self.hidden = hidden
@@ -85,7 +87,8 @@ class TransitionModel(LatentDynamics):
     # -- normalisation ------------------------------------------------------------
     @property
     def norm(self) -> Normalisation:
-        return Normalisation(*(getattr(self, n).detach().cpu().numpy() for n in ("state_mean", "state_std", "delta_mean", "delta_std")))
+        return Normalisation(*(getattr(self, n).detach().cpu().numpy()
+                               for n in ("state_mean", "state_std", "delta_mean", "delta_std")))
 
     def features(self, x: Tensor, a: Tensor, grasp: Tensor | None = None) -> Tensor:
         parts = [(x - self.state_mean) / self.state_std, a]
@@ -122,7 +125,7 @@ class TransitionModel(LatentDynamics):
         return {"grasp_input": self.grasp_input, "hidden": self.hidden, "dropout": self.dropout}
 
     @classmethod
-    def from_config(cls, config: dict) -> "TransitionModel":
+    def from_config(cls, config: dict) -> TransitionModel:
         """Checks types and bounds first: the config comes from a model file, and ``hidden`` sizes the weights."""
         unknown = set(config) - {"grasp_input", "hidden", "dropout"}
         if unknown:

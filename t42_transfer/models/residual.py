@@ -68,10 +68,11 @@ class CumulativeResidualModel(LatentDynamics):
         return self.source.observe(zs) + y
 
     def config(self) -> dict:
-        return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha, "gamma": self.gamma}
+        return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha,
+                "gamma": self.gamma}
 
     @classmethod
-    def from_config(cls, config: dict) -> "CumulativeResidualModel":
+    def from_config(cls, config: dict) -> CumulativeResidualModel:
         residual = _build(config.get("residual"), "residual", {TransitionModel.kind: TransitionModel})
         return cls(_build(config.get("source"), "source"), residual, _weight(config, "alpha"), _weight(config, "gamma"))
 
@@ -113,7 +114,7 @@ class RecurrentResidualModel(LatentDynamics):
         return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha}
 
     @classmethod
-    def from_config(cls, config: dict) -> "RecurrentResidualModel":
+    def from_config(cls, config: dict) -> RecurrentResidualModel:
         residual = _build(config.get("residual"), "residual", {TransitionModel.kind: TransitionModel})
         return cls(_build(config.get("source"), "source"), residual, _weight(config, "alpha"))
 

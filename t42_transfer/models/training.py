@@ -132,7 +132,9 @@ class StepBatch:
         return len(self.features)
 
 
-def step_batch(model: TransitionModel, data: TrajectorySet, reference: Callable[[Tensor, Tensor], Tensor] | None = None) -> StepBatch:
+def step_batch(
+    model: TransitionModel, data: TrajectorySet, reference: Callable[[Tensor, Tensor], Tensor] | None = None
+) -> StepBatch:
     """Every transition of ``data`` as ``model``'s inputs and normalised targets ``x' - reference(x, a)``.
 
     Built once per training run: the normalisation is fixed while training, so

@@ -67,7 +67,6 @@ from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
 
-
 def _check_service_name(field: str, name: str) -> None:
     """ValueError unless ``name`` is empty or a valid (relative or absolute) service name."""
     if not name:
@@ -188,7 +187,8 @@ class Explorer(Node):
         self._record_stop = self.create_client(Trigger, p.record_stop_service) if p.record_stop_service else None
         self.create_subscription(JointState, names.JOINT_STATES, self._on_joint_state, 10)
         self._applied_sub = self.create_subscription(JointState, names.APPLIED_ACTION, self._on_applied, 10)
-        self._status_sub = self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
+        self._status_sub = self.create_subscription(String, names.HAND_STATUS, self._on_status,
+                                                    profile(names.EVENT_READER))
         self._timer = self.create_timer(self.POLL_S, self._on_timer)
 
     @property
@@ -243,7 +243,8 @@ class Explorer(Node):
     def _on_status(self, msg: String) -> None:
         words = msg.data.split()
         event = words[0].rstrip(":") if words else ""
-        if self._phase == "running" and self._ended is None and (event in names.END_EVENTS or event == names.TRAJECTORY_DONE):
+        if (self._phase == "running" and self._ended is None
+                and (event in names.END_EVENTS or event == names.TRAJECTORY_DONE)):
             self._ended = event
             self._done_at = time.monotonic()
 

@@ -144,7 +144,8 @@ class MockDriver(Node):
         self.create_service(Trigger, names.HAND_RESET, self._on_reset)
         ok, why = self.reset()
         if not ok:
-            self.log.warning(f"initial grasp failed: {why}; call {self.resolve_service_name(names.HAND_RESET)} to retry")
+            self.log.warning(f"initial grasp failed: {why}; "
+                             f"call {self.resolve_service_name(names.HAND_RESET)} to retry")
         self._timer = self.create_timer(p.period_s, self._on_timer)
 
     # ------------------------------------------------------------------ state

@@ -103,7 +103,6 @@ from t42_transfer.planning.execution import receding_horizon
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
-
 _DEFAULTS = PlannerConfig()
 
 

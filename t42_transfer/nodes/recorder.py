@@ -31,8 +31,9 @@ for it); a step still incomplete ``params.step_hold_s`` after its first message
 (an episode's final state waits for an action that never comes) is written as it
 is once no message has arrived for ``step_hold_s / 2`` (while messages keep
 coming, a backlog is being worked through and the rest of the step may be in it),
-and after ``HOLD_CAP * step_hold_s`` in any case (a topic that went silent).  A message for a stamp already written arrives too late and is dropped with a
-warning.  Bag changes happen between steps:
+and after ``HOLD_CAP * step_hold_s`` in any case (a topic that went silent).  A message
+for a stamp already written arrives too late and is dropped with a warning.  Bag
+changes happen between steps:
 
 * start, stop, split: after the step in progress (the newest stamp received): the
   bag opens, closes, or closes and the next opens at once when no step is in
@@ -424,7 +425,8 @@ class Recorder(Node):
             try:
                 text = TYPESTORE.deserialize_cdr(data, STRING).data
             except Exception as err:
-                self.log.warning(f"ignored a message on {names.HAND_STATUS}: not a {STRING} ({type(err).__name__}: {err})")
+                self.log.warning(f"ignored a message on {names.HAND_STATUS}: "
+                                 f"not a {STRING} ({type(err).__name__}: {err})")
                 return
             event = status_event(str(text))
             if event not in self.params.split_on:

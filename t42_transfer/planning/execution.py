@@ -101,7 +101,8 @@ def receding_horizon(plan_at: PlanAt, send: Send, measure: Measure, steps: int, 
 
 
 def execute(hand: Steppable, plan_at: PlanAt, steps: int, replan_every: int = 0) -> Execution:
-    """Run ``steps`` actions on ``hand`` from its current state, planning once (``replan_every = 0``) or every k steps."""
+    """Run ``steps`` actions on ``hand`` from its current state, planning once (``replan_every = 0``)
+    or every k steps."""
     states, actions = [hand.state.copy()], []
 
     def send(piece: np.ndarray) -> str:

@@ -53,7 +53,7 @@ def is_paper_mlp(model: LatentDynamics) -> bool:
     if type(model) is not TransitionModel:
         return False
     layers = list(model.net)
-    return len(layers) == len(_LAYOUT) and all(type(layer) is kind for layer, kind in zip(layers, _LAYOUT))
+    return len(layers) == len(_LAYOUT) and all(type(layer) is kind for layer, kind in zip(layers, _LAYOUT, strict=True))
 
 
 @dataclass(frozen=True)

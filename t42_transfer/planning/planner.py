@@ -103,7 +103,8 @@ class PlannerConfig:
 _AT_LEAST_ONE = between(1, math.inf)
 PLANNER_RULES: dict[str, Rule] = {
     "samples": _AT_LEAST_ONE, "horizon": _AT_LEAST_ONE, "chunk": _AT_LEAST_ONE, "sampler": one_of(SAMPLERS),
-    "tolerance_mm": ((lambda v: v > 0), "positive"), "refine_iterations": between(0, math.inf), "elite_fraction": FRACTION,
+    "tolerance_mm": ((lambda v: v > 0), "positive"), "refine_iterations": between(0, math.inf),
+    "elite_fraction": FRACTION,
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
 }
 """What each :class:`PlannerConfig` setting must be beyond its type."""
@@ -356,7 +357,8 @@ class _Search:
             ""
             if ok
             else (
-                f"goal unreachable: the best safe prediction ends {error:.2f} mm from it (tolerance {cfg.tolerance_mm} mm)"
+                f"goal unreachable: the best safe prediction ends {error:.2f} mm from it "
+                f"(tolerance {cfg.tolerance_mm} mm)"
             )
         )
         return Plan(

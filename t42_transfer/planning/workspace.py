@@ -74,7 +74,7 @@ class Workspace:
         margin_mm: float = MARGIN_MM,
         directions: int = DIRECTIONS,
         load_limit: float = OVERLOAD_LOAD,
-    ) -> "Workspace":
+    ) -> Workspace:
         """The k-DOP of ``states[:, :2]`` (any state layout starting with x, y) widened by ``margin_mm``."""
         xy = np.asarray(states, dtype=np.float64)[:, :2]
         if len(xy) == 0 or not np.all(np.isfinite(xy)):
@@ -83,7 +83,7 @@ class Workspace:
         return cls(proj.min(0) - margin_mm, proj.max(0) + margin_mm, load_limit)
 
     @classmethod
-    def from_trajectories(cls, trajectories: Iterable[Trajectory], **kwargs: Any) -> "Workspace":
+    def from_trajectories(cls, trajectories: Iterable[Trajectory], **kwargs: Any) -> Workspace:
         """The workspace of every state of ``trajectories`` (a TrajectorySet, or several chained)."""
         states = [t.states for t in trajectories]
         if not states:
@@ -93,7 +93,7 @@ class Workspace:
     @classmethod
     def box(
         cls, x_min: float, x_max: float, y_min: float, y_max: float, load_limit: float = OVERLOAD_LOAD
-    ) -> "Workspace":
+    ) -> Workspace:
         """An axis-aligned box (the ``D = 2`` k-DOP), margin included."""
         return cls(np.array([x_min, y_min]), np.array([x_max, y_max]), load_limit)
 
@@ -103,7 +103,7 @@ class Workspace:
         return {"lower": self.lower.tolist(), "upper": self.upper.tolist(), "load_limit": self.load_limit}
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "Workspace":
+    def from_dict(cls, data: Mapping[str, Any]) -> Workspace:
         """The workspace of :meth:`to_dict`'s form; ValueError (one line) for anything else, as files carry it."""
         if not isinstance(data, Mapping):
             raise ValueError(f"a stored workspace must be an object, got {type(data).__name__}")
@@ -120,14 +120,16 @@ class Workspace:
         return cls(bounds[0], bounds[1], float(limit))
 
     @classmethod
-    def from_metadata(cls, metadata: Mapping[str, Any]) -> "Workspace | None":
+    def from_metadata(cls, metadata: Mapping[str, Any]) -> Workspace | None:
         """The workspace a model file stores under ``extra.workspace``, or None; ValueError if it is malformed."""
         extra = metadata.get("extra") or {}
         stored = extra.get("workspace") if isinstance(extra, Mapping) else None
         return None if stored is None else cls.from_dict(stored)
 
     @classmethod
-    def for_planning(cls, bags: Sequence[str | Path] | None, metadata: Mapping[str, Any], model: str | Path) -> "Workspace":
+    def for_planning(
+        cls, bags: Sequence[str | Path] | None, metadata: Mapping[str, Any], model: str | Path
+    ) -> Workspace:
         """The workspace of the states in ``bags`` when given, else the one ``model``'s file stores (``metadata``).
 
         ValueError (one line) when neither: no default box can know where a model was trained."""

@@ -222,7 +222,7 @@ class Supervisor:
                 child.proc.stdout.close()
         return {c.name: c.proc.returncode for c in self.children}
 
-    def __enter__(self) -> "Supervisor":
+    def __enter__(self) -> Supervisor:
         return self
 
     def __exit__(self, *exc: object) -> None:

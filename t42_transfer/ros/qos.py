@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from msg_adapters.names import Qos
 
 
-@lru_cache(maxsize=None)
+@cache
 def profile(qos: Qos) -> QoSProfile:
     """The rclpy profile of ``qos``: KEEP_LAST ``depth``, RELIABLE, TRANSIENT_LOCAL when latched."""
     durability = DurabilityPolicy.TRANSIENT_LOCAL if qos.latched else DurabilityPolicy.VOLATILE

@@ -168,7 +168,7 @@ class TransferConfig:
     auto: AutoConfig = field(default_factory=AutoConfig)
 
     @classmethod
-    def for_definition(cls, definition: str) -> "TransferConfig":
+    def for_definition(cls, definition: str) -> TransferConfig:
         """The paper's settings, or the authors' code's where it departs from the paper (only those change)."""
         _check("definition", definition, DEFINITIONS)
         paper = cls()

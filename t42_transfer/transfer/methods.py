@@ -52,7 +52,9 @@ def _copy_trainable(source: TransitionModel) -> TransitionModel:
     return model
 
 
-def new_model(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def new_model(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """A fresh model trained on the target data alone (the source is ignored)."""
     c = cfg.new_model
     model, _ = train_transition_model(
@@ -62,19 +64,26 @@ def new_model(source: TransitionModel, target: TrajectorySet, cfg: TransferConfi
     return model
 
 
-def direct(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def direct(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """The source model unchanged."""
     return copy.deepcopy(source)
 
 
-def naive_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def naive_finetune(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """Single-step training of a copy of the source on target data, source normalisation kept."""
     model = _copy_trainable(source)
-    fit_single_step(model, target, None, _seeded(cfg.naive_finetune.train, seed), on_epoch=on_epoch, phase="naive fine-tune")
+    fit_single_step(model, target, None, _seeded(cfg.naive_finetune.train, seed), on_epoch=on_epoch,
+                    phase="naive fine-tune")
     return model
 
 
-def l2_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def l2_finetune(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """Single-step fine-tuning with an L2 pull toward the source weights."""
     model = _copy_trainable(source)
     anchors = [p.detach().clone() for p in source.net.parameters()]
@@ -82,15 +91,18 @@ def l2_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferCon
     strength = cfg.l2_finetune.l2
 
     def penalty() -> Tensor:
-        return strength * sum(((p - q) ** 2).sum() for p, q in zip(params, anchors))
+        return strength * sum(((p - q) ** 2).sum() for p, q in zip(params, anchors, strict=True))
 
     fit_single_step(
-        model, target, None, _seeded(cfg.l2_finetune.train, seed), on_epoch=on_epoch, phase="L2 fine-tune", penalty=penalty
+        model, target, None, _seeded(cfg.l2_finetune.train, seed), on_epoch=on_epoch, phase="L2 fine-tune",
+        penalty=penalty,
     )
     return model
 
 
-def trajectory_finetune(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def trajectory_finetune(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """Algorithm 1: fine-tune on open-loop rollouts of whole target episodes from their first true state.
 
     One episode per update is the algorithm as the paper writes it; a batch of
@@ -106,12 +118,13 @@ def trajectory_finetune(source: TransitionModel, target: TrajectorySet, cfg: Tra
         picked = [episodes[i] for i in idx.tolist()]
         length = min(len(actions) for _, actions in picked)
         starts = [int(torch.randint(0, len(a) - length + 1, (1,), generator=offsets)) for _, a in picked]
-        true = torch.stack([x[s : s + length + 1] for (x, _), s in zip(picked, starts)])
-        actions = torch.stack([a[s : s + length] for (_, a), s in zip(picked, starts)])
+        true = torch.stack([x[s : s + length + 1] for (x, _), s in zip(picked, starts, strict=True)])
+        actions = torch.stack([a[s : s + length] for (_, a), s in zip(picked, starts, strict=True)])
         predicted = rollout_until(model, true, actions, c.cutoff_mm2)
         return trajectory_loss(predicted, true[:, : predicted.shape[1]], model.state_std, c.loss)
 
-    fit(list(model.net.parameters()), model, loss_on, len(episodes), None, _seeded(c.train, seed), "trajectory fine-tune", on_epoch)
+    fit(list(model.net.parameters()), model, loss_on, len(episodes), None, _seeded(c.train, seed),
+        "trajectory fine-tune", on_epoch)
     return model
 
 
@@ -199,18 +212,23 @@ def _residual_net(
     batch = batch_of(train)
     val_batch = batch_of(val) if val is not None and len(val) else None
     val_fn = None if val_batch is None else (lambda: float(step_loss(g.net, val_batch, slice(None))))
-    fit(list(g.net.parameters()), g, lambda idx: step_loss(g.net, batch, idx), len(batch), val_fn, train_cfg, "residual", on_epoch)
+    fit(list(g.net.parameters()), g, lambda idx: step_loss(g.net, batch, idx), len(batch), val_fn, train_cfg,
+        "residual", on_epoch)
     return g
 
 
-def cumulative_residual(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def cumulative_residual(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """Algorithm 2: frozen source plus a discounted running sum of residuals."""
     c = cfg.cumulative_residual
     g = _residual_net(source, target, c, seed, on_epoch)
     return CumulativeResidualModel(copy.deepcopy(source), g, c.alpha, c.gamma).eval()
 
 
-def recurrent_residual(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def recurrent_residual(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """The residual fed back inside the loop: the paper's adjusted-state form or the authors' normalised sum."""
     c = cfg.recurrent_residual
     if c.form == "adjusted_state":
@@ -264,7 +282,8 @@ def select_method(
     source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int = 0,
     on_epoch: ProgressHook | None = None,
 ) -> Selection:
-    """Train every candidate of ``cfg.auto`` on part of ``target``, score each on the other whole episodes, keep the best.
+    """Train every candidate of ``cfg.auto`` on part of ``target``, score each on the other whole episodes,
+    keep the best.
 
     Best: the longest mean time before divergence (the paper's metric, 4 mm), then the
     lower position MSE, then the earlier candidate.  The kept model is the one scored,
@@ -305,7 +324,9 @@ def select_method(
     return Selection(models[best.method], best.method, tuple(scores), len(train), len(held_out))
 
 
-def auto(source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None) -> LatentDynamics:
+def auto(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
     """The candidate method with the best held-out score (:func:`select_method`, which also reports them all)."""
     return select_method(source, target, cfg, seed, on_epoch).model
 
@@ -324,12 +345,16 @@ METHODS: dict[str, Method] = {
 
 PAPER_METHODS = tuple(list(METHODS)[:6])
 
+_DEFAULT_CFG = TransferConfig()
+"""The paper's settings: :func:`transfer`'s default (frozen, so one instance serves every call)."""
+
 
 def transfer(
-    method: str, source: TransitionModel, target: TrajectorySet, cfg: TransferConfig = TransferConfig(), seed: int = 0,
+    method: str, source: TransitionModel, target: TrajectorySet, cfg: TransferConfig = _DEFAULT_CFG, seed: int = 0,
     on_epoch: ProgressHook | None = None,
 ) -> LatentDynamics:
-    """Run ``method``, reporting its training epochs to ``on_epoch``; unknown names and empty target data are refused."""
+    """Run ``method``, reporting its training epochs to ``on_epoch``; unknown names and empty target data
+    are refused."""
     if method not in METHODS:
         raise ValueError(f"unknown transfer method {method!r}; expected one of {sorted(METHODS)}")
     if len(target) == 0 or target.num_transitions < 2:

@@ -139,7 +139,8 @@ class TransferResult:
 
 # ---------------------------------------------------------------- configuration
 def config_with_overrides(overrides: Mapping[str, Any]) -> TransferConfig:
-    """:class:`TransferConfig` defaults with nested ``overrides`` (e.g. ``{"cumulative_residual": {"train": {"epochs": 5}}}``).
+    """:class:`TransferConfig` defaults with nested ``overrides``
+    (e.g. ``{"cumulative_residual": {"train": {"epochs": 5}}}``).
 
     Built by the one config layer (:func:`~t42_transfer.config.from_mapping`), so a setting an experiment's
     ``transfer`` section refuses is refused here with the same message: ValueError naming the dotted key.

@@ -1,7 +1,8 @@
 """rosbag2 bags <-> TrajectorySet, in the hand wire format of :mod:`msg_adapters`.
 
-One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps, :mod:`.storage` reads storage files (MCAP record by
-record, sqlite3 through rosbags), :mod:`.metadata` parses ``metadata.yaml`` and ``custom_data``,
+One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps,
+:mod:`.storage` reads storage files (MCAP record by record, sqlite3 through rosbags), :mod:`.metadata`
+parses ``metadata.yaml`` and ``custom_data``,
 :mod:`.episodes` turns hand messages into episodes, :mod:`.reader` reads a bag whole, and
 :mod:`.repair` rewrites a killed writer's bag.  The names here are the package's public API.
 """
@@ -22,6 +23,6 @@ from t42_transfer.data.errors import BagError
 
 __all__ = [
     "DEFAULT_T0_NS", "EPISODES_KEY", "EPISODE_GAP_NS", "EPISODE_GAP_S", "HAND_KEY", "RECORD_QOS", "REPAIRED_KEY",
-    "ROS_DISTRO", "BagError", "BagWriter", "JazzyWriter", "assign_start_times", "bag_info", "hand_namespace", "read_bag",
-    "verify_bag", "write_bag",
+    "ROS_DISTRO", "BagError", "BagWriter", "JazzyWriter", "assign_start_times", "bag_info", "hand_namespace",
+    "read_bag", "verify_bag", "write_bag",
 ]

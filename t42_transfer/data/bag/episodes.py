@@ -12,8 +12,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import warnings
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -180,7 +181,7 @@ def _episode_bounds(
             )
     starts = [0, *cuts]
     ends = [c - 1 for c in cuts] + [len(stamps) - 1]
-    return list(zip(starts, ends))
+    return list(zip(starts, ends, strict=True))
 
 
 def _complete_runs(posed: np.ndarray, acted: np.ndarray) -> list[tuple[int, int]]:

@@ -20,7 +20,8 @@ from t42_transfer.files import NotRegularFile, regular_file
 HAND_KEY = "t42_transfer.hand"
 EPISODES_KEY = "t42_transfer.episodes"
 REPAIRED_KEY = "t42_transfer.repaired"
-"""Set by :mod:`t42_transfer.data.bag.repair`: the bag is a killed writer's salvaged prefix (a cut last step is no error)."""
+"""Set by :mod:`t42_transfer.data.bag.repair`: the bag is a killed writer's salvaged prefix
+(a cut last step is no error)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, hand_namespace
 from t42_transfer.data.bag.metadata import EPISODES_KEY

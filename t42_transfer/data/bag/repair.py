@@ -95,7 +95,7 @@ def repair_bag(path: str | Path) -> RepairReport:
             counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
             if not counts:
                 raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
-            for original, orig in zip(files, kept):
+            for original, orig in zip(files, kept, strict=True):
                 original.rename(orig)
             (rebuilt / f"{bag.name}.mcap").rename(files[0])
             _write_metadata(rebuilt / "metadata.yaml", bag / "metadata.yaml", files[0].name)

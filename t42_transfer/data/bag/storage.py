@@ -10,8 +10,9 @@ from __future__ import annotations
 import dataclasses
 import io
 import stat
+from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO
 
 import lz4.frame
 import zstandard
@@ -103,9 +104,10 @@ def load_raw(bag: Path) -> RawBag:
 def _storage_files(bag: Path, meta: BagMetadata | None) -> tuple[str, list[Path]]:
     """Storage plugin and files of a bag directory: those metadata.yaml lists, else those it holds; all regular."""
     if meta is None:
-        for suffix, storage in SUFFIXES.items():
+        for suffix in SUFFIXES:
             files = sorted(bag.glob(f"*{suffix}"))
             if files:
+                storage = SUFFIXES[suffix]
                 break
         else:
             raise BagError(bag, "is not a rosbag2 bag: no metadata.yaml and no .mcap or .db3 file")
