@@ -184,11 +184,11 @@ def test_with_the_tracker_stopped_no_fresh_looking_pose_goes_out(rig: Rig) -> No
     assert names.STALE in rig.events()
 
 
-@pytest.mark.parametrize("inject", [
-    lambda bus: setattr(bus.bus.faults, "drop_replies", 3),
-    lambda bus: setattr(bus.bus.faults, "corrupt_replies", 2),
-    lambda bus: bus.bus.servos[2].raise_error(1 << 5),
-], ids=["dropped replies", "corruption", "error bit"])
+@pytest.mark.parametrize("inject", [  # each ~13 s; test_hw_emulator_node covers every fault again
+    pytest.param(lambda bus: setattr(bus.bus.faults, "drop_replies", 3), marks=pytest.mark.slow, id="dropped replies"),
+    pytest.param(lambda bus: setattr(bus.bus.faults, "corrupt_replies", 2), id="corruption"),
+    pytest.param(lambda bus: bus.bus.servos[2].raise_error(1 << 5), marks=pytest.mark.slow, id="error bit"),
+])
 def test_a_fault_is_reported_then_the_driver_recovers(rig: Rig, inject) -> None:
     assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
     assert rig.reset().success

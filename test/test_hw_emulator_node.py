@@ -84,13 +84,16 @@ def test_the_driver_runs_the_emulated_hand_with_the_trackers_rate(rig: Rig) -> N
     assert sum(s in joint_stamps for s in pose_stamps) >= steps - 2  # one pose per step, stamped with it
 
 
+SLOW = pytest.mark.slow  # each case is ~15 s of a running driver: two stay in the default run
+
+
 @pytest.mark.parametrize("fault, clear", [
-    ({"drop_replies": 4}, {}),
-    ({"corrupt_replies": 3}, {}),
-    ({"error_bits": [0, 32]}, {"error_bits": [0, 0]}),
-    ({"dead_servos": [2]}, {"dead_servos": [0]}),
-    ({"port_closed": True}, {"port_closed": False}),
-], ids=["dropped replies", "corruption", "error bit", "dead servo", "port closed"])
+    pytest.param({"drop_replies": 4}, {}, marks=SLOW, id="dropped replies"),
+    pytest.param({"corrupt_replies": 3}, {}, marks=SLOW, id="corruption"),
+    pytest.param({"error_bits": [0, 32]}, {"error_bits": [0, 0]}, id="error bit"),
+    pytest.param({"dead_servos": [2]}, {"dead_servos": [0]}, marks=SLOW, id="dead servo"),
+    pytest.param({"port_closed": True}, {"port_closed": False}, id="port closed"),
+])
 def test_each_injected_fault_shows_within_a_second_and_the_driver_comes_back(rig: Rig, fault: dict,
                                                                               clear: dict) -> None:
     assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()

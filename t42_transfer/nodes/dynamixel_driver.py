@@ -26,7 +26,9 @@ Faults (a servo that stops answering, a garbled answer, a Hardware Error Status 
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
 and the error bits decoded.  Recovery is automatic: once a second the driver reopens the port if it went,
 pings, reboots a servo that raised an error bit, turns the torque back on and holds; ``recovered`` then says
-the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics.
+the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics; a
+timer tick less than half a period after the last step (catching up after a late one) does not step, so
+two steps are never stamped closer than the bag reader accepts.
 """
 
 from __future__ import annotations
@@ -120,6 +122,8 @@ class DynamixelDriver(LifecycleNode):
         self.steps = 0
         self.running = False
         self.late_steps = 0
+        self.skipped_ticks = 0
+        """Timer ticks that came less than half a period after a step (after a late one) and did not step."""
         self.fault: ServoFault | None = None
         self._grasp: Grasp | None = None
         self._grasp_answer: Future | None = None
@@ -268,8 +272,13 @@ class DynamixelDriver(LifecycleNode):
         if not self._stepping:
             return
         now_s = time.monotonic()
-        if self._last_step_s is not None and now_s - self._last_step_s > (1 + LATE_FRACTION) * CONTROL_PERIOD_S:
-            self.late_steps += 1
+        if self._last_step_s is not None:
+            since = now_s - self._last_step_s
+            if since < CONTROL_PERIOD_S / 2:  # a timer catching up after a late step: two stamps this close
+                self.skipped_ticks += 1       # would not be two steps (the bag reader refuses them)
+                return
+            if since > (1 + LATE_FRACTION) * CONTROL_PERIOD_S:
+                self.late_steps += 1
         self._last_step_s = now_s
         self._ticks += 1
         if self._ticks % DIAGNOSTICS_EVERY == 0 and self.fault is None:
@@ -400,8 +409,8 @@ class DynamixelDriver(LifecycleNode):
 
     def _publish_diagnostics(self, level: str, message: str) -> None:
         fault = self.fault
-        values: dict[str, object] = {"late_steps": self.late_steps, "episode": self.episode, "steps": self.steps,
-                                     "pose_stale": self._stale}
+        values: dict[str, object] = {"late_steps": self.late_steps, "skipped_ticks": self.skipped_ticks,
+                                     "episode": self.episode, "steps": self.steps, "pose_stale": self._stale}
         if fault is not None:
             values.update(fault_kind=fault.kind, servo_id="" if fault.servo_id is None else fault.servo_id)
             if fault.kind == HARDWARE:
