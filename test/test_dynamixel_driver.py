@@ -248,3 +248,19 @@ def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> 
     section = yaml.safe_load((REPO / "configs" / config).read_text())["/**/dynamixel_driver"]["ros__parameters"]
     params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})
     assert params.geometry().limits()  # the geometry checks itself: servo range, grasp below the load limit
+
+
+def test_with_no_command_the_hand_holds_a_single_command_moves_it_one_step(rig: Rig) -> None:
+    """The watchdog is the step convention: a command is applied for one step, then the hand holds."""
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.reset().success
+    publisher = rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10)
+    assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
+    rig.ros.spin_for(0.3)
+    before = np.array(rig.driver.hand.goal)
+    command = JointState(name=list(ACTUATOR_NAMES), velocity=[0.0, -0.25 * 0.025 / CONTROL_PERIOD_S])
+    command.header.stamp = rig.tester.get_clock().now().to_msg()
+    publisher.publish(command)
+    rig.ros.spin_for(1.5)  # many steps after it, no other command
+    moved = np.array(rig.driver.hand.goal) - before
+    assert np.allclose(moved, [0.0, -0.25 * 0.025], atol=1e-6), moved  # one step of it, then holding

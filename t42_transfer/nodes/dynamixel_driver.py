@@ -14,8 +14,10 @@ Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states``
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
 ``hand/status``, ``hand/reset``), the same step convention (one sync read, publish the state and the action
 applied from it with one stamp, one sync write), and the same command rules
-(:mod:`t42_transfer.driver.commands`).  ``hand/reset`` runs the authors' grasp: open, then close each finger
-until its load passes ``grasp_load``; it answers once the grasp closed (the steps run meanwhile).
+(:mod:`t42_transfer.driver.commands`): a single-step command moves the hand for one step only, so with no
+command the hand holds where it is (the watchdog is the step convention itself).  ``hand/reset`` runs the
+authors' grasp: open, then close each finger until its load passes ``grasp_load``; it answers once the grasp
+closed (the steps run meanwhile).
 
 Object pose: the newest ``tracker/object_pose`` (remappable) is published each step, stamped with the step,
 unless it is older than ``max_pose_age_s``: then no pose goes out for the step, and ``hand/status`` says
@@ -95,8 +97,6 @@ class DynamixelDriverParams:
                                   min=0.01, max=10.0)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
                                      min=1e-3, max=3600.0)
-    watchdog_s: float = param(1.0, "with no command or trajectory for this long the hand holds", min=0.1,
-                              max=3600.0)
     autostart: bool = param(False, "configure and activate at start (a suite without a lifecycle manager)",
                             read_only=True)
 
@@ -130,7 +130,6 @@ class DynamixelDriver(LifecycleNode):
         self._stepping = False
         self._last_step_s: float | None = None
         self._last_stamp = 0
-        self._last_input_s = time.monotonic()
         self._pose: tuple[int, np.ndarray] | None = None
         self._stale = False
         self._next_retry_s = 0.0
@@ -240,7 +239,6 @@ class DynamixelDriver(LifecycleNode):
         action = accept(self.log, names.HAND_COMMAND, lambda: validate_command(msg, self.now_ns(), max_age))
         if action is not None:
             self.queue.set_command(action)
-            self._last_input_s = time.monotonic()
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         hand = self.hand
@@ -252,7 +250,6 @@ class DynamixelDriver(LifecycleNode):
                          lambda: validate_trajectory(msg, hand.goal, self.now_ns(), max_age))
         if actions is not None:
             self.queue.set_plan(actions)
-            self._last_input_s = time.monotonic()
 
     async def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Open, then close until the grasp load; answered when the grasp closed (the steps run it)."""
@@ -309,8 +306,6 @@ class DynamixelDriver(LifecycleNode):
         self._last_stamp = stamp
         self._publish_pose(stamp)
         self._joints_pub.publish(joint_state_msg(loads, angles, stamp, RCLPY))
-        if time.monotonic() - self._last_input_s > self.params.watchdog_s and self.queue.pending == 0:
-            self.queue.clear()  # nothing came for a while: the hand holds
         action, last = self.queue.next()
         if last:
             self._status(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}")
@@ -344,7 +339,6 @@ class DynamixelDriver(LifecycleNode):
             self.episode += 1
             self.running, self.steps = True, 0
             self.queue.clear()
-            self._last_input_s = time.monotonic()
             message = grasp_detail(self.episode, None)
             self._status(names.RESET, message)
             self._answer(True, message)
