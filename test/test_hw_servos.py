@@ -12,7 +12,7 @@ from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import servos as s
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import PtyBus, t42_bus
-from t42_transfer.hardware.hand_plant import T42_MOUNTS, HandPlant
+from t42_transfer.hardware.hand_plant import HandPlant
 
 LIMITS = {1: (2048, 3400), 2: (2048, 3400)}
 
@@ -92,4 +92,4 @@ def test_a_grasp_through_the_bus_closes_until_the_load() -> None:
     assert all(closed.values())
     true_loads = plant.hand.loads
     assert np.all(np.abs(true_loads) > GRASP_LOAD * 0.8)
-    assert [np.sign(loads[m.servo_id]) for m in T42_MOUNTS] == list(np.sign(true_loads))
+    assert [np.sign(loads[i]) for i in plant.geometry.servo_ids] == list(np.sign(true_loads))

@@ -65,8 +65,16 @@ class HandGeometry:
 
     def ticks(self, angles: np.ndarray) -> dict[int, int]:
         """Goal Positions of actuator ``angles`` (rad, action order), clamped onto the limits."""
-        safe = np.clip(np.nan_to_num(np.asarray(angles, float), nan=0.0), 0.0, self.max_angle_rad)
-        return {i: self.open_ticks[k] + self.directions[k] * int(round(safe[k] / xm.RAD_PER_TICK))
+        return self.positions(np.clip(np.nan_to_num(np.asarray(angles, float), nan=0.0), 0.0, self.max_angle_rad))
+
+    def positions(self, angles: np.ndarray) -> dict[int, int]:
+        """Servo positions (ticks) of finite actuator ``angles``, unclamped: where the fingers are, as servos say."""
+        return {i: self.open_ticks[k] + self.directions[k] * int(round(angles[k] / xm.RAD_PER_TICK))
+                for k, i in enumerate(self.servo_ids)}
+
+    def currents(self, loads: np.ndarray) -> dict[int, int]:
+        """Present Current of each servo holding ``loads`` (the hand's units, action order): :meth:`loads` inverted."""
+        return {i: self.directions[k] * xm.load_to_current(loads[k], LOAD_UNIT_NM)
                 for k, i in enumerate(self.servo_ids)}
 
     def angles(self, positions: dict[int, int]) -> np.ndarray:

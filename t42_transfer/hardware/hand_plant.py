@@ -1,58 +1,37 @@
 """The simulated hand behind the emulated servos: Goal Position drives its tendons, its physics answers.
 
-Each servo is mounted on one finger (``actuator``, the action's index) with the tick at which the finger is
-open and the direction that closes it (hands A and B are mirror images).  A torqued servo holds its goal; a
-servo without torque lets its tendon go slack.  The plant steps one control period per :meth:`tick`, on
-whatever clock the emulator keeps.  When both servos stand open the object is placed again, as a person at
-the bench does before the next grasp.  Loads come back as Present Current through the servo's torque
-constant, so a driver that converts back gets the hand's own load units.
+The servos sit on the fingers as the driver's :class:`~t42_transfer.driver.servo_hand.HandGeometry` says
+(which servo turns which finger, the tick at which it is open, the direction that closes it).  A torqued
+servo holds its goal; a servo without torque lets its tendon go slack.  The plant steps one control period
+per :meth:`tick`, on whatever clock the emulator keeps.  When both servos stand open the object is placed
+again, as a person at the bench does before the next grasp.  Loads come back as Present Current through the
+servo's torque constant, so a driver that converts back gets the hand's own load units.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
-from t42_transfer.conventions import LOAD_UNIT_NM
+from t42_transfer.driver.servo_hand import HandGeometry
 from t42_transfer.hand.sim import SimulatedHand, StepInfo
-from t42_transfer.hardware import xm430 as xm
 
+T42 = HandGeometry()
+"""The hand as it ships: servos 1 and 2, open at tick 2048, closing upwards."""
 OPEN_RAD = 0.02
 """Servo angles at most this far from open count as an open hand."""
-
-
-@dataclass(frozen=True)
-class ServoMount:
-    """How one servo sits on the hand."""
-
-    servo_id: int
-    actuator: int
-    """Index of the finger's actuator in the action (0 or 1)."""
-    open_tick: int = xm.ZERO_TICK
-    sign: int = 1
-    """+1: ticks above ``open_tick`` close the finger; -1: ticks below it do."""
-
-    def to_rad(self, ticks: int) -> float:
-        return self.sign * (ticks - self.open_tick) * xm.RAD_PER_TICK
-
-    def to_ticks(self, rad: float) -> int:
-        return self.open_tick + self.sign * int(round(rad / xm.RAD_PER_TICK))
-
-
-T42_MOUNTS = (ServoMount(1, 0), ServoMount(2, 1))
 
 
 class HandPlant:
     """A :class:`SimulatedHand` as a :class:`~t42_transfer.hardware.emulator.Plant`; thread-safe."""
 
-    def __init__(self, hand: SimulatedHand, mounts: Sequence[ServoMount] = T42_MOUNTS, seed: int = 0) -> None:
+    def __init__(self, hand: SimulatedHand, geometry: HandGeometry = T42, seed: int = 0) -> None:
         self.hand = hand
-        self.mounts = {m.servo_id: m for m in mounts}
-        self._goals = {m.servo_id: m.open_tick for m in mounts}
-        self._torque = {m.servo_id: False for m in mounts}
+        self.geometry = geometry
+        """How the servos sit on the hand: the driver's own :class:`HandGeometry`, so both agree by construction."""
+        self._goals = geometry.positions(np.zeros(2))
+        self._torque = dict.fromkeys(geometry.servo_ids, False)
         self._lock = threading.Lock()
         self.placements = 0
         """Objects placed so far (one per opening of the hand)."""
@@ -72,16 +51,14 @@ class HandPlant:
 
     def present(self) -> dict[int, tuple[int, int]]:
         with self._lock:
-            angles, loads = self.hand.actuator_angles, self.hand.loads
-            return {i: (m.to_ticks(angles[m.actuator]), m.sign * xm.load_to_current(loads[m.actuator], LOAD_UNIT_NM))
-                    for i, m in self.mounts.items()}
+            positions = self.geometry.positions(self.hand.actuator_angles)
+            currents = self.geometry.currents(self.hand.loads)
+            return {i: (positions[i], currents[i]) for i in positions}
 
     def angles(self) -> np.ndarray:
         """Where the servos drive the fingers now (rad, action order): the goal if torqued, slack if not."""
-        target = np.zeros(2)
-        for i, m in self.mounts.items():
-            target[m.actuator] = max(0.0, m.to_rad(self._goals[i])) if self._torque[i] else 0.0
-        return target
+        torqued = np.array([self._torque[i] for i in self.geometry.servo_ids])
+        return np.where(torqued, np.maximum(self.geometry.angles(self._goals), 0.0), 0.0)
 
     def tick(self) -> StepInfo:
         """One control period of the hand's physics; the object is placed again once the hand stands open."""

@@ -73,12 +73,6 @@ def hardware_errors(status: int) -> list[str]:
     return [name for bit, name in sorted(HARDWARE_ERRORS.items()) if status & (1 << bit)]
 
 
-def ticks_to_rad(ticks: int | float) -> float:
-    return (ticks - ZERO_TICK) * RAD_PER_TICK
-
-
-def rad_to_ticks(rad: float) -> int:
-    return int(round(rad / RAD_PER_TICK)) + ZERO_TICK
 
 TORQUE_NM_PER_A = 4.1 / 2.3
 """XM430-W350 at 12 V: 4.1 N m stall torque at 2.3 A stall current (ROBOTIS' e-manual), taken as linear."""

@@ -71,6 +71,8 @@ from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
 STATUS_NAME = "t42_transfer: dynamixel_driver"
+_T42 = HandGeometry()
+"""The parameters' defaults: the hand's geometry as it ships (its ranges are checked there, once)."""
 RETRY_PERIOD_S = 1.0
 LATE_FRACTION = 0.5
 """A step more than this many periods after the previous one is late."""
@@ -84,15 +86,17 @@ class DynamixelDriverParams:
 
     port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", read_only=True)
     baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, read_only=True)
-    servo_ids: tuple[int, ...] = param((1, 2), "servo ids in action order (hands A and B are mirrored)",
+    servo_ids: tuple[int, ...] = param(_T42.servo_ids, "servo ids in action order (hands A and B are mirrored)",
                                        read_only=True)
-    open_ticks: tuple[int, ...] = param((2048, 2048), "Present Position of each servo with its finger open",
+    open_ticks: tuple[int, ...] = param(_T42.open_ticks, "Present Position of each servo with its finger open",
                                         read_only=True)
-    directions: tuple[int, ...] = param((1, 1), "+1: ticks above open close the finger, -1: below", read_only=True)
-    rad_per_action: float = param(0.025, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
-    max_angle_rad: tuple[float, ...] = param((3.0, 3.0), "position limit of each servo from open (rad)")
-    load_limit: float = param(280.0, "no finger closes further with a load over this", min=1.0, max=2000.0)
-    grasp_load: float = param(100.0, "a reset closes each finger until its load passes this", min=1.0, max=2000.0)
+    directions: tuple[int, ...] = param(_T42.directions, "+1: ticks above open close the finger, -1: below",
+                                        read_only=True)
+    rad_per_action: float = param(_T42.rad_per_action, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
+    max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad)")
+    load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this", min=1.0, max=2000.0)
+    grasp_load: float = param(_T42.grasp_load, "a reset closes each finger until its load passes this", min=1.0,
+                              max=2000.0)
     max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
                                   min=0.01, max=10.0)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
