@@ -38,14 +38,13 @@ from machine import machine_info  # bench/machine.py (scripts run from bench/)
 from t42_transfer.evaluation import experiment
 from t42_transfer.evaluation.experiment import (
     Cell,
-    DataSpec,
-    ExperimentConfig,
     _run_cell,
     _score,
     _target_split,
     load_data,
     train_source,
 )
+from t42_transfer.evaluation.experiment_config import DataSpec, ExperimentConfig
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.training import TrainConfig
 from t42_transfer.planning.workspace import Workspace

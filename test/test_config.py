@@ -96,7 +96,7 @@ def test_the_same_bad_value_says_the_same_thing_in_an_experiment_a_server_file_a
 
 
 def test_an_experiment_transfer_section_keeps_the_definition_settings_it_does_not_name(tmp_path: Path) -> None:
-    from t42_transfer.evaluation.experiment import load_config
+    from t42_transfer.evaluation.experiment_config import load_config
 
     file = tmp_path / "exp.yaml"
     file.write_text("name: ok\ndefinition: authors\nsource: {hand: source}\ntarget: {hand: target}\n"

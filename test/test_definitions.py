@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-from t42_transfer.evaluation.experiment import DataSpec, ExperimentConfig, load_config
+from t42_transfer.evaluation.experiment_config import DataSpec, ExperimentConfig, load_config
 from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS, divergence_time, evaluate_model, position_mse
 from t42_transfer.models import AdjustedStateResidualModel, Normalisation, RecurrentResidualModel, TransitionModel
 from t42_transfer.models.training import Progress, TrainConfig, train_transition_model

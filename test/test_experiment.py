@@ -10,7 +10,9 @@ import yaml
 
 from t42_transfer.cli import main
 from t42_transfer.evaluation import experiment as exp
-from t42_transfer.evaluation.experiment import load_config, run_experiment
+from t42_transfer.evaluation.experiment import run_experiment
+from t42_transfer.evaluation.experiment_config import SAFE_NAME, DataSpec, ExperimentConfig, load_config
+from t42_transfer.models.training import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -148,7 +150,7 @@ def _experiment_configs() -> list[Path]:
 @pytest.mark.parametrize("shipped", _experiment_configs(), ids=lambda p: p.name)
 def test_every_shipped_config_loads(shipped: Path) -> None:
     cfg = load_config(shipped)
-    assert exp.SAFE_NAME.fullmatch(cfg.name)
+    assert SAFE_NAME.fullmatch(cfg.name)
 
 
 def test_configs_built_in_code_keep_the_same_rules(config_file: Path, tmp_path: Path) -> None:
@@ -244,13 +246,13 @@ def _with_jump(make_set):  # type: ignore[no-untyped-def]
 
 
 def test_new_spec_settings_keep_old_cache_keys() -> None:
-    spec = exp.DataSpec(real="A")
+    spec = DataSpec(real="A")
     assert list(spec.describe()) == ["hand", "episodes", "steps", "seed", "bag", "real", "mirror_x"]
-    assert exp.DataSpec(real="A", flagged="drop").describe()["flagged"] == "drop"
-    hand = exp.DataSpec(hand="target", episodes=20, steps=1000, seed=2)
+    assert DataSpec(real="A", flagged="drop").describe()["flagged"] == "drop"
+    hand = DataSpec(hand="target", episodes=20, steps=1000, seed=2)
     assert hand.describe() == {"hand": "target", "episodes": 20, "steps": 1000, "seed": 2, "bag": None, "real": None,
                                "mirror_x": False}  # the collected bag's name hashes this: random-policy bags stay
-    assert exp.DataSpec(hand="target", policy="sustained").describe()["policy"] == "sustained"
+    assert DataSpec(hand="target", policy="sustained").describe()["policy"] == "sustained"
 
 
 def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -> None:
@@ -263,8 +265,8 @@ def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -
         "method_config": dataclasses.asdict(cfg.transfer), "source": source.name, "definition": "paper",
     }
     assert exp._cell_key(cfg, cell, source) == f"direct-1-0-{exp._digest(before)}"
-    sustained = dataclasses.replace(cfg, test=exp.DataSpec(hand="target", policy="sustained"))
-    random = dataclasses.replace(cfg, test=exp.DataSpec(hand="target"))
+    sustained = dataclasses.replace(cfg, test=DataSpec(hand="target", policy="sustained"))
+    random = dataclasses.replace(cfg, test=DataSpec(hand="target"))
     keys = {exp._cell_key(c, cell, source) for c in (cfg, sustained, random)}
     assert len(keys) == 3
 
@@ -274,14 +276,14 @@ def test_the_sustained_policy_collects_long_holds_of_the_discrete_moves(tmp_path
 
     from t42_transfer.conventions import REAL_HAND_ACTIONS
 
-    spec = exp.DataSpec(hand="target", episodes=2, steps=150, seed=2, policy="sustained")
+    spec = DataSpec(hand="target", episodes=2, steps=150, seed=2, policy="sustained")
     data = exp.load_data(spec, tmp_path)
     moves = np.array(REAL_HAND_ACTIONS)
     for episode in data:
         assert all((moves == a).all(1).any() for a in episode.actions)  # every action one of the eight moves
         held = min(len(episode), 120)  # the shortest hold
         assert (episode.actions[:held] == episode.actions[0]).all()
-    random = exp.load_data(exp.DataSpec(hand="target", episodes=2, steps=150, seed=2), tmp_path)
+    random = exp.load_data(DataSpec(hand="target", episodes=2, steps=150, seed=2), tmp_path)
     assert not any((moves == a).all(1).any() for a in random[0].actions)
     assert len(list(tmp_path.iterdir())) == 2  # two bags: the policy is part of the collected set's name
 
@@ -293,10 +295,10 @@ def test_a_test_set_replaces_the_held_out_episodes_and_keeps_the_training_subset
 
     target = _bag(tmp_path, "t", make_set([30] * 10, seed=3, hand="target"))
     test = make_set([50] * 3, seed=4, hand="target")
-    plain = exp.ExperimentConfig(name="t", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
-                                 target=exp.DataSpec(bag=target), split=split, amounts=amounts, seeds=2,
+    plain = ExperimentConfig(name="t", source=DataSpec(bag=str(REPO / "bags" / "source_small")),
+                                 target=DataSpec(bag=target), split=split, amounts=amounts, seeds=2,
                                  test_fraction=0.3)
-    with_test = dataclasses.replace(plain, test=exp.DataSpec(bag=_bag(tmp_path, "test", test)))
+    with_test = dataclasses.replace(plain, test=DataSpec(bag=_bag(tmp_path, "test", test)))
     episodes = exp.load_side(plain, "target", tmp_path / "cache").data
     tested = exp.load_test(with_test, tmp_path / "cache")
     assert exp.load_test(plain, tmp_path / "cache") is None and len(tested.data) == 3
@@ -316,7 +318,7 @@ def test_a_run_scores_every_cell_on_the_test_set(config_file: Path, tmp_path: Pa
 
     test = make_set([50] * 2, seed=4, hand="target")
     cfg = dataclasses.replace(load_config(config_file), methods=("direct",), amounts=(1,), seeds=2)
-    with_test = dataclasses.replace(cfg, test=exp.DataSpec(bag=_bag(tmp_path, "test", test)))
+    with_test = dataclasses.replace(cfg, test=DataSpec(bag=_bag(tmp_path, "test", test)))
     plain_rows = [r for r in run_experiment(cfg, tmp_path / "a", progress=False) if r["method"] == "direct"]
     rows = [r for r in run_experiment(with_test, tmp_path / "b", progress=False) if r["method"] == "direct"]
     assert [r["test_rollouts"] for r in plain_rows] == [3, 3] and [r["test_rollouts"] for r in rows] == [2, 2]
@@ -335,8 +337,8 @@ def test_a_run_scores_every_cell_on_the_test_set(config_file: Path, tmp_path: Pa
 def test_flagged_episodes_kept_dropped_or_split_by_configuration(tmp_path: Path, make_set, how: str, episodes: int,
                                                                  origins: tuple[int, ...]) -> None:
     data, np = _with_jump(make_set)
-    cfg = exp.ExperimentConfig(name="q", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
-                               target=exp.DataSpec(bag=_bag(tmp_path, "t", data), flagged=how), split="paths",
+    cfg = ExperimentConfig(name="q", source=DataSpec(bag=str(REPO / "bags" / "source_small")),
+                               target=DataSpec(bag=_bag(tmp_path, "t", data), flagged=how), split="paths",
                                amounts=(1,))
     side = exp.load_side(cfg, "target", tmp_path / "cache")
     assert (len(side.data), side.origins) == (episodes, origins)
@@ -352,10 +354,10 @@ def test_flagged_episodes_kept_dropped_or_split_by_configuration(tmp_path: Path,
 
 def test_the_run_records_what_was_found_per_data_set(tmp_path: Path, make_set) -> None:
     data, _ = _with_jump(make_set)
-    cfg = exp.ExperimentConfig(name="q", source=exp.DataSpec(bag=str(REPO / "bags" / "source_small")),
-                               target=exp.DataSpec(bag=_bag(tmp_path, "t", data), flagged="drop"), methods=("direct",),
+    cfg = ExperimentConfig(name="q", source=DataSpec(bag=str(REPO / "bags" / "source_small")),
+                               target=DataSpec(bag=_bag(tmp_path, "t", data), flagged="drop"), methods=("direct",),
                                split="paths", amounts=(1,), seeds=1, lyapunov_steps=5,
-                               source_training=exp.TrainConfig(epochs=1))
+                               source_training=TrainConfig(epochs=1))
     rows = run_experiment(cfg, tmp_path / "runs", progress=False)
     assert rows[0]["test_rollouts"] == 2  # 3 episodes kept, 1 to train
     recorded = json.loads((tmp_path / "runs" / "q" / "data_quality.json").read_text())
@@ -417,10 +419,10 @@ def test_source_leaves_out_the_episodes_that_ran_a_test_sequence(tmp_path: Path,
     others = make_set([40] * 4, seed=9, hand="target")  # target episode k ran source episode k's actions, negated
     target = type(others)([dataclasses.replace(t, actions=-s.actions) for s, t in zip(source, others, strict=True)],
                           hand="target")
-    cfg = exp.ExperimentConfig(
-        name="excl", source=exp.DataSpec(bag=_bag(tmp_path, "s", source), exclude_test_sequences=True),
-        target=exp.DataSpec(bag=_bag(tmp_path, "t", target)), methods=("direct",), split="paths", amounts=(2,),
-        seeds=2, lyapunov_steps=5, source_training=exp.TrainConfig(epochs=1))
+    cfg = ExperimentConfig(
+        name="excl", source=DataSpec(bag=_bag(tmp_path, "s", source), exclude_test_sequences=True),
+        target=DataSpec(bag=_bag(tmp_path, "t", target)), methods=("direct",), split="paths", amounts=(2,),
+        seeds=2, lyapunov_steps=5, source_training=TrainConfig(epochs=1))
     sides = [exp.load_side(cfg, side, tmp_path / "cache") for side in ("source", "target")]
     for seed in range(2):
         cell = exp.Cell("direct", 2, seed)
@@ -440,9 +442,9 @@ def test_source_leaves_out_the_episodes_that_ran_a_test_sequence(tmp_path: Path,
     assert all(m["data"]["transitions"] == 40 * 2 for m in metas)  # trained on the two sequences not tested
 
 
-def _real_pair(source: str, target: str, **target_spec) -> exp.ExperimentConfig:  # type: ignore[no-untyped-def]
-    return exp.ExperimentConfig(name="pair", source=exp.DataSpec(real=source),
-                                target=exp.DataSpec(real=target, **target_spec), split="paths", amounts=(1,))
+def _real_pair(source: str, target: str, **target_spec) -> ExperimentConfig:  # type: ignore[no-untyped-def]
+    return ExperimentConfig(name="pair", source=DataSpec(real=source),
+                                target=DataSpec(real=target, **target_spec), split="paths", amounts=(1,))
 
 
 @pytest.mark.realdata
@@ -487,7 +489,7 @@ def test_the_authors_b_to_a_keeps_test_sequences_out_of_the_source(t42_real_dir:
 
     cfg = dataclasses.replace(load_config(REPO / "configs" / "real_b_to_a_authors.yaml"), methods=("direct",),
                               amounts=(3,), seeds=2, lyapunov_steps=5, horizon=50,
-                              source_training=exp.TrainConfig(epochs=1))
+                              source_training=TrainConfig(epochs=1))
     sides = [exp.load_side(cfg, side, tmp_path) for side in ("source", "target")]
     for seed in range(2):
         cell = exp.Cell("direct", 3, seed)

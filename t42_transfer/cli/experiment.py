@@ -11,7 +11,8 @@ from t42_transfer.cli.args import existing_dir, existing_file, int_arg, output_d
 def _cmd_experiment(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from t42_transfer.evaluation.experiment import load_config, run_experiment
+    from t42_transfer.evaluation.experiment import run_experiment
+    from t42_transfer.evaluation.experiment_config import load_config
     from t42_transfer.evaluation.report import write_report
 
     cfg = load_config(args.config)

@@ -41,26 +41,18 @@ from t42_transfer.data.trajectory import (
     split_by_fraction,
 )
 from t42_transfer.evaluation.experiment_config import (
-    SAFE_NAME,
     DataSpec,
     ExperimentConfig,
     check_config,
     config_dict,
-    load_config,
     sides,
 )
 from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
+from t42_transfer.models.training import ProgressBar, train_transition_model
 from t42_transfer.transfer.methods import select_method, transfer
-
-__all__ = [
-    "SAFE_NAME", "DataSpec", "ExperimentConfig", "TrainConfig", "check_config", "load_config", "run_experiment",
-    "sides",
-]
-"""Besides this module's own: the config names its callers have always found here."""
 
 RESULT_COLUMNS = (
     "method", "amount", "seed", "train_episodes", "train_transitions", "test_rollouts", "divergence_mean",

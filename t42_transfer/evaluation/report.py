@@ -105,11 +105,11 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         _target_split,
         cell_excluded,
         data_cache,
-        load_config,
         load_side,
         load_test,
         source_model_path,
     )
+    from t42_transfer.evaluation.experiment_config import load_config
     from t42_transfer.models.checkpoint import load_model
 
     cfg = load_config(run_dir / "config.yaml")
