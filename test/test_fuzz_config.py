@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 REPO = Path(__file__).resolve().parents[1]
 READERS = {
-    "experiment": ("t42_transfer.evaluation.experiment:load_config", REPO / "configs" / "sim_small.yaml"),
+    "experiment": ("t42_transfer.evaluation.experiment_config:load_config", REPO / "configs" / "sim_small.yaml"),
     "params": ("t42_transfer.ros.launcher:read_params_file", REPO / "configs" / "suite.yaml"),
 }
 MEM_MB = 256
