@@ -24,10 +24,10 @@ from t42_transfer.ros.qos import profile
 
 
 class Rig(Tester):
-    def __init__(self, ros: RosRig, link: Path) -> None:
+    def __init__(self, ros: RosRig, link: Path, emulator: dict | None = None, driver: dict | None = None) -> None:
         super().__init__(ros)
-        self.emulator = ros.add(HwEmulator, {"link": str(link)})
-        self.driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True})
+        self.emulator = ros.add(HwEmulator, {"link": str(link), **(emulator or {})})
+        self.driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True, **(driver or {})})
         self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
         self.tracker = self.listen(PoseStamped, names.TRACKER_POSE)
         self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
@@ -82,6 +82,24 @@ def test_the_driver_runs_the_emulated_hand_with_the_trackers_rate(rig: Rig) -> N
     joint_stamps = {stamp_to_ns(j.header.stamp) for j in rig.joints[start_joints:]}
     pose_stamps = [stamp_to_ns(p.header.stamp) for p in rig.poses]
     assert sum(s in joint_stamps for s in pose_stamps) >= steps - 2  # one pose per step, stamped with it
+
+
+def test_on_sim_time_the_driver_steps_with_the_emulators_clock_faster_than_real_time(ros: RosRig,
+                                                                                     tmp_path: Path) -> None:
+    rig = Rig(ros, tmp_path / "ttyT42", emulator={"sim_time": True, "rate_factor": 4.0},
+              driver={"use_sim_time": True, "max_command_age_s": 2.0})
+    try:
+        assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()
+        start = len(rig.joints)
+        rig.ros.spin_for(2.0)
+        stamps = [stamp_to_ns(j.header.stamp) for j in rig.joints[start:]]
+        assert len(stamps) >= 50, len(stamps)  # 2 s: 20 steps at 1x, 80 at 4x (slack for load)
+        gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+        assert sum(g != CONTROL_PERIOD_NS for g in gaps) <= 2, gaps  # a step each period of the graph's clock
+        assert rig.reports("OK") and rig.reports("OK")[-1].values["skipped_ticks"] == "0"
+    finally:
+        rig.driver.close()
+        rig.emulator.close()
 
 
 SLOW = pytest.mark.slow  # each case is ~15 s of a running driver: two stay in the default run

@@ -30,7 +30,8 @@ and the error bits decoded.  Recovery is automatic: once a second the driver reo
 pings, reboots a servo that raised an error bit, turns the torque back on and holds; ``recovered`` then says
 the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics; a
 timer tick less than half a period after the last step (catching up after a late one) does not step, so
-two steps are never stamped closer than the bag reader accepts.
+two steps are never stamped closer than the bag reader accepts.  Steps follow the graph's clock: with
+``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock does.
 """
 
 from __future__ import annotations
@@ -272,7 +273,7 @@ class DynamixelDriver(LifecycleNode):
     def _on_timer(self) -> None:
         if not self._stepping:
             return
-        now_s = time.monotonic()
+        now_s = self.now_ns() / 1e9  # the graph's clock: on sim time the steps follow /clock, however fast
         if self._last_step_s is not None:
             since = now_s - self._last_step_s
             if since < CONTROL_PERIOD_S / 2:  # a timer catching up after a late step: two stamps this close
@@ -287,7 +288,7 @@ class DynamixelDriver(LifecycleNode):
             self._publish_diagnostics("WARN" if stale else "OK", "stale object pose" if stale else "stepping")
         try:
             if self.fault is not None:
-                self._try_recover(now_s)
+                self._try_recover(time.monotonic())  # a port is retried on the wall clock, whatever the graph's
                 return
             self.step()
         except ServoFault as err:
