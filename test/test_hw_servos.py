@@ -93,3 +93,30 @@ def test_a_grasp_through_the_bus_closes_until_the_load() -> None:
     true_loads = plant.hand.loads
     assert np.all(np.abs(true_loads) > GRASP_LOAD * 0.8)
     assert [np.sign(loads[i]) for i in plant.geometry.servo_ids] == list(np.sign(true_loads))
+
+
+@pytest.mark.parametrize("latency_timer_ms, answered", [(s.SDK_LATENCY_TIMER_MS, False), (200.0, True)])
+def test_the_adapters_latency_timer_sets_how_long_an_answer_is_awaited(latency_timer_ms: float,
+                                                                        answered: bool) -> None:
+    """A servo answering 60 ms late: past dynamixel-sdk's 34 ms for a 16 ms adapter, in time for a slow link."""
+    import time
+
+    with PtyBus(t42_bus()) as bus:
+        handle = bus.bus.handle
+
+        def late(ins):  # noqa: ANN001, ANN202
+            time.sleep(0.06)
+            return handle(ins)
+
+        bus.bus.handle = late
+        servos = s.HandServos(bus.port, 1_000_000, (1, 2), latency_timer_ms=latency_timer_ms)
+        servos.open()
+        try:
+            if answered:
+                assert servos.ping(1) == xm.XM430_W350
+            else:
+                with pytest.raises(s.ServoFault) as fault:
+                    servos.ping(1)
+                assert fault.value.kind == s.TIMEOUT
+        finally:
+            servos.close()

@@ -46,17 +46,36 @@ class ServoState:
     currents: dict[int, int]
 
 
-class HandServos:
-    """The servos ``ids`` on ``port`` at ``baud``, protocol 2.0."""
+SDK_LATENCY_TIMER_MS = 16.0
+"""The USB adapter's latency timer dynamixel-sdk assumes (FTDI's default) when it times an answer out."""
 
-    def __init__(self, port: str, baud: int, ids: Sequence[int]) -> None:
+
+class _Port(PortHandler):
+    """dynamixel-sdk's port with the adapter's real latency timer in its answer timeout (the SDK fixes 16 ms):
+    an adapter set to 1 ms times out sooner, a slow link (an emulated bus on a busy machine) later."""
+
+    def __init__(self, name: str, latency_timer_ms: float) -> None:
+        super().__init__(name)
+        self.extra_ms = 2.0 * (latency_timer_ms - SDK_LATENCY_TIMER_MS)
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (dynamixel-sdk's name)
+        super().setPacketTimeout(packet_length)
+        self.packet_timeout += self.extra_ms
+
+
+class HandServos:
+    """The servos ``ids`` on ``port`` at ``baud``, protocol 2.0; ``latency_timer_ms``: the adapter's."""
+
+    def __init__(self, port: str, baud: int, ids: Sequence[int],
+                 latency_timer_ms: float = SDK_LATENCY_TIMER_MS) -> None:
         self.port_name, self.baud, self.ids = port, baud, tuple(ids)
+        self.latency_timer_ms = latency_timer_ms
         self._port: PortHandler | None = None
         self._packets = PacketHandler(2.0)
 
     # ------------------------------------------------------------------ port
     def open(self) -> None:
-        port = PortHandler(self.port_name)
+        port = _Port(self.port_name, self.latency_timer_ms)
         try:
             opened = port.openPort() and port.setBaudRate(self.baud)
         except _PORT_ERRORS as err:

@@ -67,7 +67,7 @@ from t42_transfer.conventions import CONTROL_PERIOD_S
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
-from t42_transfer.hardware.servos import HARDWARE, PORT, HandServos, ServoFault
+from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -87,6 +87,9 @@ class DynamixelDriverParams:
 
     port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", read_only=True)
     baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, read_only=True)
+    latency_timer_ms: float = param(SDK_LATENCY_TIMER_MS, "the USB adapter's latency timer: an answer is awaited "
+                                    "2x this + 2 ms + its bytes' time (an emulated bus: more)", min=0.0, max=1000.0,
+                                    read_only=True)
     servo_ids: tuple[int, ...] = param(_T42.servo_ids, "servo ids in action order (hands A and B are mirrored)",
                                        read_only=True)
     open_ticks: tuple[int, ...] = param(_T42.open_ticks, "Present Position of each servo with its finger open",
@@ -169,7 +172,7 @@ class DynamixelDriver(LifecycleNode):
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         p = self.params
-        servos = HandServos(p.port, p.baud, p.servo_ids)
+        servos = HandServos(p.port, p.baud, p.servo_ids, p.latency_timer_ms)
         try:
             servos.open()
             models = servos.check()
