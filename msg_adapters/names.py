@@ -38,6 +38,9 @@ driver publishes the newest fresh one each step as :data:`OBJECT_POSE`."""
 SIM_POSE = "sim/object_pose"
 """geometry_msgs/PoseStamped: the emulated hand's true object pose, for checks only."""
 
+GET_STATE = "~/get_state"
+"""lifecycle_msgs/GetState: a lifecycle node's state (the Dynamixel driver's), served by rclpy."""
+
 HAND_TOPICS = (OBJECT_POSE, JOINT_STATES, APPLIED_ACTION)
 """The hand's recorded topics, in per-step publish order."""
 

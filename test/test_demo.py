@@ -20,9 +20,34 @@ from t42_transfer.models.checkpoint import load_model
 
 
 def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int) -> None:
-    assert main(["demo", "--quick", "--out", str(tmp_path), "--workers", "1"]) == 0, capsys.readouterr()
+    summary, report = story_told(tmp_path, capsys)
+    assert summary["hardware"] == "sim" and summary["driver"] == "mock_driver" and "`mock_driver` (sim)" in report
+
+
+def test_demo_quick_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                              ros_domain: int) -> None:
+    """The same story through the real hand's nodes: the Dynamixel driver on the emulated servo bus, the object
+    pose from the emulated tracker."""
+    summary, report = story_told(tmp_path, capsys, "--hardware", "emulated")
+    assert summary["hardware"] == "emulated" and summary["driver"] == "dynamixel_driver"
+    assert "`dynamixel_driver` (emulated)" in report and "tracker/object_pose" in report
+    assert all(g["grasp_seed"] is None for g in summary["goals"])  # grasps made through the servos, unseeded
+
+
+@pytest.mark.slow
+def test_demo_full_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                             ros_domain: int) -> None:
+    summary, _ = story_told(tmp_path, capsys, "--hardware", "emulated", quick=False)
+    assert summary["mode"] == "full" and summary["driver"] == "dynamixel_driver"
+
+
+def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
+               quick: bool = True) -> tuple[dict, str]:
+    """Run ``t42 demo [--quick] *options`` and check the story every hand tells; its summary and report."""
+    size = ["--quick"] if quick else []
+    assert main(["demo", *size, "--out", str(out_dir), "--workers", "1", *options]) == 0, capsys.readouterr()
     out = capsys.readouterr().out
-    (run_dir,) = [p for p in tmp_path.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
+    (run_dir,) = [p for p in out_dir.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
     summary = json.loads((run_dir / "demo.json").read_text())
 
     size = summary["size"]
@@ -82,6 +107,7 @@ def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureF
     assert summary["middleware"] == "rmw_fastrtps_cpp" and "rmw_fastrtps_cpp" in report  # what it actually used
     assert summary["discovery"] == "LOCALHOST"
     assert "[6/6] peg-in-hole, 2 round(s)" in out and "report:" in out
+    return summary, report
 
 
 def node_processes_of(run_root: Path) -> list[str]:

@@ -6,17 +6,21 @@ import argparse
 from pathlib import Path
 
 from t42_transfer.cli.args import int_arg, output_dir
+from t42_transfer.demo.settings import HARDWARE
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from t42_transfer.demo import run_demo
 
-    return run_demo(output_dir(args.out), quick=args.quick, workers=args.workers)
+    return run_demo(output_dir(args.out), quick=args.quick, workers=args.workers, hardware=args.hardware)
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
     demo = commands.add_parser("demo", help="run the main job end to end on simulated hands")
     demo.add_argument("--quick", action="store_true", help="tiny sizes (about a minute), as CI runs it")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
+    demo.add_argument("--hardware", choices=tuple(HARDWARE), default="sim",
+                      help="the hand: sim (mock driver, default) or emulated (the Dynamixel driver on an emulated "
+                           "servo bus with an emulated tracker: the real hand's nodes without a hand)")
     demo.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
     demo.set_defaults(func=_cmd_demo)

@@ -4,7 +4,7 @@ the verdict."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,8 @@ from t42_transfer.demo.suite import Suite
 @dataclass
 class GoalRun:
     steps: int
-    grasp_seed: int
+    grasp_seed: int | None
+    """The mock driver's grasp seed; None on servos (a grasp as the hand falls)."""
     goal_mm: list[float]
     start_mm: list[float]
     accepted: bool
@@ -68,33 +69,25 @@ def wait_for_closed_bags(op: Any, suite: Suite, bag_dir: Path) -> list[Path]:
 
 
 def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
-    from t42_transfer.evaluation.peg_in_hole import progress_towards, reachable_goal, verdict
-    from t42_transfer.hand.sim import SimulatedHand
+    from t42_transfer.evaluation.peg_in_hole import progress_towards, verdict
 
     response = op.call(names.HAND_RESET, 30.0, suite.check)
     if not response.success:
         raise RuntimeError(f"reset failed: {response.message}")
     seed = grasp_seed(response.message)
-    if seed is None:
-        raise RuntimeError(f"the reset answer names no grasp seed: {response.message!r} (the driver runs unseeded)")
     reset_stamp = op.latest_pose()[0]
-    seeds = (int(np.random.SeedSequence([7, round_, index, attempt]).generate_state(1)[0]) for attempt in range(50))
-    goal = reachable_goal(SimulatedHand("target"), steps, HOLD_STEPS, seeds, workspace, grasp_seed=seed, trial=index,
-                          settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
-    still_error = float(goal.still_distance_mm)
-    still = verdict(goal.distance_mm, still_error,
-                    progress_towards(goal.grasp[:2], goal.position, goal.still), True, TOLERANCE_MM)
-    # After a grasp the object sinks into the fingers for a few seconds: the goal is made from the
-    # settled state (the same seed grasps and settles identically here and in the driver), and the
-    # goal is sent once the driver's hand has held still that long and rests there.
     settled = reset_stamp + SETTLE_STEPS * CONTROL_PERIOD_NS
-
-    def at_grasp() -> bool:
-        stamp, xy = op.latest_pose()
-        return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
-
-    op.wait_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
-    start = op.latest_pose()[1]
+    action_seeds = (int(np.random.SeedSequence([7, round_, index, attempt]).generate_state(1)[0])
+                    for attempt in range(50))
+    if seed is None:
+        goal, start, still_from = _goal_from_the_settled_hand(op, suite, steps, index, workspace, action_seeds,
+                                                              settled)
+    else:
+        goal, start, still_from = _goal_from_the_same_grasp(op, suite, steps, index, workspace, action_seeds,
+                                                            settled, seed)
+    still_error = float(np.linalg.norm(goal.position - goal.still))
+    still_verdict = verdict(float(np.linalg.norm(goal.position - still_from)), still_error,
+                            progress_towards(still_from, goal.position, goal.still), True, TOLERANCE_MM)
     results = len(op.results)
     paths = len(op.paths)
     sent = time.perf_counter()
@@ -104,7 +97,8 @@ def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, roun
     result = op.results[results]
     run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
                   result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"],
-                  goal_to_result_s=answered_s, still_error_mm=still_error, still_verdict=still, round=round_)
+                  goal_to_result_s=answered_s, still_error_mm=still_error, still_verdict=still_verdict,
+                  round=round_)
     if not run.accepted:
         run.end = "not executed"
         run.verdict = "incomplete"
@@ -129,3 +123,45 @@ def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, roun
                           not ended, TOLERANCE_MM)
     run.success = run.verdict == "hit"
     return run
+
+
+def _goal_from_the_same_grasp(op: Any, suite: Suite, steps: int, index: int, workspace: Any, action_seeds: Any,
+                              settled: int, seed: int) -> tuple[Any, np.ndarray, np.ndarray]:
+    """The mock driver names its grasp's seed: the goal is made on a copy of the hand grasped the same way,
+    and doing nothing is scored by where that copy ends up holding still.  ``(goal, start, where doing nothing
+    starts)``."""
+    from t42_transfer.evaluation.peg_in_hole import reachable_goal
+    from t42_transfer.hand.sim import SimulatedHand
+
+    goal = reachable_goal(SimulatedHand("target"), steps, HOLD_STEPS, action_seeds, workspace, grasp_seed=seed,
+                          trial=index, settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
+    # After a grasp the object sinks into the fingers for a few seconds: the goal is made from the
+    # settled state (the same seed grasps and settles identically here and in the driver), and the
+    # goal is sent once the driver's hand has held still that long and rests there.
+
+    def at_grasp() -> bool:
+        stamp, xy = op.latest_pose()
+        return stamp > settled and float(np.linalg.norm(xy - goal.grasp[:2])) < GRASP_MATCH_MM
+
+    op.wait_until(at_grasp, 30.0, f"the object at the new grasp {goal.grasp[:2].round(1).tolist()} mm", suite.check)
+    return goal, op.latest_pose()[1], goal.grasp[:2]
+
+
+def _goal_from_the_settled_hand(op: Any, suite: Suite, steps: int, index: int, workspace: Any, action_seeds: Any,
+                                settled: int) -> tuple[Any, np.ndarray, np.ndarray]:
+    """A driver on servos grasps as the hand falls (no seed to copy): once the object has settled, the goal is
+    one that a copy of the same hand model reaches in ``steps`` from a grasp of its own, at least twice the
+    tolerance from where the object rests, which is where holding still leaves it.  ``(goal, start, where doing
+    nothing starts)``, the goal's ``still`` being that rest."""
+    from t42_transfer.evaluation.peg_in_hole import reachable_goal
+    from t42_transfer.hand.sim import SimulatedHand
+
+    op.wait_until(lambda: op.latest_pose()[0] > settled, 30.0, "the object to settle in the new grasp",
+                  suite.check)
+    start = op.latest_pose()[1]
+    hand = SimulatedHand("target")
+    while True:  # (reachable_goal raises once the action seeds run out)
+        goal = reachable_goal(hand, steps, HOLD_STEPS, action_seeds, workspace, trial=index,
+                              settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
+        if np.linalg.norm(goal.position - start) >= MIN_GOAL_DISTANCE_MM:
+            return replace(goal, grasp=np.concatenate([start, goal.grasp[2:]]), still=start), start, start

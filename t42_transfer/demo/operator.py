@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped
+from lifecycle_msgs.srv import GetState
 from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -26,6 +27,20 @@ from t42_transfer.ros.qos import profile
 
 MAX_POSES = 2000
 """Poses kept: enough for the longest plan and its settling."""
+
+
+def wait_until(cond: Callable[[], Any], timeout_s: float, what: str, alive: Callable[[], None] | None = None,
+               progress: Callable[[], None] | None = None) -> None:
+    """Wait (an executor thread spins) until ``cond()``; ``alive()`` raises if a node died."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        if alive is not None:
+            alive()
+        if progress is not None:
+            progress()
+        time.sleep(0.05)
 
 
 class Operator(Node):
@@ -50,6 +65,7 @@ class Operator(Node):
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diagnostics, 10)
         self.goal_pub = self.create_publisher(PointStamped, names.GOAL, 10)
         self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}
+        self.lifecycle_clients: dict[str, Any] = {}
 
     def _on_pose(self, msg: Any) -> None:
         self.poses.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
@@ -65,18 +81,7 @@ class Operator(Node):
     def ready(self) -> bool:
         return all(c.service_is_ready() for c in self.trigger_clients.values())
 
-    def wait_until(self, cond: Callable[[], Any], timeout_s: float, what: str,
-                   alive: Callable[[], None] | None = None, progress: Callable[[], None] | None = None) -> None:
-        """Wait (the executor thread spins) until ``cond()``; ``alive()`` raises if a node died."""
-        deadline = time.monotonic() + timeout_s
-        while not cond():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-            if alive is not None:
-                alive()
-            if progress is not None:
-                progress()
-            time.sleep(0.05)
+    wait_until = staticmethod(wait_until)
 
     def call(self, service: str, timeout_s: float, alive: Callable[[], None] | None = None,
              progress: Callable[[], None] | None = None) -> Any:
@@ -86,6 +91,17 @@ class Operator(Node):
         if future.exception() is not None:
             raise RuntimeError(f"{service}: {future.exception()}")
         return future.result()
+
+    def lifecycle_state(self, node: str, timeout_s: float, alive: Callable[[], None] | None = None) -> str:
+        """The label of lifecycle ``node``'s state ("active", ...), as any lifecycle client asks for it."""
+        client = self.lifecycle_clients.get(node)
+        if client is None:
+            client = self.lifecycle_clients[node] = self.create_client(GetState,
+                                                                       names.private_of(node, names.GET_STATE))
+        self.wait_until(client.service_is_ready, timeout_s, f"{node}'s lifecycle services", alive)
+        future = client.call_async(GetState.Request())
+        self.wait_until(future.done, timeout_s, f"the state of {node}", alive)
+        return future.result().current_state.label
 
     def latest_pose(self) -> tuple[int, np.ndarray]:
         return self.poses[-1] if self.poses else (-1, np.full(2, np.nan))

@@ -10,8 +10,13 @@ import numpy as np
 from t42_transfer.demo.goals import GoalRun
 from t42_transfer.demo.settings import TOLERANCE_MM
 
+DOING_NOTHING = {"sim": "on the same grasps (a copy of the hand grasped with the driver's seed, held still)",
+                 "emulated": "on the same grasps (the object left where it settled: goals lie at least twice the "
+                             "tolerance from there)"}
+HELDOUT = {"sim": "", "emulated": " (collected on the same simulated hand directly, not through the servo bus)"}
 
-def plot_paths(runs: list[GoalRun], path: Path) -> Path:
+
+def plot_paths(runs: list[GoalRun], path: Path, hand: str = "the simulated target hand") -> Path:
     from t42_transfer.plots import pyplot, save
 
     plt = pyplot()
@@ -39,7 +44,7 @@ def plot_paths(runs: list[GoalRun], path: Path) -> Path:
     for ax in list(axes.flat)[len(runs):]:
         ax.axis("off")
     axes.flat[0].legend(fontsize=7, loc="best")
-    fig.suptitle(f"peg-in-hole on the simulated target hand (tolerance {TOLERANCE_MM:g} mm)", fontsize=10)
+    fig.suptitle(f"peg-in-hole on {hand} (tolerance {TOLERANCE_MM:g} mm)", fontsize=10)
     return save(fig, path)
 
 
@@ -77,6 +82,7 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
         "",
         "## Data and transfer",
         "",
+        f"- Hand: `{summary['driver']}` ({summary['hardware']}); the object pose from {summary['pose_source']}.",
         f"- Source model: `{summary['source_model']}`.",
         f"- Target data: {summary['exploration']['bags']} explored episode bags recorded through topics in `bags/`, "
         "then each goal's episode.",
@@ -86,8 +92,9 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
         "## Rounds",
         "",
         f"Goals hit within {TOLERANCE_MM:g} mm (open loop; completed, at least half way, within the tolerance), "
-        "doing nothing scored by the same rule on the same grasps, and the divergence time (4 mm) of each "
-        f"round's model on {summary['heldout']['episodes']} held-out target episodes the suite never saw.",
+        f"doing nothing scored by the same rule {DOING_NOTHING[summary['hardware']]}, and the divergence time "
+        f"(4 mm) of each round's model on {summary['heldout']['episodes']} held-out target episodes the suite never "
+        f"saw{HELDOUT[summary['hardware']]}.",
         "",
         rounds_table(summary["rounds"]),
         "",

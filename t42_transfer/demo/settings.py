@@ -7,7 +7,22 @@ from typing import Any
 
 from msg_adapters import names
 
-SUITE_NODES = ("mock_driver", "recorder", "transfer_server", "planner")
+HARDWARE = {
+    "sim": ("mock_driver",),
+    "emulated": ("hw_emulator", "dynamixel_driver"),
+}
+"""The hand's nodes per ``--hardware``: the mock driver's simulated hand, or the Dynamixel driver on the
+emulator's servo bus (the same simulated hand behind two XM430s on a pty, seen by an emulated tracker)."""
+SUITE_NODES = ("recorder", "transfer_server", "planner")
+"""The suite's nodes after the hand's."""
+POSE_SOURCE = {"sim": "the simulator (mock_driver)", "emulated": "the emulated tracker on tracker/object_pose"}
+
+
+def suite_nodes(hardware: str) -> tuple[str, ...]:
+    """Every node process of the suite on ``hardware``, the hand's first."""
+    return (*HARDWARE[hardware], *SUITE_NODES)
+
+
 TRANSFER_STATUS = "t42_transfer: transfer"
 """The transfer server's status name on ``/diagnostics``."""
 RECORDER_START = names.private_of("recorder", names.RECORDER_START)

@@ -19,14 +19,16 @@ from t42_transfer.demo.goals import GoalRun, run_goal, wait_for_closed_bags
 from t42_transfer.demo.report import goal_table, plot_paths, rounds_table, write_report
 from t42_transfer.demo.settings import (
     FULL,
+    HARDWARE,
     HELDOUT_SEED,
+    POSE_SOURCE,
     QUICK,
     RECORDER_START,
     RECORDER_STOP,
-    SUITE_NODES,
     DemoSize,
+    suite_nodes,
 )
-from t42_transfer.demo.suite import Suite, say, source_model, suite_params
+from t42_transfer.demo.suite import Suite, say, servo_link, source_model, suite_params
 
 
 @dataclass
@@ -34,6 +36,8 @@ class Story:
     """What the phases of one run share: its sizes, directory, source model, suite and the operator node."""
 
     size: DemoSize
+    hardware: str
+    """``sim`` (the mock driver) or ``emulated`` (the Dynamixel driver on the emulated servo bus)."""
     run_dir: Path
     model: Path
     workspace: Any
@@ -50,8 +54,8 @@ class Story:
         return 4 + self.size.rounds
 
 
-def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
-    """Run the whole story (see the package docstring); 0 when every step completed."""
+def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardware: str = "sim") -> int:
+    """Run the whole story (see the package docstring) on ``hardware``; 0 when every step completed."""
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
 
@@ -65,15 +69,18 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
     run_dir = out / time.strftime("%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=False, exist_ok=False)
     started = time.perf_counter()
-    say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand over ROS 2 -> {run_dir}")
+    on = "" if hardware == "sim" else " (the Dynamixel driver on an emulated servo bus)"
+    say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand{on} over ROS 2 -> {run_dir}")
     model = source_model(out, size, workers)
     params_file = run_dir / "suite.yaml"
-    params_file.write_text(yaml.safe_dump(suite_params(run_dir, model, size), sort_keys=False))
+    params_file.write_text(yaml.safe_dump(suite_params(run_dir, model, size, hardware), sort_keys=False))
     domain = int(os.environ.get("T42_DEMO_DOMAIN") or os.environ.get("ROS_DOMAIN_ID") or random.randint(100, 230))
     discovery = keep_discovery_local()
     suite = Suite(run_dir, params_file, dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1"))
-    story = Story(size, run_dir, model, Workspace.from_dict(read_metadata(model)["extra"]["workspace"]), suite)
-    story.summary = {"mode": "quick" if quick else "full", "size": asdict(size), "domain": domain,
+    story = Story(size, hardware, run_dir, model, Workspace.from_dict(read_metadata(model)["extra"]["workspace"]),
+                  suite)
+    story.summary = {"mode": "quick" if quick else "full", "hardware": hardware, "driver": HARDWARE[hardware][-1],
+                     "pose_source": POSE_SOURCE[hardware], "size": asdict(size), "domain": domain,
                      "discovery": discovery, "middleware": "", "source_model": str(model), "suite": str(params_file)}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
@@ -96,15 +103,22 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None) -> int:
 
 
 def _start_suite(story: Story, executor: Any, context: Any, started: float) -> None:
-    from t42_transfer.demo.operator import Operator
+    from t42_transfer.demo.operator import Operator, wait_until
 
-    for name in SUITE_NODES:
-        story.suite.supervisor.start(name)
+    suite, nodes = story.suite, suite_nodes(story.hardware)
+    for name in nodes:
+        suite.supervisor.start(name)
+        if name == "hw_emulator":  # the driver opens the bus at start: the emulator's pty must be there first
+            link = servo_link(story.run_dir)
+            wait_until(link.exists, 60.0, f"the emulated servo bus at {link}", suite.check)
     story.op = Operator(context=context)
     executor.add_node(story.op)
     threading.Thread(target=executor.spin, daemon=True).start()
-    story.op.wait_until(story.op.ready, 120.0, "the suite's services", story.suite.check)
-    say(f"[2/{story.phases}] suite up: {', '.join(SUITE_NODES)} as processes on ROS domain "
+    story.op.wait_until(story.op.ready, 120.0, "the suite's services", suite.check)
+    if story.hardware != "sim":
+        wait_until(lambda: story.op.lifecycle_state("dynamixel_driver", 10.0, suite.check) == "active", 60.0,
+                   "the Dynamixel driver to be active", suite.check)
+    say(f"[2/{story.phases}] suite up: {', '.join(nodes)} as processes on ROS domain "
         f"{story.summary['domain']} ({time.perf_counter() - started:.0f} s); logs in {story.suite.log_path}")
 
 
@@ -218,7 +232,8 @@ def _finish(story: Story, failed: bool, started: float) -> int:
     summary["goals"] = [asdict(r) for r in story.runs]
     summary["seconds"] = time.perf_counter() - started
     (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
-    plot_paths(story.runs, run_dir / "paths.png")
+    plot_paths(story.runs, run_dir / "paths.png",
+               "the simulated target hand" if story.hardware == "sim" else "the emulated T42 (Dynamixel driver)")
     report = write_report(run_dir, summary, story.runs)
     say(f"[{story.phases}/{story.phases}] peg-in-hole, {story.size.rounds} round(s):\n")
     say(rounds_table(summary["rounds"]))

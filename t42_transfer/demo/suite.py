@@ -56,7 +56,29 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
     return path
 
 
-def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
+EMULATED_LATENCY_MS = 100.0
+"""The emulated bus's latency timer (as configs/hardware_emulated.yaml): its answers come from a Python thread."""
+
+
+def servo_link(run_dir: Path) -> Path:
+    """Where the emulator links its servo bus's pty, and the port the Dynamixel driver opens."""
+    return run_dir / "servos"
+
+
+def hand_params(run_dir: Path, size: DemoSize, hardware: str) -> dict[str, dict[str, Any]]:
+    """The hand's nodes' parameters: the graph's clock, rate_factor times faster than real time, is theirs."""
+    # Stamps are in simulated time, which runs rate_factor times faster: allow the same wall-time lag.
+    max_command_age_s = 0.5 * size.rate_factor
+    if hardware == "sim":
+        return {"mock_driver": dict(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
+                                    max_command_age_s=max_command_age_s)}
+    port = str(servo_link(run_dir))
+    return {"hw_emulator": dict(link=port, hand="target", seed=0, sim_time=True, rate_factor=size.rate_factor),
+            "dynamixel_driver": dict(port=port, autostart=True, use_sim_time=True, latency_timer_ms=EMULATED_LATENCY_MS,
+                                     max_command_age_s=max_command_age_s)}
+
+
+def suite_params(run_dir: Path, model: Path, size: DemoSize, hardware: str = "sim") -> dict[str, Any]:
     """The params file of the suite (and the explorer) for this run; method settings go to their own file."""
     methods = run_dir / "transfer_methods.yaml"
     methods.write_text(yaml.safe_dump(size.transfer, sort_keys=False))
@@ -65,9 +87,7 @@ def suite_params(run_dir: Path, model: Path, size: DemoSize) -> dict[str, Any]:
         return {"ros__parameters": params}
 
     sections = {
-        # Stamps are in simulated time, which runs rate_factor times faster: allow the same wall-time lag.
-        "mock_driver": node(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
-                            max_command_age_s=0.5 * size.rate_factor),
+        **{name: node(**params) for name, params in hand_params(run_dir, size, hardware).items()},
         "recorder": node(out_dir=str(run_dir / "bags"), mode="episode", start_immediately=False, use_sim_time=True),
         "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
                                 bag_dir=str(run_dir / "bags"),

@@ -151,6 +151,8 @@ class ServoBus:
         self.faults = Faults()
         self.lock = threading.Lock()
         self.handled = 0
+        self.sync_writes = 0
+        """Goal writes so far: one per driver step (an emulator in lockstep waits for the next)."""
         self._rng = random.Random(seed)
 
     def handle(self, ins: p.Instruction) -> bytes:
@@ -170,6 +172,7 @@ class ServoBus:
                                     + xm.FIRMWARE_VERSION.encode(self.servos[i].get(xm.FIRMWARE_VERSION)))
                     for i in alive]
         if ins.instruction == p.SYNC_WRITE:
+            self.sync_writes += 1
             self._sync_write(ins.params)
             return []
         if ins.instruction == p.SYNC_READ:

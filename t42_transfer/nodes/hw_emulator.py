@@ -9,7 +9,10 @@ What a driver meets where a real hand would be (``t42 hw emulate``):
   ``pose_rate_hz`` (the public test paths show 34-53 % of 10 Hz steps with no new pose), stamped at capture,
   ``pose_latency_s`` late, each frame lost with probability ``pose_dropout``;
 * ``sim/object_pose``: the true object position every step, for checks only;
-* with ``sim_time``, ``/clock``: one control period per tick, ``rate_factor`` times faster than real time.
+* with ``sim_time``, ``/clock``: one control period per tick, ``rate_factor`` times faster than real time at
+  most: in ``lockstep`` (the default) a tick waits until the driver has written its goals for the last one
+  (or ``lockstep_wait_s`` passed), so a driver slowed by a busy machine slows the clock instead of missing
+  periods (a real hand cannot wait: on wall time there is no lockstep).
 
 Faults are parameters, so they are injected at start (``-p drop_replies:=5``) or at run time
 (``ros2 param set``): ``drop_replies`` and ``corrupt_replies`` count down as replies go, ``dead_servos``
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import math
 import random
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,6 +53,10 @@ class HwEmulatorParams:
     rate_factor: float = param(1.0, "physics runs this many times faster than real time", min=1e-3, max=100.0)
     sim_time: bool = param(False, "be the graph's clock: /clock advances one control period per tick",
                            read_only=True)
+    lockstep: bool = param(True, "with sim_time: the next tick waits (up to lockstep_wait_s) for the driver's "
+                                 "goals of this one, so a late driver misses no period")
+    lockstep_wait_s: float = param(0.5, "wall seconds a tick waits for the driver's goals in lockstep",
+                                   min=0.0, max=60.0)
     pose_rate_hz: float = param(6.0, "tracker frames per second of (sim) time", min=0.1, max=100.0)
     pose_latency_s: float = param(0.03, "a frame goes out this long after it was captured", min=0.0, max=1.0)
     pose_dropout: float = param(0.0, "probability that a frame is lost", min=0.0, max=1.0)
@@ -77,6 +85,8 @@ class HwEmulator(Node):
         self._rng = random.Random(p.seed)
         self._sim_ns = self.get_clock().now().nanoseconds
         self._next_frame_ns = self._sim_ns
+        self._writes_at_tick, self._tick_wall_s = 0, 0.0
+        """Lockstep: the bus's goal writes and the wall time at the last tick."""
         self._pending: list[tuple[int, int, Any]] = []
         """Frames captured and not yet out: (due, capture stamp, xy)."""
         self._tracker = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
@@ -126,7 +136,20 @@ class HwEmulator(Node):
             self.log.info(f"port back on {self.pty.port}")
 
     # ------------------------------------------------------------------ one tick
+    def _waits_for_the_driver(self) -> bool:
+        """In lockstep, whether this tick waits: the driver has not written its goals since the last one yet."""
+        p = self.params
+        if self._clock_pub is None or not p.lockstep:
+            return False
+        now = time.monotonic()
+        if self.bus.sync_writes == self._writes_at_tick and now - self._tick_wall_s < p.lockstep_wait_s:
+            return True
+        self._writes_at_tick, self._tick_wall_s = self.bus.sync_writes, now
+        return False
+
     def _on_timer(self) -> None:
+        if self._waits_for_the_driver():
+            return
         try:
             if self._clock_pub is not None:
                 self._sim_ns += CONTROL_PERIOD_NS
