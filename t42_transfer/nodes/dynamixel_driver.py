@@ -8,7 +8,7 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
 * deactivate: hold the position, stop stepping (torque stays on);
 * cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM) turns the torque
   off too, whatever the state.  ``autostart`` configures and activates at start, for a suite run without a
-  lifecycle manager (``t42 up``).
+  lifecycle manager (``t42 up``), trying configure again every second until the port is there.
 
 Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
@@ -44,6 +44,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.clock import Clock, ClockType
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
@@ -153,14 +154,17 @@ class DynamixelDriver(LifecycleNode):
         # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
         self.create_service(Trigger, names.HAND_RESET, self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
-        if self.params.autostart:
-            self._autostart = self.create_timer(0.0, self._start)
+        if self.params.autostart:  # on the wall clock: a port is retried in seconds, whatever the graph's time
+            self._autostart = self.create_timer(0.0, self._start, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _start(self) -> None:
-        """``autostart``: configure, then activate, once the executor spins."""
+        """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
+        there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
+        if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+            self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
+            return
         self._autostart.cancel()
-        if self.trigger_configure() == TransitionCallbackReturn.SUCCESS:
-            self.trigger_activate()
+        self.trigger_activate()
 
     @property
     def params(self) -> DynamixelDriverParams:
