@@ -42,6 +42,13 @@ REAL_HAND_ACTIONS = (
 )
 """The real hands' discrete moves: both fingers together, against each other, or one alone."""
 
+MAX_PLAN_SAMPLES = 1_000_000
+MAX_PLAN_HORIZON = 10_000
+MAX_REFINE = 1000
+MAX_SAMPLED_STEPS = 20_000_000
+"""Planner samples x horizon at most (CLI, planner node and code alike): the sampled actions alone are 8 bytes
+a step, 160 MB here."""
+
 GRASP_LOAD = 100.0
 """The grasp-closing routine closes until |load| passes this (as the real driver)."""
 

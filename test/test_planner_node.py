@@ -487,3 +487,17 @@ def _plan_of(actions: np.ndarray) -> Plan:
     ok = len(actions) > 0
     return Plan(ok, "ok" if ok else "no_safe_sequence", "", actions.astype(np.float32),
                 np.zeros((len(actions) + 1, 4), np.float32), 0.0 if ok else math.inf, np.zeros(2, np.float32))
+
+
+def test_run_time_sizes_are_bounded_as_the_cli_bounds_them(rig: Rig) -> None:
+    """``samples`` 1e12 once passed and then failed to allocate 8e14 bytes at the next goal."""
+    (ok,) = rig.set(horizon=100)
+    assert ok.successful
+    before = rig.planner.params
+    for change, why in (({"samples": 10**12}, "range"), ({"horizon": 10**6}, "range"),
+                        ({"samples": 500_000}, "sampled steps")):  # x the horizon of 100
+        (refused,) = rig.set(**change)
+        assert not refused.successful and why in refused.reason, (change, refused.reason)
+    assert rig.planner.params == before
+    rig.tick()
+    assert rig.goal(START_XY + [2.0, 0.0])["accepted"]

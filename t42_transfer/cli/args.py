@@ -18,11 +18,6 @@ from pathlib import Path
 
 from t42_transfer.files import not_regular_reason
 
-MAX_SAMPLES = 1_000_000
-MAX_HORIZON = 10_000
-MAX_SAMPLED_STEPS = 20_000_000
-"""Planner samples x horizon at most: the sampled actions alone are 8 bytes per step (160 MB here)."""
-MAX_REFINE = 1000
 SEED_MAX = 2**32 - 1
 ROS_NAMESPACE = re.compile(r"/?|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*/?")
 
@@ -69,12 +64,6 @@ def float_arg(low: float = -math.inf, high: float = math.inf, low_open: bool = F
         return value
 
     return parse
-
-
-def check_plan_size(samples: int, horizon: int) -> None:
-    """ValueError when samples x horizon would size an allocation beyond :data:`MAX_SAMPLED_STEPS`."""
-    if samples * horizon > MAX_SAMPLED_STEPS:
-        raise ValueError(f"--samples {samples} x --horizon {horizon} is over {MAX_SAMPLED_STEPS} sampled steps")
 
 
 def _stat(path: Path) -> os.stat_result | None:

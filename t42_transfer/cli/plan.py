@@ -7,17 +7,14 @@ import sys
 from pathlib import Path
 
 from t42_transfer.cli.args import (
-    MAX_HORIZON,
-    MAX_REFINE,
-    MAX_SAMPLES,
     SEED_MAX,
-    check_plan_size,
     existing_dir,
     existing_file,
     float_arg,
     int_arg,
     output_dir,
 )
+from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
@@ -27,17 +24,16 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from t42_transfer.planning import Planner, PlannerConfig, Workspace
     from t42_transfer.planning.export import write_plan
 
-    check_plan_size(PlannerConfig.samples if args.samples is None else args.samples, args.horizon)
+    cfg = PlannerConfig(  # first: its checks (samples x horizon among them) come before anything is loaded
+        samples=PlannerConfig.samples if args.samples is None else args.samples, horizon=args.horizon,
+        sampler=args.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,
+        refine_iterations=PlannerConfig.refine_iterations if args.refine is None else args.refine, seed=args.seed,
+    )
     for path in (args.workspace or []):
         existing_dir(path)
     output_dir(args.out)
     model, meta = load_model(existing_file(args.model))
     workspace = Workspace.for_planning(args.workspace, meta, args.model)
-    cfg = PlannerConfig(
-        samples=PlannerConfig.samples if args.samples is None else args.samples, horizon=args.horizon,
-        sampler=args.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,
-        refine_iterations=PlannerConfig.refine_iterations if args.refine is None else args.refine, seed=args.seed,
-    )
     plan = Planner(model, workspace, cfg).plan(args.start, args.goal)
     info = {"model": str(args.model), "method": meta.get("method"), "config": asdict(cfg)}
     files = write_plan(plan, args.out, workspace, info)
@@ -78,10 +74,11 @@ def _run_peg_in_hole(args: argparse.Namespace) -> int:
     )
     from t42_transfer.evaluation.peg_in_hole_report import write_report
     from t42_transfer.hand.params import variant
-    from t42_transfer.planning import Workspace
+    from t42_transfer.planning import PlannerConfig, Workspace
 
-    # Everything the user gave is checked before a model is loaded or a goal made.
-    check_plan_size(args.samples, max(args.horizon, *args.distances))
+    # Everything the user gave is checked before a model is loaded or a goal made; the longest plan a goal
+    # distance asks for is sized as the planner will size it.
+    PlannerConfig(samples=args.samples, horizon=max(args.horizon, *args.distances))
     variant(args.hand)
     names = [model_spec(spec)[0] for spec in args.models]
     for spec in args.models:
@@ -139,8 +136,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     plan.add_argument("--goal", type=float_arg(), nargs=2, required=True, metavar=("X", "Y"),
                       help="goal object position (mm)")
-    plan.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=100, help="steps of 0.1 s (default 100)")
-    plan.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=None,
+    plan.add_argument("--horizon", type=int_arg(1, MAX_PLAN_HORIZON), default=100, help="steps of 0.1 s (default 100)")
+    plan.add_argument("--samples", type=int_arg(1, MAX_PLAN_SAMPLES), default=None,
                       help="sequences sampled per round (default: PlannerConfig's)")
     plan.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
@@ -173,7 +170,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="bags whose states define the trained workspace (default: the one the first model file stores)"
     )
     peg.add_argument("--out", type=Path, default=None, help="directory for peg_in_hole.{json,md,png}")
-    peg.add_argument("--distances", nargs="+", type=int_arg(1, MAX_HORIZON), default=list(PegInHoleConfig.distances))
+    peg.add_argument("--distances", nargs="+", type=int_arg(1, MAX_PLAN_HORIZON),
+                     default=list(PegInHoleConfig.distances))
     peg.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
     peg.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True),
                         default=list(PegInHoleConfig.tolerances_mm),
@@ -181,9 +179,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     peg.add_argument("--plan-length", choices=PLAN_LENGTHS, default=PegInHoleConfig.plan_length,
                         help="fixed: plans of exactly n steps (default); "
                              "search: the shortest predicted to reach the goal")
-    peg.add_argument("--replan-every", type=int_arg(0, MAX_HORIZON), default=0,
+    peg.add_argument("--replan-every", type=int_arg(0, MAX_PLAN_HORIZON), default=0,
                         help="0: open loop (default); k: every model replans from the measured state every k steps")
-    peg.add_argument("--mpc", type=int_arg(0, MAX_HORIZON), default=0,
+    peg.add_argument("--mpc", type=int_arg(0, MAX_PLAN_HORIZON), default=0,
                         help="also evaluate each model replanning every K steps, beside open loop")
     peg.add_argument("--dropout", type=int_arg(0, 1000), default=0,
                         help="also evaluate each model with M dropout samples per sequence, "
@@ -193,11 +191,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     peg.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")
     peg.add_argument("--variants-of", nargs="+", default=None, metavar="NAME",
                         help="models that get the --mpc and --dropout variants (default: all)")
-    peg.add_argument("--samples", type=int_arg(1, MAX_SAMPLES), default=PlannerConfig.samples,
+    peg.add_argument("--samples", type=int_arg(1, MAX_PLAN_SAMPLES), default=PlannerConfig.samples,
                         help="sequences sampled per round")
     peg.add_argument("--refine", type=int_arg(0, 100), default=PlannerConfig.refine_iterations,
                         help="cross-entropy rounds after the first draw")
-    peg.add_argument("--horizon", type=int_arg(1, MAX_HORIZON), default=PlannerConfig.horizon,
+    peg.add_argument("--horizon", type=int_arg(1, MAX_PLAN_HORIZON), default=PlannerConfig.horizon,
                         help="longest plan with --plan-length search")
     peg.add_argument("--hand", default="target")
     peg.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)

@@ -96,6 +96,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_event,
 )
+from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
@@ -112,11 +113,13 @@ class PlannerNodeParams:
 
     model: str = param("", "model file to start with; empty or missing: wait for t42/model_updated "
                            "(goals are refused meanwhile)", read_only=True)
-    samples: int = param(_DEFAULTS.samples, "action sequences sampled per round of a plan", min=1)
+    samples: int = param(_DEFAULTS.samples, "action sequences sampled per round of a plan (samples x horizon at "
+                                            f"most {MAX_SAMPLED_STEPS})", min=1, max=MAX_PLAN_SAMPLES)
     refine_iterations: int = param(_DEFAULTS.refine_iterations, "cross-entropy rounds after the first draw "
-                                                                "(a plan rolls out samples x (1 + this))", min=0)
+                                                                "(a plan rolls out samples x (1 + this))", min=0,
+                                   max=MAX_REFINE)
     horizon: int = param(_DEFAULTS.horizon, "steps of a sampled sequence (0.1 s each); with horizon_search "
-                                            "the longest plan", min=1)
+                                            "the longest plan", min=1, max=MAX_PLAN_HORIZON)
     horizon_search: bool = param(True, "plan the shortest sequence that reaches the goal "
                                        "(false: always plan horizon steps)")
     tolerance_mm: float = param(_DEFAULTS.tolerance_mm, "a prediction this close to the goal reaches it (mm)",

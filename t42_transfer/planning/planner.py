@@ -50,7 +50,14 @@ import torch
 from torch import Tensor
 
 from t42_transfer.config import FRACTION, NON_NEGATIVE, Rule, between, check, one_of
-from t42_transfer.conventions import RANDOM_POLICY_LIMIT, STATE_DIM
+from t42_transfer.conventions import (
+    MAX_PLAN_HORIZON,
+    MAX_PLAN_SAMPLES,
+    MAX_REFINE,
+    MAX_SAMPLED_STEPS,
+    RANDOM_POLICY_LIMIT,
+    STATE_DIM,
+)
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.fused import TimeMajorRollout, make_rollout
 from t42_transfer.planning.sampling import SAMPLERS, project, sample_actions
@@ -96,14 +103,18 @@ class PlannerConfig:
 
     def __post_init__(self) -> None:
         check(self, PLANNER_RULES)  # here, so the CLI, the planner node and code share one message
+        if self.samples * self.horizon > MAX_SAMPLED_STEPS:  # the sampled actions alone: 8 bytes a step
+            raise ValueError(f"samples {self.samples} x horizon {self.horizon} is over {MAX_SAMPLED_STEPS} "
+                             "sampled steps")
         if self.uncertainty != "none" and self.horizon_search:
             raise ValueError("uncertainty-aware planning scores fixed-length plans: set horizon_search false")
 
 
 _AT_LEAST_ONE = between(1, math.inf)
 PLANNER_RULES: dict[str, Rule] = {
-    "samples": _AT_LEAST_ONE, "horizon": _AT_LEAST_ONE, "chunk": _AT_LEAST_ONE, "sampler": one_of(SAMPLERS),
-    "tolerance_mm": ((lambda v: v > 0), "positive"), "refine_iterations": between(0, math.inf),
+    "samples": between(1, MAX_PLAN_SAMPLES), "horizon": between(1, MAX_PLAN_HORIZON), "chunk": _AT_LEAST_ONE,
+    "sampler": one_of(SAMPLERS), "tolerance_mm": ((lambda v: v > 0), "positive"),
+    "refine_iterations": between(0, MAX_REFINE),
     "elite_fraction": FRACTION,
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
 }
