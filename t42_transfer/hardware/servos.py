@@ -3,6 +3,10 @@
 Every failure is a :class:`ServoFault` naming the servo and what went wrong, in one of four kinds: the port
 (gone, or not a serial port), no answer (timeout), a garbled answer (CRC), or a Hardware Error Status bit
 (decoded).  pyserial's own errors never escape.  Nothing here needs ROS; the driver node wraps it.
+
+A read of the port waits for the servos' answer in ``select`` (:data:`READ_WAIT_S` at a time) instead of
+polling: dynamixel-sdk opens the port non-blocking and spins on it until the answer or its packet timeout,
+which burns the CPU for the whole round trip of every exchange.
 """
 
 from __future__ import annotations
@@ -27,6 +31,9 @@ from t42_transfer.hardware import xm430 as xm
 PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED = "port", "timeout", "corrupt", "hardware", "refused"
 FAULT_KINDS = (PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED)
 _PORT_ERRORS = (OSError, termios.error, serial.SerialException, ValueError)
+READ_WAIT_S = 0.001
+"""Longest one read of the port blocks for bytes; dynamixel-sdk checks its own packet timeout between reads, so a
+silent servo is still reported after that timeout (at most this much later)."""
 
 
 class ServoFault(RuntimeError):
@@ -78,6 +85,8 @@ class HandServos:
         port = _Port(self.port_name, self.latency_timer_ms)
         try:
             opened = port.openPort() and port.setBaudRate(self.baud)
+            if opened:
+                port.ser.timeout = READ_WAIT_S
         except _PORT_ERRORS as err:
             raise ServoFault(PORT, None, f"cannot open {self.port_name}: {err}") from None
         if not opened:
