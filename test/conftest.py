@@ -19,6 +19,10 @@ from t42_transfer.data.t42_real import REAL_FILES, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 sys.path.insert(0, str(Path(__file__).parent))  # test helpers (ros_rig)
+# One OpenMP thread for torch here and in every process a test starts (node processes inherit the environment):
+# on a busy 2-core machine a second thread waiting for a core costs 10-20x (200 epochs of the transfer server's
+# training: 4.5-8.7 s with one thread, 71-98 s with two at load 8).  A value the caller set is kept.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 if TYPE_CHECKING:
     from ros_rig import RosRig
 
