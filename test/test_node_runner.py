@@ -115,18 +115,27 @@ def test_t42_node_log_level_is_rclpys(ros) -> None:
 
 
 def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
-    for args, match in (
+    cases = (
         (["mock_driver", "--ros-args", "-p", "rate_factor:=-2.0"], "rate_factor"),
         (["mock_driver", "--ros-args", "-p", "rate_factor:=fast"], "rate_factor"),
         (["mock_driver", "extra"], "unexpected arguments extra"),
         (["mock_driver", "--ros-args", "--params-file", "/nonexistent.yaml"], "ros-args"),
         (["no_such_node"], "unknown node"),
-    ):
-        proc = subprocess.run([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), capture_output=True, text=True,
-                              timeout=60)
-        assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
-        errors = [line for line in proc.stderr.splitlines() if line.startswith("t42: error:")]
-        assert len(errors) == 1 and match in errors[0] and "Traceback" not in proc.stderr, (args, proc.stderr)
+    )
+    # All at once: each process is mostly interpreter start and imports, which overlap on two cores.
+    procs = [subprocess.Popen([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for args, _ in cases]
+    try:
+        for proc, (args, match) in zip(procs, cases, strict=True):
+            stdout, stderr = proc.communicate(timeout=60)
+            assert proc.returncode == 2, (args, stdout, stderr)
+            errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
+            assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
 
 
 # ------------------------------------------------------------------ t42 up
