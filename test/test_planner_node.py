@@ -242,6 +242,21 @@ def test_bad_goals_are_refused_and_the_node_keeps_planning(ros, rig: Rig, frame_
     assert ros.spin_until(lambda: len(rig.trajectories) == 1, 5.0)
 
 
+@pytest.mark.parametrize("stamp_ns, why", [(1, "goal is stale"), (2_147_000_000 * 10**9, "in the future")],
+                         ids=["1970", "2038"])
+def test_goals_stamped_long_ago_or_ahead_are_refused_and_an_unset_stamp_means_now(rig: Rig, stamp_ns: int,
+                                                                                   why: str) -> None:
+    rig.tick()
+    rig.goal_pub.publish(goal_msg(START_XY + [2.0, 2.0], stamp_ns, RCLPY))
+    rig.wait_results(1)
+    result = rig.results[0]
+    assert result["status"] == "bad_goal" and why in result["reason"] and "limit 30.000 s" in result["reason"]
+    assert result["goal_stamp_ns"] == stamp_ns and rig.trajectories == []  # the result names the goal it answers
+    rig.goal_pub.publish(goal_msg(START_XY + [2.0, 2.0], 0, RCLPY))  # Foxglove's publish panel leaves it unset
+    rig.wait_results(2)
+    assert rig.results[1]["accepted"], rig.results[1]
+
+
 def test_stale_hand_state_is_refused(ros, toy: Path) -> None:
     rig = Rig(ros, toy, **{**SMALL, "max_state_age_s": 0.2})
     rig.tick()

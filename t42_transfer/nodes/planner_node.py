@@ -97,6 +97,7 @@ from msg_adapters import (
     status_event,
 )
 from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS
+from t42_transfer.driver.commands import check_stamp
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
@@ -127,6 +128,8 @@ class PlannerNodeParams:
     seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")
     max_state_age_s: float = param(0.5, "plan only from a hand state at most this old (or this far in the future)",
                                    min=0.0, constraints="positive, finite")
+    max_goal_age_s: float = param(30.0, "refuse a goal stamped longer ago than this (or this far in the future); "
+                                       "a zero stamp means now", min=0.0, constraints="positive, finite")
     replan_every: int = param(0, "0: open loop, the whole plan at once; k: send k steps, then replan the rest "
                                  "from the measured state (MPC)", min=0)
     piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
@@ -136,8 +139,10 @@ class PlannerNodeParams:
         _ = self.planner_config  # PlannerConfig validates the planner fields
         if not math.isfinite(self.tolerance_mm):
             raise ValueError(f"tolerance_mm must be finite, got {self.tolerance_mm!r}")
-        if not (math.isfinite(self.max_state_age_s) and self.max_state_age_s > 0):
-            raise ValueError(f"max_state_age_s must be positive and finite, got {self.max_state_age_s!r}")
+        for name in ("max_state_age_s", "max_goal_age_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be positive and finite, got {value!r}")
         if self.replan_every < 0 or not (math.isfinite(self.piece_timeout_s) and self.piece_timeout_s > 0):
             raise ValueError("replan_every must be >= 0 and piece_timeout_s positive and finite")
 
@@ -368,6 +373,8 @@ class PlannerNode(Node):
         stamp = stamp_to_ns(msg.header.stamp)
         try:
             goal = _Goal(goal_xy_mm(msg), stamp)
+            if stamp:  # as the driver takes commands: a goal from 1970 or 2038 is no goal for now
+                check_stamp(stamp, self._now_ns(), round(self.params.max_goal_age_s * 1e9), "goal")
         except ValueError as err:
             self._publish_result(PlanResult(False, "bad_goal", str(err), None, stamp))
             return
