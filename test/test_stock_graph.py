@@ -83,21 +83,30 @@ class Suite:
             self.proc = subprocess.Popen(cmd, cwd=REPO, stdout=out, stderr=subprocess.STDOUT,
                                          env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
-    def explore(self, timeout_s: float = 180.0) -> int:
-        """Run the explorer (its section of the params file) to completion; its exit code."""
+    def start_explorer(self) -> subprocess.Popen:
+        """The explorer (its section of the params file) as a process."""
         args = ["--params-file", str(self.params), *namespace_args(self.namespace)]
         log = self.params.with_suffix(f".explorer.{self.namespace.strip('/') or 'root'}.log")
-        proc = start_node("explorer", *args, log=log)
-        try:
-            return proc.wait(timeout=timeout_s)
-        finally:
-            stop([proc])
+        return start_node("explorer", *args, log=log)
+
+    def explore(self, timeout_s: float = 180.0) -> int:
+        """Run the explorer to completion; its exit code."""
+        return explore_all([self], timeout_s)[0]
 
     def output(self) -> str:
         return self.log.read_text()
 
     def stop(self) -> int:
         return stop([self.proc], timeout_s=60.0)[0]
+
+
+def explore_all(suites: list[Suite], timeout_s: float = 180.0) -> list[int]:
+    """Run the suites' explorers at the same time (each hand on its own graph or namespace); their exit codes."""
+    procs = [suite.start_explorer() for suite in suites]
+    try:
+        return [proc.wait(timeout=timeout_s) for proc in procs]
+    finally:
+        stop(procs)
 
 
 def stock_user(mode: str, namespace: str = "", timeout_s: float = 600.0) -> dict[str, Any]:
@@ -180,15 +189,22 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
     for ns in roots:
         probe.create_subscription(JointTrajectory, f"{ns}/hand/trajectory", trajectories[ns].append, 10)
     try:
-        for _ns, suite in suites.items():
-            assert suite.explore() == 0, suite.output()
+        # Both hands explore, then both transfer, at the same time: each keeps to its own namespace meanwhile.
+        assert explore_all(list(suites.values())) == [0, 0], [s.output()[-3000:] for s in suites.values()]
         for ns, root in roots.items():
             bags = sorted((root / "bags").glob("episode_*"))
             assert len(bags) >= 3, ns
             other = "/right" if ns == "/left" else "/left"
             topics = _topics_in(bags)
             assert f"{ns}/hand/object_pose" in topics and not any(t.startswith(other) for t in topics), topics
-            answer = ros.call(probe.create_client(Trigger, f"{ns}/t42/transfer"), Trigger.Request(), timeout_s=300.0)
+        clients = {ns: probe.create_client(Trigger, f"{ns}/t42/transfer") for ns in roots}
+        for ns, client in clients.items():
+            assert client.wait_for_service(timeout_sec=60.0), (ns, suites[ns].output()[-3000:])
+        calls = {ns: client.call_async(Trigger.Request()) for ns, client in clients.items()}
+        assert ros.spin_until(lambda: all(c.done() for c in calls.values()), 300.0), \
+            [s.output()[-3000:] for s in suites.values()]
+        for ns, root in roots.items():
+            answer = calls[ns].result()
             assert answer.success, (ns, answer.message, suites[ns].output()[-3000:])
             meta = read_metadata(root / "models" / "current.safetensors")
             assert str(root / "bags") in json.dumps(meta), "each server trains on its own bags"
