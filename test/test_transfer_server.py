@@ -443,3 +443,21 @@ def test_hold_out_takes_whole_episodes(make_set, episodes, fraction, held):
     assert len(test) == held and len(train) == episodes - held
     assert sorted(len(t) for t in (*train, *test)) == sorted(len(t) for t in data)
     assert [len(t) for t in hold_out(data, fraction, seed=3)[1]] == [len(t) for t in test]
+
+
+def test_a_parameter_dump_gives_every_parameter_its_value(ros, tmp_path, source_model):
+    """``ros2 param dump``: list_parameters, then get_parameters of every name (an unset ``bags`` once emptied it)."""
+    from rcl_interfaces.srv import GetParameters, ListParameters
+
+    rig = Rig(ros, tmp_path, source_model)
+    listed = ros.call(rig.tester.create_client(ListParameters, "transfer_server/list_parameters"),
+                      ListParameters.Request()).result.names
+    values = ros.call(rig.tester.create_client(GetParameters, "transfer_server/get_parameters"),
+                      GetParameters.Request(names=listed)).values
+    got = dict(zip(listed, values, strict=True))
+    assert {"bags", "bag_dir", "method", "source_model", "model_dir"} <= set(got)
+    assert all(v.type != 0 for v in got.values()), [n for n, v in got.items() if v.type == 0]  # none NOT_SET
+    assert list(got["bags"].string_array_value) == [] and got["method"].string_value == "l2_finetune"
+    assert rig.server.describe_parameter("bags").read_only  # still, though declared writable until it held []
+    (refused,) = rig.server.set_parameters([Parameter("bags", value=["x"])])
+    assert not refused.successful and "read-only" in refused.reason

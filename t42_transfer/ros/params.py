@@ -18,6 +18,7 @@ typing so that "unset" is a value.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import types
@@ -186,11 +187,19 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
             if field.default is dataclasses.MISSING or field.default == ():
                 # No default, or an empty one whose type rclpy cannot infer from [] (it would say BYTE_ARRAY):
                 # declare by type; an empty default is then set with its type spelled out.
-                ros_type = Parameter.Type(field.ros_type)
-                value = node.declare_parameter(field.name, ros_type, _descriptor(field)).value
+                # A read-only one is declared writable until it holds its value (set_parameters refuses a
+                # read-only parameter, and one left unset empties every get_parameters answer that names it).
+                ros_type, descriptor = Parameter.Type(field.ros_type), _descriptor(field)
+                writable = copy.copy(descriptor)
+                writable.read_only = False
+                value = node.declare_parameter(field.name, ros_type, writable).value
                 if value is None and field.default == ():
-                    node.set_parameters([Parameter(field.name, ros_type, [])])
+                    (result,) = node.set_parameters([Parameter(field.name, ros_type, [])])
+                    if not result.successful:
+                        raise ValueError(result.reason)
                     value = []
+                if value is not None and descriptor.read_only:
+                    node.set_descriptor(field.name, descriptor)
             else:
                 value = node.declare_parameter(field.name, _to_ros(field.default), _descriptor(field)).value
         except ParameterUninitializedException:
