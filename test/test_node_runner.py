@@ -81,6 +81,16 @@ def test_node_list_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert f"available: {', '.join(NODES)}" in capsys.readouterr().err
 
 
+def test_t42_node_and_t42_up_import_neither_torch_nor_mujoco() -> None:
+    """Every node process starts as ``t42 node``: what only other commands need stays out of it."""
+    code = ("import sys\nfrom t42_transfer.cli import main\nassert main(['node', '--list']) == 0\n"
+            "try:\n    main(['up', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in ('torch', 'mujoco') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines()[-1] == "[]", proc.stdout
+
+
 # ------------------------------------------------------------------ one node process
 def _run_driver_until_poses(ros, *ros_args: str) -> tuple[list[Any], int, float, str]:
     from geometry_msgs.msg import PoseStamped

@@ -7,6 +7,9 @@ from pathlib import Path
 
 from t42_transfer.cli.args import float_arg, namespace_arg
 
+COMMANDS = ("node", "up")
+"""The commands :func:`add_commands` defines."""
+
 
 def _cmd_node(args: argparse.Namespace) -> int:
     from t42_transfer.nodes.registry import NODES
