@@ -321,6 +321,33 @@ def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
     assert rig.driver.running
 
 
+def test_a_flood_of_bad_commands_is_a_log_line_a_second_that_counts_the_rest(ros):
+    """500 NaN commands once made 500 /rosout lines; now a line a second goes out, each counting those held back."""
+    import re
+    import time
+
+    rig = Rig(ros, max_command_age_s=30.0)
+    log = Rosout(rig.ros, "mock_driver")
+    rig.tick()
+    log.clear()
+    started = time.monotonic()
+    for k in range(500):
+        rig.command_pub.publish(_command_rclpy([np.nan, k / 1000], stamp_ns=rig.clock()))
+        rig.ros.executor.spin_once(timeout_sec=0.0)  # delivered as they come, not collapsed by the queue's depth
+    rig.ros.spin_for(0.2)
+    flood_s = time.monotonic() - started
+    rig.ros.spin_for(1.1)  # past the period: the next one of the kind goes out with the count
+    rig.command_pub.publish(_command_rclpy([np.nan, 0.0], stamp_ns=rig.clock()))
+    rig.ros.spin_for(0.3)
+    warnings = log.wait_warnings()
+    assert all("non-finite" in w for w in warnings)
+    assert 2 <= len(warnings) <= int(flood_s) + 2, (flood_s, warnings)  # a line a second of the flood, then one
+    held = [int(m.group(1)) for w in warnings if (m := re.search(r"\((\d+) more like it", w))]
+    assert len(held) == len(warnings) - 1 and len(warnings) + sum(held) >= 100, warnings  # every one is counted
+    rig.tick(2)
+    assert rig.driver.running
+
+
 def test_drop_publishes_status_and_stops_until_reset(rig):
     log = Rosout(rig.ros, "mock_driver")
     for _ in range(60):

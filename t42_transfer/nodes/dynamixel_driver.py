@@ -69,6 +69,7 @@ from t42_transfer.driver.commands import ActionQueue, accept, validate_command, 
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
+from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -125,6 +126,8 @@ class DynamixelDriver(LifecycleNode):
         super().__init__("dynamixel_driver", **node_kwargs)
         self._params = LiveParams(self, DynamixelDriverParams)
         self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        """Warnings about single messages: a flood gives a line a second, with a count."""
         self.hand: ServoHand | None = None
         self.queue = ActionQueue()
         self.episode = -1
@@ -248,17 +251,17 @@ class DynamixelDriver(LifecycleNode):
 
     def _on_command(self, msg: JointState) -> None:
         max_age = round(self.params.max_command_age_s * 1e9)
-        action = accept(self.log, names.HAND_COMMAND, lambda: validate_command(msg, self.now_ns(), max_age))
+        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(msg, self.now_ns(), max_age))
         if action is not None:
             self.queue.set_command(action)
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         hand = self.hand
         if hand is None:
-            self.log.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
+            self.per_message.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
             return
         max_age = round(self.params.max_command_age_s * 1e9)
-        actions = accept(self.log, names.HAND_TRAJECTORY,
+        actions = accept(self.per_message, names.HAND_TRAJECTORY,
                          lambda: validate_trajectory(msg, hand.goal, self.now_ns(), max_age))
         if actions is not None:
             self.queue.set_plan(actions)
@@ -325,7 +328,7 @@ class DynamixelDriver(LifecycleNode):
         refused = hand.apply(action)
         self.steps += 1
         if refused:
-            self.log.warning(f"step {self.steps}: {refused}", throttle_duration_sec=1.0)
+            self.per_message.warning(f"step {self.steps}: {refused}")
 
     def _publish_pose(self, stamp: int) -> None:
         pose = self._pose

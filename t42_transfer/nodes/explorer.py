@@ -63,6 +63,7 @@ from trajectory_msgs.msg import JointTrajectory
 from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, names, stamp_to_ns
 from t42_transfer.conventions import ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S, RANDOM_POLICY_LIMIT
 from t42_transfer.hand.collect import RandomPolicy
+from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -162,6 +163,8 @@ class Explorer(Node):
         self._params = LiveParams(self, ExplorerParams, self._on_params)
         p = self.params
         self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        """Warnings about single messages: a flood gives a line a second, with a count."""
         self.episode = 0
         """Episodes started so far."""
         self.completed: list[dict[str, Any]] = []
@@ -220,7 +223,7 @@ class Explorer(Node):
             stamp = stamp_to_ns(msg.header.stamp)
             _, angles = joint_state_arrays(msg)
         except Exception as err:  # never raise from a callback
-            self.log.warning(f"ignored a joint state: {err}")
+            self.per_message.warning(f"ignored a joint state: {err}")
             return
         if angles is not None and stamp >= self._angles_ns:
             self._angles, self._angles_ns = angles, stamp
@@ -232,7 +235,7 @@ class Explorer(Node):
         try:
             action = applied_action(msg)
         except Exception as err:
-            self.log.warning(f"ignored an applied action: {err}")
+            self.per_message.warning(f"ignored an applied action: {err}")
             return
         # Count the trajectory's own steps (a rejected trajectory, which the driver logs, applies none).
         if self._applied < len(self._actions) and np.allclose(action, self._actions[self._applied], atol=1e-3):

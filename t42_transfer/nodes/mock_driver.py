@@ -77,6 +77,7 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
+from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -121,6 +122,8 @@ class MockDriver(Node):
         self._params = LiveParams(self, MockDriverParams, self._on_params)
         p = self.params
         self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        """Warnings about single messages: a flood gives a line a second, with a count."""
         self.hand = SimulatedHand(p.hand)
         self.episode = -1
         """Index of the current episode (resets so far - 1)."""
@@ -189,7 +192,7 @@ class MockDriver(Node):
             self.log.info(f"rate_factor {old.rate_factor} -> {new.rate_factor}: a step every {new.period_s:.4f} s")
 
     def _on_command(self, msg: JointState) -> None:
-        action = accept(self.log, names.HAND_COMMAND,
+        action = accept(self.per_message, names.HAND_COMMAND,
                         lambda: validate_command(msg, self.now_ns(), self.params.max_command_age_ns))
         if action is None:
             return
@@ -198,7 +201,7 @@ class MockDriver(Node):
             self.log.info(f"single-step command cancels a trajectory with {cancelled} points left")
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
-        actions = accept(self.log, names.HAND_TRAJECTORY, lambda: validate_trajectory(
+        actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
             msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns))
         if actions is None:
             return

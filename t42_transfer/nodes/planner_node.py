@@ -102,6 +102,7 @@ from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
 from t42_transfer.planning.execution import receding_horizon
+from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -256,6 +257,8 @@ class PlannerNode(Node):
         super().__init__("planner", **node_kwargs)
         self._params = LiveParams(self, PlannerNodeParams, self._on_params)
         self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        """Warnings about single messages: a flood gives a line a second, with a count."""
         self._cond = threading.Condition()
         self._model: LoadedModel | None = None
         self._pose: tuple[int, np.ndarray] | None = None
@@ -344,7 +347,7 @@ class PlannerNode(Node):
         try:
             pose = (stamp_to_ns(msg.header.stamp), object_xy_mm(msg))
         except Exception as err:
-            self.log.warning(f"ignored {names.OBJECT_POSE}: {err}")
+            self.per_message.warning(f"ignored {names.OBJECT_POSE}: {err}")
             return
         with self._cond:
             self._pose = pose
@@ -353,7 +356,7 @@ class PlannerNode(Node):
         try:
             joints = (stamp_to_ns(msg.header.stamp), *joint_state_arrays(msg))
         except Exception as err:
-            self.log.warning(f"ignored {names.JOINT_STATES}: {err}")
+            self.per_message.warning(f"ignored {names.JOINT_STATES}: {err}")
             return
         with self._cond:
             self._joints = joints
@@ -533,7 +536,7 @@ class PlannerNode(Node):
             self.log.info(f"goal {result.goal_mm} mm: {result.horizon}-step plan, "
                           f"predicted error {result.predicted_error_mm:.2f} mm")
         else:
-            self.log.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
+            self.per_message.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
         self._result_pub.publish(String(data=result.to_json()))
 
 

@@ -96,6 +96,7 @@ from msg_adapters import (
 )
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
+from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile, recording
 
@@ -184,6 +185,8 @@ class Recorder(Node):
         self._params = LiveParams(self, RecorderParams, self._on_params)
         p = self.params
         self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        """Warnings about single messages: a flood gives a line a second, with a count."""
         try:
             Path(p.out_dir).mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -368,9 +371,9 @@ class Recorder(Node):
                 continue
             if bag.count == 0 and not self._state_topics <= step.topics:
                 self.dropped += len(step.messages)
-                self.log.warning(f"{bag.path} does not begin with the step stamped {step.stamp} ns: it lacks "
-                                 f"{', '.join(sorted(self._state_topics - step.topics))} (received before the "
-                                 "bag began, or lost)")
+                self.per_message.warning(f"{bag.path} does not begin with the step stamped {step.stamp} ns: it lacks "
+                                         f"{', '.join(sorted(self._state_topics - step.topics))} (received before the "
+                                         "bag began, or lost)")
                 continue
             try:
                 for topic, log_ns, data in step.messages:
@@ -386,8 +389,8 @@ class Recorder(Node):
                 stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, msgtype).header.stamp)
             except Exception as err:  # the decoder raises whatever it trips over
                 self.dropped += 1
-                self.log.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
-                                 f"({type(err).__name__}: {err})")
+                self.per_message.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
+                                         f"({type(err).__name__}: {err})")
                 return
             with self._lock:
                 if self._closed:
@@ -397,9 +400,9 @@ class Recorder(Node):
                 released, late = self._buffer.add(topic, stamp, log_ns, bytes(data), time.monotonic())
                 if late:
                     self.dropped += 1
-                    self.log.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
-                                     f"written (step_hold_s {self.params.step_hold_s} s passed, or it is a "
-                                     "duplicate)", throttle_duration_sec=5.0)
+                    self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was "
+                                             f"already written (step_hold_s {self.params.step_hold_s} s passed, "
+                                             "or it is a duplicate)")
                 self._write_steps(released)
                 self._carry_out(self._buffer.oldest_pending)
         except Exception as err:  # never raise from a callback
@@ -425,8 +428,8 @@ class Recorder(Node):
             try:
                 text = TYPESTORE.deserialize_cdr(data, STRING).data
             except Exception as err:
-                self.log.warning(f"ignored a message on {names.HAND_STATUS}: "
-                                 f"not a {STRING} ({type(err).__name__}: {err})")
+                self.per_message.warning(f"ignored a message on {names.HAND_STATUS}: "
+                                         f"not a {STRING} ({type(err).__name__}: {err})")
                 return
             event = status_event(str(text))
             if event not in self.params.split_on:

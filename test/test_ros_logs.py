@@ -1,0 +1,42 @@
+"""ros.logs: a flood of one kind of warning is a line a period, and the next line counts what was held back."""
+
+from __future__ import annotations
+
+from t42_transfer.ros.logs import ThrottledLog
+
+
+class Lines:
+    def __init__(self) -> None:
+        self.warnings: list[str] = []
+        self.errors: list[str] = []
+
+    def warning(self, message: str) -> None:
+        self.warnings.append(message)
+
+    def error(self, message: str) -> None:
+        self.errors.append(message)
+
+
+def test_a_flood_of_one_kind_is_one_line_a_period_and_the_next_counts_the_rest() -> None:
+    now = [0.0]
+    lines = Lines()
+    log = ThrottledLog(lines, period_s=1.0, clock=lambda: now[0])
+    for k in range(1000):  # 1000 NaN commands in 0.5 s, each with its own numbers
+        now[0] = k * 0.0005
+        log.warning(f"rejected hand/command: non-finite velocity [nan, {k}.5] at stamp {k * 100} ns")
+    assert len(lines.warnings) == 1
+    now[0] = 1.2
+    log.warning("rejected hand/command: non-finite velocity [nan, 3.5] at stamp 7 ns")
+    assert len(lines.warnings) == 2 and lines.warnings[1].endswith("(999 more like it in the last 1.2 s)")
+
+
+def test_other_kinds_and_levels_are_not_held_back_by_a_flood() -> None:
+    lines = Lines()
+    log = ThrottledLog(lines, period_s=1.0, clock=lambda: 0.0)
+    log.warning("rejected hand/command: non-finite velocity [nan, 0]")
+    log.warning("rejected hand/command: non-finite velocity [nan, 1]")
+    log.warning("rejected hand/command: unknown joint 'elbow'")
+    log.error("rejected hand/command: could not read the message")
+    assert lines.warnings == ["rejected hand/command: non-finite velocity [nan, 0]",
+                              "rejected hand/command: unknown joint 'elbow'"]
+    assert lines.errors == ["rejected hand/command: could not read the message"]
