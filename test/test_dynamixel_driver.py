@@ -30,7 +30,7 @@ from msg_adapters.wire import ACTUATOR_NAMES
 from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
-from t42_transfer.hardware.emulator import PtyBus, t42_bus
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
 from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 from t42_transfer.ros.qos import profile
@@ -72,7 +72,8 @@ class Rig(Tester):
     def __init__(self, ros: RosRig) -> None:
         super().__init__(ros)
         self.bench = Bench(self.tester)
-        self.driver = ros.add(DynamixelDriver, {"port": self.bench.bus.port})
+        self.driver = ros.add(DynamixelDriver, {"port": self.bench.bus.port,
+                                                "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
         self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
         self.joints = self.listen(JointState, names.JOINT_STATES)
         self.poses = self.listen(PoseStamped, names.OBJECT_POSE)

@@ -18,21 +18,18 @@ from std_srvs.srv import Trigger
 
 from msg_adapters import names, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
 from t42_transfer.nodes.dynamixel_driver import STATUS_NAME, DynamixelDriver
 from t42_transfer.nodes.hw_emulator import HwEmulator
 from t42_transfer.ros.qos import profile
-
-SLOW_LINK_MS = 100.0
-"""The emulated bus answers from a Python thread: awaited as configs/hardware_emulated.yaml does, so a busy
-machine's late answer is not taken for a fault."""
 
 
 class Rig(Tester):
     def __init__(self, ros: RosRig, link: Path, emulator: dict | None = None, driver: dict | None = None) -> None:
         super().__init__(ros)
         self.emulator = ros.add(HwEmulator, {"link": str(link), **(emulator or {})})
-        self.driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True, "latency_timer_ms": SLOW_LINK_MS,
-                                                **(driver or {})})
+        self.driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True,
+                                                "latency_timer_ms": EMULATED_LATENCY_TIMER_MS, **(driver or {})})
         self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
         self.tracker = self.listen(PoseStamped, names.TRACKER_POSE)
         self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
@@ -112,7 +109,8 @@ def test_autostart_waits_for_a_port_that_appears_later(ros: RosRig, tmp_path: Pa
     link = tmp_path / "ttyT42"
     tester = Tester(ros)
     get = tester.tester.create_client(GetState, "dynamixel_driver/get_state")
-    driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True, "latency_timer_ms": SLOW_LINK_MS})
+    driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True,
+                                       "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
     emulator = None
     try:
         ros.spin_for(1.5)

@@ -10,6 +10,7 @@ from typing import Any
 import yaml
 
 from t42_transfer.demo.settings import RECORDER_START, RECORDER_STOP, DemoSize
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
 
 
 def say(message: str) -> None:
@@ -56,10 +57,6 @@ def source_model(out: Path, size: DemoSize, workers: int | None) -> Path:
     return path
 
 
-EMULATED_LATENCY_MS = 100.0
-"""The emulated bus's latency timer (as configs/hardware_emulated.yaml): its answers come from a Python thread."""
-
-
 def servo_link(run_dir: Path) -> Path:
     """Where the emulator links its servo bus's pty, and the port the Dynamixel driver opens."""
     return run_dir / "servos"
@@ -74,8 +71,8 @@ def hand_params(run_dir: Path, size: DemoSize, hardware: str) -> dict[str, dict[
                                     max_command_age_s=max_command_age_s)}
     port = str(servo_link(run_dir))
     return {"hw_emulator": dict(link=port, hand="target", seed=0, sim_time=True, rate_factor=size.rate_factor),
-            "dynamixel_driver": dict(port=port, autostart=True, use_sim_time=True, latency_timer_ms=EMULATED_LATENCY_MS,
-                                     max_command_age_s=max_command_age_s)}
+            "dynamixel_driver": dict(port=port, autostart=True, use_sim_time=True,
+                                     latency_timer_ms=EMULATED_LATENCY_TIMER_MS, max_command_age_s=max_command_age_s)}
 
 
 def suite_params(run_dir: Path, model: Path, size: DemoSize, hardware: str = "sim") -> dict[str, Any]:

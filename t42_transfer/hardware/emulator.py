@@ -142,6 +142,11 @@ class Faults:
     """Servo ids that no longer answer at all."""
 
 
+EMULATED_LATENCY_TIMER_MS = 100.0
+"""How long a driver should treat the emulated bus's latency timer as (its ``latency_timer_ms``): the answers come
+from a Python thread, which a busy machine can hold up longer than a USB adapter would."""
+
+
 class ServoBus:
     """The servos on one bus and the plant behind them: instruction packets in, reply bytes out."""
 
