@@ -81,9 +81,9 @@ def test_the_seed_files_load(reader: tuple[str, DecoderWorker, bytes]) -> None:
 @pytest.mark.parametrize("content", [
     b"name: [unclosed\n", b"a: b: c\n", b"\xff\xfe\x00", b"x: &a [*a]\n", b"x: " + b"9" * 5000 + b"\n",
     b"[" * 5000, b"{a: " * 3000, b"x: !!python/object/apply:os.system [echo]\n", b"x: 2001-13-45\n",
-    b"- &a [&b [&c [*a, *a]]]\n",
+    b"- &a [&b [&c [*a, *a]]]\n", b"? '\n\n  '\n: .nan\n",
 ], ids=["unclosed", "mapping in a value", "utf-16 bom", "self-reference", "5000 digits", "deep lists",
-        "deep mappings", "python tag", "bad date", "aliases"])
+        "deep mappings", "python tag", "bad date", "aliases", "a key of line breaks"])
 def test_crafted_yaml_is_refused_in_one_line(reader: tuple[str, DecoderWorker, bytes], content: bytes) -> None:
     name, worker, _ = reader
     assert worker.check_bytes(content, f"{name}.yaml").outcome == "refused"

@@ -26,6 +26,7 @@ from types import FrameType
 from typing import IO, Any, TextIO
 
 from msg_adapters import names
+from t42_transfer.config import show
 from t42_transfer.nodes.registry import NODES
 from t42_transfer.ros.runner import keep_discovery_local
 from t42_transfer.yaml_files import read_yaml
@@ -114,8 +115,8 @@ def _check_params(path: str | Path, where: str, params: Any) -> None:
 
 
 def _where(key: Any) -> str:
-    text = key if isinstance(key, str) and key else repr(key)
-    return text if len(text) <= 60 else text[:57] + "..."
+    """A key for a one-line message: as written when it is a short printable name, else its cut-short repr."""
+    return key if isinstance(key, str) and key.isprintable() and 0 < len(key) <= 60 else show(key)
 
 
 def node_sections(path: str | Path) -> list[str]:
