@@ -181,7 +181,7 @@ def test_publishes_state_and_action_per_step_with_one_stamp(rig):
 
 
 def test_timer_runs_at_rate_factor_and_rate_changes_at_run_time(ros):
-    driver = ros.add(MockDriver, {"rate_factor": 10.0})  # a step every 10 ms
+    driver = ros.add(MockDriver, {"rate_factor": 10.0, "sim_time": True})  # a step every 10 ms
     ros.spin_for(1.0)
     fast = driver.steps
     assert 40 <= fast <= 110, fast  # shared machine: generous bounds around 100
@@ -193,6 +193,16 @@ def test_timer_runs_at_rate_factor_and_rate_changes_at_run_time(ros):
     before = driver.steps
     ros.spin_for(1.0)
     assert 5 <= driver.steps - before <= 12, driver.steps - before  # 10 Hz now
+
+
+def test_on_wall_clock_stamps_a_run_time_rate_change_is_refused_with_the_reason(ros):
+    """It put the steps of the bag being recorded 17 ms apart, and the bag reader refused all of it."""
+    driver = ros.add(MockDriver, {"rate_factor": 1.0})
+    setter = ros.node("setter").create_client(SetParameters, "mock_driver/set_parameters")
+    (result,) = ros.call(setter, SetParameters.Request(
+        parameters=[Parameter("rate_factor", value=6.0).to_parameter_msg()])).results
+    assert not result.successful and "only with sim_time" in result.reason
+    assert driver.params.rate_factor == 1.0 and driver.get_parameter("rate_factor").value == 1.0
 
 
 def test_bad_parameter_values_are_refused_and_the_old_kept(ros):

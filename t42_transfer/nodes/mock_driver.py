@@ -119,7 +119,7 @@ class MockDriver(Node):
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("mock_driver", **node_kwargs)
-        self._params = LiveParams(self, MockDriverParams, self._on_params)
+        self._params = LiveParams(self, MockDriverParams, self._on_params, self._veto)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
@@ -186,6 +186,16 @@ class MockDriver(Node):
         self._closed = True
 
     # ------------------------------------------------------------------ callbacks
+    @staticmethod
+    def _veto(old: MockDriverParams, new: MockDriverParams) -> str | None:
+        """On wall-clock stamps a new rate puts steps 0.1 / rate_factor s apart: the bag being recorded would no
+        longer read as T42 steps.  On sim time each step is one control period of the graph's clock, at any rate."""
+        if new.rate_factor != old.rate_factor and not new.sim_time:
+            return ("rate_factor changes at run time only with sim_time (the driver as the graph's clock): on "
+                    "wall-clock stamps the steps would come 0.1 / rate_factor s apart and the recording turn "
+                    "unreadable; restart with sim_time:=true, or with the new rate")
+        return None
+
     def _on_params(self, old: MockDriverParams, new: MockDriverParams) -> None:
         if new.rate_factor != old.rate_factor:
             self._timer.timer_period_ns = round(new.period_s * 1e9)

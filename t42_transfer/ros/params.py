@@ -222,14 +222,16 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
 class LiveParams(Generic[P]):
     """A node's params dataclass kept in step with ``ros2 param set``: bad values refused with the reason.
 
-    ``on_change(old, new)`` runs after a change was accepted (in the executor's thread).
+    ``on_change(old, new)`` runs after a change was accepted (in the executor's thread).  ``veto(old, new)``
+    refuses a change that is fine as settings but not as a change at run time (the reason, or None).
     """
 
-    def __init__(self, node: Node, params_cls: type[P], on_change: Callable[[P, P], None] | None = None) -> None:
+    def __init__(self, node: Node, params_cls: type[P], on_change: Callable[[P, P], None] | None = None,
+                 veto: Callable[[P, P], str | None] | None = None) -> None:
         self._fields = {f.name: f for f in _fields(params_cls)}
         self.value: P = declare_params(node, params_cls)
         self._pending: P | None = None
-        self._on_change = on_change
+        self._on_change, self._veto = on_change, veto
         node.add_on_set_parameters_callback(self._validate)
         node.add_post_set_parameters_callback(self._apply)
 
@@ -246,9 +248,13 @@ class LiveParams(Generic[P]):
         if not changes:
             return SetParametersResult(successful=True)
         try:
-            self._pending = dataclasses.replace(self.value, **changes)
+            pending = dataclasses.replace(self.value, **changes)
         except (TypeError, ValueError) as err:
             return SetParametersResult(successful=False, reason=str(err))
+        refused = self._veto(self.value, pending) if self._veto is not None else None
+        if refused:
+            return SetParametersResult(successful=False, reason=refused)
+        self._pending = pending
         return SetParametersResult(successful=True)
 
     def _apply(self, parameters: list[Parameter]) -> None:
