@@ -66,8 +66,10 @@ class DecoderWorker:
     """A worker process that runs ``target(path)`` on case files, one at a time, under guards."""
 
     def __init__(self, target: str, errors: str = "t42_transfer.data.errors:DataFileError", mem_mb: int = 512,
-                 timeout_s: float = 10.0, keep_dir: Path | None = None) -> None:
+                 timeout_s: float = 10.0, keep_dir: Path | None = None, grace_s: float = PARENT_GRACE_S) -> None:
+        """``grace_s``: how much longer than ``timeout_s`` the parent waits before it kills the worker."""
         self.target, self.errors, self.mem_mb, self.timeout_s = target, errors, mem_mb, timeout_s
+        self.grace_s = grace_s
         self.root = Path(tempfile.mkdtemp(prefix="t42-fuzz-"))
         self.keep_dir = keep_dir
         self.counts = {"accepted": 0, "refused": 0}
@@ -129,14 +131,14 @@ class DecoderWorker:
         proc.stdin.write(str(path) + "\n")
         proc.stdin.flush()
         # the worker's own alarm cannot interrupt C code that never checks for signals: a parent-side limit too
-        ready, _, _ = select.select([proc.stdout], [], [], self.timeout_s + PARENT_GRACE_S)
+        ready, _, _ = select.select([proc.stdout], [], [], self.timeout_s + self.grace_s)
         if not ready:
             proc.kill()
             proc.wait()
             self._proc = None
             proc.stdin.close()
             proc.stdout.close()
-            raise self._escape(case_dir, "hang", f"no answer within {self.timeout_s + PARENT_GRACE_S} s (killed)")
+            raise self._escape(case_dir, "hang", f"no answer within {self.timeout_s + self.grace_s} s (killed)")
         line = proc.stdout.readline()
         if not line:  # the worker died on this case
             code = proc.wait()

@@ -42,7 +42,8 @@ def decode(path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def worker():
-    with DecoderWorker(f"{HERE}:decode", mem_mb=256, timeout_s=1.0) as w:
+    # A short grace (the parent's kill 3 s after the call, not 11 s): the toy answers at once unless stuck.
+    with DecoderWorker(f"{HERE}:decode", mem_mb=256, timeout_s=1.0, grace_s=2.0) as w:
         yield w
 
 
