@@ -150,12 +150,23 @@ def test_bad_inputs_raise_clear_errors(tmp_path: Path) -> None:
     (wrong / "wrong.mcap").write_text("hello, not an mcap")
     with pytest.raises(BagError, match="bad magic"):
         repair_bag(wrong)
-    header_only = tmp_path / "header_only"
-    header_only.mkdir()
-    (header_only / "header_only.mcap").write_bytes(b"\x89MCAP0\r\n\x01")
-    with pytest.raises(BagError, match="nothing is readable"):
-        repair_bag(header_only)
-    assert sorted(p.name for p in header_only.iterdir()) == ["header_only.mcap"]  # left as it was
+
+
+@pytest.mark.parametrize("size", [9, 43])
+def test_a_bag_killed_right_after_it_was_opened_becomes_an_empty_bag(tmp_path: Path, size: int) -> None:
+    """The recorder's file at its first kill point (the magic and part or all of the header record, 43 bytes):
+    repaired to an empty bag that every reader takes, the original kept."""
+    from t42_transfer.data.bag import bag_info, verify_bag
+
+    recorded = Path(__file__).parents[1] / "bags" / "target_small" / "target_small.mcap"
+    opened = tmp_path / "opened"
+    opened.mkdir()
+    (opened / "opened.mcap").write_bytes(recorded.read_bytes()[:size])
+    report = repair_bag(opened)
+    assert report.repaired and report.counts == {} and report.originals == (opened / "opened.mcap.orig",)
+    info = bag_info(opened)
+    assert info["topics"] == {} and info["episodes"] == 0 and verify_bag(opened) == []
+    assert repair_bag(opened).repaired is False  # sound now
 
 
 def test_an_earlier_repairs_originals_are_never_overwritten(ros: Any, tmp_path: Path) -> None:

@@ -15,11 +15,15 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
 
     from t42_transfer.data.bag import bag_info, read_bag, verify_bag
     from t42_transfer.data.quality import scan, summarise, summary_lines
+    from t42_transfer.data.trajectory import TrajectorySet
 
     info = bag_info(args.bag)
-    with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
-        warnings.simplefilter("ignore")
-        data = read_bag(args.bag, allow_gaps=True)
+    if info["topics"]:
+        with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
+            warnings.simplefilter("ignore")
+            data = read_bag(args.bag, allow_gaps=True)
+    else:  # an empty bag (repaired after its recorder stopped at once) has no hand topics to read
+        data = TrajectorySet([])
     findings = scan(data)
     mismatches = verify_bag(args.bag) if args.verify else []
     if args.json:
@@ -63,6 +67,8 @@ def _cmd_bag_repair(args: argparse.Namespace) -> int:
         print(f"{report.path}: sound, left as it is ({report.message_count} messages)")
         return 0
     print(f"{report.path}: repaired ({'; '.join(report.problems)})")
+    if not report.counts:
+        print("  it held nothing readable (its recorder stopped right after opening it): now an empty bag")
     if report.stopped:
         print(f"  salvaged up to where {report.stopped}")
     for topic, count in sorted(report.counts.items()):

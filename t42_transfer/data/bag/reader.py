@@ -46,8 +46,12 @@ def bag_info(path: str | Path) -> dict[str, Any]:
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        data = assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps=True)
-        namespace = hand_namespace(bag, raw.topics)
+        if raw.topics:
+            data = assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps=True)
+            episodes, transitions, hand = len(data), data.num_transitions, data.hand
+            namespace = hand_namespace(bag, raw.topics)
+        else:  # an empty bag (its recorder stopped before the first message): nothing to count
+            episodes, transitions, hand, namespace = 0, 0, None, ""
     return {
         "path": str(bag),
         "storage": raw.storage,
@@ -56,9 +60,9 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "duration_s": (raw.end_ns - raw.start_ns) / 1e9,
         "topics": {name: {"type": t.msgtype, "count": t.count} for name, t in sorted(raw.topics.items())},
         "namespace": namespace or "/",
-        "episodes": len(data),
-        "transitions": data.num_transitions,
-        "hand": data.hand,
+        "episodes": episodes,
+        "transitions": transitions,
+        "hand": hand,
         "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
         "recovered_prefix": raw.cut,
     }

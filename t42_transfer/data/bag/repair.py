@@ -74,9 +74,10 @@ def repair_bag(path: str | Path) -> RepairReport:
     """Rewrite a damaged MCAP bag directory in place (originals kept as ``*.mcap.orig``).
 
     A sound bag (every file read to its summary, ``metadata.yaml`` agreeing with
-    the data in files, counts, start and duration) is left as it is.  Raises
-    :class:`BagError` for a path that is no MCAP bag directory, holds non-regular
-    files where files belong, or holds nothing readable, and FileExistsError when
+    the data in files, counts, start and duration) is left as it is; one with
+    nothing readable (killed just after it was opened) becomes an empty bag.  Raises
+    :class:`BagError` for a path that is no MCAP bag directory or holds non-regular
+    files where files belong, and FileExistsError when
     ``*.orig`` files of an earlier repair are in the way (nothing is ever overwritten).
     """
     bag = Path(path)
@@ -92,9 +93,8 @@ def repair_bag(path: str | Path) -> RepairReport:
             raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
         with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
             rebuilt = Path(staging) / bag.name
+            # Nothing readable (a recorder killed right after it opened the file) makes an empty, valid bag.
             counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
-            if not counts:
-                raise BagError(bag, f"nothing is readable, not even a topic; left as it is ({stopped})")
             for original, orig in zip(files, kept, strict=True):
                 original.rename(orig)
             (rebuilt / f"{bag.name}.mcap").rename(files[0])
