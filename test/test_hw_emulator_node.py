@@ -123,6 +123,33 @@ def test_autostart_waits_for_a_port_that_appears_later(ros: RosRig, tmp_path: Pa
             emulator.close()
 
 
+def test_autostart_gives_way_to_a_lifecycle_client_that_configures_first(ros: RosRig, tmp_path: Path) -> None:
+    """The retry once raised in the timer (configure from 'inactive') and the driver process died."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+
+    link = tmp_path / "ttyT42"
+    tester = Tester(ros)
+    get = tester.tester.create_client(GetState, "dynamixel_driver/get_state")
+    change = tester.tester.create_client(ChangeState, "dynamixel_driver/change_state")
+    driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True,
+                                       "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
+    emulator = None
+    try:
+        ros.spin_for(0.3)  # the first try failed: no port yet
+        emulator = ros.add(HwEmulator, {"link": str(link)})
+        configure = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
+        assert ros.call(change, configure).success
+        ros.spin_for(1.5)  # the retry comes due
+        assert ros.call(get, GetState.Request()).current_state.label == "inactive"
+        activate = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE))
+        assert ros.call(change, activate).success
+    finally:
+        driver.close()
+        if emulator is not None:
+            emulator.close()
+
+
 SLOW = pytest.mark.slow  # each case is ~15 s of a running driver: two stay in the default run
 
 

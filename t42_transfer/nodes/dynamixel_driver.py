@@ -163,6 +163,9 @@ class DynamixelDriver(LifecycleNode):
     def _start(self) -> None:
         """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
         there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
+        if self._state_machine.current_state[1] != "unconfigured":  # a lifecycle client got there first
+            self._autostart.cancel()
+            return
         if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
             self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
             return
