@@ -193,8 +193,89 @@ def test_t42_up_fails_when_a_child_dies(tmp_path: Path, ros_domain: int) -> None
     proc = subprocess.run([*T42, "up", str(config), "--only", "mock_driver,recorder"], cwd=tmp_path,
                           env=unbuffered_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1, proc.stdout + proc.stderr
-    assert re.search(r"recorder exited with code [1-9]\d* unexpectedly: stopping the others", proc.stdout), proc.stdout
+    assert re.search(r"recorder exited with code [1-9]\d* unexpectedly \(it failed to start\): stopping the others",
+                     proc.stdout), proc.stdout
     assert "[mock_driver]" in proc.stdout and time.monotonic() - started < 60
+
+
+class Lines:
+    """A process's output lines as they come (a thread reads them)."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        import threading
+
+        self.lines: list[str] = []
+        threading.Thread(target=lambda: self.lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+
+    def pids(self, name: str) -> list[int]:
+        """Every pid ``t42 up`` started ``name`` with, in order."""
+        return [int(m.group(1)) for line in list(self.lines)
+                if (m := re.match(rf"\[t42 up\] started {name} \(pid (\d+)\)", line))]
+
+    def wait(self, condition: Any, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.1)
+        return True
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_t42_up_restarts_a_killed_node_alone_and_the_others_keep_running(tmp_path: Path, ros_domain: int) -> None:
+    """SIGKILL of the recorder, then of the driver, then of the planner: each comes back within 15 s while the
+    others keep their pids."""
+    from t42_transfer.ros.launcher import MIN_UPTIME_S
+
+    suite = ("mock_driver", "recorder", "planner")
+    config = _suite_copy(tmp_path, out_dir=str(tmp_path / "recordings"))
+    proc = subprocess.Popen([*T42, "up", str(config), "--only", ",".join(suite), "--stop-timeout", "10"],
+                            cwd=tmp_path, env=unbuffered_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    out = Lines(proc)
+    try:
+        assert out.wait(lambda: all(out.pids(n) for n in suite), 30.0), out.lines
+        time.sleep(MIN_UPTIME_S + 0.5)  # running a while: not a node that failed to start
+        for victim in ("recorder", "mock_driver", "planner"):
+            kept = {n: out.pids(n)[-1] for n in suite if n != victim}
+            os.kill(out.pids(victim)[-1], signal.SIGKILL)
+            assert out.wait(lambda victim=victim: len(out.pids(victim)) == 2, 15.0), out.lines
+            again = out.pids(victim)[-1]
+            assert out.wait(lambda again=again: _alive(again), 5.0) and proc.poll() is None
+            assert {n: out.pids(n)[-1] for n in kept} == kept and all(_alive(p) for p in kept.values())
+            assert any(f"{victim} exited with code -9" in line and "restarting it in 1 s (1 of 5)" in line
+                       for line in out.lines), out.lines
+    finally:
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=40)
+    assert code == 0, out.lines[-20:]
+
+
+def test_t42_up_no_respawn_stops_everything_when_a_node_dies(tmp_path: Path, ros_domain: int) -> None:
+    config = _suite_copy(tmp_path, out_dir=str(tmp_path / "recordings"))
+    proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver,recorder", "--no-respawn"],
+                            cwd=tmp_path, env=unbuffered_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    out = Lines(proc)
+    try:
+        assert out.wait(lambda: out.pids("mock_driver") and out.pids("recorder"), 30.0), out.lines
+        time.sleep(1.0)
+        os.kill(out.pids("recorder")[-1], signal.SIGKILL)
+        assert proc.wait(timeout=40) == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert out.wait(lambda: any("recorder exited with code -9 unexpectedly (no respawn): stopping the others" in line
+                                for line in out.lines), 5.0), out.lines
+    assert len(out.pids("recorder")) == 1
 
 
 def test_t42_up_rejects_unknown_sections_and_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

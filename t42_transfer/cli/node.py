@@ -28,7 +28,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
     from t42_transfer.ros.launcher import up
 
     only = [n for n in args.only.split(",") if n] if args.only else None
-    return up(args.config, only=only, stop_timeout_s=args.stop_timeout, namespace=args.namespace)
+    return up(args.config, only=only, stop_timeout_s=args.stop_timeout, namespace=args.namespace,
+              respawn=not args.no_respawn)
 
 
 # ------------------------------------------------------------------------ parser
@@ -50,4 +51,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     help="seconds per stop signal (default 5)")
     up.add_argument("--namespace", type=namespace_arg, default="",
                     help="run every node under this ROS namespace (e.g. /left)")
+    up.add_argument("--no-respawn", action="store_true",
+                    help="a node that exits stops the whole suite (default: it is restarted alone, with backoff, "
+                         "up to 5 times, unless it failed within 5 s of its start)")
     up.set_defaults(func=_cmd_up)

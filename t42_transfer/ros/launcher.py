@@ -6,9 +6,15 @@ Each node with its own section in the params file runs as
 own session (so a terminal's Ctrl-C reaches only this supervisor, which then
 stops the children in order).  Their output is forwarded line by line, prefixed
 ``[<name>]``.  On SIGINT/SIGTERM every child gets SIGINT, then SIGTERM after
-``stop_timeout_s``, then SIGKILL.  A child that exits on its own is a failure:
-the others are stopped the same way and the exit code is 1.  Discovery stays on
-this machine (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) unless the user set a range.
+``stop_timeout_s``, then SIGKILL.  A child that exits on its own after running a
+while is restarted alone, as launch's ``respawn`` does: after 1 s, then 2, 4, 8 s
+for each further restart, at most ``max_respawns`` times; the others keep running
+(a restarted recorder begins a new bag, a restarted driver grasps on the next reset,
+a restarted planner reads its model again).  A child that exits within
+``MIN_UPTIME_S`` of its start failed to start, and one past its restarts, or any
+with ``respawn=False`` (``--no-respawn``), is a failure: the others are stopped the
+same way and the exit code is 1.  Discovery stays on this machine
+(``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) unless the user set a range.
 """
 
 from __future__ import annotations
@@ -28,13 +34,17 @@ from typing import IO, Any, TextIO
 from msg_adapters import names
 from t42_transfer.config import show
 from t42_transfer.nodes.registry import NODES
-from t42_transfer.ros.runner import keep_discovery_local
+from t42_transfer.ros.runner import RUNNING, keep_discovery_local
 from t42_transfer.yaml_files import read_yaml
 
 WILDCARDS = ("/**", "**")
 PARAMS_KEY = "ros__parameters"
 
 POLL_S = 0.1
+MIN_UPTIME_S = 5.0
+"""A child that exits sooner than this after its start failed to start: restarting it would fail again."""
+MAX_RESPAWNS = 5
+MAX_BACKOFF_S = 8.0
 
 
 @dataclass
@@ -42,6 +52,12 @@ class Child:
     name: str
     proc: subprocess.Popen[str]
     forwarder: threading.Thread
+    overrides: tuple[str, ...] = ()
+    started: float = 0.0
+    """time.monotonic() at its start."""
+    running: bool = False
+    """It said it runs (:data:`~t42_transfer.ros.runner.RUNNING`): before that, a stop only cuts its start short
+    (a signal during the interpreter's own start-up can end no process cleanly)."""
 
 
 def namespace_args(namespace: str) -> list[str]:
@@ -151,10 +167,12 @@ def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[st
     return sections
 
 
-def _forward(name: str, stream: IO[str], out: TextIO, lock: threading.Lock) -> None:
+def _forward(child: Child, stream: IO[str], out: TextIO, lock: threading.Lock) -> None:
     for line in stream:
+        if not child.running and RUNNING in line:
+            child.running = True
         with lock:
-            out.write(f"[{name}] {line}" if line.endswith("\n") else f"[{name}] {line}\n")
+            out.write(f"[{child.name}] {line}" if line.endswith("\n") else f"[{child.name}] {line}\n")
             out.flush()
 
 
@@ -203,16 +221,28 @@ class Supervisor:
             cmd += ["-p", override]
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 bufsize=1, start_new_session=True, env=self.env)
-        forwarder = threading.Thread(target=_forward, args=(name, proc.stdout, self.out, self._lock), daemon=True)
-        forwarder.start()
-        child = Child(name, proc, forwarder)
+        child = Child(name, proc, threading.Thread(), overrides, time.monotonic())
+        child.forwarder = threading.Thread(target=_forward, args=(child, proc.stdout, self.out, self._lock),
+                                           daemon=True)
+        child.forwarder.start()
         self.children.append(child)
         self.say(f"started {name} (pid {proc.pid})")
         return child
 
     def exited(self) -> list[str]:
         """``"<name> exited with code N"`` for every child no longer running."""
-        return [f"{c.name} exited with code {c.proc.returncode}" for c in self.children if c.proc.poll() is not None]
+        return [f"{c.name} exited with code {c.proc.returncode}" for c in self.dead()]
+
+    def dead(self) -> list[Child]:
+        """The children no longer running."""
+        return [c for c in self.children if c.proc.poll() is not None]
+
+    def forget(self, child: Child) -> None:
+        """Drop an exited child (its output forwarded to the end) before it is started again."""
+        self.children.remove(child)
+        child.forwarder.join(timeout=1.0)
+        if child.proc.stdout is not None and not child.forwarder.is_alive():
+            child.proc.stdout.close()
 
     def stop(self) -> dict[str, int]:
         """Stop every child (SIGINT, then SIGTERM, then SIGKILL); their exit codes."""
@@ -223,6 +253,10 @@ class Supervisor:
                 child.proc.stdout.close()
         return {c.name: c.proc.returncode for c in self.children}
 
+    def starting(self) -> list[str]:
+        """Children that had not said they run yet."""
+        return [c.name for c in self.children if not c.running]
+
     def __enter__(self) -> Supervisor:
         return self
 
@@ -231,8 +265,9 @@ class Supervisor:
 
 
 def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
-       out: TextIO | None = None, namespace: str = "") -> int:
-    """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child exits; the exit code."""
+       out: TextIO | None = None, namespace: str = "", respawn: bool = True, max_respawns: int = MAX_RESPAWNS) -> int:
+    """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child fails (see the module docstring);
+    the exit code."""
     names = plan_nodes(config, only)
     supervisor = Supervisor(config, out, stop_timeout_s, namespace=namespace)
     supervisor.say(f"discovery range {keep_discovery_local()}, ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}")
@@ -243,22 +278,58 @@ def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: fl
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     failed: list[str] = []
+    respawner = _Respawner(supervisor, max_respawns if respawn else 0)
     try:
         for name in names:
             supervisor.start(name)
         while not stop.is_set():
-            failed = supervisor.exited()
+            failed = respawner.tend()
             if failed:
-                supervisor.say(f"{'; '.join(failed)} unexpectedly: stopping the others")
+                supervisor.say(f"{'; '.join(failed)}: stopping the others")
                 break
             stop.wait(POLL_S)
         else:
             supervisor.say("stopping")
     finally:
+        starting = supervisor.starting()
         codes = supervisor.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    unclean = {n: rc for n, rc in codes.items() if rc != 0}
+    if starting:
+        supervisor.say(f"stopped while starting: {', '.join(starting)}")
+    unclean = {n: rc for n, rc in codes.items() if rc != 0 and n not in starting}
     if unclean and not failed:
         supervisor.say("not stopped cleanly: " + ", ".join(f"{n} exited with code {rc}" for n, rc in unclean.items()))
     return 1 if failed or unclean else 0
+
+
+class _Respawner:
+    """Restarts the supervisor's children that exit after running a while, with backoff, up to a limit."""
+
+    def __init__(self, supervisor: Supervisor, max_respawns: int) -> None:
+        self.supervisor, self.max_respawns = supervisor, max_respawns
+        self.respawns: dict[str, int] = {}
+        self.due: dict[str, tuple[float, tuple[str, ...]]] = {}
+        """Children waiting to be started again: when, and with which overrides."""
+
+    def tend(self) -> list[str]:
+        """Schedule restarts of children that died, start those due; what failed for good (empty: all is well)."""
+        now, failed = time.monotonic(), []
+        for child in self.supervisor.dead():
+            code, ran_s, count = child.proc.returncode, now - child.started, self.respawns.get(child.name, 0)
+            if ran_s < MIN_UPTIME_S or count >= self.max_respawns:
+                why = ("it failed to start" if ran_s < MIN_UPTIME_S else f"restarted {count} time(s) already") \
+                    if self.max_respawns else "no respawn"
+                failed.append(f"{child.name} exited with code {code} unexpectedly ({why})")
+                continue
+            delay = min(MAX_BACKOFF_S, 2.0 ** count)
+            self.supervisor.say(f"{child.name} exited with code {code} after {ran_s:.0f} s: restarting it in "
+                                f"{delay:g} s ({count + 1} of {self.max_respawns})")
+            self.supervisor.forget(child)
+            self.respawns[child.name] = count + 1
+            self.due[child.name] = (now + delay, child.overrides)
+        for name, (when, overrides) in list(self.due.items()):
+            if now >= when and not failed:
+                del self.due[name]
+                self.supervisor.start(name, *overrides)
+        return failed

@@ -27,6 +27,10 @@ DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 TEARDOWN_TIMEOUT_S = 8.0
 """How long releasing rclpy's handles may take after the node closed before the process exits regardless."""
 
+RUNNING = "SIGINT or SIGTERM stops"
+"""The end of a node's first log line once it runs (t42 up reads it: a node stopped before it is a start cut
+short, not an unclean stop)."""
+
 
 def make_executor(node_cls: type, context: object) -> object:
     """The executor a node class asks for with its ``executor_threads`` attribute (default 1).
@@ -107,7 +111,7 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         except ValueError as err:
             return _error(str(err))
         executor.add_node(node)
-        node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; SIGINT or SIGTERM stops")
+        node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; {RUNNING}")
         while not stop.is_set() and not getattr(node, "finished", False):
             executor.spin_once(timeout_sec=0.1)
         node.close()
