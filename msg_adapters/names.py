@@ -110,6 +110,9 @@ EVENTS = Qos(100, latched=True)
 EVENT_READER = Qos(100)
 """Reading events as they happen: deep, so none is lost in a burst; VOLATILE, so it matches any
 reliable writer (a TRANSIENT_LOCAL reader would not match a real driver that publishes VOLATILE)."""
-RESULTS = Qos(10, latched=True)
-"""Plan results: volatile and latched subscribers both match, a late latched one gets the last
-result, and a ``superseded`` result published just before the plan's is not overwritten."""
+REQUESTS = Qos(10_000)
+"""A service's request queue and a goal subscription: a burst of callers each gets an answer (rclpy's default
+depth of 10 left 40 of 50 simultaneous resets unanswered, and lost goals before any result was made)."""
+RESULTS = Qos(10_000, latched=True)
+"""Plan results: volatile and latched subscribers both match, a late latched one gets the recent
+results, and none of a burst (each goal of 2000 superseded in turn) is overwritten before it is read."""

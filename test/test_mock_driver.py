@@ -427,3 +427,13 @@ def test_statuses_are_events_kept_deep_enough_not_to_be_replaced(rig):
         rig.driver._publish_status(f"trajectory_done: burst {k}")
     assert rig.ros.spin_until(lambda: sum("burst" in s for s in rig.statuses()) == 50, 10.0)
     assert [s for s in rig.statuses() if "burst" in s] == [f"trajectory_done: burst {k}" for k in range(50)]
+
+
+def test_a_burst_of_resets_from_separate_clients_is_answered_in_full(rig):
+    """50 callers at once: each gets its answer (10 of 50 did, the service's queue held 10)."""
+    clients = [rig.tester.create_client(Trigger, names.HAND_RESET) for _ in range(50)]
+    assert rig.ros.spin_until(lambda: all(c.service_is_ready() for c in clients), 10.0)
+    futures = [c.call_async(Trigger.Request()) for c in clients]
+    assert rig.ros.spin_until(lambda: all(f.done() for f in futures), 60.0), sum(f.done() for f in futures)
+    answers = [f.result() for f in futures]
+    assert all(a.success and "grasped" in a.message for a in answers), [a.message for a in answers if not a.success]

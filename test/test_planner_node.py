@@ -516,3 +516,25 @@ def test_run_time_sizes_are_bounded_as_the_cli_bounds_them(rig: Rig) -> None:
     assert rig.planner.params == before
     rig.tick()
     assert rig.goal(START_XY + [2.0, 0.0])["accepted"]
+
+
+def test_a_burst_of_2000_goals_gets_2000_results(ros, toy: Path) -> None:
+    """Each goal is planned, superseded by a newer one, or refused, and says so (1645 of 2000 got nothing)."""
+    rig = Rig(ros, toy, **SMALL)
+    results: list[dict] = []
+    rig.tester.create_subscription(String, names.PLAN_RESULT, lambda m: results.append(json.loads(m.data)),
+                                   profile(names.RESULTS))
+    rig.tick()
+    ros.spin_for(0.3)
+    results.clear()
+    goals = rig.tester.create_publisher(PointStamped, names.GOAL, profile(names.REQUESTS))
+    assert ros.spin_until(lambda: goals.get_subscription_count() == 1, 10.0)
+    start = rig.now_ns()
+    for k in range(2000):
+        goals.publish(goal_msg(START_XY + [2.0, 0.0], start + k, RCLPY))  # the stamp names the goal
+        ros.executor.spin_once(timeout_sec=0.0)
+    assert ros.spin_until(lambda: len(results) >= 2000, 60.0), len(results)
+    ros.spin_for(0.5)
+    assert sorted(r["goal_stamp_ns"] for r in results) == [start + k for k in range(2000)]  # one each, no more
+    assert all(r["accepted"] or (r["status"] and r["reason"]) for r in results)  # planned, or refused saying why
+    assert any(r["status"] == names.SUPERSEDED for r in results)  # the burst outran the planner

@@ -461,3 +461,17 @@ def test_a_parameter_dump_gives_every_parameter_its_value(ros, tmp_path, source_
     assert rig.server.describe_parameter("bags").read_only  # still, though declared writable until it held []
     (refused,) = rig.server.set_parameters([Parameter("bags", value=["x"])])
     assert not refused.successful and "read-only" in refused.reason
+
+
+def test_twenty_simultaneous_calls_are_all_answered(ros, tmp_path, source_model):
+    """One runs, the others are told it is busy or run after it: none is left unanswered (10 of 20 were)."""
+    rig = Rig(ros, tmp_path, source_model, method="direct")
+    add_target_bag(rig.bag_dir)
+    clients = [rig.tester.create_client(Trigger, names.TRANSFER) for _ in range(20)]
+    assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients), 10.0)
+    futures = [c.call_async(Trigger.Request()) for c in clients]
+    assert ros.spin_until(lambda: all(f.done() for f in futures), 60.0), sum(f.done() for f in futures)
+    answers = [f.result() for f in futures]
+    assert sum(a.success for a in answers) >= 1
+    assert all(a.success or a.message.startswith(("busy", "no new bags")) for a in answers), \
+        [a.message for a in answers]

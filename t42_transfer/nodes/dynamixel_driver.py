@@ -155,7 +155,8 @@ class DynamixelDriver(LifecycleNode):
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
         # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
-        self.create_service(Trigger, names.HAND_RESET, self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS),
+                            callback_group=MutuallyExclusiveCallbackGroup())
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
         if self.params.autostart:  # on the wall clock: a port is retried in seconds, whatever the graph's time
             self._autostart = self.create_timer(0.0, self._start, clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -144,7 +144,7 @@ class MockDriver(Node):
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
-        self.create_service(Trigger, names.HAND_RESET, self._on_reset)
+        self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS))
         ok, why = self.reset()
         if not ok:
             self.log.warning(f"initial grasp failed: {why}; "

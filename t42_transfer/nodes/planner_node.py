@@ -281,7 +281,7 @@ class PlannerNode(Node):
         self.create_subscription(JointState, names.JOINT_STATES, self._on_joints, 10)
         self.create_subscription(String, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED),
                                  callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_subscription(PointStamped, names.GOAL, self._on_goal, 10)
+        self.create_subscription(PointStamped, names.GOAL, self._on_goal, profile(names.REQUESTS))
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()

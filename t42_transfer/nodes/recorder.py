@@ -217,9 +217,10 @@ class Recorder(Node):
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
-        self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start))
-        self.create_service(Trigger, names.RECORDER_STOP, partial(self._answer, self.stop))
-        self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split))
+        requests = profile(names.REQUESTS)
+        self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start), qos_profile=requests)
+        self.create_service(Trigger, names.RECORDER_STOP, partial(self._answer, self.stop), qos_profile=requests)
+        self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split), qos_profile=requests)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)

@@ -160,7 +160,8 @@ class TransferServer(Node):
         self._closed = False
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self._updates = self.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
-        self.create_service(Trigger, names.TRANSFER, self._on_transfer, callback_group=ReentrantCallbackGroup())
+        self.create_service(Trigger, names.TRANSFER, self._on_transfer, qos_profile=profile(names.REQUESTS),
+                            callback_group=ReentrantCallbackGroup())
         latest = latest_model(Path(self.params.model_dir))
         if latest is not None:
             self._updates.publish(String(data=str(latest)))
