@@ -37,14 +37,11 @@ def test_goal_refuses_non_finite_coordinates(field, bad):
         ma.goal_xy_mm(msg)
 
 
-def test_goal_refuses_other_frames_and_float32_overflow():
+@pytest.mark.parametrize("frame_id, x, match", [("map", 1.0, "frame 'map'"), (FRAME_ID, 1e300, "float32 range")])
+def test_goal_refuses_other_frames_and_float32_overflow(frame_id, x, match):
     msg = ma.goal_msg([1.0, 2.0], 0)
-    msg.header.frame_id = "map"
-    with pytest.raises(ValueError, match="frame 'map'"):
-        ma.goal_xy_mm(msg)
-    msg.header.frame_id = FRAME_ID
-    msg.point.x = 1e300
-    with pytest.raises(ValueError, match="float32 range"):
+    msg.header.frame_id, msg.point.x = frame_id, x
+    with pytest.raises(ValueError, match=match):
         ma.goal_xy_mm(msg)
 
 

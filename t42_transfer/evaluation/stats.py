@@ -257,15 +257,9 @@ def matched_scores(
     return (cells, np.array([scores[method][c] for c in cells]), np.array([scores[baseline][c] for c in cells]))
 
 
-def compare_methods(
-    rows: Iterable[Mapping[str, Any]],
-    metric: str,
-    method: str,
-    baseline: str,
-    match: Sequence[str] = MATCH_KEYS,
-    by: str | None = None,
-    **options: Any,
-) -> dict[Hashable, PairedComparison]:
+def compare_methods(rows: Iterable[Mapping[str, Any]], metric: str, method: str, baseline: str, *,
+                    match: Sequence[str] = MATCH_KEYS, by: str | None = None,
+                    **options: Any) -> dict[Hashable, PairedComparison]:
     """:func:`compare_paired` of ``method`` against ``baseline`` on ``metric``: all matched cells together
     (key ``"all"``), or one comparison per value of the match key ``by`` (e.g. per amount)."""
     cells, a, b = matched_scores(rows, metric, method, baseline, match)
