@@ -106,6 +106,28 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(threads)
 
 
+@pytest.fixture(scope="session")
+def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A source model trained for 1 epoch on the source fixture bag, with its workspace (read-only: shared by the
+    suite tests, which would each train the same one)."""
+    import torch
+
+    from t42_transfer.data.bag import read_bag
+    from t42_transfer.models.checkpoint import save_model
+    from t42_transfer.models.training import TrainConfig, train_transition_model
+    from t42_transfer.planning.workspace import Workspace
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        data = read_bag(Path(__file__).resolve().parents[1] / "bags" / "source_small")
+        model, _ = train_transition_model(data, TrainConfig(epochs=1))
+    finally:
+        torch.set_num_threads(threads)
+    path = tmp_path_factory.mktemp("source") / "source.safetensors"
+    return save_model(model, path, method="source", extra={"workspace": Workspace.from_trajectories(data).to_dict()})
+
+
 # --------------------------------------------------------------------------- ROS 2 (rclpy)
 _DOMAIN_LOCKS = Path(os.environ.get("TMPDIR", "/tmp")) / "t42-ros-domains"
 

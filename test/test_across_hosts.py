@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 from ros_rig import REPO, stop, unbuffered_env
-from test_stock_graph import STOCK_USER, T42, source_model, suite_file  # noqa: F401  (source_model: fixture)
+from test_stock_graph import STOCK_USER, T42, suite_file
 
 ADDRESSES = ("10.242.77.1/30", "10.242.77.2/30")
 
@@ -96,7 +96,7 @@ def _stock_user(host: str, mode: str, log: Path) -> dict:
     return json.loads(lines[-1])
 
 
-def test_the_story_across_two_hosts(two_hosts: tuple[str, str], tmp_path: Path, source_model: Path) -> None:  # noqa: F811
+def test_the_story_across_two_hosts(two_hosts: tuple[str, str], tmp_path: Path, source_model: Path) -> None:
     robot, server = two_hosts
     params = suite_file(tmp_path, source_model)
     hand = _on(robot, [*T42, "up", str(params), "--only", "mock_driver,recorder", "--stop-timeout", "10"],

@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import pytest
 import yaml
 from ros_rig import REPO, start_node, stop
 
@@ -18,27 +17,6 @@ from t42_transfer.ros.launcher import namespace_args
 
 STOCK_USER = Path(__file__).with_name("stock_user.py")
 T42 = [sys.executable, "-u", "-m", "t42_transfer.cli"]
-
-
-@pytest.fixture(scope="module")
-def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A source model trained for 1 epoch on the source fixture bag, with its workspace."""
-    import torch
-
-    from t42_transfer.data.bag import read_bag
-    from t42_transfer.models.checkpoint import save_model
-    from t42_transfer.models.training import TrainConfig, train_transition_model
-    from t42_transfer.planning.workspace import Workspace
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        data = read_bag(REPO / "bags" / "source_small")
-        model, _ = train_transition_model(data, TrainConfig(epochs=1))
-    finally:
-        torch.set_num_threads(threads)
-    path = tmp_path_factory.mktemp("source") / "source.safetensors"
-    return save_model(model, path, method="source", extra={"workspace": Workspace.from_trajectories(data).to_dict()})
 
 
 def suite_file(root: Path, source: Path, seed: int = 0) -> Path:
