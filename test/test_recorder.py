@@ -492,3 +492,16 @@ def test_the_open_chunk_reaches_the_file_every_flush_period(ros: Any, tmp_path: 
     for sub in rec.subscriptions:
         if sub.topic_name in ("/" + t for t in ("hand/object_pose", "hand/joint_states", "hand/applied_action")):
             assert sub.qos_profile.depth == 1000  # a deep RELIABLE queue, not ROS's default 10
+
+
+def test_two_recorders_in_two_namespaces_with_one_relative_out_dir_keep_apart(ros, tmp_path, monkeypatch):
+    """Two suites from one working directory: recordings/left and recordings/right, never one shared folder."""
+    from t42_transfer.nodes.recorder import Recorder
+
+    monkeypatch.chdir(tmp_path)
+    left = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/left")
+    right = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/right")
+    assert (left.out_dir, right.out_dir) == (Path("recordings/left"), Path("recordings/right"))
+    assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == ["left", "right"]
+    left.close()
+    right.close()

@@ -102,6 +102,7 @@ from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
 from t42_transfer.planning.execution import receding_horizon
+from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
@@ -113,8 +114,9 @@ _DEFAULTS = PlannerConfig()
 class PlannerNodeParams:
     """Parameters of :class:`PlannerNode` (the node's ROS parameters)."""
 
-    model: str = param("", "model file to start with; empty or missing: wait for t42/model_updated "
-                           "(goals are refused meanwhile)", read_only=True)
+    model: str = param("", "model file to start with (a relative one under the namespace's folder, as the "
+                           "transfer server writes it); empty or missing: wait for t42/model_updated (goals are "
+                           "refused meanwhile)", read_only=True)
     samples: int = param(_DEFAULTS.samples, "action sequences sampled per round of a plan (samples x horizon at "
                                             f"most {MAX_SAMPLED_STEPS})", min=1, max=MAX_PLAN_SAMPLES)
     refine_iterations: int = param(_DEFAULTS.refine_iterations, "cross-entropy rounds after the first draw "
@@ -272,7 +274,7 @@ class PlannerNode(Node):
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
         self._result_pub = self.create_publisher(String, names.PLAN_RESULT, profile(names.RESULTS))
-        model = self.params.model
+        model = str(file_in_namespace(self.params.model, self.get_namespace())) if self.params.model else ""
         if model and Path(model).exists():
             self.load(model)
         else:

@@ -96,6 +96,7 @@ from msg_adapters import (
 )
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
+from t42_transfer.ros.dirs import in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile, recording
@@ -118,7 +119,8 @@ _PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 class RecorderParams:
     """The recorder's ROS parameters."""
 
-    out_dir: Path = param(description="directory the bags are created in (made if missing)", read_only=True)
+    out_dir: Path = param(description="directory the bags are created in (made if missing); a relative one is "
+                                      "taken under the node's namespace (recordings/left)", read_only=True)
     mode: str = param("recording", "recording: bags change only on the services; "
                                    "episode: also split on hand/status events (one bag per episode)")
     prefix: str | None = param(None, "bag name prefix (unset: the mode, e.g. episode_000)")
@@ -187,10 +189,12 @@ class Recorder(Node):
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
+        self.out_dir = in_namespace(p.out_dir, self.get_namespace())
+        """Where the bags go: a relative ``out_dir`` under the namespace's own folder (``recordings/left``)."""
         try:
-            Path(p.out_dir).mkdir(parents=True, exist_ok=True)
+            self.out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
-            raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {p.out_dir}: {err.strerror}") from None
+            raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {self.out_dir}: {err.strerror}") from None
         self.bags: list[Path] = []
         """Every bag this recorder has closed, in order."""
         self.received = 0
@@ -345,7 +349,7 @@ class Recorder(Node):
 
     def _open_bag(self) -> Path:
         p = self.params
-        bag = BagWriter(next_bag_path(p.out_dir, p.bag_prefix), self._types)
+        bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types)
         self._bag = bag
         self.log.info(f"recording to {bag.path}")
         return bag.path

@@ -58,6 +58,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import RCLPY, diagnostic_array, names
+from t42_transfer.ros.dirs import in_namespace
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.config import TransferConfig
@@ -87,7 +88,8 @@ class TransferServerParams:
     source_model: Path = param(description="the source hand's model (a transition model checkpoint); "
                                            "read at every call")
     model_dir: Path = param(description="where transferred_<NNN>.safetensors, current.safetensors and the state "
-                                        "file live", read_only=True)
+                                        "file live; a relative one is taken under the node's namespace",
+                            read_only=True)
     bag_dir: str = param("", "finished bags here not used by an earlier transfer are the target data "
                              "(empty: use bags)", read_only=True)
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
@@ -127,11 +129,13 @@ class TransferServerParams:
         """The :class:`~t42_transfer.transfer.config.TransferConfig` of the ``config`` file (read now)."""
         return config_from_file(self.config)
 
-    def spec(self) -> OnlineTransferSpec:
-        """What one call runs on, built per call so the files are looked at afresh; ValueError for a bad config."""
+    def spec(self, namespace: str = "") -> OnlineTransferSpec:
+        """What one call runs on, built per call so the files are looked at afresh; ValueError for a bad config.
+        Relative directories are taken under ``namespace``'s own folder (``models/left``)."""
         return OnlineTransferSpec(
-            source_model=Path(self.source_model), model_dir=Path(self.model_dir),
-            bag_dir=Path(self.bag_dir) if self.bag_dir else None, bags=tuple(Path(b) for b in self.bags),
+            source_model=Path(self.source_model), model_dir=in_namespace(self.model_dir, namespace),
+            bag_dir=in_namespace(self.bag_dir, namespace) if self.bag_dir else None,
+            bags=tuple(Path(b) for b in self.bags),
             new_bags_only=self.new_bags_only, method=self.method, config=self.transfer_config(),
             holdout_fraction=self.holdout_fraction,
             min_episodes=self.min_episodes, seed=self.seed,
@@ -162,7 +166,8 @@ class TransferServer(Node):
         self._updates = self.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
         self.create_service(Trigger, names.TRANSFER, self._on_transfer, qos_profile=profile(names.REQUESTS),
                             callback_group=ReentrantCallbackGroup())
-        latest = latest_model(Path(self.params.model_dir))
+        model_dir = in_namespace(self.params.model_dir, self.get_namespace())
+        latest = latest_model(model_dir)
         if latest is not None:
             self._updates.publish(String(data=str(latest)))
 
@@ -211,7 +216,7 @@ class TransferServer(Node):
         self._method = params.method
         self._status = {"stage": "loading", "level": "OK", "message": "starting", "values": {}}
         try:
-            spec = params.spec()
+            spec = params.spec(self.get_namespace())
         except ValueError as err:  # the config file changed since it was set
             return self._not_done(str(err), refused=True)
         outcome: dict[str, Any] = {}
