@@ -27,7 +27,7 @@ from msg_adapters.hand import (
     object_xy_mm,
     stamp_to_ns,
 )
-from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class
+from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class, rclpy_message
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 from msg_adapters.status import grasp_detail, grasp_seed, last_step_stamp, status_event, status_message
 
@@ -61,6 +61,7 @@ __all__ = [
     "MessageKit",
     "byte_value",
     "rclpy_class",
+    "rclpy_message",
     "last_step_stamp",
     "grasp_detail",
     "grasp_seed",

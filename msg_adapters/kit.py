@@ -71,6 +71,19 @@ def rclpy_class(typename: str) -> type:
     return getattr(importlib.import_module(f"{package}.{kind}"), name)
 
 
+def rclpy_message(data: bytes, typename: str, max_bytes: int) -> Any:
+    """The rclpy message of a raw subscription's CDR ``data``; ValueError, unread, when it is over ``max_bytes``
+    (deserializing a million-point trajectory held a driver for 15 s) or is no ``typename``."""
+    if len(data) > max_bytes:
+        raise ValueError(f"{len(data)} bytes, over the {max_bytes} any such message needs: refused unread")
+    from rclpy.serialization import deserialize_message
+
+    try:
+        return deserialize_message(data, rclpy_class(typename))
+    except Exception as err:  # rclpy raises a bare RuntimeError-like error for bad CDR
+        raise ValueError(f"not a {typename} ({type(err).__name__}: {err})") from None
+
+
 def byte_value(value: Any) -> int:
     """A ``byte`` field as an int, from either family."""
     return value[0] if isinstance(value, (bytes, bytearray)) else int(value)

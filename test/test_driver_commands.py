@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from t42_transfer.driver.commands import ActionQueue
+from t42_transfer.driver.commands import ActionQueue, CommandRejected, validate_trajectory
 from t42_transfer.driver.servo_hand import HandGeometry
 from t42_transfer.hardware import xm430 as xm
 
@@ -55,3 +55,14 @@ def test_angles_and_ticks_round_trip_and_the_geometry_checks_itself() -> None:
         HandGeometry(servo_ids=(1, 1))
     with pytest.raises(ValueError, match="directions must be"):
         HandGeometry(directions=(1, 0))
+
+
+def test_a_trajectory_longer_than_any_plan_is_refused() -> None:
+    from msg_adapters import RCLPY, actions_to_joint_trajectory
+    from t42_transfer.conventions import MAX_PLAN_HORIZON
+
+    long = actions_to_joint_trajectory(np.zeros((MAX_PLAN_HORIZON + 1, 2), np.float32), np.zeros(2), 0, RCLPY)
+    with pytest.raises(CommandRejected, match=f"no plan is longer than {MAX_PLAN_HORIZON}"):
+        validate_trajectory(long, np.zeros(2), 0, 10**9)
+    longest = actions_to_joint_trajectory(np.zeros((MAX_PLAN_HORIZON, 2), np.float32), np.zeros(2), 0, RCLPY)
+    assert validate_trajectory(longest, np.zeros(2), 0, 10**9).shape == (MAX_PLAN_HORIZON, 2)

@@ -437,3 +437,16 @@ def test_a_burst_of_resets_from_separate_clients_is_answered_in_full(rig):
     assert rig.ros.spin_until(lambda: all(f.done() for f in futures), 60.0), sum(f.done() for f in futures)
     answers = [f.result() for f in futures]
     assert all(a.success and "grasped" in a.message for a in answers), [a.message for a in answers if not a.success]
+
+
+def test_a_trajectory_longer_than_any_plan_is_refused_unread_and_the_steps_go_on(ros):
+    """Its size is read before its points: deserializing a million points once held the driver for 15 s."""
+    rig = Rig(ros, max_command_age_s=30.0)
+    log = Rosout(rig.ros, "mock_driver")
+    rig.tick()
+    huge = actions_to_joint_trajectory(np.zeros((60_000, 2), np.float32), rig.driver.hand.actuator_angles, 0, RCLPY)
+    rig.trajectory_pub.publish(huge)
+    warnings = log.wait_warnings(timeout_s=10.0)
+    assert len(warnings) == 1 and "refused unread" in warnings[0] and "trajectory" in warnings[0], warnings
+    rig.tick(2)
+    np.testing.assert_allclose(rig.applied()[-2:], 0.0)  # nothing of it was queued

@@ -15,8 +15,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from msg_adapters import applied_action, joint_trajectory_to_actions, stamp_to_ns
-from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT
+from msg_adapters import applied_action, joint_trajectory_to_actions, rclpy_message, stamp_to_ns
+from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, MAX_PLAN_HORIZON
 
 T = TypeVar("T")
 _LIMIT_SLACK = 1e-6
@@ -77,8 +77,10 @@ def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], no
     Decoded by :func:`msg_adapters.joint_trajectory_to_actions` (points every
     control period, actuator-angle targets).  A zero header stamp means "start
     now" (ROS convention); any other stamp must be fresh as for commands.  An
-    empty trajectory is valid and gives ``T = 0``.
+    empty trajectory is valid and gives ``T = 0``; one longer than any plan is refused.
     """
+    if len(msg.points) > MAX_PLAN_HORIZON:
+        raise CommandRejected(f"trajectory of {len(msg.points)} points: no plan is longer than {MAX_PLAN_HORIZON}")
     stamp = stamp_to_ns(msg.header.stamp)
     if stamp != 0:
         check_stamp(stamp, now_ns, max_age_ns, "trajectory")
@@ -87,6 +89,22 @@ def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], no
     except ValueError as err:
         raise CommandRejected(f"trajectory: {err}") from None
     return check_actions(actions.reshape(-1, ACTION_DIM), "trajectory action")
+
+
+MAX_COMMAND_BYTES = 4096
+"""A command names two actuators: its CDR is under 100 bytes (a 4 KiB one is no command)."""
+MAX_TRAJECTORY_BYTES = 128 * MAX_PLAN_HORIZON + 65_536
+"""The longest plan's CDR with room to spare (40-56 bytes a point as planners send it; 128 allows velocities and
+efforts too)."""
+
+
+def decoded(data: bytes, typename: str, max_bytes: int, what: str) -> Any:
+    """The message of a raw subscription's ``data``, refused unread (:class:`CommandRejected`) when larger than
+    any such message needs: a driver reads the size before it spends seconds deserializing."""
+    try:
+        return rclpy_message(data, typename, max_bytes)
+    except ValueError as err:
+        raise CommandRejected(f"{what}: {err}") from None
 
 
 def accept(log: Any, topic: str, check: Callable[[], T]) -> T | None:

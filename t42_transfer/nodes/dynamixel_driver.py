@@ -53,6 +53,8 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
+    JOINT_STATE,
+    JOINT_TRAJECTORY,
     RCLPY,
     applied_action_msg,
     diagnostic_array,
@@ -65,7 +67,15 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_S
-from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
+from t42_transfer.driver.commands import (
+    MAX_COMMAND_BYTES,
+    MAX_TRAJECTORY_BYTES,
+    ActionQueue,
+    accept,
+    decoded,
+    validate_command,
+    validate_trajectory,
+)
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
@@ -152,8 +162,9 @@ class DynamixelDriver(LifecycleNode):
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10)
-        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
-        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
+        # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
+        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
+        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True)
         # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
         self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS),
                             callback_group=MutuallyExclusiveCallbackGroup())
@@ -253,20 +264,21 @@ class DynamixelDriver(LifecycleNode):
         stamp = stamp_to_ns(msg.header.stamp) or self.now_ns()
         self._pose = (stamp, object_xy_mm(msg).astype(np.float64))
 
-    def _on_command(self, msg: JointState) -> None:
+    def _on_command(self, data: bytes) -> None:
         max_age = round(self.params.max_command_age_s * 1e9)
-        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(msg, self.now_ns(), max_age))
+        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(
+            decoded(data, JOINT_STATE, MAX_COMMAND_BYTES, "command"), self.now_ns(), max_age))
         if action is not None:
             self.queue.set_command(action)
 
-    def _on_trajectory(self, msg: JointTrajectory) -> None:
+    def _on_trajectory(self, data: bytes) -> None:
         hand = self.hand
         if hand is None:
             self.per_message.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
             return
         max_age = round(self.params.max_command_age_s * 1e9)
-        actions = accept(self.per_message, names.HAND_TRAJECTORY,
-                         lambda: validate_trajectory(msg, hand.goal, self.now_ns(), max_age))
+        actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
+            decoded(data, JOINT_TRAJECTORY, MAX_TRAJECTORY_BYTES, "trajectory"), hand.goal, self.now_ns(), max_age))
         if actions is not None:
             self.queue.set_plan(actions)
 

@@ -64,6 +64,8 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
+    JOINT_STATE,
+    JOINT_TRAJECTORY,
     RCLPY,
     applied_action_msg,
     grasp_detail,
@@ -74,7 +76,15 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
-from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
+from t42_transfer.driver.commands import (
+    MAX_COMMAND_BYTES,
+    MAX_TRAJECTORY_BYTES,
+    ActionQueue,
+    accept,
+    decoded,
+    validate_command,
+    validate_trajectory,
+)
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.logs import ThrottledLog
@@ -142,8 +152,9 @@ class MockDriver(Node):
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
         self._sim_ns = self.get_clock().now().nanoseconds
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
-        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10)
-        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10)
+        # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
+        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
+        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True)
         self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS))
         ok, why = self.reset()
         if not ok:
@@ -201,18 +212,19 @@ class MockDriver(Node):
             self._timer.timer_period_ns = round(new.period_s * 1e9)
             self.log.info(f"rate_factor {old.rate_factor} -> {new.rate_factor}: a step every {new.period_s:.4f} s")
 
-    def _on_command(self, msg: JointState) -> None:
-        action = accept(self.per_message, names.HAND_COMMAND,
-                        lambda: validate_command(msg, self.now_ns(), self.params.max_command_age_ns))
+    def _on_command(self, data: bytes) -> None:
+        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(
+            decoded(data, JOINT_STATE, MAX_COMMAND_BYTES, "command"), self.now_ns(), self.params.max_command_age_ns))
         if action is None:
             return
         cancelled = self.queue.set_command(action)
         if cancelled:
             self.log.info(f"single-step command cancels a trajectory with {cancelled} points left")
 
-    def _on_trajectory(self, msg: JointTrajectory) -> None:
+    def _on_trajectory(self, data: bytes) -> None:
         actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
-            msg, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns))
+            decoded(data, JOINT_TRAJECTORY, MAX_TRAJECTORY_BYTES, "trajectory"), self.hand.actuator_angles,
+            self.now_ns(), self.params.max_command_age_ns))
         if actions is None:
             return
         pre_empted = self.queue.set_plan(actions)
