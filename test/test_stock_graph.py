@@ -5,11 +5,15 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 from ros_rig import REPO, start_node, stop
 
@@ -206,3 +210,38 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
     finally:
         codes = [suite.stop() for suite in suites.values()]
     assert codes == [0, 0], [s.output()[-3000:] for s in suites.values()]
+
+
+def _pids(log: str, name: str) -> list[int]:
+    return [int(m.group(1)) for m in re.finditer(rf"\[t42 up\] started {name} \(pid (\d+)\)", log)]
+
+
+@pytest.mark.slow
+def test_after_the_recorder_driver_and_planner_are_killed_and_respawned_a_full_round_passes(
+        tmp_path: Path, source_model: Path, ros_domain: int) -> None:
+    """``t42 up`` brings each SIGKILLed node back within 15 s while the others keep their pids; then a stock
+    user explores, transfers and plans a goal on the suite as if nothing had happened."""
+    suite = Suite(suite_file(tmp_path, source_model))
+    nodes = ("mock_driver", "recorder", "transfer_server", "planner")
+    try:
+        deadline = time.monotonic() + 60.0
+        while not all(_pids(suite.output(), n) for n in nodes) or "SIGINT or SIGTERM stops" not in suite.output():
+            assert time.monotonic() < deadline and suite.proc.poll() is None, suite.output()[-3000:]
+            time.sleep(0.2)
+        time.sleep(6.0)  # running a while, not failing to start
+        for victim in ("recorder", "mock_driver", "planner"):
+            kept = {n: _pids(suite.output(), n)[-1] for n in nodes if n != victim}
+            os.kill(_pids(suite.output(), victim)[-1], signal.SIGKILL)
+            deadline = time.monotonic() + 15.0
+            while len(_pids(suite.output(), victim)) < 2:
+                assert time.monotonic() < deadline, suite.output()[-3000:]
+                time.sleep(0.2)
+            assert {n: _pids(suite.output(), n)[-1] for n in kept} == kept
+        time.sleep(5.0)  # the restarted ones join the graph
+        assert suite.explore() == 0, suite.output()[-3000:]
+        seen = stock_user("transfer")
+        assert seen["transfer"][0], (seen, suite.output()[-4000:])
+        assert seen["trajectory"]["points"] >= 1 and seen["path"]["poses"] == seen["trajectory"]["points"] + 1
+    finally:
+        code = suite.stop()
+    assert code == 0, suite.output()[-4000:]
