@@ -505,3 +505,69 @@ def test_two_recorders_in_two_namespaces_with_one_relative_out_dir_keep_apart(ro
     assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == ["left", "right"]
     left.close()
     right.close()
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path):
+    """A 512 KiB file system of its own (tmpfs); skipped where mounting is not allowed."""
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=512k", "tmpfs", str(mount)], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({done.stderr.strip() or done.returncode}): the disk-full "
+                    "case needs a file system that fills up")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+def _fill(directory: Path) -> Path:
+    filler = directory / "filler"
+    with filler.open("wb", buffering=0) as out:  # unbuffered: nothing left to flush when it closes
+        try:
+            while True:
+                out.write(b"\0" * 4096)
+        except OSError:
+            pass
+    return filler
+
+
+def test_a_full_disk_is_reported_once_and_recording_resumes_when_space_returns(ros, small_disk):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from ros_rig import Rosout
+
+    from msg_adapters import names, status_report
+    from t42_transfer.data.bag import read_bag
+    from t42_transfer.nodes.recorder import STATUS_NAME
+
+    rec = add_recorder(ros, small_disk / "bags", mode="recording", resume_free_mb=0.2, flush_period_s=0.2)
+    hand = Hand(ros, rec)
+    log = Rosout(ros, rec.get_name())
+    reports: list = []
+    hand.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, reports.append, 100)
+    t0 = now_ns()
+    hand.episode(t0, 20)
+    hand.settle()
+    assert hand.call("split").success
+    hand.settle()
+    first = rec.bags[0]
+    filler = _fill(small_disk)
+    hand.episode(t0 + 40 * CONTROL_PERIOD_NS, 150, seed=1)  # far more than the disk holds
+    assert ros.spin_until(lambda: any(status_report(r, STATUS_NAME).level == "ERROR" for r in reports), 5.0)
+    errors = [m for m in log.lines if m.level >= 40 and m.name.endswith(rec.get_name())]
+    assert 1 <= len(errors) <= 3, [m.msg for m in errors]  # said once, not once per message
+    split = hand.call("split")
+    assert not split.success and "failed" in split.message
+    assert len(read_bag(first)[0]) == 20  # what was written before the disk filled is intact
+    filler.unlink()
+    assert ros.spin_until(lambda: any(status_report(r, STATUS_NAME).level == "OK" for r in reports), 5.0)
+    hand.episode(t0 + 300 * CONTROL_PERIOD_NS, 20, seed=2)
+    hand.settle()
+    assert hand.call("stop").success
+    hand.settle()
+    assert len(read_bag(rec.bags[-1])[0]) == 20  # a new bag records once there is room
+    rec.close()

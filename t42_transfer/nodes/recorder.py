@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import math
 import re
+import shutil
 import threading
 import time
 from collections import deque
@@ -80,6 +81,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import String
@@ -87,7 +89,9 @@ from std_srvs.srv import Trigger
 
 from msg_adapters import (
     HAND_TOPICS,
+    RCLPY,
     TYPESTORE,
+    diagnostic_array,
     last_step_stamp,
     names,
     rclpy_class,
@@ -110,6 +114,8 @@ STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 ACTION_TOPIC = names.APPLIED_ACTION
 
 MODES = ("recording", "episode")
+STATUS_NAME = "t42_transfer: recorder"
+"""The recorder's status name on ``diagnostics`` (a write failure and the resume)."""
 
 
 _PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -132,6 +138,9 @@ class RecorderParams:
                                        "recording is lost when the process is killed", min=1e-3, max=3600.0)
     step_hold_s: float = param(0.5, "a step still missing a message this long after its first (steady time) "
                                     "is written as it is", min=1e-3, max=60.0)
+    resume_free_mb: float = param(16.0, "after a write failed (a full disk), recording resumes by itself once "
+                                        "out_dir's file system has this many MB free (or on ~/start)",
+                                  min=0.0, max=1e6)
     queue_depth: int = param(1000, "KEEP_LAST depth of each recorded subscription: messages it holds while "
                                    "the node is busy", read_only=True, min=1, max=1_000_000)
 
@@ -202,6 +211,9 @@ class Recorder(Node):
         self.dropped = 0
         """Messages not written (undecodable bytes, too late for their step, orphans, a failed write)."""
         self._bag: BagWriter | None = None
+        self.write_failure: str | None = None
+        """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
+        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self._changes: deque[_Change] = deque()
         self._will_record = False
         """Whether a bag is open once every waiting change is carried out."""
@@ -263,31 +275,40 @@ class Recorder(Node):
     def start(self) -> tuple[bool, str]:
         """Open a new bag after the step in progress; (success, message)."""
         with self._lock:
+            if self._will_record and self.write_failure is not None:
+                return self._resume("~/start")
             if self._will_record:
                 return False, f"already recording to {self._bag.path if self._bag is not None else 'a bag'}"
-            return True, self._request("start", self._buffer.latest_stamp)
+            return self._request("start", self._buffer.latest_stamp)
 
     def stop(self) -> tuple[bool, str]:
         """Close the open bag after the step in progress; (success, message)."""
         with self._lock:
             if not self._will_record:
                 return False, "not recording"
-            return True, self._request("stop", self._buffer.latest_stamp)
+            return self._request("stop", self._buffer.latest_stamp)
 
     def split(self) -> tuple[bool, str]:
         """Close the open bag after the step in progress and open the next; (success, message)."""
         with self._lock:
             if not self._will_record:
                 return False, "not recording; call start"
-            return True, self._request("split", self._buffer.latest_stamp)
+            if self.write_failure is not None:
+                return False, f"not writing, nothing to split: {self.write_failure}"
+            return self._request("split", self._buffer.latest_stamp)
 
     def flush(self) -> None:
-        """Write out what the open bag holds so far; failures are logged (it runs from a timer)."""
+        """Write out what the open bag holds so far; failures are logged (it runs from a timer).  After a write
+        failure, recording resumes here once there is room again."""
         with self._lock:
+            if self.write_failure is not None and self._will_record and self._room():
+                self._resume("space is back")
             if self._bag is None:
                 return
             try:
                 self._bag.flush()
+            except OSError as err:  # a full disk: stop writing, say so once
+                self._write_failed(self._bag.path, err)
             except Exception as err:
                 self.log.error(f"flushing {self._bag.path} failed: {err!r}")
 
@@ -307,8 +328,8 @@ class Recorder(Node):
                 self.log.error(f"closing the recorder failed: {err!r}")
 
     # ------------------------------------------------------------------ bag changes
-    def _request(self, kind: str, after: int | None, why: str = "") -> str:
-        """Queue a bag change after the steps up to ``after``; carry out what can be; the answer's text."""
+    def _request(self, kind: str, after: int | None, why: str = "") -> tuple[bool, str]:
+        """Queue a bag change after the steps up to ``after``; carry out what can be; (success, the answer)."""
         if self._changes and self._changes[-1].after is not None:
             after = self._changes[-1].after if after is None else max(after, self._changes[-1].after)
         self._changes.append(_Change(kind, after, why))
@@ -319,9 +340,9 @@ class Recorder(Node):
         done = self._carry_out(self._buffer.oldest_pending)
         if kind in done:
             return done[kind]
-        return f"{kind}: after the step in progress (stamp {after} ns) is complete"
+        return True, f"{kind}: after the step in progress (stamp {after} ns) is complete"
 
-    def _carry_out(self, next_stamp: int | None) -> dict[str, str]:
+    def _carry_out(self, next_stamp: int | None) -> dict[str, tuple[bool, str]]:
         """Carry out the changes due before the step stamped ``next_stamp`` (None: every change); what each did."""
         done: dict[str, str] = {}
         while self._changes:
@@ -332,40 +353,83 @@ class Recorder(Node):
             done[change.kind] = self._change(change)
         return done
 
-    def _change(self, change: _Change) -> str:
+    def _change(self, change: _Change) -> tuple[bool, str]:
+        """Carry out ``change``: (whether every close and open it took worked, what happened)."""
         if change.kind == "start":
-            return f"recording to {self._open_bag()}"
+            return self._open_bag()
         if change.kind == "stop":
-            return self._close_bag() if self._bag is not None else "not recording"
+            failure, self.write_failure = self.write_failure, None
+            if self._bag is not None:
+                return self._close_bag()
+            return (True, "not recording") if failure is None else (True, f"stopped; writing had failed: {failure}")
         if self._bag is None:
-            return "not recording"
+            return (False, f"not writing: {self.write_failure}") if self.write_failure else (True, "not recording")
         if change.kind == "episode" and self._bag.count == 0:
-            return f"{self._bag.path} is empty: not split"
-        closed = self._close_bag()
-        message = f"{closed}; recording to {self._open_bag()}"
+            return True, f"{self._bag.path} is empty: not split"
+        closed_ok, closed = self._close_bag()
+        opened_ok, opened = self._open_bag()
+        message = f"{closed}; {opened}"
         if change.why:
             self.log.info(f"{change.why}: {message}")
-        return message
+        return closed_ok and opened_ok, message
 
-    def _open_bag(self) -> Path:
+    def _open_bag(self) -> tuple[bool, str]:
         p = self.params
-        bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types)
+        try:
+            bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types)
+        except OSError as err:
+            self._write_failed(self.out_dir, err)
+            return False, f"could not open a bag: {self.write_failure}"
         self._bag = bag
         self.log.info(f"recording to {bag.path}")
-        return bag.path
+        return True, f"recording to {bag.path}"
 
-    def _close_bag(self) -> str:
-        """Close the open bag; what happened."""
+    def _close_bag(self) -> tuple[bool, str]:
+        """Close the open bag; (whether it closed, what happened)."""
         bag, self._bag = self._bag, None
         assert bag is not None
         try:
             bag.close()
         except Exception as err:
             self.log.error(f"closing {bag.path} failed: {err!r}")
-            return f"closing {bag.path} failed: {type(err).__name__}: {err}"
+            return False, f"closing {bag.path} failed: {type(err).__name__}: {err}"
         self.bags.append(bag.path)
         self.log.info(f"closed {bag.path} ({bag.count} messages)")
-        return f"closed {bag.path} ({bag.count} messages)"
+        return True, f"closed {bag.path} ({bag.count} messages)"
+
+    # ------------------------------------------------------------------ write failures
+    def _write_failed(self, where: Path, err: OSError) -> None:
+        """Writing failed (a full disk): leave the bag as it is (repairable), drop steps until there is room."""
+        bag, self._bag = self._bag, None
+        if bag is not None:
+            try:
+                bag.close()
+            except Exception:  # its summary cannot be written either: the bag stays as a killed one, repairable
+                pass
+        if self.write_failure is not None:
+            return
+        self.write_failure = f"writing to {where} failed: {err.strerror or err}"
+        self.log.error(f"{self.write_failure}; recording stops until {self.params.resume_free_mb:g} MB are free on "
+                       f"{self.out_dir} (or ~/start); what was written stays readable (t42 bag repair)")
+        self._report("ERROR", self.write_failure)
+
+    def _room(self) -> bool:
+        try:
+            return shutil.disk_usage(self.out_dir).free >= self.params.resume_free_mb * 1e6
+        except OSError:
+            return False
+
+    def _resume(self, why: str) -> tuple[bool, str]:
+        failure, self.write_failure = self.write_failure, None
+        ok, message = self._open_bag()
+        if ok:
+            self.log.info(f"{why}: {message} (writing had failed: {failure})")
+            self._report("OK", message)
+        return ok, message
+
+    def _report(self, level: str, message: str) -> None:
+        self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, {"dropped": self.dropped},
+                                                   self.get_clock().now().nanoseconds, kit=RCLPY))
 
     # ------------------------------------------------------------------ steps
     def _write_steps(self, steps: list[Step]) -> None:
@@ -373,6 +437,8 @@ class Recorder(Node):
             self._carry_out(step.stamp)
             bag = self._bag
             if bag is None:
+                if self.write_failure is not None:
+                    self.dropped += len(step.messages)
                 continue
             if bag.count == 0 and not self._state_topics <= step.topics:
                 self.dropped += len(step.messages)
@@ -383,6 +449,9 @@ class Recorder(Node):
             try:
                 for topic, log_ns, data in step.messages:
                     bag.write(topic, log_ns, data)
+            except OSError as err:  # a full disk: stop writing, say so once
+                self.dropped += len(step.messages)
+                self._write_failed(bag.path, err)
             except Exception as err:
                 self.dropped += len(step.messages)
                 self.log.error(f"could not write the step stamped {step.stamp} ns to {bag.path}: {err!r}")
