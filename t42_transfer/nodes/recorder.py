@@ -276,7 +276,7 @@ class Recorder(Node):
         """Open a new bag after the step in progress; (success, message)."""
         with self._lock:
             if self._will_record and self.write_failure is not None:
-                return self._resume("~/start")
+                return self._resume(f"{names.RECORDER_START} called")
             if self._will_record:
                 return False, f"already recording to {self._bag.path if self._bag is not None else 'a bag'}"
             return self._request("start", self._buffer.latest_stamp)
