@@ -15,7 +15,14 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from msg_adapters import applied_action, joint_trajectory_to_actions, rclpy_message, stamp_to_ns
+from msg_adapters import (
+    JOINT_STATE,
+    JOINT_TRAJECTORY,
+    applied_action,
+    joint_trajectory_to_actions,
+    rclpy_message,
+    stamp_to_ns,
+)
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, MAX_PLAN_HORIZON
 
 T = TypeVar("T")
@@ -57,11 +64,13 @@ def check_actions(actions: np.ndarray, what: str = "action") -> np.ndarray:
 
 
 def validate_command(msg: Any, now_ns: int, max_age_ns: int) -> np.ndarray:
-    """The single-step action (float64 [2]) of a command ``JointState``, or CommandRejected saying why.
+    """The single-step action (float64 [2]) of a command ``JointState`` (or its CDR bytes, size-checked before
+    they are read), or CommandRejected saying why.
 
     The action is decoded from ``velocity`` by :func:`msg_adapters.applied_action`
     (velocity = action * ACTION_UNIT_RAD / CONTROL_PERIOD_S per actuator).
     """
+    msg = _read(msg, JOINT_STATE, MAX_COMMAND_BYTES, "command")
     check_stamp(stamp_to_ns(msg.header.stamp), now_ns, max_age_ns, "command")
     try:
         action = applied_action(msg)
@@ -72,13 +81,15 @@ def validate_command(msg: Any, now_ns: int, max_age_ns: int) -> np.ndarray:
 
 def validate_trajectory(msg: Any, start_angles: np.ndarray | Sequence[float], now_ns: int,
                         max_age_ns: int) -> np.ndarray:
-    """Actions ``[T, 2]`` (float64) of a ``JointTrajectory`` started from ``start_angles``, or CommandRejected.
+    """Actions ``[T, 2]`` (float64) of a ``JointTrajectory`` (or its CDR bytes, size-checked before they are
+    read) started from ``start_angles``, or CommandRejected.
 
     Decoded by :func:`msg_adapters.joint_trajectory_to_actions` (points every
     control period, actuator-angle targets).  A zero header stamp means "start
     now" (ROS convention); any other stamp must be fresh as for commands.  An
     empty trajectory is valid and gives ``T = 0``; one longer than any plan is refused.
     """
+    msg = _read(msg, JOINT_TRAJECTORY, MAX_TRAJECTORY_BYTES, "trajectory")
     if len(msg.points) > MAX_PLAN_HORIZON:
         raise CommandRejected(f"trajectory of {len(msg.points)} points: no plan is longer than {MAX_PLAN_HORIZON}")
     stamp = stamp_to_ns(msg.header.stamp)
@@ -98,9 +109,12 @@ MAX_TRAJECTORY_BYTES = 128 * MAX_PLAN_HORIZON + 65_536
 efforts too)."""
 
 
-def decoded(data: bytes, typename: str, max_bytes: int, what: str) -> Any:
-    """The message of a raw subscription's ``data``, refused unread (:class:`CommandRejected`) when larger than
-    any such message needs: a driver reads the size before it spends seconds deserializing."""
+def _read(msg: Any, typename: str, max_bytes: int, what: str) -> Any:
+    """``msg`` itself, or the message of a raw subscription's bytes, refused unread (:class:`CommandRejected`)
+    when larger than any such message needs: a driver reads the size before it spends seconds deserializing."""
+    if not isinstance(msg, (bytes, bytearray, memoryview)):
+        return msg
+    data = bytes(msg)
     try:
         return rclpy_message(data, typename, max_bytes)
     except ValueError as err:

@@ -53,8 +53,6 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
-    JOINT_STATE,
-    JOINT_TRAJECTORY,
     RCLPY,
     applied_action_msg,
     diagnostic_array,
@@ -67,15 +65,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_S
-from t42_transfer.driver.commands import (
-    MAX_COMMAND_BYTES,
-    MAX_TRAJECTORY_BYTES,
-    ActionQueue,
-    accept,
-    decoded,
-    validate_command,
-    validate_trajectory,
-)
+from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
@@ -266,8 +256,7 @@ class DynamixelDriver(LifecycleNode):
 
     def _on_command(self, data: bytes) -> None:
         max_age = round(self.params.max_command_age_s * 1e9)
-        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(
-            decoded(data, JOINT_STATE, MAX_COMMAND_BYTES, "command"), self.now_ns(), max_age))
+        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(data, self.now_ns(), max_age))
         if action is not None:
             self.queue.set_command(action)
 
@@ -278,7 +267,7 @@ class DynamixelDriver(LifecycleNode):
             return
         max_age = round(self.params.max_command_age_s * 1e9)
         actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
-            decoded(data, JOINT_TRAJECTORY, MAX_TRAJECTORY_BYTES, "trajectory"), hand.goal, self.now_ns(), max_age))
+            data, hand.goal, self.now_ns(), max_age))
         if actions is not None:
             self.queue.set_plan(actions)
 

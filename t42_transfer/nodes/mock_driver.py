@@ -64,8 +64,6 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
-    JOINT_STATE,
-    JOINT_TRAJECTORY,
     RCLPY,
     applied_action_msg,
     grasp_detail,
@@ -76,15 +74,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
-from t42_transfer.driver.commands import (
-    MAX_COMMAND_BYTES,
-    MAX_TRAJECTORY_BYTES,
-    ActionQueue,
-    accept,
-    decoded,
-    validate_command,
-    validate_trajectory,
-)
+from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.logs import ThrottledLog
@@ -214,7 +204,7 @@ class MockDriver(Node):
 
     def _on_command(self, data: bytes) -> None:
         action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(
-            decoded(data, JOINT_STATE, MAX_COMMAND_BYTES, "command"), self.now_ns(), self.params.max_command_age_ns))
+            data, self.now_ns(), self.params.max_command_age_ns))
         if action is None:
             return
         cancelled = self.queue.set_command(action)
@@ -223,8 +213,7 @@ class MockDriver(Node):
 
     def _on_trajectory(self, data: bytes) -> None:
         actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
-            decoded(data, JOINT_TRAJECTORY, MAX_TRAJECTORY_BYTES, "trajectory"), self.hand.actuator_angles,
-            self.now_ns(), self.params.max_command_age_ns))
+            data, self.hand.actuator_angles, self.now_ns(), self.params.max_command_age_ns))
         if actions is None:
             return
         pre_empted = self.queue.set_plan(actions)
