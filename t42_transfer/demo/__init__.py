@@ -32,6 +32,15 @@
    paths) in the run directory; node logs in ``logs/``.
 """
 
-from t42_transfer.demo.story import run_demo
+from typing import Any
 
 __all__ = ["run_demo"]
+
+
+def __getattr__(name: str) -> Any:
+    """``run_demo`` on first use: ``t42``'s parser reads the demo's settings without loading its story."""
+    if name == "run_demo":
+        from t42_transfer.demo.story import run_demo
+
+        return run_demo
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
