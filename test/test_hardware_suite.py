@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 from ros_rig import REPO, stop
 
@@ -30,7 +31,8 @@ def test_a_plain_rclpy_script_drives_the_emulated_hand(ros_domain: int, tmp_path
     out = suite.stdout.read() if suite.stdout else ""
     if suite.stdout:
         suite.stdout.close()
-    assert user.returncode == 0, (user.stdout, user.stderr, out[-3000:])
+    if user.returncode != 0:  # pytest.fail prints all of it (an assertion's message is cut short)
+        pytest.fail(f"the user script failed:\n{user.stdout}\n{user.stderr}\nthe suite said:\n{out[-6000:]}")
     seen = json.loads(user.stdout.strip().splitlines()[-1])
     assert seen["state"] == "active"
     assert {"port", "servo_ids", "load_limit", "grasp_load", "max_pose_age_s"} <= set(seen["parameters"])
