@@ -3,6 +3,7 @@
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 from t42_transfer.models.network import Normalisation, TransitionModel
 from t42_transfer.models.residual import AdjustedStateResidualModel, CumulativeResidualModel, RecurrentResidualModel
+from t42_transfer.models.start_state import StartStateCumulativeResidualModel, StartStateRecurrentResidualModel
 
 __all__ = [
     "MODEL_KINDS",
@@ -11,5 +12,7 @@ __all__ = [
     "LatentDynamics",
     "Normalisation",
     "RecurrentResidualModel",
+    "StartStateCumulativeResidualModel",
+    "StartStateRecurrentResidualModel",
     "TransitionModel",
 ]
