@@ -29,7 +29,16 @@ from msg_adapters.hand import (
 )
 from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class, rclpy_message
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
-from msg_adapters.status import grasp_detail, grasp_seed, last_step_stamp, status_event, status_message
+from msg_adapters.status import (
+    HAND_STATUS_TOPIC,
+    STRING,
+    grasp_detail,
+    grasp_seed,
+    last_step_stamp,
+    late_step_stamps,
+    status_event,
+    status_message,
+)
 
 __all__ = [
     "DIAGNOSTIC_ARRAY",
@@ -63,6 +72,9 @@ __all__ = [
     "rclpy_class",
     "rclpy_message",
     "last_step_stamp",
+    "late_step_stamps",
+    "HAND_STATUS_TOPIC",
+    "STRING",
     "grasp_detail",
     "grasp_seed",
     "status_event",

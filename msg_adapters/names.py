@@ -75,6 +75,10 @@ TRAJECTORY_DONE = "trajectory_done"
 # The real driver's: a servo fault stopped the hand (fault) or cleared (recovered); no fresh object pose
 # this step, so none was published (stale).
 FAULT, RECOVERED, STALE = "fault", "recovered", "stale"
+# A step came more than 1.5 control periods after the previous one (a stall, a busy machine, bus jitter): its
+# last-step stamp names the late step, which followed the previous one with no step missing in between.  A bag
+# that holds this status keeps such a step in its episode instead of splitting there.
+LATE = "late"
 END_EVENTS = (DROPPED, LOST_CONTACT, OVERLOAD)
 """Events that end an episode (the hand stops until the next reset)."""
 SPLIT_EVENTS = (RESET, *END_EVENTS, FAULT)

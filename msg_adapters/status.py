@@ -10,6 +10,13 @@ episodes on statuses needs that stamp to split exactly between two steps.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
+
+from msg_adapters import names
+
+STRING = "std_msgs/msg/String"
+HAND_STATUS_TOPIC = "/" + names.HAND_STATUS
+"""The status topic as a bag of a suite in the root namespace names it (a recorder writes it beside the steps)."""
 
 LAST_STEP = re.compile(r"\[last step (\d+) ns\]")
 """How a status names the stamp of the last step before its event."""
@@ -48,3 +55,14 @@ def grasp_seed(text: str) -> int | None:
     """The grasp seed a reset's answer or status names (:func:`grasp_detail`); None when it names none."""
     match = GRASP_SEED.search(text)
     return None if match is None else int(match.group(1))
+
+
+def late_step_stamps(statuses: Iterable[str]) -> set[int]:
+    """Stamps of the steps the driver said were late (``late: ... [last step <ns> ns]``): each followed the step
+    before it with none missing in between, so a reader keeps it in its episode."""
+    late = set()
+    for text in statuses:
+        stamp = last_step_stamp(text)
+        if status_event(text) == names.LATE and stamp is not None:
+            late.add(stamp)
+    return late

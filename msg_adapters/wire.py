@@ -10,6 +10,10 @@ from __future__ import annotations
 CONTROL_PERIOD_S = 0.1
 """The hands run at 10 Hz: one action per 0.1 s."""
 CONTROL_PERIOD_NS = 100_000_000
+LATE_STEP_NS = 3 * CONTROL_PERIOD_NS // 2
+"""A step stamped more than this after the previous one is late (a driver says so on ``hand/status``)."""
+MIN_STEP_NS = CONTROL_PERIOD_NS // 2
+"""Two steps are never stamped closer than this: a driver catching up after a late step skips the tick."""
 
 ACTUATOR_NAMES = ("actuator_1", "actuator_2")
 ACTION_DIM = len(ACTUATOR_NAMES)

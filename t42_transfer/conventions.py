@@ -18,7 +18,9 @@ from msg_adapters.wire import (
     CONTROL_PERIOD_NS,
     CONTROL_PERIOD_S,
     FRAME_ID,
+    LATE_STEP_NS,
     LOAD_UNIT_NM,
+    MIN_STEP_NS,
 )
 
 STATE_DIM = 4

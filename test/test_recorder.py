@@ -24,6 +24,7 @@ from msg_adapters import (
     TYPESTORE,
     applied_action_msg,
     joint_state_msg,
+    names,
     object_pose_msg,
     rclpy_class,
     stamp_to_ns,
@@ -37,6 +38,7 @@ from t42_transfer.nodes.recorder import Recorder, RecorderParams, next_bag_path
 from t42_transfer.ros.qos import recording
 
 POSE, JOINTS, ACTION = OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC
+HAND_STEPS = {t for hand in HAND_TOPICS for t in (hand, "/left" + hand)}
 
 
 def now_ns() -> int:
@@ -131,7 +133,7 @@ def steps_in(bag: Path) -> list[tuple[int, set[str]]]:
     """The bag's (stamp, topics) groups in stamp order."""
     groups: dict[int, set[str]] = {}
     with AnyReader([bag], default_typestore=TYPESTORE) as reader:
-        for conn, _, data in reader.messages():
+        for conn, _, data in reader.messages(connections=[c for c in reader.connections if c.topic in HAND_STEPS]):
             stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, conn.msgtype).header.stamp)
             groups.setdefault(stamp, set()).add(conn.topic.removeprefix("/left"))
     return sorted(groups.items())
@@ -151,6 +153,23 @@ STATE = {POSE, JOINTS}
 
 
 # --------------------------------------------------------------------------- recording
+def test_a_late_step_is_recorded_with_the_drivers_word_for_it_and_read_as_data(ros: Any, tmp_path: Path) -> None:
+    rec = add_recorder(ros, tmp_path / "bags", step_hold_s=1.0)
+    hand = Hand(ros, rec)
+    t0 = now_ns()
+    stamps = [t0 + k * CONTROL_PERIOD_NS + (350_000_000 if k >= 10 else 0) for k in range(21)]  # step 10: 450 ms
+    for k, stamp in enumerate(stamps):
+        hand.step(stamp, xy=(float(k), 0.0), action=(0.5, -0.5) if k < 20 else None)
+        if k == 10:  # as a driver says it: after the step, with the step's stamp
+            hand.status(status_message(names.LATE, "450 ms after the step before", stamp))
+    hand.status(status_message(names.RESET, "episode 1", None))  # any other word goes in too
+    assert ros.spin_until(lambda: rec.current_count == 21 + 21 + 20 + 2, 5.0)
+    assert hand.call("stop").success
+    (traj,) = read_bag(tmp_path / "bags" / "recording_000")
+    assert len(traj) == 20 and traj.late_steps.tolist() == [9] and traj.step_ns[9] == 450_000_000
+    assert traj.states[:, 0].tolist() == [float(k) for k in range(21)]
+
+
 def test_records_bytes_unchanged_and_read_bag_gives_the_trajectory(ros: Any, tmp_path: Path) -> None:
     rec = add_recorder(ros, tmp_path / "bags", step_hold_s=1.0)
     hand = Hand(ros, rec)

@@ -70,10 +70,21 @@ def test_equality_covers_every_field():
         {"start_ns": 6},
         {"end_reason": "dropped"},
         {"hand": "b"},
+        {"step_ns": [100_000_000] * 4 + [400_000_000]},
     ):
         assert base != dataclasses.replace(base, **change), change
     with pytest.raises(TypeError):
         hash(base)
+
+
+def test_step_durations_mark_late_steps_and_default_to_one_period():
+    assert episode().durations_ns.tolist() == [100_000_000] * 5 and episode().late_steps.tolist() == []
+    late = episode(step_ns=[100_000_000, 150_000_000, 150_000_001, 98_000_000, 900_000_000])
+    assert late.late_steps.tolist() == [2, 4] and not late.step_ns.flags.writeable
+    assert late == episode(step_ns=late.durations_ns) and episode() == episode(step_ns=[100_000_000] * 5)
+    for bad in ([100_000_000] * 4, [100_000_000] * 4 + [0]):
+        with pytest.raises(ValueError, match="step_ns must hold one positive duration per action"):
+            episode(step_ns=bad)
 
 
 def test_fingerprint_is_a_stable_content_hash():

@@ -21,7 +21,7 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
     if info["topics"]:
         with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
             warnings.simplefilter("ignore")
-            data = read_bag(args.bag, allow_gaps=True)
+            data = read_bag(args.bag)
     else:  # an empty bag (repaired after its recorder stopped at once) has no hand topics to read
         data = TrajectorySet([])
     findings = scan(data)

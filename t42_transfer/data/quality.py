@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_JUMP_MM, MIN_EPISODE_STEPS
+from t42_transfer.conventions import DROP_JUMP_MM, MIN_EPISODE_STEPS
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 FROZEN = "frozen"
@@ -161,9 +161,10 @@ def _pieces(traj: Trajectory, findings: tuple[Finding, ...]) -> list[Trajectory]
                 states=traj.states[first : last + 1],
                 actions=traj.actions[first:last],
                 actuator_angles=angles,
-                start_ns=traj.start_ns + first * CONTROL_PERIOD_NS,
+                start_ns=traj.start_ns + int(traj.durations_ns[:first].sum()),
                 end_reason=traj.end_reason if last == len(traj) else "",
                 hand=traj.hand,
+                step_ns=None if traj.step_ns is None else traj.step_ns[first:last],
             )
         )
     return pieces

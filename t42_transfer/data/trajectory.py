@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from t42_transfer.conventions import ACTION_DIM, END_REASONS, STATE_DIM
+from t42_transfer.conventions import ACTION_DIM, CONTROL_PERIOD_NS, END_REASONS, LATE_STEP_NS, STATE_DIM
 
 
 def _as_f32(name: str, value: np.ndarray | Sequence, cols: int) -> np.ndarray:
@@ -34,6 +34,10 @@ class Trajectory:
 
     ``actuator_angles[T+1, 2]`` (rad) is optional: simulated hands know it, the
     public real-hand files do not.  ``start_ns`` is the stamp of ``states[0]``.
+
+    ``step_ns[T]`` (int64, optional) is each transition's real duration when it was not exactly one control
+    period: a recording whose driver ran late (a stall, a busy machine, a jittery servo bus) keeps those steps
+    as data and says how long each took; ``None`` means every step took one period.
     """
 
     states: np.ndarray
@@ -42,6 +46,7 @@ class Trajectory:
     start_ns: int = 0
     end_reason: str = ""
     hand: str = ""
+    step_ns: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         states = _as_f32("states", self.states, STATE_DIM)
@@ -59,10 +64,27 @@ class Trajectory:
             object.__setattr__(self, "actuator_angles", angles)
         if self.end_reason not in END_REASONS:
             raise ValueError(f"unknown end_reason {self.end_reason!r}; expected one of {END_REASONS}")
+        if self.step_ns is not None:
+            steps = np.array(self.step_ns, dtype=np.int64)
+            if steps.shape != (len(actions),) or not (steps > 0).all():
+                raise ValueError(f"step_ns must hold one positive duration per action ({len(actions)}), "
+                                 f"got shape {steps.shape}")
+            steps.setflags(write=False)
+            object.__setattr__(self, "step_ns", steps)
 
     def __len__(self) -> int:
         """Number of transitions (actions)."""
         return len(self.actions)
+
+    @property
+    def durations_ns(self) -> np.ndarray:
+        """Each transition's duration (int64 ns): ``step_ns``, or one control period each."""
+        return self.step_ns if self.step_ns is not None else np.full(len(self), CONTROL_PERIOD_NS, np.int64)
+
+    @property
+    def late_steps(self) -> np.ndarray:
+        """Indices of the transitions that took longer than ``LATE_STEP_NS`` (kept as data, marked)."""
+        return np.flatnonzero(self.durations_ns > LATE_STEP_NS)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Trajectory):
@@ -77,6 +99,7 @@ class Trajectory:
             and self.start_ns == other.start_ns
             and self.end_reason == other.end_reason
             and self.hand == other.hand
+            and np.array_equal(self.durations_ns, other.durations_ns)
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking arrays: not hashable

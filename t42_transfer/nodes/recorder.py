@@ -14,9 +14,11 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   (``__node:=rec_left`` -> ``/rec_left/start``) or a namespace (``/left/recorder/start``).
   Start opens a bag, stop closes it, split closes it and opens the next; each
   answers ``success`` and a message naming the bag;
-* ``hand/status`` (std_msgs/msg/String, used in ``mode="episode"``): a status whose
-  first word is in ``params.split_on`` splits the bag, so each bag holds one
-  episode (see "Steps" for where).
+* ``hand/status`` (std_msgs/msg/String): written into the open bag as it comes
+  (a driver's ``late`` word there tells a reader that a step came late and none is
+  missing); in ``mode="episode"`` a status whose first word is in
+  ``params.split_on`` also splits the bag, so each bag holds one episode (see
+  "Steps" for where).
 
 Steps.  A control step is the state (object pose and joint states) and the action
 applied from it, all with ONE header stamp (the mock driver's and the bag
@@ -90,6 +92,7 @@ from std_srvs.srv import Trigger
 from msg_adapters import (
     HAND_TOPICS,
     RCLPY,
+    STRING,
     TYPESTORE,
     diagnostic_array,
     last_step_stamp,
@@ -104,8 +107,6 @@ from t42_transfer.ros.dirs import in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile, recording
-
-STRING = "std_msgs/msg/String"
 
 RECORDABLE = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
 """Relative names the recorder knows the types of (every one has a header stamp)."""
@@ -232,6 +233,7 @@ class Recorder(Node):
             self._types[topic] = msgtype
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
+        self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
         requests = profile(names.REQUESTS)
         self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start), qos_profile=requests)
@@ -497,13 +499,14 @@ class Recorder(Node):
 
     def _on_status(self, data: bytes) -> None:
         try:
-            if self.params.mode != "episode":
-                return
             try:
                 text = TYPESTORE.deserialize_cdr(data, STRING).data
             except Exception as err:
                 self.per_message.warning(f"ignored a message on {names.HAND_STATUS}: "
                                          f"not a {STRING} ({type(err).__name__}: {err})")
+                return
+            self._write_status(bytes(data))
+            if self.params.mode != "episode":
                 return
             event = status_event(str(text))
             if event not in self.params.split_on:
@@ -527,6 +530,20 @@ class Recorder(Node):
                 self._request("episode", after, f"status {event!r}")
         except Exception as err:  # never raise from a callback
             self.log.error(f"could not handle a message on {names.HAND_STATUS}: {err!r}")
+
+    def _write_status(self, data: bytes) -> None:
+        """A status goes into the open bag as it came: a reader learns from it which steps were late, not lost.
+
+        Only into a bag that holds steps: a status has no step to qualify before the first one, and a bag of
+        statuses alone would count as holding messages (episode mode splits only those)."""
+        with self._lock:
+            bag = self._bag
+            if bag is None or bag.count == 0 or self._closed:
+                return
+            try:
+                bag.write(self._status_topic, self.get_clock().now().nanoseconds, data, STRING)
+            except OSError as err:  # a full disk: stop writing, say so once
+                self._write_failed(bag.path, err)
 
     # ------------------------------------------------------------------ services, params
     def _answer(self, action: Any, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:

@@ -2,7 +2,9 @@
 
 A bag holds, per control step ``k`` of an episode, an object pose, a joint state and (except after the
 last state) the applied action, all stamped ``start_ns + k * CONTROL_PERIOD_NS``.  Episodes lie at least
-``EPISODE_GAP_S`` apart, so their borders come from stamps alone.  Aligning by header stamp, not log time
+``EPISODE_GAP_S`` apart, so their borders come from stamps alone.  A step the driver ran late is kept, with
+its real duration in the episode's ``step_ns``: the driver's ``late`` status in the bag says no step is
+missing before it.  Aligning by header stamp, not log time
 or order, also makes bags of a real ``ros2 bag record`` readable; the hand topics may lie under one
 namespace, found by suffix.  A step that lost a message is left out with a warning naming it.
 """
@@ -19,17 +21,17 @@ from typing import Any
 import numpy as np
 
 import msg_adapters as ma
-from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
+from msg_adapters import names
+from t42_transfer.conventions import CONTROL_PERIOD_NS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
 from t42_transfer.data.errors import BagError
 from t42_transfer.data.trajectory import END_REASONS, Trajectory, TrajectorySet
 
 EPISODE_GAP_S = 1.0
-"""A stamp gap at least this long separates episodes; shorter gaps are lost messages."""
+"""A stamp gap at least this long separates episodes; a shorter one is a late step or lost steps."""
 EPISODE_GAP_NS = round(EPISODE_GAP_S * 1e9)
 _HALF_PERIOD_NS = CONTROL_PERIOD_NS // 2
-_MAX_STEP_NS = 3 * CONTROL_PERIOD_NS // 2
 _WITHIN = f"within {_HALF_PERIOD_NS / 1e6:g} ms"
 _POSE, _JOINTS, _ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC
 _CONVERTERS: dict[str, Callable[[Any], Any]] = {
@@ -138,47 +140,53 @@ def _any_between(stamps: np.ndarray, after: int, before: int) -> bool:
     return bool(np.searchsorted(stamps, after, "right") < np.searchsorted(stamps, before, "left"))
 
 
-def _episode_bounds(
-    bag: Path, streams: dict[str, _Stream], allow_gaps: bool
-) -> list[tuple[int, int]]:
-    """``(first, last)`` state indices of each run of states one control period apart.
+def late_stamps(bag: Path, raw: RawBag) -> set[int]:
+    """Stamps of the steps the bag's ``hand/status`` (if recorded) says were late: no step is missing before them."""
+    topic = hand_namespace(bag, raw.topics) + ma.HAND_STATUS_TOPIC
+    info = raw.topics.get(topic)
+    if info is None or info.msgtype != ma.STRING:
+        return set()
+    texts = []
+    for log_ns, data in raw.messages.get(topic, []):
+        try:
+            texts.append(str(ma.TYPESTORE.deserialize_cdr(data, ma.STRING).data))
+        except Exception as err:  # corrupt CDR raises whatever the decoder trips over
+            raise BagError(bag, f"{topic}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
+    return ma.late_step_stamps(texts)
 
-    A longer step whose missing states left a pose or an action behind lost
-    those states (the salvage drops them); one with no hand message at all is a
-    hole in the recording.
+
+def _episode_bounds(bag: Path, streams: dict[str, _Stream], late: set[int]) -> list[tuple[int, int]]:
+    """``(first, last)`` state indices of each run of states that follow each other as steps.
+
+    A step more than ``LATE_STEP_NS`` after the one before is kept when the driver said it was late (a stall,
+    a jittery bus: nothing is missing, the step just took longer).  Otherwise states are missing there and
+    the episode splits: states whose poses or actions were left behind were lost (the salvage drops those
+    messages), and a hole with no hand message at all is named in a warning.  Two states closer than
+    ``MIN_STEP_NS`` are not one step apart either: the episode splits between them, with a warning.
     """
     stamps = streams[_JOINTS].stamps
     if len(stamps) == 0:
         return []
     cuts = []
     steps = np.diff(stamps)
-    for i in np.flatnonzero((steps < _HALF_PERIOD_NS) | (steps > _MAX_STEP_NS)):
+    for i in np.flatnonzero((steps < MIN_STEP_NS) | (steps > LATE_STEP_NS)):
         step, before, after = int(steps[i]), int(stamps[i]), int(stamps[i + 1])
-        lost = any(
-            _any_between(streams[t].stamps, before + _HALF_PERIOD_NS, after - _HALF_PERIOD_NS) for t in (_POSE, _ACTION)
-        )
-        if step >= EPISODE_GAP_NS or lost:
+        if step >= EPISODE_GAP_NS:
             cuts.append(i + 1)
-        elif step < _HALF_PERIOD_NS:
-            raise BagError(
-                bag,
-                f"{_JOINTS} stamps {before} and {after} ns are {step / 1e6:g} ms apart, "
-                f"less than half the {CONTROL_PERIOD_NS / 1e6:g} ms control period",
-            )
-        elif allow_gaps:
-            warnings.warn(
-                f"{bag}: {_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns; "
-                "split the episode there",
-                stacklevel=4,
-            )
-            cuts.append(i + 1)
+            continue
+        if step < MIN_STEP_NS:
+            why = f"less than half the {CONTROL_PERIOD_NS / 1e6:g} ms control period"
+        elif any(_any_between(streams[t].stamps, before + _HALF_PERIOD_NS, after - _HALF_PERIOD_NS)
+                 for t in (_POSE, _ACTION)):
+            cuts.append(i + 1)  # lost states: their left-behind messages are named among the dropped
+            continue
+        elif after in late:
+            continue
         else:
-            raise BagError(
-                bag,
-                f"{_JOINTS} skips {step / 1e6:g} ms from stamp {before} to {after} ns with no hand message between: "
-                f"messages are missing (a gap under {EPISODE_GAP_S} s is not an episode border); "
-                "pass allow_gaps=True to split there",
-            )
+            why = f"with no hand message between and no {names.LATE!r} status for the step after: steps are missing"
+        warnings.warn(f"{bag}: {_JOINTS} stamps {before} and {after} ns are {step / 1e6:g} ms apart, {why}; "
+                      "split the episode there", stacklevel=4)
+        cuts.append(i + 1)
     starts = [0, *cuts]
     ends = [c - 1 for c in cuts] + [len(stamps) - 1]
     return list(zip(starts, ends, strict=True))
@@ -231,7 +239,7 @@ def _episode_records(bag: Path, custom: dict[str, str]) -> dict[int, dict[str, A
     return by_start
 
 
-def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag, allow_gaps: bool) -> TrajectorySet:
+def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> TrajectorySet:
     """Episodes of whole steps; a step missing a message is dropped (and named in one warning)."""
     if raw.cut:
         _drop_cut_tail(streams)
@@ -255,7 +263,7 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag, allow
     ]
     records = _episode_records(bag, raw.custom)
     episodes = []
-    for first, last in _episode_bounds(bag, streams, allow_gaps):
+    for first, last in _episode_bounds(bag, streams, late_stamps(bag, raw)):
         inner = first + np.flatnonzero(has_pose[first:last] & (action_of[first:last] < 0))
         lacking = f"the transitions from {_JOINTS} messages with no {_ACTION} {_WITHIN}"
         dropped += _dropped(lacking, joints.stamps[inner])
@@ -283,6 +291,7 @@ def _episode(
     """States ``first..last`` of the joint states with their poses and actions; the writer's record if it has one."""
     poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
     complete = record is not None and record["transitions"] == last - first
+    steps = np.diff(joints.stamps[first : last + 1])
     return Trajectory(
         states=np.column_stack(
             [
@@ -295,6 +304,7 @@ def _episode(
         start_ns=int(joints.stamps[first]),
         end_reason=record["end_reason"] if complete else "",
         hand=record["hand"] if record is not None else hand,
+        step_ns=None if (steps == CONTROL_PERIOD_NS).all() else steps,
     )
 
 

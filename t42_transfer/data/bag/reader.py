@@ -19,7 +19,7 @@ from t42_transfer.data.errors import BagError
 from t42_transfer.data.trajectory import TrajectorySet
 
 
-def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
+def read_bag(path: str | Path) -> TrajectorySet:
     """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s).
 
     Every joint state is a state; the object pose with the nearest header stamp
@@ -27,31 +27,33 @@ def read_bag(path: str | Path, *, allow_gaps: bool = False) -> TrajectorySet:
     within half a period gives its action.  A step that lost a message (a
     recording started or stopped mid-step, a message dropped under load) is left
     out and its episode split there, with one warning naming what was dropped.
-    Stamp gaps of ``EPISODE_GAP_S`` or more separate episodes; a shorter gap with
-    no message at all on the hand topics raises, or with ``allow_gaps`` splits
-    the episode with a warning.  An action on an episode's last state has no
-    next state and is not a transition.  Episodes shorter than
-    ``MIN_EPISODE_STEPS`` are dropped with a warning.
+    Stamp gaps of ``EPISODE_GAP_S`` or more separate episodes.  A shorter gap is
+    a late step when the bag's ``hand/status`` says so (kept, its duration in
+    ``step_ns``), else missing steps (the episode splits there, with a warning).
+    An action on an episode's last state has no next state and is not a
+    transition.  Episodes shorter than ``MIN_EPISODE_STEPS`` are dropped with a
+    warning.
     """
     bag = Path(path)
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        return assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps)
+        return assemble_episodes(bag, decode_streams(bag, raw), raw)
 
 
 def bag_info(path: str | Path) -> dict[str, Any]:
-    """Summary for a CLI; episodes are counted as ``read_bag(path, allow_gaps=True)`` finds them."""
+    """Summary for a CLI; episodes are counted as :func:`read_bag` (and so the transfer server) finds them."""
     bag = Path(path)
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
         if raw.topics:
-            data = assemble_episodes(bag, decode_streams(bag, raw), raw, allow_gaps=True)
+            data = assemble_episodes(bag, decode_streams(bag, raw), raw)
             episodes, transitions, hand = len(data), data.num_transitions, data.hand
+            late = sum(len(t.late_steps) for t in data)
             namespace = hand_namespace(bag, raw.topics)
         else:  # an empty bag (its recorder stopped before the first message): nothing to count
-            episodes, transitions, hand, namespace = 0, 0, None, ""
+            episodes, transitions, late, hand, namespace = 0, 0, 0, None, ""
     return {
         "path": str(bag),
         "storage": raw.storage,
@@ -62,6 +64,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "namespace": namespace or "/",
         "episodes": episodes,
         "transitions": transitions,
+        "late_steps": late,
         "hand": hand,
         "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
         "recovered_prefix": raw.cut,

@@ -28,7 +28,8 @@ from t42_transfer.files import file_kind, not_regular_reason
 
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
-HAND_SUFFIXES = tuple(ma.HAND_TOPICS)
+HAND_SUFFIXES = (*ma.HAND_TOPICS, ma.HAND_STATUS_TOPIC)
+"""The topics whose messages are loaded: the hand's steps and its status (which names the late steps)."""
 _MAX_CHUNK_BYTES = 1 << 28
 """An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
 

@@ -1,7 +1,8 @@
 """TrajectorySet -> a new rosbag2 bag, in the hand wire format of :mod:`msg_adapters`, as Jazzy writes one.
 
 Each step's three messages are stamped ``start_ns + k * CONTROL_PERIOD_NS`` in the header and as log
-time; ``custom_data`` carries the hand and each episode's end reason.  A bag is built beside its path and
+time (a trajectory's ``step_ns`` puts its late steps later, each with the driver's ``late`` status on
+``/hand/status``); ``custom_data`` carries the hand and each episode's end reason.  A bag is built beside its path and
 renamed into place once complete, so a failure never leaves a half bag that looks whole.
 """
 
@@ -16,11 +17,12 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Writer
 
 import msg_adapters as ma
-from t42_transfer.conventions import CONTROL_PERIOD_NS
+from msg_adapters.names import LATE
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import STORAGES
@@ -98,7 +100,12 @@ class BagWriter:
             self._writer.abort()
             raise
 
-    def write(self, topic: str, log_ns: int, cdr: bytes) -> None:
+    def write(self, topic: str, log_ns: int, cdr: bytes, msgtype: str | None = None) -> None:
+        """One message; ``msgtype`` adds a topic not declared at the start (on its first message only, so a bag
+        holds no empty connection for an optional topic such as ``hand/status``)."""
+        if topic not in self._connections and msgtype is not None:
+            self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=ma.TYPESTORE,
+                                                                   offered_qos_profiles=[RECORD_QOS])
         self._writer.write(self._connections[topic], log_ns, cdr)
         self.count += 1
 
@@ -139,7 +146,7 @@ def assign_start_times(
     placed, start = [], int(t0_ns)
     for traj in trajectories:
         placed.append(dataclasses.replace(traj, start_ns=start))
-        start += len(traj) * CONTROL_PERIOD_NS + gap_ns
+        start += int(traj.durations_ns.sum()) + gap_ns
     return placed
 
 
@@ -206,17 +213,24 @@ def _check_timeline(trajectories: Iterable[Trajectory]) -> None:
                 f"episode {i - 1}'s last state: episodes must be in time order and at least {EPISODE_GAP_S} s "
                 "apart (assign_start_times lays them out)"
             )
-        previous_end = traj.start_ns + len(traj) * CONTROL_PERIOD_NS
+        previous_end = traj.start_ns + int(traj.durations_ns.sum())
 
 
 def _write_episode(writer: BagWriter, traj: Trajectory) -> None:
+    """Each step's three messages at its stamp; a late step (``step_ns``) also gets the ``late`` status a driver
+    publishes for it, which tells a reader that no step is missing before it."""
+    stamps = traj.start_ns + np.concatenate([[0], np.cumsum(traj.durations_ns)])
+    late = set((traj.late_steps + 1).tolist())
     for k, state in enumerate(traj.states):
-        stamp = traj.start_ns + k * CONTROL_PERIOD_NS
+        stamp = int(stamps[k])
         angles = None if traj.actuator_angles is None else traj.actuator_angles[k]
         writer.write(ma.OBJECT_POSE_TOPIC, stamp, _cdr(ma.object_pose_msg(state[:2], stamp)))
         writer.write(ma.JOINT_STATES_TOPIC, stamp, _cdr(ma.joint_state_msg(state[2:], angles, stamp)))
         if k < len(traj):
             writer.write(ma.APPLIED_ACTION_TOPIC, stamp, _cdr(ma.applied_action_msg(traj.actions[k], stamp)))
+        if k in late:
+            text = ma.status_message(LATE, f"{(stamp - int(stamps[k - 1])) / 1e6:g} ms after the step before", stamp)
+            writer.write(ma.HAND_STATUS_TOPIC, stamp, _cdr(ma.TYPESTORE.types[ma.STRING](data=text)), ma.STRING)
 
 
 def _cdr(msg: Any) -> bytes:
