@@ -195,7 +195,7 @@ def test_steps_without_a_fresh_pose_are_left_out_of_the_recorded_episode_with_a_
     (bag,) = [recorder.current_bag]
     recorder.close()
     with pytest.warns(UserWarning, match="dropped|left out|missing"):
-        data = read_bag(bag, allow_gaps=True)
+        data = read_bag(bag)
     assert len(data) == 2  # split where the poses went stale
     stale = [stamp_to_ns(j.header.stamp) for j in rig.joints if stamp_to_ns(j.header.stamp) not in
              {stamp_to_ns(p.header.stamp) for p in rig.poses}]
