@@ -260,7 +260,9 @@ def import_authors_model(path: str | os.PathLike[str], *, negate_actions: bool =
         converted = convert(legacy, negate_actions=negate_actions, gamma=gamma, alpha=alpha)
     except Refused as err:
         raise AuthorsModelError(file, str(err)) from None
-    except (ValueError, TypeError, KeyError, AttributeError, RuntimeError) as err:
+    except MemoryError:
+        raise
+    except Exception as err:  # a crafted object tree trips whatever it trips: still the file's fault
         raise AuthorsModelError(file, f"does not hold a model this project can represent ({type(err).__name__}: "
                                 f"{str(err)[:200]})") from None
     converted.model.eval()

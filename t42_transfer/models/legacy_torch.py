@@ -154,7 +154,7 @@ class _Unpickler(pickle._Unpickler):
             _, kind, key, location, numel, view = pid
             if kind is not _FLOAT_STORAGE:
                 raise Refused("refused a storage other than torch.FloatStorage")
-            if not (type(key) is str and key.isdigit() and len(key) <= 40 and type(location) is str
+            if not (type(key) is str and key.isprintable() and len(key) <= 40 and type(location) is str
                     and location.startswith(("cpu", "cuda")) and len(location) <= 20 and view is None):
                 raise Refused("a storage record must be ('storage', FloatStorage, key, location, size, None)")
             if not (type(numel) is int and 0 <= numel):
