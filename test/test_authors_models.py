@@ -348,6 +348,9 @@ def test_the_command_writes_a_checkpoint_naming_the_file_and_family(made, tmp_pa
     assert main(["model", "import-authors", str(bad), str(tmp_path / "b.safetensors")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 2 and str(bad) in err and not (tmp_path / "b.safetensors").exists()
+    with pytest.raises(SystemExit) as exit_info:  # a decay above 1 is refused by the parser
+        main(["model", "import-authors", str(file), str(tmp_path / "g.safetensors"), "--gamma", "1.5"])
+    assert exit_info.value.code == 2 and "--gamma" in capsys.readouterr().err
 
 
 def test_saved_model_reloads_to_the_same_rollout(made, tmp_path):
@@ -554,6 +557,13 @@ def test_mutated_files_fast_slice(worker, made):
 def test_mutated_files(worker, made):
     counts = _fuzz(worker, made, 2000)
     assert counts["refused"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["real_B_heldout0.1_1.pkl", "transferB2A_traj_transfer_timeless_heldout0.9_10.pkl"])
+def test_mutated_real_files(worker, name):
+    counts = fuzz(worker, mutated(_real(name).read_bytes()), "model.pkl", 300)
+    assert sum(counts.values()) >= 300
 
 
 def test_error_class_is_the_projects():
