@@ -479,6 +479,7 @@ def _real_parts(file: Path) -> dict:
     return {"net": net(root.state["_modules"]["model"]), "norm": norm(root), "res": res and net(res)}
 
 
+@pytest.mark.realdata
 @pytest.mark.parametrize(("name", "family"), [
     ("real_B_heldout0.1_1.pkl", "mlp"),
     ("transferB2A_traj_transfer_timeless_recurrent_heldout0.9_10.pkl", "recurrent_residual"),
@@ -503,6 +504,7 @@ def _divergence(model: torch.nn.Module, episodes: list, threshold: float = 4.0) 
     return float(np.mean(steps))
 
 
+@pytest.mark.realdata
 def test_real_files_reproduce_the_readmes_reference_figures(hand_a):
     """Hold still 61; B direct (actions negated) 702; naive fine-tuning at h = 0.997: 268 (5 repeats)."""
     direct, _ = import_authors_model(_real("real_B_heldout0.1_1.pkl"), negate_actions=True)
