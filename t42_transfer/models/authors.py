@@ -17,6 +17,14 @@ runs); the object tree then maps onto the project's model kinds (``FAMILIES``):
 ``negate_actions`` flips the sign of the action columns of every first layer
 (exact in floating point), so the imported model takes hand A's actions as
 recorded while computing what the authors' model computed on negated ones.
+
+The residual weight ``alpha`` defaults to the file's ``coeff`` (1) and the
+cumulative residual's decay ``gamma`` to :data:`AUTHORS_GAMMA`; both are rollout-time
+settings (the files do not store gamma), so the import takes them as options.
+Rollouts equal the authors' forward pass with dropout off (test_authors_models
+checks it to 1e-3 mm over whole paths), except that the cumulative residual keeps
+the paper's alignment of the residual sum (see
+:class:`~t42_transfer.models.start_state.StartStateCumulativeResidualModel`).
 """
 
 from __future__ import annotations
@@ -134,7 +142,8 @@ def _sequential(legacy: LegacyFile, seq: Any, what: str) -> tuple[list[torch.Ten
     for name, cls in _LAYERS:
         _child(seq, name, what, cls)
     first = _field(modules["0"], "_parameters", f"{what}.0")
-    hidden = first.get("bias").shape[0] if type(first) is dict and isinstance(first.get("bias"), TensorRef) else 0
+    bias = first.get("bias") if type(first) is dict else None
+    hidden = bias.shape[0] if isinstance(bias, TensorRef) and len(bias.shape) == 1 else 0
     if not 1 <= hidden <= 4096:
         raise Refused(f"{what} has a hidden width of {hidden}")
     dropouts = {_field(modules[n], "p", f"{what}.{n}") for n in ("2", "5")}
@@ -191,11 +200,19 @@ class AuthorsModel:
     gamma: float | None
 
 
-def _trajnet(legacy: LegacyFile, obj: Any, what: str, negate_actions: bool) -> tuple[TransitionModel, Any, Any]:
+def _trajnet(legacy: LegacyFile, obj: Any, what: str, negate_actions: bool) -> tuple[TransitionModel, _AuthorsNorm]:
+    """A TrajNet's own MLP with its own normalisation."""
     norm = _norm(legacy, obj, what)
     weights, dropout, hidden = _sequential(legacy, _child(obj, "model", what), f"{what}.model")
-    model = _transition(weights, norm, norm.project(), dropout, hidden, negate_actions)
-    return model, norm, (dropout, hidden)
+    return _transition(weights, norm, norm.project(), dropout, hidden, negate_actions), norm
+
+
+def _task(obj: Any, what: str) -> str:
+    """The TrajNet's ``task`` (``real_B``, ``transferB2A``): informative, kept short."""
+    task = _field(obj, "task", what)
+    if not (type(task) is str and task.isprintable() and len(task) <= 40):
+        raise Refused(f"{what}.task must be a short name, not {quoted(task)[:60]}")
+    return task
 
 
 def convert(legacy: LegacyFile, *, negate_actions: bool = False, gamma: float | None = None,
@@ -208,14 +225,14 @@ def convert(legacy: LegacyFile, *, negate_actions: bool = False, gamma: float | 
     root = legacy.root
     if not isinstance(root, ModuleObject):
         raise Refused(f"holds a {type(root).__name__}, not an authors' model object")
-    task = _field(root, "task", "the model") if root.cls == "common.TrajNet.TrajNet" else None
     if root.cls == "common.TrajNet.TrajNet":
+        task = _task(root, "the model")
         res = _modules(root, "the model").get("res")
-        model, norm, (dropout, hidden) = _trajnet(legacy, root, "the model", negate_actions)
+        model, norm = _trajnet(legacy, root, "the model", negate_actions)
         if res is None:
             if gamma is not None or alpha is not None:
                 raise Refused("is a plain model: alpha and gamma apply to residual families only")
-            return AuthorsModel(model, "mlp", str(task), None, None)
+            return AuthorsModel(model, "mlp", task, None, None)
         if gamma is not None:
             raise Refused("is a recurrent residual: gamma applies to the cumulative residual only")
         weight = _coeff(root, alpha, "the model")
@@ -223,14 +240,14 @@ def convert(legacy: LegacyFile, *, negate_actions: bool = False, gamma: float | 
         residual_norm = norm.project(np.zeros(STATE_DIM), norm.y_std)  # res(u) scaled like net_S's output
         residual = _transition(res_weights, norm, residual_norm, res_dropout, res_hidden, negate_actions)
         return AuthorsModel(StartStateRecurrentResidualModel(model, residual, weight), "recurrent_residual",
-                            str(task), weight, None)
+                            task, weight, None)
     if root.cls == "common.TrajNet.TimeIndepLatentDeltaNet":
         source_obj = _child(root, "model", "the model", "common.TrajNet.TrajNet")
         decoder_obj = _child(root, "decoder", "the model", "common.TrajNet.TrajNet")
         for inner, name in ((source_obj, "model"), (decoder_obj, "decoder")):
             if _modules(inner, f"the model.{name}").get("res") is not None:
                 raise Refused(f"the model.{name} has a res net, which a cumulative residual never has")
-        source, _, _ = _trajnet(legacy, source_obj, "the model.model", negate_actions)
+        source, _ = _trajnet(legacy, source_obj, "the model.model", negate_actions)
         outer = _norm(legacy, root, "the model")  # the decoder's input and output use the outer (target) norm
         weights, dropout, hidden = _sequential(legacy, _child(decoder_obj, "model", "the model.decoder"),
                                                "the model.decoder.model")
@@ -238,7 +255,7 @@ def convert(legacy: LegacyFile, *, negate_actions: bool = False, gamma: float | 
         weight = _coeff(root, alpha, "the model")
         decay = AUTHORS_GAMMA if gamma is None else gamma
         return AuthorsModel(StartStateCumulativeResidualModel(source, decoder, weight, decay), "cumulative_residual",
-                            str(_field(source_obj, "task", "the model.model")), weight, decay)
+                            _task(source_obj, "the model.model"), weight, decay)
     raise Refused(f"holds a {quoted(root.cls)}, a family this project cannot represent (known: {sorted(FAMILIES)})")
 
 
