@@ -25,9 +25,9 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from msg_adapters import RCLPY, names, object_pose_msg, status_event
+from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_to_ns, status_event
 from msg_adapters.wire import ACTUATOR_NAMES
-from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM
+from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, PtyBus, t42_bus
@@ -145,6 +145,22 @@ def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(rig: Rig) 
     by_stamp = {p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in poses}
     assert sum(s in by_stamp for s in stamps) >= len(stamps) - 1  # state k's pose shares its stamp
     assert all(np.all(np.abs(j.effort) > 50 * LOAD_UNIT_NM) for j in joints[-3:])  # effort in N m
+
+
+def test_a_stalled_step_is_taken_late_and_said_so_with_its_stamp(rig: Rig) -> None:
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.reset().success
+    rig.ros.spin_for(0.5)
+    start = len(rig.joints)
+    time.sleep(0.4)  # the executor stalls: the driver's next timer tick comes ~0.4 s late
+    rig.ros.spin_for(1.0)
+    stamps = [stamp_to_ns(j.header.stamp) for j in rig.joints[start - 1:]]
+    gaps = np.diff(stamps)
+    assert gaps.min() >= MIN_STEP_NS and gaps.max() > 300_000_000, gaps  # late, and no catch-up burst after
+    late_stamp = stamps[int(np.argmax(gaps)) + 1]
+    assert rig.ros.spin_until(lambda: any(last_step_stamp(s.data) == late_stamp for s in rig.statuses
+                                          if status_event(s.data) == names.LATE), 2.0), [s.data for s in rig.statuses]
+    assert rig.driver.late_steps >= 1
 
 
 def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_the_limits(rig: Rig) -> None:

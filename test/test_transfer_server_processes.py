@@ -2,19 +2,25 @@
 
 from __future__ import annotations
 
+import re
+import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from ros_rig import REPO, start_node, stop
+from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from test_transfer_server import add_target_bag, config_file, source_model  # noqa: F401  (fixture)
+from test_transfer_server import Rig, add_target_bag, config_file, source_model  # noqa: F401  (fixture)
 
 from msg_adapters import DiagnosticReport, names, status_report
+from t42_transfer.data.bag import read_bag
+from t42_transfer.nodes.recorder import Recorder
 from t42_transfer.nodes.transfer_server import STATUS_NAME
 from t42_transfer.ros.qos import profile
 
@@ -81,3 +87,43 @@ def test_a_bad_parameter_ends_the_process_with_one_line(ros_domain: int, tmp_pat
     assert done.returncode == 2, done.stderr
     errors = [line for line in done.stderr.splitlines() if line.startswith("t42: error:")]
     assert len(errors) == 1 and "method must be one of" in errors[0], done.stderr
+
+
+@pytest.mark.executor_threads(4)
+def test_a_driver_frozen_three_times_mid_episode_costs_no_bag(ros, tmp_path: Path,
+                                                              source_model: Path) -> None:  # noqa: F811
+    """SIGSTOP/SIGCONT of the mock driver for 0.35 s, three times mid-episode: each step after a stall is late, not
+    lost; the driver says so, the recorder keeps its word in the bag, and the transfer uses every bag."""
+    rig = Rig(ros, tmp_path, source_model)
+    recorder = ros.add(Recorder, {"out_dir": str(rig.bag_dir), "mode": "episode"})
+    log = tmp_path / "driver.log"
+    driver = start_node("mock_driver", "-p", "seed:=4", log=log)
+    try:
+        joints = rig.listen(JointState, names.JOINT_STATES)
+        reset = rig.tester.create_client(Trigger, names.HAND_RESET)
+        assert ros.spin_until(lambda: len(joints) >= 10 and recorder.current_count > 0, 60.0), log.read_text()
+        for _ in range(3):
+            ros.spin_for(0.7)
+            driver.send_signal(signal.SIGSTOP)
+            time.sleep(0.35)
+            driver.send_signal(signal.SIGCONT)
+        ros.spin_for(1.0)
+        for _ in range(2):  # two more episodes, one bag each
+            assert ros.call(reset, Trigger.Request(), timeout_s=30.0).success
+            ros.spin_for(2.5)
+        recorder.close()
+    finally:
+        codes = stop([driver])
+    assert codes == [0], log.read_text()[-3000:]
+    bags = sorted(p for p in rig.bag_dir.iterdir() if p.is_dir())
+    assert len(bags) == 3, bags
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing split, nothing dropped
+        (stalled,) = read_bag(bags[0])
+    assert len(stalled.late_steps) >= 3 and stalled.step_ns[stalled.late_steps].min() > 300_000_000
+
+    answer = rig.call()
+    assert answer.success, answer.message
+    assert "from 3 bag(s)" in answer.message and "skipped" not in answer.message, answer.message
+    kept = re.search(r"\((\d+) late steps kept\)", answer.message)
+    assert kept and int(kept.group(1)) >= len(stalled.late_steps), answer.message

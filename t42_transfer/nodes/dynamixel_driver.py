@@ -28,7 +28,8 @@ Faults (a servo that stops answering, a garbled answer, a Hardware Error Status 
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
 and the error bits decoded.  Recovery is automatic: once a second the driver reopens the port if it went,
 pings, reboots a servo that raised an error bit, turns the torque back on and holds; ``recovered`` then says
-the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics; a
+the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics, and each
+says ``late`` on ``hand/status`` with its stamp (a recording keeps it as data); a
 timer tick less than half a period after the last step (catching up after a late one) does not step, so
 two steps are never stamped closer than the bag reader accepts.  Steps follow the graph's clock: with
 ``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock does.
@@ -64,7 +65,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_S
+from t42_transfer.conventions import CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
@@ -77,8 +78,6 @@ STATUS_NAME = "t42_transfer: dynamixel_driver"
 _T42 = HandGeometry()
 """The parameters' defaults: the hand's geometry as it ships (its ranges are checked there, once)."""
 RETRY_PERIOD_S = 1.0
-LATE_FRACTION = 0.5
-"""A step more than this many periods after the previous one is late."""
 DIAGNOSTICS_EVERY = 10
 """Steps between two diagnostics while all is well (faults are reported at once)."""
 
@@ -140,7 +139,9 @@ class DynamixelDriver(LifecycleNode):
         self._grasp: Grasp | None = None
         self._grasp_answer: Future | None = None
         self._stepping = False
-        self._last_step_s: float | None = None
+        self._last_step_ns: int | None = None
+        self._late_by_ns: int | None = None
+        """How long after the previous step this one came, when that was late (said on ``hand/status``)."""
         self._last_stamp = 0
         self._pose: tuple[int, np.ndarray] | None = None
         self._stale = False
@@ -207,7 +208,7 @@ class DynamixelDriver(LifecycleNode):
         except ServoFault as err:
             self.log.error(f"activate failed: {err}")
             return TransitionCallbackReturn.FAILURE
-        self._stepping, self._last_step_s = True, None
+        self._stepping, self._last_step_ns = True, None
         self.log.info("active: torque on, holding; call hand/reset to grasp")
         return super().on_activate(state)
 
@@ -288,15 +289,17 @@ class DynamixelDriver(LifecycleNode):
     def _on_timer(self) -> None:
         if not self._stepping:
             return
-        now_s = self.now_ns() / 1e9  # the graph's clock: on sim time the steps follow /clock, however fast
-        if self._last_step_s is not None:
-            since = now_s - self._last_step_s
-            if since < CONTROL_PERIOD_S / 2:  # a timer catching up after a late step: two stamps this close
-                self.skipped_ticks += 1       # would not be two steps (the bag reader refuses them)
+        now_ns = self.now_ns()  # the graph's clock: on sim time the steps follow /clock, however fast
+        self._late_by_ns = None
+        if self._last_step_ns is not None:
+            since = now_ns - self._last_step_ns
+            if since < MIN_STEP_NS:  # a timer catching up after a late step: two stamps this close
+                self.skipped_ticks += 1  # would not be two steps (the bag reader splits there)
                 return
-            if since > (1 + LATE_FRACTION) * CONTROL_PERIOD_S:
+            if since > LATE_STEP_NS:
                 self.late_steps += 1
-        self._last_step_s = now_s
+                self._late_by_ns = since
+        self._last_step_ns = now_ns
         self._ticks += 1
         if self._ticks % DIAGNOSTICS_EVERY == 0 and self.fault is None:
             stale = self._stale
@@ -326,6 +329,8 @@ class DynamixelDriver(LifecycleNode):
         self._last_stamp = stamp
         self._publish_pose(stamp)
         self._joints_pub.publish(joint_state_msg(loads, angles, stamp, RCLPY))
+        if self._late_by_ns is not None and self.steps > 0:  # a recording keeps the step: none is missing
+            self._status(names.LATE, f"{self._late_by_ns / 1e6:.1f} ms after the step before")
         action, last = self.queue.next()
         if last:
             self._status(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}")

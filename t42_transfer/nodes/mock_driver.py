@@ -73,7 +73,7 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
@@ -135,6 +135,10 @@ class MockDriver(Node):
         self._closed = False
         self._last_stamp = 0
         """Stamp of the last step published (0 before the first: every step comes after it)."""
+        self.late_steps = 0
+        """Steps that came more than 1.5 periods after the one before (wall-clock stamps only)."""
+        self.skipped_ticks = 0
+        """Timer ticks less than half a period after a step (catching up after a late one) that did not step."""
 
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
         self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
@@ -237,7 +241,7 @@ class MockDriver(Node):
             if self._clock_pub is not None:
                 self._sim_ns += CONTROL_PERIOD_NS
                 self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
-            self.tick()
+            self._timed_tick()
         except Exception as err:
             self.log.error(f"step failed ({err!r}); the hand stops until {names.HAND_RESET} is called")
             self.running = False
@@ -252,8 +256,26 @@ class MockDriver(Node):
                                                 self._last_stamp))
         return action
 
-    def tick(self) -> None:
-        """One control step: publish the state (and the action applied from it), then step the hand."""
+    def _timed_tick(self) -> None:
+        """The timer's step.  On wall-clock stamps a tick can come late (a stalled process, a busy machine): the
+        step is taken and ``late`` says so on ``hand/status`` with its stamp, so a recording keeps it.  A tick
+        less than half a period after the last step (the timer catching up) does not step: two stamps that close
+        would not be two steps."""
+        if not (self.running and self.steps > 0 and self._clock_pub is None):
+            self.tick()
+            return
+        since, rate = self.now_ns() - self._last_stamp, self.params.rate_factor
+        if since < MIN_STEP_NS / rate:
+            self.skipped_ticks += 1
+            return
+        late = since > LATE_STEP_NS / rate
+        self.late_steps += late
+        self.tick(late_by_ns=since if late else None)
+
+    def tick(self, late_by_ns: int | None = None) -> None:
+        """One control step: publish the state (and the action applied from it), then step the hand.
+
+        ``late_by_ns``: the step comes that long after the one before, which ``hand/status`` says (``late``)."""
         if not self.running:
             return
         stamp = self.now_ns()
@@ -261,6 +283,8 @@ class MockDriver(Node):
         self._last_stamp = stamp
         self._pose_pub.publish(object_pose_msg(state[:2], stamp, RCLPY))
         self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp, RCLPY))
+        if late_by_ns is not None:
+            self._publish_status(status_message(names.LATE, f"{late_by_ns / 1e6:.1f} ms after the step before", stamp))
         if self.hand.done:
             self.running = False
             self.queue.clear()

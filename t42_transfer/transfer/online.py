@@ -39,6 +39,7 @@ import os
 import re
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +123,10 @@ class TransferResult:
     seconds: float
     skipped: tuple[str, ...] = ()
     """Why each new bag that could not be read was skipped (each names its bag)."""
+    notes: tuple[str, ...] = ()
+    """What the reader dropped or salvaged in the bags read (each names its bag)."""
+    late_steps: int = 0
+    """Steps the driver ran late, kept as data in the training and held-out episodes."""
     selection: Selection | None = None
     """What ``auto`` picked and every candidate's score (None for a named method)."""
 
@@ -130,10 +135,11 @@ class TransferResult:
         picked = "" if self.selection is None else f" ({self.selection.describe()})"
         return (
             f"{self.method}{picked}: trained on {self.episodes} episodes / {self.transitions} transitions from "
-            f"{len(self.bags)} bag(s); on {self.held_out_episodes} held-out episode(s): divergence "
+            f"{len(self.bags)} bag(s){f' ({self.late_steps} late steps kept)' if self.late_steps else ''}; on "
+            f"{self.held_out_episodes} held-out episode(s): divergence "
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
             f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2); "
-            f"model {self.model_path}{skipped_note(self.skipped)}"
+            f"model {self.model_path}{skipped_note(self.skipped)}{reading_note(self.notes)}"
         )
 
 
@@ -263,22 +269,31 @@ def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
     return model, meta
 
 
-def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[str]]:
-    """Every episode of the readable ``bags``, in order; the bags read; why each other one was skipped."""
-    sets, read, skipped = [], [], []
+def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[str], list[str]]:
+    """Every episode of the readable ``bags``, in order; the bags read; why each other one was skipped; what the
+    reader dropped or salvaged in the bags read (its warnings, each naming its bag)."""
+    sets, read, skipped, notes = [], [], [], []
     for bag in bags:
-        try:
-            sets.append(read_bag(bag))
-            read.append(bag)
-        except DataFileError as err:  # one bad bag leaves the others usable
-            skipped.append(str(err))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                sets.append(read_bag(bag))
+                read.append(bag)
+            except DataFileError as err:  # one bad bag leaves the others usable
+                skipped.append(str(err))
+        notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
-    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand), read, skipped
+    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand), read, skipped, notes
 
 
 def skipped_note(skipped: Sequence[str]) -> str:
     """``"; skipped N unreadable bag(s): <bag: why>; ..."`` for an answer, or ``""``."""
     return f"; skipped {len(skipped)} unreadable bag(s): {'; '.join(skipped)}" if skipped else ""
+
+
+def reading_note(notes: Sequence[str]) -> str:
+    """``"; while reading: <bag: what was dropped or salvaged>; ..."`` for an answer, or ``""``."""
+    return f"; while reading: {'; '.join(notes)}" if notes else ""
 
 
 def merged_workspace(source_meta: Mapping[str, Any], target: TrajectorySet) -> Workspace:
@@ -334,12 +349,12 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     if not spec.new_bags_only:
         new = candidates
     source, source_meta = load_source(spec.source_model)
-    data, readable, skipped = read_target(new)
+    data, readable, skipped, notes = read_target(new)
     if len(data) < spec.min_episodes:
         raise TransferRefused(
             f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(readable)} "
             f"readable new bag(s); need at least {spec.min_episodes} (some to train on, one held out)"
-            f"{skipped_note(skipped)}"
+            f"{skipped_note(skipped)}{reading_note(notes)}"
         )
     train, held_out = hold_out(data, spec.holdout_fraction, spec.seed)
     workspace = merged_workspace(source_meta, train)
@@ -370,7 +385,8 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
         position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
-        skipped=tuple(skipped), selection=selection,
+        skipped=tuple(skipped), notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data),
+        selection=selection,
     )
 
 
