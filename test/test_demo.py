@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -19,16 +20,38 @@ from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import load_model
 
 
-def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int) -> None:
-    summary, report = story_told(tmp_path, capsys)
+@pytest.fixture(scope="module")
+def quick_source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The quick demo's source model, trained once here by the demo's own code for the tests of this module.
+
+    Each test copies it into its output directory, where the demo finds it as it finds the model of an
+    earlier run in the same ``--out`` (its cache): the story after the source model is the same, and the
+    file's metadata must still name the quick sizes for the demo to take it.
+    """
+    from t42_transfer.demo.settings import QUICK
+    from t42_transfer.demo.suite import source_model
+
+    return source_model(tmp_path_factory.mktemp("demo_source"), QUICK, workers=1)
+
+
+def with_source_model(out_dir: Path, model: Path) -> Path:
+    """``out_dir`` holding a copy of ``model`` under its own name, as an earlier run there leaves it."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(model, out_dir / model.name)
+    return out_dir
+
+
+def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int,
+                                         quick_source_model: Path) -> None:
+    summary, report = story_told(with_source_model(tmp_path, quick_source_model), capsys)
     assert summary["hardware"] == "sim" and summary["driver"] == "mock_driver" and "`mock_driver` (sim)" in report
 
 
 def test_demo_quick_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                              ros_domain: int) -> None:
+                                                              ros_domain: int, quick_source_model: Path) -> None:
     """The same story through the real hand's nodes: the Dynamixel driver on the emulated servo bus, the object
     pose from the emulated tracker."""
-    summary, report = story_told(tmp_path, capsys, "--hardware", "emulated")
+    summary, report = story_told(with_source_model(tmp_path, quick_source_model), capsys, "--hardware", "emulated")
     assert summary["hardware"] == "emulated" and summary["driver"] == "dynamixel_driver"
     assert "`dynamixel_driver` (emulated)" in report and "tracker/object_pose" in report
     assert all(g["grasp_seed"] is None for g in summary["goals"])  # grasps made through the servos, unseeded
@@ -49,6 +72,8 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     out = capsys.readouterr().out
     (run_dir,) = [p for p in out_dir.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
     summary = json.loads((run_dir / "demo.json").read_text())
+    if quick:  # the module's source model, copied in: the demo took it from its cache
+        assert f"source model: cached {out_dir.resolve() / Path(summary['source_model']).name}" in out, out
 
     size = summary["size"]
     rounds = summary["rounds"]
@@ -125,7 +150,8 @@ def node_processes_of(run_root: Path) -> list[str]:
 
 
 def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain: int,
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+                                                      monkeypatch: pytest.MonkeyPatch,
+                                                      quick_source_model: Path) -> None:
     """A bug once the suite's processes run (here rclpy refusing the demo's node) leaves none of them behind."""
     from rclpy.executors import MultiThreadedExecutor
 
@@ -138,6 +164,7 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
         raise KeyError("a bug after the suite started")
 
     monkeypatch.setattr(MultiThreadedExecutor, "add_node", broken)
+    with_source_model(tmp_path, quick_source_model)
     with pytest.raises(KeyError):
         run_demo(tmp_path, quick=True, workers=1)
     assert len(started) == 4, started  # the suite was up: mock driver, recorder, transfer server, planner
