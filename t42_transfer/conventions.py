@@ -50,6 +50,12 @@ MAX_REFINE = 1000
 MAX_SAMPLED_STEPS = 20_000_000
 """Planner samples x horizon at most (CLI, planner node and code alike): the sampled actions alone are 8 bytes
 a step, 160 MB here."""
+MAX_TRIALS = 10_000
+"""Peg-in-hole trials per goal distance at most."""
+MAX_THREADS = 1024
+"""Torch threads a peg-in-hole run may ask for at most."""
+PLAN_LENGTHS = ("fixed", "search")
+"""Peg-in-hole plan lengths: exactly the goal's steps, or the shortest predicted to reach the goal."""
 
 GRASP_LOAD = 100.0
 """The grasp-closing routine closes until |load| passes this (as the real driver)."""

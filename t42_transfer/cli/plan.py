@@ -14,7 +14,14 @@ from t42_transfer.cli.args import (
     int_arg,
     output_dir,
 )
-from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE
+from t42_transfer.conventions import (
+    MAX_PLAN_HORIZON,
+    MAX_PLAN_SAMPLES,
+    MAX_REFINE,
+    MAX_THREADS,
+    MAX_TRIALS,
+    PLAN_LENGTHS,
+)
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
@@ -76,6 +83,13 @@ def _run_peg_in_hole(args: argparse.Namespace) -> int:
     from t42_transfer.hand.params import variant
     from t42_transfer.planning import PlannerConfig, Workspace
 
+    # The defaults are the configs' own, filled in here: the parser is built without importing torch or MuJoCo.
+    for name, default in (("distances", list(PegInHoleConfig.distances)), ("trials", PegInHoleConfig.trials),
+                          ("tolerances", list(PegInHoleConfig.tolerances_mm)),
+                          ("plan_length", PegInHoleConfig.plan_length), ("samples", PlannerConfig.samples),
+                          ("refine", PlannerConfig.refine_iterations), ("horizon", PlannerConfig.horizon)):
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     # Everything the user gave is checked before a model is loaded or a goal made; the longest plan a goal
     # distance asks for is sized as the planner will size it.
     PlannerConfig(samples=args.samples, horizon=max(args.horizon, *args.distances))
@@ -153,9 +167,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     plan.add_argument("--out", type=Path, required=True, help="directory for plan.json, plan.csv, plan.png")
     plan.set_defaults(func=_cmd_plan)
 
-    from t42_transfer.evaluation.peg_in_hole import MAX_THREADS, MAX_TRIALS, PLAN_LENGTHS, PegInHoleConfig
-    from t42_transfer.planning.planner import PlannerConfig
-
     peg = commands.add_parser(
         "peg-in-hole",
         help="plan with saved models, execute open loop on the simulated target hand, success vs distance",
@@ -170,13 +181,14 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         help="bags whose states define the trained workspace (default: the one the first model file stores)"
     )
     peg.add_argument("--out", type=Path, default=None, help="directory for peg_in_hole.{json,md,png}")
-    peg.add_argument("--distances", nargs="+", type=int_arg(1, MAX_PLAN_HORIZON),
-                     default=list(PegInHoleConfig.distances))
-    peg.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=PegInHoleConfig.trials)
-    peg.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True),
-                        default=list(PegInHoleConfig.tolerances_mm),
-                                     help="success tolerances (mm); the first is the paper's")
-    peg.add_argument("--plan-length", choices=PLAN_LENGTHS, default=PegInHoleConfig.plan_length,
+    # (defaults None: the configs' own, filled in by _run_peg_in_hole, so building the parser loads no torch)
+    peg.add_argument("--distances", nargs="+", type=int_arg(1, MAX_PLAN_HORIZON), default=None,
+                     help="goal distances in steps (default: PegInHoleConfig's)")
+    peg.add_argument("--trials", type=int_arg(1, MAX_TRIALS), default=None,
+                     help="trials per distance (default: PegInHoleConfig's)")
+    peg.add_argument("--tolerances", nargs="+", type=float_arg(0, low_open=True), default=None,
+                     help="success tolerances (mm); the first is the paper's (default: PegInHoleConfig's)")
+    peg.add_argument("--plan-length", choices=PLAN_LENGTHS, default=None,
                         help="fixed: plans of exactly n steps (default); "
                              "search: the shortest predicted to reach the goal")
     peg.add_argument("--replan-every", type=int_arg(0, MAX_PLAN_HORIZON), default=0,
@@ -191,12 +203,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     peg.add_argument("--risk", type=float_arg(0), default=1.0, help="weight of the spread: mean + risk * std")
     peg.add_argument("--variants-of", nargs="+", default=None, metavar="NAME",
                         help="models that get the --mpc and --dropout variants (default: all)")
-    peg.add_argument("--samples", type=int_arg(1, MAX_PLAN_SAMPLES), default=PlannerConfig.samples,
-                        help="sequences sampled per round")
-    peg.add_argument("--refine", type=int_arg(0, 100), default=PlannerConfig.refine_iterations,
-                        help="cross-entropy rounds after the first draw")
-    peg.add_argument("--horizon", type=int_arg(1, MAX_PLAN_HORIZON), default=PlannerConfig.horizon,
-                        help="longest plan with --plan-length search")
+    peg.add_argument("--samples", type=int_arg(1, MAX_PLAN_SAMPLES), default=None,
+                        help="sequences sampled per round (default: PlannerConfig's)")
+    peg.add_argument("--refine", type=int_arg(0, 100), default=None,
+                        help="cross-entropy rounds after the first draw (default: PlannerConfig's)")
+    peg.add_argument("--horizon", type=int_arg(1, MAX_PLAN_HORIZON), default=None,
+                        help="longest plan with --plan-length search (default: PlannerConfig's)")
     peg.add_argument("--hand", default="target")
     peg.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     peg.add_argument("--threads", type=int_arg(1, MAX_THREADS), default=1,

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from t42_transfer.conventions import PLAN_LENGTHS
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.collect import run_episode
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
@@ -47,9 +48,6 @@ from t42_transfer.planning.workspace import Workspace
 GOAL_ATTEMPTS = 50
 """Goal sequences drawn per goal at most, while the true hand drops the object, ends outside the
 workspace or too near the start."""
-MAX_TRIALS = 10_000
-MAX_THREADS = 1024
-PLAN_LENGTHS = ("fixed", "search")
 DO_NOTHING, ORACLE = "do_nothing", "oracle"
 BASELINES = (DO_NOTHING, ORACLE)
 VERDICTS = ("hit", "miss", "no_progress", "incomplete")
