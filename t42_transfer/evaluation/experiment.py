@@ -15,16 +15,18 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import functools
 import hashlib
 import json
 import multiprocessing
 import os
+import shutil
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -41,6 +43,7 @@ from t42_transfer.data.trajectory import (
     split_by_fraction,
 )
 from t42_transfer.evaluation.experiment_config import (
+    AUTHORS_SUFFIX,
     DataSpec,
     ExperimentConfig,
     check_config,
@@ -53,6 +56,9 @@ from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, train_transition_model
 from t42_transfer.transfer.methods import select_method, transfer
+
+if TYPE_CHECKING:
+    from t42_transfer.planning.workspace import Workspace
 
 RESULT_COLUMNS = (
     "method", "amount", "seed", "train_episodes", "train_transitions", "test_rollouts", "divergence_mean",
@@ -81,8 +87,11 @@ def data_cache(run_dir: Path) -> Path:
 def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
     """The trajectories ``spec`` names, as stored; simulated sets are collected once and kept as bags in ``cache``.
 
-    The spec's moves (mirror, negated actions) and its handling of flagged episodes are :func:`load_side`'s.
+    The spec's moves (mirror, negated actions) and its handling of flagged episodes are :func:`load_spec`'s.
+    A source that is a model (``model``) has no trajectories.
     """
+    if spec.model:
+        return TrajectorySet()
     if spec.real:
         return load_t42_testpaths(real_data_dir() / real_file(spec.real, spec.real_object))
     if spec.bag:
@@ -117,14 +126,27 @@ class SideData:
 def load_side(cfg: ExperimentConfig, side: str, cache: Path) -> SideData:
     """The ``source``, ``target`` or ``test`` data of ``cfg``; a mirror about the grasp also reads the other side
     (the source's other side is the target; the target's and the test set's is the source)."""
-    spec: DataSpec = getattr(cfg, side)
+    return load_spec(getattr(cfg, side), cache, getattr(cfg, "target" if side == "source" else "source"))
+
+
+def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None) -> SideData:
+    """The data ``spec`` names, moved as it says (negated actions, mirror) and with flagged episodes handled.
+
+    ``other``: the data set a mirror about the grasp mirrors onto (required for ``mirror_about: grasp``).
+    A source that is a model has no data: empty sets, and the model file named in the quality record.
+    """
+    if spec.model is not None:
+        empty = TrajectorySet()
+        return SideData(empty, empty, (), {"model": spec.model, "model_sha256": _file_sha256(spec.model),
+                                           "negate_actions": spec.negate_actions, "episodes": 0, "transitions": 0})
     raw = load_data(spec, cache)
     if spec.negate_actions:
         raw = TrajectorySet((dataclasses.replace(t, actions=-t.actions) for t in raw), hand=raw.hand)
     if spec.mirror_x:
         if spec.mirror_about == "grasp":
-            other = load_data(getattr(cfg, "target" if side == "source" else "source"), cache)
-            own, theirs = grasp_centre(raw), grasp_centre(other)
+            if other is None or other.model is not None:
+                raise ValueError("mirror_about: grasp mirrors onto another data set's grasp: none is given")
+            own, theirs = grasp_centre(raw), grasp_centre(load_data(other, cache))
             axis, shift = (own[0] + theirs[0]) / 2, theirs[1] - own[1]
         else:
             axis, shift = 0.0, 0.0
@@ -325,8 +347,83 @@ def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
 
 
+def _file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes (a source model's identity: its name alone could be reused for other weights)."""
+    file = Path(path)
+    info = file.stat()
+    return _sha256_of(str(file.resolve()), info.st_mtime_ns, info.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _sha256_of(path: str, mtime_ns: int, size: int) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_model_file(path: str | os.PathLike[str], negate_actions: bool = False
+                    ) -> tuple[LatentDynamics, dict[str, Any]]:
+    """A saved model and its metadata: a project model file as saved, or one of the paper authors' files
+    (``.pkl``) imported now, its actions negated inside it with ``negate_actions``.
+
+    ValueError ``<file>: <problem>`` (one line) for a missing file, a file that is no model, an authors' family
+    this project cannot represent, or ``negate_actions`` for a project model file (its actions are as saved).
+    """
+    from t42_transfer.models.authors import import_authors_model
+
+    file = Path(path)
+    if not str(file).endswith(AUTHORS_SUFFIX):
+        if negate_actions:
+            raise ValueError(f"{file}: negating actions applies to an authors' {AUTHORS_SUFFIX} file imported on the "
+                             f"fly; a model file's actions are as it was saved")
+        return load_model(file)
+    converted, legacy = import_authors_model(file, negate_actions=negate_actions)
+    return converted.model, {"method": f"authors_{converted.family}", "extra": {"authors": {
+        "source_file": file.name, "source_sha256": legacy.sha256, "family": converted.family,
+        "negate_actions": negate_actions}}}
+
+
+def load_source_model(spec: DataSpec) -> tuple[LatentDynamics, dict[str, Any]]:
+    """The model a ``source: {model: PATH}`` names, with its metadata (:func:`load_model_file`, actions negated
+    inside an authors' model when the spec negates them); ValueError ``source.model: <file>: <problem>``."""
+    if spec.model is None:
+        raise ValueError("the source is data, not a model")
+    try:
+        return load_model_file(spec.model, spec.negate_actions)
+    except ValueError as err:  # CheckpointError and AuthorsModelError name the file
+        raise ValueError(f"source.model: {err}") from None
+
+
+def _model_source(spec: DataSpec, path: Path) -> None:
+    """Put the source model ``spec`` names at ``path``: an authors' file imported, a model file copied as it is
+    (atomically: a run that stops halfway leaves no file under the final name)."""
+    from t42_transfer.models.authors import save_authors_model
+
+    if spec.model is None:
+        raise ValueError("the source is data, not a model")
+    if spec.model.endswith(AUTHORS_SUFFIX):
+        save_authors_model(spec.model, path, negate_actions=spec.negate_actions)
+        return
+    load_source_model(spec)  # a model file, checked whole before it is kept
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
+    try:
+        shutil.copyfile(spec.model, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int, ...] = ()) -> Path:
-    """Where the source model trained without the source episodes ``excluded`` is kept (shared by experiments)."""
+    """Where the source model trained without the source episodes ``excluded`` is kept (shared by experiments).
+
+    A source that is a model is kept there too, named by its file's sha256 (and the negation of its actions).
+    """
+    if cfg.source.model is not None:
+        model = {"model_sha256": _file_sha256(cfg.source.model), "negate_actions": cfg.source.negate_actions}
+        return Path(run_dir).parent / "sources" / f"source-{_digest(model)}.safetensors"
     depends: dict[str, Any] = {"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)}
     if cfg.source.mirror_about == "grasp":  # mirrored onto the target's grasp
         depends["onto"] = cfg.target.describe()
@@ -339,9 +436,13 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
     """The source model of this experiment, trained once and cached by its data and settings.
 
     ``excluded``: episodes of the source data as loaded (:attr:`SideData.raw`) left out of training.
+    A source that is a model is not trained: it is imported or copied as it is.
     """
     path = source_model_path(cfg, run_dir, excluded)
     if path.exists():
+        return path
+    if cfg.source.model is not None:
+        _model_source(cfg.source, path)
         return path
     side = load_side(cfg, "source", data_cache(run_dir))
     data = TrajectorySet((t for t, o in zip(side.data, side.origins, strict=True) if o not in excluded),
@@ -376,6 +477,8 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
     check_config(cfg)
     for side in sides(cfg):
         _check_input(getattr(cfg, side), side)
+    if cfg.source.model is not None:
+        load_source_model(cfg.source)  # a file that is no model is refused before anything is written
     run_dir = Path(out) / cfg.name
     target = load_side(cfg, "target", data_cache(run_dir))
     test = load_test(cfg, data_cache(run_dir))
@@ -403,6 +506,16 @@ def _check_input(spec: DataSpec, side: str) -> None:
     if spec.real is not None and not (real_data_dir() / real_file(spec.real, spec.real_object)).is_file():
         raise ValueError(f"{side}.real: {real_data_dir() / real_file(spec.real, spec.real_object)}: no such file "
                          f"(see $T42_REAL_DATA)")
+
+
+def _workspace(cfg: ExperimentConfig, source: TrajectorySet, target: TrajectorySet, source_file: Path) -> Workspace:
+    """The states the cells' models are trusted in: the source data's; for a source that is a model, the
+    workspace its file stores, else the target data's (the one hand's states the run has)."""
+    from t42_transfer.planning.workspace import Workspace
+
+    if cfg.source.model is None:
+        return Workspace.from_trajectories(source)
+    return Workspace.from_metadata(load_model(source_file)[1]) or Workspace.from_trajectories(target)
 
 
 @contextlib.contextmanager
@@ -452,9 +565,7 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
     workers = cfg.workers or os.cpu_count() or 1
     bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell", disable=not progress)
     # The planner keeps predictions inside the states these models were trained on.
-    from t42_transfer.planning.workspace import Workspace
-
-    workspace = Workspace.from_trajectories(source.data).to_dict() if todo else {}
+    workspace = _workspace(cfg, source.data, target.data, sources[todo[0]]).to_dict() if todo else {}
     tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]
 
     def keep(cell: Cell, row: dict[str, Any]) -> None:

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from t42_transfer.config import (
     FRACTION,
     MAX_EVAL_STEPS,
@@ -42,7 +44,7 @@ from t42_transfer.yaml_files import read_yaml
 
 __all__ = [
     "MAX_EVAL_STEPS", "SEED_RANGE", "DataSpec", "ExperimentConfig", "TrainConfig", "TransferConfig", "check_config",
-    "config_dict", "load_config", "sides",
+    "check_spec", "config_dict", "load_config", "parse_data_spec", "sides",
 ]
 
 SAFE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]{0,99}")
@@ -52,12 +54,18 @@ MIRRORS = ("origin", "grasp")
 MAX_SEEDS = 1000
 MAX_CELLS = 100_000
 SPLITS = ("fraction", "paths")
+MAX_PATH_CHARS = 4096
+AUTHORS_SUFFIX = ".pkl"
+"""A source ``model`` of this suffix is one of the paper authors' legacy torch files (imported on the fly);
+any other is a project model file."""
 _ORIGINAL_SPEC = ("hand", "episodes", "steps", "seed", "bag", "real", "mirror_x")
 
 DATA_RULES: dict[str, Rule] = {
     "episodes": between(1, MAX_EPISODES), "steps": between(1, MAX_STEPS), "seed": SEED, "real": one_of(REAL_HANDS),
     "real_object": ((lambda v: bool(SAFE_OBJECT.fullmatch(v))), "an object name such as cyl35 or egg50"),
     "mirror_about": one_of(MIRRORS), "flagged": one_of(HANDLING), "policy": one_of(POLICIES),
+    "model": ((lambda v: isinstance(v, str) and 0 < len(v) <= MAX_PATH_CHARS and "\0" not in v),
+              f"a file path (at most {MAX_PATH_CHARS} characters)"),
 }
 """What each :class:`DataSpec` setting must be beyond its type."""
 EXPERIMENT_RULES: dict[str, Rule] = {
@@ -103,6 +111,11 @@ class DataSpec:
     policy: str = "random"
     """``hand`` only: how the simulated hand is driven (:data:`t42_transfer.hand.collect.POLICIES`): ``random``,
     the paper's training data, or ``sustained``, test paths like the real hands' (long holds of discrete moves)."""
+    model: str | None = None
+    """Source only, instead of data: a trained model used as the source as it is, so the source needs no data
+    and no training.  A project model file (``.safetensors``, e.g. from ``t42 model import-authors``) or one of
+    the paper authors' files (``.pkl``), imported on the fly; ``negate_actions`` then negates the actions inside
+    the imported model (the authors' B model on hand A's actions as recorded), as it would negate source data."""
 
     def describe(self) -> dict:
         """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
@@ -142,7 +155,8 @@ class ExperimentConfig:
     horizon: int | None = None
     lyapunov_steps: int = 100
     source_training: TrainConfig | None = None
-    """None: the definition's; settings given in a file apply on top of it."""
+    """None: the definition's; settings given in a file apply on top of it.  Stays None for a source that is a
+    trained model (``source.model``), which is not trained."""
     transfer: TransferConfig | None = None
     """None: ``TransferConfig.for_definition(definition)``; settings given in a file apply on top of it."""
     workers: int | None = None
@@ -155,8 +169,9 @@ class ExperimentConfig:
         if not (isinstance(self.name, str) and SAFE_NAME.fullmatch(self.name)):
             raise ValueError(f"name must be one plain path component (letters, digits, '.', '_', '-'; "
                              f"not starting with '.'; at most 100 characters), got {show(self.name)}")
+        trained = isinstance(self.source, DataSpec) and self.source.model is not None
         for key, value in _definition_defaults(self.definition).items():
-            if getattr(self, key) is None:
+            if getattr(self, key) is None and not (trained and key == "source_training"):
                 object.__setattr__(self, key, value)
         check(self, EXPERIMENT_RULES)
         try:
@@ -201,20 +216,14 @@ def check_config(cfg: ExperimentConfig) -> None:
     """
     from_mapping(ExperimentConfig, config_dict(cfg))
     for side in sides(cfg):
-        spec: DataSpec = getattr(cfg, side)
-        given = [k for k in ("hand", "bag", "real") if getattr(spec, k) is not None]
-        if len(given) != 1:
-            raise ValueError(f"{side} needs exactly one of hand, bag or real, got {given or 'none'}")
-        if spec.hand is not None:
-            check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
-        elif spec.policy != _SPEC_DEFAULTS["policy"]:
-            raise ValueError(f"{side}.policy drives a simulated hand: it needs {side}.hand")
-        if spec.real_object != REAL_OBJECT and spec.real is None:
-            raise ValueError(f"{side}.real_object names the object of a real-hand file: it needs {side}.real")
-        if spec.mirror_about != "origin" and not spec.mirror_x:
-            raise ValueError(f"{side}.mirror_about: {spec.mirror_about} needs {side}.mirror_x: true")
+        check_spec(getattr(cfg, side), side, model_allowed=side == "source")
+    if cfg.source.model is not None and cfg.source_training is not None:
+        raise ValueError("source_training trains the source on its data; source.model is a trained model")
     for side in sides(cfg)[1:]:
         spec = getattr(cfg, side)
+        if cfg.source.model is not None and spec.mirror_about == "grasp":
+            raise ValueError(f"{side}.mirror_about: grasp mirrors onto the source's grasp, and source.model has "
+                             f"no source data")
         if cfg.source.mirror_x and spec.mirror_x and "grasp" in (cfg.source.mirror_about, spec.mirror_about):
             raise ValueError("mirror_about: grasp mirrors one side onto the other: mirror_x on one side only")
         if spec.exclude_test_sequences:
@@ -230,6 +239,51 @@ def check_config(cfg: ExperimentConfig) -> None:
         raise ValueError(f"amounts are fractions of the target pool with split: fraction, got {max(cfg.amounts)}")
     if cfg.split == "paths" and not all(float(a).is_integer() for a in cfg.amounts):
         raise ValueError(f"amounts are numbers of episodes with split: paths, got {show(cfg.amounts)}")
+
+
+def check_spec(spec: DataSpec, where: str, model_allowed: bool = False) -> None:
+    """ValueError unless ``spec`` names exactly one data source (or, ``model_allowed``, a model) and settings that
+    fit it; ``where`` names the spec in messages (``source``, ``--on``)."""
+    given = [k for k in ("hand", "bag", "real", "model") if getattr(spec, k) is not None]
+    if len(given) != 1:
+        allowed = "hand, bag, real or model" if model_allowed else "hand, bag or real"
+        raise ValueError(f"{where} needs exactly one of {allowed}, got {given or 'none'}")
+    if spec.model is not None:
+        if not model_allowed:
+            raise ValueError(f"{where}.model: only an experiment's source can be a model; {where} is data")
+        unused = [k for k, v in dataclasses.asdict(spec).items()
+                  if k not in ("model", "negate_actions") and v != _SPEC_DEFAULTS[k]]
+        if unused:
+            raise ValueError(f"{where}.model is a trained model, so {where} has no data for {unused} to apply to")
+        if spec.negate_actions and not spec.model.endswith(AUTHORS_SUFFIX):
+            raise ValueError(f"{where}.negate_actions applies to an authors' {AUTHORS_SUFFIX} file imported on the "
+                             f"fly; a model file's actions are as it was saved (import it with t42 model "
+                             f"import-authors --negate-actions)")
+        return
+    if spec.hand is not None:
+        check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
+    elif spec.policy != _SPEC_DEFAULTS["policy"]:
+        raise ValueError(f"{where}.policy drives a simulated hand: it needs {where}.hand")
+    if spec.real_object != REAL_OBJECT and spec.real is None:
+        raise ValueError(f"{where}.real_object names the object of a real-hand file: it needs {where}.real")
+    if spec.mirror_about != "origin" and not spec.mirror_x:
+        raise ValueError(f"{where}.mirror_about: {spec.mirror_about} needs {where}.mirror_x: true")
+
+
+def parse_data_spec(text: str, where: str) -> DataSpec:
+    """A data spec written as a YAML/JSON mapping (``{real: A, negate_actions: true}``), checked as an
+    experiment's sides are; ValueError naming ``where`` otherwise.  Never a model: this is data."""
+    if len(text) > MAX_PATH_CHARS:
+        raise ValueError(f"{where}: {len(text)} characters; a data spec is a short mapping")
+    try:
+        raw = yaml.safe_load(text)
+    except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as err:
+        raise ValueError(f"{where}: not a YAML mapping ({' '.join(str(err).split())[:200]})") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"{where} must be a mapping of data settings such as '{{real: A}}', got {show(text)}")
+    spec = from_mapping(DataSpec, raw, where)
+    check_spec(spec, where)
+    return spec
 
 
 def sides(cfg: ExperimentConfig) -> tuple[str, ...]:
