@@ -521,7 +521,8 @@ def test_two_recorders_in_two_namespaces_with_one_relative_out_dir_keep_apart(ro
     left = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/left")
     right = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/right")
     assert (left.out_dir, right.out_dir) == (Path("recordings/left"), Path("recordings/right"))
-    assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == ["left", "right"]
+    assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == [  # each folder claimed by its suite
+        ".left.t42_namespace", ".right.t42_namespace", "left", "right"]
     left.close()
     right.close()
 

@@ -31,3 +31,47 @@ def test_the_transfer_server_reads_and_writes_its_namespaces_folders() -> None:
     spec = params.spec("/left")
     assert (spec.model_dir, spec.bag_dir) == (Path("models/left"), Path("recordings/left"))
     assert params.spec("").model_dir == Path("models")
+
+
+def test_a_directory_is_claimed_by_the_first_namespace_and_refused_to_another(tmp_path: Path) -> None:
+    from t42_transfer.ros.dirs import claim, claim_file
+
+    claim(tmp_path / "not_yet", "/left")  # nothing made: its maker claims it
+    assert not (tmp_path / "not_yet").exists() and not claim_file(tmp_path / "not_yet").exists()
+    (tmp_path / "bags").mkdir()
+    claim(tmp_path / "bags", "/left")
+    assert claim_file(tmp_path / "bags") == tmp_path / ".bags.t42_namespace"
+    assert claim_file(tmp_path / "bags").read_text() == "/left\n" and not list((tmp_path / "bags").iterdir())
+    tmp_path = tmp_path / "bags"
+    claim(tmp_path, "left/")  # the same namespace, however written, and again after a restart
+    with pytest.raises(ValueError, match=r"holds the files of the suite under /left .* a suite under /right .*"
+                                         "share_dirs:=true"):
+        claim(tmp_path, "/right")
+    with pytest.raises(ValueError, match="under /left"):
+        claim(tmp_path, "")  # the root namespace is a namespace too
+    claim(tmp_path, "/right", share=True)  # asked for: shared, and the claim stays the first one's
+    assert claim_file(tmp_path).read_text() == "/left\n"
+
+
+def test_two_namespaces_recording_into_one_absolute_directory(ros, tmp_path: Path) -> None:
+    from t42_transfer.nodes.recorder import Recorder
+
+    shared = str(tmp_path / "bags")
+    left = ros.add(Recorder, {"out_dir": shared}, namespace="/left")
+    with pytest.raises(ValueError, match=f"/right/recorder: out_dir {shared} holds the files of the suite under /left"):
+        ros.add(Recorder, {"out_dir": shared}, namespace="/right")
+    right = ros.add(Recorder, {"out_dir": shared, "share_dirs": True}, namespace="/right")
+    assert left.out_dir == right.out_dir == Path(shared)
+
+
+def test_the_transfer_server_refuses_bags_another_namespace_holds(tmp_path: Path) -> None:
+    from t42_transfer.nodes.transfer_server import TransferServerParams
+    from t42_transfer.ros.dirs import claim
+
+    (tmp_path / "bags").mkdir()
+    claim(tmp_path / "bags", "/left")
+    params = TransferServerParams(source_model=Path("/m/source.safetensors"), model_dir=tmp_path / "models",
+                                  bag_dir=str(tmp_path / "bags"))
+    with pytest.raises(ValueError, match="held|holds the files of the suite under /left"):
+        params.spec("/right")
+    assert params.spec("/left").bag_dir == tmp_path / "bags"

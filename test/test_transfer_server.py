@@ -194,7 +194,7 @@ def test_a_restarted_server_announces_the_latest_model_to_late_joiners(ros, tmp_
     add_target_bag(rig.bag_dir)
     assert rig.call().success
     # Another server on the same model directory (in its own namespace, as this one still runs), and a late listener.
-    late = Rig(ros, tmp_path, source_model, namespace="/again")
+    late = Rig(ros, tmp_path, source_model, namespace="/again", share_dirs=True)
     expected = [str(rig.model_dir / "transferred_000.safetensors")]
     assert ros.spin_until(lambda: late.updates == expected, 5.0), late.updates
     assert late.server.get_fully_qualified_name() == "/again/transfer_server"

@@ -103,7 +103,7 @@ from msg_adapters import (
 )
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
-from t42_transfer.ros.dirs import in_namespace
+from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile, recording
@@ -128,6 +128,8 @@ class RecorderParams:
 
     out_dir: Path = param(description="directory the bags are created in (made if missing); a relative one is "
                                       "taken under the node's namespace (recordings/left)", read_only=True)
+    share_dirs: bool = param(False, "record into out_dir even when a suite under another namespace holds it "
+                                    "(two suites sharing a directory on purpose)", read_only=True)
     mode: str = param("recording", "recording: bags change only on the services; "
                                    "episode: also split on hand/status events (one bag per episode)")
     prefix: str | None = param(None, "bag name prefix (unset: the mode, e.g. episode_000)")
@@ -205,6 +207,10 @@ class Recorder(Node):
             self.out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {self.out_dir}: {err.strerror}") from None
+        try:
+            claim(self.out_dir, self.get_namespace(), p.share_dirs)
+        except ValueError as err:
+            raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {err}") from None
         self.bags: list[Path] = []
         """Every bag this recorder has closed, in order."""
         self.received = 0

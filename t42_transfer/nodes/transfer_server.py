@@ -58,7 +58,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import RCLPY, diagnostic_array, names
-from t42_transfer.ros.dirs import in_namespace
+from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.config import TransferConfig
@@ -94,6 +94,8 @@ class TransferServerParams:
                              "(empty: use bags)", read_only=True)
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
                                       "transfer are skipped too", read_only=True)
+    share_dirs: bool = param(False, "use model_dir and bag_dir even when a suite under another namespace holds "
+                                    "them (two suites sharing files on purpose)", read_only=True)
     new_bags_only: bool = param(True, "train on the bags no earlier transfer used; false: on every bag, once one "
                                       "is new (the suite keeps learning from all it recorded)")
     method: str = param("l2_finetune", f"transfer method, one of {', '.join(sorted(METHODS))} (default: the "
@@ -131,10 +133,15 @@ class TransferServerParams:
 
     def spec(self, namespace: str = "") -> OnlineTransferSpec:
         """What one call runs on, built per call so the files are looked at afresh; ValueError for a bad config.
-        Relative directories are taken under ``namespace``'s own folder (``models/left``)."""
+        Relative directories are taken under ``namespace``'s own folder (``models/left``); a directory another
+        namespace's suite holds is refused (ValueError) unless ``share_dirs``."""
+        model_dir = in_namespace(self.model_dir, namespace)
+        bag_dir = in_namespace(self.bag_dir, namespace) if self.bag_dir else None
+        for directory in (model_dir, bag_dir):
+            if directory is not None:
+                claim(directory, namespace, self.share_dirs)
         return OnlineTransferSpec(
-            source_model=Path(self.source_model), model_dir=in_namespace(self.model_dir, namespace),
-            bag_dir=in_namespace(self.bag_dir, namespace) if self.bag_dir else None,
+            source_model=Path(self.source_model), model_dir=model_dir, bag_dir=bag_dir,
             bags=tuple(Path(b) for b in self.bags),
             new_bags_only=self.new_bags_only, method=self.method, config=self.transfer_config(),
             holdout_fraction=self.holdout_fraction,
@@ -167,6 +174,9 @@ class TransferServer(Node):
         self.create_service(Trigger, names.TRANSFER, self._on_transfer, qos_profile=profile(names.REQUESTS),
                             callback_group=ReentrantCallbackGroup())
         model_dir = in_namespace(self.params.model_dir, self.get_namespace())
+        for directory in (model_dir, self.params.bag_dir):  # at start, so a shared directory fails in one line
+            if directory:
+                claim(in_namespace(directory, self.get_namespace()), self.get_namespace(), self.params.share_dirs)
         latest = latest_model(model_dir)
         if latest is not None:
             self._updates.publish(String(data=str(latest)))
