@@ -173,3 +173,37 @@ def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[RosRig]:
         yield rig
     finally:
         rig.shutdown()
+
+
+@pytest.fixture(scope="module")
+def module_ros_domain() -> Iterator[int]:
+    """As :func:`ros_domain`, held for a whole module: for nodes its tests share (one emulated hand that needs a
+    5 s grasp before any test can use it, say)."""
+    _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
+    ids = list(range(1, 200))
+    random.SystemRandom().shuffle(ids)
+    for domain in ids:
+        handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        with pytest.MonkeyPatch.context() as env:
+            env.setenv("ROS_DOMAIN_ID", str(domain))
+            env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+            try:
+                yield domain
+            finally:
+                handle.close()
+        return
+    pytest.fail("no free ROS domain id")
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[pytest.TestReport]:
+    """Each phase's report on its item (``item.report_call``...): a fixture shared by tests learns whether the
+    test that used it passed."""
+    report = yield
+    setattr(item, f"report_{report.when}", report)
+    return report
