@@ -117,7 +117,7 @@ def test_the_authors_definition_counts_the_crossing_step(made, tmp_path):
 
 
 def test_dropout_draws_are_seeded_averaged_and_reported_beside_dropout_off(made, tmp_path, capsys):
-    from t42_transfer.evaluation.experiment import load_model_file
+    from t42_transfer.evaluation.model_files import load_model_file
 
     data = _paths()
     noisy = load_model_file(made["noisy"])[0]

@@ -25,8 +25,9 @@ def paths_arg(text: str) -> tuple[int, ...]:
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from t42_transfer.evaluation.evaluate import evaluate_models, table
-    from t42_transfer.evaluation.experiment import load_model_file, load_spec
+    from t42_transfer.evaluation.experiment import load_spec
     from t42_transfer.evaluation.experiment_config import parse_data_spec
+    from t42_transfer.evaluation.model_files import load_model_file
 
     spec = parse_data_spec(args.on, "--on")
     for model in args.models:

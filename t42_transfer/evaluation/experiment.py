@@ -15,12 +15,10 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
-import functools
 import hashlib
 import json
 import multiprocessing
 import os
-import shutil
 import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -43,13 +41,13 @@ from t42_transfer.data.trajectory import (
     split_by_fraction,
 )
 from t42_transfer.evaluation.experiment_config import (
-    AUTHORS_SUFFIX,
     DataSpec,
     ExperimentConfig,
     check_config,
     config_dict,
     sides,
 )
+from t42_transfer.evaluation.model_files import file_sha256, load_source_model, put_source_model
 from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
@@ -137,7 +135,7 @@ def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None) -> Sid
     """
     if spec.model is not None:
         empty = TrajectorySet()
-        return SideData(empty, empty, (), {"model": spec.model, "model_sha256": _file_sha256(spec.model),
+        return SideData(empty, empty, (), {"model": spec.model, "model_sha256": file_sha256(spec.model),
                                            "negate_actions": spec.negate_actions, "episodes": 0, "transitions": 0})
     raw = load_data(spec, cache)
     if spec.negate_actions:
@@ -347,82 +345,13 @@ def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
 
 
-def _file_sha256(path: str | os.PathLike[str]) -> str:
-    """SHA-256 of a file's bytes (a source model's identity: its name alone could be reused for other weights)."""
-    file = Path(path)
-    info = file.stat()
-    return _sha256_of(str(file.resolve()), info.st_mtime_ns, info.st_size)
-
-
-@functools.lru_cache(maxsize=16)
-def _sha256_of(path: str, mtime_ns: int, size: int) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def load_model_file(path: str | os.PathLike[str], negate_actions: bool = False
-                    ) -> tuple[LatentDynamics, dict[str, Any]]:
-    """A saved model and its metadata: a project model file as saved, or one of the paper authors' files
-    (``.pkl``) imported now, its actions negated inside it with ``negate_actions``.
-
-    ValueError ``<file>: <problem>`` (one line) for a missing file, a file that is no model, an authors' family
-    this project cannot represent, or ``negate_actions`` for a project model file (its actions are as saved).
-    """
-    from t42_transfer.models.authors import import_authors_model
-
-    file = Path(path)
-    if not str(file).endswith(AUTHORS_SUFFIX):
-        if negate_actions:
-            raise ValueError(f"{file}: negating actions applies to an authors' {AUTHORS_SUFFIX} file imported on the "
-                             f"fly; a model file's actions are as it was saved")
-        return load_model(file)
-    converted, legacy = import_authors_model(file, negate_actions=negate_actions)
-    return converted.model, {"method": f"authors_{converted.family}", "extra": {"authors": {
-        "source_file": file.name, "source_sha256": legacy.sha256, "family": converted.family,
-        "negate_actions": negate_actions}}}
-
-
-def load_source_model(spec: DataSpec) -> tuple[LatentDynamics, dict[str, Any]]:
-    """The model a ``source: {model: PATH}`` names, with its metadata (:func:`load_model_file`, actions negated
-    inside an authors' model when the spec negates them); ValueError ``source.model: <file>: <problem>``."""
-    if spec.model is None:
-        raise ValueError("the source is data, not a model")
-    try:
-        return load_model_file(spec.model, spec.negate_actions)
-    except ValueError as err:  # CheckpointError and AuthorsModelError name the file
-        raise ValueError(f"source.model: {err}") from None
-
-
-def _model_source(spec: DataSpec, path: Path) -> None:
-    """Put the source model ``spec`` names at ``path``: an authors' file imported, a model file copied as it is
-    (atomically: a run that stops halfway leaves no file under the final name)."""
-    from t42_transfer.models.authors import save_authors_model
-
-    if spec.model is None:
-        raise ValueError("the source is data, not a model")
-    if spec.model.endswith(AUTHORS_SUFFIX):
-        save_authors_model(spec.model, path, negate_actions=spec.negate_actions)
-        return
-    load_source_model(spec)  # a model file, checked whole before it is kept
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    try:
-        shutil.copyfile(spec.model, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int, ...] = ()) -> Path:
     """Where the source model trained without the source episodes ``excluded`` is kept (shared by experiments).
 
     A source that is a model is kept there too, named by its file's sha256 (and the negation of its actions).
     """
     if cfg.source.model is not None:
-        model = {"model_sha256": _file_sha256(cfg.source.model), "negate_actions": cfg.source.negate_actions}
+        model = {"model_sha256": file_sha256(cfg.source.model), "negate_actions": cfg.source.negate_actions}
         return Path(run_dir).parent / "sources" / f"source-{_digest(model)}.safetensors"
     depends: dict[str, Any] = {"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)}
     if cfg.source.mirror_about == "grasp":  # mirrored onto the target's grasp
@@ -442,7 +371,7 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
     if path.exists():
         return path
     if cfg.source.model is not None:
-        _model_source(cfg.source, path)
+        put_source_model(cfg.source, path)
         return path
     side = load_side(cfg, "source", data_cache(run_dir))
     data = TrajectorySet((t for t, o in zip(side.data, side.origins, strict=True) if o not in excluded),
