@@ -503,3 +503,60 @@ def test_the_authors_b_to_a_keeps_test_sequences_out_of_the_source(t42_real_dir:
         assert len(left_out) == 3 and left_out in results["excluded_source_episodes"].values()
         kept = [t for t, origin in zip(sides[0].data, sides[0].origins, strict=True) if origin not in left_out]
         assert meta["data"]["transitions"] == sum(len(t) for t in kept)
+
+
+def _rows_without_timing(run_dir: Path) -> list[dict]:
+    results = json.loads((run_dir / "results.json").read_text())
+    return [{k: v for k, v in row.items() if k != "seconds"} for row in results["rows"]]
+
+
+def test_a_local_dask_cluster_gives_the_results_of_one_worker_bit_for_bit(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("naive_finetune",), amounts=(1,))
+    run_experiment(cfg, tmp_path / "serial", progress=False)
+    run_experiment(cfg, tmp_path / "dask", progress=False, scheduler="local:2")
+    serial, dask = _rows_without_timing(tmp_path / "serial" / "tiny"), _rows_without_timing(tmp_path / "dask" / "tiny")
+    assert len(serial) >= 2 and serial == dask  # json floats: exact equality is bit for bit
+
+
+def test_a_bad_scheduler_is_a_one_line_error(config_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["experiment", str(config_file), "--out", str(tmp_path), "--scheduler", "local:0"])
+    assert stop.value.code == 2
+    assert "scheduler must be local:N" in capsys.readouterr().err
+    assert not (tmp_path / "tiny").exists()
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_run_loses_only_its_cell(config_file: Path, tmp_path: Path) -> None:
+    """A Dask worker SIGKILLed while cells run: its nanny starts a new one, the scheduler reruns the lost cell, and
+    the run ends with the numbers of a serial run."""
+    import dataclasses
+    import os
+    import signal
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    from t42_transfer.evaluation import cluster
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("naive_finetune", "cumulative_residual"))
+    run_experiment(cfg, tmp_path / "serial", progress=False)
+    killed: list[int] = []
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as local:
+        def kill_one_worker_once_cells_run() -> None:
+            with Client(local) as client:
+                while not any(client.processing().values()):
+                    threading.Event().wait(0.05)
+                pids = client.run(os.getpid)
+                killed.append(next(iter(pids.values())))
+                os.kill(killed[0], signal.SIGKILL)
+
+        killer = threading.Thread(target=kill_one_worker_once_cells_run, daemon=True)
+        killer.start()
+        run_experiment(cfg, tmp_path / "dask", progress=False, scheduler=local.scheduler_address)
+        killer.join(timeout=30)
+    assert killed, "no worker was killed"
+    assert _rows_without_timing(tmp_path / "serial" / "tiny") == _rows_without_timing(tmp_path / "dask" / "tiny")
+    assert cluster.check_scheduler(local.scheduler_address) == local.scheduler_address

@@ -8,6 +8,16 @@ from pathlib import Path
 from t42_transfer.cli.args import existing_dir, existing_file, int_arg, output_dir
 
 
+def _scheduler_arg(text: str) -> str:
+    """argparse type for ``--scheduler`` (checked without importing Dask)."""
+    from t42_transfer.evaluation.cluster import check_scheduler
+
+    try:
+        return check_scheduler(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def _cmd_experiment(args: argparse.Namespace) -> int:
     import dataclasses
 
@@ -19,7 +29,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
     output_dir(args.out)
-    rows = run_experiment(cfg, args.out, progress=not args.quiet)
+    rows = run_experiment(cfg, args.out, progress=not args.quiet, scheduler=args.scheduler)
     run_dir = args.out / cfg.name
     print(f"{len(rows)} rows (cells and the hold-still baseline) -> {run_dir / 'results.csv'}")
     if not args.no_report:
@@ -43,6 +53,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     exp.add_argument("--out", type=Path, default=Path("runs"), help="runs directory (default runs/)")
     exp.add_argument("--workers", type=int_arg(1), default=None,
                      help="worker processes (default: the config's, else all cores)")
+    exp.add_argument("--scheduler", type=_scheduler_arg, default=None, metavar="ADDRESS",
+                     help="run the cells on Dask: local:N (N worker processes here) or a scheduler's address "
+                          "(tcp://host:8786; the workers need this project and the run directory at the same path)")
     exp.add_argument("--no-report", action="store_true", help="skip the figures and report.md")
     exp.add_argument("--quiet", action="store_true", help="no progress bars")
     exp.set_defaults(func=_cmd_experiment)

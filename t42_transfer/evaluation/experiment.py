@@ -17,11 +17,9 @@ import dataclasses
 import fcntl
 import hashlib
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,6 +38,7 @@ from t42_transfer.data.trajectory import (
     same_action_sequence,
     split_by_fraction,
 )
+from t42_transfer.evaluation.cluster import check_scheduler, run_cells
 from t42_transfer.evaluation.experiment_config import (
     DataSpec,
     ExperimentConfig,
@@ -396,14 +395,18 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
     return path
 
 
-def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> list[dict[str, Any]]:
+def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
+                   scheduler: str | None = None) -> list[dict[str, Any]]:
     """Run (or resume) every cell; write its rows and the hold-still rows to ``results.json`` and ``results.csv``
-    in ``out / cfg.name``, and return them.
+    in ``out / cfg.name``, and return them.  ``scheduler`` runs the cells on Dask (:mod:`.cluster`: ``local:N``
+    or a scheduler's address) instead of ``cfg.workers`` local processes; the numbers are the same.
 
     The config is checked first and the run directory locked: a bad setting or a run directory in
     use is refused before anything is written.
     """
     check_config(cfg)
+    if scheduler is not None:
+        check_scheduler(scheduler)
     for side in sides(cfg):
         _check_input(getattr(cfg, side), side)
     if cfg.source.model is not None:
@@ -425,7 +428,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True) -> l
                 raise ValueError(f"every source episode ran a test sequence of {cell}: none is left to train on")
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
     with _run_lock(run_dir):
-        return _run(cfg, run_dir, progress)
+        return _run(cfg, run_dir.absolute(), progress, scheduler)  # absolute: workers elsewhere see the same path
 
 
 def _check_input(spec: DataSpec, side: str) -> None:
@@ -468,7 +471,7 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str, Any]]:
+def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | None) -> list[dict[str, Any]]:
     from tqdm.auto import tqdm
 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(config_dict(cfg), sort_keys=False))
@@ -497,20 +500,16 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool) -> list[dict[str,
     workspace = _workspace(cfg, source.data, target.data, sources[todo[0]]).to_dict() if todo else {}
     tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]
 
-    def keep(cell: Cell, row: dict[str, Any]) -> None:
+    def keep(task: tuple[Any, Cell, Any, Any, Any], row: dict[str, Any]) -> None:
+        cell = task[1]
         rows[cell] = row
         (run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json").write_text(json.dumps(row, indent=1))
         bar.update()
 
-    if workers == 1 or len(todo) <= 1:
-        for task in tasks:
-            keep(task[1], _run_cell(task))
-    else:
-        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for task, row in zip(tasks, pool.map(_run_cell, tasks), strict=True):
-                keep(task[1], row)
-    bar.close()
+    try:
+        run_cells(_run_cell, tasks, keep, workers, scheduler, bar)
+    finally:
+        bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
     results: dict[str, Any] = {"config": config_dict(cfg), "rows": ordered, "data_quality": quality}
     if cfg.source.exclude_test_sequences:
