@@ -4,8 +4,11 @@ For each run directory given (its ``results.json``), each divergence threshold
 (4 mm, the paper's figure; 10 mm, the authors' scripts) and each reference
 (``direct``: no adaptation; ``naive_finetune``: the method the paper says
 fails), every other method's difference to the reference over the matched
-cells (same amount and seed: same training subset and test episodes), pooled
-over amounts: mean difference in steps, 95 % t interval, cells won / lost,
+cells (same amount and seed: same training subset and test episodes; seeds
+that drew the same training episodes are one cell, where the rows say so), pooled
+over amounts: mean difference in steps, 95 % t interval, the paired t test's p
+and, in brackets, its Holm adjustment over the table's methods (a conclusion
+survives the multiple comparisons where that is below 0.05), cells won / lost,
 exact sign-test p; then the mean difference per amount.  Markdown to stdout.
 
     .venv/bin/python scripts/paired_tables.py docs/experiments/abrupt_paper_random docs/experiments/smooth_paper_random
@@ -32,7 +35,7 @@ import json
 import sys
 from pathlib import Path
 
-from t42_transfer.evaluation.stats import compare_methods
+from t42_transfer.evaluation.stats import compare_methods, holm, one_per_draw
 
 METRICS = {"divergence_mean_4mm": "4 mm", "divergence_mean_10mm": "10 mm"}
 GRID_METRICS = {**METRICS, "position_mse_mean": "position MSE, mm² (lower is better; won = higher)"}
@@ -41,7 +44,7 @@ REFERENCES = ("direct", "naive_finetune")
 
 def tables(run_dir: Path) -> str:
     stored = json.loads((run_dir / "results.json").read_text())
-    rows = stored["rows"]
+    rows = one_per_draw(stored["rows"])
     methods = list(dict.fromkeys(r["method"] for r in rows))
     amounts = sorted({r["amount"] for r in rows})
     config = stored.get("config", {})
@@ -54,23 +57,25 @@ def tables(run_dir: Path) -> str:
             if reference not in methods:
                 continue
             out.append(f"\n{label}, against {reference} (steps; pooled over {len(amounts)} amounts x seeds)\n\n")
-            out.append("| method | cells | mean difference | 95 % t interval | won / lost | sign p | "
+            out.append("| method | cells | mean difference | 95 % t interval | t p (Holm) | won / lost | sign p | "
                        + " | ".join(f"{a:g}" for a in amounts) + " |\n")
-            out.append("|---|---|---|---|---|---|" + "---|" * len(amounts) + "\n")
-            for method in methods:
-                if method == reference:
-                    continue
-                pooled = compare_methods(rows, metric, method, reference)["all"]
-                per = compare_methods(rows, metric, method, reference, by="amount")
-                low, high = pooled.t_interval
+            out.append("|---|---|---|---|---|---|---|" + "---|" * len(amounts) + "\n")
+            others = [m for m in methods if m != reference]
+            pooled = {m: compare_methods(rows, metric, m, reference)["all"] for m in others}
+            adjusted = dict(zip(others, holm([pooled[m].t_p for m in others]), strict=True))
+            for method in others:
+                paired, per = pooled[method], compare_methods(rows, metric, method, reference, by="amount")
+                low, high = paired.t_interval
                 cells = " | ".join(f"{per[a].mean_difference:+.1f}" if a in per else "-" for a in amounts)
-                out.append(f"| {method} | {pooled.n} | {pooled.mean_difference:+.1f} | {low:+.1f} to {high:+.1f} "
-                           f"| {pooled.wins} / {pooled.losses} | {pooled.sign_p:.2g} | {cells} |\n")
+                out.append(f"| {method} | {paired.n} | {paired.mean_difference:+.1f} | {low:+.1f} to {high:+.1f} "
+                           f"| {paired.t_p:.2g} ({adjusted[method]:.2g}) | {paired.wins} / {paired.losses} "
+                           f"| {paired.sign_p:.2g} | {cells} |\n")
     return "".join(out)
 
 
 def _rows(run_dir: Path) -> list[dict]:
-    return json.loads((run_dir / "results.json").read_text())["rows"]
+    """A run's rows, seeds that drew the same training episodes merged into one cell."""
+    return one_per_draw(json.loads((run_dir / "results.json").read_text())["rows"])
 
 
 def _mean_and_difference(rows: list[dict], metric: str, method: str, reference: str) -> str:

@@ -560,3 +560,15 @@ def test_a_worker_killed_mid_run_loses_only_its_cell(config_file: Path, tmp_path
     assert killed, "no worker was killed"
     assert _rows_without_timing(tmp_path / "serial" / "tiny") == _rows_without_timing(tmp_path / "dask" / "tiny")
     assert cluster.check_scheduler(local.scheduler_address) == local.scheduler_address
+
+
+def test_rows_name_their_training_draw_the_same_for_every_method(config_file: Path, tmp_path: Path) -> None:
+    import dataclasses
+
+    cfg = dataclasses.replace(load_config(config_file), methods=("direct", "naive_finetune"), amounts=(1, 2))
+    rows = [r for r in run_experiment(cfg, tmp_path, progress=False) if r["method"] != "hold_still"]
+    draws = {(r["amount"], r["seed"]): set() for r in rows}
+    for row in rows:
+        draws[(row["amount"], row["seed"])].add(row["train_draw"])
+    assert all(len(d) == 1 for d in draws.values())  # one draw per cell, whatever the method
+    assert len({next(iter(d)) for (amount, _), d in draws.items() if amount == 2}) == 2  # two seeds, two draws

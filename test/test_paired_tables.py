@@ -62,3 +62,15 @@ def test_ranking_orders_by_difference_and_marks_the_intervals(tables, tmp_path: 
     row = tables.ranking_table([run], "direct").splitlines()[-1]
     four_mm = row.split(" | ")[1]
     assert four_mm == "naive +3.0*, trajectory +0.0, cumres -2.5!"
+
+
+def test_tables_give_t_p_with_its_holm_adjustment_over_the_tables_methods(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    from t42_transfer.evaluation.stats import holm, t_test_p
+
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]],
+                               "cumulative_residual": [[9, 11], [8, 10]]})
+    text = tables.tables(run)
+    raw = [t_test_p([2, 4, 1, 5]), t_test_p([-1, 1, -2, 0])]
+    adjusted = holm(raw)
+    assert "| naive_finetune | 4 | +3.0 | " in text and f"| {raw[0]:.2g} ({adjusted[0]:.2g}) |" in text
+    assert f"| {raw[1]:.2g} ({adjusted[1]:.2g}) |" in text and adjusted[0] == 2 * raw[0]

@@ -12,11 +12,14 @@ from t42_transfer.evaluation.stats import (
     bootstrap_interval,
     compare_methods,
     compare_paired,
+    holm,
     matched_scores,
+    one_per_draw,
     sign_test,
     student_t_cdf,
     student_t_quantile,
     t_interval,
+    t_test_p,
     wilcoxon_signed_rank,
     wilson_interval,
 )
@@ -151,12 +154,30 @@ def test_matched_scores_and_per_amount_comparisons():
     assert len(cells) == 10
 
 
+def test_holm_by_hand():
+    # sorted 0.01, 0.02, 0.03, 0.5 -> 4 x 0.01, 3 x 0.02, max(2 x 0.03, previous), 1 x 0.5; back in the given order
+    assert holm([0.03, 0.5, 0.01, 0.02]) == pytest.approx([0.06, 0.5, 0.04, 0.06])
+    assert holm([0.4, 0.3]) == pytest.approx([0.6, 0.6])  # step-down keeps the adjusted order monotone
+    assert holm([0.9, 0.8, 0.7]) == [1.0, 1.0, 1.0] and holm([]) == []
+    with pytest.raises(ValueError, match=r"lie in \[0, 1\]"):
+        holm([0.2, 1.5])
+
+
+def test_t_test_p_by_hand():
+    d = [1.0, 2.0, 3.0, 4.0, 5.0]  # mean 3, sd sqrt(2.5), t = 3 / sqrt(0.5) = 4.2426 with 4 df
+    assert t_test_p(d) == pytest.approx(2 * (1 - student_t_cdf(3 / math.sqrt(0.5), 4)), rel=1e-12)
+    assert 0.01 < t_test_p(d) < 0.02  # tables: t_{0.995, 4} = 4.604 > 4.2426 > t_{0.99, 4} = 3.747
+    assert t_test_p([2.0, 2.0]) == 0.0 and t_test_p([0.0, 0.0, 0.0]) == 1.0
+    assert compare_paired([3.0, 4.0, 6.0], [1.0, 1.0, 1.0]).t_p == pytest.approx(t_test_p([2.0, 3.0, 5.0]))
+
+
 def test_agrees_with_scipy():
     scipy_stats = pytest.importorskip("scipy.stats")
     rng = np.random.default_rng(7)
     for n in (6, 15, 40):
         d = rng.normal(0.4, 1.0, n)
         assert wilcoxon_signed_rank(d)[1] == pytest.approx(scipy_stats.wilcoxon(d, method="exact").pvalue, rel=1e-9)
+        assert t_test_p(d) == pytest.approx(scipy_stats.ttest_1samp(d, 0.0).pvalue, rel=1e-9)
         assert t_interval(d, 0.9) == pytest.approx(
             scipy_stats.t.interval(0.9, n - 1, loc=d.mean(), scale=scipy_stats.sem(d)), rel=1e-9)
     tied = np.round(rng.normal(0.3, 1.0, 12))  # ties and zeros: exact over every sign pattern
@@ -167,3 +188,14 @@ def test_agrees_with_scipy():
     assert wilcoxon_signed_rank(large)[1] == pytest.approx(approx, rel=1e-9)
     for df in (2, 7, 60):
         assert student_t_quantile(0.95, df) == pytest.approx(scipy_stats.t.ppf(0.95, df), rel=1e-10)
+
+
+def test_seeds_that_drew_the_same_episodes_are_one_cell():
+    rows = [{"method": m, "amount": 1, "seed": seed, "train_draw": draw, "score": score}
+            for m, scores in (("a", (10.0, 14.0, 30.0)), ("b", (8.0, 8.0, 20.0)))
+            for seed, draw, score in zip((0, 1, 2), ("x", "x", "y"), scores, strict=True)]
+    merged = one_per_draw([*rows, {"method": "a", "amount": 1, "seed": 9, "score": 1.0}])  # an older run's row
+    cells, a, b = matched_scores([r for r in merged if r["seed"] != 9], "score", "a", "b")
+    assert cells == [(1, 0), (1, 2)] and a.tolist() == [12.0, 30.0] and b.tolist() == [8.0, 20.0]
+    assert [r["draws_merged"] for r in merged if r["seed"] == 0] == [2, 2]
+    assert {"method": "a", "amount": 1, "seed": 9, "score": 1.0} in merged

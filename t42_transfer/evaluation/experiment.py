@@ -298,6 +298,7 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     row = {
         "method": cell.method, "amount": cell.amount, "seed": cell.seed,
         "train_episodes": len(train), "train_transitions": train.num_transitions,
+        "train_draw": train.fingerprint()[:16],  # seeds that drew the same episodes are one cell (stats.one_per_draw)
     }
     if cell.method == "auto":  # keep which candidate the held-out evidence picked (results.json only)
         selection = select_method(source, train, cfg.transfer, seed=cell.seed)

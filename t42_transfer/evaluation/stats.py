@@ -107,6 +107,32 @@ def t_interval(differences: Sequence[float] | np.ndarray, confidence: float = 0.
     return float(d.mean() - half), float(d.mean() + half)
 
 
+def t_test_p(differences: Sequence[float] | np.ndarray) -> float:
+    """Two-sided p of the paired t test that the mean difference is 0 (n >= 2; 1.0 for all-equal differences
+    of mean 0, 0.0 for all-equal non-zero ones)."""
+    d = _finite(differences, "differences")
+    if len(d) < 2:
+        raise ValueError(f"a t test needs at least 2 differences, got {len(d)}")
+    sd = d.std(ddof=1)
+    if sd == 0:
+        return 1.0 if d.mean() == 0 else 0.0
+    t = abs(d.mean()) / (sd / math.sqrt(len(d)))
+    return min(1.0, 2.0 * (1.0 - student_t_cdf(t, len(d) - 1)))
+
+
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Holm-adjusted p-values (step-down; monotone in the raw order; capped at 1), in the order given: a family's
+    conclusion at level alpha survives where its adjusted p is below alpha."""
+    p = _finite(p_values, "p_values")
+    if ((p < 0) | (p > 1)).any():
+        raise ValueError("p-values must lie in [0, 1]")
+    adjusted, running = np.empty_like(p), 0.0
+    for rank, i in enumerate(np.argsort(p, kind="stable")):
+        running = max(running, min(1.0, (len(p) - rank) * p[i]))
+        adjusted[i] = running
+    return adjusted.tolist()
+
+
 def bootstrap_interval(
     differences: Sequence[float] | np.ndarray,
     confidence: float = 0.95,
@@ -204,6 +230,8 @@ class PairedComparison:
     ties: int
     sign_p: float
     wilcoxon_p: float
+    t_p: float
+    """Two-sided paired t-test p (the test behind ``t_interval``); adjust a family of them with :func:`holm`."""
     confidence: float
 
 
@@ -223,7 +251,7 @@ def compare_paired(
     return PairedComparison(
         n=len(d), mean_a=float(a.mean()), mean_b=float(b.mean()), mean_difference=float(d.mean()),
         t_interval=t_interval(d, confidence), bootstrap_interval=bootstrap_interval(d, confidence, resamples, seed),
-        wins=wins, losses=losses, ties=ties, sign_p=sign_p, wilcoxon_p=wilcoxon_signed_rank(d)[1],
+        wins=wins, losses=losses, ties=ties, sign_p=sign_p, wilcoxon_p=wilcoxon_signed_rank(d)[1], t_p=t_test_p(d),
         confidence=confidence,
     )
 
@@ -255,6 +283,27 @@ def matched_scores(
         scores[row["method"]][cell] = float(row[metric])
     cells = sorted(set(scores[method]) & set(scores[baseline]), key=repr)
     return (cells, np.array([scores[method][c] for c in cells]), np.array([scores[baseline][c] for c in cells]))
+
+
+def one_per_draw(rows: Iterable[Mapping[str, Any]], key: str = "train_draw") -> list[dict[str, Any]]:
+    """``rows`` with the cells that drew the same training data merged: seeds of one method and amount whose rows
+    carry the same ``key`` are one cell (their numbers averaged, the smallest seed kept), not several, so a paired
+    interval does not count one draw twice.  Rows without ``key`` (older runs) are kept as they are."""
+    merged: dict[tuple[Any, ...], list[Mapping[str, Any]]] = {}
+    out: list[dict[str, Any]] = []
+    for row in rows:
+        if key not in row:
+            out.append(dict(row))
+            continue
+        merged.setdefault((row["method"], row.get("amount"), row[key]), []).append(row)
+    for group in merged.values():
+        first = dict(min(group, key=lambda r: r.get("seed", 0)))
+        for name, value in first.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and name not in ("seed", "amount"):
+                first[name] = sum(r[name] for r in group) / len(group)
+        first["draws_merged"] = len(group)
+        out.append(first)
+    return out
 
 
 def compare_methods(rows: Iterable[Mapping[str, Any]], metric: str, method: str, baseline: str, *,
