@@ -164,7 +164,7 @@ def test_requirements_are_exact_pins_matching_the_environment():
     pins = _pins(REPO / "requirements.txt")
     assert pins.get("torch") == "2.13.0"
     for name in ("numpy", "mujoco", "rosbags", "mcap", "tqdm", "PyYAML", "matplotlib", "ros-jazzy-rclpy",
-                 "ros-jazzy-common-interfaces", "ros-jazzy-rosgraph-msgs"):
+                 "ros-jazzy-common-interfaces", "ros-jazzy-rosgraph-msgs", "opencv-python-headless"):
         assert name in pins, f"requirements.txt lacks a pin for {name}"
     pins_test = _pins(REPO / "requirements-test.txt")
     for name in ("pytest", "hypothesis", "colcon-common-extensions"):
