@@ -259,12 +259,18 @@ def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -
     import dataclasses
 
     cfg, cell, source = load_config(config_file), exp.Cell("direct", 1, 0), Path("source-0123.safetensors")
+    methods = dataclasses.asdict(cfg.transfer)
+    for residual in ("cumulative_residual", "recurrent_residual"):  # before the gamma rule could be chosen
+        del methods[residual]["gamma_rule"]
     before = {  # what a cell's key hashed before configs could name a test set
         "cell": {"method": "direct", "amount": 1, "seed": 0}, "target": cfg.target.describe(), "split": "paths",
         "test_fraction": 0.2, "epsilon": 4.0, "offsets": [0], "horizon": None, "lyapunov_steps": 20,
-        "method_config": dataclasses.asdict(cfg.transfer), "source": source.name, "definition": "paper",
+        "method_config": methods, "source": source.name, "definition": "paper",
     }
     assert exp._cell_key(cfg, cell, source) == f"direct-1-0-{exp._digest(before)}"
+    rule = dataclasses.replace(cfg.transfer.cumulative_residual, gamma_rule="lyapunov")
+    ruled = dataclasses.replace(cfg, transfer=dataclasses.replace(cfg.transfer, cumulative_residual=rule))
+    assert exp._cell_key(ruled, cell, source) != exp._cell_key(cfg, cell, source)
     sustained = dataclasses.replace(cfg, test=DataSpec(hand="target", policy="sustained"))
     random = dataclasses.replace(cfg, test=DataSpec(hand="target"))
     keys = {exp._cell_key(c, cell, source) for c in (cfg, sustained, random)}

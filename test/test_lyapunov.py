@@ -338,3 +338,41 @@ def test_cumulative_residual_theorem_on_the_real_model_classes(gamma):
     x0 = torch.tensor([[0.0, 90.0, 100.0, -100.0]]).repeat(4, 1) + torch.randn(4, 4)
     actions = torch.rand(4, 150, 2) * 2 - 1
     check_cumulative_residual_theorem(source, model, gamma, x0, actions, tol=0.02)
+
+
+class Diagonal(StateIsLatent):
+    """``z' = c * z`` per coordinate: exponents ``ln |c|``."""
+
+    def __init__(self, c: tuple[float, ...]) -> None:
+        super().__init__()
+        self.c = torch.tensor(c, dtype=torch.float64)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        return z * self.c.to(z.dtype)
+
+
+@pytest.mark.parametrize("c, gamma", [((0.5, 0.9, 0.95, 0.99), 0.5), ((1.2, 1.1, 1.05, 1.3), 1.0)])
+def test_the_gamma_rule_is_e_to_the_smallest_exponent_capped_at_one(c, gamma, small_set):
+    from t42_transfer.evaluation.lyapunov import lyapunov_gamma
+
+    assert lyapunov_gamma(Diagonal(c), small_set) == pytest.approx(gamma, rel=1e-9)
+    with pytest.raises(ValueError, match="at least one episode"):
+        lyapunov_gamma(Diagonal(c), TrajectorySet([]))
+
+
+def test_cumulative_residual_takes_the_rules_gamma(small_set):
+    import dataclasses
+
+    from t42_transfer.evaluation.lyapunov import lyapunov_gamma
+    from t42_transfer.models.training import TrainConfig
+    from t42_transfer.transfer.config import TransferConfig
+    from t42_transfer.transfer.methods import transfer
+
+    torch.manual_seed(0)
+    source = TransitionModel(Normalisation.identity())
+    base = TransferConfig()
+    rule = dataclasses.replace(base.cumulative_residual, gamma_rule="lyapunov", train=TrainConfig(epochs=1))
+    model = transfer("cumulative_residual", source, small_set, dataclasses.replace(base, cumulative_residual=rule), 0)
+    assert model.gamma == pytest.approx(lyapunov_gamma(source, small_set)) and model.gamma != rule.gamma
+    with pytest.raises(ValueError, match="gamma_rule must be one of"):
+        dataclasses.replace(rule, gamma_rule="largest")

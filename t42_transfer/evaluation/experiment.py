@@ -333,12 +333,22 @@ def _cells(cfg: ExperimentConfig) -> list[Cell]:
     return [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
 
 
+def _method_config(cfg: ExperimentConfig) -> dict[str, Any]:
+    """The transfer settings a cell's key hashes; a setting added later is left out at its default, so the cells
+    of earlier runs keep their keys."""
+    settings = dataclasses.asdict(cfg.transfer)
+    for method in ("cumulative_residual", "recurrent_residual"):
+        if settings[method]["gamma_rule"] == "fixed":
+            del settings[method]["gamma_rule"]
+    return settings
+
+
 def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     depends = {
         "cell": dataclasses.asdict(cell), "target": cfg.target.describe(), "split": cfg.split,
         "test_fraction": cfg.test_fraction, "epsilon": cfg.epsilon_mm, "offsets": cfg.start_offsets,
         "horizon": cfg.horizon, "lyapunov_steps": cfg.lyapunov_steps,
-        "method_config": dataclasses.asdict(cfg.transfer), "source": source_path.name, "definition": cfg.definition,
+        "method_config": _method_config(cfg), "source": source_path.name, "definition": cfg.definition,
     }
     if cfg.test is not None:  # absent otherwise: keys of runs without a test set stay valid
         depends["test"] = cfg.test.describe()

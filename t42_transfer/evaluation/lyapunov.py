@@ -215,3 +215,16 @@ def model_lyapunov(
 ) -> Tensor:
     """The maximal finite-time Lyapunov exponent ``[B]`` of each open-loop orbit of ``model`` (see above)."""
     return model_lyapunov_spectrum(model, data, 1, steps=steps, burn_in=burn_in, scales=scales)[:, 0]
+
+
+GAMMA_RULE_STEPS = 200
+"""Steps of each target orbit the source's spectrum is averaged over for :func:`lyapunov_gamma`."""
+
+
+def lyapunov_gamma(source: LatentDynamics, data: TrajectorySet, steps: int = GAMMA_RULE_STEPS) -> float:
+    """The cumulative residual's ``gamma`` by the paper's proof: ``min(1, e^lambda_min)``, ``lambda_min`` the
+    smallest exponent of ``source``'s full spectrum along ``data``'s open-loop orbits (mean over orbits)."""
+    if not len(data):
+        raise ValueError("the gamma rule needs at least one episode to follow")
+    spectrum = model_lyapunov_spectrum(source, data, steps=steps)  # in the frame's column order: take the minimum
+    return float(min(1.0, np.exp(float(spectrum.min(dim=1).values.mean()))))

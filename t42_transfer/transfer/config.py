@@ -32,6 +32,7 @@ AUTHORS_RESIDUAL_TRAINING = TrainConfig(lr=2e-5, epochs=5, patience=None)
 TRAJECTORY_LOSSES = ("paper", "authors")
 RESIDUAL_NORMALISATIONS = ("residual", "source")
 RECURRENT_FORMS = ("adjusted_state", "normalised_sum")
+GAMMA_RULES = ("fixed", "lyapunov")
 
 
 def _check(name: str, value: object, allowed: tuple[str, ...]) -> None:
@@ -44,7 +45,7 @@ OTHER_THAN_AUTO: Rule = ((lambda v: v != "auto"), "a method other than auto")
 """Whether a name is a registered method is :func:`~t42_transfer.transfer.methods.select_method`'s to say."""
 _RESIDUAL_RULES: dict[str, Rule] = {
     "alpha": NON_NEGATIVE, "gamma": between(0, 1, low_open=True), "val_fraction": VAL_FRACTION,
-    "normalisation": one_of(RESIDUAL_NORMALISATIONS),
+    "normalisation": one_of(RESIDUAL_NORMALISATIONS), "gamma_rule": one_of(GAMMA_RULES),
 }
 
 
@@ -118,6 +119,11 @@ class ResidualConfig:
     """How g's inputs and outputs are scaled: ``residual``: its own statistics (target states, one-step
     errors; ours, the paper is silent); ``source``: the source model's state normalisation, outputs in units
     of its state-change std (the authors' code: g reads the source's normalised input)."""
+    gamma_rule: str = "fixed"
+    """``fixed``: ``gamma`` as set; ``lyapunov``: the proof's rule, ``gamma = min(1, e^lambda_min)`` with
+    ``lambda_min`` the source model's smallest Lyapunov exponent along the target training episodes
+    (:func:`~t42_transfer.evaluation.lyapunov.lyapunov_gamma`), so the residual sum decays no slower than the
+    source's most contracting direction (``gamma`` is then not used)."""
 
     def __post_init__(self) -> None:
         check(self, _RESIDUAL_RULES)

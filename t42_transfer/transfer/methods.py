@@ -217,13 +217,22 @@ def _residual_net(
     return g
 
 
+def _gamma(c: ResidualConfig, source: TransitionModel, target: TrajectorySet) -> float:
+    """The residual sum's decay: as set, or by the proof's rule from the source's spectrum on the target data."""
+    if c.gamma_rule == "fixed":
+        return c.gamma
+    from t42_transfer.evaluation.lyapunov import lyapunov_gamma
+
+    return lyapunov_gamma(source, target)
+
+
 def cumulative_residual(
     source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
 ) -> LatentDynamics:
     """Algorithm 2: frozen source plus a discounted running sum of residuals."""
     c = cfg.cumulative_residual
     g = _residual_net(source, target, c, seed, on_epoch)
-    return CumulativeResidualModel(copy.deepcopy(source), g, c.alpha, c.gamma).eval()
+    return CumulativeResidualModel(copy.deepcopy(source), g, c.alpha, _gamma(c, source, target)).eval()
 
 
 def recurrent_residual(
@@ -233,7 +242,7 @@ def recurrent_residual(
     c = cfg.recurrent_residual
     if c.form == "adjusted_state":
         g = _residual_net(source, target, c, seed, on_epoch, adjusted_input=True)
-        return AdjustedStateResidualModel(copy.deepcopy(source), g, c.alpha, c.gamma).eval()
+        return AdjustedStateResidualModel(copy.deepcopy(source), g, c.alpha, _gamma(c, source, target)).eval()
     g = _residual_net(source, target, c, seed, on_epoch)
     return RecurrentResidualModel(copy.deepcopy(source), g, c.alpha).eval()
 
