@@ -156,10 +156,15 @@ def ranking_table(runs: list[Path], reference: str) -> str:
 
 def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
-    base_rows = [r for r in _rows(base) if r["method"] == reference]
+    every = _rows(base)
+    base_rows = [r for r in every if r["method"] == reference]
     labels = " | ".join(f"{label} (vs {reference} of {base.name})" for label in METRICS.values())
     out = [f"| run, method | {labels} |\n",
            "|---|" + "---|" * len(METRICS) + "\n"]
+    still = [r for r in every if r["method"] == "hold_still"]
+    if still:  # doing nothing, on the same cells: the floor every variant is read against
+        cells = [_mean_and_difference(base_rows + still, metric, "hold_still", reference) for metric in METRICS]
+        out.append(f"| {base.name}, hold_still | " + " | ".join(cells) + " |\n")
     for run in runs:
         rows = [r for r in _rows(run) if r["method"] not in (reference, "hold_still")]
         for method in dict.fromkeys(r["method"] for r in rows):

@@ -52,7 +52,9 @@ def test_variants_pair_each_run_with_the_base_reference(tables, tmp_path: Path) 
     sweep = _run(tmp_path, "sweep", {"cumulative_residual": [[9, 9], [7, 7]]})
     text = tables.variants_table(base, [sweep], "direct")
     assert "| sweep, cumulative_residual | 8.0 (-2.0, " in text and "; 0/4) | 16.0 (-4.0, " in text
-    assert "naive_finetune" not in text  # only the variant runs' methods are rows
+    assert "naive_finetune" not in text  # only the variant runs' methods are rows (and the base's hold-still)
+    still = _run(tmp_path, "with_still", {"direct": [[10, 10], [10, 10]], "hold_still": [[4, 4], [4, 4]]})
+    assert "| with_still, hold_still | 4.0 (-6.0, " in tables.variants_table(still, [sweep], "direct")
 
 
 def test_ranking_orders_by_difference_and_marks_the_intervals(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
