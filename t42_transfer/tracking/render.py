@@ -1,0 +1,200 @@
+"""A simulated camera over the simulated hand: marker images, an offscreen renderer, the true answers.
+
+:class:`HandCamera` builds the hand's scene with a :class:`~t42_transfer.hand.mjcf.MarkerScene` (ArUco marker
+tiles made with ``cv2.aruco.generateImageMarker``, passed to MuJoCo as texture assets), copies a
+:class:`~t42_transfer.hand.sim.SimulatedHand`'s configuration into it and renders the scene's camera offscreen.
+It knows the truth a tracker is tested against: the intrinsics (from the camera's ``fovy`` and the image size),
+the object's position and the camera's pose in ``t42_base`` (the hand's world frame).
+
+The GL backend is ``MUJOCO_GL`` (``egl`` when unset; ``osmesa`` and ``glfw`` also work where installed), chosen
+when the first camera is made, whatever MuJoCo was imported with.  Nothing here is imported unless a camera is
+wanted, so rendering costs nothing when off.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import cv2
+import mujoco
+import numpy as np
+
+from t42_transfer.hand.mjcf import (
+    MARKER_MARGIN_FRACTION,
+    MarkerScene,
+    hand_mjcf,
+    marker_texture_file,
+    object_marker_height_mm,
+)
+from t42_transfer.hand.params import HandParams, variant
+from t42_transfer.hand.sim import OBJECT_START_MM, SimulatedHand
+from t42_transfer.tracking.markers import (
+    DEFAULT_DICTIONARY,
+    MM_PER_M,
+    BaseMarker,
+    Intrinsics,
+    TrackerConfig,
+    aruco_dictionary,
+)
+
+CAMERA_NAME = "tracker_camera"
+MODULE_PX = 20
+"""Texture pixels per marker module (cell)."""
+MJ_TO_CV = np.diag([1.0, -1.0, -1.0])
+"""MuJoCo camera axes (x right, y up, looking along -z) to OpenCV's (x right, y down, looking along +z)."""
+
+
+def marker_tile_png(marker_id: int, dictionary: str = DEFAULT_DICTIONARY) -> bytes:
+    """PNG bytes of marker ``marker_id`` with its white margin, as the scene's tiles show it."""
+    d = aruco_dictionary(dictionary)
+    side = (d.markerSize + 2) * MODULE_PX
+    image = cv2.aruco.generateImageMarker(d, marker_id, side, borderBits=1)
+    margin = int(round(side * MARKER_MARGIN_FRACTION))
+    image = cv2.copyMakeBorder(image, margin, margin, margin, margin, cv2.BORDER_CONSTANT, value=255)
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise RuntimeError(f"could not encode marker {marker_id}")
+    return png.tobytes()
+
+
+def _gl_context_class() -> type:
+    backend = os.environ.get("MUJOCO_GL", "").strip().lower() or "egl"
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    elif backend in ("glfw", "glx"):
+        from mujoco.glfw import GLContext
+    else:
+        raise ValueError(f"MUJOCO_GL={backend!r}: rendering needs egl, osmesa or glfw")
+    return GLContext
+
+
+class HandCamera:
+    """The scene camera of one hand's marker scene; not thread-safe (its GL context is made current per call)."""
+
+    def __init__(self, params: HandParams | str = "source", scene: MarkerScene | None = None,
+                 dictionary: str = DEFAULT_DICTIONARY) -> None:
+        self.params = variant(params) if isinstance(params, str) else params
+        self.scene = scene or MarkerScene()
+        self.dictionary = dictionary
+        cam = self.scene.camera
+        if not (0 < cam.width <= 8192 and 0 < cam.height <= 8192):
+            raise ValueError(f"camera resolution {cam.width}x{cam.height} is out of range")
+        if not 1.0 <= cam.fovy_deg <= 170.0:
+            raise ValueError(f"camera fovy {cam.fovy_deg} deg is out of range")
+        markers = (self.scene.object_marker, *self.scene.base_markers)
+        assets = {marker_texture_file(m.marker_id): marker_tile_png(m.marker_id, dictionary) for m in markers}
+        self.model = mujoco.MjModel.from_xml_string(hand_mjcf(self.params, OBJECT_START_MM, self.scene), assets)
+        self.data = mujoco.MjData(self.model)
+        self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
+        self._object_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "object")
+        self._gl: Any = None
+        mujoco.mj_forward(self.model, self.data)
+
+    # ------------------------------------------------------------------ the truth
+    @property
+    def width(self) -> int:
+        return self.scene.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.scene.camera.height
+
+    def intrinsics(self) -> Intrinsics:
+        """The true pinhole intrinsics: square pixels, focal length from ``fovy``, centre of the image, no distortion.
+
+        OpenCV puts pixel centres on integer coordinates, so the image centre is ``((w - 1) / 2, (h - 1) / 2)``.
+        """
+        f = 0.5 * self.height / math.tan(math.radians(self.scene.camera.fovy_deg) / 2)
+        k = np.array([[f, 0.0, (self.width - 1) / 2], [0.0, f, (self.height - 1) / 2], [0.0, 0.0, 1.0]])
+        return Intrinsics(self.width, self.height, k, np.zeros(5))
+
+    def base_from_camera(self) -> np.ndarray:
+        """The camera's true pose in ``t42_base`` (4x4, OpenCV camera axes, metres)."""
+        t = np.eye(4)
+        t[:3, :3] = self.data.cam_xmat[self._camera_id].reshape(3, 3) @ MJ_TO_CV
+        t[:3, 3] = self.data.cam_xpos[self._camera_id]
+        return t
+
+    def object_xy_mm(self) -> np.ndarray:
+        """The object's true position in ``t42_base`` (mm) in the configuration last set."""
+        return self.data.xpos[self._object_body][:2] * MM_PER_M
+
+    def tracker_config(self, **overrides: Any) -> TrackerConfig:
+        """The tracker configuration that matches this scene (marker ids, sizes and base marker poses)."""
+        s = self.scene
+        base = tuple(BaseMarker(m.marker_id, m.size_mm / MM_PER_M,
+                                (m.x_mm / MM_PER_M, m.y_mm / MM_PER_M, m.z_mm / MM_PER_M))
+                     for m in s.base_markers)
+        settings: dict[str, Any] = dict(object_id=s.object_marker.marker_id,
+                                        object_size_m=s.object_marker.size_mm / MM_PER_M,
+                                        base_markers=base, dictionary=self.dictionary)
+        settings.update(overrides)
+        return TrackerConfig(**settings)
+
+    def object_marker_height_m(self) -> float:
+        return object_marker_height_mm(self.params) / MM_PER_M
+
+    # ------------------------------------------------------------------ rendering
+    def set_hand(self, hand: SimulatedHand) -> None:
+        """Pose the scene as ``hand`` is now (joint positions; the scene's additions have no joints)."""
+        snap = hand.snapshot()
+        if snap.data.qpos.shape != self.data.qpos.shape:
+            raise ValueError("the hand's model does not match this camera's scene")
+        self.data.qpos[:] = snap.data.qpos
+        mujoco.mj_forward(self.model, self.data)
+
+    def set_object(self, xy_mm: np.ndarray | tuple[float, float], yaw: float = 0.0) -> None:
+        """Place the object at ``xy_mm`` (``t42_base``), rotated by ``yaw``; the fingers stay where they are."""
+        for joint, value in (("object_x", (xy_mm[0] - OBJECT_START_MM[0]) / MM_PER_M),
+                             ("object_y", (xy_mm[1] - OBJECT_START_MM[1]) / MM_PER_M), ("object_yaw", yaw)):
+            j = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+            self.data.qpos[self.model.jnt_qposadr[j]] = value
+        mujoco.mj_forward(self.model, self.data)
+
+    def _open(self) -> None:
+        gl = _gl_context_class()(self.width, self.height)
+        gl.make_current()
+        self._gl = gl
+        self._scene = mujoco.MjvScene(self.model, maxgeom=200)
+        self._option = mujoco.MjvOption()
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._camera.fixedcamid = self._camera_id
+        self._context = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
+        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
+
+    def render(self, noise_std: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+        """An RGB image (``rgb8``, height x width x 3) of the scene as last set; optional Gaussian pixel noise."""
+        if self._gl is None:
+            self._open()
+        self._gl.make_current()
+        mujoco.mjv_updateScene(self.model, self.data, self._option, None, self._camera,
+                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+        mujoco.mjr_render(self._rect, self._scene, self._context)
+        rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
+        mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
+        image = np.ascontiguousarray(rgb[::-1])
+        if noise_std > 0:
+            rng = rng or np.random.default_rng()
+            noisy = image + rng.normal(0.0, noise_std, size=image.shape)
+            image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+        return image
+
+    def close(self) -> None:
+        """Free the GL resources (the camera can render again afterwards)."""
+        if self._gl is not None:
+            self._gl.make_current()
+            self._context.free()
+            self._gl.free()
+            self._gl = None
+
+    def __enter__(self) -> HandCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
