@@ -1,7 +1,7 @@
 """The ``t42`` command: one entry point whose subcommands reach every layer.
 
 Each subcommand lives in the module of its group (``demo``, ``experiment``, ``evaluate``, ``plan``,
-``sim``, ``bag``, ``model``, ``node``, ``hw``), parses its arguments with the shared checks of
+``sim``, ``bag``, ``model``, ``node``, ``hw``, ``camera``), parses its arguments with the shared checks of
 :mod:`t42_transfer.cli.args`, calls one library function and prints a summary; bad
 input ends with ``t42: error: <file>: <problem>`` and exit code 2, never a traceback.
 """
@@ -14,10 +14,10 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from t42_transfer import __version__
-from t42_transfer.cli import bag, demo, evaluate, experiment, hw, model, node, plan, sim
+from t42_transfer.cli import bag, camera, demo, evaluate, experiment, hw, model, node, plan, sim
 from t42_transfer.cli.args import OneLineParser, os_error
 
-GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, hw)
+GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, hw, camera)
 """Command modules, in the order ``t42 --help`` lists them."""
 
 
@@ -51,7 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if func is None:
         # `t42` or `t42 sim` alone: show the help of the level reached.
         chosen = [a for a in (args.command, getattr(args, "sim_command", None), getattr(args, "bag_command", None),
-                              getattr(args, "hw_command", None), getattr(args, "model_command", None)) if a]
+                              getattr(args, "hw_command", None), getattr(args, "model_command", None),
+                              getattr(args, "camera_command", None)) if a]
         parser.parse_args([*chosen, "--help"]) if chosen else parser.print_help()
         return 0
     args.argv = argv

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -72,6 +73,56 @@ def _gl_context_class() -> type:
     return GLContext
 
 
+def pinhole_intrinsics(width: int, height: int, fovy_deg: float) -> Intrinsics:
+    """A MuJoCo camera's true intrinsics: square pixels, focal length from ``fovy``, centred, no distortion.
+
+    OpenCV puts pixel centres on integer coordinates, so the image centre is ``((w - 1) / 2, (h - 1) / 2)``.
+    """
+    f = 0.5 * height / math.tan(math.radians(fovy_deg) / 2)
+    k = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    return Intrinsics(width, height, k, np.zeros(5))
+
+
+def add_noise(image: np.ndarray, noise_std: float, rng: np.random.Generator | None = None) -> np.ndarray:
+    """``image`` with Gaussian pixel noise of ``noise_std`` grey levels (the image itself when 0)."""
+    if noise_std <= 0:
+        return image
+    noisy = image + (rng or np.random.default_rng()).normal(0.0, noise_std, size=image.shape)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+class Offscreen:
+    """Renders one named camera of a model into RGB arrays, in its own GL context."""
+
+    def __init__(self, model: mujoco.MjModel, camera: str, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self._gl = _gl_context_class()(width, height)
+        self._gl.make_current()
+        self._scene = mujoco.MjvScene(model, maxgeom=200)
+        self._option = mujoco.MjvOption()
+        self._camera = mujoco.MjvCamera()
+        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self._camera.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+        self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
+        self._rect = mujoco.MjrRect(0, 0, width, height)
+        self._model = model
+
+    def render(self, data: mujoco.MjData) -> np.ndarray:
+        self._gl.make_current()
+        mujoco.mjv_updateScene(self._model, data, self._option, None, self._camera, mujoco.mjtCatBit.mjCAT_ALL,
+                               self._scene)
+        mujoco.mjr_render(self._rect, self._scene, self._context)
+        rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
+        mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
+        return np.ascontiguousarray(rgb[::-1])  # OpenGL's rows run bottom-up
+
+    def close(self) -> None:
+        self._gl.make_current()
+        self._context.free()
+        self._gl.free()
+
+
 class HandCamera:
     """The scene camera of one hand's marker scene; not thread-safe (its GL context is made current per call)."""
 
@@ -91,7 +142,7 @@ class HandCamera:
         self.data = mujoco.MjData(self.model)
         self._camera_id = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
         self._object_body = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "object")
-        self._gl: Any = None
+        self._screen: Offscreen | None = None
         mujoco.mj_forward(self.model, self.data)
 
     # ------------------------------------------------------------------ the truth
@@ -104,13 +155,8 @@ class HandCamera:
         return self.scene.camera.height
 
     def intrinsics(self) -> Intrinsics:
-        """The true pinhole intrinsics: square pixels, focal length from ``fovy``, centre of the image, no distortion.
-
-        OpenCV puts pixel centres on integer coordinates, so the image centre is ``((w - 1) / 2, (h - 1) / 2)``.
-        """
-        f = 0.5 * self.height / math.tan(math.radians(self.scene.camera.fovy_deg) / 2)
-        k = np.array([[f, 0.0, (self.width - 1) / 2], [0.0, f, (self.height - 1) / 2], [0.0, 0.0, 1.0]])
-        return Intrinsics(self.width, self.height, k, np.zeros(5))
+        """The camera's true intrinsics (:func:`pinhole_intrinsics`)."""
+        return pinhole_intrinsics(self.width, self.height, self.scene.camera.fovy_deg)
 
     def base_from_camera(self) -> np.ndarray:
         """The camera's true pose in ``t42_base`` (4x4, OpenCV camera axes, metres)."""
@@ -155,46 +201,75 @@ class HandCamera:
             self.data.qpos[self.model.jnt_qposadr[j]] = value
         mujoco.mj_forward(self.model, self.data)
 
-    def _open(self) -> None:
-        gl = _gl_context_class()(self.width, self.height)
-        gl.make_current()
-        self._gl = gl
-        self._scene = mujoco.MjvScene(self.model, maxgeom=200)
-        self._option = mujoco.MjvOption()
-        self._camera = mujoco.MjvCamera()
-        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
-        self._camera.fixedcamid = self._camera_id
-        self._context = mujoco.MjrContext(self.model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
-        self._rect = mujoco.MjrRect(0, 0, self.width, self.height)
-
     def render(self, noise_std: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
         """An RGB image (``rgb8``, height x width x 3) of the scene as last set; optional Gaussian pixel noise."""
-        if self._gl is None:
-            self._open()
-        self._gl.make_current()
-        mujoco.mjv_updateScene(self.model, self.data, self._option, None, self._camera,
-                               mujoco.mjtCatBit.mjCAT_ALL, self._scene)
-        mujoco.mjr_render(self._rect, self._scene, self._context)
-        rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
-        mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
-        image = np.ascontiguousarray(rgb[::-1])
-        if noise_std > 0:
-            rng = rng or np.random.default_rng()
-            noisy = image + rng.normal(0.0, noise_std, size=image.shape)
-            image = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
-        return image
+        if self._screen is None:
+            self._screen = Offscreen(self.model, CAMERA_NAME, self.width, self.height)
+        return add_noise(self._screen.render(self.data), noise_std, rng)
 
     def close(self) -> None:
         """Free the GL resources (the camera can render again afterwards)."""
-        if self._gl is not None:
-            self._gl.make_current()
-            self._context.free()
-            self._gl.free()
-            self._gl = None
+        if self._screen is not None:
+            self._screen.close()
+            self._screen = None
 
     def __enter__(self) -> HandCamera:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# --------------------------------------------------------------------------- calibration boards
+BOARD_SQUARE_PX = 40
+
+
+def board_png(pattern: tuple[int, int]) -> bytes:
+    """PNG of a checkerboard with ``pattern`` inner corners (cols, rows) and a white margin of one square."""
+    cols, rows = pattern
+    squares = np.indices((rows + 1, cols + 1)).sum(axis=0) % 2
+    board = np.where(squares == 0, 0, 255).astype(np.uint8)
+    board = np.kron(board, np.ones((BOARD_SQUARE_PX, BOARD_SQUARE_PX), np.uint8))
+    board = cv2.copyMakeBorder(board, *(BOARD_SQUARE_PX,) * 4, cv2.BORDER_CONSTANT, value=255)
+    return cv2.imencode(".png", board)[1].tobytes()
+
+
+class BoardCamera:
+    """A camera at the origin looking along -z at a checkerboard it can place anywhere (calibration images)."""
+
+    def __init__(self, pattern: tuple[int, int] = (9, 6), square_mm: float = 20.0, width: int = 640,
+                 height: int = 480, fovy_deg: float = 50.0) -> None:
+        self.pattern, self.square_mm = pattern, square_mm
+        self.width, self.height, self.fovy_deg = width, height, fovy_deg
+        half = [(n + 3) * square_mm / 2000 for n in pattern]
+        xml = f"""<mujoco model="board">
+  <visual><global offwidth="{width}" offheight="{height}"/>
+    <headlight ambient="0.6 0.6 0.6" diffuse="0.4 0.4 0.4" specular="0 0 0"/></visual>
+  <asset><texture name="board" type="2d" file="board.png"/><material name="board" texture="board" specular="0"/>
+  </asset>
+  <worldbody>
+    <camera name="camera" pos="0 0 0" fovy="{fovy_deg}"/>
+    <body name="board" mocap="true">
+      <geom type="box" size="{half[0]:.6f} {half[1]:.6f} 0.001" material="board" contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+        self.model = mujoco.MjModel.from_xml_string(xml, {"board.png": board_png(pattern)})
+        self.data = mujoco.MjData(self.model)
+        self._screen = Offscreen(self.model, "camera", width, height)
+
+    def intrinsics(self) -> Intrinsics:
+        return pinhole_intrinsics(self.width, self.height, self.fovy_deg)
+
+    def render_at(self, pos_m: Sequence[float], rotvec: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+        """RGB image of the board centred at ``pos_m`` (camera frame: it looks along -z), turned by ``rotvec``."""
+        quat = np.zeros(4)
+        mujoco.mju_axisAngle2Quat(quat, np.asarray(rotvec, float) / (np.linalg.norm(rotvec) or 1.0),
+                                  float(np.linalg.norm(rotvec)))
+        self.data.mocap_pos[0] = pos_m
+        self.data.mocap_quat[0] = quat if np.linalg.norm(rotvec) else (1.0, 0.0, 0.0, 0.0)
+        mujoco.mj_forward(self.model, self.data)
+        return self._screen.render(self.data)
+
+    def close(self) -> None:
+        self._screen.close()
