@@ -79,7 +79,10 @@ class Intrinsics:
             width, height, k, d = msg.width, msg.height, msg.k, msg.d
         except AttributeError as err:
             raise ValueError(f"not a CameraInfo: {err}") from None
-        return cls(int(width), int(height), np.asarray(k, dtype=float), np.asarray(d, dtype=float))
+        try:
+            return cls(int(width), int(height), np.asarray(k, dtype=float), np.asarray(d, dtype=float))
+        except TypeError as err:
+            raise ValueError(f"not a CameraInfo: {err}") from None
 
     @classmethod
     def from_yaml_dict(cls, data: Mapping[str, Any]) -> Intrinsics:
@@ -358,7 +361,10 @@ class ObjectTracker:
         self.counts["frames"] += 1
         found = detect(self._detector, gray)
         ids = tuple(sorted(found))
-        base = base_pose(found, self.config.base_markers, intrinsics)
+        try:
+            base = base_pose(found, self.config.base_markers, intrinsics)
+        except (cv2.error, ValueError):  # degenerate base markers (seen edge-on): as if not seen
+            base = None
         base_error = math.nan
         if base is not None:
             camera_from_base, base_error, _ = base
@@ -368,6 +374,14 @@ class ObjectTracker:
             camera_from_base = self._camera_from_base
         else:
             camera_from_base = None
+        try:
+            return self._track(found, ids, camera_from_base, base_error, intrinsics)
+        except (cv2.error, ValueError):  # a degenerate view of the object's marker (edge-on): not a pose
+            self.counts["no_object"] += 1
+            return Track(None, None, math.nan, base_error, math.nan, False, "no_object", ids)
+
+    def _track(self, found: dict[int, np.ndarray], ids: tuple[int, ...], camera_from_base: np.ndarray | None,
+               base_error: float, intrinsics: Intrinsics) -> Track:
         if self.config.object_id not in found:
             self.counts["no_object"] += 1
             return Track(None, None, math.nan, base_error, math.nan, False, "no_object", ids,
