@@ -212,6 +212,37 @@ class TrackerConfig:
             raise ValueError(f"unknown ArUco dictionary {self.dictionary!r}")
 
 
+def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation matrix of fixed-axis roll, pitch, yaw (REP 103: about x, then y, then z)."""
+    cr, sr, cp, sp, cy, sy = (f(a) for a in (roll, pitch, yaw) for f in (math.cos, math.sin))
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def config_from_parameters(object_id: int, object_size_m: float, base_ids: Sequence[int],
+                           base_sizes_m: Sequence[float], base_poses: Sequence[float],
+                           dictionary: str = DEFAULT_DICTIONARY, jump_mm: float = DROP_JUMP_MM,
+                           object_height_m: float = math.nan) -> TrackerConfig:
+    """A :class:`TrackerConfig` from flat values, as a node declares them: ``base_poses`` holds
+    ``x y z roll pitch yaw`` (m, rad; in ``t42_base``) per base marker; a NaN ``object_height_m`` means unknown.
+    """
+    ids, sizes, poses = list(base_ids), [float(v) for v in base_sizes_m], [float(v) for v in base_poses]
+    if len(sizes) != len(ids) or len(poses) != 6 * len(ids):
+        raise ValueError(f"{len(ids)} base marker ids need as many sizes (got {len(sizes)}) and 6 pose values "
+                         f"each, x y z roll pitch yaw (got {len(poses)})")
+    if not all(math.isfinite(v) for v in poses):
+        raise ValueError(f"base marker poses must be finite, got {poses}")
+    markers = tuple(
+        BaseMarker(int(i), s, tuple(poses[6 * n: 6 * n + 3]),
+                   tuple(map(tuple, rotation_from_rpy(*poses[6 * n + 3: 6 * n + 6]))))
+        for n, (i, s) in enumerate(zip(ids, sizes, strict=True)))
+    height = None if math.isnan(object_height_m) else float(object_height_m)
+    return TrackerConfig(int(object_id), float(object_size_m), markers, dictionary, float(jump_mm),
+                         object_height_m=height)
+
+
 def aruco_dictionary(name: str = DEFAULT_DICTIONARY) -> Any:
     if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
         raise ValueError(f"unknown ArUco dictionary {name!r}")
