@@ -114,6 +114,7 @@ def gray_image(image: np.ndarray, encoding: str, intrinsics: Intrinsics | None =
     if intrinsics is not None and (width, height) != (intrinsics.width, intrinsics.height):
         raise ValueError(f"image is {width}x{height} but the camera is calibrated for "
                          f"{intrinsics.width}x{intrinsics.height}")
+    image = np.ascontiguousarray(image)  # a flipped or cropped view is fine too
     if channels == 1:
         return image
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY if encoding == "bgr8" else cv2.COLOR_RGB2GRAY)
