@@ -30,7 +30,7 @@ from msg_adapters.wire import ACTUATOR_NAMES
 from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
-from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, PtyBus, t42_bus
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
 from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 from t42_transfer.ros.qos import profile
@@ -82,6 +82,8 @@ class Rig(Tester):
         self.get = self.tester.create_client(GetState, "dynamixel_driver/get_state")
         self.reset_client = self.tester.create_client(Trigger, names.HAND_RESET)
         self.trajectory_pub = self.tester.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
+        self.grasped = False
+        """A reset answered success and no test has failed or let the object go since (shared rig)."""
 
     def transition(self, transition_id: int) -> bool:
         request = ChangeState.Request()
@@ -95,18 +97,75 @@ class Rig(Tester):
         return [status_event(s.data) for s in self.statuses]
 
     def reset(self) -> Any:
-        return self.ros.call(self.reset_client, Trigger.Request(), timeout_s=60.0)
+        answer = self.ros.call(self.reset_client, Trigger.Request(), timeout_s=60.0)
+        self.grasped = bool(answer.success)
+        return answer
+
+    def forget(self) -> None:
+        """Drop what was heard so far: what a test reads is what came in since it began, as on a new rig."""
+        for heard in (self.statuses, self.joints, self.poses, self.actions):
+            heard.clear()
 
 
 @pytest.fixture
-def rig(ros: RosRig) -> Iterator[Rig]:
+def fresh_rig(ros: RosRig) -> Iterator[Rig]:
+    """A rig of the test's own, the driver unconfigured: for the tests of the lifecycle and of closing."""
     r = Rig(ros)
     yield r
     r.driver.close()  # torque off while the bus is still there
     r.bench.close()
 
 
-def test_the_lifecycle_drives_the_torque(rig: Rig) -> None:
+@pytest.fixture(scope="module")
+def shared_rig(module_ros_domain: int) -> Iterator[Rig]:
+    """One bench and driver for the tests below that need an active driver on a grasped hand: a grasp through the
+    servos is ~5.6 s at 10 Hz, and each of these tests grasped on a rig of its own before; now a test that passed
+    leaves the next its grasp (see :func:`rig`)."""
+    ros = RosRig(module_ros_domain)
+    r = Rig(ros)
+    try:
+        yield r
+    finally:
+        r.driver.close()  # torque off while the bus is still there
+        r.bench.close()
+        ros.shutdown()
+
+
+def _holding(r: Rig) -> bool:
+    """The driver steps an episode without a fault, the fingers loaded on the object (as a reset leaves them)."""
+    return (r.driver.running and r.driver.fault is None
+            and bool(np.all(np.abs(r.bench.plant.hand.loads) > 80)))
+
+
+@pytest.fixture
+def active_rig(shared_rig: Rig, request: pytest.FixtureRequest) -> Iterator[Rig]:
+    """The shared rig, active, faults cleared and the tracker on; its message lists hold only what came in since
+    the test began.  Afterwards it counts as grasped only if the test passed and the hand still holds."""
+    r = shared_rig
+    r.bench.bus.bus.faults = Faults()  # a count a test left set would fire in the next
+    r.bench.tracking = True
+    if r.state() != "active":
+        assert r.transition(Transition.TRANSITION_CONFIGURE) and r.transition(Transition.TRANSITION_ACTIVATE)
+    r.ros.spin_for(0.3)  # the steps the driver owes after the pause between tests go out before the test starts
+    r.forget()
+    yield r
+    passed = getattr(request.node, "report_call", None) is not None and request.node.report_call.passed
+    r.grasped = r.grasped and passed and _holding(r)
+
+
+@pytest.fixture
+def rig(active_rig: Rig) -> Rig:
+    """:func:`active_rig` with the hand grasped: reset here unless the test before left it grasped."""
+    r = active_rig
+    if not (r.grasped and _holding(r)):  # (the first test, or the one before failed or let go)
+        assert r.reset().success
+        r.ros.spin_for(0.3)
+        r.forget()
+    return r
+
+
+def test_the_lifecycle_drives_the_torque(fresh_rig: Rig) -> None:
+    rig = fresh_rig
     assert rig.state() == "unconfigured"
     assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.state() == "inactive"
     assert rig.bench.torque() == [False, False]
@@ -129,8 +188,12 @@ def test_configure_fails_on_a_port_without_servos(ros: RosRig, tmp_path) -> None
     assert driver.hand is None
 
 
-def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(rig: Rig) -> None:
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+# The tests on the shared rig run one after the other (its driver steps only while a test spins it); the one that
+# may open the hand comes last.
+
+
+def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(active_rig: Rig) -> None:
+    rig = active_rig  # (active, not grasped by the fixture: the reset here is the one under test)
     answer = rig.reset()
     assert answer.success, answer.message
     assert rig.events()[-1:] == [names.RESET] or rig.ros.spin_until(lambda: names.RESET in rig.events(), 2.0)
@@ -148,10 +211,8 @@ def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(rig: Rig) 
 
 
 def test_a_stalled_step_is_taken_late_and_said_so_with_its_stamp(rig: Rig) -> None:
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-    assert rig.reset().success
-    rig.ros.spin_for(0.5)
-    start = len(rig.joints)
+    rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture)
+    start, late_before = len(rig.joints), rig.driver.late_steps
     time.sleep(0.4)  # the executor stalls: the driver's next timer tick comes ~0.4 s late
     rig.ros.spin_for(1.0)
     stamps = [stamp_to_ns(j.header.stamp) for j in rig.joints[start - 1:]]
@@ -160,13 +221,65 @@ def test_a_stalled_step_is_taken_late_and_said_so_with_its_stamp(rig: Rig) -> No
     late_stamp = stamps[int(np.argmax(gaps)) + 1]
     assert rig.ros.spin_until(lambda: any(last_step_stamp(s.data) == late_stamp for s in rig.statuses
                                           if status_event(s.data) == names.LATE), 2.0), [s.data for s in rig.statuses]
-    assert rig.driver.late_steps >= 1
+    assert rig.driver.late_steps >= late_before + 1
+
+
+def test_with_the_tracker_stopped_no_fresh_looking_pose_goes_out(rig: Rig) -> None:
+    rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture, which turns the tracker on again after)
+    rig.bench.tracking = False
+    rig.ros.spin_for(0.6)
+    poses, joints = len(rig.poses), len(rig.joints)
+    rig.ros.spin_for(1.0)
+    assert len(rig.joints) >= joints + 7 and len(rig.poses) == poses  # steps go on, poses do not
+    assert names.STALE in rig.events()
+
+
+def test_with_no_command_the_hand_holds_a_single_command_moves_it_one_step(rig: Rig) -> None:
+    """The watchdog is the step convention: a command is applied for one step, then the hand holds."""
+    publisher = rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10)  # (grasped: see the rig fixture)
+    try:
+        assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
+        rig.ros.spin_for(0.3)
+        before = np.array(rig.driver.hand.goal)
+        command = JointState(name=list(ACTUATOR_NAMES), velocity=[0.0, -0.25 * 0.025 / CONTROL_PERIOD_S])
+        command.header.stamp = rig.tester.get_clock().now().to_msg()
+        publisher.publish(command)
+        rig.ros.spin_for(1.5)  # many steps after it, no other command
+        moved = np.array(rig.driver.hand.goal) - before
+        assert np.allclose(moved, [0.0, -0.25 * 0.025], atol=1e-6), moved  # one step of it, then holding
+    finally:
+        rig.tester.destroy_publisher(publisher)
+
+
+def test_parameters_are_declared_and_bad_ones_refused(shared_rig: Rig) -> None:
+    driver = shared_rig.driver  # (the shared rig's driver; what the test changes is set back)
+    assert driver.get_parameter("load_limit").value == 280.0
+    try:
+        refused = driver.set_parameters([Parameter("grasp_load", value=500.0)])[0]  # above the load limit
+        assert not refused.successful and "grasp_load must be below load_limit" in refused.reason
+        assert driver.set_parameters([Parameter("load_limit", value=250.0)])[0].successful
+    finally:
+        assert driver.set_parameters([Parameter("load_limit", value=280.0)])[0].successful
+
+
+@pytest.mark.parametrize("inject", [  # each ~7 s; test_hw_emulator_node covers every fault again
+    pytest.param(lambda bus: setattr(bus.bus.faults, "drop_replies", 3), marks=pytest.mark.slow, id="dropped replies"),
+    pytest.param(lambda bus: setattr(bus.bus.faults, "corrupt_replies", 2), id="corruption"),
+    pytest.param(lambda bus: bus.bus.servos[2].raise_error(1 << 5), marks=pytest.mark.slow, id="error bit"),
+])
+def test_a_fault_is_reported_then_the_driver_recovers(rig: Rig, inject) -> None:
+    inject(rig.bench.bus)  # (on a grasped hand: see the rig fixture)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 1.5), rig.events()
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
+    assert rig.state() == "active" and rig.bench.torque() == [True, True]
+    assert rig.reset().success  # and a new episode steps
+    count = len(rig.joints)
+    rig.ros.spin_for(0.5)
+    assert len(rig.joints) > count
 
 
 def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_the_limits(rig: Rig) -> None:
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-    assert rig.reset().success
-    rig.ros.spin_for(0.5)
+    rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture; opening a finger may let the object go)
     start = np.array(rig.driver.hand.goal)
     msg = JointTrajectory(joint_names=list(ACTUATOR_NAMES))
     targets = [start + np.array([0.0, -0.02]) * (k + 1) for k in range(10)]  # open finger 2 a little
@@ -189,45 +302,11 @@ def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_th
     assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True)), rig.bench.goals()
 
 
-def test_with_the_tracker_stopped_no_fresh_looking_pose_goes_out(rig: Rig) -> None:
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-    assert rig.reset().success
-    rig.ros.spin_for(0.5)
-    rig.bench.tracking = False
-    rig.ros.spin_for(0.6)
-    poses, joints = len(rig.poses), len(rig.joints)
-    rig.ros.spin_for(1.0)
-    assert len(rig.joints) >= joints + 7 and len(rig.poses) == poses  # steps go on, poses do not
-    assert names.STALE in rig.events()
+# Rigs of their own.
 
 
-@pytest.mark.parametrize("inject", [  # each ~13 s; test_hw_emulator_node covers every fault again
-    pytest.param(lambda bus: setattr(bus.bus.faults, "drop_replies", 3), marks=pytest.mark.slow, id="dropped replies"),
-    pytest.param(lambda bus: setattr(bus.bus.faults, "corrupt_replies", 2), id="corruption"),
-    pytest.param(lambda bus: bus.bus.servos[2].raise_error(1 << 5), marks=pytest.mark.slow, id="error bit"),
-])
-def test_a_fault_is_reported_then_the_driver_recovers(rig: Rig, inject) -> None:
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-    assert rig.reset().success
-    inject(rig.bench.bus)
-    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 1.5), rig.events()
-    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
-    assert rig.state() == "active" and rig.bench.torque() == [True, True]
-    assert rig.reset().success  # and a new episode steps
-    count = len(rig.joints)
-    rig.ros.spin_for(0.5)
-    assert len(rig.joints) > count
-
-
-def test_parameters_are_declared_and_bad_ones_refused(rig: Rig) -> None:
-    driver = rig.driver
-    assert driver.get_parameter("load_limit").value == 280.0
-    refused = driver.set_parameters([Parameter("grasp_load", value=500.0)])[0]  # above the load limit
-    assert not refused.successful and "grasp_load must be below load_limit" in refused.reason
-    assert driver.set_parameters([Parameter("load_limit", value=250.0)])[0].successful
-
-
-def test_cleanup_and_close_turn_the_torque_off(rig: Rig) -> None:
+def test_cleanup_and_close_turn_the_torque_off(fresh_rig: Rig) -> None:
+    rig = fresh_rig
     assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
     assert rig.bench.torque() == [True, True]
     rig.driver.close()  # what the runner calls on SIGINT / SIGTERM
@@ -266,18 +345,3 @@ def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> 
     params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})
     assert params.geometry().limits()  # the geometry checks itself: servo range, grasp below the load limit
 
-
-def test_with_no_command_the_hand_holds_a_single_command_moves_it_one_step(rig: Rig) -> None:
-    """The watchdog is the step convention: a command is applied for one step, then the hand holds."""
-    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-    assert rig.reset().success
-    publisher = rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10)
-    assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
-    rig.ros.spin_for(0.3)
-    before = np.array(rig.driver.hand.goal)
-    command = JointState(name=list(ACTUATOR_NAMES), velocity=[0.0, -0.25 * 0.025 / CONTROL_PERIOD_S])
-    command.header.stamp = rig.tester.get_clock().now().to_msg()
-    publisher.publish(command)
-    rig.ros.spin_for(1.5)  # many steps after it, no other command
-    moved = np.array(rig.driver.hand.goal) - before
-    assert np.allclose(moved, [0.0, -0.25 * 0.025], atol=1e-6), moved  # one step of it, then holding
