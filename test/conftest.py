@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import random
@@ -132,12 +133,10 @@ def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 _DOMAIN_LOCKS = Path(os.environ.get("TMPDIR", "/tmp")) / "t42-ros-domains"
 
 
-@pytest.fixture
-def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
-    """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds, with discovery on LOCALHOST.
-
-    Set in ``os.environ`` for the test, so node processes it starts inherit both.
-    """
+@contextlib.contextmanager
+def _own_domain(env: pytest.MonkeyPatch) -> Iterator[int]:
+    """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds, set in ``env`` with discovery on
+    LOCALHOST (node processes a test starts inherit both), held until the block ends."""
     _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
     ids = list(range(1, 200))
     random.SystemRandom().shuffle(ids)
@@ -148,14 +147,21 @@ def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
         except OSError:
             handle.close()
             continue
-        monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-        monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        env.setenv("ROS_DOMAIN_ID", str(domain))
+        env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         try:
             yield domain
         finally:
             handle.close()
         return
     pytest.fail("no free ROS domain id")
+
+
+@pytest.fixture
+def ros_domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
+    """The test's own ROS domain (:func:`_own_domain`) for the test."""
+    with _own_domain(monkeypatch) as domain:
+        yield domain
 
 
 @pytest.fixture
@@ -179,25 +185,8 @@ def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[RosRig]:
 def module_ros_domain() -> Iterator[int]:
     """As :func:`ros_domain`, held for a whole module: for nodes its tests share (one emulated hand that needs a
     5 s grasp before any test can use it, say)."""
-    _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
-    ids = list(range(1, 200))
-    random.SystemRandom().shuffle(ids)
-    for domain in ids:
-        handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        with pytest.MonkeyPatch.context() as env:
-            env.setenv("ROS_DOMAIN_ID", str(domain))
-            env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-            try:
-                yield domain
-            finally:
-                handle.close()
-        return
-    pytest.fail("no free ROS domain id")
+    with pytest.MonkeyPatch.context() as env, _own_domain(env) as domain:
+        yield domain
 
 
 @pytest.hookimpl(wrapper=True)
