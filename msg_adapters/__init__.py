@@ -1,5 +1,15 @@
 """ROS 2 messages <-> numpy for the T42 hand; nothing else in the project converts messages."""
 
+from msg_adapters.camera import (
+    CAMERA_INFO,
+    IMAGE,
+    IMAGE_ENCODINGS,
+    Calibration,
+    camera_info_calibration,
+    camera_info_msg,
+    image_array,
+    image_msg,
+)
 from msg_adapters.diagnostics import (
     DIAGNOSTIC_ARRAY,
     LEVELS,
@@ -41,6 +51,14 @@ from msg_adapters.status import (
 )
 
 __all__ = [
+    "CAMERA_INFO",
+    "IMAGE",
+    "IMAGE_ENCODINGS",
+    "Calibration",
+    "camera_info_calibration",
+    "camera_info_msg",
+    "image_array",
+    "image_msg",
     "DIAGNOSTIC_ARRAY",
     "LEVELS",
     "DiagnosticReport",

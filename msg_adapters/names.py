@@ -38,6 +38,12 @@ driver publishes the newest fresh one each step as :data:`OBJECT_POSE`."""
 SIM_POSE = "sim/object_pose"
 """geometry_msgs/PoseStamped: the emulated hand's true object pose, for checks only."""
 
+# ------------------------------------------------------------------ camera and object tracker
+CAMERA_IMAGE = "camera/image_raw"
+"""sensor_msgs/Image: camera frames as captured (stamped at the grab), ``bgr8``/``mono8`` from the camera node."""
+CAMERA_INFO = "camera/camera_info"
+"""sensor_msgs/CameraInfo: the camera's calibration, one per frame with the frame's stamp."""
+
 GET_STATE = "~/get_state"
 """lifecycle_msgs/GetState: a lifecycle node's state (the Dynamixel driver's), served by rclpy."""
 
@@ -106,6 +112,9 @@ class Qos(NamedTuple):
 
 DEFAULT = Qos(10)
 """ROS's default (KEEP_LAST 10, RELIABLE, VOLATILE): every topic not named below."""
+IMAGES = Qos(2)
+"""Camera frames and their CameraInfo: a short queue, as only the newest frame matters (a flood is dropped at
+the reader, not queued)."""
 LATCHED = Qos(1, latched=True)
 """A late joiner still gets the last message (model announcements)."""
 EVENTS = Qos(100, latched=True)
