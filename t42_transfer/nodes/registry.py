@@ -47,5 +47,9 @@ NODES: dict[str, NodeSpec] = {
                                 "transfers the source model to the recorded hand on /t42/transfer"),
     "planner": NodeSpec("t42_transfer.nodes.planner_node:PlannerNode",
                         "plans open-loop action sequences to goals with the current model"),
+    "camera": NodeSpec("t42_transfer.nodes.camera:Camera",
+                       "an OpenCV capture (device or video file) on camera/image_raw and camera/camera_info"),
+    "object_tracker": NodeSpec("t42_transfer.nodes.object_tracker:ObjectTracker",
+                               "the object's pose in t42_base from ArUco markers in camera images"),
 }
 

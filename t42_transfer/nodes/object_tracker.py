@@ -1,0 +1,224 @@
+"""Object tracker: the object's position in ``t42_base`` from camera images with ArUco markers.
+
+Wiring (relative names):
+
+* ``camera/image_raw`` (sensor_msgs/Image, ``mono8``, ``bgr8`` or ``rgb8``) and ``camera/camera_info``
+  (sensor_msgs/CameraInfo): subscribed;
+* ``tracker/object_pose`` (geometry_msgs/PoseStamped): published for each frame in which the object marker and
+  the base frame are seen; metres in ``t42_base``, stamped with the image's stamp (REP 103);
+* ``diagnostics`` (diagnostic_msgs/DiagnosticArray): counts and the last frame's quality, every
+  ``diagnostics_period_s``.
+
+The work per frame (:class:`~t42_transfer.tracking.markers.ObjectTracker`: ArUco detection, solvePnP) runs on
+one worker thread (:class:`~t42_transfer.tracking.worker.LatestOnly`), never on the executor: the image
+callback only checks the frame and hands it over.  A frame that arrives while another still waits for the
+worker replaces it; the replaced one is dropped and counted, so under a flood the backlog stays one frame and
+the poses are about the newest images.
+
+Tracking quality: a frame without the object marker (or before any base marker was seen) publishes no pose and
+is counted; a jump above ``max_jump_mm`` (the authors' 8 mm drop rule) is published, counted and warned about;
+the reprojection errors (object and base markers, px) are reported.  Bad input (an image of another encoding or
+size than the camera's, a CameraInfo with zero or NaN intrinsics, images before any CameraInfo) is a warning
+(at most one a second per kind, with a count) and a count on diagnostics, never a crash.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+
+from msg_adapters import (
+    RCLPY,
+    camera_info_calibration,
+    diagnostic_array,
+    image_array,
+    names,
+    object_pose_msg,
+    stamp_to_ns,
+)
+from t42_transfer.conventions import DROP_JUMP_MM
+from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import profile
+from t42_transfer.tracking import markers
+from t42_transfer.tracking.worker import LatestOnly
+
+STATUS_NAME = "t42_transfer: object_tracker"
+COUNTS = ("images", "tracked", "no_object", "no_base", "jumps", "bad_images", "bad_camera_info", "no_camera_info",
+          "failed")
+"""What diagnostics count beside the frames dropped while the worker was busy (the worker counts those): frames
+received, poses published, frames without the object marker or without any base pose yet, jumps above the
+limit, images refused, CameraInfos refused, images before a usable CameraInfo, frames the tracker failed on."""
+
+
+@dataclass(frozen=True)
+class ObjectTrackerParams:
+    """The tracker's ROS parameters: which markers, where the base markers sit, the jump limit."""
+
+    dictionary: str = param(markers.DEFAULT_DICTIONARY, "ArUco dictionary of the markers (cv2.aruco's name)",
+                            read_only=True)
+    object_id: int = param(0, "id of the marker on the object's top", read_only=True, min=0)
+    object_size_m: float = param(0.02, "side of the object's marker (m, the black square)", read_only=True,
+                                 min=0.0)
+    base_ids: tuple[int, ...] = param((1, 2), "ids of the markers on the hand's base (they define t42_base)",
+                                      read_only=True)
+    base_sizes_m: tuple[float, ...] = param((0.03, 0.03), "side of each base marker (m), as many as base_ids",
+                                            read_only=True)
+    base_poses: tuple[float, ...] = param(
+        (-0.06, -0.035, 0.02, 0.0, 0.0, 0.0, 0.06, -0.035, 0.02, 0.0, 0.0, 0.0),
+        "each base marker's centre and orientation in t42_base: x y z (m) roll pitch yaw (rad), 6 values per "
+        "marker (zero angles: lying flat, facing up, its x along the palm's)", read_only=True)
+    object_marker_height_m: float | None = param(
+        None, "height of the object marker's face above t42_base's z = 0 (m): the object moves in the hand's "
+              "plane, so its position is where the camera ray meets that plane; unset: the marker's own depth",
+        read_only=True)
+    max_jump_mm: float = param(DROP_JUMP_MM, "a move between two tracked frames larger than this is flagged (mm)",
+                               min=0.0)
+    diagnostics_period_s: float = param(1.0, "diagnostics are published this often (s)", read_only=True,
+                                        min=0.01, max=60.0)
+
+    def __post_init__(self) -> None:
+        self.tracker_config()  # ValueError with the reason for a layout the tracker cannot use
+        if not (math.isfinite(self.diagnostics_period_s) and self.diagnostics_period_s > 0):
+            raise ValueError(f"diagnostics_period_s must be positive, got {self.diagnostics_period_s}")
+
+    def tracker_config(self) -> markers.TrackerConfig:
+        height = math.nan if self.object_marker_height_m is None else self.object_marker_height_m
+        return markers.config_from_parameters(self.object_id, self.object_size_m, self.base_ids, self.base_sizes_m,
+                                              self.base_poses, self.dictionary, self.max_jump_mm, height)
+
+
+class _Frame(NamedTuple):
+    image: np.ndarray
+    encoding: str
+    stamp_ns: int
+    intrinsics: markers.Intrinsics
+
+
+class ObjectTracker(Node):
+    """Images in, the object's pose out; see the module docstring."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__("object_tracker", **node_kwargs)
+        self._params = LiveParams(self, ObjectTrackerParams, self._on_params)
+        p = self.params
+        self.log = self.get_logger()
+        self.per_message = ThrottledLog(self.log)
+        self.tracker = markers.ObjectTracker(p.tracker_config())
+        self._lock = threading.Lock()
+        self.counts = dict.fromkeys(COUNTS, 0)
+        self._last: dict[str, object] = {"status": "waiting", "reprojection_error_px": math.nan,
+                                         "base_error_px": math.nan, "jump_mm": math.nan}
+        self._intrinsics: markers.Intrinsics | None = None
+        self._pose_pub = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
+        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.worker = LatestOnly(self._track, self._publish, self._failed, name="object_tracker")
+        self.create_subscription(CameraInfo, names.CAMERA_INFO, self._on_camera_info, profile(names.IMAGES))
+        self.create_subscription(Image, names.CAMERA_IMAGE, self._on_image, profile(names.IMAGES))
+        self._timer = self.create_timer(p.diagnostics_period_s, self.publish_diagnostics)
+
+    @property
+    def params(self) -> ObjectTrackerParams:
+        return self._params.value
+
+    def close(self) -> None:
+        """Stop the worker after the frame in hand (the owner destroys the node)."""
+        self.worker.close()
+
+    # ------------------------------------------------------------------ callbacks (executor)
+    def _on_params(self, old: ObjectTrackerParams, new: ObjectTrackerParams) -> None:
+        if new.max_jump_mm != old.max_jump_mm:
+            # the config is read once per frame by the worker; swapping the reference is atomic
+            self.tracker.config = dataclasses.replace(self.tracker.config, jump_mm=new.max_jump_mm)
+
+    def _count(self, key: str) -> None:
+        with self._lock:
+            self.counts[key] += 1
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            calibration = camera_info_calibration(msg)
+            intrinsics = markers.Intrinsics(calibration.width, calibration.height, calibration.k, calibration.d)
+        except ValueError as err:
+            self._intrinsics = None  # a camera that now says this is not calibrated any more
+            self._count("bad_camera_info")
+            self._set_last(status="bad_camera_info")
+            self.per_message.warning(f"{names.CAMERA_INFO} refused: {err}")
+            return
+        self._intrinsics = intrinsics
+
+    def _on_image(self, msg: Image) -> None:
+        self._count("images")
+        intrinsics = self._intrinsics
+        if intrinsics is None:
+            self._count("no_camera_info")
+            self._set_last(status="no_camera_info")
+            self.per_message.warning(f"{names.CAMERA_IMAGE}: no usable {names.CAMERA_INFO} yet; frame not tracked")
+            return
+        try:
+            image = image_array(msg)
+            _check_image(image, msg.encoding, intrinsics)
+        except ValueError as err:
+            self._count("bad_images")
+            self._set_last(status="bad_image")
+            self.per_message.warning(f"{names.CAMERA_IMAGE} refused: {err}")
+            return
+        self.worker.submit(_Frame(image, msg.encoding, stamp_to_ns(msg.header.stamp), intrinsics))
+
+    # ------------------------------------------------------------------ the worker thread
+    def _track(self, frame: _Frame) -> tuple[_Frame, markers.Track]:
+        return frame, self.tracker.process(frame.image, frame.encoding, frame.intrinsics)
+
+    def _publish(self, result: tuple[_Frame, markers.Track]) -> None:
+        frame, track = result
+        with self._lock:
+            self.counts["tracked"] += track.xy_mm is not None
+            self.counts["jumps"] += track.jumped
+            if track.status in ("no_object", "no_base"):
+                self.counts[track.status] += 1
+            self._last.update(status=track.status, reprojection_error_px=track.reprojection_error_px,
+                              base_error_px=track.base_error_px, jump_mm=track.jump_mm)
+        if track.xy_mm is not None:
+            self._pose_pub.publish(object_pose_msg(track.xy_mm, frame.stamp_ns, RCLPY))
+        if track.jumped:
+            self.per_message.warning(f"the object moved {track.jump_mm:.1f} mm in one frame (over "
+                                     f"{self.tracker.config.jump_mm} mm: a drop or a misdetection?)")
+
+    def _failed(self, frame: _Frame, err: BaseException) -> None:
+        self._count("failed")
+        self._set_last(status="failed")
+        self.per_message.warning(f"tracking a frame failed: {type(err).__name__}: {err}")
+
+    # ------------------------------------------------------------------ reports
+    def _set_last(self, **values: object) -> None:
+        with self._lock:
+            self._last.update(values)
+
+    def publish_diagnostics(self) -> None:
+        with self._lock:
+            values: dict[str, object] = {**self.counts, **self._last}
+        values.update(dropped=self.worker.counts["dropped"])
+        status = str(values["status"])
+        level = "OK" if status in ("ok", "jump") else "WARN"
+        message = {"ok": "tracking", "jump": "tracking (the last frame jumped)"}.get(status, status.replace("_", " "))
+        self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, values,
+                                                   self.get_clock().now().nanoseconds, kit=RCLPY))
+
+
+def _check_image(image: np.ndarray, encoding: str, intrinsics: markers.Intrinsics) -> None:
+    """ValueError for an image the tracker cannot read or the calibrated camera cannot have taken."""
+    if encoding not in markers.ENCODINGS:
+        raise ValueError(f"image encoding {encoding!r} is not one the tracker reads ({sorted(markers.ENCODINGS)})")
+    height, width = image.shape[:2]
+    if (width, height) != (intrinsics.width, intrinsics.height):
+        raise ValueError(f"image is {width}x{height} but the camera is calibrated for "
+                         f"{intrinsics.width}x{intrinsics.height}")

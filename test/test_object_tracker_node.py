@@ -1,0 +1,232 @@
+"""The object_tracker and camera nodes (issue 21): rendered frames of the simulated hand, whose true pose is
+known, go in as Image + CameraInfo; the tracked pose comes out on tracker/object_pose.  Bad input and a flood
+are counted on diagnostics and the node keeps answering.  The camera node reads a video file written here."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.parameter import Parameter
+from ros_rig import REPO, Tester, unbuffered_env
+from sensor_msgs.msg import CameraInfo, Image
+
+from msg_adapters import (
+    RCLPY,
+    camera_info_calibration,
+    camera_info_msg,
+    image_array,
+    image_msg,
+    names,
+    object_xy_mm,
+    stamp_to_ns,
+    status_report,
+)
+from t42_transfer.nodes.camera import Camera
+from t42_transfer.nodes.object_tracker import STATUS_NAME, ObjectTracker
+from t42_transfer.ros.qos import profile
+from t42_transfer.tracking.calibrate import write_camera_info
+from t42_transfer.tracking.render import HandCamera
+
+T42 = [sys.executable, "-m", "t42_transfer.cli"]
+PLACES_MM = ((0.0, 85.0), (3.0, 88.0), (1.0, 83.5))
+"""Known object positions (mm), each within the 8 mm jump limit of the one before."""
+
+
+@pytest.fixture(scope="module")
+def scene() -> dict:
+    """Rendered frames at known object positions, the camera's true intrinsics and the marker height."""
+    with HandCamera("source") as cam:
+        frames = []
+        for xy in PLACES_MM:
+            cam.set_object(xy)
+            frames.append((cam.render(), cam.object_xy_mm().copy()))
+        return {"frames": frames, "intrinsics": cam.intrinsics(), "height_m": cam.object_marker_height_m()}
+
+
+class Rig:
+    """The tracker node beside a tester that publishes camera messages and listens to poses and diagnostics."""
+
+    def __init__(self, ros, scene: dict) -> None:
+        self.ros, self.scene = ros, scene
+        self.node = ros.add(ObjectTracker, {"object_marker_height_m": scene["height_m"], "diagnostics_period_s": 0.1})
+        self.tester = Tester(ros)
+        node = self.tester.tester
+        self.images = node.create_publisher(Image, names.CAMERA_IMAGE, profile(names.IMAGES))
+        self.infos = node.create_publisher(CameraInfo, names.CAMERA_INFO, profile(names.IMAGES))
+        self.poses = self.tester.listen(PoseStamped, names.TRACKER_POSE)
+        self.diagnostics = self.tester.listen(DiagnosticArray, names.DIAGNOSTICS)
+        assert self.tester.wait_graph(subscribers={names.CAMERA_IMAGE: 1, names.CAMERA_INFO: 1},
+                                      publishers={names.TRACKER_POSE: 1})
+
+    def info(self, k: np.ndarray | None = None, stamp_ns: int = 1) -> None:
+        intr = self.scene["intrinsics"]
+        self.infos.publish(camera_info_msg(intr.width, intr.height, intr.k if k is None else k, intr.d, stamp_ns,
+                                           "camera", kit=RCLPY))
+        self.ros.spin_for(0.05)
+
+    def image(self, image: np.ndarray, stamp_ns: int, encoding: str = "rgb8") -> None:
+        self.images.publish(image_msg(image, encoding, stamp_ns, "camera", RCLPY))
+
+    def report(self, after: int = 0) -> dict[str, str]:
+        """The tracker's newest diagnostics values, once one has come after the first ``after`` ones."""
+        assert self.ros.spin_until(lambda: len(self.diagnostics) > after, 5.0)
+        return status_report(self.diagnostics[-1], STATUS_NAME).values
+
+    def report_when(self, condition, timeout_s: float = 5.0) -> dict[str, str]:
+        """Spin until the newest diagnostics satisfy ``condition(values)``; those values."""
+        def holds() -> bool:
+            return bool(self.diagnostics) and condition(status_report(self.diagnostics[-1], STATUS_NAME).values)
+        assert self.ros.spin_until(holds, timeout_s), status_report(self.diagnostics[-1], STATUS_NAME)
+        return status_report(self.diagnostics[-1], STATUS_NAME).values
+
+    def track(self, image: np.ndarray, stamp_ns: int, encoding: str = "rgb8") -> PoseStamped:
+        before = len(self.poses)
+        self.info(stamp_ns=stamp_ns)
+        self.image(image, stamp_ns, encoding)
+        assert self.ros.spin_until(lambda: len(self.poses) > before, 10.0), "no pose for a frame with the object"
+        return self.poses[-1]
+
+
+def test_rendered_frames_give_the_true_pose_with_the_images_stamp(ros, scene) -> None:
+    rig = Rig(ros, scene)
+    for i, (image, truth) in enumerate(scene["frames"]):
+        stamp = 1_700_000_000_000_000_000 + i * 100_000_000
+        pose = rig.track(image, stamp)
+        assert pose.header.frame_id == "t42_base" and stamp_to_ns(pose.header.stamp) == stamp
+        assert np.linalg.norm(object_xy_mm(pose) - truth) < 1.0, (object_xy_mm(pose), truth)
+    values = rig.report_when(lambda v: int(v["tracked"]) == len(PLACES_MM))
+    assert values["images"] == str(len(PLACES_MM)) and values["no_object"] == "0" and values["status"] == "ok"
+    assert 0 < float(values["reprojection_error_px"]) < 1.0 and 0 < float(values["base_error_px"]) < 1.0
+    assert math.isfinite(float(values["jump_mm"])) and values["jumps"] == "0"
+
+
+def test_bad_images_and_camera_infos_are_counted_and_the_node_goes_on(ros, scene) -> None:
+    rig = Rig(ros, scene)
+    image, truth = scene["frames"][0]
+    rig.image(image, 10)  # before any CameraInfo
+    rig.report_when(lambda v: v["no_camera_info"] == "1")
+    rig.info(k=np.array([math.nan, 0, 320, 0, 500, 240, 0, 0, 1]))
+    rig.image(image, 11)
+    values = rig.report_when(lambda v: v["bad_camera_info"] == "1" and v["no_camera_info"] == "2")
+    assert values["status"] == "no_camera_info"
+    rig.info(k=np.zeros(9))  # ROS's "uncalibrated"
+    rig.report_when(lambda v: v["bad_camera_info"] == "2")
+    rig.info()
+    bgra = np.dstack([image, np.full(image.shape[:2], 255, np.uint8)])
+    rig.image(bgra, 12, "bgra8")  # an encoding the tracker does not read
+    ros.spin_for(0.05)  # camera topics keep 2 messages: one at a time
+    rig.image(image[:240, :320], 13)  # not the calibrated size
+    ros.spin_for(0.05)
+    bad = image_msg(image, "rgb8", 14, "camera", RCLPY)
+    bad.step = 100  # fields that describe no image
+    rig.images.publish(bad)
+    values = rig.report_when(lambda v: v["bad_images"] == "3")
+    assert values["tracked"] == "0" and values["failed"] == "0" and values["status"] == "bad_image"
+    pose = rig.track(image, 15)
+    assert np.linalg.norm(object_xy_mm(pose) - truth) < 1.0
+    assert rig.report_when(lambda v: v["tracked"] == "1")["status"] == "ok"
+
+
+def test_a_frame_without_the_object_counts_and_a_jump_is_flagged(ros, scene) -> None:
+    rig = Rig(ros, scene)
+    (first, _), (_, _), (third, _) = scene["frames"]
+    rig.track(first, 1)
+    blank = first.copy()
+    blank[:] = 128  # nothing to see
+    rig.info(stamp_ns=2)
+    rig.image(blank, 2)
+    rig.report_when(lambda v: v["no_object"] == "1" and v["status"] == "no_object")
+    assert rig.node.set_parameters([Parameter("max_jump_mm", value=1.0)])[0].successful
+    rig.track(third, 3)  # 1.8 mm from the first place
+    values = rig.report_when(lambda v: v["jumps"] == "1")
+    assert values["status"] == "jump" and float(values["jump_mm"]) > 1.0
+    assert not rig.node.set_parameters([Parameter("object_id", value=5)])[0].successful  # read-only
+
+
+def test_a_flood_is_dropped_and_counted_and_the_node_keeps_answering(ros, scene) -> None:
+    rig = Rig(ros, scene)
+    image, truth = scene["frames"][1]
+    rig.track(image, 1)
+    rig.info()
+    for tick in range(50):  # 100 images in 1 s, two at a time
+        rig.image(image, 10 + 2 * tick)
+        rig.image(image, 11 + 2 * tick)
+        assert rig.node.worker.backlog <= 1
+        ros.spin_for(0.02)
+    values = rig.report_when(lambda v: int(v["tracked"]) + int(v["dropped"]) + 1 >= int(v["images"]) > 20)
+    assert int(values["dropped"]) > 0 and values["failed"] == "0", values
+    pose = rig.track(scene["frames"][2][0], 1_000)
+    assert stamp_to_ns(pose.header.stamp) == 1_000
+    assert np.linalg.norm(object_xy_mm(pose) - scene["frames"][2][1]) < 1.0
+
+
+# --------------------------------------------------------------------------- the camera node
+@pytest.fixture(scope="module")
+def video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("video") / "eight.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, (320, 240))
+    assert writer.isOpened()
+    for i in range(8):
+        writer.write(np.full((240, 320, 3), 30 * i, np.uint8))
+    writer.release()
+    return path
+
+
+def test_the_camera_node_publishes_a_video_files_frames_with_stamps_and_calibration(ros, video, scene,
+                                                                                   tmp_path) -> None:
+    from t42_transfer.tracking.markers import Intrinsics
+
+    calibration = Intrinsics(320, 240, np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]),
+                             np.array([0.1, -0.05, 0, 0, 0]))
+    write_camera_info(tmp_path / "camera.yaml", calibration)
+    tester = Tester(ros)
+    images = tester.listen(Image, names.CAMERA_IMAGE)
+    infos = tester.listen(CameraInfo, names.CAMERA_INFO)
+    node = ros.add(Camera, {"device": str(video), "calibration_file": str(tmp_path / "camera.yaml"),
+                            "frame_id": "cam_optical"})
+    assert ros.spin_until(lambda: node.finished and len(images) == 8 and len(infos) == 8, 10.0), (
+        len(images), len(infos))
+    stamps = [stamp_to_ns(m.header.stamp) for m in images]
+    assert stamps == sorted(stamps) and len(set(stamps)) == 8 and stamps[0] > 0
+    assert stamps == [stamp_to_ns(m.header.stamp) for m in infos]
+    assert all(m.header.frame_id == "cam_optical" and m.encoding == "bgr8" for m in images)
+    assert abs(int(image_array(images[3]).mean()) - 90) <= 3
+    # 20 fps as the file says: the 8 frames span about 0.35 s
+    assert 0.25 < (stamps[-1] - stamps[0]) / 1e9 < 1.0, stamps
+    got = camera_info_calibration(infos[0])
+    assert (got.width, got.height, got.distortion_model) == (320, 240, "plumb_bob")
+    np.testing.assert_allclose(got.k, calibration.k)
+    np.testing.assert_allclose(got.d, calibration.d)
+
+
+def test_bad_camera_and_tracker_settings_are_one_line_errors(ros_domain, video, tmp_path) -> None:
+    (tmp_path / "bad.yaml").write_text("image_width: 320\n")
+    cases = (
+        (["camera", "--ros-args", "-p", "device:=/nonexistent"], "no such device or video file"),
+        (["camera", "--ros-args", "-p", f"device:={video}", "-p", "width:=640"], "gives 320x240 frames"),
+        (["camera", "--ros-args", "-p", f"device:={video}", "-p", f"calibration_file:={tmp_path / 'bad.yaml'}"],
+         "bad.yaml"),
+        (["object_tracker", "--ros-args", "-p", "base_ids:=[1]"], "as many sizes"),
+    )
+    # All at once: each process is mostly interpreter start and imports, which overlap on two cores.
+    procs = [subprocess.Popen([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for args, _ in cases]
+    try:
+        for proc, (args, match) in zip(procs, cases, strict=True):
+            stdout, stderr = proc.communicate(timeout=60)
+            assert proc.returncode == 2, (args, stdout, stderr)
+            errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
+            assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
