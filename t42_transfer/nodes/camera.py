@@ -151,13 +151,10 @@ class Camera(Node):
         while not self._stop.is_set():
             try:
                 frame, self._first = self._first or self.capture.read(), None
-            except CaptureError as err:
+            except Exception as err:  # CaptureError, or OpenCV failing: reported, and the thread goes on
                 if not self._after_failed_read(err):
                     return
                 due = time.monotonic()
-                continue
-            except Exception as err:  # the thread reports and goes on; the node is not left silently dead
-                self._after_failed_read(err)
                 continue
             try:
                 self._publish(frame)
@@ -169,14 +166,17 @@ class Camera(Node):
 
     def _after_failed_read(self, err: Exception) -> bool:
         """Handle a failed read; False when the thread should end (a video file's end without ``loop``)."""
-        if self.capture.is_file and self.capture.frames:
+        if isinstance(err, CaptureError) and self.capture.is_file and self.capture.frames:
             if not self.params.loop:
                 self.log.info(f"{err}; finished")
                 self._finished.set()
                 return False
-            self.capture.close()
-            self.capture = self._open()
-            return True
+            try:
+                self.capture.close()
+                self.capture = self._open()
+                return True
+            except CaptureError as reopen:
+                err = reopen
         self.failed_reads += 1
         self.last_error = str(err)
         self.per_message.error(str(err))
