@@ -99,6 +99,42 @@ def test_the_success_rule_on_hand_made_cases(distance, error, progress, complete
     assert verdict(distance, error, progress, completed, 10.0) == expected
 
 
+def test_holding_still_is_simulated_once_per_grasp_and_the_goals_stay_the_same(monkeypatch) -> None:
+    """A driver's grasp seed fixes the grasp for every attempt: holding still from it is simulated once (then
+    kept, for any hand of the same model), and the goal is bit for bit the one of a hold simulated each time."""
+    from t42_transfer.evaluation import peg_in_hole
+
+    holds = []
+    simulate = peg_in_hole.run_episode
+
+    def counted(hand, actions, seed):
+        holds.append(not np.any(actions))
+        return simulate(hand, actions, seed)
+
+    class Forgetful(dict):
+        def __setitem__(self, key, value) -> None:  # the uncached path: every attempt simulates its hold
+            pass
+
+    monkeypatch.setattr(peg_in_hole, "run_episode", counted)
+
+    def goal(kept: dict) -> tuple[Goal, int, int]:
+        monkeypatch.setattr(peg_in_hole, "_held_still", kept)
+        holds.clear()
+        made = peg_in_hole.reachable_goal(SimulatedHand("target"), 8, (5, 40), iter(range(30)), grasp_seed=3,
+                                          settle_steps=2, min_distance_mm=8.0)
+        return made, sum(holds), len(holds) - sum(holds)
+
+    uncached, uncached_holds, attempts = goal(Forgetful())
+    cold, cold_holds, cold_attempts = goal({})
+    warm, warm_holds, _ = goal(peg_in_hole._held_still)  # a new hand, the hold kept from the call before
+    assert uncached_holds >= 3 and cold_attempts == attempts  # (several attempts got as far as the hold)
+    assert (cold_holds, warm_holds) == (1, 0)
+    for made in (cold, warm):
+        assert (made.steps, made.trial, made.seed) == (uncached.steps, uncached.trial, uncached.seed) == (8, 0, 3)
+        for field in ("grasp", "position", "still"):
+            assert np.array_equal(getattr(made, field), getattr(uncached, field)), field
+
+
 def test_progress_is_the_displacement_along_the_start_goal_line() -> None:
     start, goal = np.array([0.0, 80.0]), np.array([20.0, 80.0])
     assert progress_towards(start, goal, np.array([10.0, 85.0])) == pytest.approx(10.0)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from t42_transfer.conventions import PLAN_LENGTHS
+from t42_transfer.conventions import ACTION_DIM, PLAN_LENGTHS
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.collect import run_episode
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
@@ -51,6 +51,9 @@ workspace or too near the start."""
 DO_NOTHING, ORACLE = "do_nothing", "oracle"
 BASELINES = (DO_NOTHING, ORACLE)
 VERDICTS = ("hit", "miss", "no_progress", "incomplete")
+HELD_STILL_KEPT = 256
+"""Hold-still ends kept by :func:`held_still` (the oldest goes first)."""
+_held_still: dict[tuple[object, int, int], np.ndarray] = {}
 
 
 @dataclass(frozen=True)
@@ -266,10 +269,7 @@ def reachable_goal(
         if traj.end_reason != "length" or len(traj) != settle_steps + steps:
             continue
         start = traj.states[min(settle_steps, len(traj.states) - 1)].astype(np.float64)
-        still = None
-        if min_distance_mm > 0:
-            held = run_episode(hand, np.zeros((settle_steps + steps, actions.shape[1])), grasp_with)
-            still = held.states[-1, :2].astype(np.float64)
+        still = held_still(hand, grasp_with, settle_steps + steps) if min_distance_mm > 0 else None
         goal = Goal(steps, trial, grasp_with, start, traj.states[-1, :2].astype(np.float64), still)
         inside = workspace is None or bool(workspace.contains_xy(torch.as_tensor(goal.position)))
         far = goal.distance_mm >= min_distance_mm and (still is None or goal.still_distance_mm >= min_distance_mm)
@@ -279,6 +279,23 @@ def reachable_goal(
         f"no goal {steps} steps away without a drop (inside the workspace, at least {min_distance_mm:g} mm from the "
         f"start and from where holding still ends) in {tried} attempts (trial {trial})"
     )
+
+
+def held_still(hand: SimulatedHand, grasp_seed: int, steps: int) -> np.ndarray:
+    """Where the object ends when ``hand`` holds still for ``steps`` from the grasp made with ``grasp_seed``.
+
+    Simulated once per hand model, seed and length, however many goal attempts share a grasp: each reset
+    reseeds the hand's noise and places the object anew, so the run is the same every time.
+    """
+    key = (hand.params, grasp_seed, steps)
+    still = _held_still.get(key)
+    if still is None:
+        held = run_episode(hand, np.zeros((steps, ACTION_DIM)), grasp_seed)
+        still = held.states[-1, :2].astype(np.float64)
+        if len(_held_still) >= HELD_STILL_KEPT:
+            del _held_still[next(iter(_held_still))]
+        _held_still[key] = still
+    return still.copy()
 
 
 def run_trial(
