@@ -153,6 +153,10 @@ def test_a_frame_without_the_object_counts_and_a_jump_is_flagged(ros, scene) -> 
     values = rig.report_when(lambda v: v["jumps"] == "1")
     assert values["status"] == "jump" and float(values["jump_mm"]) > 1.0
     assert not rig.node.set_parameters([Parameter("object_id", value=5)])[0].successful  # read-only
+    for bad in (-1.0, 0.0, math.nan):  # out of range, or refused by the settings' own check, with a reason
+        result = rig.node.set_parameters([Parameter("max_jump_mm", value=bad)])[0]
+        assert not result.successful and result.reason, bad
+    assert rig.node.get_parameter("max_jump_mm").value == 1.0 and rig.node.tracker.config.jump_mm == 1.0
 
 
 def test_a_flood_is_dropped_and_counted_and_the_node_keeps_answering(ros, scene) -> None:
