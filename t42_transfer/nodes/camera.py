@@ -121,7 +121,8 @@ class Camera(Node):
         self._timer = self.create_timer(1.0, self.publish_diagnostics)
         self._rate_from: tuple[float, int] = (time.monotonic(), 0)
         rate = f"{1.0 / self.period_s:.1f} fps" if self.period_s else "the device's rate"
-        self.log.info(f"capturing {p.device!r} ({self.width or 'any'}x{self.height or 'any'}) at {rate}"
+        height, width = self._first.image.shape[:2]
+        self.log.info(f"capturing {p.device!r}, {width}x{height} {self._first.encoding}, at {rate}"
                       + ("" if self.calibration else " (uncalibrated: no calibration_file)"))
         self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
         self._thread.start()
