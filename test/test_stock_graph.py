@@ -213,8 +213,8 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
             suites["/left"].output()[-3000:]
         ros.spin_for(1.0)
         assert len(trajectories["/right"]) == explored["/right"]  # nothing reached the right hand
-    finally:
-        codes = [suite.stop() for suite in suites.values()]
+    finally:  # both stopped at once: each suite's nodes shut down beside the other's
+        codes = stop([suite.proc for suite in suites.values()], timeout_s=60.0)
     assert codes == [0, 0], [s.output()[-3000:] for s in suites.values()]
 
 
