@@ -1,4 +1,6 @@
-"""bench/bench_cell.py at its smallest setting: it runs the experiment's own cell code and writes its JSON."""
+"""bench/bench_cell.py at its smallest setting: it runs the experiment's own cell code and writes its JSON.
+
+In the slow suite with the other benchmark checks (test_bench_smoke.py says why)."""
 
 from __future__ import annotations
 
@@ -7,7 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
 
 
 def test_bench_cell_runs_a_tiny_cell_per_method_and_writes_its_results(tmp_path: Path) -> None:

@@ -5,6 +5,9 @@ its own session (a timeout kills it and whatever it started), writing to the tes
 bench_cell.py has its own test (test_bench_cell.py).  The figures themselves are not judged (they vary
 with the machine's load): only that every documented field is there and sound.  Benchmarks that start
 ROS nodes run on the test's own ``ros_domain`` (ROS_DOMAIN_ID, LOCALHOST discovery).
+
+In the slow suite (CI runs it too): these check the benchmark scripts, not the suite's behaviour, which the
+default suite covers, and together they cost ~40 s of the default suite's 10-minute budget.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
 
 
 def run_bench(script: str, *args: str, out: Path, timeout_s: float = 120.0) -> dict:
