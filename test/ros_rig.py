@@ -157,3 +157,23 @@ class Rosout:
     def clear(self) -> None:
         self.ros.spin_for(0.1)
         self.lines.clear()
+
+
+def assert_one_line_errors(cases: Sequence[tuple[list[str], str]]) -> None:
+    """``t42 node ARGS...`` exits 2 with exactly one ``t42: error:`` line containing the text, and no traceback,
+    for each ``(args, text)``.  All at once: each process is mostly interpreter start and imports, which overlap
+    on two cores."""
+    t42 = [sys.executable, "-m", "t42_transfer.cli", "node"]
+    procs = [subprocess.Popen([*t42, *args], cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for args, _ in cases]
+    try:
+        for proc, (args, match) in zip(procs, cases, strict=True):
+            stdout, stderr = proc.communicate(timeout=60)
+            assert proc.returncode == 2, (args, stdout, stderr)
+            errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
+            assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()

@@ -20,7 +20,7 @@ import pytest
 import setuptools
 import yaml
 from rclpy.node import Node
-from ros_rig import unbuffered_env
+from ros_rig import assert_one_line_errors, unbuffered_env
 
 from t42_transfer.cli import main
 from t42_transfer.nodes.registry import NODES
@@ -132,20 +132,7 @@ def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
         (["mock_driver", "--ros-args", "--params-file", "/nonexistent.yaml"], "ros-args"),
         (["no_such_node"], "unknown node"),
     )
-    # All at once: each process is mostly interpreter start and imports, which overlap on two cores.
-    procs = [subprocess.Popen([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for args, _ in cases]
-    try:
-        for proc, (args, match) in zip(procs, cases, strict=True):
-            stdout, stderr = proc.communicate(timeout=60)
-            assert proc.returncode == 2, (args, stdout, stderr)
-            errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
-            assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+    assert_one_line_errors(cases)
 
 
 # ------------------------------------------------------------------ t42 up

@@ -5,8 +5,6 @@ are counted on diagnostics and the node keeps answering.  The camera node reads 
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -15,7 +13,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
-from ros_rig import REPO, Tester, unbuffered_env
+from ros_rig import Tester, assert_one_line_errors
 from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import (
@@ -35,7 +33,6 @@ from t42_transfer.ros.qos import profile
 from t42_transfer.tracking.calibrate import write_camera_info
 from t42_transfer.tracking.render import HandCamera
 
-T42 = [sys.executable, "-m", "t42_transfer.cli"]
 PLACES_MM = ((0.0, 85.0), (3.0, 88.0), (1.0, 83.5))
 """Known object positions (mm), each within the 8 mm jump limit of the one before."""
 
@@ -224,20 +221,7 @@ def test_bad_camera_and_tracker_settings_are_one_line_errors(ros_domain, video, 
          "bad.yaml"),
         (["object_tracker", "--ros-args", "-p", "base_ids:=[1]"], "as many sizes"),
     )
-    # All at once: each process is mostly interpreter start and imports, which overlap on two cores.
-    procs = [subprocess.Popen([*T42, "node", *args], cwd=REPO, env=unbuffered_env(), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for args, _ in cases]
-    try:
-        for proc, (args, match) in zip(procs, cases, strict=True):
-            stdout, stderr = proc.communicate(timeout=60)
-            assert proc.returncode == 2, (args, stdout, stderr)
-            errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
-            assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
-    finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+    assert_one_line_errors(cases)
 
 
 def test_the_camera_node_loops_a_video_file_when_asked(ros, video) -> None:
