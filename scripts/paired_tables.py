@@ -19,7 +19,8 @@ in brackets, its paired difference to the reference with the 95 % t interval.
 over the runner-up (paired over the seeds, 95 % t interval) and the runner-up.
 ``--ranking``: a row per run, the methods ordered by their paired difference to the
 reference at each threshold, ``*`` where the 95 % t interval lies above 0 and ``!``
-where it lies below (the verdict's headline table).
+where it lies below, ``†`` after either where it does not survive Holm's adjustment
+over the run's methods at that threshold (the verdict's headline table).
 ``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
 cell, against BASE's reference (e.g. the direct cells of the full run it extends).
 
@@ -132,14 +133,17 @@ def winners_table(runs: list[Path], metric: str) -> str:
 
 
 def _ranked(rows: list[dict], metric: str, reference: str) -> str:
+    """Methods by paired difference to ``reference``: ``*`` / ``!`` where the 95 % t interval lies above / below 0,
+    then ``†`` where that conclusion does not survive Holm's adjustment over the run's methods at this threshold."""
+    methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+    paired = {m: compare_methods(rows, metric, m, reference)["all"] for m in methods}
+    adjusted = dict(zip(methods, holm([paired[m].t_p for m in methods]), strict=True))
     ranked = []
-    for method in dict.fromkeys(r["method"] for r in rows):
-        if method in (reference, "hold_still"):
-            continue
-        paired = compare_methods(rows, metric, method, reference)["all"]
-        low, high = paired.t_interval
+    for method in methods:
+        low, high = paired[method].t_interval
         mark = "*" if low > 0 else "!" if high < 0 else ""
-        d = paired.mean_difference
+        mark += "†" if mark and adjusted[method] >= 0.05 else ""
+        d = paired[method].mean_difference
         ranked.append((d, f"{SHORT.get(method, method)} {d:+.{0 if abs(d) >= 10 else 1}f}{mark}"))
     return ", ".join(text for _, text in sorted(ranked, reverse=True))
 
