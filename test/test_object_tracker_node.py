@@ -15,6 +15,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
 from ros_rig import Tester, assert_one_line_errors
 from sensor_msgs.msg import CameraInfo, Image
+from videos import grey_video, write_video
 
 from msg_adapters import (
     RCLPY,
@@ -176,13 +177,7 @@ def test_a_flood_is_dropped_and_counted_and_the_node_keeps_answering(ros, scene)
 # --------------------------------------------------------------------------- the camera node
 @pytest.fixture(scope="module")
 def video(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("video") / "eight.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 20, (320, 240))
-    assert writer.isOpened()
-    for i in range(8):
-        writer.write(np.full((240, 320, 3), 30 * i, np.uint8))
-    writer.release()
-    return path
+    return grey_video(tmp_path_factory.mktemp("video") / "eight.avi", count=8, fps=20, step=30)
 
 
 def test_the_camera_node_publishes_a_video_files_frames_with_stamps_and_calibration(ros, video, scene,
@@ -237,13 +232,9 @@ def test_the_camera_node_loops_a_video_file_when_asked(ros, video) -> None:
 
 def test_camera_and_tracker_nodes_together_track_a_video_of_rendered_frames(ros, scene, tmp_path) -> None:
     """The whole path: a video file (MJPG) of rendered frames -> camera node -> object_tracker -> the true pose."""
-    path = tmp_path / "hand.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480))
-    truths = []
-    for image, truth in scene["frames"] * 2:
-        writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        truths.append(truth)
-    writer.release()
+    frames = scene["frames"] * 2
+    path = write_video(tmp_path / "hand.avi", (cv2.cvtColor(image, cv2.COLOR_RGB2BGR) for image, _ in frames), 10)
+    truths = [truth for _, truth in frames]
     write_camera_info(tmp_path / "camera.yaml", scene["intrinsics"])
     tester = Tester(ros)
     images = tester.listen(Image, names.CAMERA_IMAGE)

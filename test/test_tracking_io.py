@@ -9,9 +9,9 @@ import threading
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from videos import grey_video
 
 from t42_transfer.tracking import markers as mk
 from t42_transfer.tracking.calibrate import write_camera_info
@@ -22,13 +22,7 @@ from t42_transfer.tracking.worker import LatestOnly
 
 @pytest.fixture(scope="module")
 def video(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("video") / "five.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240))
-    assert writer.isOpened()
-    for i in range(5):
-        writer.write(np.full((240, 320, 3), 40 * i, np.uint8))
-    writer.release()
-    return path
+    return grey_video(tmp_path_factory.mktemp("video") / "five.avi", count=5, fps=10, step=40)
 
 
 def test_a_video_file_gives_stamped_bgr_frames_then_a_clear_end(video: Path) -> None:
