@@ -5,6 +5,7 @@ are counted on diagnostics and the node keeps answering.  The camera node reads 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -13,7 +14,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
-from ros_rig import Tester, assert_one_line_errors
+from ros_rig import Rosout, Tester, assert_one_line_errors
 from sensor_msgs.msg import CameraInfo, Image
 from videos import grey_video, write_video
 
@@ -36,6 +37,8 @@ from t42_transfer.tracking.render import HandCamera
 
 PLACES_MM = ((0.0, 85.0), (3.0, 88.0), (1.0, 83.5))
 """Known object positions (mm), each within the 8 mm jump limit of the one before."""
+MOVED_MM = (7.0, 92.0)
+"""Where the object is seen again after it moved out of sight: 9.9 mm from the first place, over the 8 mm limit."""
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +49,12 @@ def scene() -> dict:
         for xy in PLACES_MM:
             cam.set_object(xy)
             frames.append((cam.render(), cam.object_xy_mm().copy()))
-        return {"frames": frames, "intrinsics": cam.intrinsics(), "height_m": cam.object_marker_height_m()}
+        cam.set_object(MOVED_MM)
+        moved = (cam.render(), cam.object_xy_mm().copy())
+        cam.set_object((600.0, 85.0))  # out of view: the base markers are seen, the object's is not
+        hidden = cam.render()
+        return {"frames": frames, "moved": moved, "hidden": hidden, "intrinsics": cam.intrinsics(),
+                "height_m": cam.object_marker_height_m()}
 
 
 class Rig:
@@ -172,6 +180,126 @@ def test_a_flood_is_dropped_and_counted_and_the_node_keeps_answering(ros, scene)
     pose = rig.track(scene["frames"][2][0], 1_000)
     assert stamp_to_ns(pose.header.stamp) == 1_000
     assert np.linalg.norm(object_xy_mm(pose) - scene["frames"][2][1]) < 1.0
+
+
+# --------------------------------------------------------------------------- occlusion
+RATE_HZ = 10.0
+PERIOD_NS = 100_000_000
+OCCLUDED = 20
+"""Frames without the object marker: 2 s at 10 Hz."""
+
+
+class Stream:
+    """Frames published at 10 Hz (stamps 100 ms apart) in phases; each phase ends when the tracker has handled
+    every frame of it (tracked, counted without the object, or dropped while the worker was busy), as its
+    diagnostics say, so that what happened is known per phase."""
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig, self.sent, self.truths, self.hidden = rig, 0, {}, []
+        rig.info()
+        self.values = rig.report()
+
+    def frames(self, image: np.ndarray, count: int, truth: np.ndarray | None = None) -> tuple[list[int], dict]:
+        """Publish ``image`` ``count`` times; the stamps, and the diagnostics' counts this phase added."""
+        before, stamps = self.values, []
+        for _ in range(count):
+            stamp = 1_700_000_000_000_000_000 + self.sent * PERIOD_NS
+            self.rig.image(image, stamp)
+            self.sent += 1
+            stamps.append(stamp)
+            if truth is None:
+                self.hidden.append(stamp)
+            else:
+                self.truths[stamp] = truth
+            self.rig.ros.spin_for(1.0 / RATE_HZ)
+
+        def handled(v: dict[str, str]) -> bool:
+            done = sum(int(v[key]) for key in ("tracked", "no_object", "no_base", "failed", "dropped"))
+            return int(v["images"]) == self.sent == done
+
+        self.values = self.rig.report_when(handled, 10.0)
+        return stamps, {key: int(self.values[key]) - int(before[key]) for key in ("tracked", "no_object", "dropped",
+                                                                                  "jumps", "failed")}
+
+    def check_poses(self) -> list[PoseStamped]:
+        """Every pose is of a frame with the object, where it was, with that frame's stamp; the poses."""
+        poses = self.rig.poses
+        for pose in poses:
+            stamp = stamp_to_ns(pose.header.stamp)
+            assert stamp not in self.hidden, f"a pose for a frame without the object marker: {stamp}"
+            assert pose.header.frame_id == "t42_base"
+            assert np.linalg.norm(object_xy_mm(pose) - self.truths[stamp]) < 1.0, (object_xy_mm(pose),
+                                                                                 self.truths[stamp])
+        return poses
+
+
+def _occlusion(rig: Rig, stream: Stream, scene: dict, seen: np.ndarray) -> list[int]:
+    """2 s without the object marker after 5 frames with it; the hidden frames' stamps."""
+    stamps, added = stream.frames(seen, 5, scene["frames"][0][1])
+    assert added["tracked"] + added["dropped"] == 5 and added["tracked"] >= 1, added
+    hidden, added = stream.frames(scene["hidden"], OCCLUDED)
+    # every hidden frame is counted on diagnostics, or was dropped unseen while the worker was busy
+    assert added["no_object"] + added["dropped"] == OCCLUDED and added["no_object"] >= OCCLUDED // 2, added
+    assert added["tracked"] == 0 and added["failed"] == 0, added
+    report = status_report(rig.diagnostics[-1], STATUS_NAME)
+    assert (report.level, report.values["status"]) == ("WARN", "no_object"), report
+    assert math.isnan(float(report.values["reprojection_error_px"]))
+    assert not [p for p in rig.poses if stamp_to_ns(p.header.stamp) > stamps[-1]], "poses while hidden"
+    return hidden
+
+
+def _resumed(rig: Rig, hidden: list[int], stamps: list[int]) -> PoseStamped:
+    """The first pose after the occlusion, which is of the first or second frame after it."""
+    after = [p for p in rig.poses if stamp_to_ns(p.header.stamp) > hidden[-1]]
+    assert after and stamp_to_ns(after[0].header.stamp) in stamps[:2], ([stamp_to_ns(p.header.stamp) for p in after],
+                                                                        stamps)
+    return after[0]
+
+
+def test_an_occluded_object_gives_no_pose_and_tracking_resumes_without_a_jump(ros, scene) -> None:
+    """The object marker hidden for 2 s while the object stays put: no poses, the frames counted, then poses
+    again from the first frame after, accurate, and no jump (nothing moved)."""
+    rig = Rig(ros, scene)
+    rosout = Rosout(ros, "object_tracker")
+    stream = Stream(rig)
+    image, truth = scene["frames"][0]
+    hidden = _occlusion(rig, stream, scene, image)
+    stamps, added = stream.frames(image, 5, truth)
+    assert added["tracked"] + added["dropped"] == 5 and added["jumps"] == 0, added
+    first = _resumed(rig, hidden, stamps)
+    assert np.linalg.norm(object_xy_mm(first) - truth) < 1.0
+    poses = stream.check_poses()
+    assert len(poses) == int(stream.values["tracked"]) == stream.sent - OCCLUDED - int(stream.values["dropped"])
+    values = stream.values
+    assert values["status"] == "ok" and values["jumps"] == "0" and values["failed"] == "0", values
+    assert float(values["jump_mm"]) < 1.0, values  # measured from the last position before the occlusion
+    assert int(values["no_object"]) + int(values["dropped"]) >= OCCLUDED
+    assert rosout.wait_warnings(1, 1.0) == []  # no jump warning, nor any other
+
+
+def test_an_object_that_moved_while_out_of_sight_is_flagged_when_seen_again(ros, scene) -> None:
+    """Seen again 9.9 mm from where it was hidden (over max_jump_mm): a drop and a move while hidden look the
+    same to the tracker, so the pose is published and flagged as a jump, once, the warning saying that the
+    object was out of sight; the next frames at the new place are not jumps."""
+    rig = Rig(ros, scene)
+    rosout = Rosout(ros, "object_tracker")
+    stream = Stream(rig)
+    image, truth = scene["frames"][0]
+    hidden = _occlusion(rig, stream, scene, image)
+    moved, moved_truth = scene["moved"]
+    assert np.linalg.norm(moved_truth - truth) > 8.0
+    stamps, added = stream.frames(moved, 5, moved_truth)
+    assert added["jumps"] == 1 and added["tracked"] + added["dropped"] == 5, added
+    first = _resumed(rig, hidden, stamps)
+    assert np.linalg.norm(object_xy_mm(first) - moved_truth) < 1.0
+    stream.check_poses()
+    assert stream.values["status"] == "ok" and float(stream.values["jump_mm"]) < 1.0, stream.values
+    warnings = rosout.wait_warnings(1)
+    gap_s = (stamp_to_ns(first.header.stamp) - (hidden[0] - PERIOD_NS)) / 1e9  # since the object was last seen
+    assert len(warnings) == 1 and "out of sight" in warnings[0], warnings
+    moved_mm = float(re.search(r"moved ([0-9.]+) mm", warnings[0]).group(1))
+    assert abs(moved_mm - np.linalg.norm(moved_truth - truth)) < 1.0, warnings
+    assert f"{stream.values['no_object']} frames without it, {gap_s:.1f} s since" in warnings[0], (gap_s, warnings)
 
 
 # --------------------------------------------------------------------------- the camera node

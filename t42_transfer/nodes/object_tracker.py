@@ -17,9 +17,14 @@ the poses are about the newest images.
 
 Tracking quality: a frame without the object marker (or before any base marker was seen) publishes no pose and
 is counted; a jump above ``max_jump_mm`` (the authors' 8 mm drop rule) is published, counted and warned about;
-the reprojection errors (object and base markers, px) are reported.  Bad input (an image of another encoding or
-size than the camera's, a CameraInfo with zero or NaN intrinsics, images before any CameraInfo) is a warning
-(at most one a second per kind, with a count) and a count on diagnostics, never a crash.
+the reprojection errors (object and base markers, px) are reported.  The jump is measured from the last tracked
+frame, also across frames without the object: an object seen again more than ``max_jump_mm`` from where it was
+hidden is flagged (a drop while out of sight and a move look the same here), and the warning says for how many
+frames and seconds it was out of sight; one seen again where it was hidden is not.
+
+Bad input (an image of another encoding or size than the camera's, a CameraInfo with zero or NaN intrinsics,
+images before any CameraInfo) is a warning (at most one a second per kind, with a count) and a count on
+diagnostics, never a crash.
 """
 
 from __future__ import annotations
@@ -119,6 +124,8 @@ class ObjectTracker(Node):
         self._last: dict[str, object] = {"status": "waiting", "reprojection_error_px": math.nan,
                                          "base_error_px": math.nan, "jump_mm": math.nan}
         self._intrinsics: markers.Intrinsics | None = None
+        self._seen: tuple[int, int] | None = None
+        """The stamp of the last tracked frame and the frames without the object since (the worker's)."""
         self._pose_pub = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.worker = LatestOnly(self._track, self._publish, self._failed, name="object_tracker")
@@ -187,11 +194,23 @@ class ObjectTracker(Node):
                 self.counts[track.status] += 1
             self._last.update(status=track.status, reprojection_error_px=track.reprojection_error_px,
                               base_error_px=track.base_error_px, jump_mm=track.jump_mm)
-        if track.xy_mm is not None:
-            self._pose_pub.publish(object_pose_msg(track.xy_mm, frame.stamp_ns, RCLPY))
-        if track.jumped:
-            self.per_message.warning(f"the object moved {track.jump_mm:.1f} mm in one frame (over "
-                                     f"{self.tracker.config.jump_mm} mm: a drop or a misdetection?)")
+        seen = self._seen
+        if track.xy_mm is None:
+            if seen is not None and track.status == "no_object":
+                self._seen = (seen[0], seen[1] + 1)
+            return
+        self._seen = (frame.stamp_ns, 0)
+        self._pose_pub.publish(object_pose_msg(track.xy_mm, frame.stamp_ns, RCLPY))
+        if not track.jumped:
+            return
+        limit = f"over {self.tracker.config.jump_mm} mm"
+        if seen is not None and seen[1]:
+            self.per_message.warning(
+                f"the object moved {track.jump_mm:.1f} mm while out of sight ({seen[1]} frames without it, "
+                f"{(frame.stamp_ns - seen[0]) / 1e9:.1f} s since it was last seen; {limit}: dropped while hidden?)")
+        else:
+            self.per_message.warning(f"the object moved {track.jump_mm:.1f} mm in one frame ({limit}: a drop or a "
+                                     "misdetection?)")
 
     def _failed(self, frame: _Frame, err: BaseException) -> None:
         self._count("failed")
