@@ -342,6 +342,7 @@ def test_bad_camera_and_tracker_settings_are_one_line_errors(ros_domain, video, 
         (["camera", "--ros-args", "-p", f"device:={video}", "-p", "width:=640"], "gives 320x240 frames"),
         (["camera", "--ros-args", "-p", f"device:={video}", "-p", f"calibration_file:={tmp_path / 'bad.yaml'}"],
          "bad.yaml"),
+        (["camera", "--ros-args", "-p", f"device:={video}", "-p", "frame_id:=/cam"], "tf2 frame name"),
         (["object_tracker", "--ros-args", "-p", "base_ids:=[1]"], "as many sizes"),
     )
     assert_one_line_errors(cases)
