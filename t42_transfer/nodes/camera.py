@@ -66,7 +66,7 @@ class CameraParams:
     loop: bool = param(False, "at a video file's end, start it again (else the node is finished)", read_only=True)
 
     def __post_init__(self) -> None:
-        if not self.frame_id or self.frame_id.startswith("/"):  # tf2 refuses both
+        if not self.frame_id.strip() or self.frame_id.startswith("/"):  # tf2 refuses both
             raise ValueError(f"frame_id must be a tf2 frame name (not empty, no leading '/'), got {self.frame_id!r}")
         if not (math.isfinite(self.fps) and 0.0 <= self.fps <= MAX_FPS):
             raise ValueError(f"fps must be in [0, {MAX_FPS}], got {self.fps}")
