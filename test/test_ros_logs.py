@@ -40,3 +40,13 @@ def test_other_kinds_and_levels_are_not_held_back_by_a_flood() -> None:
     assert lines.warnings == ["rejected hand/command: non-finite velocity [nan, 0]",
                               "rejected hand/command: unknown joint 'elbow'"]
     assert lines.errors == ["rejected hand/command: could not read the message"]
+
+
+def test_warnings_and_errors_mix_on_one_rclpy_logger() -> None:
+    """rclpy keeps one severity per call site: both levels through one write line raised ValueError."""
+    from rclpy.logging import get_logger
+
+    log = ThrottledLog(get_logger("t42_test_throttled"))
+    for _ in range(2):
+        log.warning("a refused command")
+        log.error("a failed camera frame")

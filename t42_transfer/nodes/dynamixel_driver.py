@@ -41,7 +41,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -61,12 +60,11 @@ from msg_adapters import (
     joint_state_msg,
     names,
     object_pose_msg,
-    object_xy_mm,
-    stamp_to_ns,
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
+from t42_transfer.driver.pose import NewestPose
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
@@ -143,8 +141,7 @@ class DynamixelDriver(LifecycleNode):
         self._late_by_ns: int | None = None
         """How long after the previous step this one came, when that was late (said on ``hand/status``)."""
         self._last_stamp = 0
-        self._pose: tuple[int, np.ndarray] | None = None
-        self._stale = False
+        self.pose = NewestPose()
         self._next_retry_s = 0.0
         self._ticks = 0
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
@@ -252,8 +249,8 @@ class DynamixelDriver(LifecycleNode):
 
     # ------------------------------------------------------------------ inputs
     def _on_pose(self, msg: PoseStamped) -> None:
-        stamp = stamp_to_ns(msg.header.stamp) or self.now_ns()
-        self._pose = (stamp, object_xy_mm(msg).astype(np.float64))
+        if (why := self.pose.receive_msg(msg)) is not None:
+            self.per_message.warning(f"rejected {names.TRACKER_POSE}: {why}")
 
     def _on_command(self, data: bytes) -> None:
         max_age = round(self.params.max_command_age_s * 1e9)
@@ -302,7 +299,7 @@ class DynamixelDriver(LifecycleNode):
         self._last_step_ns = now_ns
         self._ticks += 1
         if self._ticks % DIAGNOSTICS_EVERY == 0 and self.fault is None:
-            stale = self._stale
+            stale = self.pose.stale
             self._publish_diagnostics("WARN" if stale else "OK", "stale object pose" if stale else "stepping")
         try:
             if self.fault is not None:
@@ -341,17 +338,12 @@ class DynamixelDriver(LifecycleNode):
             self.per_message.warning(f"step {self.steps}: {refused}")
 
     def _publish_pose(self, stamp: int) -> None:
-        pose = self._pose
-        age_s = None if pose is None else (stamp - pose[0]) / 1e9
-        if pose is None or age_s is None or age_s > self.params.max_pose_age_s:
-            if not self._stale:
-                self._stale = True
-                why = "no pose received" if pose is None else f"the newest is {age_s:.2f} s old"
-                self._status(names.STALE, f"no fresh object pose on {names.TRACKER_POSE} ({why}): "
-                                          "steps go out without one")
-            return
-        self._stale = False
-        self._pose_pub.publish(object_pose_msg(pose[1], stamp, RCLPY))
+        xy, why = self.pose.for_step(stamp, self.params.max_pose_age_s)
+        if why is not None:
+            self._status(names.STALE, f"no fresh object pose on {names.TRACKER_POSE} ({why}): "
+                                      "steps go out without one")
+        if xy is not None:
+            self._pose_pub.publish(object_pose_msg(xy, stamp, RCLPY))
 
     def _grasp_step(self) -> None:
         grasp = self._grasp
@@ -429,7 +421,7 @@ class DynamixelDriver(LifecycleNode):
     def _publish_diagnostics(self, level: str, message: str) -> None:
         fault = self.fault
         values: dict[str, object] = {"late_steps": self.late_steps, "skipped_ticks": self.skipped_ticks,
-                                     "episode": self.episode, "steps": self.steps, "pose_stale": self._stale}
+                                     "episode": self.episode, "steps": self.steps, "pose_stale": self.pose.stale}
         if fault is not None:
             values.update(fault_kind=fault.kind, servo_id="" if fault.servo_id is None else fault.servo_id)
             if fault.kind == HARDWARE:

@@ -9,6 +9,9 @@ What a driver meets where a real hand would be (``t42 hw emulate``):
   ``pose_rate_hz`` (the public test paths show 34-53 % of 10 Hz steps with no new pose), stamped at capture,
   ``pose_latency_s`` late, each frame lost with probability ``pose_dropout``;
 * ``sim/object_pose``: the true object position every step, for checks only;
+* with ``camera_rate_hz`` above 0, a rendered camera instead of the emulated tracker
+  (:mod:`t42_transfer.ros.sim_camera`): ``camera/image_raw`` + ``camera/camera_info`` of the hand as it is after
+  each tick, stamped with the tick, for an ``object_tracker`` to publish ``tracker/object_pose`` from;
 * with ``sim_time``, ``/clock``: one control period per tick, ``rate_factor`` times faster than real time at
   most: in ``lockstep`` (the default) a tick waits until the driver has written its goals for the last one
   (or ``lockstep_wait_s`` passed), so a driver slowed by a busy machine slows the clock instead of missing
@@ -40,11 +43,12 @@ from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware.emulator import PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
 from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
 
 
 @dataclass(frozen=True)
-class HwEmulatorParams:
-    """The emulator's ROS parameters."""
+class HwEmulatorParams(SimCameraParams):
+    """The emulator's ROS parameters (and its rendered camera's)."""
 
     link: str = param("", "symlink to the servo bus's pty (empty: none; the log names the pty)", read_only=True)
     hand: str = param("target", f"simulated hand behind the servos: {', '.join(NAMED_VARIANTS)}", read_only=True)
@@ -67,6 +71,7 @@ class HwEmulatorParams:
     port_closed: bool = param(False, "the adapter unplugged: the pty goes away until set false")
 
     def __post_init__(self) -> None:
+        self.check_camera()
         if any(not 0 <= b <= 255 for b in self.error_bits):
             raise ValueError(f"error_bits must be bytes (0-255), got {list(self.error_bits)}")
 
@@ -92,9 +97,20 @@ class HwEmulator(Node):
         self._tracker = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._truth = self.create_publisher(PoseStamped, names.SIM_POSE, 10)
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
+        self.camera = self._camera(p) if p.camera_rate_hz > 0 else None
         self._apply_faults(p)
         self._timer = self.create_timer(CONTROL_PERIOD_S / p.rate_factor, self._on_timer)
         self.log.info(f"servo bus on {self.port} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
+
+    def _camera(self, p: HwEmulatorParams) -> SimCamera:
+        try:
+            camera = SimCamera(self, self.plant.hand.params, p)
+            camera.camera.render()  # a renderer that cannot start fails here, at start
+        except Exception as err:
+            self.close()
+            raise ValueError(f"{self.get_fully_qualified_name()}: the simulated camera cannot render "
+                             f"({type(err).__name__}: {err}); check MUJOCO_GL") from None
+        return camera
 
     @property
     def params(self) -> HwEmulatorParams:
@@ -108,7 +124,10 @@ class HwEmulator(Node):
         return self._sim_ns if self._clock_pub is not None else self.get_clock().now().nanoseconds
 
     def close(self) -> None:
-        self._timer.cancel()
+        if getattr(self, "_timer", None) is not None:
+            self._timer.cancel()
+        if getattr(self, "camera", None) is not None:
+            self.camera.close()
         if self.pty is not None:
             self.pty.close_port()
             self.pty = None
@@ -156,12 +175,15 @@ class HwEmulator(Node):
                 self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
             self.plant.tick()
             now = self.now_ns()
-            self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
-            self._camera(now)
+            if self.camera is None:
+                self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
+                self._emulated_tracker(now)
+            elif not self.camera.capture(self.plant.hand, now):  # a frame publishes the truth with its stamp
+                self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
         except Exception as err:  # never raise from a callback
             self.log.error(f"emulator tick failed: {err!r}", throttle_duration_sec=1.0)
 
-    def _camera(self, now: int) -> None:
+    def _emulated_tracker(self, now: int) -> None:
         """Frames at the tracker's rate, with a little jitter: each captured now, sent after the latency."""
         p = self.params
         period_ns = round(1e9 / p.pose_rate_hz)

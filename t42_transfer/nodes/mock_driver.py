@@ -14,6 +14,15 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``hand/status`` (std_msgs/msg/String, latched): episode ends, resets, and
   ``trajectory_done`` when a trajectory's last point is being applied.
 
+Camera (``camera_rate_hz`` above 0, :mod:`t42_transfer.ros.sim_camera`): the hand is rendered with its
+markers and published on ``camera/image_raw`` + ``camera/camera_info`` (true intrinsics), with the true pose on
+``sim/object_pose``.  A frame is rendered at the end of a step, so it shows the state the next step publishes,
+and carries that step's stamp on sim time (the simulated clock jumps one period per tick, and that state holds
+from then); on wall-clock time it is stamped when rendered.  ``pose_source: topic`` makes the driver publish,
+as ``hand/object_pose``, the newest ``tracker/object_pose`` instead of the simulator's, by the real driver's
+rule (:mod:`t42_transfer.driver.pose`: never one older than ``max_pose_age_s``; ``stale`` on ``hand/status``).
+With an ``object_tracker`` that keeps up, each step's pose is then its own frame's, with the frame's stamp.
+
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
 A step stamped ``t`` (ROS time) publishes the current state (pose and
 joint states) and, if the episode is still running, the action applied from that
@@ -75,16 +84,20 @@ from msg_adapters import (
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
+from t42_transfer.driver.pose import NewestPose
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
+from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
+
+POSE_SOURCES = ("sim", "topic")
 
 
 @dataclass(frozen=True)
-class MockDriverParams:
-    """The mock driver's ROS parameters."""
+class MockDriverParams(SimCameraParams):
+    """The mock driver's ROS parameters (and its camera's)."""
 
     hand: str = param("target", f"simulated hand variant: {', '.join(NAMED_VARIANTS)} or family-<seed>", read_only=True)
     rate_factor: float = param(1.0, "steps run this many times faster than real time (timer 0.1 s / rate_factor)",
@@ -94,8 +107,18 @@ class MockDriverParams:
                                      min=1e-3, max=3600.0)
     sim_time: bool = param(False, "be the graph's clock: publish /clock, one control period per tick, and stamp "
                                   "with it (other nodes then run with use_sim_time:=true)", read_only=True)
+    pose_source: str = param("sim", "where hand/object_pose comes from: sim (the simulator) or topic (the newest "
+                                    "tracker/object_pose, as on a real hand)", read_only=True,
+                             constraints="sim or topic")
+    max_pose_age_s: float = param(0.3, "with pose_source topic: a tracker pose older than this is never "
+                                       "published as current", min=0.01, max=10.0)
 
     def __post_init__(self) -> None:
+        self.check_camera()
+        if self.pose_source not in POSE_SOURCES:
+            raise ValueError(f"pose_source must be one of {', '.join(POSE_SOURCES)}, got {self.pose_source!r}")
+        if not (math.isfinite(self.max_pose_age_s) and self.max_pose_age_s > 0):
+            raise ValueError(f"max_pose_age_s must be positive and finite, got {self.max_pose_age_s!r}")
         rate = self.rate_factor
         if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate_factor must be a positive finite number, got {self.rate_factor!r}")
@@ -146,6 +169,11 @@ class MockDriver(Node):
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
         self._sim_ns = self.get_clock().now().nanoseconds
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
+        self.pose = NewestPose()
+        """The tracker's newest pose (``pose_source: topic``)."""
+        if p.pose_source == "topic":
+            self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10)
+        self.camera = self._camera(p) if p.camera_rate_hz > 0 else None
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True)
@@ -155,6 +183,15 @@ class MockDriver(Node):
             self.log.warning(f"initial grasp failed: {why}; "
                              f"call {self.resolve_service_name(names.HAND_RESET)} to retry")
         self._timer = self.create_timer(p.period_s, self._on_timer)
+
+    def _camera(self, p: MockDriverParams) -> SimCamera:
+        try:
+            camera = SimCamera(self, self.hand.params, p)
+            camera.camera.render()  # a renderer that cannot start fails here, at start
+        except Exception as err:
+            raise ValueError(f"{self.get_fully_qualified_name()}: the simulated camera cannot render "
+                             f"({type(err).__name__}: {err}); check MUJOCO_GL") from None
+        return camera
 
     # ------------------------------------------------------------------ state
     @property
@@ -178,6 +215,10 @@ class MockDriver(Node):
             self._publish_status(status_message(names.RESET_FAILED, str(err), self._last_stamp))
             return False, f"grasp failed: {err}"
         self.running, self.steps = True, 0
+        self.pose.forget()  # the object was placed anew: no pose of the old grasp is current
+        if self.camera is not None:
+            self.camera.restart()
+            self._capture()
         message = grasp_detail(self.episode, seed)
         self._publish_status(status_message(names.RESET, message, self._last_stamp))
         return True, message
@@ -189,6 +230,8 @@ class MockDriver(Node):
     def close(self) -> None:
         """Stop stepping (the owner destroys the node)."""
         self._closed = True
+        if self.camera is not None:
+            self.camera.close()
 
     # ------------------------------------------------------------------ callbacks
     @staticmethod
@@ -214,6 +257,10 @@ class MockDriver(Node):
         cancelled = self.queue.set_command(action)
         if cancelled:
             self.log.info(f"single-step command cancels a trajectory with {cancelled} points left")
+
+    def _on_tracker_pose(self, msg: PoseStamped) -> None:
+        if (why := self.pose.receive_msg(msg)) is not None:
+            self.per_message.warning(f"rejected {names.TRACKER_POSE}: {why}")
 
     def _on_trajectory(self, data: bytes) -> None:
         actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
@@ -281,7 +328,7 @@ class MockDriver(Node):
         stamp = self.now_ns()
         state = self.hand.state
         self._last_stamp = stamp
-        self._pose_pub.publish(object_pose_msg(state[:2], stamp, RCLPY))
+        self._publish_pose(state[:2], stamp)
         self._joints_pub.publish(joint_state_msg(state[2:], self.hand.actuator_angles, stamp, RCLPY))
         if late_by_ns is not None:
             self._publish_status(status_message(names.LATE, f"{late_by_ns / 1e6:.1f} ms after the step before", stamp))
@@ -297,8 +344,31 @@ class MockDriver(Node):
         self._action_pub.publish(applied_action_msg(action, stamp, RCLPY))
         info = self.hand.step_info(action)
         self.steps += 1
+        self._capture()
         if info.refused:
             self.log.info(f"step {self.steps}: a servo move was refused (travel limit or load guard)")
+
+    def _publish_pose(self, simulated_xy: np.ndarray, stamp: int) -> None:
+        """The step's object pose: the simulator's, or the tracker's newest fresh one (``pose_source: topic``)."""
+        if self.params.pose_source == "sim":
+            self._pose_pub.publish(object_pose_msg(simulated_xy, stamp, RCLPY))
+            return
+        xy, why = self.pose.for_step(stamp, self.params.max_pose_age_s)
+        if why is not None:
+            self._publish_status(status_message(names.STALE, f"no fresh object pose on {names.TRACKER_POSE} "
+                                                             f"({why}): steps go out without one", stamp))
+        if xy is not None:
+            self._pose_pub.publish(object_pose_msg(xy, stamp, RCLPY))
+
+    def _capture(self) -> None:
+        """A camera frame of the hand as the next step will publish it (see the module docstring)."""
+        if self.camera is None:
+            return
+        stamp = self._sim_ns + CONTROL_PERIOD_NS if self._clock_pub is not None else self.now_ns()
+        try:
+            self.camera.capture(self.hand, stamp)
+        except Exception as err:  # the hand steps on without its camera
+            self.per_message.error(f"camera frame failed: {err!r}")
 
     def _publish_status(self, text: str) -> None:
         self._status_pub.publish(String(data=text))

@@ -29,18 +29,22 @@ class ThrottledLog:
         """kind -> (when its last line went out, lines held back since)."""
         self._lock = threading.Lock()
 
+    # Each level writes from its own line: rclpy keeps one severity per call site and raises on another.
     def warning(self, message: str) -> None:
-        self._emit(self._logger.warning, message)
+        if (line := self._line(message)) is not None:
+            self._logger.warning(line)
 
     def error(self, message: str) -> None:
-        self._emit(self._logger.error, message)
+        if (line := self._line(message)) is not None:
+            self._logger.error(line)
 
-    def _emit(self, write: Callable[[str], Any], message: str) -> None:
+    def _line(self, message: str) -> str | None:
+        """The line to write for ``message`` now, or None while its kind is held back."""
         kind, now = NUMBERS.sub("#", message), self._clock()
         with self._lock:
             last, held = self._kinds.get(kind, (-float("inf"), 0))
             if now - last < self._period_s:
                 self._kinds[kind] = (last, held + 1)
-                return
+                return None
             self._kinds[kind] = (now, 0)
-        write(message if not held else f"{message} ({held} more like it in the last {now - last:.1f} s)")
+        return message if not held else f"{message} ({held} more like it in the last {now - last:.1f} s)"

@@ -97,34 +97,36 @@ class Offscreen:
     def __init__(self, model: mujoco.MjModel, camera: str, width: int, height: int) -> None:
         self.width, self.height = width, height
         self._gl = _gl_context_class()(width, height)
-        self._gl.make_current()
-        self._scene = mujoco.MjvScene(model, maxgeom=200)
-        self._option = mujoco.MjvOption()
-        self._camera = mujoco.MjvCamera()
-        self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
-        self._camera.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-        self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
-        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
+        with self._gl.as_current():
+            self._scene = mujoco.MjvScene(model, maxgeom=200)
+            self._option = mujoco.MjvOption()
+            self._camera = mujoco.MjvCamera()
+            self._camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+            self._camera.fixedcamid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+            self._context = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_100)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self._context)
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._model = model
 
     def render(self, data: mujoco.MjData) -> np.ndarray:
-        self._gl.make_current()
-        mujoco.mjv_updateScene(self._model, data, self._option, None, self._camera, mujoco.mjtCatBit.mjCAT_ALL,
-                               self._scene)
-        mujoco.mjr_render(self._rect, self._scene, self._context)
-        rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
-        mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
+        """The camera's view of ``data``.  The GL context is current only during the call, so any one thread at
+        a time may render (a node's callbacks run on whichever executor thread is free)."""
+        with self._gl.as_current():
+            mujoco.mjv_updateScene(self._model, data, self._option, None, self._camera,
+                                   mujoco.mjtCatBit.mjCAT_ALL, self._scene)
+            mujoco.mjr_render(self._rect, self._scene, self._context)
+            rgb = np.empty((self.height, self.width, 3), dtype=np.uint8)
+            mujoco.mjr_readPixels(rgb, None, self._rect, self._context)
         return np.ascontiguousarray(rgb[::-1])  # OpenGL's rows run bottom-up
 
     def close(self) -> None:
-        self._gl.make_current()
-        self._context.free()
+        with self._gl.as_current():
+            self._context.free()
         self._gl.free()
 
 
 class HandCamera:
-    """The scene camera of one hand's marker scene; not thread-safe (its GL context is made current per call)."""
+    """The scene camera of one hand's marker scene; one thread at a time may use it."""
 
     def __init__(self, params: HandParams | str = "source", scene: MarkerScene | None = None,
                  dictionary: str = DEFAULT_DICTIONARY) -> None:

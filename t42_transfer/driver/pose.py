@@ -1,0 +1,66 @@
+"""The newest object pose from a tracker, and whether it may go out as a step's: one rule for every driver.
+
+A driver that takes the object's pose from a tracker (the Dynamixel driver always; the mock driver with
+``pose_source: topic``) publishes, at each step, the newest pose it received, stamped with the step.  A pose
+older than the driver's limit is never published as current: that step goes out without a pose, and the
+driver says ``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves
+it out and splits the episode there, saying so).  Nothing here needs ROS.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from msg_adapters import object_xy_mm, stamp_to_ns
+
+
+class NewestPose:
+    """The newest tracked object position (mm, ``t42_base``) with its stamp, and the stale-stretch state.
+
+    A pose stamped more than the age limit after the step is not the step's either: its stamp is on another
+    clock (a tracker on wall time beside a driver on sim time)."""
+
+    def __init__(self) -> None:
+        self._pose: tuple[int, np.ndarray] | None = None
+        self.stale = False
+        """Whether the last step asked went out without a pose."""
+
+    def receive(self, stamp_ns: int, xy_mm: np.ndarray) -> None:
+        """A pose from the tracker (its stamp is the image's, or the arrival time when it had none)."""
+        self._pose = (stamp_ns, np.asarray(xy_mm, dtype=np.float64))
+
+    def receive_msg(self, msg: Any) -> str | None:
+        """Keep a ``PoseStamped`` from the tracker; the reason it was refused (None: kept).  A pose in another
+        frame, with a non-finite value or an unset stamp is refused: none of them can be a step's pose."""
+        try:
+            xy = object_xy_mm(msg)
+        except ValueError as err:
+            return str(err)
+        stamp = stamp_to_ns(msg.header.stamp)
+        if stamp <= 0:
+            return "its header stamp is unset (0)"
+        self.receive(stamp, xy)
+        return None
+
+    def forget(self) -> None:
+        """Drop the pose held: the object was moved where the tracker has not seen it yet (a new grasp)."""
+        self._pose = None
+
+    def for_step(self, stamp_ns: int, max_age_s: float) -> tuple[np.ndarray | None, str | None]:
+        """The position to publish with the step stamped ``stamp_ns`` (None: stale), and the reason when this
+        step starts a stale stretch (None otherwise: say ``stale`` once per stretch)."""
+        pose = self._pose
+        age_s = None if pose is None else (stamp_ns - pose[0]) / 1e9
+        if pose is None or age_s is None or abs(age_s) > max_age_s:  # a future stamp: another clock's pose
+            starts = not self.stale
+            self.stale = True
+            if not starts:
+                return None, None
+            if pose is None or age_s is None:
+                return None, "no pose received"
+            return None, f"the newest is {age_s:.2f} s old" if age_s > 0 else f"the newest is stamped " \
+                                                                              f"{-age_s:.2f} s after the step"
+        self.stale = False
+        return pose[1], None

@@ -1,0 +1,58 @@
+"""driver.pose.NewestPose: which tracker pose a step may publish as its own, for every driver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msg_adapters import RCLPY, object_pose_msg
+from t42_transfer.driver.pose import NewestPose
+
+S = 1_000_000_000
+
+
+def test_a_fresh_pose_goes_out_and_a_stale_stretch_is_said_once() -> None:
+    pose = NewestPose()
+    assert pose.for_step(10 * S, 0.3) == (None, "no pose received")
+    assert pose.for_step(11 * S, 0.3) == (None, None)  # still stale: said once
+    pose.receive(11 * S, np.array([1.0, 2.0]))
+    xy, why = pose.for_step(11 * S + S // 5, 0.3)
+    np.testing.assert_array_equal(xy, [1.0, 2.0])
+    assert why is None and not pose.stale
+    xy, why = pose.for_step(12 * S, 0.3)
+    assert xy is None and why == "the newest is 1.00 s old" and pose.stale
+
+
+def test_a_pose_stamped_after_the_step_by_more_than_the_limit_is_not_the_steps() -> None:
+    pose = NewestPose()
+    pose.receive(20 * S, np.array([0.0, 80.0]))
+    assert pose.for_step(20 * S - S // 10, 0.3)[0] is not None  # a frame a little ahead (sim time) is its own
+    assert pose.for_step(10 * S, 0.3) == (None, "the newest is stamped 10.00 s after the step")
+
+
+def test_a_new_grasp_forgets_the_old_pose() -> None:
+    pose = NewestPose()
+    pose.receive(S, np.array([0.0, 80.0]))
+    pose.forget()
+    assert pose.for_step(S, 0.3) == (None, "no pose received")
+
+
+@pytest.mark.parametrize("frame, xy, stamp, reason", [
+    ("world", (0.0, 80.0), S, "object pose is in frame 'world'"),
+    ("t42_base", (float("nan"), 80.0), S, "non-finite"),
+    ("t42_base", (0.0, 80.0), 0, "its header stamp is unset (0)"),
+])
+def test_a_pose_that_cannot_be_a_steps_is_refused_with_the_reason(frame, xy, stamp, reason) -> None:
+    pose = NewestPose()
+    msg = object_pose_msg(np.array([0.0, 80.0]), stamp, RCLPY)
+    msg.header.frame_id = frame
+    msg.pose.position.x = xy[0] / 1000.0
+    why = pose.receive_msg(msg)
+    assert why is not None and reason in why, why
+    assert pose.for_step(S, 0.3) == (None, "no pose received")  # nothing kept
+
+
+def test_a_good_pose_message_is_kept_in_millimetres() -> None:
+    pose = NewestPose()
+    assert pose.receive_msg(object_pose_msg(np.array([3.0, 81.0]), 5 * S, RCLPY)) is None
+    np.testing.assert_allclose(pose.for_step(5 * S, 0.3)[0], [3.0, 81.0], atol=1e-4)
