@@ -13,6 +13,7 @@ position (flagged above ``jump_mm``, the authors' 8 mm drop rule), and whether t
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -172,6 +173,13 @@ class BaseMarker:
         t = self.transform()
         return marker_corners(self.size_m) @ t[:3, :3].T + t[:3, 3]
 
+    @functools.cached_property
+    def base_corners(self) -> np.ndarray:
+        """:meth:`corners_in_base` computed once (read-only): the tracker needs them every frame."""
+        corners = self.corners_in_base()
+        corners.setflags(write=False)
+        return corners
+
 
 @dataclass(frozen=True)
 class TrackerConfig:
@@ -286,13 +294,17 @@ def reprojection_error(points: np.ndarray, image_points: np.ndarray, camera_from
     return float(np.sqrt(np.mean(np.sum((projected.reshape(-1, 2) - image_points.reshape(-1, 2)) ** 2, axis=1))))
 
 
-def marker_pose(corners: np.ndarray, size: float, intrinsics: Intrinsics) -> tuple[np.ndarray, float]:
-    """(4x4 pose of the marker in the camera frame, reprojection error px) by IPPE for squares."""
+def _ippe_pose(corners: np.ndarray, size: float, intrinsics: Intrinsics) -> np.ndarray:
     ok, rvec, tvec = cv2.solvePnP(marker_corners(size), corners.reshape(4, 1, 2), intrinsics.k, intrinsics.d,
                                   flags=cv2.SOLVEPNP_IPPE_SQUARE)
     if not ok:
         raise ValueError("solvePnP found no pose for the marker")
-    pose = _rigid(cv2.Rodrigues(rvec)[0], tvec)
+    return _rigid(cv2.Rodrigues(rvec)[0], tvec)
+
+
+def marker_pose(corners: np.ndarray, size: float, intrinsics: Intrinsics) -> tuple[np.ndarray, float]:
+    """(4x4 pose of the marker in the camera frame, reprojection error px) by IPPE for squares."""
+    pose = _ippe_pose(corners, size, intrinsics)
     return pose, reprojection_error(marker_corners(size), corners, pose, intrinsics)
 
 
@@ -306,14 +318,14 @@ def base_pose(found: Mapping[int, np.ndarray], markers: Sequence[BaseMarker],
     seen = [m for m in markers if m.marker_id in found]
     if not seen:
         return None
-    points = np.concatenate([m.corners_in_base() for m in seen])
+    points = np.concatenate([m.base_corners for m in seen])
     pixels = np.concatenate([found[m.marker_id] for m in seen])
 
     def area(m: BaseMarker) -> float:
         return float(cv2.contourArea(found[m.marker_id].astype(np.float32)))
 
     first = max(seen, key=area)
-    camera_from_marker, _ = marker_pose(found[first.marker_id], first.size_m, intrinsics)
+    camera_from_marker = _ippe_pose(found[first.marker_id], first.size_m, intrinsics)  # its own error: not used
     camera_from_base = camera_from_marker @ _inverse(first.transform())
     if len(seen) > 1:
         rvec, _ = cv2.Rodrigues(camera_from_base[:3, :3])
@@ -327,8 +339,11 @@ def base_pose(found: Mapping[int, np.ndarray], markers: Sequence[BaseMarker],
 
 def square_centre(corners: np.ndarray) -> np.ndarray:
     """Image of a square's centre: where its diagonals cross (a projection keeps that, not the corners' mean)."""
-    p0, p1, p2, p3 = (np.append(c, 1.0) for c in corners)
-    point = np.cross(np.cross(p0, p2), np.cross(p1, p3))
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = np.asarray(corners, dtype=float).reshape(4, 2).tolist()
+    # homogeneous lines through corners 0-2 and 1-3 (p x q with z = 1), then their crossing, as np.cross would
+    a = (y0 - y2, x2 - x0, x0 * y2 - y0 * x2)
+    b = (y1 - y3, x3 - x1, x1 * y3 - y1 * x3)
+    point = np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
     if abs(point[2]) < 1e-12:
         raise ValueError("degenerate marker corners")
     return point[:2] / point[2]
