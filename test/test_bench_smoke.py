@@ -249,3 +249,21 @@ def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
     assert positive(result["cpu_ratio_driver_to_bare_select_reads"])
     assert 5 <= idle["periods"] <= 15 and positive(idle["cpu_ms_per_period"])
     assert math.isfinite(result["driver_cpu_above_idle_node_ms_per_step"])
+
+
+def test_bench_tracker(tmp_path: Path) -> None:
+    """Three frames at two small resolutions, one pass: the fields, and ratios that are finite positive numbers."""
+    result = run_bench("bench_tracker.py", "--frames", "3", "--repeats", "1", "--resolutions", "320x240", "640x360",
+                       out=tmp_path / "tracker.json")
+    assert result["benchmark"] == "tracker" and result["parameters"]["frames"] == 3
+    assert list(result["resolutions"]) == ["320x240", "640x360"]
+    for run in result["resolutions"].values():
+        for case in ("render", "tracker", "bare"):
+            assert all(positive(run[case][k]) for k in ("fps", "ms_per_frame", "cpu_ms_per_frame")), case
+        assert run["render"]["frames"] == 3 and sum(run["tracker"]["statuses"].values()) == 3
+        assert 0 <= run["tracker"]["tracked"] <= 3 and 0 <= run["bare"]["marker_poses_per_frame"] <= 3
+        ratios = run["ratio_tracker_to_bare"]
+        assert positive(ratios["ms_per_frame"]) and positive(ratios["cpu_ms_per_frame"])
+        assert len(ratios["ms_per_frame_per_repeat"]) == 1 and {"load_before", "load_after"} <= set(run)
+    assert result["target"]["ratio_tracker_to_bare_max"] == 1.3 and isinstance(result["target_met"], bool)
+    assert {"command", "load_before", "load_after"} <= set(result) and "load_average" in result["machine"]
