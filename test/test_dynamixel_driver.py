@@ -314,6 +314,20 @@ def test_cleanup_and_close_turn_the_torque_off(fresh_rig: Rig) -> None:
     time.sleep(0.1)
 
 
+@pytest.mark.parametrize("inject, off", [
+    (lambda bus: setattr(bus.bus.faults, "drop_replies", 1), [True, True]),
+    (lambda bus: bus.bus.faults.dead.add(1), [False, True]),
+], ids=["one reply dropped", "servo 1 dead"])
+def test_close_turns_the_torque_off_on_every_servo_that_answers(fresh_rig: Rig, inject, off: list) -> None:
+    """One lost reply used to leave servo 2 on after close(); a dead servo 1 left both on."""
+    rig = fresh_rig
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    assert rig.bench.torque() == [True, True]
+    inject(rig.bench.bus)
+    rig.driver.close()
+    assert [not on for on in rig.bench.torque()] == off
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: int) -> None:
     """``t42 node dynamixel_driver`` with autostart on the emulated bus; the signal ends it, the torque goes off."""

@@ -120,3 +120,30 @@ def test_the_adapters_latency_timer_sets_how_long_an_answer_is_awaited(latency_t
                 assert fault.value.kind == s.TIMEOUT
         finally:
             servos.close()
+
+
+@pytest.mark.parametrize("inject, failed, off", [
+    (lambda bus: setattr(bus.bus.faults, "drop_replies", 1), {}, [True, True]),
+    (lambda bus: setattr(bus.bus.faults, "drop_replies", 2), {1: s.TIMEOUT}, [True, True]),
+    (lambda bus: bus.bus.faults.dead.add(1), {1: s.TIMEOUT}, [False, True]),
+    (lambda bus: bus.bus.servos[1].raise_error(1 << 5), {}, [True, True]),  # its replies raise the alert bit
+], ids=["one reply dropped", "two replies dropped", "servo 1 dead", "error bit"])
+def test_torque_off_tries_every_servo_whatever_the_one_before_did(hand, inject, failed: dict, off: list) -> None:
+    """A lost reply is written again; a servo that never confirms is named, and the other still goes off."""
+    bus, servos = hand
+    servos.torque(True)
+    assert [bus.bus.servos[i].torque for i in (1, 2)] == [True, True]
+    inject(bus)
+    result = servos.set_torque(False)
+    assert {i: f.kind for i, f in result.items()} == failed
+    assert [not bus.bus.servos[i].torque for i in (1, 2)] == off  # Torque Enable of the emulated servos themselves
+
+
+def test_torque_off_names_every_servo_that_failed_after_trying_all(hand) -> None:
+    bus, servos = hand
+    servos.torque(True)
+    bus.bus.faults.dead.add(1)
+    with pytest.raises(s.ServoFault) as fault:
+        servos.torque(False)
+    assert fault.value.servo_id == 1 and "servo 1" in str(fault.value) and "servo 2" not in str(fault.value)
+    assert bus.bus.servos[2].torque is False

@@ -53,6 +53,8 @@ class ServoState:
     currents: dict[int, int]
 
 
+TORQUE_ATTEMPTS = 2
+"""Writes of Torque Enable each servo gets before it counts as failed (a lost reply is retried once)."""
 SDK_LATENCY_TIMER_MS = 16.0
 """The USB adapter's latency timer dynamixel-sdk assumes (FTDI's default) when it times an answer out."""
 
@@ -181,8 +183,32 @@ class HandServos:
             self.write(i, xm.MAX_POSITION_LIMIT, high)
 
     def torque(self, on: bool) -> None:
+        """Torque Enable on every servo.  Each servo is tried on its own (:meth:`set_torque`): one that does not
+        answer leaves no other as it was; a :class:`ServoFault` afterwards names the first that failed, and all."""
+        failed = self.set_torque(on)
+        if failed:
+            first = next(iter(failed.values()))
+            raise ServoFault(first.kind, first.servo_id, "; ".join(f"torque {'on' if on else 'off'} failed on "
+                                                                  f"servo {i}: {err.detail}"
+                                                                  for i, err in failed.items()))
+
+    def set_torque(self, on: bool, attempts: int = TORQUE_ATTEMPTS) -> dict[int, ServoFault]:
+        """Torque Enable on each servo, each tried up to ``attempts`` times whatever the others did; the servos
+        that never confirmed it, with their last fault ({} when all did)."""
+        failed: dict[int, ServoFault] = {}
         for i in self.ids:
-            self.write(i, xm.TORQUE_ENABLE, int(on))
+            for _ in range(attempts):
+                try:
+                    self.write(i, xm.TORQUE_ENABLE, int(on))
+                except ServoFault as err:
+                    if err.kind == HARDWARE and not on:  # the alert bit of a servo with an error: the write was
+                        failed.pop(i, None)  # done (such a servo has turned its torque off itself anyway)
+                        break
+                    failed[i] = err
+                else:
+                    failed.pop(i, None)
+                    break
+        return failed
 
     def read_state(self) -> ServoState:
         """One sync read of Present Current, Velocity and Position of every servo, each answer's error byte checked.

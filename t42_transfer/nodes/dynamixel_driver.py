@@ -204,6 +204,7 @@ class DynamixelDriver(LifecycleNode):
             self._need_hand().hold()
         except ServoFault as err:
             self.log.error(f"activate failed: {err}")
+            self._need_hand().servos.set_torque(False)  # inactive again: no servo left on
             return TransitionCallbackReturn.FAILURE
         self._stepping, self._last_step_ns = True, None
         self.log.info("active: torque on, holding; call hand/reset to grasp")
@@ -236,10 +237,10 @@ class DynamixelDriver(LifecycleNode):
         hand, self.hand = self.hand, None
         if hand is None:
             return
-        try:
-            hand.servos.torque(False)
-        except ServoFault as err:
-            self.log.error(f"could not turn the torque off: {err}")
+        failed = hand.servos.set_torque(False)  # each servo tried on its own: one silent servo leaves no other on
+        if failed:
+            self.log.error(f"could not turn the torque off on servo(s) {sorted(failed)}: "
+                           + "; ".join(str(err) for err in failed.values()))
         hand.servos.close()
 
     def _need_hand(self) -> ServoHand:
