@@ -257,6 +257,9 @@ def test_parameters_are_declared_and_bad_ones_refused(shared_rig: Rig) -> None:
     try:
         refused = driver.set_parameters([Parameter("grasp_load", value=500.0)])[0]  # above the load limit
         assert not refused.successful and "grasp_load must be below load_limit" in refused.reason
+        for value in ([1.0], [1.0, 1.0, 1.0]):  # one limit for two servos raised IndexError out of the service
+            refused = driver.set_parameters([Parameter("max_angle_rad", value=value)])[0]
+            assert not refused.successful and "2 values, one per actuator" in refused.reason, refused
         assert driver.set_parameters([Parameter("load_limit", value=250.0)])[0].successful
     finally:
         assert driver.set_parameters([Parameter("load_limit", value=280.0)])[0].successful
@@ -346,6 +349,42 @@ def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: 
     finally:
         stop([proc])
         bus.close_port()
+
+
+class RaisingDriver(DynamixelDriver):
+    """The driver with a bug: a callback that raises once the hand is active (torque on)."""
+
+    def __init__(self, **node_kwargs: Any) -> None:
+        super().__init__(**node_kwargs)
+        self.create_timer(0.05, self._bug)
+
+    def _bug(self) -> None:
+        if self._stepping:
+            raise RuntimeError("a bug in a callback")
+
+
+def test_an_exception_out_of_a_callback_still_turns_the_torque_off(ros_domain: int,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The runner's spin loop ends on the exception; the node's close() runs before it propagates."""
+    from t42_transfer.nodes.registry import NODES, NodeSpec
+    from t42_transfer.ros.runner import run_node
+
+    monkeypatch.setitem(NODES, "raising_driver", NodeSpec(f"{__name__}:RaisingDriver", "a driver with a bug"))
+    with PtyBus(t42_bus()) as bus:
+        turned_on = []
+        handle = bus.bus.handle
+
+        def watch(ins):  # noqa: ANN001, ANN202 (the torque was on before the bug struck)
+            answer = handle(ins)
+            turned_on.append(all(s.torque for s in bus.bus.servos.values()))
+            return answer
+
+        bus.bus.handle = watch
+        with pytest.raises(RuntimeError, match="a bug in a callback"):
+            run_node("raising_driver", ["--ros-args", "-p", f"port:={bus.port}", "-p", "autostart:=true",
+                                        "-p", f"latency_timer_ms:={EMULATED_LATENCY_TIMER_MS}"])
+        assert any(turned_on)
+        assert [s.torque for s in bus.bus.servos.values()] == [False, False]
 
 
 @pytest.mark.parametrize("config", ["hardware_real.yaml", "hardware_emulated.yaml"])

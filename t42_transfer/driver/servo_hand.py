@@ -47,6 +47,10 @@ class HandGeometry:
     grasp_max_steps: int = 200
 
     def __post_init__(self) -> None:
+        for name in ("servo_ids", "open_ticks", "directions", "max_angle_rad"):  # one per actuator, as a list
+            value = getattr(self, name)
+            if not isinstance(value, tuple | list) or len(value) != ACTION_DIM:
+                raise ValueError(f"{name} must list {ACTION_DIM} values, one per actuator, got {value!r}")
         check(self, {"servo_ids": between(0, 252), "open_ticks": between(0, xm.MAX_TICK),
                      "directions": ((lambda v: v in (-1, 1)), "+1 or -1"),
                      "rad_per_action": between(0, 0.2, low_open=True),

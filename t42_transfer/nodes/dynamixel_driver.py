@@ -6,9 +6,10 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
   operating mode and the position limits, read where the fingers stand;
 * activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
 * deactivate: hold the position, stop stepping (torque stays on);
-* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM) turns the torque
-  off too, whatever the state.  ``autostart`` configures and activates at start, for a suite run without a
-  lifecycle manager (``t42 up``), trying configure again every second until the port is there.
+* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM, an exception out of a
+  callback) turns the torque off too, whatever the state, on each servo that answers.  ``autostart`` configures
+  and activates at start, for a suite run without a lifecycle manager (``t42 up``), trying configure again
+  every second until the port is there.
 
 Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,

@@ -7,7 +7,9 @@ t42_transfer NAME``) both end here.  rclpy takes the whole argument list
 executor :func:`make_executor` picks for it until SIGINT or SIGTERM, or until a
 node with a ``finished`` property (the explorer) is done; then the node's
 ``close()`` runs (a recorder finishes its bag) and the process exits 0.  A bad
-command line or parameter exits 2 with one ``t42: error: ...`` line.
+command line or parameter exits 2 with one ``t42: error: ...`` line.  An exception
+out of a callback ends the spin, but ``close()`` still runs (a driver turns its
+torque off) before it propagates (exit 1, with its traceback).
 """
 
 from __future__ import annotations
@@ -112,8 +114,13 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
             return _error(str(err))
         executor.add_node(node)
         node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; {RUNNING}")
-        while not stop.is_set() and not getattr(node, "finished", False):
-            executor.spin_once(timeout_sec=0.1)
+        try:
+            while not stop.is_set() and not getattr(node, "finished", False):
+                executor.spin_once(timeout_sec=0.1)
+        except BaseException as err:  # a callback raised: the node still closes (a driver turns its torque off)
+            node.get_logger().error(f"stopped by {err!r} from a callback; closing the node")
+            node.close()  # (should this raise too, the first error stays its context)
+            raise
         node.close()
         node.get_logger().info("shut down cleanly")
         return 0
