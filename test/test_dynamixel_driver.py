@@ -27,7 +27,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_to_ns, status_event
 from msg_adapters.wire import ACTUATOR_NAMES
-from t42_transfer.conventions import CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
+from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, PtyBus, t42_bus
@@ -303,6 +303,46 @@ def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_th
     rig.ros.spin_for(0.5)
     low, high = zip(*rig.driver.hand.geometry.limits().values(), strict=True)
     assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True)), rig.bench.goals()
+
+
+def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:
+    """What ros2 param set accepts on a configured driver is what the next steps obey (it may let the object go)."""
+    driver = rig.driver  # (on a grasped hand: see the rig fixture)
+    publisher = rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10)
+
+    def command(action: list[float]) -> np.ndarray:
+        """The goal's move over the steps that one command and the holding after it make."""
+        before = np.array(driver.hand.goal)
+        msg = JointState(name=list(ACTUATOR_NAMES), velocity=[a * ACTION_UNIT_RAD / CONTROL_PERIOD_S for a in action])
+        msg.header.stamp = rig.tester.get_clock().now().to_msg()
+        publisher.publish(msg)
+        rig.ros.spin_for(0.5)
+        return np.array(driver.hand.goal) - before
+
+    def set_param(name: str, value: Any) -> Any:
+        return driver.set_parameters([Parameter(name, value=value)])[0]
+
+    try:
+        assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
+        rig.ros.spin_for(0.3)
+        assert set_param("rad_per_action", ACTION_UNIT_RAD / 2).successful
+        assert np.allclose(command([0.0, -0.5]), [0.0, -0.25 * ACTION_UNIT_RAD], atol=1e-9)  # half as far
+        assert np.all(np.abs(driver.hand.loads) > 60)  # (the grasp holds the object)
+        assert set_param("grasp_load", 30.0).successful and set_param("load_limit", 60.0).successful
+        assert np.allclose(command([1.0, 1.0]), 0.0), "a finger closed with its load over the new limit"
+        limit = np.array(driver.hand.goal) - 0.1  # short of where the fingers stand now
+        assert set_param("max_angle_rad", [float(a) for a in limit]).successful
+        rig.ros.spin_for(0.5)
+        assert np.all(np.array(driver.hand.goal) <= limit + 1e-9), (driver.hand.goal, limit)
+        low, high = zip(*driver.hand.geometry.limits().values(), strict=True)
+        assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True))  # on the servos
+        refused = set_param("max_angle_rad", [3.1, 3.1])  # past the servos' EEPROM limits: needs a configure
+        assert not refused.successful and "Position Limits" in refused.reason, refused
+    finally:
+        for name, value in (("max_angle_rad", [3.0, 3.0]), ("load_limit", 280.0), ("grasp_load", 100.0),
+                            ("rad_per_action", ACTION_UNIT_RAD)):
+            assert set_param(name, value).successful
+        rig.tester.destroy_publisher(publisher)
 
 
 # Rigs of their own.

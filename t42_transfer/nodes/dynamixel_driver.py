@@ -20,6 +20,12 @@ command the hand holds where it is (the watchdog is the step convention itself).
 authors' grasp: open, then close each finger until its load passes ``grasp_load``; it answers once the grasp
 closed (the steps run meanwhile).
 
+Parameters at run time: ``load_limit``, ``grasp_load``, ``rad_per_action`` and ``max_angle_rad`` set while the
+driver is configured take effect from the next step (a goal past a lowered limit is brought back onto it).  The
+servos' own Min/Max Position Limit are EEPROM, written only with the torque off, at configure: so a limit lowered
+at run time is kept by the driver (the servos keep the wider one until the next configure), and a limit raised
+beyond what the servos were configured with is refused with the reason (cleanup, set it, configure).
+
 Object pose: the newest ``tracker/object_pose`` (remappable) is published each step, stamped with the step,
 unless it is older than ``max_pose_age_s``: then no pose goes out for the step, and ``hand/status`` says
 ``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves it out and
@@ -97,7 +103,8 @@ class DynamixelDriverParams:
     directions: tuple[int, ...] = param(_T42.directions, "+1: ticks above open close the finger, -1: below",
                                         read_only=True)
     rad_per_action: float = param(_T42.rad_per_action, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
-    max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad)")
+    max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad); "
+                                             "at run time lowered at once, raised only unconfigured")
     load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this", min=1.0, max=2000.0)
     grasp_load: float = param(_T42.grasp_load, "a reset closes each finger until its load passes this", min=1.0,
                               max=2000.0)
@@ -122,7 +129,9 @@ class DynamixelDriver(LifecycleNode):
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("dynamixel_driver", **node_kwargs)
-        self._params = LiveParams(self, DynamixelDriverParams)
+        self._servo_limits_rad: tuple[float, ...] | None = None
+        """``max_angle_rad`` as written to the servos' Position Limits at configure (None: not configured)."""
+        self._params = LiveParams(self, DynamixelDriverParams, on_change=self._on_params, veto=self._veto_params)
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
@@ -190,6 +199,7 @@ class DynamixelDriver(LifecycleNode):
             geometry = p.geometry()
             servos.configure(xm.POSITION_MODE, geometry.limits())
             self.hand = ServoHand(servos, geometry)
+            self._servo_limits_rad = geometry.max_angle_rad
             self.hand.start_from_present()
         except (ServoFault, ValueError) as err:
             servos.close()
@@ -236,6 +246,7 @@ class DynamixelDriver(LifecycleNode):
         self._stepping = False
         self._stop_episode("the driver stopped")
         hand, self.hand = self.hand, None
+        self._servo_limits_rad = None
         if hand is None:
             return
         failed = hand.servos.set_torque(False)  # each servo tried on its own: one silent servo leaves no other on
@@ -243,6 +254,26 @@ class DynamixelDriver(LifecycleNode):
             self.log.error(f"could not turn the torque off on servo(s) {sorted(failed)}: "
                            + "; ".join(str(err) for err in failed.values()))
         hand.servos.close()
+
+    # ------------------------------------------------------------------ parameters at run time
+    def _veto_params(self, old: DynamixelDriverParams, new: DynamixelDriverParams) -> str | None:
+        """A position limit beyond what the servos were configured with waits for the next configure: the servos'
+        Min/Max Position Limit are EEPROM, written only with the torque off, and refuse goals past them."""
+        configured = self._servo_limits_rad
+        if configured is None or all(a <= b + 1e-9 for a, b in zip(new.max_angle_rad, configured, strict=True)):
+            return None
+        return (f"max_angle_rad {list(new.max_angle_rad)} goes beyond the servos' Position Limits written at configure "
+                f"({list(configured)} rad; EEPROM, written only with the torque off): lower limits take effect at "
+                "once, higher ones after cleanup, setting it, and configure")
+
+    def _on_params(self, old: DynamixelDriverParams, new: DynamixelDriverParams) -> None:
+        """The hand's limits, grasp load and action scale follow the parameters from the next step on."""
+        hand = self.hand
+        if hand is None or new.geometry() == hand.geometry:
+            return
+        hand.geometry = new.geometry()
+        self.log.info(f"now: max_angle_rad {list(new.max_angle_rad)}, load_limit {new.load_limit:g}, grasp_load "
+                      f"{new.grasp_load:g}, rad_per_action {new.rad_per_action:g} (from the next step)")
 
     def _need_hand(self) -> ServoHand:
         if self.hand is None:
