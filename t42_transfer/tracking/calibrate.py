@@ -1,27 +1,39 @@
-"""Camera calibration from checkerboard images, written as a ROS ``camera_info`` YAML.
+"""Camera calibration from checkerboard or ChArUco images, written as a ROS ``camera_info`` YAML.
 
-:func:`calibrate` finds the board's inner corners (``cv2.findChessboardCornersSB``, sub-pixel) in every image
-and runs ``cv2.calibrateCamera`` (plumb_bob: k1, k2, p1, p2; k3 held at 0, as ROS's camera_calibration
-does by default).  :func:`camera_info_document` lays the result out as camera_calibration_parsers writes it
-(``image_width``, ``camera_matrix``, ``distortion_coefficients``, ``rectification_matrix``,
-``projection_matrix``), which :meth:`~t42_transfer.tracking.markers.Intrinsics.from_yaml_dict` reads back.
+:func:`calibrate` finds a board's corners in every image and runs ``cv2.calibrateCamera`` (plumb_bob: k1, k2,
+p1, p2; k3 held at 0, as ROS's camera_calibration does by default).  Two kinds of board:
+
+* :class:`Checkerboard`: the inner corners (``cv2.findChessboardCornersSB``, sub-pixel); an image counts only
+  when the whole board is in it;
+* :class:`Charuco`: a chessboard with ArUco markers in its white squares (``cv2.aruco.CharucoBoard``, found by
+  ``cv2.aruco.CharucoDetector``); each corner is known by the markers next to it, so a view showing part of the
+  board counts too (at least :data:`MIN_CHARUCO_CORNERS` corners, not all on one line).
+
+:func:`camera_info_document` lays the result out as camera_calibration_parsers writes it (``image_width``,
+``camera_matrix``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``), which
+:meth:`~t42_transfer.tracking.markers.Intrinsics.from_yaml_dict` reads back.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import yaml
 
-from t42_transfer.tracking.markers import Intrinsics
+from t42_transfer.tracking.markers import DEFAULT_DICTIONARY, Intrinsics, aruco_dictionary
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 MIN_VIEWS = 3
 MAX_IMAGES = 1000
+MIN_CHARUCO_CORNERS = 6
+"""ChArUco corners a view needs to count (a view's homography needs 4; a few more keep a sliver out)."""
 
 
 @dataclass(frozen=True)
@@ -33,18 +45,100 @@ class Calibration:
     """RMS reprojection error of each image used, in the order of ``used``."""
     used: tuple[str, ...]
     skipped: tuple[str, ...]
-    """Images where the whole board was not found."""
+    """Images where the board was not found (a checkerboard not whole, a ChArUco board in too few corners)."""
 
 
-def parse_pattern(text: str) -> tuple[int, int]:
-    """``"9x6"`` -> (9, 6): inner corners per row and per column."""
+def parse_grid(text: str, what: str = "board pattern", unit: str = "inner corners", example: str = "9x6",
+               least: int = 2) -> tuple[int, int]:
+    """``"9x6"`` -> (9, 6): so many per row and per column, each at least ``least``."""
     try:
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"board pattern must be COLSxROWS of inner corners such as 9x6, got {text[:40]!r}") from None
-    if cols < 2 or rows < 2 or cols * rows > 10_000:
-        raise ValueError(f"board pattern {cols}x{rows}: need at least 2x2 inner corners")
+        raise ValueError(f"{what} must be COLSxROWS of {unit} such as {example}, got {text[:40]!r}") from None
+    if cols < least or rows < least or cols * rows > 10_000:
+        raise ValueError(f"{what} {cols}x{rows}: need at least {least}x{least} {unit}")
     return cols, rows
+
+
+def parse_pattern(text: str) -> tuple[int, int]:
+    """``"9x6"`` -> (9, 6): a checkerboard's inner corners per row and per column."""
+    return parse_grid(text)
+
+
+def parse_squares(text: str) -> tuple[int, int]:
+    """``"7x5"`` -> (7, 5): a ChArUco board's squares per row and per column."""
+    return parse_grid(text, "ChArUco board", "squares", "7x5", least=3)
+
+
+def _check_length(name: str, metres: float) -> None:
+    if not (math.isfinite(metres) and metres > 0):
+        raise ValueError(f"{name} must be positive metres, got {metres}")
+
+
+@dataclass(frozen=True)
+class Checkerboard:
+    """A checkerboard of ``pattern`` inner corners (per row, per column) and ``square_m`` squares."""
+
+    pattern: tuple[int, int]
+    square_m: float
+
+    def __post_init__(self) -> None:
+        _check_length("square size", self.square_m)
+
+    def describe(self) -> str:
+        return f"{self.pattern[0]}x{self.pattern[1]} board"
+
+    def find(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(board points N x 3, image points N x 1 x 2; float32) of the whole board, or None."""
+        corners = find_board(gray, self.pattern)
+        return None if corners is None else (board_points(self.pattern, self.square_m), corners)
+
+
+@dataclass(frozen=True)
+class Charuco:
+    """A ChArUco board: ``squares`` (per row, per column) of ``square_m``, markers of ``marker_m`` from
+    ``dictionary`` in its white squares, laid out as ``cv2.aruco.CharucoBoard`` lays them out (OpenCV >= 4.6's
+    layout: a board with an even number of rows printed by an older OpenCV differs and is not found)."""
+
+    squares: tuple[int, int]
+    square_m: float
+    marker_m: float
+    dictionary: str = DEFAULT_DICTIONARY
+
+    def __post_init__(self) -> None:
+        _check_length("square size", self.square_m)
+        _check_length("marker size", self.marker_m)
+        if self.marker_m >= self.square_m:
+            raise ValueError(f"marker side {self.marker_m:g} m must be smaller than the square's {self.square_m:g} m")
+        markers = self.squares[0] * self.squares[1] // 2
+        available = aruco_dictionary(self.dictionary).bytesList.shape[0]
+        if markers > available:
+            raise ValueError(f"a {self.squares[0]}x{self.squares[1]} ChArUco board has {markers} markers; "
+                             f"{self.dictionary} has only {available}")
+
+    def describe(self) -> str:
+        return f"{self.squares[0]}x{self.squares[1]} ChArUco board ({self.dictionary})"
+
+    @functools.cached_property
+    def board(self) -> Any:
+        """The ``cv2.aruco.CharucoBoard`` (what a renderer draws and the detector looks for)."""
+        return cv2.aruco.CharucoBoard(self.squares, self.square_m, self.marker_m, aruco_dictionary(self.dictionary))
+
+    @functools.cached_property
+    def _detector(self) -> Any:
+        return cv2.aruco.CharucoDetector(self.board)
+
+    def find(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(board points N x 3, image points N x 1 x 2; float32) of the corners seen, or None when fewer than
+        :data:`MIN_CHARUCO_CORNERS` are seen or they lie on one line."""
+        corners, ids, _, _ = self._detector.detectBoard(gray)
+        if ids is None or len(ids) < MIN_CHARUCO_CORNERS or self.board.checkCharucoCornersCollinear(ids):
+            return None
+        points, pixels = self.board.matchImagePoints(corners, ids)
+        return points.reshape(-1, 3).astype(np.float32), pixels.reshape(-1, 1, 2).astype(np.float32)
+
+
+Board = Checkerboard | Charuco
 
 
 def board_points(pattern: tuple[int, int], square_m: float) -> np.ndarray:
@@ -71,10 +165,8 @@ def image_files(folder: Path) -> list[Path]:
     return files
 
 
-def calibrate(images: Iterable[tuple[str, np.ndarray]], pattern: tuple[int, int], square_m: float) -> Calibration:
+def calibrate(images: Iterable[tuple[str, np.ndarray]], board: Board) -> Calibration:
     """Calibrate from ``(name, grey or BGR image)`` pairs of one camera; ValueError if it cannot be done."""
-    if not (np.isfinite(square_m) and square_m > 0):
-        raise ValueError(f"square size must be positive metres, got {square_m}")
     object_points, image_points, used, skipped = [], [], [], []
     size: tuple[int, int] | None = None
     for name, image in images:
@@ -84,18 +176,20 @@ def calibrate(images: Iterable[tuple[str, np.ndarray]], pattern: tuple[int, int]
             size = this
         elif this != size:
             raise ValueError(f"{name}: image is {this[0]}x{this[1]}, the first one {size[0]}x{size[1]}")
-        corners = find_board(gray, pattern)
-        if corners is None:
+        found = board.find(gray)
+        if found is None:
             skipped.append(name)
             continue
-        object_points.append(board_points(pattern, square_m))
-        image_points.append(corners)
+        object_points.append(found[0])
+        image_points.append(found[1])
         used.append(name)
     if size is None:
         raise ValueError("no images")
     if len(used) < MIN_VIEWS:
-        raise ValueError(f"found the {pattern[0]}x{pattern[1]} board in {len(used)} of {len(used) + len(skipped)} "
-                         f"images; need at least {MIN_VIEWS}")
+        charuco_unseen = isinstance(board, Charuco) and not used
+        hint = " (is it the board's dictionary and number of squares?)" if charuco_unseen else ""
+        raise ValueError(f"found the {board.describe()} in {len(used)} of {len(used) + len(skipped)} images; "
+                         f"need at least {MIN_VIEWS}{hint}")
     rms, k, d, rvecs, tvecs = cv2.calibrateCamera(object_points, image_points, size, None, None,
                                                   flags=cv2.CALIB_FIX_K3)
     per_image = []

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import mujoco
@@ -39,6 +39,9 @@ from t42_transfer.tracking.markers import (
     TrackerConfig,
     aruco_dictionary,
 )
+
+if TYPE_CHECKING:
+    from t42_transfer.tracking.calibrate import Charuco
 
 CAMERA_NAME = "tracker_camera"
 MODULE_PX = 20
@@ -224,26 +227,40 @@ class HandCamera:
 
 # --------------------------------------------------------------------------- calibration boards
 BOARD_SQUARE_PX = 40
+"""Texture pixels per checkerboard square."""
+CHARUCO_SQUARE_PX = 80
+"""Texture pixels per ChArUco square (its markers' cells need more than a plain square)."""
 
 
-def board_png(pattern: tuple[int, int]) -> bytes:
-    """PNG of a checkerboard with ``pattern`` inner corners (cols, rows) and a white margin of one square."""
+def checkerboard_image(pattern: tuple[int, int]) -> np.ndarray:
+    """A checkerboard with ``pattern`` inner corners (cols, rows) and a white margin of one square (grey)."""
     cols, rows = pattern
     squares = np.indices((rows + 1, cols + 1)).sum(axis=0) % 2
     board = np.where(squares == 0, 0, 255).astype(np.uint8)
     board = np.kron(board, np.ones((BOARD_SQUARE_PX, BOARD_SQUARE_PX), np.uint8))
-    board = cv2.copyMakeBorder(board, *(BOARD_SQUARE_PX,) * 4, cv2.BORDER_CONSTANT, value=255)
-    return cv2.imencode(".png", board)[1].tobytes()
+    return cv2.copyMakeBorder(board, *(BOARD_SQUARE_PX,) * 4, cv2.BORDER_CONSTANT, value=255)
+
+
+def charuco_image(board: Charuco) -> np.ndarray:
+    """``board`` as ``cv2.aruco.CharucoBoard.generateImage`` draws it, with a white margin of one square (grey)."""
+    cols, rows = board.squares
+    size = ((cols + 2) * CHARUCO_SQUARE_PX, (rows + 2) * CHARUCO_SQUARE_PX)
+    return board.board.generateImage(size, marginSize=CHARUCO_SQUARE_PX)
 
 
 class BoardCamera:
-    """A camera at the origin looking along -z at a checkerboard it can place anywhere (calibration images)."""
+    """A camera at the origin looking along -z at a printed calibration board it can place anywhere.
 
-    def __init__(self, pattern: tuple[int, int] = (9, 6), square_mm: float = 20.0, width: int = 640,
-                 height: int = 480, fovy_deg: float = 50.0) -> None:
-        self.pattern, self.square_mm = pattern, square_mm
+    The board is an image (grey, as printed: :func:`checkerboard_image`, :func:`charuco_image`) on a thin box,
+    ``metres_per_px`` its scale; :meth:`checkerboard` and :meth:`charuco` make one for either kind.
+    """
+
+    def __init__(self, image: np.ndarray, metres_per_px: float, width: int = 640, height: int = 480,
+                 fovy_deg: float = 50.0) -> None:
+        if not (math.isfinite(metres_per_px) and metres_per_px > 0):
+            raise ValueError(f"board scale must be positive metres per pixel, got {metres_per_px}")
         self.width, self.height, self.fovy_deg = width, height, fovy_deg
-        half = [(n + 3) * square_mm / 2000 for n in pattern]
+        half = (image.shape[1] * metres_per_px / 2, image.shape[0] * metres_per_px / 2)
         xml = f"""<mujoco model="board">
   <visual><global offwidth="{width}" offheight="{height}"/>
     <headlight ambient="0.6 0.6 0.6" diffuse="0.4 0.4 0.4" specular="0 0 0"/></visual>
@@ -256,9 +273,22 @@ class BoardCamera:
     </body>
   </worldbody>
 </mujoco>"""
-        self.model = mujoco.MjModel.from_xml_string(xml, {"board.png": board_png(pattern)})
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise ValueError("the board image could not be encoded")
+        self.model = mujoco.MjModel.from_xml_string(xml, {"board.png": png.tobytes()})
         self.data = mujoco.MjData(self.model)
         self._screen = Offscreen(self.model, "camera", width, height)
+
+    @classmethod
+    def checkerboard(cls, pattern: tuple[int, int] = (9, 6), square_mm: float = 20.0, **camera: Any) -> BoardCamera:
+        """A checkerboard of ``pattern`` inner corners, ``square_mm`` squares; ``camera``: width, height, fovy_deg."""
+        return cls(checkerboard_image(pattern), square_mm / MM_PER_M / BOARD_SQUARE_PX, **camera)
+
+    @classmethod
+    def charuco(cls, board: Charuco, **camera: Any) -> BoardCamera:
+        """The ChArUco ``board`` (its squares, sizes and dictionary); ``camera``: width, height, fovy_deg."""
+        return cls(charuco_image(board), board.square_m / CHARUCO_SQUARE_PX, **camera)
 
     def intrinsics(self) -> Intrinsics:
         return pinhole_intrinsics(self.width, self.height, self.fovy_deg)
@@ -275,3 +305,9 @@ class BoardCamera:
 
     def close(self) -> None:
         self._screen.close()
+
+    def __enter__(self) -> BoardCamera:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
