@@ -46,17 +46,21 @@ def _stamp(msg) -> int:
     return stamp_to_ns(msg.header.stamp)
 
 
-@pytest.mark.executor_threads(2)
+@pytest.mark.executor_threads(3)
 def test_each_step_gets_its_own_frames_tracked_pose_with_the_frames_stamp(ros) -> None:
+    """In one process the nodes share an executor: the test listens to camera infos (each with its frame's stamp)
+    rather than the frames themselves, which would keep the executor from the driver's tracker poses."""
     tester = Tester(ros)
-    got = {topic: tester.listen(kind, topic, profile(names.IMAGES) if kind in (Image, CameraInfo) else 100)
-           for topic, kind in ((names.CAMERA_IMAGE, Image), (names.CAMERA_INFO, CameraInfo),
+    got = {topic: tester.listen(kind, topic, profile(names.IMAGES) if kind is CameraInfo else 100)
+           for topic, kind in ((names.CAMERA_INFO, CameraInfo),
                                (names.SIM_POSE, PoseStamped), (names.TRACKER_POSE, PoseStamped),
                                (names.OBJECT_POSE, PoseStamped), (names.JOINT_STATES, JointState))}
     clock = tester.listen(Clock, names.CLOCK)
     ros.add(ObjectTracker, {"object_marker_height_m": MARKER_HEIGHT_M})
-    assert tester.wait_graph(subscribers={names.CAMERA_IMAGE: 2})
-    driver = ros.add(MockDriver, {"sim_time": True, "rate_factor": 1.0, "camera_rate_hz": 10.0,
+    assert tester.wait_graph(subscribers={names.CAMERA_IMAGE: 1})
+    # 4x faster than real time: frames every 25 ms of wall time, which a busy machine cannot always track; in
+    # lockstep with the tracker the clock waits for each frame's pose instead of stepping on without it
+    driver = ros.add(MockDriver, {"sim_time": True, "rate_factor": 4.0, "camera_rate_hz": 10.0,
                                   "pose_source": "topic", "seed": 3})
     assert ros.spin_until(lambda: len(clock) > 2 and len(got[names.JOINT_STATES]) > 2, 10.0)
     # move the object: close both fingers a little, then roll it sideways (one point per step)
@@ -68,7 +72,7 @@ def test_each_step_gets_its_own_frames_tracked_pose_with_the_frames_stamp(ros) -
     driver.close()  # no more steps or frames: what was sent arrives
     ros.spin_for(0.5)
 
-    images, truths = got[names.CAMERA_IMAGE], got[names.SIM_POSE]
+    images, truths = got[names.CAMERA_INFO], got[names.SIM_POSE]
     steps = [_stamp(m) for m in got[names.JOINT_STATES]]
     assert len(images) >= 20
     info = camera_info_calibration(got[names.CAMERA_INFO][0])
@@ -84,14 +88,14 @@ def test_each_step_gets_its_own_frames_tracked_pose_with_the_frames_stamp(ros) -
     errors = [np.linalg.norm(xy - truth_at[s]) for s, xy in tracked.items()]
     assert np.median(errors) < 1.0 and max(errors) < 3.0, errors
     poses = got[names.OBJECT_POSE]
-    assert len(poses) >= len(steps) - 3
+    assert len(poses) >= len(steps) - 1
     own_frame = 0
     for pose in poses:
         xy = object_xy_mm(pose)
         sources = [s for s, t in tracked.items() if np.allclose(t, xy, atol=1e-6)]
         assert sources, f"a published pose at {_stamp(pose)} is no tracked pose"  # the tracker's, not the sim's
         own_frame += _stamp(pose) in sources
-    assert own_frame >= 0.8 * len(poses), (own_frame, len(poses))  # the step's own frame, with its stamp
+    assert own_frame >= len(poses) - 1, (own_frame, len(poses))  # the step's own frame, with its stamp
 
 
 def test_without_a_tracker_no_pose_goes_out_and_the_driver_says_stale(ros) -> None:
@@ -162,3 +166,27 @@ def test_with_the_camera_off_the_drivers_import_no_renderer() -> None:
             "print(sorted(m for m in sys.modules if m == 'cv2' or m.startswith('t42_transfer.tracking')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_a_new_seed_applies_from_the_next_reset_and_pose_source_switches_live(ros) -> None:
+    """What lets the demo run a goal again on the same grasp with the simulator's pose."""
+    from rclpy.parameter import Parameter
+
+    tester = Tester(ros)
+    poses = tester.listen(PoseStamped, names.OBJECT_POSE)
+    driver = ros.add(MockDriver, {"rate_factor": 1e-3, "pose_source": "topic", "seed": 5})
+    assert tester.wait_graph(publishers={names.OBJECT_POSE: 1})
+    assert driver.reset()[1] == "episode 1 grasped (seed 6)"
+    driver.tick()
+    ros.spin_for(0.2)
+    assert poses == []  # no tracker: nothing
+    results = driver.set_parameters([Parameter("seed", value=5), Parameter("pose_source", value="sim")])
+    assert all(r.successful for r in results), results
+    assert driver.reset()[1] == "episode 2 grasped (seed 5)"  # the grasp of episode 0 again
+    assert driver.reset()[1] == "episode 3 grasped (seed 6)"
+    published = driver.hand.state[:2].copy()  # the state a step publishes, before it moves the hand
+    driver.tick()
+    assert ros.spin_until(lambda: len(poses) == 1, 5.0)  # the simulator's pose again
+    np.testing.assert_allclose(object_xy_mm(poses[0]), published, atol=1e-3)
+    refused = driver.set_parameters([Parameter("pose_source", value="camera")])
+    assert not refused[0].successful and "pose_source must be one of sim, topic" in refused[0].reason

@@ -44,6 +44,11 @@ class NewestPose:
         self.receive(stamp, xy)
         return None
 
+    @property
+    def stamp_ns(self) -> int | None:
+        """The stamp of the pose held (None: none)."""
+        return None if self._pose is None else self._pose[0]
+
     def forget(self) -> None:
         """Drop the pose held: the object was moved where the tracker has not seen it yet (a new grasp)."""
         self._pose = None

@@ -21,7 +21,10 @@ and carries that step's stamp on sim time (the simulated clock jumps one period 
 from then); on wall-clock time it is stamped when rendered.  ``pose_source: topic`` makes the driver publish,
 as ``hand/object_pose``, the newest ``tracker/object_pose`` instead of the simulator's, by the real driver's
 rule (:mod:`t42_transfer.driver.pose`: never one older than ``max_pose_age_s``; ``stale`` on ``hand/status``).
-With an ``object_tracker`` that keeps up, each step's pose is then its own frame's, with the frame's stamp.
+On sim time the driver runs in lockstep with the tracker: a tick waits (``tracker_wait_s`` of wall time at
+most) until the tracker's pose of the last frame came, so a slow tracker slows the graph's clock instead of
+leaving steps without a pose, and each step's pose is its own frame's, with the frame's stamp.  ``seed`` and
+``pose_source`` may change at run time: a seed set applies from the next reset (a grasp made again).
 
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
 A step stamped ``t`` (ROS time) publishes the current state (pose and
@@ -60,6 +63,7 @@ real hand's driver.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -102,21 +106,26 @@ class MockDriverParams(SimCameraParams):
     hand: str = param("target", f"simulated hand variant: {', '.join(NAMED_VARIANTS)} or family-<seed>", read_only=True)
     rate_factor: float = param(1.0, "steps run this many times faster than real time (timer 0.1 s / rate_factor)",
                                min=1e-3, max=1000.0)
-    seed: int | None = param(0, "seed of the first grasp; reset k uses seed + k (unset: unseeded)")
+    seed: int | None = param(0, "seed of the first grasp; each reset after uses the next (unset: unseeded); a "
+                                "change applies from the next reset, which grasps with the new seed")
     max_command_age_s: float = param(0.5, "commands stamped further than this from now (past or future) are refused",
                                      min=1e-3, max=3600.0)
     sim_time: bool = param(False, "be the graph's clock: publish /clock, one control period per tick, and stamp "
                                   "with it (other nodes then run with use_sim_time:=true)", read_only=True)
     pose_source: str = param("sim", "where hand/object_pose comes from: sim (the simulator) or topic (the newest "
-                                    "tracker/object_pose, as on a real hand)", read_only=True,
-                             constraints="sim or topic")
+                                    "tracker/object_pose, as on a real hand)", constraints="sim or topic")
     max_pose_age_s: float = param(0.3, "with pose_source topic: a tracker pose older than this is never "
                                        "published as current", min=0.01, max=10.0)
+    tracker_wait_s: float = param(0.5, "on sim time with the camera and pose_source topic: a step waits up to this "
+                                       "long (wall seconds) for the tracker's pose of its frame (0: never waits)",
+                                  min=0.0, max=60.0)
 
     def __post_init__(self) -> None:
         self.check_camera()
         if self.pose_source not in POSE_SOURCES:
             raise ValueError(f"pose_source must be one of {', '.join(POSE_SOURCES)}, got {self.pose_source!r}")
+        if not (math.isfinite(self.tracker_wait_s) and self.tracker_wait_s >= 0):
+            raise ValueError(f"tracker_wait_s must be a finite number >= 0, got {self.tracker_wait_s!r}")
         if not (math.isfinite(self.max_pose_age_s) and self.max_pose_age_s > 0):
             raise ValueError(f"max_pose_age_s must be positive and finite, got {self.max_pose_age_s!r}")
         rate = self.rate_factor
@@ -171,8 +180,15 @@ class MockDriver(Node):
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
         self.pose = NewestPose()
         """The tracker's newest pose (``pose_source: topic``)."""
-        if p.pose_source == "topic":
-            self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10)
+        self._tracker_sub: Any = None
+        self._listen_to_the_tracker(p)
+        self._seeded_from = 0
+        self._frame_ns: int | None = None
+        """The stamp of the last frame rendered, which the next step publishes."""
+        self._waiting_since: float | None = None
+        """Wall time the tick began to wait for the tracker's pose of the last frame."""
+        """The episode that grasps with ``params.seed`` itself (the first after the seed was last set)."""
+        self.add_post_set_parameters_callback(self._on_seed_set)
         self.camera = self._camera(p) if p.camera_rate_hz > 0 else None
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
@@ -207,7 +223,7 @@ class MockDriver(Node):
         """Re-open the hand, re-grasp (seed ``params.seed + episode``) and start stepping; (success, message)."""
         self.queue.clear()
         self.episode += 1
-        seed = None if self.params.seed is None else self.params.seed + self.episode
+        seed = None if self.params.seed is None else self.params.seed + self.episode - self._seeded_from
         try:
             self.hand.reset(seed)
         except GraspFailed as err:
@@ -244,7 +260,21 @@ class MockDriver(Node):
                     "unreadable; restart with sim_time:=true, or with the new rate")
         return None
 
+    def _listen_to_the_tracker(self, p: MockDriverParams) -> None:
+        if p.pose_source == "topic" and self._tracker_sub is None:
+            self._tracker_sub = self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10)
+
+    def _on_seed_set(self, parameters: list[Any]) -> None:
+        """A seed set, even to the value it had, applies from the next reset (a grasp made again)."""
+        if any(p.name == "seed" for p in parameters):
+            self._seeded_from = self.episode + 1
+            self.log.info(f"the next reset grasps with seed {self.params.seed}")
+
     def _on_params(self, old: MockDriverParams, new: MockDriverParams) -> None:
+        if new.pose_source != old.pose_source:
+            self._listen_to_the_tracker(new)
+            self.pose.forget()  # a pose heard before the switch may be old: the next fresh one counts
+            self.log.info(f"pose_source {old.pose_source} -> {new.pose_source}")
         if new.rate_factor != old.rate_factor:
             self._timer.timer_period_ns = round(new.period_s * 1e9)
             self.log.info(f"rate_factor {old.rate_factor} -> {new.rate_factor}: a step every {new.period_s:.4f} s")
@@ -281,8 +311,27 @@ class MockDriver(Node):
         response.success, response.message = ok, message
         return response
 
+    def _waits_for_the_tracker(self) -> bool:
+        """On sim time, whether this tick waits for the tracker's pose of the frame the step publishes: in
+        lockstep with the tracker a slow one (a busy machine, a large frame) slows the graph's clock instead
+        of leaving steps without a pose.  The wait is ``tracker_wait_s`` at most (a frame without the object
+        gives no pose at all)."""
+        p = self.params
+        frame, held = self._frame_ns, self.pose.stamp_ns
+        if (self._clock_pub is None or p.pose_source != "topic" or not self.running or frame is None
+                or p.tracker_wait_s <= 0 or (held is not None and held >= frame)):
+            self._waiting_since = None
+            return False
+        now = time.monotonic()
+        if self._waiting_since is None:
+            self._waiting_since = now
+        if now - self._waiting_since < p.tracker_wait_s:
+            return True
+        self._waiting_since = None
+        return False
+
     def _on_timer(self) -> None:
-        if self._closed:
+        if self._closed or self._waits_for_the_tracker():
             return
         try:
             if self._clock_pub is not None:
@@ -366,7 +415,8 @@ class MockDriver(Node):
             return
         stamp = self._sim_ns + CONTROL_PERIOD_NS if self._clock_pub is not None else self.now_ns()
         try:
-            self.camera.capture(self.hand, stamp)
+            if self.camera.capture(self.hand, stamp):
+                self._frame_ns = stamp
         except Exception as err:  # the hand steps on without its camera
             self.per_message.error(f"camera frame failed: {err!r}")
 
