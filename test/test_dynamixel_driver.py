@@ -7,6 +7,7 @@ control rate, unsynchronised with the driver, as a real hand is.
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -15,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
@@ -25,14 +27,14 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_to_ns, status_event
+from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_to_ns, status_event, status_report
 from msg_adapters.wire import ACTUATOR_NAMES
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
-from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
+from t42_transfer.nodes.dynamixel_driver import REFUSED, STATUS_NAME, DynamixelDriver
 from t42_transfer.ros.qos import profile
 
 
@@ -176,16 +178,40 @@ def test_the_lifecycle_drives_the_torque(fresh_rig: Rig) -> None:
     assert rig.bench.torque() == [False, False]
 
 
-def test_configure_fails_on_a_port_without_servos(ros: RosRig, tmp_path) -> None:
-    bogus = tmp_path / "no_bus"
-    bogus.write_text("")
-    driver = ros.add(DynamixelDriver, {"port": str(bogus)})
-    tester = Tester(ros, "probe")
-    change = tester.tester.create_client(ChangeState, "dynamixel_driver/change_state")
-    request = ChangeState.Request()
-    request.transition.id = Transition.TRANSITION_CONFIGURE
-    assert not ros.call(change, request).success
-    assert driver.hand is None
+@pytest.mark.parametrize("port, kind", [("file", "port"), ("silent pty", "timeout")],
+                         ids=["not a serial port", "a serial port that is no Dynamixel bus"])
+def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_path, port: str, kind: str) -> None:
+    """The failure goes to hand/status and diagnostics, not only to /rosout."""
+    if port == "file":
+        bogus = tmp_path / "no_bus"
+        bogus.write_text("")
+        path = str(bogus)
+    else:  # a terminal where nothing answers: a modem, an Arduino, another adapter
+        master, slave = os.openpty()
+        path = os.ttyname(slave)
+    try:
+        driver = ros.add(DynamixelDriver, {"port": path})
+        tester = Tester(ros, "probe")
+        statuses = tester.listen(String, names.HAND_STATUS, profile(names.EVENTS))
+        diagnostics = tester.listen(DiagnosticArray, names.DIAGNOSTICS)
+        change = tester.tester.create_client(ChangeState, "dynamixel_driver/change_state")
+        request = ChangeState.Request()
+        request.transition.id = Transition.TRANSITION_CONFIGURE
+        assert not ros.call(change, request).success
+        assert driver.hand is None
+        assert ros.spin_until(lambda: statuses and diagnostics, 2.0)
+        assert status_event(statuses[-1].data) == names.FAULT and "configure failed" in statuses[-1].data
+        report = status_report(diagnostics[-1], STATUS_NAME)
+        assert report.level == "ERROR" and report.values["fault_kind"] == kind, report
+        assert "configure failed" in report.message
+        assert not ros.call(change, request).success  # the same failure again: on diagnostics, not on hand/status
+        assert ros.spin_until(lambda: len(diagnostics) >= 2, 2.0)
+        ros.spin_for(0.2)
+        assert len(statuses) == 1
+    finally:
+        if port != "file":
+            os.close(master)
+            os.close(slave)
 
 
 # The tests on the shared rig run one after the other (its driver steps only while a test spins it); the one that
@@ -301,6 +327,8 @@ def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_th
     wrong = JointTrajectory(joint_names=["elbow", "wrist"], points=[JointTrajectoryPoint(positions=[9.0, 9.0])])
     rig.trajectory_pub.publish(wrong)
     rig.ros.spin_for(0.5)
+    refusals = [s.data for s in rig.statuses if status_event(s.data) == REFUSED]
+    assert any(names.HAND_COMMAND in r for r in refusals) and any(names.HAND_TRAJECTORY in r for r in refusals)
     low, high = zip(*rig.driver.hand.geometry.limits().values(), strict=True)
     assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True)), rig.bench.goals()
 
@@ -322,6 +350,9 @@ def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:
     def set_param(name: str, value: Any) -> Any:
         return driver.set_parameters([Parameter(name, value=value)])[0]
 
+    def refused(why: str) -> bool:  # on hand/status, with the reason
+        return any(status_event(s.data) == REFUSED and why in s.data for s in rig.statuses)
+
     try:
         assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
         rig.ros.spin_for(0.3)
@@ -330,10 +361,12 @@ def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:
         assert np.all(np.abs(driver.hand.loads) > 60)  # (the grasp holds the object)
         assert set_param("grasp_load", 30.0).successful and set_param("load_limit", 60.0).successful
         assert np.allclose(command([1.0, 1.0]), 0.0), "a finger closed with its load over the new limit"
+        assert rig.ros.spin_until(lambda: refused("load over 60"), 1.0), [s.data for s in rig.statuses]
         limit = np.array(driver.hand.goal) - 0.1  # short of where the fingers stand now
         assert set_param("max_angle_rad", [float(a) for a in limit]).successful
         rig.ros.spin_for(0.5)
         assert np.all(np.array(driver.hand.goal) <= limit + 1e-9), (driver.hand.goal, limit)
+        assert rig.ros.spin_until(lambda: refused("position limit"), 1.0), [s.data for s in rig.statuses]
         low, high = zip(*driver.hand.geometry.limits().values(), strict=True)
         assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True))  # on the servos
         refused = set_param("max_angle_rad", [3.1, 3.1])  # past the servos' EEPROM limits: needs a configure

@@ -33,8 +33,12 @@ splits the episode there, saying so).
 
 Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
-and the error bits decoded.  Recovery is automatic: once a second the driver reopens the port if it went,
-pings, reboots a servo that raised an error bit, turns the torque back on and holds; ``recovered`` then says
+and the error bits decoded; so is a configure that fails (no port, a port that is no Dynamixel bus, servos of
+another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes).  A command
+refused or cut short (clamped at a position limit, a finger held for its load) says ``refused`` on
+``hand/status`` as on /rosout, at most once a second per kind.  Recovery is automatic: once a second the
+driver reopens the port if it went, pings, reboots a servo that raised an error bit, turns the torque back on
+and holds; ``recovered`` then says
 the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics, and each
 says ``late`` on ``hand/status`` with its stamp (a recording keeps it as data); a
 timer tick less than half a period after the last step (catching up after a late one) does not step, so
@@ -75,11 +79,16 @@ from t42_transfer.driver.pose import NewestPose
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
+from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
 STATUS_NAME = "t42_transfer: dynamixel_driver"
+REFUSED = "refused"
+"""``hand/status`` word of a command refused or cut short: a goal clamped at the position limits, a finger not
+closed for its load over the limit, a command or trajectory rejected (NaN, wrong names, stale); at most a line a
+second per kind, as on /rosout.  It neither ends nor splits an episode."""
 _T42 = HandGeometry()
 """The parameters' defaults: the hand's geometry as it ships (its ranges are checked there, once)."""
 RETRY_PERIOD_S = 1.0
@@ -135,6 +144,10 @@ class DynamixelDriver(LifecycleNode):
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
+        self.refusals = ThrottledLog(_LogAndStatus(self.log, lambda line: self._status(REFUSED, line)))
+        """Commands refused or cut short, on /rosout and ``hand/status`` alike, throttled as :attr:`per_message`."""
+        self._configure_error = ""
+        """The last configure failure reported on ``hand/status`` (autostart retries say a new one only)."""
         self.hand: ServoHand | None = None
         self.queue = ActionQueue()
         self.episode = -1
@@ -203,10 +216,22 @@ class DynamixelDriver(LifecycleNode):
             self.hand.start_from_present()
         except (ServoFault, ValueError) as err:
             servos.close()
-            self.log.error(f"configure failed: {err}")
+            self._configure_failed(err)
             return TransitionCallbackReturn.FAILURE
+        self._configure_error = ""
         self.log.info(f"configured {p.port}: servos {models} in position mode, limits {geometry.limits()}")
         return TransitionCallbackReturn.SUCCESS
+
+    def _configure_failed(self, err: Exception) -> None:
+        """On /rosout, ``diagnostics`` (each time) and ``hand/status`` (when it differs from the last): no port, a
+        port that is no Dynamixel bus (nothing answers the pings), servos of another model."""
+        message = f"configure failed: {err}"
+        fault = err if isinstance(err, ServoFault) else ServoFault(REFUSED_KIND, None, str(err))
+        self._publish_diagnostics("ERROR", message, fault)
+        if message != self._configure_error:
+            self._configure_error = message
+            self.log.error(message)
+            self._status(names.FAULT, message)
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
         try:
@@ -287,7 +312,7 @@ class DynamixelDriver(LifecycleNode):
 
     def _on_command(self, data: bytes) -> None:
         max_age = round(self.params.max_command_age_s * 1e9)
-        action = accept(self.per_message, names.HAND_COMMAND, lambda: validate_command(data, self.now_ns(), max_age))
+        action = accept(self.refusals, names.HAND_COMMAND, lambda: validate_command(data, self.now_ns(), max_age))
         if action is not None:
             self.queue.set_command(action)
 
@@ -297,7 +322,7 @@ class DynamixelDriver(LifecycleNode):
             self.per_message.warning(f"rejected {names.HAND_TRAJECTORY}: the driver is not active")
             return
         max_age = round(self.params.max_command_age_s * 1e9)
-        actions = accept(self.per_message, names.HAND_TRAJECTORY, lambda: validate_trajectory(
+        actions = accept(self.refusals, names.HAND_TRAJECTORY, lambda: validate_trajectory(
             data, hand.goal, self.now_ns(), max_age))
         if actions is not None:
             self.queue.set_plan(actions)
@@ -368,7 +393,7 @@ class DynamixelDriver(LifecycleNode):
         refused = hand.apply(action)
         self.steps += 1
         if refused:
-            self.per_message.warning(f"step {self.steps}: {refused}")
+            self.refusals.warning(f"step {self.steps}: {refused}")
 
     def _publish_pose(self, stamp: int) -> None:
         xy, why = self.pose.for_step(stamp, self.params.max_pose_age_s)
@@ -451,8 +476,8 @@ class DynamixelDriver(LifecycleNode):
     def _status(self, event: str, detail: str) -> None:
         self._status_pub.publish(String(data=status_message(event, detail, self._last_stamp or None)))
 
-    def _publish_diagnostics(self, level: str, message: str) -> None:
-        fault = self.fault
+    def _publish_diagnostics(self, level: str, message: str, fault: ServoFault | None = None) -> None:
+        fault = fault or self.fault
         values: dict[str, object] = {"late_steps": self.late_steps, "skipped_ticks": self.skipped_ticks,
                                      "episode": self.episode, "steps": self.steps, "pose_stale": self.pose.stale}
         if fault is not None:
@@ -462,3 +487,17 @@ class DynamixelDriver(LifecycleNode):
         self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, values, self.now_ns(),
                                                    hardware_id=self.params.port, kit=RCLPY))
 
+
+class _LogAndStatus:
+    """A logger for :class:`ThrottledLog` whose warnings go to /rosout and ``hand/status`` both."""
+
+    def __init__(self, log: Any, status: Any) -> None:
+        self._log, self._status = log, status
+
+    def warning(self, line: str) -> None:
+        self._log.warning(line)
+        self._status(line)
+
+    def error(self, line: str) -> None:
+        self._log.error(line)
+        self._status(line)
