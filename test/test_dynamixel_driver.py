@@ -309,6 +309,8 @@ def test_a_fault_is_reported_then_the_driver_recovers(rig: Rig, inject) -> None:
 
 def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_the_limits(rig: Rig) -> None:
     rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture; opening a finger may let the object go)
+    written = rig.bench.bus.bus.goals_written
+    written.clear()  # every goal the driver sends from here, as sent (the servos refuse those past their limits)
     start = np.array(rig.driver.hand.goal)
     msg = JointTrajectory(joint_names=list(ACTUATOR_NAMES))
     targets = [start + np.array([0.0, -0.02]) * (k + 1) for k in range(10)]  # open finger 2 a little
@@ -320,17 +322,35 @@ def test_a_trajectory_moves_the_servos_and_bad_commands_keep_the_goals_inside_th
     assert rig.ros.spin_until(lambda: names.TRAJECTORY_DONE in rig.events(), 5.0), rig.events()
     rig.ros.spin_for(0.3)
     assert np.allclose(rig.driver.hand.goal, targets[-1], atol=2 * xm.RAD_PER_TICK)
+    commander = rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10)
+    assert rig.ros.spin_until(lambda: commander.get_subscription_count() >= 1, 5.0)
     for bad in ([float("nan"), 0.0], [0.0, 1e9], [-1e9, 0.0]):
         command = JointState(name=list(ACTUATOR_NAMES), velocity=bad)
         command.header.stamp = rig.tester.get_clock().now().to_msg()
-        rig.tester.create_publisher(JointState, names.HAND_COMMAND, 10).publish(command)
+        commander.publish(command)
     wrong = JointTrajectory(joint_names=["elbow", "wrist"], points=[JointTrajectoryPoint(positions=[9.0, 9.0])])
     rig.trajectory_pub.publish(wrong)
     rig.ros.spin_for(0.5)
     refusals = [s.data for s in rig.statuses if status_event(s.data) == REFUSED]
     assert any(names.HAND_COMMAND in r for r in refusals) and any(names.HAND_TRAJECTORY in r for r in refusals)
-    low, high = zip(*rig.driver.hand.geometry.limits().values(), strict=True)
+    # a good command that would pass a limit: finger 1 may close 0.01 rad more, the command asks 0.025
+    limit = [float(rig.driver.hand.goal[0]) + 0.01, 3.0]
+    assert rig.driver.set_parameters([Parameter("max_angle_rad", value=limit)])[0].successful
+    try:
+        command = JointState(name=list(ACTUATOR_NAMES), velocity=[ACTION_UNIT_RAD / CONTROL_PERIOD_S, 0.0])
+        command.header.stamp = rig.tester.get_clock().now().to_msg()
+        commander.publish(command)
+        assert rig.ros.spin_until(lambda: rig.driver.hand.goal[0] >= limit[0] - 1e-9, 2.0), rig.driver.hand.goal
+        rig.ros.spin_for(0.3)  # steps after it (the bus takes each write in its own time)
+        limits = rig.driver.hand.geometry.limits()
+    finally:
+        assert rig.driver.set_parameters([Parameter("max_angle_rad", value=[3.0, 3.0])])[0].successful
+        rig.tester.destroy_publisher(commander)
+    low, high = zip(*limits.values(), strict=True)
     assert all(lo <= g <= hi for g, lo, hi in zip(rig.bench.goals(), low, high, strict=True)), rig.bench.goals()
+    assert len(written) >= 15  # a goal each step, through the trajectory and the bad commands
+    outside = [goals for goals in written if not all(limits[i][0] <= g <= limits[i][1] for i, g in goals.items())]
+    assert not outside, outside
 
 
 def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:

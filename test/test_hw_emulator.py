@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import termios
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -146,3 +147,21 @@ def test_the_link_names_the_port_and_goes_with_it(tmp_path) -> None:
     finally:
         bus.close_port()
     assert not link.exists()
+
+
+def test_the_bus_records_every_sync_written_goal_also_those_the_servos_refuse(wire) -> None:
+    """A check of the goals a driver writes reads this record: Goal Position keeps only what the servo accepted."""
+    bus, port, ph = wire
+    for i in (1, 2):
+        assert ph.write4ByteTxRx(port, i, xm.MAX_POSITION_LIMIT.address, 3000)[0] == COMM_SUCCESS
+    group = GroupSyncWrite(port, ph, xm.GOAL_POSITION.address, xm.GOAL_POSITION.size)
+    for goals in ({1: 2100, 2: 2200}, {1: 3500, 2: -5}):  # the second: past the limits, refused by both servos
+        group.clearParam()
+        for i, goal in goals.items():
+            group.addParam(i, xm.GOAL_POSITION.encode(goal))
+        assert group.txPacket() == COMM_SUCCESS
+    deadline = time.monotonic() + 2.0  # (no answer to wait for: the bus thread takes them in its time)
+    while len(bus.bus.goals_written) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert list(bus.bus.goals_written) == [{1: 2100, 2: 2200}, {1: 3500, 2: -5}]
+    assert [bus.bus.servos[i].get(xm.GOAL_POSITION) for i in (1, 2)] == [2100, 2200]  # what the servos kept

@@ -17,6 +17,7 @@ import random
 import select
 import threading
 import tty
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -142,6 +143,8 @@ class Faults:
     """Servo ids that no longer answer at all."""
 
 
+GOALS_KEPT = 10_000
+"""SYNC_WRITE goals a bus keeps for checks (:attr:`ServoBus.goals_written`): 1000 s of steps at 10 Hz."""
 EMULATED_LATENCY_TIMER_MS = 100.0
 """How long a driver should treat the emulated bus's latency timer as (its ``latency_timer_ms``): the answers come
 from a Python thread, which a busy machine can hold up longer than a USB adapter would."""
@@ -158,6 +161,9 @@ class ServoBus:
         self.handled = 0
         self.sync_writes = 0
         """Goal writes so far: one per driver step (an emulator in lockstep waits for the next)."""
+        self.goals_written: deque[dict[int, int]] = deque(maxlen=GOALS_KEPT)
+        """Goal Position of each SYNC_WRITE as sent ({servo id: ticks}), also those the servos refused (outside
+        their limits): what a driver wrote, not what the servos kept.  The newest :data:`GOALS_KEPT`."""
         self._rng = random.Random(seed)
 
     def handle(self, ins: p.Instruction) -> bytes:
@@ -224,10 +230,15 @@ class ServoBus:
             return
         address, length = int.from_bytes(params[:2], "little"), int.from_bytes(params[2:4], "little")
         body = params[4:]
+        goals = {}
         for k in range(0, len(body) - length, length + 1):
             i = body[k]
+            if address == xm.GOAL_POSITION.address and length == xm.GOAL_POSITION.size:
+                goals[i] = xm.GOAL_POSITION.decode(body[k + 1: k + 1 + length])
             if i in self.servos and i not in self.faults.dead:
                 self.servos[i].write(address, body[k + 1: k + 1 + length])
+        if goals:
+            self.goals_written.append(goals)
         self._command()
 
     def _command(self) -> None:
