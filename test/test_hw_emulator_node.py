@@ -18,6 +18,7 @@ from std_srvs.srv import Trigger
 
 from msg_adapters import names, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
 from t42_transfer.nodes.dynamixel_driver import STATUS_NAME, DynamixelDriver
 from t42_transfer.nodes.hw_emulator import HwEmulator
@@ -206,6 +207,11 @@ def test_each_injected_fault_shows_within_a_second_and_the_driver_comes_back(rig
     if "error_bits" in fault:
         assert values["servo_id"] == "2" and "overload error" in values["hardware_errors"]
     assert rig.driver.get_parameter("port").value and rig.active()  # alive and still active
+    servos = rig.emulator.bus.servos.values()
+    goals = [s.get(xm.GOAL_POSITION) for s in servos]
+    rig.ros.spin_for(0.3)
+    assert all(not s.torque or s.get(xm.GOAL_POSITION) == g for s, g in zip(servos, goals, strict=True)), \
+        "a servo moved during the fault"  # each held, or its torque off
     if clear:
         rig.inject(**clear)
     assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
@@ -243,3 +249,23 @@ def test_steps_without_a_fresh_pose_are_left_out_of_the_recorded_episode_with_a_
     assert len(stale) >= 5  # steps went out without a pose ...
     kept = {t.start_ns + k * CONTROL_PERIOD_NS for t in data for k in range(len(t) + 1)}
     assert not kept & set(stale)  # ... and none of them is in the recorded episodes
+
+
+def test_a_dead_servo_is_named_on_diagnostics_and_the_hand_holds_until_it_answers(rig: Rig) -> None:
+    """The fast dead-servo case (the full one, with a reset after, is slow): the fault names servo 2, the other
+    servo keeps its torque and its goal while the driver retries, and the hand is back once servo 2 answers."""
+    bus = rig.emulator.bus  # (on a grasped hand: see the rig fixture; last here, as the episode ends)
+    rig.grasped = False  # the fault ends the episode: a test after this one grasps again
+    rig.inject(dead_servos=[2])
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events() and rig.reports("ERROR"), 1.0), rig.events()
+    values = rig.reports("ERROR")[0].values
+    assert (values["servo_id"], values["fault_kind"]) == ("2", "timeout"), values
+    held = bus.servos[1].get(xm.GOAL_POSITION)
+    rig.ros.spin_for(1.2)  # a retry comes and fails meanwhile
+    servo = bus.servos[1]
+    assert servo.torque and servo.get(xm.GOAL_POSITION) == held  # held where it stood, not slack, not moving
+    assert abs(servo.get(xm.PRESENT_POSITION) - held) <= 20, (servo.get(xm.PRESENT_POSITION), held)
+    assert rig.reports("ERROR")[-1].values["servo_id"] == "2" and rig.active()
+    rig.inject(dead_servos=[0])
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
+    assert [s.torque for s in bus.servos.values()] == [True, True]
