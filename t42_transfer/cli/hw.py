@@ -1,9 +1,11 @@
-"""``t42 hw emulate``: emulated T42 hardware (a servo bus on a pty, the simulated hand, a tracker) as a node."""
+"""``t42 hw emulate``: emulated T42 hardware (a servo bus on a pty, the simulated hand, a tracker) as a node;
+``t42 hw read``: what the servos on a port say (model, position, current, error bits), the torque untouched."""
 
 from __future__ import annotations
 
 import argparse
 import re
+import sys
 from pathlib import Path
 
 from t42_transfer.cli.args import SEED_MAX, float_arg, int_arg
@@ -33,6 +35,41 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
     return run_node("hw_emulator", ros_args)
 
 
+def ids_arg(text: str) -> tuple[int, ...]:
+    """An argparse type: servo ids ``1,2`` (0-252, different)."""
+    try:
+        ids = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not servo ids like 1,2") from None
+    if not all(0 <= i <= 252 for i in ids) or len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"{text!r}: servo ids are different numbers from 0 to 252")
+    return ids
+
+
+def _cmd_read(args: argparse.Namespace) -> int:
+    """One line per servo; exit 1 when a servo (or the port) did not answer."""
+    from t42_transfer.hardware.servos import SDK_LATENCY_TIMER_MS, HandServos, ServoFault
+
+    latency = SDK_LATENCY_TIMER_MS if args.latency_timer is None else args.latency_timer
+    servos = HandServos(args.port, args.baud, args.ids, latency_timer_ms=latency)
+    try:
+        servos.open()
+    except ServoFault as err:
+        print(f"t42: error: {err}", file=sys.stderr)
+        return 1
+    failed = 0
+    try:
+        for i in args.ids:
+            try:
+                print(f"servo {i}: {servos.info(i).describe()}")
+            except ServoFault as err:
+                failed += 1
+                print(f"servo {i}: {err}")
+    finally:
+        servos.close()
+    return 1 if failed else 0
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     hw = commands.add_parser("hw", help="T42 hardware: an emulated hand to drive").add_subparsers(
         dest="hw_command", metavar="ACTION")
@@ -49,3 +86,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                      help="inject a fault from the start, e.g. drop_replies=5, error_bits=[0,32], port_closed=true")
     emu.add_argument("ros_args", nargs=argparse.REMAINDER, help="more ROS arguments after --ros-args")
     emu.set_defaults(func=_cmd_emulate)
+    read = hw.add_parser("read", help="each servo's model, Present Position (raw ticks), Present Current and "
+                                      "Hardware Error Status, reading only: the torque stays as it is")
+    read.add_argument("--port", required=True, help="the servo bus, e.g. /dev/ttyUSB0")
+    read.add_argument("--ids", type=ids_arg, default=(1, 2), help="servo ids, comma-separated (default 1,2)")
+    read.add_argument("--baud", type=int_arg(9600, 4_500_000), default=1_000_000, help="baud rate (1000000)")
+    read.add_argument("--latency-timer", type=float_arg(0, 1000), default=None, metavar="MS",
+                      help="the adapter's latency timer in ms (16; an emulated bus: 100)")
+    read.set_defaults(func=_cmd_read)

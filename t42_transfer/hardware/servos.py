@@ -55,6 +55,26 @@ class ServoState:
 
 TORQUE_ATTEMPTS = 2
 """Writes of Torque Enable each servo gets before it counts as failed (a lost reply is retried once)."""
+@dataclass(frozen=True)
+class ServoInfo:
+    """What ``t42 hw read`` shows of one servo, read with its torque as it was."""
+
+    model: int
+    position: int
+    """Present Position, raw ticks (2048 at 0 rad; the driver's angles are relative to ``open_ticks``)."""
+    current: int
+    """Present Current, units of :data:`~t42_transfer.hardware.xm430.CURRENT_A_PER_UNIT`."""
+    hardware_error: int
+    """Hardware Error Status bits (0: none)."""
+
+    def describe(self) -> str:
+        model = "XM430-W350" if self.model == xm.XM430_W350 else "not an XM430-W350"
+        errors = ", ".join(xm.hardware_errors(self.hardware_error)) or "none"
+        return (f"model {self.model} ({model}), Present Position {self.position} ticks, Present Current "
+                f"{self.current} ({self.current * xm.CURRENT_A_PER_UNIT * 1e3:.1f} mA), Hardware Error Status "
+                f"{self.hardware_error} ({errors})")
+
+
 SDK_LATENCY_TIMER_MS = 16.0
 """The USB adapter's latency timer dynamixel-sdk assumes (FTDI's default) when it times an answer out."""
 
@@ -138,10 +158,11 @@ class HandServos:
         self._check(servo_id, result, error & ~p.ALERT, "ping")
         return model
 
-    def read(self, servo_id: int, f: xm.Field) -> int:
+    def read(self, servo_id: int, f: xm.Field, alert_ok: bool = False) -> int:
+        """Field ``f`` of the servo; ``alert_ok``: also from a servo whose Hardware Error Status is set."""
         fn = {1: self._packets.read1ByteTxRx, 2: self._packets.read2ByteTxRx, 4: self._packets.read4ByteTxRx}[f.size]
         value, result, error = self._call(servo_id, f"read of {f.address}", fn, f.address)
-        self._check(servo_id, result, error, f"read of address {f.address}")
+        self._check(servo_id, result, error & ~p.ALERT if alert_ok else error, f"read of address {f.address}")
         return f.decode(int(value).to_bytes(f.size, "little", signed=False))
 
     def write(self, servo_id: int, f: xm.Field, value: int) -> None:
@@ -158,6 +179,13 @@ class HandServos:
         if result != COMM_SUCCESS:
             raise ServoFault(TIMEOUT, servo_id, "no answer to the read of Hardware Error Status")
         return int(value)
+
+    def info(self, servo_id: int) -> ServoInfo:
+        """Model, Present Position, Present Current and Hardware Error Status of one servo: reads only (the
+        torque and every setting stay as they are), also of a servo with an error bit set."""
+        model = self.ping(servo_id)
+        return ServoInfo(model, *(self.read(servo_id, f, alert_ok=True) for f in (
+            xm.PRESENT_POSITION, xm.PRESENT_CURRENT, xm.HARDWARE_ERROR_STATUS)))
 
     def reboot(self, servo_id: int) -> None:
         result, error = self._call(servo_id, "reboot", self._packets.reboot)

@@ -1,0 +1,74 @@
+"""``t42 hw read`` against the emulated servo bus on a pty: what a user reads before the first run of a real hand."""
+
+from __future__ import annotations
+
+import pytest
+
+from t42_transfer.cli import main
+from t42_transfer.hardware import protocol as p
+from t42_transfer.hardware import xm430 as xm
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, FollowingPlant, PtyBus, t42_bus
+from t42_transfer.hardware.servos import HandServos
+
+
+class LoadedPlant(FollowingPlant):
+    """Servos standing where they are put, each holding a current (units)."""
+
+    def __init__(self) -> None:
+        super().__init__((1, 2))
+        self.currents = {1: 0, 2: 0}
+
+    def present(self) -> dict[int, tuple[int, int]]:
+        return {i: (pos, self.currents[i]) for i, pos in self.positions.items()}
+
+
+def _read(*args: str) -> list[str]:
+    return ["hw", "read", *args, "--latency-timer", str(EMULATED_LATENCY_TIMER_MS)]
+
+
+def test_hw_read_prints_each_servo_and_leaves_the_torque_as_it_was(capsys: pytest.CaptureFixture[str]) -> None:
+    plant = LoadedPlant()
+    with PtyBus(t42_bus(plant=plant)) as bus:
+        servos = HandServos(bus.port, 1_000_000, (1, 2), latency_timer_ms=EMULATED_LATENCY_TIMER_MS)
+        servos.open()
+        servos.write(1, xm.TORQUE_ENABLE, 1)  # servo 1 on, servo 2 off: both stay so
+        servos.close()
+        plant.positions.update({1: 2731, 2: 1500})  # raw ticks: 2048 is 0 rad, whatever open_ticks is
+        plant.currents.update({1: -120, 2: 37})
+        bus.bus.servos[2].raise_error(1 << 5)  # overload (it also turns servo 2's torque off, as a real one)
+        instructions = []
+        handle = bus.bus.handle
+
+        def seen(ins):  # noqa: ANN001, ANN202 (every packet the command sends)
+            instructions.append(ins.instruction)
+            return handle(ins)
+
+        bus.bus.handle = seen
+        assert main(_read("--port", bus.port)) == 0
+        out = capsys.readouterr().out.splitlines()
+        assert out == [
+            "servo 1: model 1020 (XM430-W350), Present Position 2731 ticks, Present Current -120 (-322.8 mA), "
+            "Hardware Error Status 0 (none)",
+            "servo 2: model 1020 (XM430-W350), Present Position 1500 ticks, Present Current 37 (99.5 mA), "
+            "Hardware Error Status 32 (overload error)",
+        ]
+        assert set(instructions) <= {p.PING, p.READ}, instructions  # reads only: nothing written, no reboot
+        assert [bus.bus.servos[i].torque for i in (1, 2)] == [True, False]
+
+
+def test_hw_read_names_a_servo_that_does_not_answer_and_exits_1(capsys: pytest.CaptureFixture[str]) -> None:
+    with PtyBus(t42_bus()) as bus:
+        bus.bus.faults.dead.add(2)
+        assert main(_read("--port", bus.port, "--ids", "2,1")) == 1
+        out = capsys.readouterr().out.splitlines()
+        assert out[0] == "servo 2: timeout on servo 2: no answer to ping"
+        assert out[1].startswith("servo 1: model 1020 (XM430-W350), Present Position 2048 ticks")
+
+
+def test_hw_read_a_port_that_is_not_there_or_bad_ids(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(_read("--port", str(tmp_path / "ttyUSB9"))) == 1
+    assert "cannot open" in capsys.readouterr().err
+    for bad in ("1,x", "1,1", "300"):
+        with pytest.raises(SystemExit) as exit_code:
+            main(_read("--port", "/dev/null", "--ids", bad))
+        assert exit_code.value.code == 2
