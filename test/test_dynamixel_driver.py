@@ -214,6 +214,17 @@ def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_p
             os.close(slave)
 
 
+def test_a_configure_that_failed_then_passes_says_recovered(fresh_rig: Rig) -> None:
+    rig = fresh_rig
+    rig.bench.bus.bus.faults.dead.update({1, 2})  # the servos' power off: the port answers nothing
+    assert not rig.transition(Transition.TRANSITION_CONFIGURE)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.0), rig.events()
+    assert "configure failed: timeout on servo 1" in rig.statuses[-1].data
+    rig.bench.bus.bus.faults.dead.clear()
+    assert rig.transition(Transition.TRANSITION_CONFIGURE)
+    assert rig.ros.spin_until(lambda: rig.events()[-1:] == [names.RECOVERED], 2.0), rig.events()
+
+
 # The tests on the shared rig run one after the other (its driver steps only while a test spins it); the one that
 # may open the hand comes last.
 

@@ -34,7 +34,8 @@ splits the episode there, saying so).
 Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
 and the error bits decoded; so is a configure that fails (no port, a port that is no Dynamixel bus, servos of
-another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes).  A command
+another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes, and
+``recovered`` once a configure passes).  A command
 refused or cut short (clamped at a position limit, a finger held for its load) says ``refused`` on
 ``hand/status`` as on /rosout, at most once a second per kind.  Recovery is automatic: once a second the
 driver reopens the port if it went, pings, reboots a servo that raised an error bit, turns the torque back on
@@ -218,6 +219,9 @@ class DynamixelDriver(LifecycleNode):
             servos.close()
             self._configure_failed(err)
             return TransitionCallbackReturn.FAILURE
+        if self._configure_error:  # said on hand/status (latched): a late joiner hears that it passed
+            self._status(names.RECOVERED, f"configured {p.port} after: {self._configure_error}")
+            self._publish_diagnostics("OK", f"configured after: {self._configure_error}")
         self._configure_error = ""
         self.log.info(f"configured {p.port}: servos {models} in position mode, limits {geometry.limits()}")
         return TransitionCallbackReturn.SUCCESS
