@@ -58,6 +58,23 @@ def test_demo_quick_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, ca
 
 
 @pytest.mark.slow
+def test_demo_quick_with_a_camera_runs_the_whole_story_on_the_tracked_pose(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int, quick_source_model: Path) -> None:
+    """The story with the object tracker in the loop (issue 21): rendered frames, the tracked pose as the hand's,
+    every goal judged on the true pose and run again from the same grasp with the simulator's pose."""
+    summary, report = story_told(with_source_model(tmp_path, quick_source_model), capsys, "--hardware", "camera")
+    assert summary["hardware"] == "camera" and summary["driver"] == "mock_driver"
+    assert "object tracker" in summary["pose_source"] and "with the simulator's pose" in report
+    for record in summary["rounds"]:
+        assert 0 <= record["sim_pose_hits"] <= record["goals"]
+    for goal in summary["goals"]:
+        if goal["accepted"]:  # judged on the truth, which the tracked pose follows within a few mm at most
+            assert goal["seen_error_mm"] is not None and abs(goal["seen_error_mm"] - goal["error_mm"]) < 3.0, goal
+            assert goal["sim_pose_verdict"] in ("hit", "miss", "no_progress", "incomplete"), goal
+            assert goal["sim_pose_error_mm"] is not None
+
+
+@pytest.mark.slow
 def test_demo_full_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                              ros_domain: int) -> None:
     summary, _ = story_told(tmp_path, capsys, "--hardware", "emulated", quick=False)

@@ -39,7 +39,11 @@ class GoalRun:
     goal_to_result_s: float = 0.0
     """Wall time from publishing the goal to receiving the plan result (published after the sequence)."""
     final_mm: list[float] | None = None
+    """Where the object ended: the simulator's truth where a node publishes it (``sim/object_pose``), else the
+    hand's pose."""
     error_mm: float | None = None
+    seen_error_mm: float | None = None
+    """The final error as the suite saw it (``hand/object_pose``: the tracked pose on a camera)."""
     end: str = ""
     success: bool = False
     verdict: str = ""
@@ -49,6 +53,9 @@ class GoalRun:
     still_verdict: str = ""
     """The same rule applied to doing nothing."""
     round: int = 1
+    sim_pose_error_mm: float | None = None
+    """On a camera: the final error of the same goal run again from the same grasp with the simulator's pose."""
+    sim_pose_verdict: str = ""
     planned: list[list[float]] = field(default_factory=list)
     executed: list[list[float]] = field(default_factory=list)
 
@@ -114,7 +121,10 @@ def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, roun
 
     op.wait_until(lambda: op.latest_pose()[0] >= settle or ends(), 120.0, "the plan's execution", suite.check)
     run.executed = [xy.tolist() for stamp, xy in op.poses if stamp >= plan_stamp]
-    run.final_mm = op.latest_pose()[1].tolist()
+    seen = op.latest_pose()[1]
+    truth = op.latest_truth()  # a camera's error must not grade its own plan: the truth does where it is known
+    run.final_mm = (seen if truth is None else truth).tolist()
+    run.seen_error_mm = float(np.linalg.norm(seen - goal.position))
     run.error_mm = float(np.linalg.norm(np.subtract(run.final_mm, run.goal_mm)))
     ended = ends()
     run.end = ended[0] if ended else "completed"

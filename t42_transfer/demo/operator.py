@@ -16,6 +16,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, PoseStamped
 from lifecycle_msgs.srv import GetState
 from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
@@ -49,6 +50,8 @@ class Operator(Node):
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("t42_demo", parameter_overrides=[Parameter("use_sim_time", value=True)], **node_kwargs)
         self.poses: list[tuple[int, np.ndarray]] = []
+        self.truths: list[tuple[int, np.ndarray]] = []
+        """The simulated hand's true object pose (``sim/object_pose``), where a node publishes it."""
         self.statuses: list[str] = []
         self.results: list[dict[str, Any]] = []
         self.paths: list[np.ndarray] = []
@@ -56,6 +59,7 @@ class Operator(Node):
         """Every model path the transfer server announced on ``t42/model_updated``, in order."""
         self.diagnostic: dict[str, str] = {}
         self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 100)
+        self.create_subscription(PoseStamped, names.SIM_POSE, self._on_truth, 100)
         self.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data),
                                  profile(names.EVENTS))
         self.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
@@ -66,10 +70,15 @@ class Operator(Node):
         self.goal_pub = self.create_publisher(PointStamped, names.GOAL, 10)
         self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}
         self.lifecycle_clients: dict[str, Any] = {}
+        self.parameter_clients: dict[str, Any] = {}
 
     def _on_pose(self, msg: Any) -> None:
         self.poses.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
         del self.poses[:-MAX_POSES]
+
+    def _on_truth(self, msg: Any) -> None:
+        self.truths.append((stamp_to_ns(msg.header.stamp), object_xy_mm(msg).astype(np.float64)))
+        del self.truths[:-MAX_POSES]
 
     def _on_diagnostics(self, msg: Any) -> None:
         try:
@@ -102,6 +111,26 @@ class Operator(Node):
         future = client.call_async(GetState.Request())
         self.wait_until(future.done, timeout_s, f"the state of {node}", alive)
         return future.result().current_state.label
+
+    def set_parameters(self, node: str, values: dict[str, Any], timeout_s: float,
+                       alive: Callable[[], None] | None = None) -> None:
+        """Set ``node``'s parameters as ``ros2 param set`` does; RuntimeError with the node's reason if refused."""
+        client = self.parameter_clients.get(node)
+        if client is None:
+            client = self.parameter_clients[node] = self.create_client(
+                SetParameters, names.private_of(node, "~/set_parameters"))
+        self.wait_until(client.service_is_ready, timeout_s, f"{node}'s parameter services", alive)
+        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                    for k, v in values.items()])
+        future = client.call_async(request)
+        self.wait_until(future.done, timeout_s, f"{node} to take {values}", alive)
+        refused = [r.reason for r in future.result().results if not r.successful]
+        if refused:
+            raise RuntimeError(f"{node} refused {values}: {'; '.join(refused)}")
+
+    def latest_truth(self) -> np.ndarray | None:
+        """The newest true object position, where the hand's simulator publishes it (None: it does not)."""
+        return self.truths[-1][1] if self.truths else None
 
     def latest_pose(self) -> tuple[int, np.ndarray]:
         return self.poses[-1] if self.poses else (-1, np.full(2, np.nan))

@@ -10,12 +10,19 @@ from msg_adapters import names
 HARDWARE = {
     "sim": ("mock_driver",),
     "emulated": ("hw_emulator", "dynamixel_driver"),
+    "camera": ("mock_driver", "object_tracker"),
 }
-"""The hand's nodes per ``--hardware``: the mock driver's simulated hand, or the Dynamixel driver on the
-emulator's servo bus (the same simulated hand behind two XM430s on a pty, seen by an emulated tracker)."""
+"""The hand's nodes per ``--hardware``: the mock driver's simulated hand; the Dynamixel driver on the
+emulator's servo bus (the same simulated hand behind two XM430s on a pty, seen by an emulated tracker); or the
+mock driver's hand seen by a camera: rendered frames, the object tracker on them, and the tracked pose as the
+hand's (``pose_source: topic``)."""
+DRIVER = {"sim": "mock_driver", "emulated": "dynamixel_driver", "camera": "mock_driver"}
 SUITE_NODES = ("recorder", "transfer_server", "planner")
 """The suite's nodes after the hand's."""
-POSE_SOURCE = {"sim": "the simulator (mock_driver)", "emulated": "the emulated tracker on tracker/object_pose"}
+POSE_SOURCE = {"sim": "the simulator (mock_driver)", "emulated": "the emulated tracker on tracker/object_pose",
+               "camera": "the object tracker on the mock driver's rendered camera (tracker/object_pose)"}
+CAMERA = {"camera_rate_hz": 10.0, "camera_width": 640, "camera_height": 480}
+"""The rendered camera of ``--hardware camera``: a frame per step."""
 
 
 def suite_nodes(hardware: str) -> tuple[str, ...]:

@@ -18,8 +18,8 @@ from msg_adapters import names, status_event
 from t42_transfer.demo.goals import GoalRun, run_goal, wait_for_closed_bags
 from t42_transfer.demo.report import goal_table, plot_paths, rounds_table, write_report
 from t42_transfer.demo.settings import (
+    DRIVER,
     FULL,
-    HARDWARE,
     HELDOUT_SEED,
     POSE_SOURCE,
     QUICK,
@@ -69,7 +69,8 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     run_dir = out / time.strftime("%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=False, exist_ok=False)
     started = time.perf_counter()
-    on = "" if hardware == "sim" else " (the Dynamixel driver on an emulated servo bus)"
+    on = {"sim": "", "emulated": " (the Dynamixel driver on an emulated servo bus)",
+          "camera": " (seen by a camera: rendered frames, the object tracker)"}[hardware]
     say(f"t42 demo{' --quick' if quick else ''}: transfer to a new simulated hand{on} over ROS 2 -> {run_dir}")
     model = source_model(out, size, workers)
     params_file = run_dir / "suite.yaml"
@@ -79,7 +80,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     suite = Suite(run_dir, params_file, dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1"))
     story = Story(size, hardware, run_dir, model, Workspace.from_dict(read_metadata(model)["extra"]["workspace"]),
                   suite)
-    story.summary = {"mode": "quick" if quick else "full", "hardware": hardware, "driver": HARDWARE[hardware][-1],
+    story.summary = {"mode": "quick" if quick else "full", "hardware": hardware, "driver": DRIVER[hardware],
                      "pose_source": POSE_SOURCE[hardware], "size": asdict(size), "domain": domain,
                      "discovery": discovery, "middleware": "", "source_model": str(model), "suite": str(params_file)}
     context = rclpy.Context()
@@ -115,7 +116,7 @@ def _start_suite(story: Story, executor: Any, context: Any, started: float) -> N
     executor.add_node(story.op)
     threading.Thread(target=executor.spin, daemon=True).start()
     story.op.wait_until(story.op.ready, 120.0, "the suite's services", suite.check)
-    if story.hardware != "sim":
+    if story.hardware == "emulated":
         wait_until(lambda: story.op.lifecycle_state("dynamixel_driver", 10.0, suite.check) == "active", 60.0,
                    "the Dynamixel driver to be active", suite.check)
     say(f"[2/{story.phases}] suite up: {', '.join(nodes)} as processes on ROS domain "
@@ -174,12 +175,31 @@ def _round(story: Story, round_: int) -> None:
             f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
     op.call(RECORDER_STOP, 30.0, suite.check)
     wait_for_closed_bags(op, suite, story.run_dir / "bags")
+    if story.hardware == "camera":
+        _again_with_the_simulators_pose(story, mine, round_)
+        record["sim_pose_hits"] = sum(r.sim_pose_verdict == "hit" for r in mine)
     story.runs.extend(mine)
     record.update(goals=len(mine), hits=sum(r.success for r in mine),
                   still_hits=sum(r.still_verdict == "hit" for r in mine))
     story.summary["rounds"].append(record)
     say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: {record['hits']}/{record['goals']} goals hit "
         f"(doing nothing: {record['still_hits']}/{record['goals']})")
+
+
+def _again_with_the_simulators_pose(story: Story, runs: list[GoalRun], round_: int) -> None:
+    """Each goal of the round again, from the same grasp (the driver's seed set back to it) with the
+    simulator's pose instead of the tracker's, unrecorded: what the camera costs the plans."""
+    op, suite = story.op, story.suite
+    for index, run in enumerate(runs):
+        op.set_parameters("mock_driver", {"seed": run.grasp_seed, "pose_source": "sim"}, 30.0, suite.check)
+        again = run_goal(op, suite, run.steps, index, story.workspace, round_)
+        if again.grasp_seed != run.grasp_seed or again.goal_mm != run.goal_mm:
+            raise RuntimeError(f"goal {index + 1} could not be made again: grasp {again.grasp_seed} vs "
+                               f"{run.grasp_seed}, goal {again.goal_mm} vs {run.goal_mm}")
+        run.sim_pose_error_mm, run.sim_pose_verdict = again.error_mm, again.verdict
+        say(f"      round {round_} goal {index + 1}/{len(runs)} again with the simulator's pose: "
+            + ("" if again.error_mm is None else f"final error {again.error_mm:.1f} mm -> ") + again.verdict)
+    op.set_parameters("mock_driver", {"pose_source": "topic"}, 30.0, suite.check)
 
 
 def transfer(story: Story, round_: int) -> dict[str, Any]:
@@ -232,8 +252,9 @@ def _finish(story: Story, failed: bool, started: float) -> int:
     summary["goals"] = [asdict(r) for r in story.runs]
     summary["seconds"] = time.perf_counter() - started
     (run_dir / "demo.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
-    plot_paths(story.runs, run_dir / "paths.png",
-               "the simulated target hand" if story.hardware == "sim" else "the emulated T42 (Dynamixel driver)")
+    hand = {"sim": "the simulated target hand", "emulated": "the emulated T42 (Dynamixel driver)",
+            "camera": "the simulated target hand seen by a camera"}[story.hardware]
+    plot_paths(story.runs, run_dir / "paths.png", hand)
     report = write_report(run_dir, summary, story.runs)
     say(f"[{story.phases}/{story.phases}] peg-in-hole, {story.size.rounds} round(s):\n")
     say(rounds_table(summary["rounds"]))

@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from t42_transfer.demo.settings import RECORDER_START, RECORDER_STOP, DemoSize
+from t42_transfer.demo.settings import CAMERA, RECORDER_START, RECORDER_STOP, DemoSize
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
 
 
@@ -66,9 +66,18 @@ def hand_params(run_dir: Path, size: DemoSize, hardware: str) -> dict[str, dict[
     """The hand's nodes' parameters: the graph's clock, rate_factor times faster than real time, is theirs."""
     # Stamps are in simulated time, which runs rate_factor times faster: allow the same wall-time lag.
     max_command_age_s = 0.5 * size.rate_factor
+    mock_driver = dict(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
+                       max_command_age_s=max_command_age_s)
     if hardware == "sim":
-        return {"mock_driver": dict(hand="target", rate_factor=size.rate_factor, seed=0, sim_time=True,
-                                    max_command_age_s=max_command_age_s)}
+        return {"mock_driver": mock_driver}
+    if hardware == "camera":
+        from t42_transfer.hand.mjcf import object_marker_height_mm
+        from t42_transfer.hand.params import variant
+
+        # The tracker's defaults are the simulated scene's markers; the object's marker face stands this high.
+        height_m = object_marker_height_mm(variant("target")) / 1000.0
+        return {"mock_driver": dict(mock_driver, pose_source="topic", **CAMERA),
+                "object_tracker": dict(object_marker_height_m=height_m, use_sim_time=True)}
     port = str(servo_link(run_dir))
     return {"hw_emulator": dict(link=port, hand="target", seed=0, sim_time=True, rate_factor=size.rate_factor),
             "dynamixel_driver": dict(port=port, autostart=True, use_sim_time=True,
