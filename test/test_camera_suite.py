@@ -66,3 +66,22 @@ def test_the_camera_suite_records_the_tracked_poses_with_the_frames_stamps(ros, 
         np.testing.assert_allclose(xy, by_stamp[stamp], atol=1e-3)  # the tracked pose, not the simulator's
         assert np.linalg.norm(xy - truth[stamp]) < 1.0
     assert any(np.linalg.norm(xy - truth[s]) > 1e-3 for s, xy in heard.items())  # it is not the truth itself
+
+
+def test_t42_hw_emulate_renders_a_camera_when_asked(ros, tmp_path: Path) -> None:
+    """``t42 hw emulate --camera 5``: frames on camera/image_raw with the true intrinsics, no emulated tracker."""
+    tester = Tester(ros)
+    infos = tester.listen(CameraInfo, names.CAMERA_INFO, profile(names.IMAGES))
+    tracked = tester.listen(PoseStamped, names.TRACKER_POSE)
+    log = (tmp_path / "emulate.log").open("w")
+    emulator = subprocess.Popen([*T42, "hw", "emulate", "--link", str(tmp_path / "servos"), "--camera", "5",
+                                 "--rate-factor", "2"], cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        assert ros.spin_until(lambda: len(infos) >= 5, 60.0), (tmp_path / "emulate.log").read_text()[-2000:]
+    finally:
+        codes = stop([emulator], timeout_s=10.0)
+        log.close()
+    assert codes == [0] and tracked == []
+    stamps = [stamp_to_ns(m.header.stamp) for m in infos]
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
+    assert {(m.width, m.height) for m in infos} == {(640, 480)} and infos[0].k[0] > 0

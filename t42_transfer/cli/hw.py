@@ -30,6 +30,8 @@ def _cmd_emulate(args: argparse.Namespace) -> int:
               f"sim_time:={str(args.sim_time).lower()}", f"hand:={args.hand}", *args.fault]
     if args.link:
         params.append(f"link:={args.link.absolute()}")
+    if args.camera:
+        params.append(f"camera_rate_hz:={args.camera}")
     keep_discovery_local()
     ros_args = ["--ros-args"] + [a for p in params for a in ("-p", p)] + list(args.ros_args)
     return run_node("hw_emulator", ros_args)
@@ -82,6 +84,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     emu.add_argument("--sim-time", action="store_true", help="publish /clock: the graph runs on the emulator's time")
     emu.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     emu.add_argument("--pose-rate", type=float_arg(0.1, 100), default=6.0, help="tracker frames per second (6)")
+    emu.add_argument("--camera", type=float_arg(0, 10), default=0.0, metavar="HZ",
+                     help="render the hand with its markers at HZ (at most one frame a step) on camera/image_raw "
+                          "instead of the emulated tracker; run object_tracker on it")
     emu.add_argument("--fault", type=fault_arg, action="append", default=[], metavar="NAME=VALUE",
                      help="inject a fault from the start, e.g. drop_replies=5, error_bits=[0,32], port_closed=true")
     emu.add_argument("ros_args", nargs=argparse.REMAINDER, help="more ROS arguments after --ros-args")
