@@ -47,6 +47,8 @@ class Story:
     """Target episodes collected apart (never recorded by the suite) that score each round's model."""
     summary: dict[str, Any] = field(default_factory=dict)
     runs: list[GoalRun] = field(default_factory=list)
+    spinner: threading.Thread | None = None
+    """The thread spinning the operator's executor."""
 
     @property
     def phases(self) -> int:
@@ -98,7 +100,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     except (RuntimeError, TimeoutError) as err:
         say(f"FAILED: {err}")
     finally:  # whatever happened (Ctrl-C, a bug), no node process outlives the demo
-        _shutdown(executor, context)
+        _shutdown(executor, context, story.spinner)
         story.summary["exit_codes"] = suite.stop()
     return _finish(story, failed, started)
 
@@ -114,7 +116,8 @@ def _start_suite(story: Story, executor: Any, context: Any, started: float) -> N
             wait_until(link.exists, 60.0, f"the emulated servo bus at {link}", suite.check)
     story.op = Operator(context=context)
     executor.add_node(story.op)
-    threading.Thread(target=executor.spin, daemon=True).start()
+    story.spinner = threading.Thread(target=executor.spin, daemon=True)
+    story.spinner.start()
     story.op.wait_until(story.op.ready, 120.0, "the suite's services", suite.check)
     if story.hardware == "emulated":
         wait_until(lambda: story.op.lifecycle_state("dynamixel_driver", 10.0, suite.check) == "active", 60.0,
@@ -268,10 +271,14 @@ def _finish(story: Story, failed: bool, started: float) -> int:
     return 0
 
 
-def _shutdown(executor: Any, context: Any) -> None:
+def _shutdown(executor: Any, context: Any, spinner: threading.Thread | None) -> None:
+    """Stop the operator's executor, then destroy its node: its spin thread must be out of its wait first, or a
+    callback it takes of a node being destroyed fails in a task nobody reads ("never retrieved")."""
     import rclpy
 
     executor.shutdown(timeout_sec=5.0)
+    if spinner is not None:
+        spinner.join(timeout=5.0)
     for node in executor.get_nodes():
         node.destroy_node()
     if context.ok():
