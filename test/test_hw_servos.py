@@ -147,3 +147,23 @@ def test_torque_off_names_every_servo_that_failed_after_trying_all(hand) -> None
         servos.torque(False)
     assert fault.value.servo_id == 1 and "servo 1" in str(fault.value) and "servo 2" not in str(fault.value)
     assert bus.bus.servos[2].torque is False
+
+
+@pytest.mark.parametrize("inject, failed", [
+    (lambda bus: setattr(bus.bus.faults, "drop_replies", 1), None),  # servo 1's first answer lost: written again
+    (lambda bus: bus.bus.faults.dead.add(1), 1),
+], ids=["one reply dropped", "servo 1 dead"])
+def test_configure_turns_the_torque_off_on_every_servo_before_it_fails(hand, inject, failed: int | None) -> None:
+    """configure used to stop at the first servo whose torque-off write failed, the other servo's torque left on."""
+    bus, servos = hand
+    servos.torque(True)
+    inject(bus)
+    if failed is None:
+        servos.configure(xm.POSITION_MODE, LIMITS)
+        assert all(servos.read(i, xm.MAX_POSITION_LIMIT) == 3400 for i in (1, 2))
+    else:
+        with pytest.raises(s.ServoFault) as fault:
+            servos.configure(xm.POSITION_MODE, LIMITS)
+        assert fault.value.servo_id == failed and "servo 2" not in str(fault.value), fault.value
+    assert bus.bus.servos[2].torque is False  # Torque Enable of the emulated servo itself
+    assert bus.bus.servos[1].torque is (failed == 1)

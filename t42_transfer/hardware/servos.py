@@ -201,9 +201,11 @@ class HandServos:
         return models
 
     def configure(self, mode: int, limits: dict[int, tuple[int, int]]) -> None:
-        """Torque off, then the operating mode and position limits (EEPROM: written only without torque)."""
+        """Torque off, then the operating mode and position limits (EEPROM: written only without torque).  The
+        torque goes off on every servo first, each tried on its own (:meth:`torque`): one that does not answer
+        leaves no other as it was; then the :class:`ServoFault` names each that failed, and nothing else is written."""
+        self.torque(False)
         for i in self.ids:
-            self.write(i, xm.TORQUE_ENABLE, 0)
             if self.read(i, xm.OPERATING_MODE) != mode:
                 self.write(i, xm.OPERATING_MODE, mode)
             low, high = limits[i]
