@@ -6,6 +6,18 @@
 # the top-level Python packages: the editable finder maps each one) and the
 # interpreter version.  Set T42_BOOTSTRAP_FORCE=1
 # to redo it anyway, PYTHON=/path/to/python3 to pick the interpreter.
+#
+# Then the interface package t42_interfaces is built and installed into the
+# venv by interfaces/build.sh (its own stamp: a no-op when up to date).  It
+# goes into the venv's prefix, beside the ros-jazzy-* wheels, so it is found
+# the way they are with no environment variable: Python imports it from
+# site-packages, and the wheels' ros_wheels_bootstrapper.pth starts every
+# Python of the venv with <venv>/lib on LD_LIBRARY_PATH, where its C type
+# support libraries are (rosidl looks them up by name there; an RPATH would
+# not be enough); rclpy needs no AMENT_PREFIX_PATH for it.  Without cmake, a
+# C++ compiler or the Python headers it is skipped with one line naming the
+# Debian packages, and the rest of the bootstrap stands (nothing uses the
+# package yet).  interfaces/build.sh says more (the wheels' two snags).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -43,8 +55,19 @@ if command -v flock >/dev/null 2>&1; then
     flock 9
 fi
 
+build_interfaces() {
+    local rc=0
+    bash "$ROOT/interfaces/build.sh" "$VENV" || rc=$?
+    case $rc in
+        0) ;;
+        3) echo "bootstrap: the t42_interfaces package was skipped (see the line above); the rest is done" >&2 ;;
+        *) die "building t42_interfaces failed (see above)" ;;
+    esac
+}
+
 want="$(stamp_value)"
 if [[ "${T42_BOOTSTRAP_FORCE:-0}" != "1" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
+    build_interfaces
     exit 0
 fi
 
@@ -78,4 +101,5 @@ run_pip "the t42_transfer package (editable)" --no-deps --no-build-isolation \
 "$VPY" -c 'import torch, t42_transfer' >>"$LOG" 2>&1 \
     || die "the venv cannot import torch and t42_transfer (see $LOG)"
 echo "$want" >"$STAMP"
+build_interfaces
 echo "bootstrap: done" >&2

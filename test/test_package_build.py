@@ -4,6 +4,10 @@ colcon-common-extensions from PyPI builds an ament_python package without a
 ROS install.  The build goes to a temporary directory outside the repository
 and must leave no build/, install/, log/ or *.egg-info behind in it.
 (Takes a few seconds, so it is part of the fast suite.)
+
+The interface package t42_interfaces (interfaces/t42_interfaces) is built by interfaces/build.sh into the venv
+(scripts/bootstrap.sh runs it): its tests reuse that install when it is up to date (a no-op of a fraction of a
+second) and build it otherwise (about 30 s), once per session; without cmake or a C++ compiler they skip.
 """
 
 from __future__ import annotations
@@ -180,3 +184,163 @@ def test_installed_t42_runs_with_plain_pythonpath(colcon_build):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "usage: t42" in proc.stdout
+
+
+# --------------------------------------------------------------------------- t42_interfaces
+INTERFACES = REPO / "interfaces" / "t42_interfaces"
+VENV = Path(sys.prefix)
+MESSAGES = ("PlanResult", "ModelUpdated", "BagClosed")
+ACTIONS = ("Reach", "Transfer")
+TYPESUPPORTS = ("rosidl_generator_c", "rosidl_generator_py", "rosidl_typesupport_c", "rosidl_typesupport_cpp",
+                "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_fastrtps_cpp",
+                "rosidl_typesupport_introspection_c", "rosidl_typesupport_introspection_cpp")
+# What a plain `python` of the venv starts with: nothing that names the package or its libraries.
+_NOT_INHERITED = ("PYTHONPATH", "LD_LIBRARY_PATH", "AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH", "COLCON_PREFIX_PATH",
+                  "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
+
+
+@pytest.fixture(scope="session")
+def interfaces_installed() -> Path:
+    """interfaces/build.sh for this venv (a no-op when the bootstrap's install is up to date); the venv."""
+    missing = [tool for tool in ("cmake", "g++") if shutil.which(tool) is None]
+    if missing and not (missing == ["g++"] and shutil.which("c++")):
+        pytest.skip(f"no {' '.join(missing)}: t42_interfaces cannot be built (Debian: apt-get install cmake g++)")
+    env = {k: v for k, v in os.environ.items() if k not in _NOT_INHERITED}
+    proc = subprocess.run(["bash", str(REPO / "interfaces" / "build.sh"), str(VENV)], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=900)
+    if proc.returncode == 3:
+        pytest.skip(f"t42_interfaces skipped: {proc.stderr.strip()}")
+    assert proc.returncode == 0, f"interfaces/build.sh failed:\n{proc.stdout}\n{proc.stderr}"
+    return VENV
+
+
+def test_interfaces_package_builds_into_the_venv(interfaces_installed):
+    venv = interfaces_installed
+    manifest = (venv / ".t42-interfaces-manifest.txt").read_text().split()
+    assert manifest and all(Path(f).is_file() and Path(f).is_relative_to(venv) for f in manifest)
+    for ts in TYPESUPPORTS:
+        assert str(venv / "lib" / f"libt42_interfaces__{ts}.so") in manifest, ts
+    site = _venv_site_packages(venv)
+    for name in MESSAGES:
+        assert str(site / "t42_interfaces" / "msg" / f"_{_snake(name)}.py") in manifest
+    for name in ACTIONS:
+        assert str(site / "t42_interfaces" / "action" / f"_{_snake(name)}.py") in manifest
+        assert str(venv / "share" / "t42_interfaces" / "action" / f"{name}.action") in manifest
+    assert str(venv / "share" / "ament_index" / "resource_index" / "packages" / "t42_interfaces") in manifest
+    assert (venv / "share" / "t42_interfaces" / "package.xml").read_bytes() == (INTERFACES / "package.xml").read_bytes()
+
+
+def _venv_site_packages(venv: Path) -> Path:
+    return venv / "lib" / f"python{sys.version_info.major}.{sys.version_info.minor}" / "site-packages"
+
+
+def _snake(name: str) -> str:
+    return "".join("_" + c.lower() if c.isupper() and i else c.lower() for i, c in enumerate(name))
+
+
+def test_interfaces_import_in_a_plain_venv_python(interfaces_installed, tmp_path):
+    """A fresh interpreter of the venv, none of the variables a sourced ROS workspace sets, outside the repo."""
+    env = {k: v for k, v in os.environ.items() if k not in _NOT_INHERITED}
+    code = (
+        "import t42_interfaces\n"
+        "from t42_interfaces.action import Reach, Transfer\n"
+        "from t42_interfaces.msg import BagClosed, ModelUpdated, PlanResult\n"
+        "from rclpy.serialization import deserialize_message, serialize_message\n"
+        "goal = Reach.Goal(tolerance_m=0.002, steps=40)\n"
+        "assert deserialize_message(serialize_message(goal), Reach.Goal) == goal\n"
+        "print(t42_interfaces.__file__)\n"
+    )
+    proc = subprocess.run([str(interfaces_installed / "bin" / "python"), "-c", code], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert Path(proc.stdout.strip()).is_relative_to(_venv_site_packages(interfaces_installed))
+
+
+def _filled_messages() -> list:
+    """One message of each type, every field set to something other than its default."""
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import Point, PointStamped, PoseStamped
+    from nav_msgs.msg import Path as PathMsg
+    from std_msgs.msg import Header
+    from t42_interfaces.action import Reach, Transfer
+    from t42_interfaces.msg import BagClosed, ModelUpdated, PlanResult
+
+    stamp = Time(sec=12, nanosec=345)
+    base = Header(stamp=stamp, frame_id="t42_base")
+    path = PathMsg(header=base, poses=[PoseStamped(header=base), PoseStamped(header=base)])
+    path.poses[1].pose.position.x = 0.01
+    return [
+        PlanResult(header=base, accepted=True, status="ok", reason="", has_goal=True,
+                   goal=Point(x=0.01, y=0.11), goal_stamp=stamp, has_start=True, start=Point(x=0.0, y=0.1),
+                   predicted_error_m=0.0012, horizon=40, samples_evaluated=800, planning_time_s=0.25,
+                   model="/m/model.safetensors", method="fine_tune", replan_every=5),
+        ModelUpdated(stamp=stamp, path="/m/model.safetensors", method="residual", episodes=12),
+        BagClosed(path="/b/bag_0", episodes=1, messages=4321, start=stamp, end=Time(sec=20), reason="episode"),
+        Reach.Goal(target=PointStamped(header=base, point=Point(x=0.01, y=0.11)), tolerance_m=0.002, steps=40,
+                   replan_every=5),
+        Reach.Feedback(step=10, error_m=0.004, predicted_final_error_m=0.001),
+        Reach.Result(success=True, final_error_m=0.0015, verdict=Reach.Result.VERDICT_HIT, reason="",
+                     executed=path, predicted=path),
+        Transfer.Goal(method="auto", bags=["/b/bag_0", "/b/bag_1"]),
+        Transfer.Feedback(phase="training", epoch=3, epochs=200, train_loss=0.5, val_loss=float("inf")),
+        Transfer.Result(success=True, message="done", model_path="/m/new.safetensors",
+                        model_divergence_steps=31.5, model_mse_mm2=2.5, source_divergence_steps=12.0,
+                        source_mse_mm2=9.0, hold_still_divergence_steps=3.0, hold_still_mse_mm2=40.0,
+                        candidates=["fine_tune", "residual"], candidate_scores=[2.5, 3.1],
+                        skipped_bags=["/b/empty"], skipped_reasons=["no episode"]),
+    ]
+
+
+def test_interfaces_serialise_and_deserialise(interfaces_installed):
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    for msg in _filled_messages():
+        data = serialize_message(msg)
+        assert deserialize_message(data, type(msg)) == msg, type(msg).__name__
+    from t42_interfaces.action import Reach
+    assert [Reach.Result.VERDICT_HIT, Reach.Result.VERDICT_MISS, Reach.Result.VERDICT_NO_PROGRESS,
+            Reach.Result.VERDICT_INCOMPLETE, Reach.Result.VERDICT_REFUSED] == \
+        ["hit", "miss", "no_progress", "incomplete", "refused"]
+
+
+def test_reach_action_goal_feedback_result(interfaces_installed, ros):
+    """rclpy's ActionServer and ActionClient with Reach: a goal, two feedbacks, a result, in one process."""
+    from geometry_msgs.msg import Point, PointStamped, PoseStamped
+    from rclpy.action import ActionClient, ActionServer
+    from t42_interfaces.action import Reach
+
+    server_node, client_node = ros.node("reach_server"), ros.node("reach_client")
+
+    def execute(handle):
+        goal = handle.request
+        for step in (1, 2):
+            handle.publish_feedback(Reach.Feedback(step=step, error_m=0.01 / step, predicted_final_error_m=0.001))
+        handle.succeed()
+        result = Reach.Result(success=True, final_error_m=0.0015, verdict=Reach.Result.VERDICT_HIT)
+        result.executed.header.frame_id = goal.target.header.frame_id
+        result.executed.poses = [PoseStamped(header=goal.target.header)]
+        result.executed.poses[0].pose.position = goal.target.point
+        return result
+
+    server = ActionServer(server_node, Reach, "t42/reach", execute)
+    client = ActionClient(client_node, Reach, "t42/reach")
+    try:
+        assert ros.spin_until(lambda: client.server_is_ready(), 10.0), "the Reach server did not show up"
+        feedback: list = []
+        target = PointStamped(point=Point(x=0.012, y=0.105))
+        target.header.frame_id = "t42_base"
+        sent = client.send_goal_async(Reach.Goal(target=target, tolerance_m=0.002, steps=40),
+                                      feedback_callback=lambda m: feedback.append(m.feedback))
+        assert ros.spin_until(sent.done, 10.0) and sent.result().accepted
+        result_future = sent.result().get_result_async()
+        assert ros.spin_until(result_future.done, 10.0)
+        ros.spin_until(lambda: len(feedback) >= 2, 2.0)
+        assert [(f.step, f.error_m) for f in feedback] == [(1, 0.01), (2, 0.005)]
+        got = result_future.result()
+        assert got.status == 4  # action_msgs/GoalStatus STATUS_SUCCEEDED
+        assert got.result.success and got.result.verdict == "hit"
+        assert got.result.executed.header.frame_id == "t42_base"
+        assert got.result.executed.poses[0].pose.position.x == pytest.approx(0.012)
+    finally:
+        client.destroy()
+        server.destroy()
