@@ -235,18 +235,24 @@ def test_bench_suite_latency(tmp_path: Path, ros_domain: int) -> None:
 
 def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
     """Four runs one after the other (driver, bare loop, bare loop reading in select, idle node), each 1 s timed:
-    ~10 steps at 10 Hz, enough for the intervals and above a clock tick of driver CPU (~1.7 ms a step)."""
+    ~10 steps at 10 Hz, enough for the intervals and above a clock tick of driver CPU (~2-4 ms a step).  The
+    driver's window is an episode (hand/reset first, a command each period): its steps publish the full step."""
     result = run_bench("bench_driver.py", "--seconds", "1", out=tmp_path / "driver.json")
     driver, bare = result["driver"], result["bare_sdk_loop"]
     assert result["seconds"] == 1.0 and 5 <= driver["steps"] <= 15 and 5 <= bare["steps"] <= 15
     assert all(positive(driver[k]) for k in ("cpu_ms_per_step",)) and positive(bare["round_trip_ms"])
     assert set(driver["interval_ms"]) == {"mean", "std", "p99", "max"} and 80 < driver["interval_ms"]["mean"] < 130
-    assert isinstance(driver["late_steps"], int) and positive(result["cpu_ratio_driver_to_bare"])
-    assert result["target"] == {"cpu_ratio_max": 1.5, "late_steps": 0} and "load_average" in result["machine"]
-    assert isinstance(result["target_met"], bool)
+    episode = driver["episode"]
+    assert "grasped" in episode["reset"] and episode["commands_sent"] >= 5, episode
+    assert episode["joint_states"] >= 5 and episode["applied_actions"] >= 5 and episode["actions_that_moved"] >= 3
+    assert isinstance(driver["late_steps"], int) and positive(result["cpu_ratio_driver_to_stock_sdk_loop"])
+    assert positive(result["cpu_ratio_driver_to_select_reads_loop"])
+    assert result["target"] == {"ratio": "cpu_ratio_driver_to_select_reads_loop", "cpu_ratio_max": 1.5,
+                                "late_steps": 0, "every_step_published": True}
+    assert "load_average" in result["machine"]
+    assert isinstance(result["target_met"], bool) and result["target_met"] == (not result["target_missed_because"])
     select, idle = result["bare_sdk_loop_select_reads"], result["idle_rclpy_node"]
     assert 5 <= select["steps"] <= 15 and positive(select["cpu_ms_per_step"]) and positive(select["round_trip_ms"])
-    assert positive(result["cpu_ratio_driver_to_bare_select_reads"])
     assert 5 <= idle["periods"] <= 15 and positive(idle["cpu_ms_per_period"])
     assert math.isfinite(result["driver_cpu_above_idle_node_ms_per_step"])
 
