@@ -2,15 +2,19 @@
 
     python hardware_user.py
 
-Drives the Dynamixel driver's lifecycle to active (if autostart has not), lists and sets parameters, resets
-the hand, counts the hand topics, sends a JointTrajectory and bad commands.  Prints one JSON object with
-what it saw; exit 0 when every step got an answer.
+Drives the Dynamixel driver's lifecycle (started without autostart) through the stock services: configure
+(then inactive), activate (then active); lists and sets parameters, resets the hand, measures the hand
+topics' rates from their header stamps (the graph's clock) and on arrival, sends a JointTrajectory, then one
+whose targets lie past the position limit (refused on hand/status with the reason, the finger stopping at
+the limit), and bad commands (refused on hand/status and /rosout).  Prints one JSON object with what it saw;
+exit 0 when every step got an answer.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import statistics
 import sys
 import time
 
@@ -20,7 +24,7 @@ from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rcl_interfaces.msg import Log, Parameter, ParameterType, ParameterValue
-from rcl_interfaces.srv import ListParameters, SetParameters
+from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
@@ -29,6 +33,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 DRIVER = "/dynamixel_driver"
+STEP_NS = 100_000_000
 
 
 class User(Node):
@@ -70,23 +75,80 @@ def double(name: str, value: float) -> Parameter:
     return Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value))
 
 
+def stamp_ns(msg) -> int:  # noqa: ANN001
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def gaps(msgs: list) -> list[int]:
+    stamps = [stamp_ns(m) for m in msgs]
+    return [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+
+
+def stamp_rate(msgs: list) -> float:
+    """Messages per second of their header stamps' clock (the driver's: the graph's)."""
+    if len(msgs) < 2:
+        return 0.0
+    return (len(msgs) - 1) / ((stamp_ns(msgs[-1]) - stamp_ns(msgs[0])) / 1e9)
+
+
+def change(user: User, transition: int) -> bool:
+    return user.call(ChangeState, f"{DRIVER}/change_state",
+                     ChangeState.Request(transition=Transition(id=transition))).success
+
+
+def state_of(user: User) -> str:
+    return user.call(GetState, f"{DRIVER}/get_state", GetState.Request()).current_state.label
+
+
+def lifecycle(user: User) -> dict:
+    """Configure, then activate, through the stock services; the state after each.  A configure is tried
+    again while it fails (the emulator's port may not be there yet when the suite has just started)."""
+    seen: dict = {"initial": state_of(user), "configure_failures": 0}
+    for _ in range(20):
+        if change(user, Transition.TRANSITION_CONFIGURE):
+            break
+        seen["configure_failures"] += 1
+        user.spin_for(1.0)
+    seen["configured"] = state_of(user)
+    seen["activate"] = change(user, Transition.TRANSITION_ACTIVATE)
+    seen["activated"] = state_of(user)
+    return seen
+
+
+def past_the_limit(user: User, names: list[str]) -> dict:
+    """A trajectory opening actuator 2 to -0.5 rad, past its position limit at 0 (open; the limits are
+    [0, max_angle_rad] from open): the steps past it are refused on hand/status with the reason, and the finger
+    stops at the limit."""
+    (limits,) = user.call(GetParameters, f"{DRIVER}/get_parameters",
+                          GetParameters.Request(names=["max_angle_rad"])).values
+    start = list(user.joints[-1].position)
+    targets, angle = [], start[1]
+    while angle > -0.5:
+        angle = max(-0.5, angle - 0.03)  # 1.2 action units a step: a valid trajectory, every point
+        targets.append([start[0], angle])
+    msg = JointTrajectory(joint_names=names)
+    for k, target in enumerate(targets):
+        msg.points.append(JointTrajectoryPoint(positions=target, time_from_start=Duration(
+            sec=(k + 1) // 10, nanosec=((k + 1) % 10) * STEP_NS)))
+    before, heard = len(user.statuses), len(user.joints)
+    user.trajectory.publish(msg)
+    end = time.monotonic() + len(targets) * 0.1 + 10.0
+    while not any(s.startswith("trajectory_done") for s in user.statuses[before:]) and time.monotonic() < end:
+        rclpy.spin_once(user, timeout_sec=0.05)
+    user.spin_for(0.5)
+    return {"max_angle_rad": list(limits.double_array_value), "start": start, "target": targets[-1],
+            "trajectory_done": any(s.startswith("trajectory_done") for s in user.statuses[before:]),
+            "refused": [s for s in user.statuses[before:] if s.startswith("refused")],
+            "positions": [list(j.position) for j in user.joints[heard:]]}
+
+
 def main() -> int:
     rclpy.init()
     user = User()
     seen: dict = {}
     try:
-        state = ""
-        for _ in range(100):
-            state = user.call(GetState, f"{DRIVER}/get_state", GetState.Request()).current_state.label
-            if state == "active":
-                break
-            if state == "unconfigured":
-                user.call(ChangeState, f"{DRIVER}/change_state",
-                          ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE)))
-            elif state == "inactive":
-                user.call(ChangeState, f"{DRIVER}/change_state",
-                          ChangeState.Request(transition=Transition(id=Transition.TRANSITION_ACTIVATE)))
-            user.spin_for(0.2)
+        seen["lifecycle"] = lifecycle(user)
+        state = seen["lifecycle"]["activated"]
         seen["state"] = state
         seen["parameters"] = sorted(user.call(ListParameters, f"{DRIVER}/list_parameters",
                                               ListParameters.Request()).result.names)
@@ -108,8 +170,11 @@ def main() -> int:
             raise RuntimeError(f"reset failed: {reset.message}")
         counts = len(user.joints), len(user.poses), len(user.actions)
         user.spin_for(2.0)
-        seen["rates_hz"] = [(n - c) / 2.0 for n, c in zip((len(user.joints), len(user.poses), len(user.actions)),
-                                                             counts, strict=True)]
+        heard = (user.joints[counts[0]:], user.poses[counts[1]:], user.actions[counts[2]:])
+        seen["rates_hz"] = [len(msgs) / 2.0 for msgs in heard]  # on arrival (wall time)
+        seen["stamp_rates_hz"] = [stamp_rate(msgs) for msgs in heard]  # the graph's clock
+        seen["stamp_median_gap_ms"] = [statistics.median(gaps(msgs)) / 1e6 if len(msgs) > 1 else 0.0
+                                       for msgs in heard]
         if not user.joints:
             raise RuntimeError(f"no joint states after the reset; hand/status said {user.statuses}")
         last = user.joints[-1]
@@ -126,6 +191,8 @@ def main() -> int:
         user.spin_for(0.5)
         seen["trajectory_done"] = any(s.startswith("trajectory_done") for s in user.statuses)
         seen["followed"] = [list(user.joints[-1].position), targets[-1]]
+        seen["past_limit"] = past_the_limit(user, names)
+        before = len(user.statuses)
         for velocity, joint_names in (([math.nan, 0.0], names), ([0.0, 1e9], names), ([0.1, 0.1], ["elbow", "wrist"])):
             bad = JointState(name=joint_names, velocity=velocity)
             bad.header.stamp = user.get_clock().now().to_msg()
@@ -133,6 +200,8 @@ def main() -> int:
         user.spin_for(1.0)
         seen["rejections"] = sum("rejected hand/command" in log.msg
                                  for log in user.logs if log.name == "dynamixel_driver")
+        seen["refused_statuses"] = [s for s in user.statuses[before:]
+                                    if s.startswith("refused") and "rejected hand/command" in s]
         seen["positions_after"] = [list(j.position) for j in user.joints[-5:]]
     except RuntimeError as err:
         seen["error"] = str(err)

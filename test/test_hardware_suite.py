@@ -20,6 +20,7 @@ def test_a_plain_rclpy_script_drives_the_emulated_hand(ros_domain: int, tmp_path
     link = str(tmp_path / "ttyT42")  # the test's own port: parallel runs do not share /tmp/t42_servos
     config["/**/hw_emulator"]["ros__parameters"]["link"] = link
     config["/**/dynamixel_driver"]["ros__parameters"]["port"] = link
+    config["/**/dynamixel_driver"]["ros__parameters"]["autostart"] = False  # the script drives the lifecycle
     params = tmp_path / "hardware.yaml"
     params.write_text(yaml.safe_dump(config))
     suite = subprocess.Popen([*T42, "up", str(params), "--only", "hw_emulator,dynamixel_driver"], cwd=tmp_path,
@@ -34,15 +35,26 @@ def test_a_plain_rclpy_script_drives_the_emulated_hand(ros_domain: int, tmp_path
     if user.returncode != 0:  # pytest.fail prints all of it (an assertion's message is cut short)
         pytest.fail(f"the user script failed:\n{user.stdout}\n{user.stderr}\nthe suite said:\n{out[-6000:]}")
     seen = json.loads(user.stdout.strip().splitlines()[-1])
+    lifecycle = seen["lifecycle"]  # through the stock services, from unconfigured: each transition did its part
+    assert (lifecycle["initial"], lifecycle["configured"], lifecycle["activate"], lifecycle["activated"]) == \
+        ("unconfigured", "inactive", True, "active"), lifecycle
     assert seen["state"] == "active"
     assert {"port", "servo_ids", "load_limit", "grasp_load", "max_pose_age_s"} <= set(seen["parameters"])
     (ok, _), (refused, reason) = seen["set"]
     assert ok and not refused and "grasp_load must be below load_limit" in reason
     assert seen["reset"][0], seen["reset"]
-    assert all(8.0 <= r <= 12.0 for r in seen["rates_hz"]), seen["rates_hz"]
+    assert all(8.0 <= r <= 12.0 for r in seen["rates_hz"]), seen["rates_hz"]  # on arrival
+    assert all(9.0 <= r <= 11.0 for r in seen["stamp_rates_hz"]), seen  # the stamps: 10 Hz of the graph's clock
+    assert all(95.0 <= g <= 105.0 for g in seen["stamp_median_gap_ms"]), seen["stamp_median_gap_ms"]
     assert seen["trajectory_done"]
     final, target = seen["followed"]
     assert abs(final[1] - target[1]) < 0.03 and abs(final[0] - target[0]) < 0.03, seen["followed"]
+    past = seen["past_limit"]  # targets to -0.5 rad on actuator 2, its limit at 0 (open)
+    assert past["max_angle_rad"] == [3.0, 3.0] and past["target"][1] == -0.5 and past["trajectory_done"], past
+    assert any("position limit on actuator(s) [1]" in s for s in past["refused"]), past["refused"]
+    assert all(p[1] >= -0.005 for p in past["positions"]), past["positions"]  # never past the limit ...
+    assert abs(past["positions"][-1][1]) < 0.02, past["positions"][-5:]  # ... and stopped at it
     assert seen["rejections"] >= 3
+    assert len(seen["refused_statuses"]) >= 3, seen["refused_statuses"]  # the bad commands, on hand/status too
     assert all(0.0 <= a <= 3.0 + 1e-3 for pos in seen["positions_after"] for a in pos)
     assert codes == [0], out[-3000:]
