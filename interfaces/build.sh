@@ -45,18 +45,6 @@ fail() {
 
 [[ -x "$VPY" ]] || { echo "interfaces: error: no virtualenv at $VENV (run scripts/bootstrap.sh)" >&2; exit 1; }
 
-missing=()
-command -v cmake >/dev/null 2>&1 || missing+=(cmake)
-if ! command -v c++ >/dev/null 2>&1 && ! command -v g++ >/dev/null 2>&1; then missing+=(g++); fi
-if ! command -v make >/dev/null 2>&1 && ! command -v ninja >/dev/null 2>&1; then missing+=(make); fi
-if ((${#missing[@]})); then
-    skip "no ${missing[*]}: install them (Debian: sudo apt-get install cmake g++ make) and rerun scripts/bootstrap.sh"
-fi
-PY_INCLUDE="$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
-if [[ ! -f "$PY_INCLUDE/Python.h" ]]; then
-    skip "no Python.h in $PY_INCLUDE: install the interpreter's headers (Debian: sudo apt-get install python3-dev)"
-fi
-
 stamp_value() {
     {
         "$VPY" -c 'import sys; print(sys.version, sys.prefix)'
@@ -75,6 +63,19 @@ want="$(stamp_value)"
 if [[ "${T42_BOOTSTRAP_FORCE:-0}" != "1" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
     exit 0
 fi
+# Up to date needs no build tools; a build does.
+missing=()
+command -v cmake >/dev/null 2>&1 || missing+=(cmake)
+if ! command -v c++ >/dev/null 2>&1 && ! command -v g++ >/dev/null 2>&1; then missing+=(g++); fi
+if ! command -v make >/dev/null 2>&1 && ! command -v ninja >/dev/null 2>&1; then missing+=(make); fi
+if ((${#missing[@]})); then
+    skip "no ${missing[*]}: install them (Debian: sudo apt-get install cmake g++ make) and rerun scripts/bootstrap.sh"
+fi
+PY_INCLUDE="$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+if [[ ! -f "$PY_INCLUDE/Python.h" ]]; then
+    skip "no Python.h in $PY_INCLUDE: install the interpreter's headers (Debian: sudo apt-get install python3-dev)"
+fi
+
 rm -f "$STAMP"
 : >"$LOG"
 started=$SECONDS
