@@ -257,6 +257,31 @@ def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
     assert math.isfinite(result["driver_cpu_above_idle_node_ms_per_step"])
 
 
+def test_bench_startup(tmp_path: Path, ros_domain: int) -> None:
+    """One run each (suite, bare node, bare node starting late), each import once: the figures are there, finite
+    and positive (30-40 s)."""
+    result = run_bench("bench_startup.py", "--runs", "1", out=tmp_path / "startup.json", timeout_s=300)
+    assert result["benchmark"] == "startup" and result["runs"] == 1
+    assert result["ros"] == {"domain_id": ros_domain, "discovery_range": "LOCALHOST"}
+    for key in ("suite_up_s", "bare_node_s", "ratio_suite_over_bare", "suite_stop_s", "bare_stop_s", "wall_s"):
+        assert positive(result[key]), key
+    assert len(result["suite_up_s_runs"]) == len(result["bare_node_s_runs"]) == 1
+    nodes = ["mock_driver", "recorder", "transfer_server", "planner"]
+    assert result["nodes"] == nodes and set(result["per_node"]) == set(nodes) and result["slowest_node"] in nodes
+    for name, node in result["per_node"].items():
+        for key in ("started_s", "running_s", "discovered_s", "services_ready_s", "cpu_s_at_up", "import_module_s"):
+            assert positive(node[key]), (name, key)
+        assert node["started_s"] < node["running_s"] and node["services_ready_s"] <= result["suite_up_s"], name
+        assert all(positive(v) for v in node["imports"].values()), name
+    assert "torch" in result["per_node"]["planner"]["imports"]  # the heavy import the JSON is there to show
+    expected = {"python (pass)", "rclpy", "torch", "mujoco", "t42_transfer.cli"}
+    assert expected <= set(result["import_s"]) and all(positive(v) for v in result["import_s"].values())
+    assert set(result["import_tree_ms"]) == set(nodes)
+    assert all(positive(tree["total_ms"]) for tree in result["import_tree_ms"].values())
+    assert all(not r["stopped_by_pid"] for runs in result["runs_detail"].values() for r in runs)  # t42 up stopped them
+    assert {"command", "machine", "load_before", "load_after", "reference"} <= set(result)
+
+
 def test_bench_tracker(tmp_path: Path) -> None:
     """Three frames at two small resolutions, one pass: the fields, and ratios that are finite positive numbers."""
     result = run_bench("bench_tracker.py", "--frames", "3", "--repeats", "1", "--resolutions", "320x240", "640x360",
