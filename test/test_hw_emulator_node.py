@@ -16,7 +16,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from msg_adapters import names, stamp_to_ns, status_event, status_report
+from msg_adapters import last_step_stamp, names, stamp_to_ns, status_event, status_report
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
@@ -249,6 +249,55 @@ def test_steps_without_a_fresh_pose_are_left_out_of_the_recorded_episode_with_a_
     assert len(stale) >= 5  # steps went out without a pose ...
     kept = {t.start_ns + k * CONTROL_PERIOD_NS for t in data for k in range(len(t) + 1)}
     assert not kept & set(stale)  # ... and none of them is in the recorded episodes
+
+
+def test_a_fault_mid_episode_loses_nothing_already_recorded_and_splits_the_episode(rig: Rig, tmp_path: Path) -> None:
+    """The port goes away mid-episode and comes back: the bags hold every step published before the fault, the
+    fault ends the episode there (a split event: the next episode, after the reset, is another bag)."""
+    import numpy as np
+
+    from t42_transfer.data.bag import read_bag
+    from t42_transfer.nodes.recorder import Recorder
+
+    ros, out = rig.ros, tmp_path / "bags"  # (the grasped hand: see the rig fixture)
+    recorder = ros.add(Recorder, {"out_dir": str(out), "mode": "episode"})
+    try:
+        ros.spin_for(2.5)
+        rig.inject(port_closed=True)
+        assert ros.spin_until(lambda: names.FAULT in rig.events(), 1.0), rig.events()
+        (fault,) = [s.data for s in rig.statuses if status_event(s.data) == names.FAULT]
+        fault_ns = last_step_stamp(fault)
+        assert fault_ns is not None, fault
+        rig.inject(port_closed=False)
+        assert ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
+        assert rig.reset()  # the next episode (and the next test's grasp)
+        ros.spin_for(2.0)  # MIN_EPISODE_STEPS (15) and more: the reader keeps it
+    finally:
+        recorder.close()
+        ros.executor.remove_node(recorder)
+        ros.nodes.remove(recorder)
+        recorder.destroy_node()
+    poses = {stamp_to_ns(p.header.stamp) for p in rig.poses}
+    heard = {stamp_to_ns(j.header.stamp): np.array(j.position, np.float32) for j in rig.joints
+             if stamp_to_ns(j.header.stamp) in poses}  # whole steps: the joint state and its pose
+    bags = sorted(out.iterdir())
+    episodes = [read_bag(bag) for bag in bags]
+    assert len(bags) == 2, bags  # split at the fault
+    recorded: dict[int, np.ndarray] = {}
+    for k, data in enumerate(episodes):
+        for t in data:
+            steps = t.step_ns if t.step_ns is not None else np.full(len(t), CONTROL_PERIOD_NS)  # (exact stamps)
+            for stamp, angles in zip(t.start_ns + np.concatenate([[0], np.cumsum(steps)]), t.actuator_angles,
+                                     strict=True):
+                recorded[int(stamp)] = angles
+                assert (stamp <= fault_ns) == (k == 0), (k, stamp, fault_ns)  # the fault splits there
+    assert recorded, bags
+    before = sorted(s for s in heard if min(recorded) <= s <= fault_ns)
+    assert len(before) >= 15 and before[-1] == fault_ns, (len(before), fault_ns)  # the episode ran to the fault
+    assert min(recorded) - min(heard) < 1_500_000_000  # the recorder began with the test (subscriptions matched)
+    missing = [s for s in before if s not in recorded or not np.array_equal(heard[s], recorded[s])]
+    assert not missing, f"{len(missing)} of {len(before)} steps published before the fault are not in the bags"
+    assert len(episodes[1]) >= 1, "the episode after the reset is not in the second bag"
 
 
 def test_a_dead_servo_is_named_on_diagnostics_and_the_hand_holds_until_it_answers(rig: Rig) -> None:
