@@ -54,6 +54,13 @@ HAND_TOPICS = (OBJECT_POSE, JOINT_STATES, APPLIED_ACTION)
 RECORDER_START = "~/start"
 RECORDER_STOP = "~/stop"
 RECORDER_SPLIT = "~/split"
+RECORDER_PAUSE = "~/pause"
+"""std_srvs/Trigger: drop incoming messages (counted), the bag kept open, after the step in progress."""
+RECORDER_RESUME = "~/resume"
+"""std_srvs/Trigger: record again, into the same bag, from the next whole step."""
+BAG_CLOSED = "recorder/bag_closed"
+"""t42_interfaces/BagClosed (:data:`EVENTS`): a bag the recorder closed and finalised, with why; relative to the
+recorder's namespace, as rosbag2's ``events/write_split``."""
 
 # ------------------------------------------------------------------ transfer server
 TRANSFER = "t42/transfer"

@@ -14,6 +14,18 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   (``__node:=rec_left`` -> ``/rec_left/start``) or a namespace (``/left/recorder/start``).
   Start opens a bag, stop closes it, split closes it and opens the next; each
   answers ``success`` and a message naming the bag;
+* ``~/pause``, ``~/resume`` (std_srvs/srv/Trigger): pause drops the messages of the steps after the one in
+  progress (counted in ``paused_dropped``; statuses too, so none splits), the bag stays open; resume records
+  again into the same bag from the first step after the newest stamp received (a whole step).  Pausing when
+  not recording or already paused, or resuming when not paused, answers ``success=False`` with why; stop ends
+  a pause.  The steps dropped leave a gap in the episode (two episodes to a reader when it is over 1 s);
+* ``recorder/bag_closed`` (t42_interfaces/msg/BagClosed, :data:`~msg_adapters.names.EVENTS` QoS: a late
+  joiner gets the recent ones): one per bag closed and final (``metadata.yaml`` written), published after
+  the bag was read back with ``read_bag`` (its ``episodes`` are the reader's count, 0 for a bag of no whole
+  episode), so the bag is readable when the event arrives.  ``messages``, and ``start``/``end`` (log times
+  of its first and last message), ``reason``: ``stop``, ``split``, the status word that split it in episode
+  mode (``reset``, ``dropped``...), ``write_failed`` (a full disk; only if the bag could still be
+  finalised) or ``shutdown``.  A relative name, as rosbag2's ``events/write_split``;
 * ``hand/status`` (std_msgs/msg/String): written into the open bag as it comes
   (a driver's ``late`` word there tells a reader that a step came late and none is
   missing); in ``mode="episode"`` a status whose first word is in
@@ -72,13 +84,10 @@ logged (services answer ``success=False``).
 
 from __future__ import annotations
 
-import math
-import re
 import shutil
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -88,9 +97,9 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import BagClosed
 
 from msg_adapters import (
-    HAND_TOPICS,
     RCLPY,
     STRING,
     TYPESTORE,
@@ -101,93 +110,21 @@ from msg_adapters import (
     stamp_to_ns,
     status_event,
 )
+from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
+from t42_transfer.nodes.recorder_params import RECORDABLE, Announcer, Change, RecorderParams, next_bag_path
 from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.logs import ThrottledLog
-from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile, recording
 
-RECORDABLE = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
-"""Relative names the recorder knows the types of (every one has a header stamp)."""
 STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 """The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
 ACTION_TOPIC = names.APPLIED_ACTION
 
-MODES = ("recording", "episode")
 STATUS_NAME = "t42_transfer: recorder"
 """The recorder's status name on ``diagnostics`` (a write failure and the resume)."""
-
-
-_PREFIX = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-
-
-@dataclass(frozen=True)
-class RecorderParams:
-    """The recorder's ROS parameters."""
-
-    out_dir: Path = param(description="directory the bags are created in (made if missing); a relative one is "
-                                      "taken under the node's namespace (recordings/left)", read_only=True)
-    share_dirs: bool = param(False, "record into out_dir even when a suite under another namespace holds it "
-                                    "(two suites sharing a directory on purpose)", read_only=True)
-    mode: str = param("recording", "recording: bags change only on the services; "
-                                   "episode: also split on hand/status events (one bag per episode)")
-    prefix: str | None = param(None, "bag name prefix (unset: the mode, e.g. episode_000)")
-    start_immediately: bool = param(True, "open the first bag at start (else wait for ~/start)", read_only=True)
-    topics: tuple[str, ...] = param(tuple(RECORDABLE), "recorded topics, relative names (remap to rename): "
-                                    + ", ".join(RECORDABLE), read_only=True)
-    split_on: tuple[str, ...] = param(names.SPLIT_EVENTS, "hand/status first words that split the bag in episode mode")
-    flush_period_s: float = param(1.0, "the open chunk reaches the file this often: at most this much "
-                                       "recording is lost when the process is killed", min=1e-3, max=3600.0)
-    step_hold_s: float = param(0.5, "a step still missing a message this long after its first (steady time) "
-                                    "is written as it is", min=1e-3, max=60.0)
-    resume_free_mb: float = param(16.0, "after a write failed (a full disk), recording resumes by itself once "
-                                        "out_dir's file system has this many MB free (or on ~/start)",
-                                  min=0.0, max=1e6)
-    queue_depth: int = param(1000, "KEEP_LAST depth of each recorded subscription: messages it holds while "
-                                   "the node is busy", read_only=True, min=1, max=1_000_000)
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if not _PREFIX.match(self.bag_prefix):
-            raise ValueError(f"prefix must be a plain file name part ([A-Za-z0-9_.-]), got {self.prefix!r}")
-        if not self.topics:
-            raise ValueError("topics must name at least one topic")
-        unknown = [t for t in self.topics if t not in RECORDABLE]
-        if unknown:
-            raise ValueError(f"topics {unknown} are not recordable; topics are relative names among "
-                             f"{', '.join(RECORDABLE)} (remap them to record other names)")
-        if len(set(self.topics)) != len(self.topics):
-            raise ValueError(f"topics must not repeat, got {list(self.topics)}")
-        for name, value in (("flush_period_s", self.flush_period_s), ("step_hold_s", self.step_hold_s)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not isinstance(self.queue_depth, int) or self.queue_depth < 1:
-            raise ValueError(f"queue_depth must be an int >= 1, got {self.queue_depth!r}")
-
-    @property
-    def bag_prefix(self) -> str:
-        return self.prefix if self.prefix is not None else self.mode
-
-
-def next_bag_path(out_dir: str | Path, prefix: str) -> Path:
-    """``out_dir/<prefix>_<NNN>`` with ``NNN`` one past the highest index there (000 when none)."""
-    pattern = re.compile(rf"^{re.escape(prefix)}_(\d{{3,}})$")
-    directory = Path(out_dir)
-    taken = [int(m.group(1)) for p in directory.iterdir() if (m := pattern.match(p.name))] \
-        if directory.is_dir() else []
-    return directory / f"{prefix}_{max(taken, default=-1) + 1:03d}"
-
-
-@dataclass(frozen=True)
-class _Change:
-    """A bag change waiting for the steps up to ``after`` (a stamp) to be written."""
-
-    kind: str
-    """``start``, ``stop``, ``split`` or ``episode`` (a split only if the bag holds messages)."""
-    after: int | None
-    why: str = ""
 
 
 # --------------------------------------------------------------------------- the node
@@ -221,13 +158,24 @@ class Recorder(Node):
         self.write_failure: str | None = None
         """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self._changes: deque[_Change] = deque()
+        self._changes: deque[Change] = deque()
         self._will_record = False
         """Whether a bag is open once every waiting change is carried out."""
         self._lock = threading.RLock()
         self._closed = False
         self._first_stamp: int | None = None
         """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
+        self._latest_seen: int | None = None
+        """The newest stamp received (paused or not): where a pause or a resume draws its border."""
+        self._pause: tuple[int, int | None] | None = None
+        """Messages stamped after the first and up to the second (None: until ~/resume) are dropped."""
+        self.paused_dropped = 0
+        """Messages dropped while paused (recorded topics and statuses), in all."""
+        self._paused_from = 0
+        self._span: list[int] = []
+        """Log times of the open bag's first and last message (min and max)."""
+        self._announcer = Announcer(self.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS)),
+                                    self.log)
 
         qos = recording(p.queue_depth)
         self._types: dict[str, str] = {}
@@ -245,6 +193,8 @@ class Recorder(Node):
         self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start), qos_profile=requests)
         self.create_service(Trigger, names.RECORDER_STOP, partial(self._answer, self.stop), qos_profile=requests)
         self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split), qos_profile=requests)
+        self.create_service(Trigger, names.RECORDER_PAUSE, partial(self._answer, self.pause), qos_profile=requests)
+        self.create_service(Trigger, names.RECORDER_RESUME, partial(self._answer, self.resume), qos_profile=requests)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
@@ -294,6 +244,8 @@ class Recorder(Node):
         with self._lock:
             if not self._will_record:
                 return False, "not recording"
+            if self.paused:
+                self.resume()
             return self._request("stop", self._buffer.latest_stamp)
 
     def split(self) -> tuple[bool, str]:
@@ -304,6 +256,41 @@ class Recorder(Node):
             if self.write_failure is not None:
                 return False, f"not writing, nothing to split: {self.write_failure}"
             return self._request("split", self._buffer.latest_stamp)
+
+    @property
+    def paused(self) -> bool:
+        """Whether messages are being dropped until ~/resume."""
+        return self._pause is not None and self._pause[1] is None
+
+    def pause(self) -> tuple[bool, str]:
+        """Drop the messages of the steps after the one in progress, the bag kept open; (success, message)."""
+        with self._lock:
+            if not self._will_record:
+                return False, "not recording: nothing to pause (call start)"
+            if self.paused:
+                return False, (f"already paused after the step stamped {self._pause[0]} ns "
+                               f"({self.paused_dropped - self._paused_from} messages dropped since)")
+            after = -1 if self._latest_seen is None else self._latest_seen
+            self._pause, self._paused_from = (after, None), self.paused_dropped
+            bag = self._bag.path if self._bag is not None else "the next bag"
+            return True, f"paused after the step stamped {after} ns: messages are dropped, {bag} stays open"
+
+    def resume(self) -> tuple[bool, str]:
+        """Record again, into the same bag, from the first step after the newest stamp received; (success,
+        message)."""
+        with self._lock:
+            if not self.paused:
+                return False, "not paused"
+            assert self._pause is not None
+            until = max(self._pause[0], -1 if self._latest_seen is None else self._latest_seen)
+            self._pause = (self._pause[0], until)
+            bag = self._bag.path if self._bag is not None else "no bag"
+            return True, (f"resumed {bag}: {self.paused_dropped - self._paused_from} messages dropped while "
+                          f"paused; recording from the first step after {until} ns")
+
+    def _in_pause(self, stamp: int) -> bool:
+        return self._pause is not None and stamp > self._pause[0] and (self._pause[1] is None
+                                                                       or stamp <= self._pause[1])
 
     def flush(self) -> None:
         """Write out what the open bag holds so far; failures are logged (it runs from a timer).  After a write
@@ -331,16 +318,17 @@ class Recorder(Node):
                 self._write_steps(whole)
                 self._carry_out(None)
                 if self._bag is not None:
-                    self._close_bag()
+                    self._close_bag(SHUTDOWN)
             except Exception as err:  # close() never raises
                 self.log.error(f"closing the recorder failed: {err!r}")
+        self._announcer.close()
 
     # ------------------------------------------------------------------ bag changes
-    def _request(self, kind: str, after: int | None, why: str = "") -> tuple[bool, str]:
+    def _request(self, kind: str, after: int | None, why: str = "", word: str = "") -> tuple[bool, str]:
         """Queue a bag change after the steps up to ``after``; carry out what can be; (success, the answer)."""
         if self._changes and self._changes[-1].after is not None:
             after = self._changes[-1].after if after is None else max(after, self._changes[-1].after)
-        self._changes.append(_Change(kind, after, why))
+        self._changes.append(Change(kind, after, why, word))
         if kind == "start":
             self._will_record = True
         elif kind == "stop":
@@ -361,20 +349,20 @@ class Recorder(Node):
             done[change.kind] = self._change(change)
         return done
 
-    def _change(self, change: _Change) -> tuple[bool, str]:
+    def _change(self, change: Change) -> tuple[bool, str]:
         """Carry out ``change``: (whether every close and open it took worked, what happened)."""
         if change.kind == "start":
             return self._open_bag()
         if change.kind == "stop":
             failure, self.write_failure = self.write_failure, None
             if self._bag is not None:
-                return self._close_bag()
+                return self._close_bag(change.kind)
             return (True, "not recording") if failure is None else (True, f"stopped; writing had failed: {failure}")
         if self._bag is None:
             return (False, f"not writing: {self.write_failure}") if self.write_failure else (True, "not recording")
         if change.kind == "episode" and self._bag.count == 0:
             return True, f"{self._bag.path} is empty: not split"
-        closed_ok, closed = self._close_bag()
+        closed_ok, closed = self._close_bag(change.word or change.kind)
         opened_ok, opened = self._open_bag()
         message = f"{closed}; {opened}"
         if change.why:
@@ -388,12 +376,12 @@ class Recorder(Node):
         except OSError as err:
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"
-        self._bag = bag
+        self._bag, self._span = bag, []
         self.log.info(f"recording to {bag.path}")
         return True, f"recording to {bag.path}"
 
-    def _close_bag(self) -> tuple[bool, str]:
-        """Close the open bag; (whether it closed, what happened)."""
+    def _close_bag(self, reason: str) -> tuple[bool, str]:
+        """Close the open bag and announce it (``reason``); (whether it closed, what happened)."""
         bag, self._bag = self._bag, None
         assert bag is not None
         try:
@@ -402,6 +390,7 @@ class Recorder(Node):
             self.log.error(f"closing {bag.path} failed: {err!r}")
             return False, f"closing {bag.path} failed: {type(err).__name__}: {err}"
         self.bags.append(bag.path)
+        self._announce(bag, reason)
         self.log.info(f"closed {bag.path} ({bag.count} messages)")
         return True, f"closed {bag.path} ({bag.count} messages)"
 
@@ -412,6 +401,7 @@ class Recorder(Node):
         if bag is not None:
             try:
                 bag.close()
+                self._announce(bag, WRITE_FAILED)
             except Exception:  # its summary cannot be written either: the bag stays as a killed one, repairable
                 pass
         if self.write_failure is not None:
@@ -435,6 +425,16 @@ class Recorder(Node):
             self._report("OK", message)
         return ok, message
 
+    # ------------------------------------------------------------------ bag events
+    def _announce(self, bag: BagWriter, reason: str) -> None:
+        """Queue ``recorder/bag_closed`` for a bag just closed and final: the announcer reads it (its episodes)."""
+        first, last = (self._span[0], self._span[-1]) if self._span else (0, 0)
+        self._announcer.put(BagClosedEvent(str(bag.path), 0, bag.count, first, last, reason))
+
+    def _spanned(self, log_ns: int) -> None:
+        span = self._span
+        self._span = [log_ns, log_ns] if not span else [min(span[0], log_ns), max(span[1], log_ns)]
+
     def _report(self, level: str, message: str) -> None:
         self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, {"dropped": self.dropped},
                                                    self.get_clock().now().nanoseconds, kit=RCLPY))
@@ -457,6 +457,7 @@ class Recorder(Node):
             try:
                 for topic, log_ns, data in step.messages:
                     bag.write(topic, log_ns, data)
+                    self._spanned(log_ns)
             except OSError as err:  # a full disk: stop writing, say so once
                 self.dropped += len(step.messages)
                 self._write_failed(bag.path, err)
@@ -476,6 +477,11 @@ class Recorder(Node):
                 return
             with self._lock:
                 if self._closed:
+                    return
+                if self._latest_seen is None or stamp > self._latest_seen:
+                    self._latest_seen = stamp
+                if self._in_pause(stamp):
+                    self.paused_dropped += 1
                     return
                 if self._first_stamp is None or stamp < self._first_stamp:
                     self._first_stamp = stamp
@@ -511,6 +517,9 @@ class Recorder(Node):
                 self.per_message.warning(f"ignored a message on {names.HAND_STATUS}: "
                                          f"not a {STRING} ({type(err).__name__}: {err})")
                 return
+            if self.paused:  # neither written nor splitting
+                self.paused_dropped += 1
+                return
             self._write_status(bytes(data))
             if self.params.mode != "episode":
                 return
@@ -533,7 +542,7 @@ class Recorder(Node):
                     if event in names.END_EVENTS:  # the final state may still be on its way: stamped before now
                         now = self.get_clock().now().nanoseconds
                         after = now if after is None else max(now, after)
-                self._request("episode", after, f"status {event!r}")
+                self._request("episode", after, f"status {event!r}", event)
         except Exception as err:  # never raise from a callback
             self.log.error(f"could not handle a message on {names.HAND_STATUS}: {err!r}")
 
@@ -547,7 +556,9 @@ class Recorder(Node):
             if bag is None or bag.count == 0 or self._closed:
                 return
             try:
-                bag.write(self._status_topic, self.get_clock().now().nanoseconds, data, STRING)
+                log_ns = self.get_clock().now().nanoseconds
+                bag.write(self._status_topic, log_ns, data, STRING)
+                self._spanned(log_ns)
             except OSError as err:  # a full disk: stop writing, say so once
                 self._write_failed(bag.path, err)
 
