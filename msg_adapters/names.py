@@ -77,6 +77,8 @@ PLANNED_PATH = "t42/planned_path"
 """nav_msgs/Path: the predicted object path of the plan being executed."""
 PLAN_RESULT = "t42/plan_result"
 """std_msgs/String: one JSON line per goal (accepted, or refused with the reason)."""
+REACH = "t42/reach"
+"""t42_interfaces/action/Reach: move the object to a goal, with feedback, cancel and a verdict (the planner)."""
 
 # ------------------------------------------------------------------ status words
 # The first word of a hand/status text (msg_adapters.status): a grasp closed and a new episode starts

@@ -17,8 +17,13 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
 * ``t42/plan_result`` (std_msgs/msg/String): exactly one JSON line per goal,
   :class:`PlanResult`: accepted, or refused with a status code and a reason;
-* ``hand/status`` (std_msgs/msg/String): subscribed; with ``replan_every`` the
-  driver's ``trajectory_done`` says when a piece has run.
+* ``hand/status`` (std_msgs/msg/String): subscribed; the driver's ``trajectory_done`` says when a
+  piece has run, its episode ends (``dropped``...) end an action goal;
+* ``t42/reach`` (t42_interfaces/action/Reach): served (:mod:`t42_transfer.nodes.reach`); a goal as on
+  ``t42/goal`` with its tolerance, steps and ``replan_every`` (0: the node's parameter), feedback each step,
+  the result after the state following the last step (verdict of ``peg_in_hole.verdict``, measured and
+  predicted paths).  Cancel sends the driver an empty trajectory (its "stop") at once; a newer goal (action or
+  topic) pre-empts it, stopping the hand too.  ``t42/goal`` stays as a thin mirror (Foxglove's publish panel).
 
 Open or closed loop.  By default (``replan_every: 0``, the paper's setting) the
 whole plan is sent at once, open loop.  With ``replan_every: k`` the node sends
@@ -66,12 +71,11 @@ on the result topic.
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 import time
 import traceback
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -96,11 +100,27 @@ from msg_adapters import (
     stamp_to_ns,
     status_event,
 )
-from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS
+from msg_adapters.reach import reach_request
+from t42_transfer.conventions import (
+    CONTROL_PERIOD_NS,
+    MAX_PLAN_HORIZON,
+    MAX_PLAN_SAMPLES,
+    MAX_REFINE,
+    MAX_SAMPLED_STEPS,
+)
 from t42_transfer.driver.commands import check_stamp
-from t42_transfer.models.checkpoint import load_model
-from t42_transfer.models.dynamics import LatentDynamics
-from t42_transfer.planning import Plan, Planner, PlannerConfig, Workspace
+from t42_transfer.nodes.planner_parts import (
+    Goal,
+    HandState,
+    LoadedModel,
+    PlanResult,
+    Refused,
+    hand_state,
+    load_planner_model,
+    superseded,
+)
+from t42_transfer.nodes.reach import ABORT, CANCELED, ReachRun, judge, reach_server, refused_verdict
+from t42_transfer.planning import Plan, Planner, PlannerConfig
 from t42_transfer.planning.execution import receding_horizon
 from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
@@ -160,98 +180,6 @@ class PlannerNodeParams:
         return round(self.max_state_age_s * 1e9)
 
 
-@dataclass(frozen=True)
-class PlanResult:
-    """What became of one goal; published as one JSON line."""
-
-    accepted: bool
-    status: str
-    """``ok`` when accepted; else a planner status (``unreachable``, ``goal_outside_workspace``, ...) or
-    ``bad_goal``, ``no_model``, ``no_state``, ``stale_state``, ``superseded``, ``error``."""
-    reason: str
-    goal_mm: list[float] | None
-    """None when the goal message could not be read."""
-    goal_stamp_ns: int
-    start_mm: list[float] | None = None
-    predicted_error_mm: float | None = None
-    horizon: int = 0
-    """Steps of the plan (of the published trajectory when accepted)."""
-    samples_evaluated: int = 0
-    planning_time_s: float = 0.0
-    model: str = ""
-    method: str = ""
-    replan_every: int = 0
-    """0: the whole plan was sent; k: its first k steps, the rest replanned as they run."""
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), separators=(",", ":"))
-
-
-class Refused(Exception):
-    """A goal the node will not plan for: ``status`` code and readable ``reason``."""
-
-    def __init__(self, status: str, reason: str) -> None:
-        super().__init__(reason)
-        self.status, self.reason = status, reason
-
-
-@dataclass(frozen=True)
-class LoadedModel:
-    """A model and the workspace it was trained in; planners are built per goal with the current settings."""
-
-    path: str
-    method: str
-    model: LatentDynamics
-    workspace: Workspace
-
-    def planner(self, config: PlannerConfig) -> Planner:
-        return Planner(self.model, self.workspace, config)
-
-
-def load_planner_model(path: str | Path) -> LoadedModel:
-    """The model in ``path`` with its stored workspace.
-
-    Raises :class:`~t42_transfer.models.checkpoint.CheckpointError` for an unreadable
-    file and ``ValueError`` for a file without a workspace (see the module docstring).
-    """
-    model, meta = load_model(path)
-    workspace = Workspace.from_metadata(meta)
-    if workspace is None:
-        raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
-                         "the planner cannot tell where its predictions hold")
-    return LoadedModel(str(path), str(meta.get("method", "")), model, workspace)
-
-
-@dataclass(frozen=True)
-class HandState:
-    state: np.ndarray
-    """``[4]`` float32 in STATE_NAMES order."""
-    angles: np.ndarray
-    """``[2]`` actuator angles (rad) the trajectory starts from."""
-
-
-def hand_state(pose: tuple[int, np.ndarray] | None, joints: tuple[int, np.ndarray, np.ndarray | None] | None,
-               now_ns: int, max_age_ns: int) -> HandState:
-    """The state to plan from, given the latest ``(stamp, xy)`` pose and ``(stamp, loads, angles)`` joints."""
-    if pose is None or joints is None:
-        missing = [name for name, got in (("object pose", pose), ("joint states", joints)) if got is None]
-        raise Refused("no_state", f"no hand state yet (no {' or '.join(missing)} received)")
-    (pose_ns, xy), (joints_ns, loads, angles) = pose, joints
-    if angles is None:
-        raise Refused("no_state", "joint states carry no actuator angles: a trajectory needs its start angles")
-    age_ns = max(abs(now_ns - pose_ns), abs(now_ns - joints_ns))
-    if age_ns > max_age_ns:
-        raise Refused("stale_state", f"hand state is {age_ns / 1e9:.3f} s from now (limit {max_age_ns / 1e9:.3f} s): "
-                                     "is the driver publishing?")
-    return HandState(np.concatenate([xy, loads]).astype(np.float32), angles)
-
-
-@dataclass(frozen=True)
-class _Goal:
-    xy: np.ndarray
-    stamp_ns: int
-
-
 class PlannerNode(Node):
     """Plans for goals with the latest model and hand state; see the module docstring for behaviour."""
 
@@ -265,11 +193,15 @@ class PlannerNode(Node):
         self._model: LoadedModel | None = None
         self._pose: tuple[int, np.ndarray] | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray | None] | None = None
-        self._pending: _Goal | None = None
+        self._pending: Goal | None = None
         self._planning = False
         self._stopping = False
         self._done_stamps: list[int] = []
         """Last-step stamps of the driver's trajectory_done statuses, newest last."""
+        self._active: ReachRun | None = None
+        """The action goal being planned or executed."""
+        self._episode_ends: list[str] = []
+        """The driver's episode-end events (dropped, ...), newest last."""
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
@@ -285,6 +217,7 @@ class PlannerNode(Node):
                                  callback_group=MutuallyExclusiveCallbackGroup())
         self.create_subscription(PointStamped, names.GOAL, self._on_goal, profile(names.REQUESTS))
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
+        self._reach_server = reach_server(self, self._on_reach, self._on_reach_cancel)
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()
 
@@ -338,6 +271,7 @@ class PlannerNode(Node):
     def destroy_node(self) -> None:
         """Stop the worker first, so it never publishes through destroyed publishers."""
         self.close()
+        self._reach_server.destroy()
         super().destroy_node()
 
     # ------------------------------------------------------------------ callbacks
@@ -352,7 +286,9 @@ class PlannerNode(Node):
             self.per_message.warning(f"ignored {names.OBJECT_POSE}: {err}")
             return
         with self._cond:
-            self._pose = pose
+            self._pose, active = pose, self._active
+        if active is not None:
+            active.on_pose(*pose)
 
     def _on_joints(self, msg: JointState) -> None:
         try:
@@ -364,7 +300,12 @@ class PlannerNode(Node):
             self._joints = joints
 
     def _on_status(self, msg: String) -> None:
-        if status_event(msg.data) != names.TRAJECTORY_DONE:
+        event = status_event(msg.data)
+        if event in names.END_EVENTS:
+            with self._cond:
+                self._episode_ends = [*self._episode_ends[-9:], event]
+                self._cond.notify_all()
+        if event != names.TRAJECTORY_DONE:
             return
         stamp = last_step_stamp(msg.data)
         with self._cond:
@@ -377,17 +318,57 @@ class PlannerNode(Node):
     def _on_goal(self, msg: PointStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         try:
-            goal = _Goal(goal_xy_mm(msg), stamp)
+            goal = Goal(goal_xy_mm(msg), stamp)
             if stamp:  # as the driver takes commands: a goal from 1970 or 2038 is no goal for now
                 check_stamp(stamp, self._now_ns(), round(self.params.max_goal_age_s * 1e9), "goal")
         except ValueError as err:
             self._publish_result(PlanResult(False, "bad_goal", str(err), None, stamp))
             return
+        self._submit(goal)
+
+    def _on_reach(self, handle: Any) -> None:
+        """An accepted t42/reach goal: checked as t42/goal checks its goals, then queued like one."""
+        run = ReachRun(handle, None)
+        try:
+            request = reach_request(handle.request)
+            if request.stamp_ns:
+                check_stamp(request.stamp_ns, self._now_ns(), round(self.params.max_goal_age_s * 1e9), "goal")
+        except ValueError as err:
+            self._publish_result(PlanResult(False, "bad_goal", str(err), None, stamp_to_ns(
+                handle.request.target.header.stamp)))
+            run.finish(ABORT, refused_verdict(), f"bad_goal: {err}")
+            return
+        run.request = request
+        self._submit(Goal(request.xy_mm, request.stamp_ns, run, request.tolerance_mm, request.steps,
+                           request.replan_every))
+
+    def _on_reach_cancel(self, handle: Any) -> bool:
+        """A cancel request: a waiting goal ends at once; the running one stops the hand now (an empty
+        trajectory, the driver's "stop") and ends in the worker."""
+        with self._cond:
+            pending = self._pending if self._pending is not None and self._pending.run is not None \
+                and self._pending.run.handle == handle else None
+            if pending is not None:
+                self._pending = None
+            active = self._active if self._active is not None and self._active.handle == handle else None
+            if active is not None:
+                active.cancel_asked = True
+                self._stop_hand()
+            self._cond.notify_all()
+        if pending is not None:
+            self._publish_result(superseded(pending, reason="cancelled before it was planned"))
+            pending.run.finish(CANCELED, refused_verdict(), "cancelled before it was planned")
+        return pending is not None or active is not None
+
+    def _submit(self, goal: Goal) -> None:
+        """Queue ``goal``: it replaces a waiting one, and ends the one executing (the worker aborts it)."""
         with self._cond:
             replaced, self._pending = self._pending, goal
             self._cond.notify_all()
         if replaced is not None:
-            self._publish_result(_superseded(replaced))
+            self._publish_result(superseded(replaced))
+            if replaced.run is not None:
+                replaced.run.finish(ABORT, refused_verdict(), "superseded: a newer goal arrived before it was planned")
 
     # ------------------------------------------------------------------ the worker
     def _work(self) -> None:
@@ -398,20 +379,35 @@ class PlannerNode(Node):
                 if self._stopping:
                     return
                 goal, self._pending, self._planning = self._pending, None, True
+                self._active = goal.run
             try:
                 self._serve(goal)
             except Exception as err:  # the worker outlives any one goal
                 self.log.error(f"planning failed: {err!r}\n{traceback.format_exc()}")
                 self._publish_result(PlanResult(False, "error", f"planning failed: {err!r}", goal.xy.tolist(),
                                                 goal.stamp_ns))
+                if goal.run is not None:
+                    goal.run.finish(ABORT, refused_verdict(), f"error: planning failed: {err!r}")
             finally:
                 with self._cond:
-                    self._planning = False
+                    self._planning, self._active = False, None
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def _serve(self, goal: _Goal) -> None:
+    def _config(self, goal: Goal) -> tuple[PlannerConfig, int]:
+        """The planner settings and ``replan_every`` for ``goal``: the node's, or the action goal's where set."""
+        p = self.params
+        config = p.planner_config
+        if goal.tolerance_mm:
+            config = replace(config, tolerance_mm=goal.tolerance_mm)
+        if goal.steps:
+            if goal.steps > MAX_PLAN_HORIZON:
+                raise Refused("bad_goal", f"steps {goal.steps}: no plan is longer than {MAX_PLAN_HORIZON}")
+            config = replace(config, horizon=goal.steps, horizon_search=False)
+        return config, goal.replan_every or p.replan_every
+
+    def _serve(self, goal: Goal) -> None:
         """Plan for ``goal``, then publish the trajectory and path (accepted) and the result."""
         goal_mm = goal.xy.tolist()
         p = self.params
@@ -420,14 +416,18 @@ class PlannerNode(Node):
         try:
             if loaded is None:
                 raise Refused("no_model", f"no model loaded yet; waiting for {self._model_topic}")
+            config, k = self._config(goal)
             hand = hand_state(pose, joints, self._now_ns(), p.max_state_age_ns)
-        except Refused as refused:
-            self._publish_result(PlanResult(False, refused.status, refused.reason, goal_mm, goal.stamp_ns))
+            planner = loaded.planner(config)
+        except (Refused, ValueError) as refused:
+            status, reason = (refused.status, refused.reason) if isinstance(refused, Refused) else \
+                ("bad_goal", str(refused))
+            self._publish_result(PlanResult(False, status, reason, goal_mm, goal.stamp_ns))
+            if goal.run is not None:
+                goal.run.finish(ABORT, refused_verdict(), f"{status}: {reason}")
             return
         started = time.perf_counter()
-        planner = loaded.planner(p.planner_config)
         plan = planner.plan(hand.state, goal.xy)
-        k = p.replan_every
         result = PlanResult(
             accepted=plan.ok,
             status=plan.status,
@@ -446,24 +446,39 @@ class PlannerNode(Node):
         with self._cond:
             if self._stopping:
                 return
-            if self._pending is not None:
-                self._publish_result(_superseded(goal, result))
-                return
+            newer = self._pending is not None
+        cancelled = goal.run is not None and goal.run.cancelled
+        if newer or cancelled:
+            why = "cancelled while it was planned" if cancelled else ""
+            self._publish_result(superseded(goal, result, why))
+            if goal.run is not None:
+                goal.run.finish(CANCELED if cancelled else ABORT, refused_verdict(),
+                                why or "superseded: a newer goal arrived while it was planned")
+            return
         if not plan.ok:
             self._publish_result(result)
+            if goal.run is not None:
+                goal.run.planned(plan.predicted[:, :2], self._now_ns(), plan.error_mm)
+                goal.run.finish(ABORT, refused_verdict(), f"{plan.status}: {plan.reason}")
             return
+        if goal.run is not None:
+            goal.run.start(pose[0], hand.state[:2])
         self._execute(goal, planner, plan, hand, result)
 
-    def _execute(self, goal: _Goal, planner: Planner, first: Plan, hand: HandState, result: PlanResult) -> None:
+    def _execute(self, goal: Goal, planner: Planner, first: Plan, hand: HandState, result: PlanResult) -> None:
         """Send ``first`` whole (open loop) or piece by piece, replanning between pieces (:func:`receding_horizon`).
 
         The goal's result is published right after the first piece is sent; every replan is logged
-        and its predicted path published with the piece sent from it.
+        and its predicted path published with the piece sent from it.  An action goal then waits for
+        the state after its last step and ends with its verdict (:meth:`_conclude`).
         """
         k = result.replan_every
         steps = planner.config.horizon if planner.config.horizon_search else len(first.actions)
+        run = goal.run
         # the plan the next piece comes from, how much of it was sent, steps sent, pieces done before
         current, offset, executed, done_before = first, 0, 0, 0
+        with self._cond:
+            ends_before = len(self._episode_ends)
 
         def plan_at(state: np.ndarray, left: int) -> Plan:
             nonlocal current, offset
@@ -481,10 +496,15 @@ class PlannerNode(Node):
         def send(piece: np.ndarray) -> str:
             nonlocal offset, executed, done_before
             with self._cond:
+                if self._interrupted(run, ends_before):
+                    return "interrupted"
                 done_before = len(self._done_stamps)
-            stamp = self._now_ns()
-            self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
+                stamp = self._now_ns()
+                self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
+            if run is not None:
+                run.planned(current.predicted[:, :2], stamp - offset * CONTROL_PERIOD_NS, current.error_mm)
+                run.sent(stamp, len(piece))
             if executed == 0:
                 self._publish_result(result)
             offset, executed = offset + len(piece), executed + len(piece)
@@ -492,26 +512,53 @@ class PlannerNode(Node):
 
         def measure() -> np.ndarray | None:
             nonlocal hand
-            after = self._after_piece(done_before)
+            after = self._after_piece(done_before, run, ends_before)
             if after is None:
                 return None
             hand = after
             return hand.state
 
-        receding_horizon(plan_at, send, measure, steps, k, first=first)
+        _, end = receding_horizon(plan_at, send, measure, steps, k, first=first)
+        if run is not None:
+            final = self._after_piece(done_before, run, ends_before) if end in ("length", "short_plan") else None
+            self._conclude(goal, first, final, ends_before)
 
-    def _after_piece(self, done_before: int) -> HandState | None:
-        """The hand state after the piece sent last has run (None: stopping, a newer goal, or a timeout)."""
+    def _conclude(self, goal: Goal, first: Plan, final: HandState | None, ends_before: int) -> None:
+        """End an action goal: its verdict from the measured state after its last step, or why it stopped."""
+        run = goal.run
+        tolerance = goal.tolerance_mm or self.params.tolerance_mm
+        with self._cond:
+            ends, pending, stopping = self._episode_ends[ends_before:], self._pending is not None, self._stopping
+            if final is None and not run.cancelled and (pending or stopping):
+                self._stop_hand()
+        outcome, verdict, reason, error = judge(run, first.predicted[0, :2], None if final is None else
+                                                final.state[:2], tolerance, ends, pending)
+        run.finish(outcome, verdict, reason, error)
+
+    def _interrupted(self, run: ReachRun | None, ends_before: int) -> bool:
+        """Whether the goal being executed must stop (call with the lock held): stopping, a newer goal waits,
+        its action was cancelled, or the episode ended."""
+        return (self._stopping or self._pending is not None
+                or (run is not None and (run.cancelled or len(self._episode_ends) > ends_before)))
+
+    def _stop_hand(self) -> None:
+        """Cancel the driver's trajectory: an empty one is its "stop" (zero actions from the next step)."""
+        self._trajectory_pub.publish(actions_to_joint_trajectory(np.zeros((0, 2), np.float32), np.zeros(2),
+                                                                 self._now_ns(), kit=RCLPY))
+
+    def _after_piece(self, done_before: int, run: ReachRun | None = None, ends_before: int = 0) -> HandState | None:
+        """The hand state after the piece sent last has run (None: stopping, a newer goal, a cancel, the
+        episode's end, or a timeout)."""
         p = self.params
         deadline = time.monotonic() + p.piece_timeout_s
 
         def ready() -> bool:
-            return self._stopping or self._pending is not None or len(self._done_stamps) > done_before
+            return self._interrupted(run, ends_before) or len(self._done_stamps) > done_before
 
         with self._cond:
             while not ready() and time.monotonic() < deadline:
                 self._cond.wait(timeout=0.05)
-            if self._stopping or self._pending is not None:
+            if self._interrupted(run, ends_before):
                 return None
             if len(self._done_stamps) <= done_before:
                 self.log.warning(f"a piece did not finish within {p.piece_timeout_s} s; closed loop ends")
@@ -520,7 +567,7 @@ class PlannerNode(Node):
         after = last + 1  # the next state published after the piece's last step: where its last action led
         while time.monotonic() < deadline:
             with self._cond:
-                if self._stopping or self._pending is not None:
+                if self._interrupted(run, ends_before):
                     return None
                 pose, joints = self._pose, self._joints
             if pose is not None and joints is not None and min(pose[0], joints[0]) >= after:
@@ -529,7 +576,8 @@ class PlannerNode(Node):
                 except Refused as refused:
                     self.log.warning(f"closed loop ends: {refused.reason}")
                     return None
-            time.sleep(0.005)
+            with self._cond:
+                self._cond.wait(timeout=0.005)
         self.log.warning("no hand state after the piece in time; closed loop ends")
         return None
 
@@ -540,10 +588,3 @@ class PlannerNode(Node):
         else:
             self.per_message.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
         self._result_pub.publish(String(data=result.to_json()))
-
-
-def _superseded(goal: _Goal, planned: PlanResult | None = None) -> PlanResult:
-    """The result of a goal a newer one replaced (``planned``: what its finished plan had been)."""
-    base = planned or PlanResult(False, "", "", goal.xy.tolist(), goal.stamp_ns)
-    reason = "a newer goal arrived" + (" while it was planned; the plan was discarded" if planned else "")
-    return PlanResult(**{**asdict(base), "accepted": False, "status": names.SUPERSEDED, "reason": reason})

@@ -1,0 +1,125 @@
+"""The planner node's data and pure parts: what a goal's result says, refusals, the model with its workspace,
+and the hand state planned from (no rclpy here; :mod:`t42_transfer.nodes.planner_node` uses them)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from msg_adapters import names
+from t42_transfer.models.checkpoint import load_model
+from t42_transfer.models.dynamics import LatentDynamics
+from t42_transfer.planning import Planner, PlannerConfig, Workspace
+
+if TYPE_CHECKING:
+    from t42_transfer.nodes.reach import ReachRun
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """What became of one goal; published as one JSON line."""
+
+    accepted: bool
+    status: str
+    """``ok`` when accepted; else a planner status (``unreachable``, ``goal_outside_workspace``, ...) or
+    ``bad_goal``, ``no_model``, ``no_state``, ``stale_state``, ``superseded``, ``error``."""
+    reason: str
+    goal_mm: list[float] | None
+    """None when the goal message could not be read."""
+    goal_stamp_ns: int
+    start_mm: list[float] | None = None
+    predicted_error_mm: float | None = None
+    horizon: int = 0
+    """Steps of the plan (of the published trajectory when accepted)."""
+    samples_evaluated: int = 0
+    planning_time_s: float = 0.0
+    model: str = ""
+    method: str = ""
+    replan_every: int = 0
+    """0: the whole plan was sent; k: its first k steps, the rest replanned as they run."""
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), separators=(",", ":"))
+
+
+class Refused(Exception):
+    """A goal the node will not plan for: ``status`` code and readable ``reason``."""
+
+    def __init__(self, status: str, reason: str) -> None:
+        super().__init__(reason)
+        self.status, self.reason = status, reason
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """A model and the workspace it was trained in; planners are built per goal with the current settings."""
+
+    path: str
+    method: str
+    model: LatentDynamics
+    workspace: Workspace
+
+    def planner(self, config: PlannerConfig) -> Planner:
+        return Planner(self.model, self.workspace, config)
+
+
+def load_planner_model(path: str | Path) -> LoadedModel:
+    """The model in ``path`` with its stored workspace.
+
+    Raises :class:`~t42_transfer.models.checkpoint.CheckpointError` for an unreadable
+    file and ``ValueError`` for a file without a workspace (see the module docstring).
+    """
+    model, meta = load_model(path)
+    workspace = Workspace.from_metadata(meta)
+    if workspace is None:
+        raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
+                         "the planner cannot tell where its predictions hold")
+    return LoadedModel(str(path), str(meta.get("method", "")), model, workspace)
+
+
+@dataclass(frozen=True)
+class HandState:
+    state: np.ndarray
+    """``[4]`` float32 in STATE_NAMES order."""
+    angles: np.ndarray
+    """``[2]`` actuator angles (rad) the trajectory starts from."""
+
+
+def hand_state(pose: tuple[int, np.ndarray] | None, joints: tuple[int, np.ndarray, np.ndarray | None] | None,
+               now_ns: int, max_age_ns: int) -> HandState:
+    """The state to plan from, given the latest ``(stamp, xy)`` pose and ``(stamp, loads, angles)`` joints."""
+    if pose is None or joints is None:
+        missing = [name for name, got in (("object pose", pose), ("joint states", joints)) if got is None]
+        raise Refused("no_state", f"no hand state yet (no {' or '.join(missing)} received)")
+    (pose_ns, xy), (joints_ns, loads, angles) = pose, joints
+    if angles is None:
+        raise Refused("no_state", "joint states carry no actuator angles: a trajectory needs its start angles")
+    age_ns = max(abs(now_ns - pose_ns), abs(now_ns - joints_ns))
+    if age_ns > max_age_ns:
+        raise Refused("stale_state", f"hand state is {age_ns / 1e9:.3f} s from now (limit {max_age_ns / 1e9:.3f} s): "
+                                     "is the driver publishing?")
+    return HandState(np.concatenate([xy, loads]).astype(np.float32), angles)
+
+
+@dataclass(frozen=True)
+class Goal:
+    xy: np.ndarray
+    stamp_ns: int
+    run: ReachRun | None = None
+    """The action goal's run (:class:`~t42_transfer.nodes.reach.ReachRun`; None: a t42/goal goal)."""
+    tolerance_mm: float = 0.0
+    steps: int = 0
+    replan_every: int = 0
+
+
+def superseded(goal: Goal, planned: PlanResult | None = None, reason: str = "") -> PlanResult:
+    """The result of a goal a newer one replaced (``planned``: what its finished plan had been), or that was
+    cancelled (``reason``)."""
+    base = planned or PlanResult(False, "", "", goal.xy.tolist(), goal.stamp_ns)
+    if not reason:
+        reason = "a newer goal arrived" + (" while it was planned; the plan was discarded" if planned else "")
+    return PlanResult(**{**asdict(base), "accepted": False, "status": names.SUPERSEDED, "reason": reason})

@@ -1,0 +1,164 @@
+"""The planner's ``t42/reach`` action through a plain rclpy ActionClient, in-process, with the mock driver stepped
+by hand (the rig of test_planner_node).  The client side uses only rclpy, t42_interfaces and message packages."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from action_msgs.msg import GoalStatus
+from geometry_msgs.msg import Point, PointStamped
+from rclpy.action import ActionClient
+from sensor_msgs.msg import JointState
+from test_planner_node import SMALL, START_XY, Rig, toy_file
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+Reach = pytest.importorskip("t42_interfaces.action").Reach
+VERDICTS = {"hit", "miss", "no_progress", "incomplete"}
+
+
+class ReachRig(Rig):
+    """The planner rig plus a Reach client and the driver's applied actions."""
+
+    def __init__(self, ros: Any, model: Any, **params: Any) -> None:
+        super().__init__(ros, model, **params)
+        self.client = ActionClient(self.tester, Reach, "t42/reach")
+        self.applied: list[JointState] = self.listen(JointState, "hand/applied_action")
+        assert ros.spin_until(self.client.server_is_ready, 10.0), "no t42/reach server"
+        assert self.wait_graph(publishers={"hand/applied_action": 1}), "discovery"
+
+    def send(self, xy_mm: Any, frame_id: str = "t42_base", steps: int = 0, tolerance_m: float = 0.0,
+             feedback: list | None = None) -> Any:
+        """Send a goal (``xy_mm``: the object's target in mm); the accepted goal handle."""
+        target = PointStamped(point=Point(x=float(xy_mm[0]) / 1000, y=float(xy_mm[1]) / 1000))
+        target.header.frame_id = frame_id
+        sent = self.client.send_goal_async(Reach.Goal(target=target, tolerance_m=tolerance_m, steps=steps),
+                                           feedback_callback=None if feedback is None else
+                                           (lambda m: feedback.append(m.feedback)))
+        assert self.ros.spin_until(sent.done, 10.0), "no goal response"
+        handle = sent.result()
+        assert handle.accepted
+        return handle
+
+    def run_until(self, future: Any, max_ticks: int = 60) -> Any:
+        """Tick the driver until ``future`` is done; its result."""
+        for _ in range(max_ticks):
+            if self.ros.spin_until(future.done, 0.05):
+                return future.result()
+            self.tick()
+        assert self.ros.spin_until(future.done, 5.0), "no result"
+        return future.result()
+
+    def wait_sent(self) -> None:
+        """Until the driver holds the plan sent last."""
+        assert self.ros.spin_until(lambda: self.driver.pending_actions > 0, 20.0), "no trajectory reached the driver"
+
+
+@pytest.fixture
+def rig(ros: Any, tmp_path: Any) -> ReachRig:
+    return ReachRig(ros, toy_file(tmp_path / "toy.safetensors"), **SMALL)
+
+
+def test_a_goal_gets_feedback_and_a_result_with_its_verdict_and_paths(ros, rig: ReachRig) -> None:
+    rig.tick()
+    feedback: list = []
+    goal = START_XY + [6.0, -4.0]
+    handle = rig.send(goal, feedback=feedback)
+    rig.wait_sent()
+    steps = rig.driver.pending_actions
+    got = rig.run_until(handle.get_result_async())
+    result = got.result
+    assert result.verdict in VERDICTS and result.success == (result.verdict == "hit"), result
+    assert got.status == (GoalStatus.STATUS_SUCCEEDED if result.success else GoalStatus.STATUS_ABORTED)
+    assert result.success or result.reason.startswith(result.verdict)
+    executed = [(p.pose.position.x * 1000, p.pose.position.y * 1000) for p in result.executed.poses]
+    assert result.executed.header.frame_id == result.predicted.header.frame_id == "t42_base"
+    assert len(executed) == steps + 1  # the start, then the state after each step
+    assert result.final_error_m == pytest.approx(np.linalg.norm(np.subtract(executed[-1], goal)) / 1000, abs=1e-6)
+    assert np.linalg.norm(np.subtract(executed[-1], executed[0])) > 1.0  # the object moved
+    assert np.allclose(executed[0], START_XY, atol=1.0)  # where the plan started (the grasp settles a little)
+    assert len(result.predicted.poses) == steps + 1
+    assert len(feedback) >= math.ceil(steps / 10) and feedback[-1].step == steps
+    assert [f.step for f in feedback] == sorted(f.step for f in feedback)
+    assert feedback[-1].error_m == pytest.approx(result.final_error_m, abs=1e-6)
+    assert math.isfinite(feedback[0].predicted_final_error_m)
+    assert rig.results and rig.results[-1]["accepted"]  # t42/plan_result keeps being published
+
+
+def test_cancel_stops_the_hand_at_the_next_step_and_ends_canceled_with_the_partial_path(ros, rig: ReachRig) -> None:
+    rig.tick()
+    handle = rig.send(START_XY + [8.0, 0.0], steps=20)
+    rig.wait_sent()
+    rig.tick(3)
+    assert np.any(np.asarray(rig.applied[-1].velocity) != 0.0)  # the hand is moving
+    cancel = handle.cancel_goal_async()
+    assert ros.spin_until(cancel.done, 5.0) and len(cancel.result().goals_canceling) == 1
+    assert ros.spin_until(lambda: rig.driver.pending_actions == 0, 2.0), "the driver still runs the plan"
+    before = len(rig.applied)
+    rig.tick()
+    assert ros.spin_until(lambda: len(rig.applied) > before, 2.0)
+    assert np.all(np.asarray(rig.applied[-1].velocity) == 0.0)  # zero from the first step after the cancel
+    got = rig.run_until(handle.get_result_async(), 5)
+    assert got.status == GoalStatus.STATUS_CANCELED
+    assert got.result.verdict == "incomplete" and "cancelled" in got.result.reason
+    assert 3 <= len(got.result.executed.poses) <= 4  # the start and the 2 steps measured (3rd: if it came first)
+    assert len(got.result.predicted.poses) == 21
+
+
+def test_a_newer_goal_pre_empts_the_running_one_action_or_topic(ros, rig: ReachRig) -> None:
+    rig.tick()
+    first = rig.send(START_XY + [8.0, 0.0], steps=20)
+    rig.wait_sent()
+    rig.tick(2)
+    second = rig.send(START_XY + [0.0, 5.0], steps=20)
+    got = rig.run_until(first.get_result_async(), 5)
+    assert got.status == GoalStatus.STATUS_ABORTED and "pre-empted by a newer goal" in got.result.reason
+    assert got.result.verdict == "incomplete"
+    assert ros.spin_until(lambda: rig.trajectories and len(rig.trajectories[-1].points) == 0, 5.0)  # a stop sent
+    assert ros.spin_until(lambda: len(rig.trajectories) >= 3, 20.0), "the newer goal's plan"
+    rig.tick(2)
+    rig.publish_goal(START_XY + [-3.0, 0.0])  # t42/goal, as Foxglove's publish panel sends it
+    got = rig.run_until(second.get_result_async(), 5)
+    assert got.status == GoalStatus.STATUS_ABORTED and "pre-empted" in got.result.reason
+    rig.wait_results(3)  # plan_result for all three
+    assert all(r["accepted"] for r in rig.results)
+
+
+@pytest.mark.parametrize("frame_id, x, why", [("map", 0.01, "frame 'map'"), ("t42_base", math.nan, "non-finite")])
+def test_a_goal_in_another_frame_or_with_nan_is_aborted_with_the_reason(ros, rig: ReachRig, frame_id: str,
+                                                                           x: float, why: str) -> None:
+    rig.tick()
+    handle = rig.send([x * 1000, 80.0], frame_id=frame_id)
+    got = rig.run_until(handle.get_result_async(), 1)
+    assert got.status == GoalStatus.STATUS_ABORTED and got.result.verdict == "refused"
+    assert why in got.result.reason and not got.result.success
+    rig.wait_results(1)
+    assert rig.results[0]["status"] == "bad_goal" and rig.trajectories == []
+    outside = rig.send(START_XY + [100.0, 0.0])  # outside the model's workspace: refused as t42/goal refuses it
+    got = rig.run_until(outside.get_result_async(), 1)
+    assert got.result.verdict == "refused" and "outside the trained workspace" in got.result.reason
+
+
+def test_a_burst_of_20_goals_each_gets_a_result_and_the_node_survives(ros, rig: ReachRig) -> None:
+    rig.tick()
+    sent = []
+    for k in range(20):
+        target = PointStamped(point=Point(x=float(START_XY[0] + 2.0 + k % 3) / 1000, y=float(START_XY[1]) / 1000))
+        target.header.frame_id = "t42_base" if k % 5 else "map"  # some bad ones too
+        sent.append(rig.client.send_goal_async(Reach.Goal(target=target)))
+    assert ros.spin_until(lambda: all(s.done() for s in sent), 20.0), "goal responses"
+    handles = [s.result() for s in sent]
+    results = [h.get_result_async() for h in handles if h.accepted]
+    for future in results:
+        rig.run_until(future, 40)
+    statuses = [f.result().status for f in results]
+    assert len(statuses) + sum(not h.accepted for h in handles) == 20
+    assert all(f.result().result.verdict in VERDICTS | {"refused"} for f in results)
+    assert statuses.count(GoalStatus.STATUS_ABORTED) >= 15  # 4 bad ones, the rest pre-empted
+    assert all(f.result().result.reason for f in results if f.result().status == GoalStatus.STATUS_ABORTED)
+    rig.tick()
+    after = rig.send(START_XY + [2.0, 0.0])
+    assert rig.run_until(after.get_result_async()).result.verdict in VERDICTS
