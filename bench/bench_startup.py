@@ -52,6 +52,7 @@ from types import FrameType
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 from bench.machine import machine_info  # noqa: E402
+from msg_adapters import names  # noqa: E402
 from t42_transfer.nodes.registry import NODES  # noqa: E402
 from t42_transfer.ros.launcher import plan_nodes  # noqa: E402
 
@@ -62,9 +63,10 @@ POLL_S = 0.01
 REFERENCE = {"date": "2026-12-02", "suite_up_s": 4.3, "bare_node_s": 0.65}
 
 SERVICES = {
-    "mock_driver": ["/hand/reset"],
-    "recorder": ["/recorder/start", "/recorder/stop", "/recorder/split"],
-    "transfer_server": ["/t42/transfer"],
+    "mock_driver": ["/" + names.HAND_RESET],
+    "recorder": ["/" + names.private_of("recorder", s) for s in (names.RECORDER_START, names.RECORDER_STOP,
+                                                                   names.RECORDER_SPLIT)],
+    "transfer_server": ["/" + names.TRANSFER],
     "planner": [],
     "bare_node": ["/bare_node/trigger"],
 }
