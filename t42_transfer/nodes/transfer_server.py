@@ -24,7 +24,12 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
   ``transferred_<NNN>.safetensors`` (a file never rewritten, so a planner can load
   it while the next transfer replaces ``current.safetensors``); on start the node
-  republishes the last one recorded in the state file.
+  republishes the last one recorded in the state file;
+* ``recorder/bag_closed`` (t42_interfaces/msg/BagClosed, read VOLATILE: only bags closed while the server runs):
+  with ``auto_transfer_after_bags`` N > 0, every N-th new closed bag holding an episode (as the recorder's
+  ``read_bag`` counted) starts a transfer by itself, exactly as a ``t42/transfer`` call (the same code: the
+  bags since the last transfer, diagnostics, the model announced); if a transfer is running then, it runs once
+  more after it (triggers while it waits count as one).  0 (the default) leaves the server to its callers.
 
 Concurrency.  Trigger is request/response and the answer is the summary, so the
 service callback returns only when the transfer is done.  The callback is in a
@@ -56,8 +61,10 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import BagClosed
 
 from msg_adapters import RCLPY, diagnostic_array, names
+from msg_adapters.events import bag_closed_event
 from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
@@ -110,6 +117,8 @@ class TransferServerParams:
     seed: int = param(0, "seed of the hold-out split and the training", min=0)
     progress_period_s: float = param(0.5, "diagnostics are re-published this often while a transfer runs",
                                      min=0.001, max=3600.0)
+    auto_transfer_after_bags: int = param(0, "transfer by itself after this many new bags closed by the recorder "
+                                             "(recorder/bag_closed, bags holding an episode); 0: off", min=0)
 
     def __post_init__(self) -> None:
         if not self.bag_dir and not self.bags:
@@ -126,6 +135,9 @@ class TransferServerParams:
             raise ValueError(f"seed must be a non-negative int, got {self.seed!r}")
         if not (math.isfinite(self.progress_period_s) and self.progress_period_s > 0):
             raise ValueError(f"progress_period_s must be positive, got {self.progress_period_s!r}")
+        if not isinstance(self.auto_transfer_after_bags, int) or self.auto_transfer_after_bags < 0:
+            raise ValueError(f"auto_transfer_after_bags must be an int >= 0 (0: off), "
+                             f"got {self.auto_transfer_after_bags!r}")
 
     def transfer_config(self) -> TransferConfig:
         """The :class:`~t42_transfer.transfer.config.TransferConfig` of the ``config`` file (read now)."""
@@ -180,6 +192,13 @@ class TransferServer(Node):
         latest = latest_model(model_dir)
         if latest is not None:
             self._updates.publish(String(data=str(latest)))
+        self.new_bags = 0
+        """New closed bags (holding an episode) counted towards the next automatic transfer."""
+        self.auto_results: list[tuple[bool, str]] = []
+        """(success, message) of each automatic transfer, as a call would have been answered."""
+        self._auto_due = threading.Event()
+        self.create_subscription(BagClosed, names.BAG_CLOSED, self._on_bag_closed, profile(names.EVENT_READER))
+        threading.Thread(target=self._auto_transfers, name="auto_transfer", daemon=True).start()
 
     @property
     def params(self) -> TransferServerParams:
@@ -218,6 +237,44 @@ class TransferServer(Node):
             self._job.release()
         response.success, response.message = ok, one_line(message)
         return response
+
+    # ------------------------------------------------------------------ automatic transfers
+    def _on_bag_closed(self, msg: BagClosed) -> None:
+        try:
+            every = self.params.auto_transfer_after_bags
+            event = bag_closed_event(msg)
+            if every <= 0 or event.episodes == 0:
+                return
+            self.new_bags += 1
+            self.log.info(f"{event.path} closed ({event.reason}, {event.episodes} episodes): "
+                          f"{self.new_bags}/{every} new bags")
+            if self.new_bags >= every:
+                self.new_bags = 0
+                self._auto_due.set()
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"could not handle a message on {names.BAG_CLOSED}: {err!r}")
+
+    def _auto_transfers(self) -> None:
+        """The automatic transfers' thread: each due one takes the job lock as a call does, waiting for a
+        running transfer to end (then it runs once more)."""
+        while not self._closed:
+            if not self._auto_due.wait(0.2):
+                continue
+            while not self._job.acquire(timeout=0.2):
+                if self._closed:
+                    return
+            self._auto_due.clear()  # after the wait: the triggers while a transfer ran make one run
+            try:
+                if self._closed:
+                    return
+                self.log.info(f"automatic transfer after {self.params.auto_transfer_after_bags} new bags")
+                ok, message = self._run()
+                self.auto_results.append((ok, one_line(message)))
+            except Exception as err:  # logged, never raised from the thread
+                self.log.error(f"automatic transfer failed: {err!r}")
+                self.auto_results.append((False, f"failed: {type(err).__name__}: {err}"))
+            finally:
+                self._job.release()
 
     def _run(self) -> tuple[bool, str]:
         """Run one transfer in a worker thread, publishing progress until it ends; (success, message)."""
