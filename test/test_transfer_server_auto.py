@@ -10,10 +10,12 @@ import pytest
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed
+from test_recorder import Hand, add_recorder, now_ns
 from test_transfer_server import Rig, add_synthetic_bag, add_target_bag
 
-from msg_adapters import names
+from msg_adapters import names, status_message
 from msg_adapters.events import BagClosedEvent, bag_closed_msg
+from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import read_metadata
 from t42_transfer.ros.qos import profile
@@ -99,3 +101,23 @@ def test_bags_closed_during_a_transfer_run_one_more_after_it(ros: Any, tmp_path:
     assert [ok for ok, _ in rig.server.auto_results] == [True] and len(rig.updates) == 2
     second = read_metadata(rig.model_dir / "transferred_001.safetensors")["data"]["bags"]
     assert [Path(b).name for b in second] == ["episode_001", "episode_002"]  # the bags new since the call's
+
+
+def test_a_recorder_in_episode_mode_and_the_server_transfer_after_two_episodes(ros: Any, tmp_path: Path,
+                                                                              source_model: Path) -> None:
+    """The real recorder node closes two episode bags into the server's bag_dir: one transfer on both."""
+    rig = Rig(ros, tmp_path, source_model, auto_transfer_after_bags=2)
+    rec = add_recorder(ros, rig.bag_dir, mode="episode", step_hold_s=1.0)
+    hand = Hand(ros, rec)
+    t0 = now_ns()
+    hand.episode(t0, 20, seed=1)
+    hand.status(status_message(names.DROPPED, "episode 0 ended", t0 + 20 * CONTROL_PERIOD_NS))
+    hand.settle()
+    start = t0 + 10 * 10**9
+    hand.episode(start, 20, seed=2)
+    hand.status(status_message(names.RESET, "episode 1 grasped", start + 20 * CONTROL_PERIOD_NS))
+    hand.settle()
+    model = rig.model_dir / "transferred_000.safetensors"
+    assert ros.spin_until(lambda: rig.updates == [str(model)], 60.0), (rig.updates, rig.server.auto_results)
+    bags = read_metadata(model)["data"]["bags"]
+    assert [Path(b).name for b in bags] == ["episode_000", "episode_001"] and rig.server.auto_results[0][0]
