@@ -162,3 +162,20 @@ def test_a_burst_of_20_goals_each_gets_a_result_and_the_node_survives(ros, rig: 
     rig.tick()
     after = rig.send(START_XY + [2.0, 0.0])
     assert rig.run_until(after.get_result_async()).result.verdict in VERDICTS
+
+
+def test_a_closed_loop_goal_replans_every_k_steps_and_reports_each_step(ros, rig: ReachRig) -> None:
+    rig.tick()
+    feedback: list = []
+    target = PointStamped(point=Point(x=float(START_XY[0] + 6.0) / 1000, y=float(START_XY[1] - 4.0) / 1000))
+    target.header.frame_id = "t42_base"
+    sent = rig.client.send_goal_async(Reach.Goal(target=target, steps=15, replan_every=5),
+                                      feedback_callback=lambda m: feedback.append(m.feedback))
+    assert ros.spin_until(sent.done, 10.0) and sent.result().accepted
+    got = rig.run_until(sent.result().get_result_async())
+    assert [len(t.points) for t in rig.trajectories] == [5, 5, 5]  # three pieces, each planned from the state
+    executed = len(got.result.executed.poses)  # 15 steps, the start, and the steps held while replanning
+    assert got.result.verdict in VERDICTS and 16 <= executed <= 16 + 2 * 3
+    assert len(got.result.predicted.poses) == 6  # the last plan: the 5 steps left, from where it started
+    assert [f.step for f in feedback] == list(range(executed))  # every step, none skipped
+    assert rig.results[-1]["replan_every"] == 5 and rig.results[-1]["horizon"] == 15

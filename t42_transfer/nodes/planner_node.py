@@ -531,6 +531,7 @@ class PlannerNode(Node):
             ends, pending, stopping = self._episode_ends[ends_before:], self._pending is not None, self._stopping
             if final is None and not run.cancelled and (pending or stopping):
                 self._stop_hand()
+        run.end_at(None if final is None else final.state[:2])
         outcome, verdict, reason, error = judge(run, first.predicted[0, :2], None if final is None else
                                                 final.state[:2], tolerance, ends, pending)
         run.finish(outcome, verdict, reason, error)

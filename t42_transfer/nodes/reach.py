@@ -40,6 +40,7 @@ class ReachRun:
         self.handle, self.request = handle, request
         self._lock = threading.Lock()
         self._finished = False
+        self._closed = False
         self.cancel_asked = False
         """Set by the cancel callback before the handle turns CANCELING (the worker checks both)."""
         self.executed: list[tuple[int, np.ndarray]] = []
@@ -56,9 +57,10 @@ class ReachRun:
 
     @property
     def steps_done(self) -> int:
-        """Control steps executed whose result has been measured."""
+        """Control steps since the plan started to run whose result has been measured (with ``replan_every``, the
+        steps the hand held between pieces, while the rest was replanned, count too)."""
         with self._lock:
-            return max(0, min(self.steps_sent, self._poses_after_send - 1))
+            return max(0, self._poses_after_send - 1)
 
     def start(self, stamp_ns: int, xy_mm: np.ndarray) -> None:
         """The state planned from (its stamp and position): the executed path until the first pose after the
@@ -78,7 +80,7 @@ class ReachRun:
 
     def on_pose(self, stamp_ns: int, xy_mm: np.ndarray) -> None:
         with self._lock:
-            if self._sent_ns is None or stamp_ns <= max(self._sent_ns, self.executed[-1][0]):
+            if self._closed or self._sent_ns is None or stamp_ns <= max(self._sent_ns, self.executed[-1][0]):
                 return
             # the first pose after the plan was sent: where it starts to run (replaces the state planned from)
             self.executed = [*(self.executed if self._poses_after_send else []), (stamp_ns, xy_mm)]
@@ -86,6 +88,18 @@ class ReachRun:
             predicted_error = self.predicted_error_mm
         error = float(np.linalg.norm(xy_mm - self.request.xy_mm))
         self.handle.publish_feedback(reach_feedback(self.steps_done, error, predicted_error))
+
+    def end_at(self, final_xy: np.ndarray | None) -> None:
+        """Record no more poses; with the state after the last step (``final_xy``), drop any pose that came after
+        it (steps the hand held while the worker concluded)."""
+        with self._lock:
+            self._closed = True
+            if final_xy is None:
+                return
+            same = [i for i, (_, xy) in enumerate(self.executed) if np.array_equal(xy, final_xy)]
+            if same:
+                self.executed = self.executed[: same[-1] + 1]
+                self._poses_after_send = min(self._poses_after_send, len(self.executed))
 
     def last_xy(self) -> np.ndarray | None:
         with self._lock:
