@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_srvs.srv import Trigger
@@ -12,7 +13,7 @@ from t42_interfaces.msg import BagClosed
 from test_recorder import ACTION, JOINTS, POSE, Hand, add_recorder, now_ns, raw_messages, steps_in
 
 from msg_adapters import names, status_message
-from msg_adapters.events import SHUTDOWN, BagClosedEvent, bag_closed_event
+from msg_adapters.events import SHUTDOWN, BagClosedEvent, bag_closed_event, bag_closed_msg
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import read_bag
 from t42_transfer.ros.qos import profile
@@ -148,3 +149,14 @@ def test_pause_drops_steps_keeps_the_bag_and_resume_continues_in_it(ros: Any, tm
                                                                         for k in range(16)]
     data = read_bag(bag)
     assert [len(t) for t in data] == [16, 15] and (data.trajectories[1].actions == expected["actions"]).all()
+
+
+def test_bag_closed_messages_carry_the_event_both_ways_and_refuse_bad_values() -> None:
+    event = BagClosedEvent("/bags/episode_003", 2, 97, 1_700_000_000_123_456_789, 1_700_000_004_000_000_001, "reset")
+    msg = bag_closed_msg(event)
+    assert isinstance(msg, BagClosed) and (msg.start.sec, msg.start.nanosec) == (1_700_000_000, 123_456_789)
+    assert bag_closed_event(msg) == event
+    with pytest.raises(ValueError, match="non-negative"):
+        bag_closed_msg(event._replace(messages=-1))
+    with pytest.raises(ValueError, match="range"):
+        bag_closed_msg(event._replace(end_ns=-5))
