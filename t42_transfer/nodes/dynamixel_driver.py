@@ -57,6 +57,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from rclpy.task import Future
 from sensor_msgs.msg import JointState
@@ -95,6 +96,13 @@ _T42 = HandGeometry()
 RETRY_PERIOD_S = 1.0
 DIAGNOSTICS_EVERY = 10
 """Steps between two diagnostics while all is well (faults are reported at once)."""
+_NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+_NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
+"""The driver's publishers and subscriptions go without rclpy's default QoS event handlers (a warning on an
+incompatible QoS or type, which the peer's own handlers log as well): each handler is a waitable that the
+SingleThreadedExecutor builds into its wait set again at every wake (about 6 a step: the timer, the command, the
+tracker's pose, each followed by the wake its guard condition causes).  Measured: a spin_once of the unconfigured
+driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idle node with one timer: 94-105)."""
 
 
 @dataclass(frozen=True)
@@ -168,15 +176,16 @@ class DynamixelDriver(LifecycleNode):
         self.pose = NewestPose()
         self._next_retry_s = 0.0
         self._ticks = 0
-        self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
-        self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
-        self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
-        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
-        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10)
+        pub, sub = {"event_callbacks": _NO_PUB_EVENTS}, {"event_callbacks": _NO_SUB_EVENTS}
+        self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10, **pub)
+        self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10, **pub)
+        self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub)
+        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS), **pub)
+        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10, **pub)
+        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10, **sub)
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
-        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
-        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True)
+        self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True, **sub)
+        self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True, **sub)
         # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
         self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS),
                             callback_group=MutuallyExclusiveCallbackGroup())
@@ -188,12 +197,13 @@ class DynamixelDriver(LifecycleNode):
         """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
         there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
         if self._state_machine.current_state[1] != "unconfigured":  # a lifecycle client got there first
-            self._autostart.cancel()
+            self.destroy_timer(self._autostart)
             return
         if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
             self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
             return
-        self._autostart.cancel()
+        # Destroyed, not cancelled: a cancelled timer stays in the executor's wait set, built at every wake.
+        self.destroy_timer(self._autostart)
         self.trigger_activate()
 
     @property
