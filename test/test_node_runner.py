@@ -272,3 +272,18 @@ def test_t42_up_rejects_unknown_sections_and_only(tmp_path: Path, capsys: pytest
     assert "no registered node named planner_x" in capsys.readouterr().err
     assert main(["up", str(SUITE), "--only", "mock_driver,nope"]) == 2
     assert "--only nope: not in" in capsys.readouterr().err
+
+
+def test_quick_announcements_unless_a_profile_or_another_middleware_was_chosen(tmp_path) -> None:
+    from t42_transfer.ros.runner import FASTDDS_PROFILE_ENV, announce_often, keep_discovery_local
+
+    env: dict[str, str] = {}
+    assert keep_discovery_local(env) == "LOCALHOST"
+    profile = Path(env[FASTDDS_PROFILE_ENV])
+    text = profile.read_text()
+    assert "<leaseAnnouncement><sec>0</sec><nanosec>500000000</nanosec></leaseAnnouncement>" in text
+    assert 'is_default_profile="true"' in text
+    mine = {FASTDDS_PROFILE_ENV: str(tmp_path / "mine.xml")}
+    assert announce_often(mine) == str(tmp_path / "mine.xml")  # the user's profile is kept
+    other = {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}
+    assert announce_often(other) is None and FASTDDS_PROFILE_ENV not in other
