@@ -96,6 +96,9 @@ def _stock_user(host: str, mode: str, log: Path) -> dict:
     return json.loads(lines[-1])
 
 
+# Slow suite (CI runs it): 16 s on a quiet 2-core machine, the default suite's largest check after the demos; the
+# same nodes and the same stock script on one host are in the default suite (test_stock_graph).
+@pytest.mark.slow
 def test_the_story_across_two_hosts(two_hosts: tuple[str, str], tmp_path: Path, source_model: Path) -> None:
     robot, server = two_hosts
     params = suite_file(tmp_path, source_model)

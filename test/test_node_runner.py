@@ -285,5 +285,5 @@ def test_quick_announcements_unless_a_profile_or_another_middleware_was_chosen(t
     assert 'is_default_profile="true"' in text
     mine = {FASTDDS_PROFILE_ENV: str(tmp_path / "mine.xml")}
     assert announce_often(mine) == str(tmp_path / "mine.xml")  # the user's profile is kept
-    other = {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}
+    other = {"RMW_IMPLEMENTATION": "rmw_zenoh_cpp"}
     assert announce_often(other) is None and FASTDDS_PROFILE_ENV not in other

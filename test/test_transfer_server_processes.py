@@ -30,6 +30,9 @@ LONG = "l2_finetune: {train: {epochs: 800, patience: null}}\n"
 """Seconds of training on the fixture bag (a few ms an epoch): time for a second call meanwhile."""
 
 
+# Slow suite (CI runs it): 12 s of training in a node process; the busy answer within a second and the progress on
+# diagnostics are checked in the default suite in-process (test_transfer_server.py).
+@pytest.mark.slow
 def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, tmp_path: Path,
                                                                           source_model: Path) -> None:  # noqa: F811
     bag_dir, model_dir = tmp_path / "bags", tmp_path / "models"
