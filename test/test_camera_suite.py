@@ -62,11 +62,16 @@ def test_the_camera_suite_records_the_tracked_poses_with_the_frames_stamps(ros, 
     # (the test hears the tracker once discovery has settled: the steps recorded while it listened count)
     listened = [s for s in recorded if min(by_stamp) <= s <= max(by_stamp)]
     assert len(heard) >= 30 and len(heard) >= 0.9 * len(listened), (len(heard), len(listened), len(recorded))
+    # Each topic's first messages may go by before the test hears that topic: a stamp is checked against what the
+    # test heard of a topic once it heard that topic (frames and truths come with every frame, from then on).
     for stamp, xy in heard.items():
-        assert stamp in frames  # the frame's stamp
         np.testing.assert_allclose(xy, by_stamp[stamp], atol=1e-3)  # the tracked pose, not the simulator's
-        assert np.linalg.norm(xy - truth[stamp]) < 1.0
-    assert any(np.linalg.norm(xy - truth[s]) > 1e-3 for s, xy in heard.items())  # it is not the truth itself
+        if stamp >= min(frames):
+            assert stamp in frames  # the frame's stamp
+    judged = {s: xy for s, xy in heard.items() if s >= min(truth)}
+    assert len(judged) >= 25 and all(s in truth for s in judged)
+    assert all(np.linalg.norm(xy - truth[s]) < 1.0 for s, xy in judged.items())
+    assert any(np.linalg.norm(xy - truth[s]) > 1e-3 for s, xy in judged.items())  # it is not the truth itself
 
 
 def test_t42_hw_emulate_renders_a_camera_when_asked(ros, tmp_path: Path) -> None:
