@@ -200,7 +200,9 @@ def test_a_restarted_server_announces_the_latest_model_to_late_joiners(ros, tmp_
     assert late.server.get_fully_qualified_name() == "/again/transfer_server"
 
 
-def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_path, source_model, monkeypatch):
+def gated_method(monkeypatch: pytest.MonkeyPatch, name: str = "slow") -> tuple[threading.Event, threading.Event]:
+    """A transfer method ``name`` that trains as ``direct`` once released: (entered, release) events, so a test
+    holds a transfer running for as long as it needs."""
     entered, release = threading.Event(), threading.Event()
 
     def slow(source, target, cfg, seed, on_epoch=None):
@@ -208,7 +210,12 @@ def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_pa
         assert release.wait(30.0)
         return METHODS["direct"](source, target, cfg, seed, on_epoch)
 
-    monkeypatch.setitem(METHODS, "slow", slow)
+    monkeypatch.setitem(METHODS, name, slow)
+    return entered, release
+
+
+def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_path, source_model, monkeypatch):
+    entered, release = gated_method(monkeypatch)
     rig = Rig(ros, tmp_path, source_model, method="slow")
     add_target_bag(rig.bag_dir)
     assert rig.client.wait_for_service(timeout_sec=10.0)

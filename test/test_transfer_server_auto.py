@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +10,7 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed
 from test_recorder import Hand, add_recorder, now_ns
-from test_transfer_server import Rig, add_synthetic_bag, add_target_bag
+from test_transfer_server import Rig, add_synthetic_bag, add_target_bag, gated_method
 
 from msg_adapters import names, status_message
 from msg_adapters.events import BagClosedEvent, bag_closed_msg
@@ -19,7 +18,6 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import read_metadata
 from t42_transfer.ros.qos import profile
-from t42_transfer.transfer.methods import METHODS
 
 pytestmark = [pytest.mark.usefixtures("one_torch_thread"), pytest.mark.executor_threads(4)]
 
@@ -74,14 +72,7 @@ def test_off_by_default_nothing_happens(ros: Any, tmp_path: Path, source_model: 
 
 def test_bags_closed_during_a_transfer_run_one_more_after_it(ros: Any, tmp_path: Path, source_model: Path,
                                                              make_set: Any, monkeypatch: pytest.MonkeyPatch) -> None:
-    entered, release = threading.Event(), threading.Event()
-
-    def slow(source, target, cfg, seed, on_epoch=None):
-        entered.set()
-        assert release.wait(30.0)
-        return METHODS["direct"](source, target, cfg, seed, on_epoch)
-
-    monkeypatch.setitem(METHODS, "slow", slow)
+    entered, release = gated_method(monkeypatch)
     rig = Rig(ros, tmp_path, source_model, method="slow", auto_transfer_after_bags=1)
     rec = Recorder(rig)
     add_target_bag(rig.bag_dir)
