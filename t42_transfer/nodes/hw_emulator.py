@@ -86,6 +86,8 @@ class HwEmulator(Node):
         self.log = self.get_logger()
         self.plant = HandPlant(SimulatedHand(p.hand), seed=p.seed)
         self.bus = t42_bus(plant=self.plant)
+        # The camera first: a renderer that cannot start fails the node before a pty is opened.
+        self.camera = SimCamera(self, self.plant.hand.params, p) if p.camera_rate_hz > 0 else None
         self.pty: PtyBus | None = PtyBus(self.bus, link=p.link or None)
         self._rng = random.Random(p.seed)
         self._sim_ns = self.get_clock().now().nanoseconds
@@ -97,20 +99,9 @@ class HwEmulator(Node):
         self._tracker = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._truth = self.create_publisher(PoseStamped, names.SIM_POSE, 10)
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
-        self.camera = self._camera(p) if p.camera_rate_hz > 0 else None
         self._apply_faults(p)
         self._timer = self.create_timer(CONTROL_PERIOD_S / p.rate_factor, self._on_timer)
         self.log.info(f"servo bus on {self.port} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
-
-    def _camera(self, p: HwEmulatorParams) -> SimCamera:
-        try:
-            camera = SimCamera(self, self.plant.hand.params, p)
-            camera.camera.render()  # a renderer that cannot start fails here, at start
-        except Exception as err:
-            self.close()
-            raise ValueError(f"{self.get_fully_qualified_name()}: the simulated camera cannot render "
-                             f"({type(err).__name__}: {err}); check MUJOCO_GL") from None
-        return camera
 
     @property
     def params(self) -> HwEmulatorParams:
@@ -124,9 +115,8 @@ class HwEmulator(Node):
         return self._sim_ns if self._clock_pub is not None else self.get_clock().now().nanoseconds
 
     def close(self) -> None:
-        if getattr(self, "_timer", None) is not None:
-            self._timer.cancel()
-        if getattr(self, "camera", None) is not None:
+        self._timer.cancel()
+        if self.camera is not None:
             self.camera.close()
         if self.pty is not None:
             self.pty.close_port()

@@ -189,7 +189,7 @@ class MockDriver(Node):
         """Wall time the tick began to wait for the tracker's pose of the last frame."""
         """The episode that grasps with ``params.seed`` itself (the first after the seed was last set)."""
         self.add_post_set_parameters_callback(self._on_seed_set)
-        self.camera = self._camera(p) if p.camera_rate_hz > 0 else None
+        self.camera = SimCamera(self, self.hand.params, p) if p.camera_rate_hz > 0 else None
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True)
@@ -199,15 +199,6 @@ class MockDriver(Node):
             self.log.warning(f"initial grasp failed: {why}; "
                              f"call {self.resolve_service_name(names.HAND_RESET)} to retry")
         self._timer = self.create_timer(p.period_s, self._on_timer)
-
-    def _camera(self, p: MockDriverParams) -> SimCamera:
-        try:
-            camera = SimCamera(self, self.hand.params, p)
-            camera.camera.render()  # a renderer that cannot start fails here, at start
-        except Exception as err:
-            raise ValueError(f"{self.get_fully_qualified_name()}: the simulated camera cannot render "
-                             f"({type(err).__name__}: {err}); check MUJOCO_GL") from None
-        return camera
 
     # ------------------------------------------------------------------ state
     @property

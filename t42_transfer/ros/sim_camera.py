@@ -65,12 +65,18 @@ class SimCamera:
     """Renders a simulated hand at ``camera_rate_hz`` of its stamps and publishes what a camera would."""
 
     def __init__(self, node: Node, hand: HandParams, params: SimCameraParams) -> None:
+        """ValueError naming the node when the renderer cannot start (no GL): a node fails at start, in one line."""
         from t42_transfer.hand.mjcf import MarkerScene, SceneCamera  # noqa: PLC0415  (costs nothing when off)
         from t42_transfer.tracking.render import HandCamera  # noqa: PLC0415
 
         self.params = params
-        self.camera = HandCamera(hand, MarkerScene(camera=SceneCamera(width=params.camera_width,
-                                                                      height=params.camera_height)))
+        try:
+            self.camera = HandCamera(hand, MarkerScene(camera=SceneCamera(width=params.camera_width,
+                                                                          height=params.camera_height)))
+            self.camera.render()
+        except Exception as err:
+            raise ValueError(f"{node.get_fully_qualified_name()}: the simulated camera cannot render "
+                             f"({type(err).__name__}: {err}); check MUJOCO_GL") from None
         intrinsics = self.camera.intrinsics()
         self._k, self._d = intrinsics.k, intrinsics.d
         self._period_ns = round(1e9 / params.camera_rate_hz)
@@ -103,10 +109,6 @@ class SimCamera:
         self._truth.publish(object_pose_msg(xy, stamp_ns, RCLPY))
         self.frames += 1
         return True
-
-    def object_marker_height_m(self) -> float:
-        """Where the tracker should intersect its rays: the object marker's height above ``t42_base``."""
-        return self.camera.object_marker_height_m()
 
     def close(self) -> None:
         with self._lock:
