@@ -1,0 +1,67 @@
+"""The scene's inputs at one moment of a recorded bag: the newest actuator angles, object position, goal and
+planned path at or before that time (topics matched by their relative names under any namespace)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from rosbags.highlevel import AnyReader
+
+import msg_adapters as ma
+from msg_adapters import names
+from t42_transfer.data.errors import BagError
+
+
+@dataclass
+class SceneInputs:
+    """What a scene is built from (mm, rad); None: not in the bag before that time."""
+
+    actuator_angles: np.ndarray | None = None
+    object_xy_mm: np.ndarray | None = None
+    goal_xy_mm: np.ndarray | None = None
+    path_xy_mm: np.ndarray | None = None
+    log_ns: int = 0
+    """Log time of the newest message used."""
+
+
+_READERS = {
+    names.JOINT_STATES: ("actuator_angles", lambda msg: ma.joint_state_arrays(msg)[1]),
+    names.OBJECT_POSE: ("object_xy_mm", ma.object_xy_mm),
+    names.GOAL: ("goal_xy_mm", ma.goal_xy_mm),
+    names.PLANNED_PATH: ("path_xy_mm", ma.path_xy_mm),
+}
+
+
+def _field_of(topic: str) -> str | None:
+    for name, (field, _) in _READERS.items():
+        if topic == "/" + name or topic.endswith("/" + name):
+            return field
+    return None
+
+
+def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
+    """The inputs at ``at_s`` seconds after the bag's first message (None: its end); BagError for what cannot be
+    read (a missing path, no bag, a message that is not what its topic carries)."""
+    path = Path(bag)
+    if not path.exists():
+        raise BagError(path, "does not exist")
+    inputs = SceneInputs()
+    try:
+        with AnyReader([path], default_typestore=ma.TYPESTORE) as reader:
+            wanted = [c for c in reader.connections if _field_of(c.topic)]
+            until = None if at_s is None else reader.start_time + round(at_s * 1e9)
+            for conn, log_ns, raw in reader.messages(connections=wanted):
+                if until is not None and log_ns > until:
+                    break
+                field = _field_of(conn.topic)
+                value = dict(_READERS.values())[field](reader.deserialize(raw, conn.msgtype))
+                if value is not None:
+                    setattr(inputs, field, value)
+                    inputs.log_ns = log_ns
+    except BagError:
+        raise
+    except Exception as err:  # rosbags and the readers raise many types for what is not a sound bag
+        raise BagError(path, f"cannot be read for a snapshot ({type(err).__name__}: {err})") from None
+    return inputs
