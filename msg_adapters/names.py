@@ -80,6 +80,10 @@ PLAN_RESULT = "t42/plan_result"
 REACH = "t42/reach"
 """t42_interfaces/action/Reach: move the object to a goal, with feedback, cancel and a verdict (the planner)."""
 
+# ------------------------------------------------------------------ t42 view (Foxglove)
+VIEW_MARKERS = "view/markers"
+"""visualization_msgs/MarkerArray: the scene the view node draws (hand, object, goal and tolerance, planned path)."""
+
 # ------------------------------------------------------------------ status words
 # The first word of a hand/status text (msg_adapters.status): a grasp closed and a new episode starts
 # (reset) or could not (reset_failed); the episode ended (dropped, lost_contact, overload); the last
