@@ -13,14 +13,18 @@ the rest of the science.  One :func:`run_transfer`:
    candidate on part of the rest, scores each on other whole episodes of it and
    keeps the best (:func:`~t42_transfer.transfer.methods.select_method`), so the
    held-out episodes still score a model they did not help choose;
-4. scores the transferred model and, for reference, the source alone on the
-   held-out episodes (divergence time at 4 mm, position MSE);
+4. scores the transferred model and, for reference, the source alone and the
+   hold-still baseline on the held-out episodes (divergence time at 4 mm, position MSE);
 5. saves ``model_dir/transferred_<NNN>.safetensors``, then replaces
    ``model_dir/current.safetensors``, then records the bags as used.
 
+A caller may name the bags instead (``exact_bags``): exactly those are read, used before or not.
+
 Every refusal (no new bags, too little data in the readable ones, a missing or
 incompatible source model) raises :class:`TransferRefused` before anything is
-written.  An unreadable bag is not recorded as used, so once repaired it is
+written.  A caller may stop a transfer (``cancel``): it is checked at each stage
+change and after every training epoch, and until the save begins raises
+:class:`TransferCancelled` with nothing written.  An unreadable bag is not recorded as used, so once repaired it is
 offered again.  Files are written atomically (:func:`save_model`, the state file by
 rename), and ``current.safetensors`` is the commit point: when replacing it fails
 the new ``transferred_<NNN>`` file is removed again, so a failed call leaves the
@@ -52,6 +56,7 @@ from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.network import TransitionModel
 from t42_transfer.models.training import Progress
@@ -63,8 +68,9 @@ from t42_transfer.yaml_files import read_yaml
 STATE_FILE = "transfer_state.json"
 CURRENT_MODEL = "current.safetensors"
 MODEL_PREFIX = "transferred"
-STAGES = ("loading", "training", "evaluating", "saving", "done", "failed")
-"""Stages a transfer reports, in order (``done`` or ``failed`` ends it)."""
+STAGES = ("loading", "training", "evaluating", "saving", "done", "failed", "cancelled")
+"""Stages a transfer reports, in order (``done``, ``failed`` or ``cancelled`` ends it: the last three are the
+caller's words for how it ended)."""
 
 _MODEL_NAME = re.compile(rf"^{MODEL_PREFIX}_(\d{{3,}})\.safetensors$")
 
@@ -74,7 +80,20 @@ after every epoch with :func:`epoch_info` (``phase``, ``epoch``, ``epochs``, ``t
 
 
 class TransferRefused(Exception):
-    """A transfer that cannot run on what it was given; the message says why.  Nothing was written."""
+    """A transfer that cannot run on what it was given; the message says why.  Nothing was written.
+
+    ``skipped``: the bags read and skipped as unreadable before the refusal, each ``(bag, why)`` (``why`` names the
+    bag too), as :attr:`TransferResult.skipped_bags` gives them.
+    """
+
+    def __init__(self, message: str, skipped: Sequence[tuple[Path, str]] = ()) -> None:
+        super().__init__(message)
+        self.skipped = tuple(skipped)
+
+
+class TransferCancelled(Exception):
+    """A transfer stopped on its caller's request before its save began; the message says when.  Nothing was
+    written: the current model, the numbered models and the state file are as they were."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +108,9 @@ class OnlineTransferSpec:
     new_bags_only: bool = True
     """Train on the bags no earlier transfer used (True), or on every candidate bag once at least one is new
     (False: the suite keeps learning from all it recorded, e.g. the episodes of executed plans)."""
+    exact_bags: bool = False
+    """Train on exactly ``bags``, used by an earlier transfer or not (a caller named them); ``new_bags_only`` and
+    ``bag_dir`` are not looked at.  They are recorded as used all the same."""
     method: str = "l2_finetune"
     """The evaluations' choice (docs/evaluation.md, section 6): best or tied best on most settings and on both real
     pairs; ``auto`` is the hedge where fine-tuning can fall below no adaptation."""
@@ -123,6 +145,11 @@ class TransferResult:
     seconds: float
     skipped: tuple[str, ...] = ()
     """Why each new bag that could not be read was skipped (each names its bag)."""
+    skipped_bags: tuple[Path, ...] = ()
+    """The bags of :attr:`skipped`, in its order."""
+    hold_still_divergence_steps: float = math.nan
+    """The hold-still baseline (predicts no motion) on the same held-out episodes: what a model must beat."""
+    hold_still_position_mse_mm2: float = math.nan
     notes: tuple[str, ...] = ()
     """What the reader dropped or salvaged in the bags read (each names its bag)."""
     late_steps: int = 0
@@ -138,7 +165,8 @@ class TransferResult:
             f"{len(self.bags)} bag(s){f' ({self.late_steps} late steps kept)' if self.late_steps else ''}; on "
             f"{self.held_out_episodes} held-out episode(s): divergence "
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
-            f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2); "
+            f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2; hold-still "
+            f"{self.hold_still_divergence_steps:.1f} steps, {self.hold_still_position_mse_mm2:.2f} mm^2); "
             f"model {self.model_path}{skipped_note(self.skipped)}{reading_note(self.notes)}"
         )
 
@@ -237,14 +265,21 @@ def write_state(model_dir: Path, state: Mapping[str, Any]) -> None:
 
 def latest_model(model_dir: Path) -> Path | None:
     """The model the last recorded transfer saved, if it is still there."""
+    latest = latest_transfer(model_dir)
+    return None if latest is None else latest[0]
+
+
+def latest_transfer(model_dir: Path) -> tuple[Path, dict[str, Any]] | None:
+    """The model the last recorded transfer saved, if it is still there, and its record in the state file
+    (``method``, ``made_by``, ``train_episodes``, ``time_utc``...; older records lack some)."""
     try:
         transfers = read_state(model_dir)["transfers"]
     except TransferRefused:
         return None
-    if not transfers:
+    if not transfers or not isinstance(transfers[-1], dict):
         return None
     path = model_dir / str(transfers[-1].get("model", ""))
-    return path if path.is_file() else None
+    return (path, transfers[-1]) if path.is_file() else None
 
 
 def next_model_path(model_dir: Path) -> Path:
@@ -269,9 +304,10 @@ def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
     return model, meta
 
 
-def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[str], list[str]]:
-    """Every episode of the readable ``bags``, in order; the bags read; why each other one was skipped; what the
-    reader dropped or salvaged in the bags read (its warnings, each naming its bag)."""
+def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[tuple[Path, str]], list[str]]:
+    """Every episode of the readable ``bags``, in order; the bags read; each other one with why it was skipped
+    (``(bag, why)``, ``why`` naming the bag); what the reader dropped or salvaged in the bags read (its warnings,
+    each naming its bag)."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
@@ -280,7 +316,7 @@ def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[s
                 sets.append(read_bag(bag))
                 read.append(bag)
             except DataFileError as err:  # one bad bag leaves the others usable
-                skipped.append(str(err))
+                skipped.append((bag, str(err)))
         notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
     return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand), read, skipped, notes
@@ -327,35 +363,62 @@ def hold_out(data: TrajectorySet, fraction: float, seed: int) -> tuple[Trajector
 
 
 # ---------------------------------------------------------------- the transfer
-def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: None) -> TransferResult:
-    """One transfer on the bags not used before; see the module docstring.  TransferRefused on bad input."""
-    start = time.monotonic()
-    report("loading", {"method": spec.method})
-    if spec.method not in METHODS:
-        raise TransferRefused(f"unknown transfer method {spec.method!r}; expected one of {sorted(METHODS)}")
-    state = read_state(spec.model_dir)
-    used = set(state["used_bags"])
+def bags_to_read(spec: OnlineTransferSpec, state: Mapping[str, Any]) -> list[Path]:
+    """The bags a transfer reads: exactly those named (``exact_bags``), else the candidates (``bags``, or the
+    finished bags in ``bag_dir``) no earlier transfer used, or all of them once one is new (not ``new_bags_only``).
+    TransferRefused when there are none."""
+    if spec.exact_bags:
+        if not spec.bags:
+            raise TransferRefused("no bags named")
+        return list(spec.bags)
     if spec.bags:
         candidates, where = list(spec.bags), "the configured bags"
     elif spec.bag_dir is not None:
         candidates, where = list_bags(spec.bag_dir), str(spec.bag_dir)
     else:
         raise TransferRefused("no bags configured: set bag_dir or bags")
+    used = set(state["used_bags"])
     new = [b for b in candidates if bag_key(b) not in used]
     if not new:
         raise TransferRefused(
             f"no new bags in {where} since the last transfer ({len(candidates)} bag(s), all used already)"
         )
-    if not spec.new_bags_only:
-        new = candidates
+    return new if spec.new_bags_only else candidates
+
+
+def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: None,
+                 cancel: Callable[[], bool] = lambda: False) -> TransferResult:
+    """One transfer on the bags not used before (or exactly the bags named, with ``spec.exact_bags``); see the
+    module docstring.  TransferRefused on bad input.
+
+    ``cancel()`` (e.g. a :class:`threading.Event`'s ``is_set``) is asked at each stage change and after every
+    training epoch; once it is true, :class:`TransferCancelled` is raised there, until the save begins (from then
+    the transfer completes: its files are written atomically and it is then the current model).
+    """
+    start = time.monotonic()
+    epochs_done = [0]
+
+    def check_cancel(where: str) -> None:
+        if cancel():
+            done = f" after {epochs_done[0]} training epoch(s)" if epochs_done[0] else ""
+            raise TransferCancelled(f"cancelled while {where}{done}; nothing was saved, the previous model stays")
+
+    report("loading", {"method": spec.method})
+    if spec.method not in METHODS:
+        raise TransferRefused(f"unknown transfer method {spec.method!r}; expected one of {sorted(METHODS)}")
+    state = read_state(spec.model_dir)
+    new = bags_to_read(spec, state)
     source, source_meta = load_source(spec.source_model)
-    data, readable, skipped, notes = read_target(new)
+    data, readable, skipped_pairs, notes = read_target(new)
+    skipped = [why for _, why in skipped_pairs]
     if len(data) < spec.min_episodes:
         raise TransferRefused(
             f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(readable)} "
-            f"readable new bag(s); need at least {spec.min_episodes} (some to train on, one held out)"
-            f"{skipped_note(skipped)}{reading_note(notes)}"
+            f"readable {'named' if spec.exact_bags else 'new'} bag(s); need at least {spec.min_episodes} (some to "
+            f"train on, one held out){skipped_note(skipped)}{reading_note(notes)}",
+            skipped_pairs,
         )
+    check_cancel("reading the bags")
     train, held_out = hold_out(data, spec.holdout_fraction, spec.seed)
     workspace = merged_workspace(source_meta, train)
     report("training", {
@@ -364,7 +427,9 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         "epochs": epoch_budget(spec.method, spec.config),
     })
     def on_epoch(progress: Progress) -> None:
+        epochs_done[0] += 1
         report("training", epoch_info(progress))
+        check_cancel(f"training ({progress.phase}, epoch {progress.epoch}/{progress.epochs})")
 
     selection = None
     try:
@@ -374,10 +439,13 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         else:
             model = transfer(spec.method, source, train, spec.config, seed=spec.seed, on_epoch=on_epoch)
     except ValueError as err:  # the method refuses data it cannot use, with the reason
-        raise TransferRefused(f"{spec.method} cannot use this data: {err}") from None
+        raise TransferRefused(f"{spec.method} cannot use this data: {err}", skipped_pairs) from None
+    check_cancel("training")
     report("evaluating", {})
     scores = evaluate_model(model, held_out)
     baseline = evaluate_model(source, held_out)
+    still = evaluate_model(HoldStill(), held_out)
+    check_cancel("evaluating")
     report("saving", {})
     path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace, scores, selection)
     return TransferResult(
@@ -385,8 +453,9 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
         position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
-        skipped=tuple(skipped), notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data),
-        selection=selection,
+        skipped=tuple(skipped), skipped_bags=tuple(bag for bag, _ in skipped_pairs),
+        hold_still_divergence_steps=still["divergence_mean"], hold_still_position_mse_mm2=still["position_mse_mean"],
+        notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data), selection=selection,
     )
 
 
@@ -424,7 +493,8 @@ def _commit(
         path.unlink(missing_ok=True)
         raise
     record = {
-        "model": path.name, "method": spec.method, "bags": [bag_key(b) for b in bags],
+        "model": path.name, "method": spec.method, "made_by": made_by, "train_episodes": len(train),
+        "bags": [bag_key(b) for b in bags],
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), **evaluation, **picked,
     }
     try:
