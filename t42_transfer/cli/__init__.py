@@ -40,7 +40,9 @@ def build_parser(groups: Sequence[ModuleType] = GROUPS) -> argparse.ArgumentPars
 def _groups_for(argv: Sequence[str]) -> Sequence[ModuleType]:
     """Only the node group for ``t42 node`` and ``t42 up``, which start every node process: the plan group's
     options take their defaults from modules that import torch and MuJoCo (~1.5 s of CPU a process)."""
-    return (node,) if argv[:1] and argv[0] in node.COMMANDS else GROUPS
+    if argv[:1] and argv[0] in node.COMMANDS:
+        return (node,)
+    return (view,) if argv[:1] == ["view"] else GROUPS  # the view node runs in the `t42 view` process
 
 
 def main(argv: Sequence[str] | None = None) -> int:

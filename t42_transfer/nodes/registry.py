@@ -51,5 +51,7 @@ NODES: dict[str, NodeSpec] = {
                        "an OpenCV capture (device or video file) on camera/image_raw and camera/camera_info"),
     "object_tracker": NodeSpec("t42_transfer.nodes.object_tracker:ObjectTracker",
                                "the object's pose in t42_base from ArUco markers in camera images"),
+    "view": NodeSpec("t42_transfer.nodes.view:View",
+                     "the live graph in Foxglove (a WebSocket server), with the hand drawn as markers"),
 }
 

@@ -1,0 +1,141 @@
+"""The view node (``t42 view``) seen by an independent Foxglove client: channels with ros2msg schemas, the graph's
+CDR unchanged, /clock as time, the scene's markers, and a goal published by the client reaching the graph."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from foxglove_probe import finish_probe, running, start_probe
+from geometry_msgs.msg import PointStamped, PoseStamped
+from nav_msgs.msg import Path as PathMsg
+from rclpy.serialization import deserialize_message, serialize_message
+from ros_rig import REPO, RosRig, Tester, stop
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from visualization_msgs.msg import MarkerArray
+
+import msg_adapters as ma
+from msg_adapters import names
+from msg_adapters.wire import CONTROL_PERIOD_NS
+from t42_transfer.nodes.view import View
+
+POSE_MM = np.array([4.0, 92.0], np.float32)
+GOAL_MM = (12.0, 104.0)
+CLIENT_GOAL_MM = (-6.0, 98.0)
+T0_NS = 1_000_000_000
+
+
+def _feed(tester: Tester) -> Any:
+    """Publishers of the hand's topics, /clock, a goal and a path; returns a function that publishes step k."""
+    node = tester.tester
+    pubs = {name: node.create_publisher(cls, name, 10) for name, cls in (
+        (names.OBJECT_POSE, PoseStamped), (names.JOINT_STATES, JointState), (names.CLOCK, Clock),
+        (names.GOAL, PointStamped), (names.PLANNED_PATH, PathMsg))}
+    path = np.column_stack([np.linspace(4, 12, 9), np.linspace(92, 104, 9)]).astype(np.float32)
+
+    def step(k: int) -> None:
+        stamp = T0_NS + k * CONTROL_PERIOD_NS
+        pubs[names.CLOCK].publish(Clock(clock=ma.ns_to_stamp(stamp, ma.RCLPY)))
+        pubs[names.OBJECT_POSE].publish(ma.object_pose_msg(POSE_MM, stamp, ma.RCLPY))
+        pubs[names.JOINT_STATES].publish(ma.joint_state_msg(np.array([100.0, 100.0], np.float32),
+                                                            np.array([0.36, 0.4], np.float32), stamp, ma.RCLPY))
+        if k % 5 == 0:
+            pubs[names.GOAL].publish(ma.goal_msg(GOAL_MM, stamp, ma.RCLPY))
+            pubs[names.PLANNED_PATH].publish(ma.path_msg(path, stamp, kit=ma.RCLPY))
+
+    return step
+
+
+def _run_probe(ros: RosRig, step: Any, port: int, **kwargs: Any) -> Any:
+    handle = start_probe(f"ws://127.0.0.1:{port}", **kwargs)
+    k, deadline = 0, time.monotonic() + 40
+    while running(handle) and time.monotonic() < deadline:
+        step(k)
+        k += 1
+        ros.spin_for(0.1)
+    return finish_probe(handle)
+
+
+@pytest.fixture
+def view(ros: RosRig) -> View:
+    return ros.add(View, {"port": 0, "discovery_period_s": 0.2, "marker_rate_hz": 20.0})
+
+
+@pytest.mark.parametrize("impl", [None, "python"], ids=["reference_client", "python_websockets"])
+def test_a_foxglove_client_gets_the_graph_as_cdr_with_schemas_and_the_markers(ros, view, impl):
+    tester = Tester(ros)
+    wire_bytes: list[bytes] = []  # the poses' CDR as a raw reader on the graph gets it
+    tester.tester.create_subscription(PoseStamped, names.OBJECT_POSE, wire_bytes.append, 100, raw=True)
+    step = _feed(tester)
+    assert ros.spin_until(lambda: {"/hand/object_pose", "/view/markers"} <= set(view.offered) or step(0), 15)
+    result = _run_probe(ros, step, view.port, topics=["/hand/object_pose", "/view/markers", "/clock"], count=3,
+                        impl=impl)
+    print(f"client: {result.impl}")  # which independent client ran (node's @foxglove/ws-protocol, or websockets)
+    assert impl is None or result.impl == impl
+    assert result.server is not None and {"clientPublish", "time"} <= set(result.server["capabilities"])
+    assert "cdr" in result.server.get("supportedEncodings", [])
+
+    pose_channel = result.channel("/hand/object_pose")
+    assert pose_channel["encoding"] == "cdr" and pose_channel["schemaEncoding"] == "ros2msg"
+    assert pose_channel["schemaName"] == "geometry_msgs/msg/PoseStamped"
+    schema = pose_channel["schema"]
+    assert schema.startswith("std_msgs/Header header") and "MSG: geometry_msgs/Point" in schema
+    assert result.channel("/view/markers")["schemaName"] == "visualization_msgs/msg/MarkerArray"
+    assert "MSG: visualization_msgs/Marker" in result.channel("/view/markers")["schema"]
+
+    poses = result.messages["/hand/object_pose"]
+    assert len(poses) == 3
+    for _, data in poses:
+        msg = deserialize_message(data, PoseStamped)
+        assert ma.object_xy_mm(msg).tolist() == POSE_MM.tolist()
+        assert data in wire_bytes  # the CDR as on the graph, unchanged (padding bytes included)
+    markers = deserialize_message(result.messages["/view/markers"][-1][1], MarkerArray)
+    drawn = {(m.ns, m.id): m for m in markers.markers[1:]}
+    assert {"hand", "object", "goal", "path"} <= {ns for ns, _ in drawn}
+    obj, goal = drawn["object", 0].pose.position, drawn["goal", 0].pose.position  # goal 0: its dot
+    assert (obj.x, obj.y) == pytest.approx(POSE_MM / 1000)
+    assert (goal.x, goal.y) == pytest.approx(np.array(GOAL_MM) / 1000)
+    # /clock is the server's time, and messages are logged at it.
+    assert result.times and all(t >= T0_NS for t in result.times)
+    assert all(T0_NS <= log_time < T0_NS + 10**12 for log_time, _ in poses)
+
+
+def test_a_client_publishes_a_goal_onto_the_graph_and_nothing_else(ros, view):
+    tester = Tester(ros)
+    goals = tester.listen(PointStamped, names.GOAL)
+    commands = tester.listen(JointState, names.HAND_COMMAND)
+    step = _feed(tester)
+    goal = ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY)
+    publish = {"topic": "/t42/goal", "schemaName": "geometry_msgs/msg/PointStamped", "data": serialize_message(goal),
+               "repeat": 5}
+    result = _run_probe(ros, lambda k: None, view.port, topics=[], count=0, publish=publish, timeout_s=15)
+    assert result.server is not None
+    assert ros.spin_until(lambda: any(ma.goal_xy_mm(g).tolist() == list(CLIENT_GOAL_MM) for g in goals), 10)
+    # A topic outside client_topics is refused: a viewer may not drive the servos.
+    command = ma.joint_state_msg(np.zeros(2, np.float32), np.zeros(2, np.float32), T0_NS, ma.RCLPY)
+    refused = {"topic": "/hand/command", "schemaName": "sensor_msgs/msg/JointState",
+               "data": serialize_message(command), "repeat": 5}
+    _run_probe(ros, step, view.port, topics=[], count=0, publish=refused, timeout_s=10)
+    ros.spin_for(0.5)
+    assert commands == []
+
+
+def test_t42_view_runs_the_node_until_ctrl_c(ros_domain, tmp_path):
+    log = tmp_path / "view.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-u", "-m", "t42_transfer.cli", "view", "--port", "0",
+                                 "--tolerance", "3"], cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "Foxglove WebSocket server on ws://127.0.0.1:" not in log.read_text() and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.2)
+        assert "ws://127.0.0.1:" in log.read_text()
+    finally:
+        codes = stop([proc])
+    assert codes == [0], log.read_text()
