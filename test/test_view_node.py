@@ -139,3 +139,21 @@ def test_t42_view_runs_the_node_until_ctrl_c(ros_domain, tmp_path):
     finally:
         codes = stop([proc])
     assert codes == [0], log.read_text()
+
+
+@pytest.mark.usefixtures("one_torch_thread")
+def test_a_goal_published_by_a_client_starts_a_plan_the_client_then_sees(ros, tmp_path):
+    from test_planner_node import SMALL, START_XY, Rig, toy_file
+
+    rig = Rig(ros, toy_file(tmp_path / "toy.safetensors"), **SMALL)
+    view = ros.add(View, {"port": 0, "discovery_period_s": 0.2})
+    rig.tick()
+    assert ros.spin_until(lambda: "/t42/planned_path" in view.offered, 10)
+    goal = ma.goal_msg(START_XY + np.array([4.0, 4.0], np.float32), 0, ma.RCLPY)  # stamp 0: now
+    publish = {"topic": "/t42/goal", "schemaName": "geometry_msgs/msg/PointStamped", "data": serialize_message(goal),
+               "repeat": 1, "period_ms": 200}
+    result = _run_probe(ros, lambda k: None, view.port, topics=["/t42/planned_path"], count=1, publish=publish)
+    assert rig.trajectories, "the planner sent no trajectory for the client's goal"
+    path = deserialize_message(result.messages["/t42/planned_path"][0][1], PathMsg)
+    assert len(path.poses) == len(rig.trajectories[-1].points) + 1  # the plan's predicted path, start included
+    assert ma.path_xy_mm(path)[0] == pytest.approx(START_XY, abs=1e-3)
