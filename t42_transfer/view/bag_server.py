@@ -1,0 +1,175 @@
+"""``t42 view --bag BAG``: a recorded bag over the Foxglove WebSocket protocol, with play, pause, speed and seek.
+
+Each bag topic is a channel (``cdr``, the ``ros2msg`` definition the bag stores, else the one this machine knows);
+messages go out as the bag holds them, at their log times (the server's time follows them), paced by a
+:class:`~t42_transfer.nodes.player.Timeline`.  The server advertises the bag's time range and the PlaybackControl
+capability: the Foxglove app's play/pause button, speed and seek bar drive it.  Playback starts paused at the
+bag's first message; at the end it reports Ended and waits (a seek or play starts it again).  No ROS graph: the
+bag is read with rosbags.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import foxglove
+from foxglove.websocket import (
+    Capability,
+    PlaybackCommand,
+    PlaybackControlRequest,
+    PlaybackState,
+    PlaybackStatus,
+)
+from rosbags.highlevel import AnyReader
+
+import msg_adapters as ma
+from msg_adapters.schemas import message_definition
+from t42_transfer.data.errors import BagError
+from t42_transfer.nodes.player import Timeline
+
+_IDLE_S = 0.05
+"""Longest wait between looks at the controls while paused or ahead of time."""
+_TIME_EVERY_NS = 50_000_000
+"""The server's time is broadcast at most every 50 ms of bag time (and at each seek)."""
+
+
+def _schema(conn: Any) -> foxglove.Schema:
+    text = conn.msgdef.data if hasattr(conn.msgdef, "data") else conn.msgdef
+    if not text:
+        text = message_definition(conn.msgtype)
+    return foxglove.Schema(name=conn.msgtype, encoding="ros2msg", data=str(text).encode())
+
+
+class BagServer:
+    """Serves one bag until :meth:`close`; ``port`` 0 picks a free port (:attr:`port`)."""
+
+    def __init__(self, bag: str | Path, host: str = "127.0.0.1", port: int = 8765) -> None:
+        path = Path(bag)
+        if not path.exists():
+            raise BagError(path, "does not exist")
+        try:
+            self._reader = AnyReader([path], default_typestore=ma.TYPESTORE)
+            self._reader.open()
+        except Exception as err:  # rosbags raises many types for what is not a sound bag
+            raise BagError(path, f"cannot be served ({type(err).__name__}: {err})") from None
+        self.path = path
+        self.start_ns, self.end_ns = self._reader.start_time, max(self._reader.end_time - 1, self._reader.start_time)
+        self.sent = 0
+        """Messages sent so far."""
+        self._context = foxglove.Context()
+        self._channels = {c.id: foxglove.Channel(c.topic, schema=_schema(c), message_encoding="cdr",
+                                                 context=self._context) for c in self._reader.connections}
+        self._cond = threading.Condition()
+        self._timeline = Timeline(self.start_ns, 1.0, paused=True)
+        self._seek_to: int | None = self.start_ns
+        self._ended = False
+        self._stop = False
+        self.server = foxglove.start_server(
+            name=f"t42 view {path.name}", host=host, port=port, capabilities=[Capability.Time],
+            server_listener=_Controls(self), context=self._context, playback_time_range=(self.start_ns, self.end_ns))
+        self.port = self.server.port
+        self._thread = threading.Thread(target=self._play, name="bag_server", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ controls (the server's threads)
+    def state(self, request_id: str | None = None, did_seek: bool = False) -> PlaybackState:
+        with self._cond:
+            status = (PlaybackStatus.Ended if self._ended else
+                      PlaybackStatus.Paused if self._timeline.paused else PlaybackStatus.Playing)
+            return PlaybackState(status=status, current_time=self._timeline.bag_now(),
+                                 playback_speed=self._timeline.rate, did_seek=did_seek, request_id=request_id)
+
+    def control(self, request: PlaybackControlRequest) -> PlaybackState:
+        """Apply a client's play/pause, speed and seek; the state after it."""
+        with self._cond:
+            if request.playback_speed and request.playback_speed > 0:
+                self._timeline.set_rate(float(request.playback_speed))
+            seek = request.seek_time
+            if seek is not None:
+                self._seek_to = min(max(int(seek), self.start_ns), self.end_ns)
+            if request.playback_command == PlaybackCommand.Play:
+                if self._ended and seek is None:
+                    self._seek_to = self.start_ns  # play after the end: from the start
+                self._timeline.resume()
+            else:
+                self._timeline.pause()
+            self._cond.notify_all()
+        return self.state(request.request_id, did_seek=seek is not None)
+
+    # ------------------------------------------------------------------ playback (its own thread)
+    def _play(self) -> None:
+        messages, last_time = None, None
+        while True:
+            with self._cond:
+                if self._stop:
+                    return
+                if self._seek_to is not None:
+                    at, self._seek_to, self._ended = self._seek_to, None, False
+                    self._timeline.restart(at, time.monotonic_ns())  # paused or playing, from ``at``
+                    messages, last_time = self._reader.messages(start=at), None
+                    self.server.broadcast_time(at)
+                if self._ended or messages is None:
+                    self._cond.wait(_IDLE_S)
+                    continue
+            item = next(messages, None)
+            if item is None:
+                with self._cond:
+                    self._ended = True
+                self.server.broadcast_playback_state(self.state())
+                continue
+            conn, log_ns, raw = item
+            if not self._wait_until(log_ns):
+                continue  # a seek (or stop) came first: handled above
+            self._channels[conn.id].log(bytes(raw), log_time=log_ns)
+            self.sent += 1
+            if last_time is None or log_ns - last_time >= _TIME_EVERY_NS:
+                self.server.broadcast_time(log_ns)
+                last_time = log_ns
+
+    def _wait_until(self, log_ns: int) -> bool:
+        """Wait until ``log_ns`` is due; False when a seek or stop came first (the message is not sent)."""
+        with self._cond:
+            while True:
+                if self._stop or self._seek_to is not None:
+                    return False
+                delay_s = (self._timeline.due_ns(log_ns) - time.monotonic_ns()) / 1e9
+                if delay_s <= 0:
+                    return True
+                self._cond.wait(min(delay_s, _IDLE_S))
+
+    def close(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(5.0)
+        self.server.stop()
+        self._reader.close()
+
+
+class _Controls(foxglove.websocket.ServerListener):
+    def __init__(self, bag: BagServer) -> None:
+        self.bag = bag
+
+    def on_playback_control_request(self, playback_control_request: PlaybackControlRequest) -> PlaybackState:
+        return self.bag.control(playback_control_request)
+
+
+def serve_bag(bag: str | Path, host: str = "127.0.0.1", port: int = 8765) -> int:
+    """``t42 view --bag``: serve ``bag`` until Ctrl-C (or SIGTERM); exit code 0."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    server = BagServer(bag, host=host, port=port)
+    try:
+        span = (server.end_ns - server.start_ns) / 1e9
+        print(f"serving {server.path} ({len(server._channels)} topics, {span:.1f} s) on ws://{host}:{server.port}; "
+              "open it in Foxglove (Open connection -> Foxglove WebSocket); Ctrl-C stops", flush=True)
+        stop.wait()
+    finally:
+        server.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0

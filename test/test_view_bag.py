@@ -1,0 +1,152 @@
+"""``t42 view --bag``: a recorded bag over the Foxglove protocol, driven by a client's play, pause, speed and seek
+(Python websockets speaking the protocol: @foxglove/ws-protocol 0.8.0 has no playback control)."""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from foxglove_probe import SUBPROTOCOLS
+from ros_rig import REPO, stop
+from rosbags.highlevel import AnyReader
+
+import msg_adapters as ma
+from t42_transfer.data.bag import write_bag
+from t42_transfer.view.bag_server import BagServer
+
+PLAY, PAUSE = 0, 1
+PLAYING, PAUSED, ENDED = 0, 1, 3
+
+
+class Client:
+    """A minimal Foxglove protocol client (v1 spec): JSON ops, binary message data, time and playback state."""
+
+    def __init__(self, ws: Any) -> None:
+        self.ws = ws
+        self.server: dict[str, Any] = {}
+        self.channels: dict[str, dict[str, Any]] = {}
+        self.messages: list[tuple[int, bytes]] = []
+        self.states: list[tuple[int, int, float, bool, str]] = []
+        """(status, current time, speed, did seek, request id) of each PlaybackState."""
+        self.times: list[int] = []
+        self.read(0.5)
+
+    def read(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            try:
+                frame = self.ws.recv(timeout=0.02)
+            except TimeoutError:
+                continue
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg["op"] == "serverInfo":
+                    self.server = msg
+                elif msg["op"] == "advertise":
+                    self.channels.update({c["topic"]: c for c in msg["channels"]})
+            elif frame[0] == 1:
+                _, log_time = struct.unpack_from("<IQ", frame, 1)
+                self.messages.append((log_time, frame[13:]))
+            elif frame[0] == 2:
+                self.times.append(struct.unpack_from("<Q", frame, 1)[0])
+            else:  # PlaybackState: status, current time, speed, did seek, request id
+                status, current, speed, seek, n = struct.unpack_from("<BQfBI", frame, 1)
+                self.states.append((status, current, speed, bool(seek), frame[19:19 + n].decode()))
+
+    def subscribe(self, topic: str) -> None:
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId":
+                                                                         self.channels[topic]["id"]}]}))
+
+    def control(self, command: int, speed: float = 1.0, seek_ns: int | None = None, request_id: str = "r") -> None:
+        payload = struct.pack("<BfBQI", command, speed, seek_ns is not None, seek_ns or 0, len(request_id))
+        self.ws.send(b"\x03" + payload + request_id.encode())
+
+
+@pytest.fixture
+def bag(tmp_path, small_set):
+    return write_bag(tmp_path / "bag", small_set)
+
+
+def _poses(bag) -> list[tuple[int, np.ndarray]]:
+    with AnyReader([bag], default_typestore=ma.TYPESTORE) as reader:
+        conns = [c for c in reader.connections if c.topic == ma.OBJECT_POSE_TOPIC]
+        return [(t, ma.object_xy_mm(reader.deserialize(raw, c.msgtype))) for c, t, raw in reader.messages(conns)]
+
+
+def test_a_client_plays_pauses_and_seeks_a_bag(bag):
+    from websockets.sync.client import connect
+
+    poses = _poses(bag)
+    server = BagServer(bag, port=0)
+    try:
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+            _drive(Client(ws), poses)
+    finally:
+        server.close()
+
+
+def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import deserialize_message
+
+    assert {"playbackControl", "time"} <= set(client.server["capabilities"])
+    channel = client.channels[ma.OBJECT_POSE_TOPIC]
+    assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
+    assert "MSG: geometry_msgs/Point" in channel["schema"]
+    assert set(client.channels) == {ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC}
+    client.subscribe(ma.OBJECT_POSE_TOPIC)
+    client.read(0.5)
+    assert client.messages == []  # it starts paused
+
+    client.control(PLAY, speed=4.0, request_id="play")
+    client.read(1.0)
+    assert client.states and client.states[0][0] == PLAYING and client.states[0][4] == "play"
+    assert client.states[0][2] == pytest.approx(4.0)
+    heard = list(client.messages)
+    assert len(heard) >= 10  # 1 s at 4x: ~40 steps of 0.1 s
+    for log_time, data in heard:
+        msg = deserialize_message(data, PoseStamped)
+        xy = next(p for t, p in poses if t == log_time)
+        assert ma.object_xy_mm(msg).tolist() == xy.tolist()
+    assert [t for t, _ in heard] == [t for t, _ in poses[:len(heard)]]  # in order, from the first
+
+    client.control(PAUSE, speed=4.0, request_id="pause")
+    client.read(0.3)
+    paused_at = len(client.messages)
+    client.read(0.7)
+    assert len(client.messages) == paused_at
+    assert client.states[-1][0] == PAUSED and client.states[-1][4] == "pause"
+
+    target = poses[-10][0]  # seek near the end, then play to it
+    client.control(PLAY, speed=4.0, seek_ns=target, request_id="seek")
+    client.read(1.5)
+    after = client.messages[paused_at:]
+    assert after and after[0][0] == target
+    assert [t for t, _ in after] == [t for t, _ in poses[-10:]]
+    assert any(s[3] and s[4] == "seek" for s in client.states)
+    assert client.states[-1][0] == ENDED
+    assert client.times and max(client.times) >= target
+
+
+def test_t42_view_bag_serves_until_ctrl_c_and_refuses_a_missing_bag(bag, tmp_path):
+    from t42_transfer.cli import main
+
+    assert main(["view", "--bag", str(tmp_path / "none")]) == 2
+    log = tmp_path / "serve.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-u", "-m", "t42_transfer.cli", "view", "--bag", str(bag),
+                                 "--port", "0"], cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while "on ws://127.0.0.1:" not in log.read_text() and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()
+            time.sleep(0.2)
+        assert "3 topics" in log.read_text()
+    finally:
+        assert stop([proc]) == [0], log.read_text()
