@@ -66,7 +66,7 @@ SERVICES = {
     "mock_driver": ["/" + names.HAND_RESET],
     "recorder": ["/" + names.private_of("recorder", s) for s in (names.RECORDER_START, names.RECORDER_STOP,
                                                                    names.RECORDER_SPLIT)],
-    "transfer_server": ["/" + names.TRANSFER],
+    "transfer_server": ["/" + names.TRANSFER_NOW],
     "planner": [],
     "bare_node": ["/bare_node/trigger"],
 }

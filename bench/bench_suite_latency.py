@@ -4,7 +4,7 @@ Writes bench/results/suite_latency.json with the middleware the demo ran on (its
 ``demo.json`` ``middleware``: rclpy's RMW implementation).  Two figures, each
 against a baseline measured in the same run:
 
-* service call to model ready: wall time of the ``/t42/transfer`` call (until the
+* service call to model ready: wall time of the ``/t42/transfer_now`` call (until the
   answer, sent after the model was saved and announced) against the server's own
   elapsed time for the transfer (its last diagnostics ``elapsed_s``);
 * goal to plan result: wall time from publishing a ``PointStamped`` goal to

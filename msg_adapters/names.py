@@ -64,9 +64,14 @@ recorder's namespace, as rosbag2's ``events/write_split``."""
 
 # ------------------------------------------------------------------ transfer server
 TRANSFER = "t42/transfer"
-"""std_srvs/Trigger: transfer the source model with the bags recorded since the last call."""
+"""t42_interfaces/action/Transfer: transfer the source model with a method and bags (none: those recorded since
+the last transfer), with feedback per epoch, cancel (the previous model stays) and the held-out scores."""
+TRANSFER_NOW = "t42/transfer_now"
+"""std_srvs/Trigger: the same transfer with the server's method and the bags recorded since the last one; a
+one-line answer (for callers without t42_interfaces)."""
 MODEL_UPDATED = "t42/model_updated"
-"""std_msgs/String (latched): the path of the newest model file."""
+"""t42_interfaces/ModelUpdated (latched): the newest model file (absolute path), when it was saved, its method and
+episodes."""
 DIAGNOSTICS = "diagnostics"
 """diagnostic_msgs/DiagnosticArray: progress and state of long work."""
 

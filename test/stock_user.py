@@ -1,7 +1,7 @@
 """A ROS 2 user's plain rclpy script against the t42 suite: it imports nothing from the project.
 
     python stock_user.py graph [NAMESPACE]     nodes, parameters, /rosout, hand state, hand/reset
-    python stock_user.py transfer [NAMESPACE]  t42/transfer, then a goal -> JointTrajectory and Path
+    python stock_user.py transfer [NAMESPACE]  t42/transfer_now, then a goal -> JointTrajectory and Path
 
 It prints one JSON object with what it saw; exit 0 when every step got an answer.
 Only stock interfaces are used: the standard parameter services, /rosout,
@@ -125,7 +125,7 @@ def graph(user: User) -> dict:
 def transfer(user: User) -> dict:
     out: dict = {}
     started = time.monotonic()
-    answer = user.call(Trigger, user.name("t42/transfer"), Trigger.Request(), timeout_s=600.0)
+    answer = user.call(Trigger, user.name("t42/transfer_now"), Trigger.Request(), timeout_s=600.0)
     out["transfer"] = [answer.success, answer.message, time.monotonic() - started]
     if not answer.success:
         return out

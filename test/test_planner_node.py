@@ -18,6 +18,7 @@ from rclpy.parameter import Parameter
 from ros_rig import Rosout, Tester
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from t42_interfaces.msg import ModelUpdated
 from toys import Toy, ToyHand
 from trajectory_msgs.msg import JointTrajectory
 
@@ -33,6 +34,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_message,
 )
+from msg_adapters.transfer import model_updated_msg
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.checkpoint import save_model
@@ -77,7 +79,7 @@ class Rig(Tester):
         self.trajectories: list[JointTrajectory] = self.listen(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self.paths: list[PathMsg] = self.listen(PathMsg, names.PLANNED_PATH, 10)
         self.goal_pub = self.tester.create_publisher(PointStamped, names.GOAL, 10)
-        self.model_pub = self.tester.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
+        self.model_pub = self.tester.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
         self.setter = self.tester.create_client(SetParameters, "planner/set_parameters")
         self.planner: PlannerNode | None = None
         self.start_planner(model, **params)
@@ -124,7 +126,7 @@ class Rig(Tester):
         return self.results[-1]
 
     def announce(self, path: Path | str) -> None:
-        self.model_pub.publish(String(data=str(path)))
+        self.model_pub.publish(model_updated_msg(0, str(path), "test", 1))
 
     def set(self, **values: Any) -> list:
         """``ros2 param set`` on the planner: the SetParametersResult of each value."""
@@ -177,8 +179,8 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
 
 def test_a_model_announced_before_the_node_starts_is_loaded_from_the_latched_topic(ros, toy: Path) -> None:
     tester = ros.node("announcer")
-    announcer = tester.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
-    announcer.publish(String(data=str(toy)))
+    announcer = tester.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
+    announcer.publish(ModelUpdated(path=str(toy), method="toy", episodes=3))
     rig = Rig(ros, "", **SMALL)
     assert ros.spin_until(lambda: rig.planner.model is not None, 10.0)
     assert rig.planner.model.path == str(toy)

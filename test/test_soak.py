@@ -1,5 +1,5 @@
 """Soak (issue 20, slow): the suite under ``t42 up`` at 5x sim time for :data:`SOAK_MINUTES` with both cores
-loaded by two busy processes, in rounds: the explorer runs 5 episodes, ``t42/transfer`` is called, goals are sent
+loaded by two busy processes, in rounds: the explorer runs 5 episodes, ``t42/transfer_now`` is called, goals are sent
 on ``t42/goal`` and their results awaited on ``t42/plan_result``.
 
 Checked at the end:
@@ -172,7 +172,7 @@ def test_soak_nothing_lost_nothing_leaks_nothing_restarts(tmp_path: Path, source
     results: list[dict[str, Any]] = []
     probe.create_subscription(String, names.PLAN_RESULT, lambda m: results.append(json.loads(m.data)), deep)
     goal_pub = probe.create_publisher(PointStamped, names.GOAL, 100)
-    transfer_client = probe.create_client(Trigger, names.TRANSFER)
+    transfer_client = probe.create_client(Trigger, names.TRANSFER_NOW)
     reset_client = probe.create_client(Trigger, names.HAND_RESET)
     stop_client = probe.create_client(Trigger, names.private_of("recorder", names.RECORDER_STOP))
 

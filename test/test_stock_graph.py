@@ -185,7 +185,7 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
             other = "/right" if ns == "/left" else "/left"
             topics = _topics_in(bags)
             assert f"{ns}/hand/object_pose" in topics and not any(t.startswith(other) for t in topics), topics
-        clients = {ns: probe.create_client(Trigger, f"{ns}/t42/transfer") for ns in roots}
+        clients = {ns: probe.create_client(Trigger, f"{ns}/t42/transfer_now") for ns in roots}
         for ns, client in clients.items():
             assert client.wait_for_service(timeout_sec=60.0), (ns, suites[ns].output()[-3000:])
         calls = {ns: client.call_async(Trigger.Request()) for ns, client in clients.items()}

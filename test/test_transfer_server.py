@@ -17,8 +17,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.parameter import Parameter
 from ros_rig import Tester
 from safetensors.torch import save_file
-from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import ModelUpdated
 
 import t42_transfer.models.checkpoint as checkpoint
 from msg_adapters import DiagnosticReport, names, status_report
@@ -87,10 +87,14 @@ class Rig(Tester):
         self.updates: list[str] = []
         self.tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
                                         lambda m: self.reports.append(status_report(m, STATUS_NAME)), 10_000)
-        self.tester.create_subscription(String, names.MODEL_UPDATED, lambda m: self.updates.append(m.data),
-                                        profile(names.LATCHED))
+        self.announcements: list[ModelUpdated] = []
+        self.tester.create_subscription(ModelUpdated, names.MODEL_UPDATED, self._on_model, profile(names.LATCHED))
         self.server = ros.add(TransferServer, server_params(tmp_path, source, **params), namespace=namespace)
-        self.client = self.tester.create_client(Trigger, names.TRANSFER)
+        self.client = self.tester.create_client(Trigger, names.TRANSFER_NOW)
+
+    def _on_model(self, msg: ModelUpdated) -> None:
+        self.announcements.append(msg)
+        self.updates.append(msg.path)
 
     def call(self, timeout_s: float = 120.0) -> Trigger.Response:
         """One call that runs (not busy); returns once its final status (done or failed) arrived too."""
@@ -124,6 +128,9 @@ def test_transfer_answers_with_summary_saves_and_announces(ros, tmp_path, source
         assert part in response.message
     assert "\n" not in response.message
     assert ros.spin_until(lambda: rig.updates == [str(model_path)], 5.0), rig.updates
+    announced = rig.announcements[-1]
+    assert (announced.method, announced.episodes) == ("l2_finetune", 3)
+    assert abs(announced.stamp.sec - time.time()) < 60
     assert rig.model_files() == [CURRENT_MODEL, STATE_FILE, "transferred_000.safetensors"]
     model, meta = load_model(rig.model_dir / CURRENT_MODEL)
     assert type(model) is type(load_model(source_model)[0]) and meta["method"] == "l2_finetune"
@@ -197,6 +204,9 @@ def test_a_restarted_server_announces_the_latest_model_to_late_joiners(ros, tmp_
     late = Rig(ros, tmp_path, source_model, namespace="/again", share_dirs=True)
     expected = [str(rig.model_dir / "transferred_000.safetensors")]
     assert ros.spin_until(lambda: late.updates == expected, 5.0), late.updates
+    first, again = rig.announcements[-1], late.announcements[-1]
+    assert (again.method, again.episodes) == (first.method, first.episodes)
+    assert abs(again.stamp.sec - first.stamp.sec) <= 2  # the state file's time of the save, in whole seconds
     assert late.server.get_fully_qualified_name() == "/again/transfer_server"
 
 
@@ -476,7 +486,7 @@ def test_twenty_simultaneous_calls_are_all_answered(ros, tmp_path, source_model)
     """One runs, the others are told it is busy or run after it: none is left unanswered (10 of 20 were)."""
     rig = Rig(ros, tmp_path, source_model, method="direct")
     add_target_bag(rig.bag_dir)
-    clients = [rig.tester.create_client(Trigger, names.TRANSFER) for _ in range(20)]
+    clients = [rig.tester.create_client(Trigger, names.TRANSFER_NOW) for _ in range(20)]
     assert ros.spin_until(lambda: all(c.service_is_ready() for c in clients), 10.0)
     futures = [c.call_async(Trigger.Request()) for c in clients]
     assert ros.spin_until(lambda: all(f.done() for f in futures), 60.0), sum(f.done() for f in futures)

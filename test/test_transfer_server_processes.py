@@ -14,8 +14,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from ros_rig import REPO, start_node, stop
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import ModelUpdated
 from test_transfer_server import Rig, add_target_bag, config_file, source_model  # noqa: F401  (fixture)
 
 from msg_adapters import DiagnosticReport, names, status_report
@@ -49,8 +49,8 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
         reports: list[DiagnosticReport] = []
         tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
                                    lambda m: reports.append(status_report(m, STATUS_NAME)), 10_000)
-        client = tester.create_client(Trigger, names.TRANSFER)
-        assert tester.resolve_service_name(names.TRANSFER) == "/left/t42/transfer"
+        client = tester.create_client(Trigger, names.TRANSFER_NOW)
+        assert tester.resolve_service_name(names.TRANSFER_NOW) == "/left/t42/transfer_now"
         assert client.wait_for_service(timeout_sec=60.0), log.read_text()
         first = client.call_async(Trigger.Request())
         assert ros.spin_until(lambda: any(r.values["stage"] == "training" for r in reports), 60.0), log.read_text()
@@ -75,7 +75,8 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
         # A listener joining afterwards still gets the announcement (latched).
         late = ros.node("late", namespace="/left")
         updates: list[str] = []
-        late.create_subscription(String, names.MODEL_UPDATED, lambda m: updates.append(m.data), profile(names.LATCHED))
+        late.create_subscription(ModelUpdated, names.MODEL_UPDATED, lambda m: updates.append(m.path),
+                                 profile(names.LATCHED))
         assert ros.spin_until(lambda: updates == [str(model)], 10.0), updates
     finally:
         codes = stop([server])

@@ -11,7 +11,7 @@
 3. **Target data through topics**: the explorer node (another process) resets the
    hand and sends random-action trajectories; it starts and stops the recorder,
    which writes one MCAP bag per episode.
-4. **Transfer**: one call of ``/t42/transfer``; its progress arrives on
+4. **Transfer**: one call of ``/t42/transfer_now``; its progress arrives on
    ``/diagnostics``; the answer names the model, which the planner loads when the
    server announces it.
 5. **Peg-in-hole**: for each goal the hand is reset; the goal is a point the true
@@ -23,7 +23,7 @@
    half way towards the goal at least, within the tolerance), and doing nothing
    is scored by the same rule on the same grasps.  The recorder records these
    episodes like any other.
-6. **Second round**: ``/t42/transfer`` again, now with the executed plans among
+6. **Second round**: ``/t42/transfer_now`` again, now with the executed plans among
    the episodes, then new goals of the same kind: does the suite improve with use?
    Each round's model is also scored on the same held-out target episodes
    (collected apart, never seen by the suite) beside the source model and the

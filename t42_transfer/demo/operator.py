@@ -21,8 +21,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import ModelUpdated
 
 from msg_adapters import names, object_xy_mm, path_xy_mm, stamp_to_ns, status_report
+from msg_adapters.transfer import model_announcement
 from t42_transfer.demo.settings import SERVICES, TRANSFER_STATUS
 from t42_transfer.ros.qos import profile
 
@@ -64,8 +66,8 @@ class Operator(Node):
                                  profile(names.EVENTS))
         self.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
         self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self.paths.append(path_xy_mm(m)), 10)
-        self.create_subscription(String, names.MODEL_UPDATED, lambda m: self.models.append(m.data),
-                                 profile(names.LATCHED))
+        self.create_subscription(ModelUpdated, names.MODEL_UPDATED,
+                                 lambda m: self.models.append(model_announcement(m).path), profile(names.LATCHED))
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diagnostics, 10)
         self.goal_pub = self.create_publisher(PointStamped, names.GOAL, 10)
         self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}

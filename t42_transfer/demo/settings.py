@@ -34,7 +34,7 @@ TRANSFER_STATUS = "t42_transfer: transfer"
 """The transfer server's status name on ``/diagnostics``."""
 RECORDER_START = names.private_of("recorder", names.RECORDER_START)
 RECORDER_STOP = names.private_of("recorder", names.RECORDER_STOP)
-SERVICES = (names.HAND_RESET, names.TRANSFER, RECORDER_START, RECORDER_STOP)
+SERVICES = (names.HAND_RESET, names.TRANSFER_NOW, RECORDER_START, RECORDER_STOP)
 
 
 @dataclass(frozen=True)

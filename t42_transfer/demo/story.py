@@ -206,7 +206,7 @@ def _again_with_the_simulators_pose(story: Story, runs: list[GoalRun], round_: i
 
 
 def transfer(story: Story, round_: int) -> dict[str, Any]:
-    """One call of ``t42/transfer`` with its progress shown; the round's record.
+    """One call of ``t42/transfer_now`` with its progress shown; the round's record.
 
     The model is the path the server announces on ``t42/model_updated`` and the episodes it trained on
     are the ``episodes`` of its final diagnostics: nothing is read out of the answer's text.
@@ -223,9 +223,10 @@ def transfer(story: Story, round_: int) -> dict[str, Any]:
             last[0] = line
             say(line)
 
-    response = op.call(names.TRANSFER, 1800.0, suite.check, progress)
+    response = op.call(names.TRANSFER_NOW, 1800.0, suite.check, progress)
     seconds = time.perf_counter() - t0
-    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: /t42/transfer ({seconds:.0f} s): {response.message}")
+    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: /{names.TRANSFER_NOW} ({seconds:.0f} s): "
+        f"{response.message}")
     if not response.success:
         raise RuntimeError(f"the transfer failed: {response.message}")
     op.wait_until(lambda: len(op.models) > announced and op.diagnostic.get("stage") == "done", 10.0,

@@ -7,8 +7,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``hand/object_pose``, ``hand/joint_states``: subscribed; the latest hand state
   ``(x mm, y mm, load1, load2)`` (the ``STATE_NAMES`` layout :func:`load_model`
   checks in every checkpoint) and the actuator angles;
-* ``t42/model_updated`` (std_msgs/msg/String, latched): subscribed TRANSIENT_LOCAL;
-  a model file path to plan with from now on (the transfer server announces there);
+* ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): subscribed TRANSIENT_LOCAL;
+  the model file (``path``) to plan with from now on (the transfer server announces there);
 * ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an
   accepted plan; actuator-angle targets one per control period, starting from the
   angles of the state planned from, stamped when published (the driver refuses it stale);
@@ -86,6 +86,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
+from t42_interfaces.msg import ModelUpdated
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
@@ -101,6 +102,7 @@ from msg_adapters import (
     status_event,
 )
 from msg_adapters.reach import reach_request
+from msg_adapters.transfer import model_announcement
 from t42_transfer.conventions import (
     CONTROL_PERIOD_NS,
     MAX_PLAN_HORIZON,
@@ -213,7 +215,7 @@ class PlannerNode(Node):
             self.log.info(f"no model file {model!r} yet; waiting for {self._model_topic}")
         self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 10)
         self.create_subscription(JointState, names.JOINT_STATES, self._on_joints, 10)
-        self.create_subscription(String, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED),
+        self.create_subscription(ModelUpdated, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED),
                                  callback_group=MutuallyExclusiveCallbackGroup())
         self.create_subscription(PointStamped, names.GOAL, self._on_goal, profile(names.REQUESTS))
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
@@ -312,8 +314,8 @@ class PlannerNode(Node):
             self._done_stamps = [*self._done_stamps[-9:], -1 if stamp is None else stamp]
             self._cond.notify_all()
 
-    def _on_model_updated(self, msg: String) -> None:
-        self.load(msg.data.strip())
+    def _on_model_updated(self, msg: ModelUpdated) -> None:
+        self.load(model_announcement(msg).path)
 
     def _on_goal(self, msg: PointStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)

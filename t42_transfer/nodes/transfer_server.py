@@ -2,18 +2,31 @@
 
 Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``t42/transfer`` (std_srvs/srv/Trigger): runs one transfer
-  (:func:`t42_transfer.transfer.online.run_transfer`: new bags, held-out
-  scoring, atomic saves, state file) and answers ``success=True`` with a one-line
+* ``t42/transfer`` (t42_interfaces/action/Transfer): the action.  A goal names the method (``""``: the
+  ``method`` parameter) and the bags (none: the bags closed since the last transfer, as the service takes them;
+  given paths: exactly those, used before or not).  Every goal is accepted and then ends with a result whose
+  ``message`` says why (a rejection could not say): SUCCEEDED with the model path, the held-out divergence and
+  MSE of the model, the source and the hold-still baseline, ``auto``'s candidates and their held-out divergence,
+  and the bags skipped as unreadable (or missing) with why; ABORTED with the reason for an unknown method
+  (``unknown transfer method ...``, at once), a goal while a transfer runs (``busy: ...``, at once), and every
+  refusal or failure the service answers; CANCELED when the client cancelled it: training stops after the epoch
+  in progress and nothing is written (the current model, the numbered models, the state file stay as they were,
+  nothing is announced).  A cancel is refused once the save has begun.  Feedback at each stage change and after
+  every training epoch: ``phase`` (the stage; ``training: <what it trains>`` once an epoch named it), epoch /
+  epochs, train and validation loss;
+* ``t42/transfer_now`` (std_srvs/srv/Trigger): the same transfer for callers without the action type: the
+  method parameter, the bags closed since the last transfer (:func:`t42_transfer.transfer.online.run_transfer`: new
+  bags, held-out scoring, atomic saves, state file) and answers ``success=True`` with a one-line
   summary (method, data used, held-out divergence time and MSE, model path, and
   each new bag it skipped as unreadable, with why: the others are used), or
   ``success=False`` with a one-line reason (no new bags, too little data in the
   readable ones, naming the skipped bags; an unusable source model or ``config``
-  file; nothing is written then), or ``busy: ...`` at once while a transfer runs;
+  file; nothing is written then), or ``busy: ...`` at once while a transfer (a call, a goal, an automatic one)
+  runs;
 * ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
-  training, evaluating, saving, done, failed), ``elapsed_s``, ``method``,
+  training, evaluating, saving, done, failed, cancelled), ``elapsed_s``, ``method``,
   ``bags`` and what is known so far; while training, the last finished epoch:
   ``phase`` (what the method trains, e.g. ``residual``), ``epoch`` (0 before the
   first), ``epochs`` (the phase's budget; early stopping may end it sooner),
@@ -21,66 +34,79 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   method ``auto``, ``picked_method`` and one ``candidate.<method>`` per candidate
   (its held-out score, or why it failed).  Published at
   every stage change, every epoch and every ``progress_period_s`` while running;
-* ``t42/model_updated`` (std_msgs/msg/String, latched): the path of each new
-  ``transferred_<NNN>.safetensors`` (a file never rewritten, so a planner can load
-  it while the next transfer replaces ``current.safetensors``); on start the node
-  republishes the last one recorded in the state file;
+* ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): each new
+  ``transferred_<NNN>.safetensors`` (its absolute path: a file never rewritten, so a planner can load
+  it while the next transfer replaces ``current.safetensors``), when it was saved, the method that made it and
+  the episodes it trained on; on start the node republishes the last one recorded in the state file;
 * ``recorder/bag_closed`` (t42_interfaces/msg/BagClosed, read VOLATILE: only bags closed while the server runs):
   with ``auto_transfer_after_bags`` N > 0, every N-th new closed bag holding an episode (as the recorder's
-  ``read_bag`` counted) starts a transfer by itself, exactly as a ``t42/transfer`` call (the same code: the
+  ``read_bag`` counted) starts a transfer by itself, exactly as a ``t42/transfer_now`` call (the same code: the
   bags since the last transfer, diagnostics, the model announced); if a transfer is running then, it runs once
   more after it (triggers while it waits count as one).  0 (the default) leaves the server to its callers.
 
 Concurrency.  Trigger is request/response and the answer is the summary, so the
-service callback returns only when the transfer is done.  The callback is in a
+service callback returns only when the transfer is done; an action goal's execute callback likewise returns with
+its result (the goal is EXECUTING meanwhile).  Both are in a
 :class:`~rclpy.callback_groups.ReentrantCallbackGroup`, so on a
-``MultiThreadedExecutor`` (``t42 node`` spins one for this node: ``executor_threads``) a second request runs in
-another executor thread while the first trains: it fails to take a non-blocking
-lock and answers ``busy`` at once.  The first callback runs the transfer in a
+``MultiThreadedExecutor`` (``t42 node`` spins one for this node: ``executor_threads``) a second request or goal
+runs in another executor thread while the first trains: it fails to take a non-blocking
+lock and answers ``busy`` at once; cancel requests are served meanwhile.  The first callback runs the transfer in a
 worker thread and, while waiting for it, publishes the progress itself every
 ``progress_period_s``, so diagnostics flow without needing a free executor
 thread.  Parameters other than the model and bag locations take effect with the
-next call.
+next call.  The science (torch) is imported on first use, not with this module.
 
 No callback raises; failures are logged with the node's logger and answered.
 """
 
 from __future__ import annotations
 
+import calendar
 import dataclasses
 import math
 import threading
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from t42_interfaces.msg import BagClosed
+from t42_interfaces.msg import BagClosed, ModelUpdated
 
 from msg_adapters import RCLPY, diagnostic_array, names
 from msg_adapters.events import bag_closed_event
+from msg_adapters.transfer import (
+    Scores,
+    TransferOutcome,
+    model_updated_msg,
+    skipped_pairs,
+    transfer_feedback,
+    transfer_request,
+    transfer_result,
+    transfer_type,
+)
 from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
-from t42_transfer.transfer.config import TransferConfig
-from t42_transfer.transfer.methods import METHODS
-from t42_transfer.transfer.online import (
-    OnlineTransferSpec,
-    TransferRefused,
-    TransferResult,
-    config_from_file,
-    latest_model,
-    run_transfer,
-)
+
+if TYPE_CHECKING:  # the science is imported on first use (node start-up time)
+    from t42_transfer.transfer.config import TransferConfig
+    from t42_transfer.transfer.online import OnlineTransferSpec, TransferResult
 
 STATUS_NAME = "t42_transfer: transfer"
 """Name of the node's status in ``diagnostics``."""
+
+
+def method_names() -> list[str]:
+    """The transfer methods' registry (imports the science)."""
+    from t42_transfer.transfer.methods import METHODS
+
+    return sorted(METHODS)
 
 
 def one_line(text: str) -> str:
@@ -105,9 +131,11 @@ class TransferServerParams:
                                     "them (two suites sharing files on purpose)", read_only=True)
     new_bags_only: bool = param(True, "train on the bags no earlier transfer used; false: on every bag, once one "
                                       "is new (the suite keeps learning from all it recorded)")
-    method: str = param("l2_finetune", f"transfer method, one of {', '.join(sorted(METHODS))} (default: the "
-                                       "evaluations' choice, docs/evaluation.md; auto: train the candidates, keep the "
-                                       "best on held-out episodes, report all)")
+    method: str = param("l2_finetune", "transfer method, one of new_model, direct, naive_finetune, "
+                                       "trajectory_finetune, cumulative_residual, recurrent_residual, l2_finetune, "
+                                       "auto (default: the evaluations' choice, docs/evaluation.md; auto: train the "
+                                       "candidates, keep the best on held-out episodes, report all); a "
+                                       "t42/transfer goal may name another")
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")
@@ -123,8 +151,8 @@ class TransferServerParams:
     def __post_init__(self) -> None:
         if not self.bag_dir and not self.bags:
             raise ValueError("set bag_dir or bags: the transfer needs target bags")
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {sorted(METHODS)}, got {self.method!r}")
+        if self.method not in method_names():
+            raise ValueError(f"method must be one of {method_names()}, got {self.method!r}")
         self.transfer_config()  # ValueError for an unreadable file, an unknown key or a wrong type
         if not 0.0 < self.holdout_fraction < 1.0:
             raise ValueError(f"holdout_fraction must be in (0, 1), got {self.holdout_fraction!r}")
@@ -141,12 +169,16 @@ class TransferServerParams:
 
     def transfer_config(self) -> TransferConfig:
         """The :class:`~t42_transfer.transfer.config.TransferConfig` of the ``config`` file (read now)."""
+        from t42_transfer.transfer.online import config_from_file
+
         return config_from_file(self.config)
 
     def spec(self, namespace: str = "") -> OnlineTransferSpec:
         """What one call runs on, built per call so the files are looked at afresh; ValueError for a bad config.
         Relative directories are taken under ``namespace``'s own folder (``models/left``); a directory another
         namespace's suite holds is refused (ValueError) unless ``share_dirs``."""
+        from t42_transfer.transfer.online import OnlineTransferSpec
+
         model_dir = in_namespace(self.model_dir, namespace)
         bag_dir = in_namespace(self.bag_dir, namespace) if self.bag_dir else None
         for directory in (model_dir, bag_dir):
@@ -159,6 +191,24 @@ class TransferServerParams:
             holdout_fraction=self.holdout_fraction,
             min_episodes=self.min_episodes, seed=self.seed,
         )
+
+
+@dataclass
+class Job:
+    """One transfer as asked for: by a call, a goal or the automatic trigger."""
+
+    method: str
+    """The method to run (the parameter's when the caller named none)."""
+    bags: tuple[str, ...] = ()
+    """Exactly these bags; empty: the bags closed since the last transfer."""
+    feedback: Callable[[str, Mapping[str, object]], None] | None = None
+    """Also told each progress report (a goal's feedback); its failures are logged, never raised."""
+    handle: Any = None
+    """The action goal it runs for, if any."""
+    cancel: threading.Event = field(default_factory=threading.Event)
+    """Set to stop it (a goal cancelled): checked after each training epoch and stage, until the save begins."""
+    cancelled: bool = False
+    """It stopped on :attr:`cancel`: nothing was written."""
 
 
 class TransferServer(Node):
@@ -174,6 +224,8 @@ class TransferServer(Node):
         self.last_result: TransferResult | None = None
         self._job = threading.Lock()
         """Held while a transfer runs: a second call that cannot take it is answered busy."""
+        self._running: Job | None = None
+        """The job holding :attr:`_job`."""
         self._publishing = threading.Lock()
         """Worker and callback threads publish the status one at a time."""
         self._status: dict[str, Any] = {"stage": "idle", "level": "OK", "message": "idle", "values": {}}
@@ -182,16 +234,23 @@ class TransferServer(Node):
         self._started = time.monotonic()
         self._closed = False
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self._updates = self.create_publisher(String, names.MODEL_UPDATED, profile(names.LATCHED))
-        self.create_service(Trigger, names.TRANSFER, self._on_transfer, qos_profile=profile(names.REQUESTS),
-                            callback_group=ReentrantCallbackGroup())
+        self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
+        group = ReentrantCallbackGroup()
+        self.create_service(Trigger, names.TRANSFER_NOW, self._on_transfer, qos_profile=profile(names.REQUESTS),
+                            callback_group=group)
+        self._action = ActionServer(
+            self, transfer_type(), names.TRANSFER, execute_callback=self._on_goal,
+            goal_callback=lambda request: GoalResponse.ACCEPT, cancel_callback=self._on_cancel,
+            callback_group=group,
+            # a burst of callers each gets an answer (rclpy's default depth of 10 loses requests, as for services)
+            goal_service_qos_profile=profile(names.REQUESTS), cancel_service_qos_profile=profile(names.REQUESTS),
+            result_service_qos_profile=profile(names.REQUESTS),
+        )
         model_dir = in_namespace(self.params.model_dir, self.get_namespace())
         for directory in (model_dir, self.params.bag_dir):  # at start, so a shared directory fails in one line
             if directory:
                 claim(in_namespace(directory, self.get_namespace()), self.get_namespace(), self.params.share_dirs)
-        latest = latest_model(model_dir)
-        if latest is not None:
-            self._updates.publish(String(data=str(latest)))
+        self._announce_latest(model_dir)
         self.new_bags = 0
         """New closed bags (holding an episode) counted towards the next automatic transfer."""
         self.auto_results: list[tuple[bool, str]] = []
@@ -216,20 +275,50 @@ class TransferServer(Node):
         if self.busy:
             self.log.warning("closing while a transfer runs; it finishes in the background, unannounced")
 
+    def destroy_node(self) -> None:
+        self.close()
+        self._action.destroy()
+        super().destroy_node()
+
+    def _announce_latest(self, model_dir: Path) -> None:
+        """Republish the model the state file names last (latched: for planners that start later)."""
+        from t42_transfer.transfer.online import latest_transfer
+
+        latest = latest_transfer(model_dir)
+        if latest is None:
+            return
+        path, record = latest
+        try:
+            stamp_ns = max(0, calendar.timegm(time.strptime(str(record.get("time_utc")), "%Y-%m-%dT%H:%M:%SZ")))
+            stamp_ns *= 10**9
+        except (TypeError, ValueError, OverflowError):
+            stamp_ns = 0
+        method = record.get("made_by") or record.get("method") or ""
+        episodes = record.get("train_episodes")
+        try:
+            self._updates.publish(model_updated_msg(stamp_ns, str(path.absolute()), str(method),
+                                                    episodes if isinstance(episodes, int) else 0))
+        except ValueError as err:  # a hand-edited state file: announce the path alone
+            self.log.warning(f"state file record of {path} unusable ({err}); announcing the path alone")
+            self._updates.publish(model_updated_msg(0, str(path.absolute()), "", 0))
+
     # ------------------------------------------------------------------ callbacks
     def _on_params(self, old: TransferServerParams, new: TransferServerParams) -> None:
         changed = [f"{f.name} {getattr(old, f.name)} -> {getattr(new, f.name)}" for f in dataclasses.fields(new)
                    if getattr(old, f.name) != getattr(new, f.name)]
         self.log.info(f"{', '.join(changed)}: takes effect with the next call")
 
+    def _busy(self, again: str) -> str:
+        return (f"busy: a {self._method} transfer is {self._status['stage']} "
+                f"({time.monotonic() - self._started:.0f} s in); {again} when it is done")
+
     def _on_transfer(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if not self._job.acquire(blocking=False):
-            response.success = False
-            response.message = (f"busy: a {self._method} transfer is {self._status['stage']} "
-                                f"({time.monotonic() - self._started:.0f} s in); call again when it is done")
+            response.success, response.message = False, self._busy("call again")
             return response
         try:
-            ok, message = self._run()
+            outcome = self._run(Job(self.params.method))
+            ok, message = outcome.success, outcome.message
         except Exception as err:  # a service callback must answer, not raise
             self.log.error(f"transfer service failed: {err!r}")
             ok, message = False, f"failed: {type(err).__name__}: {err}"
@@ -237,6 +326,57 @@ class TransferServer(Node):
             self._job.release()
         response.success, response.message = ok, one_line(message)
         return response
+
+    # ------------------------------------------------------------------ the action
+    def _on_goal(self, handle: Any) -> Any:
+        """Execute callback of ``t42/transfer``: runs the goal's transfer here (an executor thread) and returns
+        its result; ends the goal SUCCEEDED, ABORTED (with the reason) or CANCELED."""
+        try:
+            request = transfer_request(handle.request)
+            method = request.method or self.params.method
+            if method not in method_names():
+                return self._end(handle, TransferOutcome(False, f"unknown transfer method {method!r}; expected one "
+                                                                f"of {method_names()} (or '' for the server's)"))
+            if handle.is_cancel_requested:
+                return self._end(handle, TransferOutcome(False, "cancelled before it started; nothing was written"),
+                                 cancelled=True)
+            if not self._job.acquire(blocking=False):
+                return self._end(handle, TransferOutcome(False, self._busy("send the goal again")))
+            job = Job(method, request.bags, lambda stage, info: handle.publish_feedback(transfer_feedback(stage, info)),
+                      handle)
+            try:
+                outcome = self._run(job)
+            finally:
+                self._job.release()
+            return self._end(handle, outcome, job.cancelled)
+        except Exception as err:  # an execute callback must end its goal, not raise
+            self.log.error(f"transfer goal failed: {err!r}")
+            return self._end(handle, TransferOutcome(False, f"failed: {type(err).__name__}: {err}"))
+
+    def _end(self, handle: Any, outcome: TransferOutcome, cancelled: bool = False) -> Any:
+        """Set the goal's final state; its result."""
+        try:
+            if outcome.success:
+                handle.succeed()
+            elif cancelled:
+                deadline = time.monotonic() + 2.0  # the server marks the goal CANCELING once our callback returned
+                while not handle.is_cancel_requested and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                handle.canceled() if handle.is_cancel_requested else handle.abort()
+            else:
+                handle.abort()
+        except Exception as err:  # the node is being destroyed, or the state moved on: the result still goes out
+            self.log.warning(f"could not end a {names.TRANSFER} goal: {err!r}")
+        return transfer_result(dataclasses.replace(outcome, message=one_line(outcome.message)))
+
+    def _on_cancel(self, handle: Any) -> CancelResponse:
+        """Accept cancelling a goal until its save begins: the running one stops after its epoch in progress."""
+        job = self._running
+        if job is not None and job.handle is not None and job.handle.goal_id == handle.goal_id:
+            if self._status["stage"] in ("saving", "done"):
+                return CancelResponse.REJECT
+            job.cancel.set()
+        return CancelResponse.ACCEPT
 
     # ------------------------------------------------------------------ automatic transfers
     def _on_bag_closed(self, msg: BagClosed) -> None:
@@ -268,53 +408,86 @@ class TransferServer(Node):
                 if self._closed:
                     return
                 self.log.info(f"automatic transfer after {self.params.auto_transfer_after_bags} new bags")
-                ok, message = self._run()
-                self.auto_results.append((ok, one_line(message)))
+                outcome = self._run(Job(self.params.method))
+                self.auto_results.append((outcome.success, one_line(outcome.message)))
             except Exception as err:  # logged, never raised from the thread
                 self.log.error(f"automatic transfer failed: {err!r}")
                 self.auto_results.append((False, f"failed: {type(err).__name__}: {err}"))
             finally:
                 self._job.release()
 
-    def _run(self) -> tuple[bool, str]:
-        """Run one transfer in a worker thread, publishing progress until it ends; (success, message)."""
+    # ------------------------------------------------------------------ one transfer
+    def _run(self, job: Job) -> TransferOutcome:
+        """Run ``job`` in a worker thread (the job lock held), publishing progress until it ends."""
+        from t42_transfer.transfer.online import TransferCancelled, TransferRefused, run_transfer
+
         self._started = time.monotonic()
         params = self.params
-        self._method = params.method
+        self._method = job.method
+        self._running = job
         self._status = {"stage": "loading", "level": "OK", "message": "starting", "values": {}}
         try:
-            spec = params.spec(self.get_namespace())
+            spec = dataclasses.replace(params.spec(self.get_namespace()), method=job.method)
+            if job.bags:
+                spec = dataclasses.replace(spec, bags=tuple(Path(b) for b in job.bags), exact_bags=True)
         except ValueError as err:  # the config file changed since it was set
             return self._not_done(str(err), refused=True)
         outcome: dict[str, Any] = {}
         done = threading.Event()
 
+        def report(stage: str, info: Mapping[str, object]) -> None:
+            self._report(stage, info)
+            if job.feedback is not None:
+                try:
+                    job.feedback(stage, info)
+                except Exception as err:  # a goal handle gone with the node: the transfer goes on
+                    self.log.warning(f"could not publish {names.TRANSFER} feedback: {err!r}")
+
         def work() -> None:
             try:
-                outcome["result"] = run_transfer(spec, self._report)
+                outcome["result"] = run_transfer(spec, report, cancel=job.cancel.is_set)
             except TransferRefused as err:
-                outcome["refused"] = str(err)
+                outcome["refused"] = err
+            except TransferCancelled as err:
+                outcome["cancelled"] = str(err)
             except Exception as err:  # reported, never raised from the thread
                 outcome["error"] = f"failed: {type(err).__name__}: {err}"
             finally:
                 done.set()
 
         threading.Thread(target=work, name="transfer", daemon=True).start()
-        while not done.wait(params.progress_period_s) and not self._closed:
-            self._publish_status()
+        try:
+            while not done.wait(params.progress_period_s) and not self._closed:
+                if job.handle is not None and job.handle.is_cancel_requested:
+                    job.cancel.set()
+                self._publish_status()
+        finally:
+            self._running = None
         result: TransferResult | None = outcome.get("result")
         if result is None:
             if not done.is_set():
-                return False, "the node is shutting down; the transfer finishes unannounced"
-            refused = "refused" in outcome
-            return self._not_done(outcome["refused"] if refused else outcome["error"], refused)
+                return TransferOutcome(False, "the node is shutting down; the transfer finishes unannounced")
+            if "cancelled" in outcome:
+                job.cancelled = True
+                message = one_line(outcome["cancelled"])
+                self.log.info(f"transfer not done: {message}")
+                self._set_status("cancelled", "OK", message, {})
+                return TransferOutcome(False, message)
+            if "refused" in outcome:
+                refused = outcome["refused"]
+                done_outcome = self._not_done(str(refused), refused=True)
+                return dataclasses.replace(done_outcome, skipped=skipped_pairs(
+                    [bag for bag, _ in refused.skipped], [why for _, why in refused.skipped]))
+            return self._not_done(outcome["error"], refused=False)
         self.last_result = result
         summary = result.summary()
         if result.skipped:
             self.log.warning(f"skipped {len(result.skipped)} unreadable bag(s): {'; '.join(result.skipped)}")
         self.log.info(f"transfer done: {summary}")
+        made_by = result.method if result.selection is None else result.selection.best
         if not self._closed:
-            self._updates.publish(String(data=str(result.model_path)))
+            self._updates.publish(model_updated_msg(time.time_ns(), str(Path(result.model_path).absolute()), made_by,
+                                                    result.episodes))
         picked = {} if result.selection is None else {
             "picked_method": result.selection.best,
             **{f"candidate.{c.method}": c.describe() for c in result.selection.candidates},
@@ -323,14 +496,14 @@ class TransferServer(Node):
             "divergence_steps": result.divergence_steps, "position_mse_mm2": result.position_mse_mm2,
             "model": str(result.model_path), "episodes": result.episodes, "transitions": result.transitions, **picked,
         })
-        return True, summary
+        return outcome_of(result)
 
-    def _not_done(self, reason: str, refused: bool) -> tuple[bool, str]:
-        """Log and publish a refusal (WARN) or a failure (ERROR); (False, the one-line reason)."""
+    def _not_done(self, reason: str, refused: bool) -> TransferOutcome:
+        """Log and publish a refusal (WARN) or a failure (ERROR); the outcome with the one-line reason."""
         reason = one_line(reason)
         (self.log.warning if refused else self.log.error)(f"transfer not done: {reason}")
         self._set_status("failed", "WARN" if refused else "ERROR", reason, {})
-        return False, reason
+        return TransferOutcome(False, reason)
 
     # ------------------------------------------------------------------ diagnostics
     _MESSAGES = {
@@ -373,3 +546,17 @@ class TransferServer(Node):
                 ))
         except Exception as err:
             self.log.error(f"could not publish the transfer status: {err!r}")
+
+
+def outcome_of(result: TransferResult) -> TransferOutcome:
+    """The action result's content of a successful transfer."""
+    candidates = () if result.selection is None else tuple(
+        (c.method, math.nan if c.error or c.divergence_steps is None else float(c.divergence_steps))
+        for c in result.selection.candidates)
+    return TransferOutcome(
+        True, result.summary(), str(Path(result.model_path).absolute()),
+        Scores(result.divergence_steps, result.position_mse_mm2),
+        Scores(result.source_divergence_steps, result.source_position_mse_mm2),
+        Scores(result.hold_still_divergence_steps, result.hold_still_position_mse_mm2),
+        candidates, skipped_pairs(result.skipped_bags, result.skipped),
+    )
