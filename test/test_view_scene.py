@@ -146,3 +146,32 @@ def test_cli_snapshot_from_a_bag_and_from_values(tmp_path, small_set, capsys):
     assert main(["view", "--snapshot", str(out), "--bag", str(bag)]) == 2  # never overwrites
     assert main(["view", "--snapshot", str(tmp_path / "x.png"), "--bag", str(tmp_path / "none")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_the_foxglove_layout_shows_suite_topics_and_publishes_goals_where_the_view_lets_it():
+    import json
+    import re
+    from pathlib import Path
+
+    from msg_adapters import names
+    from t42_transfer.nodes.view import ViewParams
+
+    layout = json.loads((Path(__file__).resolve().parents[1] / "configs" / "foxglove_layout.json").read_text())
+    panels = layout["configById"]
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else [*leaves(node["first"]), *leaves(node["second"])]
+
+    assert sorted(leaves(layout["layout"])) == sorted(panels)  # every panel placed, none missing
+    words = {v for k, v in vars(names).items() if k.isupper() and isinstance(v, str)}
+    text = json.dumps(panels)
+    unused_tools = {"/rosout", "/move_base_simple/goal", "/initialpose"}  # Foxglove's defaults, left unused
+    topics = set(re.findall(r'"(/[a-z_/]+?)(?:\.[a-z_\[\]0-9.]+)?"', text)) - unused_tools
+    assert topics and {t.lstrip("/") for t in topics} <= words, sorted(t for t in topics if t.lstrip("/") not in words)
+    scene = panels["3D!t42scene"]
+    assert scene["topics"]["/" + names.VIEW_MARKERS]["visible"] and scene["followTf"] == "t42_base"
+    allowed = {t.lstrip("/") for t in ViewParams().client_topics}
+    assert scene["publish"]["pointTopic"].lstrip("/") in allowed
+    publish = panels["Publish!t42goal"]
+    assert publish["topicName"].lstrip("/") in allowed and publish["datatype"] == "geometry_msgs/msg/PointStamped"
+    assert json.loads(publish["value"])["header"]["frame_id"] == "t42_base"
