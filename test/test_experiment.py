@@ -209,6 +209,25 @@ def test_auto_cells_record_the_pick_and_fall_back_on_one_path(config_file: Path,
     assert "auto_picked" not in rows[("cumulative_residual", 2)]
 
 
+def test_a_method_that_cannot_run_at_some_amount_is_refused_before_the_first_cell(config_file: Path,
+                                                                                   tmp_path: Path) -> None:
+    """``auto`` without a fallback cannot pick from one path: the run says so before anything is trained."""
+    import dataclasses
+
+    from t42_transfer.transfer.config import AutoConfig
+
+    base = load_config(config_file)
+    transfer = dataclasses.replace(base.transfer, auto=AutoConfig(candidates=("direct", "naive_finetune")))
+    cfg = dataclasses.replace(base, methods=("direct", "auto"), seeds=1, transfer=transfer)
+    with pytest.raises(ValueError, match=r"auto at amount 1 \(seed 0, 1 training episode\(s\)\): auto needs at "
+                                         r"least 2 target episodes"):
+        run_experiment(cfg, tmp_path, progress=False)
+    assert not (tmp_path / "tiny" / "cells").exists()  # made just before the first cell runs
+    # From two paths up it can: the same config without amount 1 passes the check.
+    target = exp.load_side(cfg, "target", tmp_path / "cache").data
+    exp._check_methods_fit(dataclasses.replace(cfg, amounts=(2,)), target, None)
+
+
 def test_cell_models_store_the_planning_workspace(config_file: Path, tmp_path: Path) -> None:
     import dataclasses
 

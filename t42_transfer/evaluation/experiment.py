@@ -432,6 +432,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
     if cfg.split == "paths" and max(cfg.amounts) >= len(target.data) + (test is not None):
         raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
                          f"{len(target.data)}" + ("" if test is not None else ": some must stay for testing"))
+    _check_methods_fit(cfg, target.data, None if test is None else test.data)
     if cfg.source.exclude_test_sequences:
         source = load_side(cfg, "source", data_cache(run_dir))
         for cell in _cells(cfg):
@@ -440,6 +441,18 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
     with _run_lock(run_dir):
         return _run(cfg, run_dir.absolute(), progress, scheduler)  # absolute: workers elsewhere see the same path
+
+
+def _check_methods_fit(cfg: ExperimentConfig, target: TrajectorySet, test: TrajectorySet | None) -> None:
+    """Every method can run on every cell's training data (counts only, nothing trained): a method that cannot,
+    at some amount, is refused before the first cell instead of failing after the others ran."""
+    from t42_transfer.transfer.methods import data_problem
+
+    for cell in _cells(cfg):
+        train = _target_split(cfg, target, cell, test)[0]
+        if (why := data_problem(cell.method, len(train), train.num_transitions, cfg.transfer)) is not None:
+            raise ValueError(f"{cell.method} at amount {cell.amount:g} (seed {cell.seed}, {len(train)} training "
+                             f"episode(s)): {why}")
 
 
 def _check_input(spec: DataSpec, side: str) -> None:

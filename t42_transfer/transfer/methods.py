@@ -358,15 +358,31 @@ _DEFAULT_CFG = TransferConfig()
 """The paper's settings: :func:`transfer`'s default (frozen, so one instance serves every call)."""
 
 
+def data_problem(method: str, episodes: int, transitions: int, cfg: TransferConfig = _DEFAULT_CFG) -> str | None:
+    """Why ``method`` cannot run on target data of ``episodes`` episodes and ``transitions`` transitions, or None.
+
+    Counts only, so a run can refuse an impossible configuration before training anything: unknown methods,
+    no target data, and ``auto`` with fewer episodes than it holds out from and no fallback."""
+    if method not in METHODS:
+        return f"unknown transfer method {method!r}; expected one of {sorted(METHODS)}"
+    if episodes == 0 or transitions < 2:
+        return f"{method} needs target data; got {transitions} transitions"
+    if method == "auto" and episodes < cfg.auto.min_episodes:
+        if cfg.auto.fallback is None:
+            return (f"auto needs at least {cfg.auto.min_episodes} target episodes to train candidates on some and "
+                    f"score them on others held out whole; got {episodes} (set auto.fallback to use one method "
+                    f"instead)")
+        return data_problem(cfg.auto.fallback, episodes, transitions, cfg)
+    return None
+
+
 def transfer(
     method: str, source: TransitionModel, target: TrajectorySet, cfg: TransferConfig = _DEFAULT_CFG, seed: int = 0,
     on_epoch: ProgressHook | None = None,
 ) -> LatentDynamics:
-    """Run ``method``, reporting its training epochs to ``on_epoch``; unknown names and empty target data
-    are refused."""
-    if method not in METHODS:
-        raise ValueError(f"unknown transfer method {method!r}; expected one of {sorted(METHODS)}")
-    if len(target) == 0 or target.num_transitions < 2:
-        raise ValueError(f"{method} needs target data; got {target.num_transitions} transitions")
+    """Run ``method``, reporting its training epochs to ``on_epoch``; what :func:`data_problem` names is
+    refused."""
+    if (why := data_problem(method, len(target), target.num_transitions, cfg)) is not None:
+        raise ValueError(why)
     model = METHODS[method](source, target, cfg, seed, on_epoch)
     return model.eval()
