@@ -2,27 +2,26 @@
 
 Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``t42/transfer`` (t42_interfaces/action/Transfer): the action.  A goal names the method (``""``: the
-  ``method`` parameter) and the bags (none: the bags closed since the last transfer, as the service takes them;
-  given paths: exactly those, used before or not).  Every goal is accepted and then ends with a result whose
-  ``message`` says why (a rejection could not say): SUCCEEDED with the model path, the held-out divergence and
-  MSE of the model, the source and the hold-still baseline, ``auto``'s candidates and their held-out divergence,
-  and the bags skipped as unreadable (or missing) with why; ABORTED with the reason for an unknown method
-  (``unknown transfer method ...``, at once), a goal while a transfer runs (``busy: ...``, at once), and every
-  refusal or failure the service answers; CANCELED when the client cancelled it: training stops after the epoch
-  in progress and nothing is written (the current model, the numbered models, the state file stay as they were,
-  nothing is announced).  A cancel is refused once the save has begun.  Feedback at each stage change and after
+* ``t42/transfer`` (t42_interfaces/action/Transfer): the action. A goal names the method (``""``: the ``method``
+  parameter) and the bags (none: the bags closed since the last transfer, as the service takes them; given paths:
+  exactly those, used before or not; relative ones from the server's working directory). Every goal is accepted and
+  then ends with a result whose ``message`` says why (a rejection could not say): SUCCEEDED with the model path, the
+  held-out divergence and MSE of the model, the source and the hold-still baseline, ``auto``'s candidates and their
+  held-out divergence, and the bags skipped as unreadable (or missing) with why; ABORTED with the reason for an
+  unknown method (``unknown transfer method ...``, at once), a goal while a transfer runs (``busy: ...``, at once),
+  and every refusal or failure the service answers; CANCELED when the client cancelled it: training stops after the
+  epoch in progress and nothing is written (the current model, the numbered models, the state file stay as they
+  were, nothing is announced). A cancel is refused once the save has begun. Feedback at each stage change and after
   every training epoch: ``phase`` (the stage; ``training: <what it trains>`` once an epoch named it), epoch /
   epochs, train and validation loss;
-* ``t42/transfer_now`` (std_srvs/srv/Trigger): the same transfer for callers without the action type: the
-  method parameter, the bags closed since the last transfer (:func:`t42_transfer.transfer.online.run_transfer`: new
-  bags, held-out scoring, atomic saves, state file) and answers ``success=True`` with a one-line
-  summary (method, data used, held-out divergence time and MSE, model path, and
-  each new bag it skipped as unreadable, with why: the others are used), or
-  ``success=False`` with a one-line reason (no new bags, too little data in the
-  readable ones, naming the skipped bags; an unusable source model or ``config``
-  file; nothing is written then), or ``busy: ...`` at once while a transfer (a call, a goal, an automatic one)
-  runs;
+* ``t42/transfer_now`` (std_srvs/srv/Trigger; named ``t42/transfer`` until the action took that name): the same
+  transfer for callers without the action type: the method parameter, the bags closed since the last transfer
+  (:func:`t42_transfer.transfer.online.run_transfer`: new bags, held-out scoring, atomic saves, state file) and
+  answers ``success=True`` with a one-line summary (method, data used, held-out divergence time and MSE, model path,
+  and each new bag it skipped as unreadable, with why: the others are used), or ``success=False`` with a one-line
+  reason (no new bags, too little data in the readable ones, naming the skipped bags; an unusable source model or
+  ``config`` file; nothing is written then), or ``busy: ...`` at once while a transfer (a call, a goal, an automatic
+  one) runs;
 * ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
   :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
@@ -54,7 +53,8 @@ lock and answers ``busy`` at once; cancel requests are served meanwhile.  The fi
 worker thread and, while waiting for it, publishes the progress itself every
 ``progress_period_s``, so diagnostics flow without needing a free executor
 thread.  Parameters other than the model and bag locations take effect with the
-next call.  The science (torch) is imported on first use, not with this module.
+next call.  The science (torch) is not imported with this module: checking the parameters (the method
+registry, the ``config`` file) imports it when the node is made.
 
 No callback raises; failures are logged with the node's logger and answered.
 """
