@@ -66,9 +66,14 @@ class RclpyKit(MessageKit):
 
 @cache
 def rclpy_class(typename: str) -> type:
-    """rclpy's generated class of ``pkg/msg/Name`` or ``pkg/srv/Name`` (imported on first use)."""
+    """rclpy's generated class of ``pkg/msg/Name`` or ``pkg/srv/Name`` (imported on first use), or of an action's
+    message as its topics name it (``pkg/action/Name_FeedbackMessage``: ``Name.Impl.FeedbackMessage``)."""
     package, kind, name = typename.split("/")
-    return getattr(importlib.import_module(f"{package}.{kind}"), name)
+    module = importlib.import_module(f"{package}.{kind}")
+    if kind == "action" and not hasattr(module, name) and "_" in name:
+        action, _, part = name.rpartition("_")
+        return getattr(getattr(module, action).Impl, part)
+    return getattr(module, name)
 
 
 def rclpy_message(data: bytes, typename: str, max_bytes: int) -> Any:

@@ -153,7 +153,8 @@ def test_a_goal_published_by_a_client_starts_a_plan_the_client_then_sees(ros, tm
     publish = {"topic": "/t42/goal", "schemaName": "geometry_msgs/msg/PointStamped", "data": serialize_message(goal),
                "repeat": 1, "period_ms": 200}
     result = _run_probe(ros, lambda k: None, view.port, topics=["/t42/planned_path"], count=1, publish=publish)
-    assert rig.trajectories, "the planner sent no trajectory for the client's goal"
+    assert "/t42/planned_path" in result.messages, f"the client saw no plan; the view offered {view.offered}"
+    assert ros.spin_until(lambda: rig.trajectories, 10), "the planner sent no trajectory for the client's goal"
     path = deserialize_message(result.messages["/t42/planned_path"][0][1], PathMsg)
     assert len(path.poses) == len(rig.trajectories[-1].points) + 1  # the plan's predicted path, start included
     assert ma.path_xy_mm(path)[0] == pytest.approx(START_XY, abs=1e-3)

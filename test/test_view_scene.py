@@ -175,3 +175,40 @@ def test_the_foxglove_layout_shows_suite_topics_and_publishes_goals_where_the_vi
     publish = panels["Publish!t42goal"]
     assert publish["topicName"].lstrip("/") in allowed and publish["datatype"] == "geometry_msgs/msg/PointStamped"
     assert json.loads(publish["value"])["header"]["frame_id"] == "t42_base"
+
+
+def _decoder(typename: str, definition: str):
+    """An independent reader of ``typename`` from its full definition alone (rosbags' CDR, a fresh typestore)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store, types = get_typestore(Stores.EMPTY), {}
+    first, *rest = definition.split("\n" + "=" * 80 + "\n")
+    package, _, name = typename.split("/")
+    types.update(get_types_from_msg(first, f"{package}/msg/{name}"))
+    for section in rest:
+        head, _, body = section.partition("\n")
+        pkg, _, sub = head.removeprefix("MSG: ").partition("/")
+        types.update(get_types_from_msg(body, f"{pkg}/msg/{sub}"))
+    store.register(types)
+    return lambda cdr: store.deserialize_cdr(cdr, f"{package}/msg/{name}")
+
+
+def test_schemas_are_the_recorders_and_decode_our_own_types(tmp_path, small_set):
+    from rclpy.serialization import serialize_message
+    from rosbags.highlevel import AnyReader
+
+    from msg_adapters.kit import TYPESTORE
+    from msg_adapters.schemas import message_definition
+    from t42_transfer.data.bag import write_bag
+
+    with AnyReader([write_bag(tmp_path / "bag", small_set)], default_typestore=TYPESTORE) as reader:
+        for conn in reader.connections:
+            assert message_definition(conn.msgtype) == conn.msgdef.data  # what the recorder's bags hold
+    interfaces = pytest.importorskip("t42_interfaces.action")
+    feedback = interfaces.Reach.Impl.FeedbackMessage()
+    feedback.feedback.step, feedback.feedback.error_m = 7, 0.0125
+    typename = "t42_interfaces/action/Reach_FeedbackMessage"  # as the action's feedback topic names it
+    decoded = _decoder(typename, message_definition(typename))(serialize_message(feedback))
+    assert (decoded.feedback.step, decoded.feedback.error_m) == (7, 0.0125)
+    with pytest.raises(KeyError, match="no definition"):
+        message_definition("no_such_msgs/msg/Nothing")
