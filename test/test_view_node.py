@@ -113,6 +113,10 @@ def test_a_client_publishes_a_goal_onto_the_graph_and_nothing_else(ros, view):
     goal = ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY)
     publish = {"topic": "/t42/goal", "schemaName": "geometry_msgs/msg/PointStamped", "data": serialize_message(goal),
                "repeat": 5}
+    garbage = dict(publish, data=b"\x00\x01\x00\x00" + (10**9).to_bytes(4, "little") + b"t42_base")
+    _run_probe(ros, lambda k: None, view.port, topics=[], count=0, publish=garbage, timeout_s=10)
+    ros.spin_for(0.5)
+    assert goals == []  # a message that is no PointStamped is not published
     result = _run_probe(ros, lambda k: None, view.port, topics=[], count=0, publish=publish, timeout_s=15)
     assert result.server is not None
     assert ros.spin_until(lambda: any(ma.goal_xy_mm(g).tolist() == list(CLIENT_GOAL_MM) for g in goals), 10)

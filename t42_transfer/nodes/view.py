@@ -15,7 +15,8 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
   ``hand`` and a tolerance circle of ``tolerance_mm``; at most ``marker_rate_hz``, when something changed;
 * ClientPublish: a client may advertise a channel on one of ``client_topics`` (default ``t42/goal``, as
   Foxglove's Publish panel does) in ``cdr`` with a type installed here; its messages go onto the graph unchanged.
-  Other topics and encodings are refused with a warning (a viewer must not drive the servos).
+  Other topics and encodings are refused with a warning (a viewer must not drive the servos), and so is a message
+  that does not read as its channel's type (checked before it is published, so no reader gets bad CDR).
 
 The server listens on ``host`` (127.0.0.1 by default: this machine only) and ``port`` (0: any free port; the node
 logs the one it got, :attr:`View.port`).  Each node has its own foxglove Context, so two views in one process
@@ -54,6 +55,8 @@ from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
 LEFT_OUT = ("/parameter_events",)
 """Graph topics never offered (every node's parameter changes: noise in a viewer)."""
 CDR = "cdr"
+CLIENT_MAX_BYTES = 65_536
+"""A client's message larger than this is refused unread (a goal is under 100 bytes)."""
 
 
 @dataclass(frozen=True)
@@ -125,7 +128,7 @@ class View(Node):
         """Offered graph topic -> its Foxglove channel."""
         self._skipped: set[str] = set()
         self._client_pubs: dict[tuple[int, int], Any] = {}
-        """(client id, client channel id) -> the rclpy publisher its messages go out on."""
+        """(client id, client channel id) -> the rclpy publisher its messages go out on, and their type."""
         self._clock_ns: int | None = None
         self._inputs: dict[str, Any] = {}
         self._dirty = False
@@ -234,20 +237,27 @@ class View(Node):
                              "not a message type installed here")
             return
         with self._lock:
-            self._client_pubs[(client.id, channel.id)] = self.create_publisher(msg_class, topic, 10)
+            self._client_pubs[(client.id, channel.id)] = (self.create_publisher(msg_class, topic, 10),
+                                                          channel.schema_name)
         self.log.info(f"client {client.id} publishes on {topic} ({channel.schema_name})")
 
     def client_unadvertised(self, client: Client, client_channel_id: int) -> None:
         with self._lock:
-            publisher = self._client_pubs.pop((client.id, client_channel_id), None)
-        if publisher is not None:
-            self.destroy_publisher(publisher)
+            entry = self._client_pubs.pop((client.id, client_channel_id), None)
+        if entry is not None:
+            self.destroy_publisher(entry[0])
 
     def client_message(self, client: Client, client_channel_id: int, data: bytes) -> None:
         with self._lock:
-            publisher = self._client_pubs.get((client.id, client_channel_id))
-        if publisher is None:
+            entry = self._client_pubs.get((client.id, client_channel_id))
+        if entry is None:
             self.per_message.warning(f"client {client.id}: a message on a channel it may not publish on")
+            return
+        publisher, typename = entry
+        try:  # what reaches the graph must read as its type: a bad CDR could stop a reader's node
+            ma.rclpy_message(bytes(data), typename, CLIENT_MAX_BYTES)
+        except ValueError as err:
+            self.per_message.warning(f"client {client.id} on {publisher.topic_name}: {err}; not published")
             return
         publisher.publish(bytes(data))
 
