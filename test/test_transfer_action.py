@@ -113,10 +113,14 @@ def test_auto_reports_every_candidate_and_its_score(ros, tmp_path, source_model,
 
 
 def test_a_cancelled_goal_stops_training_and_keeps_the_previous_model(ros, tmp_path, source_model, user):
+    from t42_transfer.nodes.planner_node import PlannerNode
+
     rig = Rig(ros, tmp_path, source_model, method="direct", config=config_file(tmp_path / "endless.yaml", ENDLESS))
     bag = add_target_bag(rig.bag_dir)
     assert rig.call().success  # the previous model (direct: no training)
     assert ros.spin_until(lambda: len(rig.updates) == 1, 5.0)
+    planner = ros.add(PlannerNode, {"samples": 50, "horizon": 5})  # plans with what t42/model_updated announces
+    assert ros.spin_until(lambda: planner.model is not None and planner.model.path == rig.updates[0], 10.0)
     files = {p.name: p.read_bytes() for p in rig.model_dir.iterdir()}
     client = TransferClient(ros, user)
     feedback: list = []
@@ -133,13 +137,14 @@ def test_a_cancelled_goal_stops_training_and_keeps_the_previous_model(ros, tmp_p
     assert max(f.epoch for f in feedback) < 1000
     ros.spin_for(0.5)
     assert {p.name: p.read_bytes() for p in rig.model_dir.iterdir()} == files  # current, numbered, state: as they were
-    assert len(rig.updates) == 1  # nothing announced
+    assert len(rig.updates) == 1 and planner.model.path == rig.updates[0]  # nothing announced: the old model in use
     assert ros.spin_until(lambda: rig.stages()[-1] == "cancelled", 5.0) and rig.reports[-1].level == "OK"
     # the server serves on; the bag, not recorded by the cancelled goal, is taken again
     again = client.result(client.send("direct", [str(bag)]))
     assert again.status == GoalStatus.STATUS_SUCCEEDED
     assert again.result.model_path == str(rig.model_dir / "transferred_001.safetensors")
     assert read_metadata(rig.model_dir / CURRENT_MODEL)["method"] == "direct"
+    assert ros.spin_until(lambda: planner.model.path == again.result.model_path, 10.0), "the planner takes the new one"
 
 
 def test_a_goal_while_a_transfer_runs_is_aborted_busy_and_the_service_too(ros, tmp_path, source_model,
