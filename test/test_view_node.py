@@ -3,8 +3,10 @@ CDR unchanged, /clock as time, the scene's markers, and a goal published by the 
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
+import threading
 import time
 from typing import Any
 
@@ -162,3 +164,45 @@ def test_a_goal_published_by_a_client_starts_a_plan_the_client_then_sees(ros, tm
     path = deserialize_message(result.messages["/t42/planned_path"][0][1], PathMsg)
     assert len(path.poses) == len(rig.trajectories[-1].points) + 1  # the plan's predicted path, start included
     assert ma.path_xy_mm(path)[0] == pytest.approx(START_XY, abs=1e-3)
+
+
+def _ask(port: int, requests: list[dict], answers: int, timeout_s: float = 20.0) -> list[dict]:
+    """Send JSON ``requests`` over the protocol; the first ``answers`` parameterValues replies."""
+    from foxglove_probe import SUBPROTOCOLS
+    from websockets.sync.client import connect
+
+    got: list[dict] = []
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+        deadline = time.monotonic() + timeout_s
+        pending = list(requests)
+        while len(got) < answers and time.monotonic() < deadline:
+            if pending and len(got) == len(requests) - len(pending):
+                ws.send(json.dumps(pending.pop(0)))
+            try:
+                frame = ws.recv(timeout=0.05)
+            except TimeoutError:
+                continue
+            if isinstance(frame, str) and json.loads(frame)["op"] == "parameterValues":
+                got.append(json.loads(frame))
+    return got
+
+
+def test_a_client_reads_and_sets_the_nodes_parameters(ros, view):
+    other = ros.node("hand_tool", namespace="/left")
+    other.declare_parameter("gain", 2.5)
+    box: dict[str, Any] = {}
+    requests = [{"op": "getParameters", "parameterNames": [], "id": "all"},
+                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_mm", "value": 4}], "id": "set"},
+                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_mm", "value": -1.0}], "id": "bad"},
+                {"op": "getParameters", "parameterNames": ["/left/hand_tool.gain"], "id": "one"}]
+    thread = threading.Thread(target=lambda: box.update(answers=_ask(view.port, requests, 4)), daemon=True)
+    thread.start()
+    assert ros.spin_until(lambda: not thread.is_alive(), 30)
+    every, set_ok, set_bad, one = box["answers"]
+    values = {p["name"]: p["value"] for p in every["parameters"]}
+    assert values["/view.hand"] == "target" and values["/view.tolerance_mm"] == 2.0
+    assert values["/left/hand_tool.gain"] == 2.5
+    assert view.params.tolerance_mm == 4.0  # the whole number 4 taken as the double it is
+    assert {p["name"]: p["value"] for p in set_bad["parameters"]} == {"/view.tolerance_mm": 4.0}  # refused, kept
+    assert one["id"] == "one"
+    assert [(p["name"], p["value"]) for p in one["parameters"]] == [("/left/hand_tool.gain", 2.5)]

@@ -13,6 +13,9 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
   :mod:`t42_transfer.view.scene` from ``hand/joint_states``, ``hand/object_pose``, ``t42/goal`` and
   ``t42/planned_path`` (the plan's predicted path, published with each accepted plan), drawn with the links of
   ``hand`` and a tolerance circle of ``tolerance_mm``; at most ``marker_rate_hz``, when something changed;
+* Parameters: every node's parameters, as ``/namespace/node.parameter``, read and set through the nodes'
+  parameter services (:mod:`t42_transfer.nodes.view_params`); a node refuses a bad value as it would refuse
+  ``ros2 param set``;
 * ClientPublish: a client may advertise a channel on one of ``client_topics`` (default ``t42/goal``, as
   Foxglove's Publish panel does) in ``cdr`` with a type installed here; its messages go onto the graph unchanged.
   Other topics and encodings are refused with a warning (a viewer must not drive the servos), and so is a message
@@ -48,6 +51,7 @@ from msg_adapters import names
 from msg_adapters.markers import scene_markers
 from msg_adapters.schemas import message_definition
 from t42_transfer.hand.params import variant
+from t42_transfer.nodes.view_params import GraphParameters
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
@@ -102,6 +106,15 @@ class _Listener(foxglove.websocket.ServerListener):
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
         self.view.client_message(client, client_channel_id, data)
 
+    def on_get_parameters(self, client: Client, param_names: list[str],
+                          request_id: str | None = None) -> list[foxglove.Parameter]:
+        return self.view.graph_parameters.get(param_names)
+
+    def on_set_parameters(self, client: Client, parameters: list[foxglove.Parameter],
+                          request_id: str | None = None) -> list[foxglove.Parameter]:
+        self.view.log.info(f"client {client.id} sets {', '.join(p.name for p in parameters)}")
+        return self.view.graph_parameters.set(parameters)
+
 
 def subscription_qos(publishers: list[Any]) -> QoSProfile:
     """A reader that matches every one of ``publishers`` (rclpy TopicEndpointInfo) and gets what they keep."""
@@ -133,10 +146,11 @@ class View(Node):
         self._inputs: dict[str, Any] = {}
         self._dirty = False
         self._allowed = {self.resolve_topic_name(t) for t in p.client_topics}
+        self.graph_parameters = GraphParameters(self)
         self._foxglove = foxglove.Context()
         self.server = foxglove.start_server(
             name=f"t42 view {self.get_fully_qualified_name()}", host=p.host, port=p.port,
-            capabilities=[Capability.ClientPublish, Capability.Time], supported_encodings=[CDR],
+            capabilities=[Capability.ClientPublish, Capability.Time, Capability.Parameters], supported_encodings=[CDR],
             server_listener=_Listener(self), context=self._foxglove)
         self.port = self.server.port
         self._marker_pub = self.create_publisher(MarkerArray, names.VIEW_MARKERS, 10)
