@@ -17,6 +17,8 @@ from ros_rig import REPO, stop
 from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
+from msg_adapters import names
+from msg_adapters.wire import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import write_bag
 from t42_transfer.view.bag_server import BagServer
 
@@ -32,6 +34,9 @@ class Client:
         self.server: dict[str, Any] = {}
         self.channels: dict[str, dict[str, Any]] = {}
         self.messages: list[tuple[int, bytes]] = []
+        """(log time, CDR) of subscription 1's messages."""
+        self.others: list[tuple[int, int, bytes]] = []
+        """(subscription id, log time, CDR) of the other subscriptions' messages."""
         self.states: list[tuple[int, int, float, bool, str]] = []
         """(status, current time, speed, did seek, request id) of each PlaybackState."""
         self.times: list[int] = []
@@ -51,17 +56,20 @@ class Client:
                 elif msg["op"] == "advertise":
                     self.channels.update({c["topic"]: c for c in msg["channels"]})
             elif frame[0] == 1:
-                _, log_time = struct.unpack_from("<IQ", frame, 1)
-                self.messages.append((log_time, frame[13:]))
+                sub, log_time = struct.unpack_from("<IQ", frame, 1)
+                if sub == 1:
+                    self.messages.append((log_time, frame[13:]))
+                else:
+                    self.others.append((sub, log_time, frame[13:]))
             elif frame[0] == 2:
                 self.times.append(struct.unpack_from("<Q", frame, 1)[0])
             else:  # PlaybackState: status, current time, speed, did seek, request id
                 status, current, speed, seek, n = struct.unpack_from("<BQfBI", frame, 1)
                 self.states.append((status, current, speed, bool(seek), frame[19:19 + n].decode()))
 
-    def subscribe(self, topic: str) -> None:
-        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId":
-                                                                         self.channels[topic]["id"]}]}))
+    def subscribe(self, topic: str, sub: int = 1) -> None:
+        subscription = {"id": sub, "channelId": self.channels[topic]["id"]}
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": [subscription]}))
 
     def control(self, command: int, speed: float = 1.0, seek_ns: int | None = None, request_id: str = "r") -> None:
         payload = struct.pack("<BfBQI", command, speed, seek_ns is not None, seek_ns or 0, len(request_id))
@@ -94,13 +102,16 @@ def test_a_client_plays_pauses_and_seeks_a_bag(bag):
 def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:
     from geometry_msgs.msg import PoseStamped
     from rclpy.serialization import deserialize_message
+    from visualization_msgs.msg import MarkerArray
 
     assert {"playbackControl", "time"} <= set(client.server["capabilities"])
     channel = client.channels[ma.OBJECT_POSE_TOPIC]
     assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
     assert "MSG: geometry_msgs/Point" in channel["schema"]
-    assert set(client.channels) == {ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC}
+    assert set(client.channels) == {ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIED_ACTION_TOPIC,
+                                    "/" + names.VIEW_MARKERS}
     client.subscribe(ma.OBJECT_POSE_TOPIC)
+    client.subscribe("/" + names.VIEW_MARKERS, 2)
     client.read(0.5)
     assert client.messages == []  # it starts paused
 
@@ -115,6 +126,14 @@ def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:
         xy = next(p for t, p in poses if t == log_time)
         assert ma.object_xy_mm(msg).tolist() == xy.tolist()
     assert [t for t, _ in heard] == [t for t, _ in poses[:len(heard)]]  # in order, from the first
+
+    # The scene's markers, drawn at each step: the object where the bag has it at that step.
+    markers = [(t, deserialize_message(data, MarkerArray)) for _, t, data in client.others]
+    assert len(markers) >= 10
+    for log_time, array in markers:
+        obj = next(m for m in array.markers if m.ns == "object")
+        xy = next(p for t, p in poses if t <= log_time and log_time - t < CONTROL_PERIOD_NS)  # the step's pose
+        assert (obj.pose.position.x * 1000, obj.pose.position.y * 1000) == pytest.approx(xy.tolist(), abs=1e-3)
 
     client.control(PAUSE, speed=4.0, request_id="pause")
     client.read(0.3)

@@ -49,7 +49,7 @@ def _snapshot(args: argparse.Namespace) -> int:
 def _serve_bag(args: argparse.Namespace) -> int:
     from t42_transfer.view.bag_server import serve_bag
 
-    return serve_bag(args.bag, host=args.host, port=args.port)
+    return serve_bag(args.bag, host=args.host, port=args.port, hand=args.hand, tolerance_mm=args.tolerance)
 
 
 def _live(args: argparse.Namespace) -> int:

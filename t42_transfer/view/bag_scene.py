@@ -3,8 +3,10 @@ planned path at or before that time (topics matched by their relative names unde
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rosbags.highlevel import AnyReader
@@ -34,10 +36,11 @@ _READERS = {
 }
 
 
-def _field_of(topic: str) -> str | None:
-    for name, (field, _) in _READERS.items():
+def input_reader(topic: str) -> tuple[str, Callable[[Any], Any]] | None:
+    """(the :class:`SceneInputs` field, its message reader) of a bag topic that feeds the scene, else None."""
+    for name, reading in _READERS.items():
         if topic == "/" + name or topic.endswith("/" + name):
-            return field
+            return reading
     return None
 
 
@@ -50,13 +53,13 @@ def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
     inputs = SceneInputs()
     try:
         with AnyReader([path], default_typestore=ma.TYPESTORE) as reader:
-            wanted = [c for c in reader.connections if _field_of(c.topic)]
+            wanted = [c for c in reader.connections if input_reader(c.topic)]
             until = None if at_s is None else reader.start_time + round(at_s * 1e9)
             for conn, log_ns, raw in reader.messages(connections=wanted):
                 if until is not None and log_ns > until:
                     break
-                field = _field_of(conn.topic)
-                value = dict(_READERS.values())[field](reader.deserialize(raw, conn.msgtype))
+                field, read = input_reader(conn.topic)
+                value = read(reader.deserialize(raw, conn.msgtype))
                 if value is not None:
                     setattr(inputs, field, value)
                     inputs.log_ns = log_ns

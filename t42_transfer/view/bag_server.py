@@ -3,9 +3,11 @@
 Each bag topic is a channel (``cdr``, the ``ros2msg`` definition the bag stores, else the one this machine knows);
 messages go out as the bag holds them, at their log times (the server's time follows them), paced by a
 :class:`~t42_transfer.nodes.player.Timeline`.  The server advertises the bag's time range and the PlaybackControl
-capability: the Foxglove app's play/pause button, speed and seek bar drive it.  Playback starts paused at the
-bag's first message; at the end it reports Ended and waits (a seek or play starts it again).  No ROS graph: the
-bag is read with rosbags.
+capability: the Foxglove app's play/pause button, speed and seek bar drive it.  ``/view/markers`` is added, drawn as
+the live view draws it from the bag's hand topics (and its goals and planned paths, when it holds them), one
+array at each step's joint state.  Playback starts paused at the bag's first message; at the end it reports Ended
+and waits (a seek or play starts it again).  No ROS graph: the bag is read with rosbags (rclpy only serialises the
+markers).
 """
 
 from __future__ import annotations
@@ -24,12 +26,18 @@ from foxglove.websocket import (
     PlaybackState,
     PlaybackStatus,
 )
+from rclpy.serialization import serialize_message
 from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
+from msg_adapters import names
+from msg_adapters.markers import MARKER_ARRAY, scene_markers
 from msg_adapters.schemas import message_definition
 from t42_transfer.data.errors import BagError
+from t42_transfer.hand.params import variant
 from t42_transfer.nodes.player import Timeline
+from t42_transfer.view.bag_scene import SceneInputs, input_reader
+from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
 
 _IDLE_S = 0.05
 """Longest wait between looks at the controls while paused or ahead of time."""
@@ -47,7 +55,8 @@ def _schema(conn: Any) -> foxglove.Schema:
 class BagServer:
     """Serves one bag until :meth:`close`; ``port`` 0 picks a free port (:attr:`port`)."""
 
-    def __init__(self, bag: str | Path, host: str = "127.0.0.1", port: int = 8765) -> None:
+    def __init__(self, bag: str | Path, host: str = "127.0.0.1", port: int = 8765, hand: str = "target",
+                 tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> None:
         path = Path(bag)
         if not path.exists():
             raise BagError(path, "does not exist")
@@ -63,6 +72,12 @@ class BagServer:
         self._context = foxglove.Context()
         self._channels = {c.id: foxglove.Channel(c.topic, schema=_schema(c), message_encoding="cdr",
                                                  context=self._context) for c in self._reader.connections}
+        self._hand, self._tolerance_mm = variant(hand), float(tolerance_mm)
+        self._inputs = SceneInputs()
+        markers_schema = foxglove.Schema(name=MARKER_ARRAY, encoding="ros2msg",
+                                         data=message_definition(MARKER_ARRAY).encode())
+        self._markers = foxglove.Channel("/" + names.VIEW_MARKERS, schema=markers_schema, message_encoding="cdr",
+                                         context=self._context)
         self._cond = threading.Condition()
         self._timeline = Timeline(self.start_ns, 1.0, paused=True)
         self._seek_to: int | None = self.start_ns
@@ -110,7 +125,7 @@ class BagServer:
                 if self._seek_to is not None:
                     at, self._seek_to, self._ended = self._seek_to, None, False
                     self._timeline.restart(at, time.monotonic_ns())  # paused or playing, from ``at``
-                    messages, last_time = self._reader.messages(start=at), None
+                    messages, last_time, self._inputs = self._reader.messages(start=at), None, SceneInputs()
                     self.server.broadcast_time(at)
                 if self._ended or messages is None:
                     self._cond.wait(_IDLE_S)
@@ -126,9 +141,27 @@ class BagServer:
                 continue  # a seek (or stop) came first: handled above
             self._channels[conn.id].log(bytes(raw), log_time=log_ns)
             self.sent += 1
+            self._draw(conn, log_ns, raw)
             if last_time is None or log_ns - last_time >= _TIME_EVERY_NS:
                 self.server.broadcast_time(log_ns)
                 last_time = log_ns
+
+    def _draw(self, conn: Any, log_ns: int, raw: bytes) -> None:
+        """Take in a message that feeds the scene; at each step's joint state, log the scene's markers."""
+        reading = input_reader(conn.topic)
+        if reading is None:
+            return
+        field, read = reading
+        try:
+            setattr(self._inputs, field, read(self._reader.deserialize(raw, conn.msgtype)))
+            if field != "actuator_angles":
+                return
+            i = self._inputs
+            scene = build_scene(self._hand, actuator_angles=i.actuator_angles, object_xy_mm=i.object_xy_mm,
+                                goal_xy_mm=i.goal_xy_mm, tolerance_mm=self._tolerance_mm, path_xy_mm=i.path_xy_mm)
+        except ValueError:  # a message the scene cannot use (another frame, NaN): the picture waits for the next
+            return
+        self._markers.log(serialize_message(scene_markers(scene, log_ns, ma.RCLPY)), log_time=log_ns)
 
     def _wait_until(self, log_ns: int) -> bool:
         """Wait until ``log_ns`` is due; False when a seek or stop came first (the message is not sent)."""
@@ -158,11 +191,12 @@ class _Controls(foxglove.websocket.ServerListener):
         return self.bag.control(playback_control_request)
 
 
-def serve_bag(bag: str | Path, host: str = "127.0.0.1", port: int = 8765) -> int:
+def serve_bag(bag: str | Path, host: str = "127.0.0.1", port: int = 8765, hand: str = "target",
+              tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> int:
     """``t42 view --bag``: serve ``bag`` until Ctrl-C (or SIGTERM); exit code 0."""
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    server = BagServer(bag, host=host, port=port)
+    server = BagServer(bag, host=host, port=port, hand=hand, tolerance_mm=tolerance_mm)
     try:
         span = (server.end_ns - server.start_ns) / 1e9
         print(f"serving {server.path} ({len(server._channels)} topics, {span:.1f} s) on ws://{host}:{server.port}; "
