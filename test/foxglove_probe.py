@@ -56,8 +56,8 @@ def ws_protocol_dir() -> Path | None:
     if not module.is_file():
         folder.mkdir(parents=True, exist_ok=True)
         try:
-            subprocess.run([npm, "install", "--prefix", str(folder), "--no-audit", "--no-fund", WS_PROTOCOL],
-                           check=True, capture_output=True, timeout=180)
+            subprocess.run([npm, "install", "--prefix", str(folder), "--no-audit", "--no-fund", "--fetch-retries=1",
+                            "--fetch-timeout=20000", WS_PROTOCOL], check=True, capture_output=True, timeout=120)
         except (subprocess.SubprocessError, OSError):
             return None
     check = subprocess.run([node, "--experimental-websocket", "-e", "require('@foxglove/ws-protocol')"],

@@ -135,13 +135,14 @@ def test_t42_view_runs_the_node_until_ctrl_c(ros_domain, tmp_path):
     log = tmp_path / "view.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-u", "-m", "t42_transfer.cli", "view", "--port", "0",
-                                 "--tolerance", "3"], cwd=REPO, stdout=out, stderr=subprocess.STDOUT)
+                                 "--tolerance", "3", "--ros-args", "-r", "__ns:=/left"], cwd=REPO, stdout=out,
+                                stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 30
         while "Foxglove WebSocket server on ws://127.0.0.1:" not in log.read_text() and time.monotonic() < deadline:
             assert proc.poll() is None, log.read_text()
             time.sleep(0.2)
-        assert "ws://127.0.0.1:" in log.read_text()
+        assert "[left.view]: Foxglove WebSocket server on ws://127.0.0.1:" in log.read_text()  # its namespace
     finally:
         codes = stop([proc])
     assert codes == [0], log.read_text()

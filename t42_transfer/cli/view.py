@@ -91,5 +91,6 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     view.add_argument("--tolerance", type=float_arg(0.0, low_open=True), default=2.0, metavar="MM",
                       help="radius of the goal's circle (mm, default 2: the planner's)")
     view.add_argument("--path", type=Path, default=None, help="snapshot: planned path file, x,y (mm) a line")
-    view.add_argument("ros_args", nargs=argparse.REMAINDER, help="live view: --ros-args ... for the view node")
+    view.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[], metavar="ARG",
+                      help="live view: the rest are ROS arguments of the view node (-r __ns:=/left, -p name:=value)")
     view.set_defaults(func=_cmd_view)
