@@ -20,8 +20,13 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_typestore
 
+from msg_adapters.interfaces import register_interfaces
+
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-"""rosbags' Jazzy typestore: what bags are read into and written from."""
+"""rosbags' Jazzy typestore and the suite's own messages (``t42_interfaces/msg/...``,
+:mod:`msg_adapters.interfaces`): what bags are read into and written from."""
+INTERFACE_TYPES = register_interfaces(TYPESTORE)
+"""The ``t42_interfaces`` message types :data:`TYPESTORE` holds (empty when their files were not found)."""
 
 
 class MessageKit(ABC):
