@@ -81,7 +81,7 @@ GOAL = "t42/goal"
 PLANNED_PATH = "t42/planned_path"
 """nav_msgs/Path: the predicted object path of the plan being executed."""
 PLAN_RESULT = "t42/plan_result"
-"""std_msgs/String: one JSON line per goal (accepted, or refused with the reason)."""
+"""t42_interfaces/PlanResult (:data:`RESULTS`): one per goal (accepted, or refused with the status and reason)."""
 REACH = "t42/reach"
 """t42_interfaces/action/Reach: move the object to a goal, with feedback, cancel and a verdict (the planner)."""
 

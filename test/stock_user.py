@@ -25,6 +25,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from t42_interfaces.msg import PlanResult
 from trajectory_msgs.msg import JointTrajectory
 
 SUITE = ("mock_driver", "recorder", "transfer_server", "planner")
@@ -133,8 +134,8 @@ def transfer(user: User) -> dict:
     trajectories: list[JointTrajectory] = []
     paths: list[Path] = []
     statuses: list[String] = []
-    results: list[String] = []
-    user.create_subscription(String, user.name("t42/plan_result"), results.append, 10)
+    results: list[PlanResult] = []
+    user.create_subscription(PlanResult, user.name("t42/plan_result"), results.append, 10)
     user.create_subscription(String, user.name("hand/status"), statuses.append,
                              QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     user.create_subscription(PoseStamped, user.name("hand/object_pose"), poses.append, 10)
@@ -152,7 +153,7 @@ def transfer(user: User) -> dict:
     try:
         user.wait(lambda: trajectories and paths, 120.0, "a JointTrajectory and a Path")
     except TimeoutError as err:
-        raise TimeoutError(f"{err}; plan results: {[r.data for r in results]}") from None
+        raise TimeoutError(f"{err}; plan results: {[(r.status, r.reason) for r in results]}") from None
     out["trajectory"] = {"joint_names": list(trajectories[0].joint_names), "points": len(trajectories[0].points)}
     out["path"] = {"frame_id": paths[0].header.frame_id, "poses": len(paths[0].poses)}
     # the driver executes it: its status says when the last point is applied

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import json
 import math
 import threading
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,7 @@ from ros_rig import Rosout, Tester
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from t42_interfaces.msg import ModelUpdated
+from t42_interfaces.msg import PlanResult as PlanResultMsg
 from toys import Toy, ToyHand
 from trajectory_msgs.msg import JointTrajectory
 
@@ -34,6 +35,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_message,
 )
+from msg_adapters.plan_result import plan_result
 from msg_adapters.transfer import model_updated_msg
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
@@ -74,8 +76,10 @@ class Rig(Tester):
         super().__init__(ros)
         self.driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER}) if driver else None
         self.results: list[dict] = []
-        self.tester.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)),
-                                        10)
+        """Each t42/plan_result as a dict of :class:`~msg_adapters.plan_result.PlanResult`'s fields (mm)."""
+        self.messages: list[PlanResultMsg] = []
+        """The t42/plan_result messages as they came."""
+        self.tester.create_subscription(PlanResultMsg, names.PLAN_RESULT, self._on_result, 10)
         self.trajectories: list[JointTrajectory] = self.listen(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self.paths: list[PathMsg] = self.listen(PathMsg, names.PLANNED_PATH, 10)
         self.goal_pub = self.tester.create_publisher(PointStamped, names.GOAL, 10)
@@ -83,6 +87,10 @@ class Rig(Tester):
         self.setter = self.tester.create_client(SetParameters, "planner/set_parameters")
         self.planner: PlannerNode | None = None
         self.start_planner(model, **params)
+
+    def _on_result(self, msg: PlanResultMsg) -> None:
+        self.messages.append(msg)
+        self.results.append(asdict(plan_result(msg)))
 
     def start_planner(self, model: Path | str = "", **params: Any) -> None:
         self.planner = self.ros.add(PlannerNode, {"model": str(model), **params})
@@ -156,6 +164,11 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
     assert result["method"] == "toy" and result["samples_evaluated"] == 200 and result["planning_time_s"] > 0
     assert np.allclose(result["goal_mm"], goal) and np.allclose(result["start_mm"], START_XY, atol=0.5)
     assert result["predicted_error_mm"] <= 3.0
+    (msg,) = rig.messages  # on the wire: a t42_interfaces PlanResult in metres in t42_base, stamped when published
+    assert msg.header.frame_id == FRAME_ID and before <= stamp_to_ns(msg.header.stamp) <= rig.now_ns()
+    assert msg.has_goal and [msg.goal.x, msg.goal.y] == [v / 1000 for v in result["goal_mm"]]
+    assert msg.predicted_error_m == pytest.approx(result["predicted_error_mm"] / 1000)
+    assert before <= stamp_to_ns(msg.goal_stamp) <= stamp_to_ns(msg.header.stamp)  # the goal it answers
     assert ros.spin_until(lambda: rig.trajectories and rig.paths, 5.0)
     (traj,), (path,) = rig.trajectories, rig.paths
     steps = result["horizon"]
@@ -371,7 +384,8 @@ def test_works_under_a_namespace_with_remapped_names(ros) -> None:
     ros.add(PlannerNode, {"model": ""}, namespace="/left", cli_args=["--ros-args", "-r", "t42/goal:=aim"])
     tester = ros.node("ns_tester")
     results: list[dict] = []
-    tester.create_subscription(String, "/left/t42/plan_result", lambda m: results.append(json.loads(m.data)), 10)
+    tester.create_subscription(PlanResultMsg, "/left/t42/plan_result",
+                               lambda m: results.append(asdict(plan_result(m))), 10)
     goals = tester.create_publisher(PointStamped, "/left/aim", 10)
     assert ros.spin_until(lambda: goals.get_subscription_count() == 1
                           and tester.count_publishers("/left/t42/plan_result") == 1, 10.0)
@@ -524,8 +538,8 @@ def test_a_burst_of_2000_goals_gets_2000_results(ros, toy: Path) -> None:
     """Each goal is planned, superseded by a newer one, or refused, and says so (1645 of 2000 got nothing)."""
     rig = Rig(ros, toy, **SMALL)
     results: list[dict] = []
-    rig.tester.create_subscription(String, names.PLAN_RESULT, lambda m: results.append(json.loads(m.data)),
-                                   profile(names.RESULTS))
+    rig.tester.create_subscription(PlanResultMsg, names.PLAN_RESULT,
+                                   lambda m: results.append(asdict(plan_result(m))), profile(names.RESULTS))
     rig.tick()
     ros.spin_for(0.3)
     results.clear()

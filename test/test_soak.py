@@ -21,12 +21,12 @@ test/test_soak.py``.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import subprocess
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -145,10 +145,11 @@ def test_soak_nothing_lost_nothing_leaks_nothing_restarts(tmp_path: Path, source
     from geometry_msgs.msg import PointStamped, PoseStamped
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
-    from std_msgs.msg import String
     from std_srvs.srv import Trigger
+    from t42_interfaces.msg import PlanResult
 
     from msg_adapters import RCLPY, goal_msg, names, object_xy_mm, stamp_to_ns
+    from msg_adapters.plan_result import plan_result
 
     minutes = soak_minutes()
     work = tmp_path / "work"
@@ -170,7 +171,7 @@ def test_soak_nothing_lost_nothing_leaks_nothing_restarts(tmp_path: Path, source
 
     probe.create_subscription(PoseStamped, names.OBJECT_POSE, on_pose, 100)
     results: list[dict[str, Any]] = []
-    probe.create_subscription(String, names.PLAN_RESULT, lambda m: results.append(json.loads(m.data)), deep)
+    probe.create_subscription(PlanResult, names.PLAN_RESULT, lambda m: results.append(asdict(plan_result(m))), deep)
     goal_pub = probe.create_publisher(PointStamped, names.GOAL, 100)
     transfer_client = probe.create_client(Trigger, names.TRANSFER_NOW)
     reset_client = probe.create_client(Trigger, names.HAND_RESET)

@@ -6,9 +6,9 @@ the story waits on what it has seen.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
+from dataclasses import asdict
 from typing import Any
 
 import numpy as np
@@ -21,9 +21,10 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from t42_interfaces.msg import ModelUpdated
+from t42_interfaces.msg import ModelUpdated, PlanResult
 
 from msg_adapters import names, object_xy_mm, path_xy_mm, stamp_to_ns, status_report
+from msg_adapters.plan_result import plan_result
 from msg_adapters.transfer import model_announcement
 from t42_transfer.demo.settings import SERVICES, TRANSFER_STATUS
 from t42_transfer.ros.qos import profile
@@ -64,7 +65,8 @@ class Operator(Node):
         self.create_subscription(PoseStamped, names.SIM_POSE, self._on_truth, 100)
         self.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data),
                                  profile(names.EVENTS))
-        self.create_subscription(String, names.PLAN_RESULT, lambda m: self.results.append(json.loads(m.data)), 10)
+        self.create_subscription(PlanResult, names.PLAN_RESULT, lambda m: self.results.append(asdict(plan_result(m))),
+                                 10)
         self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self.paths.append(path_xy_mm(m)), 10)
         self.create_subscription(ModelUpdated, names.MODEL_UPDATED,
                                  lambda m: self.models.append(model_announcement(m).path), profile(names.LATCHED))

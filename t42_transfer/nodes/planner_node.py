@@ -15,8 +15,10 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``t42/planned_path`` (nav_msgs/msg/Path): published with each trajectory; the
   predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
-* ``t42/plan_result`` (std_msgs/msg/String): exactly one JSON line per goal,
-  :class:`PlanResult`: accepted, or refused with a status code and a reason;
+* ``t42/plan_result`` (t42_interfaces/msg/PlanResult): exactly one per goal (``t42/goal`` and ``t42/reach``
+  alike), :class:`PlanResult` (:mod:`msg_adapters.plan_result`: metres in ``t42_base``): accepted, or refused
+  with a status code and a reason, with the goal and its stamp, the start, the predicted error, the plan's
+  steps, samples, planning time, model and method;
 * ``hand/status`` (std_msgs/msg/String): subscribed; the driver's ``trajectory_done`` says when a
   piece has run, its episode ends (``dropped``...) end an action goal;
 * ``t42/reach`` (t42_interfaces/action/Reach): served (:mod:`t42_transfer.nodes.reach`); a goal as on
@@ -87,6 +89,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from t42_interfaces.msg import ModelUpdated
+from t42_interfaces.msg import PlanResult as PlanResultMsg
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
@@ -101,6 +104,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_event,
 )
+from msg_adapters.plan_result import plan_result_msg
 from msg_adapters.reach import reach_request
 from msg_adapters.transfer import model_announcement
 from t42_transfer.conventions import (
@@ -207,7 +211,7 @@ class PlannerNode(Node):
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
-        self._result_pub = self.create_publisher(String, names.PLAN_RESULT, profile(names.RESULTS))
+        self._result_pub = self.create_publisher(PlanResultMsg, names.PLAN_RESULT, profile(names.RESULTS))
         model = str(file_in_namespace(self.params.model, self.get_namespace())) if self.params.model else ""
         if model and Path(model).exists():
             self.load(model)
@@ -590,4 +594,4 @@ class PlannerNode(Node):
                           f"predicted error {result.predicted_error_mm:.2f} mm")
         else:
             self.per_message.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
-        self._result_pub.publish(String(data=result.to_json()))
+        self._result_pub.publish(plan_result_msg(result, self._now_ns(), kit=RCLPY))

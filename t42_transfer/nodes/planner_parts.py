@@ -1,9 +1,9 @@
-"""The planner node's data and pure parts: what a goal's result says, refusals, the model with its workspace,
+"""The planner node's data and pure parts: what a goal's result says (:class:`PlanResult`, from
+:mod:`msg_adapters.plan_result`), refusals, the model with its workspace,
 and the hand state planned from (no rclpy here; :mod:`t42_transfer.nodes.planner_node` uses them)."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -11,39 +11,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msg_adapters import names
+from msg_adapters.plan_result import PlanResult
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
 
 if TYPE_CHECKING:
     from t42_transfer.nodes.reach import ReachRun
-
-
-@dataclass(frozen=True)
-class PlanResult:
-    """What became of one goal; published as one JSON line."""
-
-    accepted: bool
-    status: str
-    """``ok`` when accepted; else a planner status (``unreachable``, ``goal_outside_workspace``, ...) or
-    ``bad_goal``, ``no_model``, ``no_state``, ``stale_state``, ``superseded``, ``error``."""
-    reason: str
-    goal_mm: list[float] | None
-    """None when the goal message could not be read."""
-    goal_stamp_ns: int
-    start_mm: list[float] | None = None
-    predicted_error_mm: float | None = None
-    horizon: int = 0
-    """Steps of the plan (of the published trajectory when accepted)."""
-    samples_evaluated: int = 0
-    planning_time_s: float = 0.0
-    model: str = ""
-    method: str = ""
-    replan_every: int = 0
-    """0: the whole plan was sent; k: its first k steps, the rest replanned as they run."""
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), separators=(",", ":"))
 
 
 class Refused(Exception):
