@@ -5,9 +5,11 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
 * every topic of the graph (looked at every ``discovery_period_s``) as a channel named as the graph names it
   (``/hand/object_pose``), ``message_encoding`` ``cdr`` and a ``ros2msg`` schema of the full definition (as the
   recorder's bags hold it, :func:`msg_adapters.schemas.message_definition`); messages are the CDR bytes the node
-  received (a raw subscription), unchanged, logged at the graph's time.  A topic whose type is not installed
-  here, or has no definition, is left out with one warning.  Subscriptions match the publishers: TRANSIENT_LOCAL
-  when they all are (so a late client sees ``hand/status`` and the model announcements), BEST_EFFORT when one is;
+  received (a raw subscription), unchanged, logged at the graph's time.  A topic is read from the graph only
+  while a client subscribes to its channel (camera images cost nothing when nobody watches them), with a QoS
+  that matches the publishers then: TRANSIENT_LOCAL when they all are (so a late client sees ``hand/status``
+  and the model announcements), BEST_EFFORT when one is.  A topic whose type is not installed here, or has no
+  definition, is left out with one warning;
 * ``/clock`` as the server's time (the Time capability), so the app's clock is the driver's sim time;
 * ``view/markers`` (visualization_msgs/MarkerArray, also published on the graph for RViz): the scene of
   :mod:`t42_transfer.view.scene` from ``hand/joint_states``, ``hand/object_pose``, ``t42/goal`` and
@@ -31,7 +33,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import foxglove
@@ -95,7 +97,10 @@ class _Listener(foxglove.websocket.ServerListener):
         self.view = view
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
-        self.view.log.info(f"client {client.id} subscribed to {channel.topic}")
+        self.view.client_subscribed(client.id, channel.topic)
+
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
+        self.view.client_unsubscribed(client.id, channel.topic)
 
     def on_client_advertise(self, client: Client, channel: ClientChannel) -> None:
         self.view.client_advertised(client, channel)
@@ -126,6 +131,17 @@ def subscription_qos(publishers: list[Any]) -> QoSProfile:
                       reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE)
 
 
+@dataclass
+class _Offered:
+    """A graph topic offered to clients, read from the graph while one of them subscribes."""
+
+    channel: foxglove.Channel
+    msg_class: type
+    clients: set[int] = field(default_factory=set)
+    reader: Any = None
+    """The raw subscription while a client subscribes, else None."""
+
+
 class View(Node):
     """The Foxglove live view of the graph; see the module docstring."""
 
@@ -137,8 +153,8 @@ class View(Node):
         self.per_message = ThrottledLog(self.log)
         self.hand = variant(p.hand)
         self._lock = threading.Lock()
-        self._channels: dict[str, foxglove.Channel] = {}
-        """Offered graph topic -> its Foxglove channel."""
+        self._channels: dict[str, _Offered] = {}
+        """Offered graph topic -> its Foxglove channel and reader."""
         self._skipped: set[str] = set()
         self._client_pubs: dict[tuple[int, int], Any] = {}
         """(client id, client channel id) -> the rclpy publisher its messages go out on, and their type."""
@@ -176,6 +192,12 @@ class View(Node):
         with self._lock:
             return sorted(self._channels)
 
+    @property
+    def reading(self) -> list[str]:
+        """Graph topics read now (a client subscribes to their channels)."""
+        with self._lock:
+            return sorted(t for t, offered in self._channels.items() if offered.reader is not None)
+
     # ------------------------------------------------------------------ graph topics -> channels
     def now_ns(self) -> int:
         """The graph's time: the newest /clock when there is one, else the wall clock."""
@@ -201,11 +223,36 @@ class View(Node):
         schema = foxglove.Schema(name=typename, encoding="ros2msg", data=message_definition(typename).encode())
         channel = foxglove.Channel(topic, schema=schema, message_encoding=CDR, context=self._foxglove)
         with self._lock:
-            self._channels[topic] = channel
-        qos = subscription_qos(self.get_publishers_info_by_topic(topic))
-        self.create_subscription(msg_class, topic, lambda data: channel.log(data, log_time=self.now_ns()), qos,
-                                 raw=True)
+            self._channels[topic] = _Offered(channel, msg_class)
         self.log.debug(f"offering {topic} ({typename})")
+
+    def client_subscribed(self, client_id: int, topic: str) -> None:
+        """A client's first subscription to a channel subscribes to its topic on the graph (a raw reader whose QoS
+        matches the publishers there now)."""
+        with self._lock:
+            offered = self._channels.get(topic)
+            if offered is None:
+                return
+            offered.clients.add(client_id)
+            if offered.reader is None:
+                channel = offered.channel
+                qos = subscription_qos(self.get_publishers_info_by_topic(topic))
+                offered.reader = self.create_subscription(
+                    offered.msg_class, topic, lambda data: channel.log(data, log_time=self.now_ns()), qos, raw=True)
+        self.log.info(f"client {client_id} subscribed to {topic}")
+
+    def client_unsubscribed(self, client_id: int, topic: str) -> None:
+        """The last client gone from a channel ends the graph subscription (nothing is read for no one)."""
+        with self._lock:
+            offered = self._channels.get(topic)
+            if offered is None:
+                return
+            offered.clients.discard(client_id)
+            reader = offered.reader if not offered.clients else None
+            if reader is not None:
+                offered.reader = None
+        if reader is not None:
+            self.destroy_subscription(reader)
 
     # ------------------------------------------------------------------ markers
     def _input(self, key: str, msg: Any) -> None:
