@@ -76,7 +76,7 @@ def _register(typename: str, seen: set[str]) -> None:
 
 
 def _nested_names(desc: object) -> list[str]:
-    """Message type names inside a rosbags field description (``(Nodetype.NAME, 'pkg/msg/T')``, arrays of them)."""
+    """Message type names inside a rosbags field description (a NAME node's ``package/msg/Type``, inside arrays too)."""
     found: list[str] = []
     if isinstance(desc, tuple):
         for part in desc:
