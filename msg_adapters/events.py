@@ -15,10 +15,15 @@ from msg_adapters.kit import RCLPY, MessageKit
 
 BAG_CLOSED_MSG = "t42_interfaces/msg/BagClosed"
 
+STOP = "stop"
+"""The reason of the bag a ``~/stop`` closed: the last bag of a recording."""
 WRITE_FAILED = "write_failed"
 """The reason of a bag closed because writing to it failed (a full disk) and its summary could still be written."""
 SHUTDOWN = "shutdown"
 """The reason of the bag open when the recorder closed (the node shut down)."""
+SNAPSHOT = "snapshot"
+"""The reason of a snapshot bag (the last seconds kept in memory, written on a trigger): its steps may be in the
+continuous bags too, so a reader that collects training data skips it."""
 
 
 class BagClosedEvent(NamedTuple):
@@ -34,7 +39,7 @@ class BagClosedEvent(NamedTuple):
     """Log time of its last message."""
     reason: str
     """``stop``, ``split`` (a service), the ``hand/status`` word that split it in episode mode (``reset``,
-    ``dropped``...), :data:`WRITE_FAILED` or :data:`SHUTDOWN`."""
+    ``dropped``...), :data:`WRITE_FAILED`, :data:`SHUTDOWN` or :data:`SNAPSHOT`."""
 
 
 def bag_closed_msg(event: BagClosedEvent, kit: MessageKit = RCLPY) -> Any:

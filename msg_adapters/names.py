@@ -58,6 +58,9 @@ RECORDER_PAUSE = "~/pause"
 """std_srvs/Trigger: drop incoming messages (counted), the bag kept open, after the step in progress."""
 RECORDER_RESUME = "~/resume"
 """std_srvs/Trigger: record again, into the same bag, from the next whole step."""
+RECORDER_SNAPSHOT = "~/snapshot"
+"""std_srvs/Trigger: write the steps of the last ``snapshot_s`` seconds as a bag (snapshot mode), as rosbag2's
+``~/snapshot``."""
 BAG_CLOSED = "recorder/bag_closed"
 """t42_interfaces/BagClosed (:data:`EVENTS`): a bag the recorder closed and finalised, with why; relative to the
 recorder's namespace, as rosbag2's ``events/write_split``."""

@@ -59,7 +59,7 @@ class Hand:
         self.clients = {name: self.node.create_client(Trigger, f"{rec_name}/{name}")
                         for name in ("start", "stop", "split")}
         self.sent: dict[str, list[bytes]] = {t: [] for t in HAND_TOPICS}
-        recorded = [self.pubs["/" + t] for t in recorder.params.topics]
+        recorded = [self.pubs["/" + t] for t in recorder.params.topics if "/" + t in self.pubs]
         assert ros.spin_until(lambda: all(p.get_subscription_count() for p in recorded)
                               and self.status_pub.get_subscription_count(), 10.0), "the recorder never matched"
 

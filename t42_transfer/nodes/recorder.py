@@ -2,12 +2,17 @@
 
 Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* the topics of ``params.topics`` (default ``hand/object_pose``,
+* the hand topics of ``params.topics`` (default ``hand/object_pose``,
   ``hand/joint_states``, ``hand/applied_action``; :data:`RECORDABLE` knows their
   types): subscribed raw with a ``params.queue_depth`` deep RELIABLE queue; each
   message's CDR bytes are written UNCHANGED, logged at its receive time (the
   node's ROS time), under the topic's fully resolved name (``/left/hand/object_pose``
   under namespace ``/left``), which :func:`t42_transfer.data.bag.read_bag` finds;
+* the typed events of ``params.topics`` (default both: ``t42/plan_result`` as t42_interfaces/msg/PlanResult,
+  ``t42/model_updated`` as ModelUpdated; :data:`EVENT_TOPICS`): subscribed raw, VOLATILE (the events as they
+  happen), written as ``hand/status`` is, their bytes unchanged, with their full ``ros2msg`` definitions in the
+  MCAP schema (:mod:`msg_adapters.interfaces`), so rosbags, mcap-ros2-support and Foxglove decode them without
+  this package; ``read_bag`` ignores them (they are no steps).  Leave them out of ``topics`` to record none;
 * ``~/start``, ``~/stop``, ``~/split`` (std_srvs/srv/Trigger): private names, as
   ``ros2 bag record``'s own services (``~/split_bagfile``...), so they are
   ``/recorder/start`` for the default node name and follow a renamed node
@@ -25,12 +30,16 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   episode), so the bag is readable when the event arrives.  ``messages``, and ``start``/``end`` (log times
   of its first and last message), ``reason``: ``stop``, ``split``, the status word that split it in episode
   mode (``reset``, ``dropped``...), ``write_failed`` (a full disk; only if the bag could still be
-  finalised) or ``shutdown``.  A relative name, as rosbag2's ``events/write_split``;
-* ``hand/status`` (std_msgs/msg/String): written into the open bag as it comes
+  finalised), ``shutdown`` or ``snapshot``.  A relative name, as rosbag2's ``events/write_split``;
+* ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes
   (a driver's ``late`` word there tells a reader that a step came late and none is
   missing); in ``mode="episode"`` a status whose first word is in
   ``params.split_on`` also splits the bag, so each bag holds one episode (see
-  "Steps" for where).
+  "Steps" for where).  Statuses and events go only into a bag that holds a step
+  (:mod:`~t42_transfer.nodes.recorder_loose`);
+* ``~/snapshot`` (std_srvs/srv/Trigger), snapshot mode (``snapshot_s`` > 0, rosbag2's ``--snapshot-mode``): the
+  whole steps of the last ``snapshot_s`` seconds are kept in memory and written as a bag in
+  ``out_dir/snapshots`` on the service or a ``snapshot_on`` status (:mod:`~t42_transfer.nodes.recorder_snapshot`).
 
 Steps.  A control step is the state (object pose and joint states) and the action
 applied from it, all with ONE header stamp (the mock driver's and the bag
@@ -101,19 +110,25 @@ from t42_interfaces.msg import BagClosed
 
 from msg_adapters import (
     RCLPY,
-    STRING,
     TYPESTORE,
     diagnostic_array,
-    last_step_stamp,
     names,
     rclpy_class,
     stamp_to_ns,
-    status_event,
 )
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
-from t42_transfer.nodes.recorder_params import RECORDABLE, Announcer, Change, RecorderParams, next_bag_path
+from t42_transfer.nodes.recorder_loose import LooseMessages
+from t42_transfer.nodes.recorder_params import (
+    EVENT_TOPICS,
+    RECORDABLE,
+    Announcer,
+    Change,
+    RecorderParams,
+    next_bag_path,
+)
+from t42_transfer.nodes.recorder_snapshot import Snapshots
 from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams
@@ -128,7 +143,7 @@ STATUS_NAME = "t42_transfer: recorder"
 
 
 # --------------------------------------------------------------------------- the node
-class Recorder(Node):
+class Recorder(LooseMessages, Node):
     """Records the hand topics into bags at step boundaries; see the module docstring."""
 
     def __init__(self, **node_kwargs: Any) -> None:
@@ -182,10 +197,16 @@ class Recorder(Node):
         """Resolved topic -> type."""
         for name in p.topics:
             msgtype, topic = RECORDABLE[name], self.resolve_topic_name(name)  # namespace and remapping applied
+            if name in EVENT_TOPICS:  # as they come: VOLATILE, so any reliable publisher matches
+                self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_event, topic, msgtype),
+                                         profile(names.EVENT_READER), raw=True)
+                continue
             self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_message, topic, msgtype), qos,
                                      raw=True)
             self._types[topic] = msgtype
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
+        self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log)
+        """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
@@ -195,6 +216,8 @@ class Recorder(Node):
         self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split), qos_profile=requests)
         self.create_service(Trigger, names.RECORDER_PAUSE, partial(self._answer, self.pause), qos_profile=requests)
         self.create_service(Trigger, names.RECORDER_RESUME, partial(self._answer, self.resume), qos_profile=requests)
+        self.create_service(Trigger, names.RECORDER_SNAPSHOT, partial(self._answer, self.snapshot),
+                            qos_profile=requests)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
@@ -288,6 +311,14 @@ class Recorder(Node):
             return True, (f"resumed {bag}: {self.paused_dropped - self._paused_from} messages dropped while "
                           f"paused; recording from the first step after {until} ns")
 
+    def snapshot(self) -> tuple[bool, str]:
+        """Write the steps of the last ``snapshot_s`` seconds as a bag, after the step in progress; (success,
+        message)."""
+        with self._lock:
+            if self.snapshots.buffer is None:
+                return self.snapshots.take(None)  # off: says so
+            return self._request("snapshot", self._buffer.latest_stamp)
+
     def _in_pause(self, stamp: int) -> bool:
         return self._pause is not None and stamp > self._pause[0] and (self._pause[1] is None
                                                                        or stamp <= self._pause[1])
@@ -351,6 +382,8 @@ class Recorder(Node):
 
     def _change(self, change: Change) -> tuple[bool, str]:
         """Carry out ``change``: (whether every close and open it took worked, what happened)."""
+        if change.kind == "snapshot":
+            return self.snapshots.take(change.after, change.word)
         if change.kind == "start":
             return self._open_bag()
         if change.kind == "stop":
@@ -443,6 +476,7 @@ class Recorder(Node):
     def _write_steps(self, steps: list[Step]) -> None:
         for step in steps:
             self._carry_out(step.stamp)
+            self.snapshots.add_step(step)
             bag = self._bag
             if bag is None:
                 if self.write_failure is not None:
@@ -509,59 +543,6 @@ class Recorder(Node):
             except Exception as err:
                 self.log.error(f"could not write waiting steps: {err!r}")
 
-    def _on_status(self, data: bytes) -> None:
-        try:
-            try:
-                text = TYPESTORE.deserialize_cdr(data, STRING).data
-            except Exception as err:
-                self.per_message.warning(f"ignored a message on {names.HAND_STATUS}: "
-                                         f"not a {STRING} ({type(err).__name__}: {err})")
-                return
-            if self.paused:  # neither written nor splitting
-                self.paused_dropped += 1
-                return
-            self._write_status(bytes(data))
-            if self.params.mode != "episode":
-                return
-            event = status_event(str(text))
-            if event not in self.params.split_on:
-                return
-            with self._lock:
-                if self._closed or not self._will_record:
-                    return
-                after = last_step_stamp(str(text))  # the driver says where the border is
-                if after is not None and (self._first_stamp is None or after < self._first_stamp):
-                    return  # a border before anything recorded (the history a late joiner hears)
-                waiting = [c.after for c in self._changes if c.kind == "episode"]
-                # one split per episode border: a reset right after an end status names the same last step
-                # (a driver that names none: no second split while one waits)
-                if (after in waiting) if after is not None else waiting:
-                    return
-                if after is None:  # a driver that does not: the newest step heard (or, at an end, now)
-                    after = self._buffer.latest_stamp
-                    if event in names.END_EVENTS:  # the final state may still be on its way: stamped before now
-                        now = self.get_clock().now().nanoseconds
-                        after = now if after is None else max(now, after)
-                self._request("episode", after, f"status {event!r}", event)
-        except Exception as err:  # never raise from a callback
-            self.log.error(f"could not handle a message on {names.HAND_STATUS}: {err!r}")
-
-    def _write_status(self, data: bytes) -> None:
-        """A status goes into the open bag as it came: a reader learns from it which steps were late, not lost.
-
-        Only into a bag that holds steps: a status has no step to qualify before the first one, and a bag of
-        statuses alone would count as holding messages (episode mode splits only those)."""
-        with self._lock:
-            bag = self._bag
-            if bag is None or bag.count == 0 or self._closed:
-                return
-            try:
-                log_ns = self.get_clock().now().nanoseconds
-                bag.write(self._status_topic, log_ns, data, STRING)
-                self._spanned(log_ns)
-            except OSError as err:  # a full disk: stop writing, say so once
-                self._write_failed(bag.path, err)
-
     # ------------------------------------------------------------------ services, params
     def _answer(self, action: Any, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
@@ -586,6 +567,7 @@ class Recorder(Node):
             with self._lock:
                 self._buffer.hold_s = new.step_hold_s
         with self._lock:
+            self.snapshots.configure(new)
             self._buffer.min_age_s = self._status_lag_s(new)
             self._hold_timer.timer_period_ns = round(new.step_hold_s / 2 * 1e9)
             self._hold_timer.reset()

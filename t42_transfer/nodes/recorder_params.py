@@ -13,11 +13,20 @@ from typing import Any
 
 from msg_adapters import HAND_TOPICS, names
 from msg_adapters.events import BagClosedEvent, bag_closed_msg
+from msg_adapters.plan_result import PLAN_RESULT_MSG
+from msg_adapters.transfer import MODEL_UPDATED_MSG
 from t42_transfer.data.bag import read_bag
 from t42_transfer.ros.params import param
 
-RECORDABLE = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
-"""Relative names the recorder knows the types of (every one has a header stamp)."""
+STEP_TOPICS = {topic.lstrip("/"): msgtype for topic, msgtype in HAND_TOPICS.items()}
+"""The hand topics, relative names: header-stamped, grouped into whole steps."""
+EVENT_TOPICS = {names.PLAN_RESULT: PLAN_RESULT_MSG, names.MODEL_UPDATED: MODEL_UPDATED_MSG}
+"""The suite's typed events (``t42_interfaces``), relative names: written as they come, as ``hand/status``."""
+RECORDABLE = {**STEP_TOPICS, **EVENT_TOPICS}
+"""Relative names the recorder knows the types of: the default of ``topics``."""
+SNAPSHOT_DIR = "snapshots"
+"""Where snapshot bags go, under ``out_dir``: not among the continuous bags a transfer reads (their steps are
+there already)."""
 
 MODES = ("recording", "episode")
 
@@ -37,8 +46,10 @@ class RecorderParams:
                                    "episode: also split on hand/status events (one bag per episode)")
     prefix: str | None = param(None, "bag name prefix (unset: the mode, e.g. episode_000)")
     start_immediately: bool = param(True, "open the first bag at start (else wait for ~/start)", read_only=True)
-    topics: tuple[str, ...] = param(tuple(RECORDABLE), "recorded topics, relative names (remap to rename): "
-                                    + ", ".join(RECORDABLE), read_only=True)
+    topics: tuple[str, ...] = param(tuple(RECORDABLE), "recorded topics, relative names (remap to rename): the "
+                                    "hand's, written as whole steps (" + ", ".join(STEP_TOPICS) + "), and typed "
+                                    "events, written as they come (" + ", ".join(EVENT_TOPICS) + "); hand/status "
+                                    "is always recorded", read_only=True)
     split_on: tuple[str, ...] = param(names.SPLIT_EVENTS, "hand/status first words that split the bag in episode mode")
     flush_period_s: float = param(1.0, "the open chunk reaches the file this often: at most this much "
                                        "recording is lost when the process is killed", min=1e-3, max=3600.0)
@@ -47,6 +58,13 @@ class RecorderParams:
     resume_free_mb: float = param(16.0, "after a write failed (a full disk), recording resumes by itself once "
                                         "out_dir's file system has this many MB free (or on ~/start)",
                                   min=0.0, max=1e6)
+    snapshot_s: float = param(0.0, "snapshot mode: keep the whole steps of the last this many seconds (by stamp) "
+                                   "in memory and write them as a bag in out_dir/snapshots on ~/snapshot or a "
+                                   "snapshot_on status; 0: off", min=0.0, max=3600.0)
+    snapshot_on: tuple[str, ...] = param(names.SPLIT_EVENTS, "hand/status first words that write a snapshot "
+                                                           "(once per episode border); empty: only ~/snapshot")
+    snapshot_max_mb: float = param(256.0, "the snapshot buffer holds at most this many MB of messages (the oldest "
+                                          "steps go first)", min=0.001, max=1e5)
     queue_depth: int = param(1000, "KEEP_LAST depth of each recorded subscription: messages it holds while "
                                    "the node is busy", read_only=True, min=1, max=1_000_000)
 
@@ -61,6 +79,14 @@ class RecorderParams:
         if unknown:
             raise ValueError(f"topics {unknown} are not recordable; topics are relative names among "
                              f"{', '.join(RECORDABLE)} (remap them to record other names)")
+        if not any(t in STEP_TOPICS for t in self.topics):
+            raise ValueError(f"topics must name a hand topic ({', '.join(STEP_TOPICS)}): events are written only "
+                             f"beside steps, got {list(self.topics)}")
+        for name, value in (("snapshot_s", self.snapshot_s), ("snapshot_max_mb", self.snapshot_max_mb)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if self.snapshot_max_mb < 0.001:
+            raise ValueError(f"snapshot_max_mb must be at least 0.001, got {self.snapshot_max_mb!r}")
         if len(set(self.topics)) != len(self.topics):
             raise ValueError(f"topics must not repeat, got {list(self.topics)}")
         for name, value in (("flush_period_s", self.flush_period_s), ("step_hold_s", self.step_hold_s)):

@@ -27,11 +27,11 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from msg_adapters.events import SNAPSHOT
 from t42_transfer.data.bag.steps import Step
 from t42_transfer.data.bag.writer import BagWriter
 
-SNAPSHOT = "snapshot"
-"""The reason of a snapshot bag's ``recorder/bag_closed`` event, and its default name prefix."""
+__all__ = ["SNAPSHOT", "Loose", "Snapshot", "SnapshotBuffer", "wants_snapshot", "write_snapshot"]
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,109 @@
+"""The recorder's messages written as they come, not grouped into steps: ``hand/status`` (whose words also split
+bags in episode mode and trigger snapshots) and the typed events of ``topics`` (``t42/plan_result``,
+``t42/model_updated``).  A part of :class:`~t42_transfer.nodes.recorder.Recorder` (a mixin: it uses the node's
+bag, lock, step buffer and snapshots), kept apart to keep modules short; see that module's docstring."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from msg_adapters import STRING, TYPESTORE, last_step_stamp, names, status_event
+
+
+class LooseMessages:
+    """``hand/status`` and the typed events, as the recorder handles them (see the module docstring)."""
+
+    _bag: Any
+    _buffer: Any
+    _changes: Any
+    _closed: bool
+    _first_stamp: int | None
+    _lock: Any
+    _status_topic: str
+    _will_record: bool
+    dropped: int
+    log: Any
+    paused_dropped: int
+    per_message: Any
+    snapshots: Any
+
+    def _on_status(self, data: bytes) -> None:
+        try:
+            try:
+                text = str(TYPESTORE.deserialize_cdr(data, STRING).data)
+            except Exception as err:
+                self.per_message.warning(f"ignored a message on {names.HAND_STATUS}: "
+                                         f"not a {STRING} ({type(err).__name__}: {err})")
+                return
+            if self.paused:  # neither written nor splitting
+                self.paused_dropped += 1
+                return
+            self._write_loose(self._status_topic, bytes(data), STRING)
+            event, after = status_event(text), last_step_stamp(text)  # the driver says where the border is
+            episode = self.params.mode == "episode" and event in self.params.split_on
+            if not episode and self.snapshots.buffer is None:
+                return
+            with self._lock:
+                if self._closed or (after is not None and (self._first_stamp is None or after < self._first_stamp)):
+                    return  # a border before anything recorded (the history a late joiner hears)
+                if self.snapshots.due(event, after, [c.after for c in self._changes if c.kind == "snapshot"]):
+                    self._request("snapshot", self._border(event, after), f"status {event!r}", event)
+                if not episode or not self._will_record:
+                    return
+                waiting = [c.after for c in self._changes if c.kind == "episode"]
+                # one split per episode border: a reset right after an end status names the same last step
+                # (a driver that names none: no second split while one waits)
+                if (after in waiting) if after is not None else waiting:
+                    return
+                self._request("episode", self._border(event, after), f"status {event!r}", event)
+        except Exception as err:  # never raise from a callback
+            self.log.error(f"could not handle a message on {names.HAND_STATUS}: {err!r}")
+
+    def _border(self, event: str, after: int | None) -> int | None:
+        """The last step before a status's border: the one it names, else the newest step heard (or, at an end,
+        now: the final state may still be on its way, stamped before now)."""
+        if after is not None:
+            return after
+        after = self._buffer.latest_stamp
+        if event in names.END_EVENTS:
+            now = self.get_clock().now().nanoseconds
+            after = now if after is None else max(now, after)
+        return after
+
+    def _on_event(self, topic: str, msgtype: str, data: bytes) -> None:
+        """A typed event (``t42/plan_result``...): written as it comes, as a status."""
+        try:
+            try:
+                TYPESTORE.deserialize_cdr(data, msgtype)
+            except Exception as err:  # the decoder raises whatever it trips over
+                self.dropped += 1
+                self.per_message.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
+                                         f"({type(err).__name__}: {err})")
+                return
+            if self.paused:
+                self.paused_dropped += 1
+                return
+            self._write_loose(topic, bytes(data), msgtype)
+        except Exception as err:  # never raise from a callback
+            self.dropped += 1
+            self.log.error(f"could not record a message on {topic}: {err!r}")
+
+    def _write_loose(self, topic: str, data: bytes, msgtype: str) -> None:
+        """A status or an event goes into the open bag as it came (a reader learns from a status which steps were
+        late, not lost), and into the snapshot buffer.
+
+        Only into a bag that holds steps: a status has no step to qualify before the first one, and a bag of
+        statuses alone would count as holding messages (episode mode splits only those)."""
+        with self._lock:
+            if self._closed:
+                return
+            log_ns = self.get_clock().now().nanoseconds
+            self.snapshots.add_loose(topic, log_ns, data, msgtype)
+            bag = self._bag
+            if bag is None or bag.count == 0:
+                return
+            try:
+                bag.write(topic, log_ns, data, msgtype)
+                self._spanned(log_ns)
+            except OSError as err:  # a full disk: stop writing, say so once
+                self._write_failed(bag.path, err)
