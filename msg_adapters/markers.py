@@ -3,7 +3,8 @@
 The scene is plain data (:class:`SceneLike`: :class:`t42_transfer.view.scene.Scene` is one), millimetres in
 ``FRAME_ID``; the markers are in metres (REP 103) on the plane z = 0.  The array starts with a ``DELETEALL``, so a
 viewer forgets what the previous array drew (a goal reached and gone, a shorter path).  Namespaces: ``hand``
-(fingers and palm), ``object``, ``goal`` (a dot and the tolerance circle), ``path`` (the planned path),
+(fingers and palm), ``object``, ``goal`` (a dot and the tolerance circle; red, with the planner's status word,
+when it refused the goal), ``path`` (the planned path),
 ``candidates`` (the planner's other rollouts).  Built with rclpy's classes by default: rosbags' need every
 field of the Marker's textures and meshes.
 """
@@ -27,6 +28,7 @@ COLORS: dict[str, tuple[float, float, float, float]] = {
     "palm": (0.35, 0.37, 0.42, 1.0),
     "object": (0.85, 0.55, 0.2, 0.9),
     "goal": (0.1, 0.75, 0.2, 1.0),
+    "refused": (0.85, 0.1, 0.1, 1.0),
     "path": (0.15, 0.35, 0.95, 1.0),
     "candidates": (0.6, 0.3, 0.8, 0.35),
 }
@@ -38,7 +40,9 @@ GOAL_DOT_MM = 3.0
 LINE_MM = {"path": 1.5, "goal": 0.8, "candidates": 0.8, "palm": 1.5}
 """Line widths (mm) of the thin parts; a finger is drawn as wide as its links."""
 _M_PER_MM = 0.001
-DELETEALL, LINE_STRIP, CYLINDER, SPHERE = 3, 4, 3, 2
+DELETEALL, LINE_STRIP, CYLINDER, SPHERE, TEXT_VIEW_FACING = 3, 4, 3, 2, 9
+TEXT_MM = 6.0
+"""Height of the refusal's text."""
 ADD = 0
 
 
@@ -54,6 +58,7 @@ class SceneLike(Protocol):
     tolerance_mm: float
     path_xy_mm: np.ndarray | None
     candidates: Sequence[np.ndarray]
+    goal_refused: str
 
 
 def circle_xy(centre_mm: Sequence[float], radius_mm: float, n: int = CIRCLE_POINTS) -> np.ndarray:
@@ -98,10 +103,15 @@ def scene_markers(scene: SceneLike, stamp_ns: int, kit: MessageKit = RCLPY) -> A
         markers.append(_marker(kit, header, "object", 0, CYLINDER, "object", position=_point(kit, scene.object_xy_mm),
                                size_mm=(diameter, diameter, 10.0)))
     if scene.goal_xy_mm is not None:
-        markers.append(_marker(kit, header, "goal", 0, SPHERE, "goal", position=_point(kit, scene.goal_xy_mm),
+        part = "refused" if scene.goal_refused else "goal"
+        markers.append(_marker(kit, header, "goal", 0, SPHERE, part, position=_point(kit, scene.goal_xy_mm),
                                size_mm=(GOAL_DOT_MM,) * 3))
-        markers.append(_strip(kit, header, "goal", 1, "goal", circle_xy(scene.goal_xy_mm, scene.tolerance_mm),
+        markers.append(_strip(kit, header, "goal", 1, part, circle_xy(scene.goal_xy_mm, scene.tolerance_mm),
                               LINE_MM["goal"]))
+        if scene.goal_refused:
+            above = (scene.goal_xy_mm[0], scene.goal_xy_mm[1] + scene.tolerance_mm + TEXT_MM)
+            markers.append(_marker(kit, header, "goal", 2, TEXT_VIEW_FACING, part, position=_point(kit, above),
+                                   size_mm=(TEXT_MM,) * 3, text=f"refused: {scene.goal_refused}"))
     if scene.path_xy_mm is not None and len(scene.path_xy_mm) >= 2:
         markers.append(_strip(kit, header, "path", 0, "path", scene.path_xy_mm, LINE_MM["path"]))
     for i, candidate in enumerate(c for c in scene.candidates if len(c) >= 2):

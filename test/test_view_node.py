@@ -209,3 +209,35 @@ def test_a_client_reads_and_sets_the_nodes_parameters(ros, view):
     assert {p["name"]: p["value"] for p in set_bad["parameters"]} == {"/view.tolerance_mm": 4.0}  # refused, kept
     assert one["id"] == "one"
     assert [(p["name"], p["value"]) for p in one["parameters"]] == [("/left/hand_tool.gain", 2.5)]
+
+
+def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
+    from t42_interfaces.msg import PlanResult as PlanResultMsg
+
+    from msg_adapters.markers import COLORS
+    from msg_adapters.plan_result import PlanResult, plan_result_msg
+
+    tester = Tester(ros)
+    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
+    goal_pub = tester.tester.create_publisher(PointStamped, names.GOAL, 10)
+    result_pub = tester.tester.create_publisher(PlanResultMsg, names.PLAN_RESULT, 10)
+    assert tester.wait_graph(subscribers={names.GOAL: 1, names.PLAN_RESULT: 1}, publishers={names.VIEW_MARKERS: 1})
+
+    def goal_markers() -> dict[int, Any]:
+        return {m.id: m for m in markers[-1].markers if m.ns == "goal"} if markers else {}
+
+    def refusal(goal_mm, status):
+        return plan_result_msg(PlanResult(False, status, "why", list(goal_mm), T0_NS), T0_NS, ma.RCLPY)
+
+    goal_pub.publish(ma.goal_msg(GOAL_MM, T0_NS, ma.RCLPY))
+    assert ros.spin_until(lambda: 1 in goal_markers(), 5)
+    result_pub.publish(refusal((1.0, 2.0), "unreachable"))  # another goal's: not this one
+    result_pub.publish(refusal(GOAL_MM, "superseded"))  # replaced, not refused
+    ros.spin_for(0.5)
+    assert 2 not in goal_markers() and goal_markers()[1].color.r == pytest.approx(COLORS["goal"][0])
+    result_pub.publish(refusal(GOAL_MM, "goal_outside_workspace"))
+    assert ros.spin_until(lambda: 2 in goal_markers(), 5)
+    assert goal_markers()[2].text == "refused: goal_outside_workspace"
+    assert goal_markers()[1].color.r == pytest.approx(COLORS["refused"][0])
+    goal_pub.publish(ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY))  # a new goal: not refused (yet)
+    assert ros.spin_until(lambda: 2 not in goal_markers() and goal_markers()[0].pose.position.x < 0, 5)

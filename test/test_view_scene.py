@@ -212,3 +212,13 @@ def test_schemas_are_the_recorders_and_decode_our_own_types(tmp_path, small_set)
     assert (decoded.feedback.step, decoded.feedback.error_m) == (7, 0.0125)
     with pytest.raises(KeyError, match="no definition"):
         message_definition("no_such_msgs/msg/Nothing")
+
+
+def test_a_refused_goal_is_drawn_red_with_the_planners_word(tmp_path):
+    scene = build_scene(TARGET, goal_xy_mm=[20.0, 105.0], tolerance_mm=6.0, goal_refused="unreachable")
+    goal = [m for m in scene_markers(scene, 0).markers if m.ns == "goal"]
+    assert {(m.color.r, m.color.g, m.color.b) for m in goal} == {COLORS["refused"][:3]}
+    assert [m.text for m in goal if m.text] == ["refused: unreachable"]
+    image = imread(render(scene, tmp_path / "refused.png"))
+    assert _near(image, COLORS["refused"], *pixel_of(scene, [26.0, 105.0]))
+    assert _count(image, COLORS["goal"]) == 0

@@ -14,7 +14,8 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
 * ``view/markers`` (visualization_msgs/MarkerArray, also published on the graph for RViz): the scene of
   :mod:`t42_transfer.view.scene` from ``hand/joint_states``, ``hand/object_pose``, ``t42/goal`` and
   ``t42/planned_path`` (the plan's predicted path, published with each accepted plan), drawn with the links of
-  ``hand`` and a tolerance circle of ``tolerance_mm``; at most ``marker_rate_hz``, when something changed;
+  ``hand`` and a tolerance circle of ``tolerance_mm``, red with the planner's status word when ``t42/plan_result``
+  says it refused that goal; at most ``marker_rate_hz``, when something changed;
 * Parameters: every node's parameters, as ``/namespace/node.parameter``, read and set through the nodes'
   parameter services (:mod:`t42_transfer.nodes.view_params`); a node refuses a bad value as it would refuse
   ``ros2 param set``;
@@ -37,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import foxglove
+import numpy as np
 from foxglove.websocket import Capability, ChannelView, Client, ClientChannel
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
@@ -46,16 +48,19 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from t42_interfaces.msg import PlanResult as PlanResultMsg
 from visualization_msgs.msg import MarkerArray
 
 import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.markers import scene_markers
+from msg_adapters.plan_result import plan_result
 from msg_adapters.schemas import message_definition
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.view_params import GraphParameters
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.qos import profile
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
 
 LEFT_OUT = ("/parameter_events",)
@@ -160,6 +165,8 @@ class View(Node):
         """(client id, client channel id) -> the rclpy publisher its messages go out on, and their type."""
         self._clock_ns: int | None = None
         self._inputs: dict[str, Any] = {}
+        self._refused = ""
+        """The planner's status word when it refused the goal drawn, else empty."""
         self._dirty = False
         self._allowed = {self.resolve_topic_name(t) for t in p.client_topics}
         self.graph_parameters = GraphParameters(self)
@@ -175,6 +182,7 @@ class View(Node):
         self.create_subscription(PoseStamped, names.OBJECT_POSE, lambda m: self._input("pose", m), 10)
         self.create_subscription(PointStamped, names.GOAL, lambda m: self._input("goal", m), 10)
         self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self._input("path", m), 10)
+        self.create_subscription(PlanResultMsg, names.PLAN_RESULT, self._on_plan_result, profile(names.EVENT_READER))
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p.marker_rate_hz, self._draw, clock=steady)
         self.create_timer(p.discovery_period_s, self.discover, clock=steady)
@@ -257,7 +265,25 @@ class View(Node):
     # ------------------------------------------------------------------ markers
     def _input(self, key: str, msg: Any) -> None:
         self._inputs[key] = msg
+        if key == "goal":
+            self._refused = ""  # until the planner says otherwise
         self._dirty = True
+
+    def _on_plan_result(self, msg: Any) -> None:
+        """The planner's word on the goal drawn: refused (with its status) or not.  ``superseded`` is no refusal
+        of the goal drawn (a newer one, perhaps the same point sent again, replaced it)."""
+        goal = self._inputs.get("goal")
+        try:
+            result = plan_result(msg)
+            drawn = None if goal is None else ma.goal_xy_mm(goal)
+        except ValueError as err:
+            self.per_message.warning(f"plan result not used: {err}")
+            return
+        if drawn is None or result.goal_mm is None or result.status == names.SUPERSEDED:
+            return
+        if np.allclose(drawn, result.goal_mm, rtol=0.0, atol=1e-3):
+            self._refused = "" if result.accepted else result.status
+            self._dirty = True
 
     def scene(self) -> Any:
         """The scene of the newest inputs; ValueError for one that cannot be drawn (another frame, NaN)."""
@@ -266,7 +292,7 @@ class View(Node):
                            object_xy_mm=None if pose is None else ma.object_xy_mm(pose),
                            goal_xy_mm=None if goal is None else ma.goal_xy_mm(goal),
                            tolerance_mm=self.params.tolerance_mm,
-                           path_xy_mm=None if path is None else ma.path_xy_mm(path))
+                           path_xy_mm=None if path is None else ma.path_xy_mm(path), goal_refused=self._refused)
 
     def _draw(self) -> None:
         if not self._dirty:

@@ -174,6 +174,9 @@ class Scene:
     """The planned (predicted) object path ``[N, 2]``."""
     candidates: tuple[np.ndarray, ...] = field(default_factory=tuple)
     """Other rollouts the planner weighed (its top K), each ``[N, 2]``."""
+    goal_refused: str = ""
+    """The planner's status word when it refused the goal (``unreachable``...), drawn beside it; empty: not
+    refused (or not known)."""
 
 
 def hand_extent(params: HandParams) -> tuple[float, float, float, float]:
@@ -186,7 +189,7 @@ def hand_extent(params: HandParams) -> tuple[float, float, float, float]:
 def build_scene(hand: HandParams | str = "target", *, actuator_angles: Sequence[float] | None = None,
                 object_xy_mm: Sequence[float] | None = None, goal_xy_mm: Sequence[float] | None = None,
                 tolerance_mm: float = DEFAULT_TOLERANCE_MM, path_xy_mm: np.ndarray | None = None,
-                candidates: Sequence[np.ndarray] = ()) -> Scene:
+                candidates: Sequence[np.ndarray] = (), goal_refused: str = "") -> Scene:
     """The :class:`Scene` of one moment; ValueError names a bad input (NaN, wrong shape, a tolerance <= 0)."""
     params = variant(hand) if isinstance(hand, str) else hand
     if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
@@ -203,4 +206,5 @@ def build_scene(hand: HandParams | str = "target", *, actuator_angles: Sequence[
         tolerance_mm=float(tolerance_mm),
         path_xy_mm=_path("path", path_xy_mm),
         candidates=tuple(p for p in (_path("candidate", c) for c in candidates) if p is not None),
+        goal_refused=str(goal_refused),
     )

@@ -58,9 +58,12 @@ def render(scene: Scene, path: Path, px_per_mm: float = PX_PER_MM, title: str = 
     if scene.path_xy_mm is not None and len(scene.path_xy_mm):
         ax.plot(*scene.path_xy_mm.T, color=COLORS["path"], lw=points(LINE_MM["path"]), zorder=4)
     if scene.goal_xy_mm is not None:
-        ax.plot(*circle_xy(scene.goal_xy_mm, scene.tolerance_mm).T, color=COLORS["goal"],
-                lw=points(LINE_MM["goal"]), zorder=5)
-        ax.add_patch(plt.Circle(tuple(scene.goal_xy_mm), GOAL_DOT_MM / 2, color=COLORS["goal"], zorder=5))
+        color = COLORS["refused" if scene.goal_refused else "goal"]
+        ax.plot(*circle_xy(scene.goal_xy_mm, scene.tolerance_mm).T, color=color, lw=points(LINE_MM["goal"]), zorder=5)
+        ax.add_patch(plt.Circle(tuple(scene.goal_xy_mm), GOAL_DOT_MM / 2, color=color, zorder=5))
+        if scene.goal_refused:
+            ax.text(scene.goal_xy_mm[0], scene.goal_xy_mm[1] + scene.tolerance_mm + 2, f"refused: {scene.goal_refused}",
+                    color=color, ha="center", va="bottom", fontsize=8, zorder=6)
     if title:
         ax.text(0.01, 0.99, title, transform=ax.transAxes, va="top", ha="left", fontsize=8)
     path = Path(path)
