@@ -241,3 +241,21 @@ def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
     assert goal_markers()[1].color.r == pytest.approx(COLORS["refused"][0])
     goal_pub.publish(ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY))  # a new goal: not refused (yet)
     assert ros.spin_until(lambda: 2 not in goal_markers() and goal_markers()[0].pose.position.x < 0, 5)
+
+
+def test_a_port_in_use_or_a_bad_hand_is_one_line_and_exit_2(ros_domain, tmp_path, small_set):
+    import socket
+
+    from ros_rig import assert_one_line_errors
+
+    from t42_transfer.data.bag import write_bag
+    from t42_transfer.view.bag_server import BagServer
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert_one_line_errors([(["view", "--ros-args", "-p", f"port:={port}"], f"cannot serve on 127.0.0.1:{port}"),
+                                (["view", "--ros-args", "-p", "hand:=no_such_hand"], "no_such_hand")])
+        with pytest.raises(ValueError, match=f"cannot serve on 127.0.0.1:{port}"):
+            BagServer(write_bag(tmp_path / "bag", small_set), port=port)

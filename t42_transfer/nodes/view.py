@@ -126,6 +126,15 @@ class _Listener(foxglove.websocket.ServerListener):
         return self.view.graph_parameters.set(parameters)
 
 
+def start_server(name: str, host: str, port: int, **options: Any) -> foxglove.WebSocketServer:
+    """foxglove's server on ``host:port``; ValueError in one line when it cannot listen there (a port in use, an
+    address this machine does not have): the runner and the CLI then exit 2 with it."""
+    try:
+        return foxglove.start_server(name=name, host=host, port=port, **options)
+    except RuntimeError as err:  # foxglove raises FoxgloveError (a RuntimeError) for a failed bind
+        raise ValueError(f"{name}: cannot serve on {host}:{port}: {err}") from None
+
+
 def subscription_qos(publishers: list[Any]) -> QoSProfile:
     """A reader that matches every one of ``publishers`` (rclpy TopicEndpointInfo) and gets what they keep."""
     latched = bool(publishers) and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -171,8 +180,8 @@ class View(Node):
         self._allowed = {self.resolve_topic_name(t) for t in p.client_topics}
         self.graph_parameters = GraphParameters(self)
         self._foxglove = foxglove.Context()
-        self.server = foxglove.start_server(
-            name=f"t42 view {self.get_fully_qualified_name()}", host=p.host, port=p.port,
+        self.server = start_server(
+            f"t42 view {self.get_fully_qualified_name()}", p.host, p.port,
             capabilities=[Capability.ClientPublish, Capability.Time, Capability.Parameters], supported_encodings=[CDR],
             server_listener=_Listener(self), context=self._foxglove)
         self.port = self.server.port

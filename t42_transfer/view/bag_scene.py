@@ -26,6 +26,8 @@ class SceneInputs:
     path_xy_mm: np.ndarray | None = None
     log_ns: int = 0
     """Log time of the newest message used."""
+    start_ns: int = 0
+    """Log time of the bag's first message."""
 
 
 _READERS = {
@@ -54,6 +56,7 @@ def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
     try:
         with AnyReader([path], default_typestore=ma.TYPESTORE) as reader:
             wanted = [c for c in reader.connections if input_reader(c.topic)]
+            inputs.start_ns = reader.start_time
             until = None if at_s is None else reader.start_time + round(at_s * 1e9)
             for conn, log_ns, raw in reader.messages(connections=wanted):
                 if until is not None and log_ns > until:

@@ -36,6 +36,7 @@ from msg_adapters.schemas import message_definition
 from t42_transfer.data.errors import BagError
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.player import Timeline
+from t42_transfer.nodes.view import start_server
 from t42_transfer.view.bag_scene import SceneInputs, input_reader
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
 
@@ -83,9 +84,13 @@ class BagServer:
         self._seek_to: int | None = self.start_ns
         self._ended = False
         self._stop = False
-        self.server = foxglove.start_server(
-            name=f"t42 view {path.name}", host=host, port=port, capabilities=[Capability.Time],
-            server_listener=_Controls(self), context=self._context, playback_time_range=(self.start_ns, self.end_ns))
+        try:
+            self.server = start_server(f"t42 view {path.name}", host, port, capabilities=[Capability.Time],
+                                       server_listener=_Controls(self), context=self._context,
+                                       playback_time_range=(self.start_ns, self.end_ns))
+        except ValueError:
+            self._reader.close()
+            raise
         self.port = self.server.port
         self._thread = threading.Thread(target=self._play, name="bag_server", daemon=True)
         self._thread.start()
