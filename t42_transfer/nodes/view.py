@@ -62,6 +62,7 @@ from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
+from t42_transfer.view.server import start_server
 
 LEFT_OUT = ("/parameter_events",)
 """Graph topics never offered (every node's parameter changes: noise in a viewer)."""
@@ -124,15 +125,6 @@ class _Listener(foxglove.websocket.ServerListener):
                           request_id: str | None = None) -> list[foxglove.Parameter]:
         self.view.log.info(f"client {client.id} sets {', '.join(p.name for p in parameters)}")
         return self.view.graph_parameters.set(parameters)
-
-
-def start_server(name: str, host: str, port: int, **options: Any) -> foxglove.WebSocketServer:
-    """foxglove's server on ``host:port``; ValueError in one line when it cannot listen there (a port in use, an
-    address this machine does not have): the runner and the CLI then exit 2 with it."""
-    try:
-        return foxglove.start_server(name=name, host=host, port=port, **options)
-    except RuntimeError as err:  # foxglove raises FoxgloveError (a RuntimeError) for a failed bind
-        raise ValueError(f"{name}: cannot serve on {host}:{port}: {err}") from None
 
 
 def subscription_qos(publishers: list[Any]) -> QoSProfile:

@@ -36,9 +36,9 @@ from msg_adapters.schemas import message_definition
 from t42_transfer.data.errors import BagError
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.player import Timeline
-from t42_transfer.nodes.view import start_server
 from t42_transfer.view.bag_scene import SceneInputs, input_reader
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
+from t42_transfer.view.server import start_server
 
 _IDLE_S = 0.05
 """Longest wait between looks at the controls while paused or ahead of time."""
