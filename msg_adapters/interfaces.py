@@ -49,8 +49,8 @@ def interface_types(package: str = PACKAGE) -> dict[str, Any]:
 
 
 def register_interfaces(typestore: Any, package: str = PACKAGE) -> tuple[str, ...]:
-    """Add ``package``'s messages to ``typestore``; the type names added.  A missing or unreadable package is a
-    warning, not an error: every standard message still works."""
+    """Add ``package``'s messages to ``typestore``; the type names added.  A package not found adds none, and a file
+    that does not parse is a warning, not an error: every standard message still works."""
     try:
         types = interface_types(package)
     except (OSError, ValueError) as err:
