@@ -4,11 +4,11 @@ Writes bench/results/suite_latency.json with the middleware the demo ran on (its
 ``demo.json`` ``middleware``: rclpy's RMW implementation).  Two figures, each
 against a baseline measured in the same run:
 
-* service call to model ready: wall time of the ``/t42/transfer_now`` call (until the
-  answer, sent after the model was saved and announced) against the server's own
-  elapsed time for the transfer (its last diagnostics ``elapsed_s``);
-* goal to plan result: wall time from publishing a ``PointStamped`` goal to
-  receiving its plan result (published after the JointTrajectory and the Path)
+* transfer to model ready (``service_call_to_model_ready``, named when it was a service): wall time of the
+  ``/t42/transfer`` action goal (until its result, sent after the model was saved and announced) against the
+  server's own elapsed time for the transfer (its last diagnostics ``elapsed_s``);
+* goal to plan result: wall time from sending a ``/t42/reach`` goal to receiving its
+  plan result on ``/t42/plan_result`` (published after the JointTrajectory and the Path)
   against the planner's own planning time.
 
 The machine's load average is recorded before and after: on a shared machine the

@@ -1,4 +1,5 @@
-"""Reach action messages (``t42_interfaces/action/Reach``) <-> numpy, for the planner's ``t42/reach``.
+"""Reach action messages (``t42_interfaces/action/Reach``) <-> numpy, for the planner's ``t42/reach`` and its
+clients (:func:`reach_goal`, :func:`reach_progress`, :func:`reach_outcome`).
 
 Same rules as :mod:`msg_adapters.planning`: metres in ``FRAME_ID`` on the wire, mm inside the package.
 The goal reader refuses another frame, a non-finite value and a negative tolerance with a ``ValueError``
@@ -9,13 +10,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from msg_adapters.hand import _MM_PER_M, stamp_to_ns
 from msg_adapters.kit import RCLPY, rclpy_class
-from msg_adapters.planning import goal_xy_mm, path_msg
+from msg_adapters.planning import goal_msg, goal_xy_mm, path_msg, path_xy_mm
 from msg_adapters.wire import CONTROL_PERIOD_NS
 
 REACH = "t42_interfaces/action/Reach"
@@ -69,3 +70,44 @@ def reach_result(verdict: str, reason: str, final_error_mm: float | None, execut
 
 def _xy(points: Any) -> np.ndarray:
     return np.asarray(points, np.float32).reshape(-1, 2)
+
+
+def reach_goal(xy_mm: Any, stamp_ns: int, tolerance_mm: float = 0.0, steps: int = 0, replan_every: int = 0) -> Any:
+    """A ``Reach.Goal`` for the object's centre at ``xy_mm`` (a client's side; zeros: the planner's parameters)."""
+    return reach_type().Goal(target=goal_msg(xy_mm, stamp_ns, RCLPY), tolerance_m=float(tolerance_mm) / _MM_PER_M,
+                             steps=int(steps), replan_every=int(replan_every))
+
+
+class ReachProgress(NamedTuple):
+    """A ``Reach.Feedback`` in mm: steps executed, the measured distance to the goal, the predicted final one."""
+
+    step: int
+    error_mm: float
+    predicted_final_error_mm: float
+
+
+def reach_progress(feedback: Any) -> ReachProgress:
+    return ReachProgress(int(feedback.step), float(feedback.error_m) * _MM_PER_M,
+                         float(feedback.predicted_final_error_m) * _MM_PER_M)
+
+
+@dataclass(frozen=True)
+class ReachOutcome:
+    """A ``Reach.Result`` in mm: the verdict, why, the final error (None: unknown), the measured path and the
+    predicted one with the stamp of its first pose (when the plan was sent)."""
+
+    success: bool
+    verdict: str
+    reason: str
+    final_error_mm: float | None
+    executed_mm: np.ndarray
+    predicted_mm: np.ndarray
+    predicted_start_ns: int
+
+
+def reach_outcome(result: Any) -> ReachOutcome:
+    """The :class:`ReachOutcome` of a ``Reach.Result``; ValueError for paths in another frame."""
+    error = float(result.final_error_m)
+    return ReachOutcome(bool(result.success), str(result.verdict), str(result.reason),
+                        error * _MM_PER_M if math.isfinite(error) else None, path_xy_mm(result.executed),
+                        path_xy_mm(result.predicted), stamp_to_ns(result.predicted.header.stamp))

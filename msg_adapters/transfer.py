@@ -139,3 +139,36 @@ def skipped_pairs(bags: Sequence[object], reasons: Sequence[str]) -> tuple[tuple
         prefix = f"{bag}: "
         pairs.append((str(bag), why[len(prefix):] if why.startswith(prefix) else why))
     return tuple(pairs)
+
+
+def transfer_goal(method: str = "", bags: Sequence[object] = ()) -> Any:
+    """A ``Transfer.Goal`` (a client's side): ``""`` = the server's method, no bags = those closed since the last
+    transfer."""
+    return transfer_type().Goal(method=str(method), bags=[str(b) for b in bags])
+
+
+class TransferProgress(NamedTuple):
+    """A ``Transfer.Feedback``: the phase, epoch / epochs (0 outside training), the epoch's losses (NaN: unknown)."""
+
+    phase: str
+    epoch: int
+    epochs: int
+    train_loss: float
+    val_loss: float
+
+
+def transfer_progress(feedback: Any) -> TransferProgress:
+    return TransferProgress(str(feedback.phase), int(feedback.epoch), int(feedback.epochs),
+                            float(feedback.train_loss), float(feedback.val_loss))
+
+
+def transfer_outcome(result: Any) -> TransferOutcome:
+    """The :class:`TransferOutcome` a ``Transfer.Result`` carries (the inverse of :func:`transfer_result`)."""
+    return TransferOutcome(
+        bool(result.success), str(result.message), str(result.model_path),
+        Scores(float(result.model_divergence_steps), float(result.model_mse_mm2)),
+        Scores(float(result.source_divergence_steps), float(result.source_mse_mm2)),
+        Scores(float(result.hold_still_divergence_steps), float(result.hold_still_mse_mm2)),
+        tuple(zip(map(str, result.candidates), map(float, result.candidate_scores), strict=False)),
+        tuple(zip(map(str, result.skipped_bags), map(str, result.skipped_reasons), strict=False)),
+    )

@@ -19,6 +19,8 @@ from t42_transfer.cli import main
 from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import load_model
 
+VERDICTS = ("hit", "miss", "no_progress", "incomplete")
+
 
 @pytest.fixture(scope="module")
 def quick_source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -99,6 +101,14 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     # the target data came through topics: one bag per explored episode, then one per goal's episode, readable
     bags = sorted((run_dir / "bags").glob("episode_*"))
     assert summary["exploration"]["bags"] == summary["exploration"]["episodes"] == size["target_episodes"]
+    # the demo knew its bags from the recorder's recorder/bag_closed events, not from the files: each recording's
+    # announced bags end with the one its stop closed, every bag on disk was announced, each with its episodes
+    announced = [summary["exploration"]["bags_closed"], *(r["bags_closed"] for r in rounds)]
+    assert all(events and events[-1]["reason"] == "stop" for events in announced), announced
+    assert [e["reason"] for e in announced[0][:-1]] == ["reset"] * (size["target_episodes"] - 1)
+    by_path = {e["path"]: e for events in announced for e in events}
+    assert sorted(by_path) == [str(bag) for bag in bags]
+    assert all(e["episodes"] == len(read_bag(e["path"])) and e["messages"] > 0 for e in announced[0])
     # (a round's recording may begin with the hand holding still before the first goal's reset, and a drop
     # after a plan splits its episode once more: up to one more bag per round and one more per goal)
     goal_bags = len(bags) - size["target_episodes"]
@@ -114,6 +124,10 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     for record, fewest in zip(rounds, fewest_episodes, strict=True):
         transfer = record["transfer"]
         assert transfer["success"] and "divergence" in transfer["message"] and "MSE" in transfer["message"]
+        # a t42/transfer action goal: feedback at every epoch, the held-out scores in its result
+        assert transfer["epochs_reported"] >= 2 and transfer["last_epoch"][0] == transfer["last_epoch"][1] >= 2
+        assert transfer["feedback"] > transfer["epochs_reported"]  # the stages too (loading, evaluating, saving)
+        assert all(np.isfinite(transfer["scores"][m]["divergence_steps"]) for m in ("model", "source", "hold_still"))
         used = int(re.search(r"from (\d+) bag\(s\)", transfer["message"]).group(1))
         most = fewest + (record["round"] - 1) * (len(size["goal_steps"]) + 1)  # (the extra bags above)
         assert fewest <= used <= most, transfer["message"]
@@ -130,11 +144,18 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     assert all(g["still_verdict"] != "hit" and g["still_error_mm"] >= 20.0 for g in goals)
     executed = [g for g in goals if g["accepted"]]
     assert len(executed) >= len(goals) - 1, goals
+    # each goal was a t42/reach action goal: refused ones end "refused", executed ones had feedback and a verdict
+    assert all(g["reach_verdict"] == "refused" and g["reason"] for g in goals if not g["accepted"]), goals
+    assert all(g["reach_verdict"] in VERDICTS and 1 <= g["feedback"] for g in executed), executed
+    assert all(0.0 <= g["goal_to_result_s"] and 0.0 < g["planning_time_s"] for g in executed), executed
     # no model predicts a drop (docs/evaluation.md, peg-in-hole): one executed plan may end early
     completed = [g for g in executed if g["end"] == "completed"]
     assert len(completed) >= len(executed) - 1 and all(g["verdict"] == "incomplete" for g in executed
                                                        if g not in completed), executed
     for goal in completed:
+        # (feedback counts the steps the hand held while the planner took the state after the last one, too)
+        assert goal["horizon"] - 1 <= goal["feedback_steps"] <= goal["horizon"] + 10, goal
+        assert goal["reach_error_mm"] is not None, goal
         planned = np.asarray(goal["planned"])
         assert planned.shape == (goal["horizon"] + 1, 2) and np.all(np.isfinite(planned))
         assert goal["end"] == "completed" and len(goal["executed"]) >= goal["horizon"]
@@ -186,3 +207,33 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
         run_demo(tmp_path, quick=True, workers=1)
     assert len(started) == 4, started  # the suite was up: mock driver, recorder, transfer server, planner
     assert node_processes_of(tmp_path) == []
+
+
+def test_a_recordings_bags_are_the_recorders_events_through_the_one_its_stop_closed() -> None:
+    """The demo's wait for bags (closed_bags): the events after ``since`` up to the first ``stop``, waited for as
+    they come; none of an earlier recording, none after; no stop in time is a timeout naming the topic."""
+    import threading
+
+    from msg_adapters.events import BagClosedEvent
+    from t42_transfer.demo.goals import closed_bags
+    from t42_transfer.demo.operator import wait_until as waiting
+
+    def event(name: str, reason: str) -> BagClosedEvent:
+        return BagClosedEvent(f"/bags/{name}", 1, 30, 1, 2, reason)
+
+    class Op:
+        bags_closed = [event("old", "stop"), event("a", "reset"), event("b", "dropped")]
+        wait_until = staticmethod(waiting)
+
+    class Suite:
+        def check(self) -> None:
+            pass
+
+    op = Op()
+    with pytest.raises(TimeoutError, match="recorder/bag_closed"):
+        closed_bags(op, Suite(), 1, timeout_s=0.2)
+    later = threading.Timer(0.3, lambda: op.bags_closed.extend([event("c", "stop"), event("next", "stop")]))
+    later.start()
+    got = closed_bags(op, Suite(), 1, timeout_s=10.0)
+    later.join()
+    assert [e.path for e in got] == ["/bags/a", "/bags/b", "/bags/c"]

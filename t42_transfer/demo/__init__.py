@@ -10,20 +10,23 @@
    time; every other node runs with ``use_sim_time``.
 3. **Target data through topics**: the explorer node (another process) resets the
    hand and sends random-action trajectories; it starts and stops the recorder,
-   which writes one MCAP bag per episode.
-4. **Transfer**: one call of ``/t42/transfer_now``; its progress arrives on
-   ``/diagnostics``; the answer names the model, which the planner loads when the
-   server announces it.
+   which writes one MCAP bag per episode and announces each closed bag on
+   ``recorder/bag_closed``: the demo waits for the one the stop closed, not on files.
+4. **Transfer**: one goal of the ``/t42/transfer`` action (the server's method, the
+   bags closed since the last transfer); its feedback shows each epoch; the result
+   names the model (with its held-out scores), which the planner loads when the
+   server announces it on ``/t42/model_updated``.
 5. **Peg-in-hole**: for each goal the hand is reset; the goal is a point the true
    target hand reaches from that grasp in ``n`` steps, at least twice the
    tolerance from the start and from where holding still would leave the object;
-   it is sent to the planner as a ``PointStamped``; the driver executes the
-   planned ``JointTrajectory`` open loop; the rule of
+   it is sent to the planner as a ``/t42/reach`` action goal; the driver executes the
+   planned ``JointTrajectory`` open loop, with the action's feedback each step and its
+   result (the planner's own verdict, the measured and predicted paths); the rule of
    :func:`~t42_transfer.evaluation.peg_in_hole.verdict` decides success (completed,
    half way towards the goal at least, within the tolerance), and doing nothing
    is scored by the same rule on the same grasps.  The recorder records these
    episodes like any other.
-6. **Second round**: ``/t42/transfer_now`` again, now with the executed plans among
+6. **Second round**: ``/t42/transfer`` again, now with the executed plans among
    the episodes, then new goals of the same kind: does the suite improve with use?
    Each round's model is also scored on the same held-out target episodes
    (collected apart, never seen by the suite) beside the source model and the

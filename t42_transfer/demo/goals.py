@@ -1,16 +1,18 @@
-"""One peg-in-hole goal on the running suite: reset, a reachable goal, the plan, its open-loop execution,
-the verdict."""
+"""One peg-in-hole goal on the running suite: reset, a reachable goal sent as a ``t42/reach`` action goal, the
+plan, its open-loop execution (the action's feedback), the verdict; and the bags a recording closed, as the
+recorder announces them (``recorder/bag_closed``)."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from msg_adapters import RCLPY, goal_msg, grasp_seed, names, status_event
+from msg_adapters import grasp_seed, names, status_event
+from msg_adapters.events import STOP, BagClosedEvent
+from msg_adapters.reach import reach_goal, reach_outcome, reach_progress
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.demo.settings import (
     GRASP_MATCH_MM,
@@ -37,7 +39,8 @@ class GoalRun:
     planning_time_s: float = 0.0
     """The planner's own planning time."""
     goal_to_result_s: float = 0.0
-    """Wall time from publishing the goal to receiving the plan result (published after the sequence)."""
+    """Wall time from sending the Reach goal to receiving its plan result (``t42/plan_result``, published after the
+    sequence)."""
     final_mm: list[float] | None = None
     """Where the object ended: the simulator's truth where a node publishes it (``sim/object_pose``), else the
     hand's pose."""
@@ -58,21 +61,32 @@ class GoalRun:
     sim_pose_verdict: str = ""
     planned: list[list[float]] = field(default_factory=list)
     executed: list[list[float]] = field(default_factory=list)
+    reach_verdict: str = ""
+    """The planner's own verdict in the Reach result (at its tolerance, from the state after the last step;
+    ``refused`` when never executed); the demo's is ``verdict``."""
+    reach_error_mm: float | None = None
+    """The Reach result's final error (the pose the planner saw after the last step)."""
+    reach_reason: str = ""
+    feedback: int = 0
+    """Reach feedback messages received (one per executed step)."""
+    feedback_steps: int = 0
+    """The steps executed, as the last feedback counted them."""
 
     @property
     def start_distance_mm(self) -> float:
         return float(np.linalg.norm(np.subtract(self.goal_mm, self.start_mm)))
 
 
-def wait_for_closed_bags(op: Any, suite: Suite, bag_dir: Path) -> list[Path]:
-    """The episode bags once the recorder has closed them all: a stop completes after the step in progress,
-    and a transfer uses finished bags only."""
-    def bags() -> list[Path]:
-        return sorted(bag_dir.glob("episode_*"))
+def closed_bags(op: Any, suite: Suite, since: int, timeout_s: float = 30.0) -> list[BagClosedEvent]:
+    """The bags a recording closed, as the recorder announced them on ``recorder/bag_closed`` from event ``since``
+    on, through the one its stop closed (reason ``stop``: the recording's last; a stop completes after the step in
+    progress).  Each is closed and final when announced, so a transfer may use it at once."""
+    def stopped() -> int | None:
+        return next((k for k, e in enumerate(op.bags_closed[since:], since) if e.reason == STOP), None)
 
-    op.wait_until(lambda: all((p / "metadata.yaml").is_file() for p in bags()), 30.0,
-                  "the recorder to close its bags", suite.check)
-    return bags()
+    op.wait_until(lambda: stopped() is not None, timeout_s,
+                  f"the recorder to announce the bag its stop closed on {names.BAG_CLOSED}", suite.check)
+    return list(op.bags_closed[since: stopped() + 1])
 
 
 def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
@@ -95,25 +109,28 @@ def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, roun
     still_error = float(np.linalg.norm(goal.position - goal.still))
     still_verdict = verdict(float(np.linalg.norm(goal.position - still_from)), still_error,
                             progress_towards(still_from, goal.position, goal.still), True, TOLERANCE_MM)
-    results = len(op.results)
-    paths = len(op.paths)
+    feedback: list[Any] = []
+    statuses = len(op.statuses)
+    stamp = op.now_ns()
     sent = time.perf_counter()
-    op.goal_pub.publish(goal_msg(goal.position, op.now_ns(), RCLPY))
-    op.wait_until(lambda: len(op.results) > results, 60.0, "the planner's result", suite.check)
-    answered_s = time.perf_counter() - sent
-    result = op.results[results]
-    run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result["accepted"], result["status"],
-                  result["reason"], result["horizon"], result["predicted_error_mm"], result["planning_time_s"],
-                  goal_to_result_s=answered_s, still_error_mm=still_error, still_verdict=still_verdict,
-                  round=round_)
+    handle = op.send_goal(op.reach_client, names.REACH, reach_goal(goal.position, stamp), 30.0, suite.check,
+                          lambda message: feedback.append(reach_progress(message)))
+    outcome = reach_outcome(op.goal_result(handle, 180.0, f"the result of the {names.REACH} goal", suite.check))
+    op.wait_until(lambda: op.plan_result_for(stamp) is not None, 10.0, f"the goal's {names.PLAN_RESULT}",
+                  suite.check)
+    answered, result = op.plan_result_for(stamp)
+    run = GoalRun(steps, seed, goal.position.tolist(), start.tolist(), result.accepted, result.status,
+                  result.reason, result.horizon, result.predicted_error_mm, result.planning_time_s,
+                  goal_to_result_s=answered - sent, still_error_mm=still_error, still_verdict=still_verdict,
+                  round=round_, reach_verdict=outcome.verdict, reach_error_mm=outcome.final_error_mm,
+                  reach_reason=outcome.reason, feedback=len(feedback),
+                  feedback_steps=feedback[-1].step if feedback else 0)
     if not run.accepted:
         run.end = "not executed"
         run.verdict = "incomplete"
         return run
-    op.wait_until(lambda: len(op.paths) > paths, 10.0, "the planned path", suite.check)
-    run.planned = op.paths[paths].tolist()
-    plan_stamp = op.latest_pose()[0]
-    statuses = len(op.statuses)
+    run.planned = outcome.predicted_mm.tolist()
+    plan_stamp = outcome.predicted_start_ns  # when the plan was sent: its first step runs after this
     settle = plan_stamp + (run.horizon + 5) * CONTROL_PERIOD_NS  # the plan, then five steps of holding still
 
     def ends() -> list[str]:  # the episode's end events (a drop...): trajectory_done is not one

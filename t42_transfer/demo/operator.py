@@ -1,4 +1,5 @@
-"""The demo's own rclpy node: it watches the hand and the suite's outputs, calls services and sends goals.
+"""The demo's own rclpy node: it watches the hand and the suite's outputs, calls services and sends action goals
+(``t42/reach``, ``t42/transfer``), and hears the recorder's ``recorder/bag_closed`` events.
 
 Imported only once the demo runs (``t42 demo --help`` needs no ROS); spun by a background executor while
 the story waits on what it has seen.
@@ -8,24 +9,26 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict
 from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PointStamped, PoseStamped
+from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.srv import GetState
-from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.srv import SetParameters
+from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from t42_interfaces.msg import ModelUpdated, PlanResult
+from t42_interfaces.msg import BagClosed, ModelUpdated, PlanResult
 
-from msg_adapters import names, object_xy_mm, path_xy_mm, stamp_to_ns, status_report
+from msg_adapters import names, object_xy_mm, stamp_to_ns, status_report
+from msg_adapters.events import BagClosedEvent, bag_closed_event
+from msg_adapters.plan_result import PlanResult as PlanRecord
 from msg_adapters.plan_result import plan_result
-from msg_adapters.transfer import model_announcement
+from msg_adapters.reach import reach_type
+from msg_adapters.transfer import ModelAnnouncement, model_announcement, transfer_type
 from t42_transfer.demo.settings import SERVICES, TRANSFER_STATUS
 from t42_transfer.ros.qos import profile
 
@@ -56,22 +59,27 @@ class Operator(Node):
         self.truths: list[tuple[int, np.ndarray]] = []
         """The simulated hand's true object pose (``sim/object_pose``), where a node publishes it."""
         self.statuses: list[str] = []
-        self.results: list[dict[str, Any]] = []
-        self.paths: list[np.ndarray] = []
-        self.models: list[str] = []
-        """Every model path the transfer server announced on ``t42/model_updated``, in order."""
+        self.results: list[tuple[float, PlanRecord]] = []
+        """Every ``t42/plan_result`` with its arrival (``time.perf_counter()``), in order."""
+        self.models: list[ModelAnnouncement] = []
+        """Every model the transfer server announced on ``t42/model_updated``, in order."""
+        self.bags_closed: list[BagClosedEvent] = []
+        """Every bag the recorder announced on ``recorder/bag_closed`` (closed and final), in order."""
         self.diagnostic: dict[str, str] = {}
         self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 100)
         self.create_subscription(PoseStamped, names.SIM_POSE, self._on_truth, 100)
         self.create_subscription(String, names.HAND_STATUS, lambda m: self.statuses.append(m.data),
                                  profile(names.EVENTS))
-        self.create_subscription(PlanResult, names.PLAN_RESULT, lambda m: self.results.append(asdict(plan_result(m))),
-                                 10)
-        self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self.paths.append(path_xy_mm(m)), 10)
+        self.create_subscription(PlanResult, names.PLAN_RESULT,
+                                 lambda m: self.results.append((time.perf_counter(), plan_result(m))),
+                                 profile(names.RESULTS))
         self.create_subscription(ModelUpdated, names.MODEL_UPDATED,
-                                 lambda m: self.models.append(model_announcement(m).path), profile(names.LATCHED))
+                                 lambda m: self.models.append(model_announcement(m)), profile(names.LATCHED))
+        self.create_subscription(BagClosed, names.BAG_CLOSED, lambda m: self.bags_closed.append(bag_closed_event(m)),
+                                 profile(names.EVENTS))
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diagnostics, 10)
-        self.goal_pub = self.create_publisher(PointStamped, names.GOAL, 10)
+        self.reach_client = ActionClient(self, reach_type(), names.REACH)
+        self.transfer_client = ActionClient(self, transfer_type(), names.TRANSFER)
         self.trigger_clients = {name: self.create_client(Trigger, name) for name in SERVICES}
         self.lifecycle_clients: dict[str, Any] = {}
         self.parameter_clients: dict[str, Any] = {}
@@ -92,7 +100,8 @@ class Operator(Node):
         self.diagnostic = {"message": report.message, **report.values}
 
     def ready(self) -> bool:
-        return all(c.service_is_ready() for c in self.trigger_clients.values())
+        return all(c.service_is_ready() for c in self.trigger_clients.values()) \
+            and self.reach_client.server_is_ready() and self.transfer_client.server_is_ready()
 
     wait_until = staticmethod(wait_until)
 
@@ -104,6 +113,29 @@ class Operator(Node):
         if future.exception() is not None:
             raise RuntimeError(f"{service}: {future.exception()}")
         return future.result()
+
+    def send_goal(self, client: ActionClient, name: str, goal: Any, timeout_s: float,
+                  alive: Callable[[], None] | None = None, feedback: Callable[[Any], None] | None = None) -> Any:
+        """Send a goal to action ``name`` (``feedback`` gets each ``Feedback``); its goal handle once accepted."""
+        self.wait_until(client.server_is_ready, timeout_s, f"the {name} action server", alive)
+        sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else
+                                      (lambda message: feedback(message.feedback)))
+        self.wait_until(sent.done, timeout_s, f"{name} to take the goal", alive)
+        handle = sent.result()
+        if not handle.accepted:
+            raise RuntimeError(f"{name} rejected the goal")
+        return handle
+
+    def goal_result(self, handle: Any, timeout_s: float, what: str, alive: Callable[[], None] | None = None,
+                    progress: Callable[[], None] | None = None) -> Any:
+        """Wait for an action goal's end (showing progress meanwhile); its ``Result``."""
+        future = handle.get_result_async()
+        self.wait_until(future.done, timeout_s, what, alive, progress)
+        return future.result().result
+
+    def plan_result_for(self, goal_stamp_ns: int) -> tuple[float, PlanRecord] | None:
+        """The first ``t42/plan_result`` answering the goal stamped ``goal_stamp_ns`` (with its arrival), if any."""
+        return next(((at, r) for at, r in self.results if r.goal_stamp_ns == goal_stamp_ns), None)
 
     def lifecycle_state(self, node: str, timeout_s: float, alive: Callable[[], None] | None = None) -> str:
         """The label of lifecycle ``node``'s state ("active", ...), as any lifecycle client asks for it."""

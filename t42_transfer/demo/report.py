@@ -100,7 +100,7 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
         f"- Source model: `{summary['source_model']}`.",
         f"- Target data: {summary['exploration']['bags']} explored episode bags recorded through topics in `bags/`, "
         "then each goal's episode.",
-        *(f"- Round {r['round']}: `/t42/transfer_now` answered in {r['transfer']['seconds']:.1f} s: "
+        *(f"- Round {r['round']}: the `/t42/transfer` action goal ended in {r['transfer']['seconds']:.1f} s: "
           f"{r['transfer']['message']}" for r in summary["rounds"]),
         "",
         "## Rounds",

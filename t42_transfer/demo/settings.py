@@ -34,7 +34,8 @@ TRANSFER_STATUS = "t42_transfer: transfer"
 """The transfer server's status name on ``/diagnostics``."""
 RECORDER_START = names.private_of("recorder", names.RECORDER_START)
 RECORDER_STOP = names.private_of("recorder", names.RECORDER_STOP)
-SERVICES = (names.HAND_RESET, names.TRANSFER_NOW, RECORDER_START, RECORDER_STOP)
+SERVICES = (names.HAND_RESET, RECORDER_START, RECORDER_STOP)
+"""The Trigger services the demo calls; goals and transfers go to the actions ``t42/reach`` and ``t42/transfer``."""
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from typing import Any
 import yaml
 
 from msg_adapters import names, status_event
-from t42_transfer.demo.goals import GoalRun, run_goal, wait_for_closed_bags
+from t42_transfer.demo.goals import GoalRun, closed_bags, run_goal
 from t42_transfer.demo.report import goal_table, plot_paths, rounds_table, write_report
 from t42_transfer.demo.settings import (
     DRIVER,
@@ -131,6 +131,7 @@ def _explore(story: Story, workers: int | None) -> None:
     from t42_transfer.hand.collect import collect
 
     op, suite, size = story.op, story.suite, story.size
+    since = len(op.bags_closed)
     explorer = suite.supervisor.start("explorer")
     suite.may_end.add("explorer")
     t0, shown = time.perf_counter(), -1
@@ -147,8 +148,9 @@ def _explore(story: Story, workers: int | None) -> None:
                   "the explorer", suite.check)
     if explorer.proc.returncode != 0:
         raise RuntimeError(f"explorer exited with code {explorer.proc.returncode}; see {suite.log_path}")
-    bags = wait_for_closed_bags(op, suite, story.run_dir / "bags")
-    story.summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags)}
+    bags = closed_bags(op, suite, since)
+    story.summary["exploration"] = {"episodes": size.target_episodes, "steps": size.target_steps, "bags": len(bags),
+                                    "bags_closed": [bag._asdict() for bag in bags]}
     say(f"[3/{story.phases}] target data: {len(bags)} episode bags recorded through topics "
         f"({time.perf_counter() - t0:.0f} s) in {story.run_dir / 'bags'}")
     heldout, _ = collect("target", size.heldout_episodes, size.target_steps, seed=HELDOUT_SEED, workers=workers)
@@ -164,6 +166,7 @@ def _round(story: Story, round_: int) -> None:
     record["heldout"] = heldout_scores(record["model"], story.model, story.heldout)
     say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
         f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
+    since = len(op.bags_closed)
     ok = op.call(RECORDER_START, 30.0, suite.check)
     if not ok.success:
         raise RuntimeError(f"{RECORDER_START}: {ok.message}")
@@ -177,7 +180,7 @@ def _round(story: Story, round_: int) -> None:
             f"{run.start_distance_mm:.1f} mm away):{error} -> {verdict} (doing nothing: "
             f"{run.still_error_mm:.1f} mm, {run.still_verdict})")
     op.call(RECORDER_STOP, 30.0, suite.check)
-    wait_for_closed_bags(op, suite, story.run_dir / "bags")
+    record["bags_closed"] = [bag._asdict() for bag in closed_bags(op, suite, since)]
     if story.hardware == "camera":
         _again_with_the_simulators_pose(story, mine, round_)
         record["sim_pose_hits"] = sum(r.sim_pose_verdict == "hit" for r in mine)
@@ -206,33 +209,49 @@ def _again_with_the_simulators_pose(story: Story, runs: list[GoalRun], round_: i
 
 
 def transfer(story: Story, round_: int) -> dict[str, Any]:
-    """One call of ``t42/transfer_now`` with its progress shown; the round's record.
+    """One ``t42/transfer`` action goal (the server's method, the bags closed since the last transfer) with its
+    feedback shown per epoch; the round's record.
 
-    The model is the path the server announces on ``t42/model_updated`` and the episodes it trained on
-    are the ``episodes`` of its final diagnostics: nothing is read out of the answer's text.
+    The model is the result's path, which the server has announced on ``t42/model_updated`` before the result
+    (the planner loads it from there), and the episodes it trained on are that announcement's: nothing is read out
+    of the result's text.
     """
+    from msg_adapters.transfer import transfer_goal, transfer_outcome, transfer_progress
+
     op, suite = story.op, story.suite
-    t0, last, announced = time.perf_counter(), [""], len(op.models)
+    t0, last, shown, feedback = time.perf_counter(), [""], [0], []
 
-    def progress() -> None:
-        d = op.diagnostic
-        line = f"      transfer: {d.get('stage', 'starting')}"
-        if "epoch" in d:
-            line += f" epoch {d['epoch']}/{d.get('epochs', '?')}"
-        if line != last[0]:
-            last[0] = line
-            say(line)
+    def progress() -> None:  # a line per stage and per epoch, as the feedback came
+        for f in feedback[shown[0]:]:
+            shown[0] += 1
+            line = f"      transfer: {f.phase}" + (f" epoch {f.epoch}/{f.epochs}" if f.epoch else "")
+            if line != last[0]:
+                last[0] = line
+                say(line)
 
-    response = op.call(names.TRANSFER_NOW, 1800.0, suite.check, progress)
+    handle = op.send_goal(op.transfer_client, names.TRANSFER, transfer_goal(), 30.0, suite.check,
+                          lambda message: feedback.append(transfer_progress(message)))
+    outcome = transfer_outcome(op.goal_result(handle, 1800.0, f"the result of the {names.TRANSFER} goal",
+                                              suite.check, progress))
+    progress()
     seconds = time.perf_counter() - t0
-    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: /{names.TRANSFER_NOW} ({seconds:.0f} s): "
-        f"{response.message}")
-    if not response.success:
-        raise RuntimeError(f"the transfer failed: {response.message}")
-    op.wait_until(lambda: len(op.models) > announced and op.diagnostic.get("stage") == "done", 10.0,
+    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: {names.TRANSFER} ({seconds:.0f} s): {outcome.message}")
+    if not outcome.success:
+        raise RuntimeError(f"the transfer failed: {outcome.message}")
+
+    def announced() -> Any:
+        return next((m for m in op.models if m.path == outcome.model_path), None)
+
+    op.wait_until(lambda: announced() is not None and op.diagnostic.get("stage") == "done", 10.0,
                   f"the new model on {names.MODEL_UPDATED} and the final diagnostics", suite.check)
-    return {"round": round_, "model": op.models[-1], "episodes": int(op.diagnostic["episodes"]),
-            "transfer": {"success": True, "message": response.message, "seconds": seconds,
+    epochs = [f for f in feedback if f.epochs]
+    return {"round": round_, "model": outcome.model_path, "episodes": announced().episodes,
+            "transfer": {"success": True, "message": outcome.message, "seconds": seconds,
+                         "scores": {name: getattr(outcome, name)._asdict()
+                                    for name in ("model", "source", "hold_still")},
+                         "skipped": [list(pair) for pair in outcome.skipped],
+                         "feedback": len(feedback), "epochs_reported": len(epochs),
+                         "last_epoch": [epochs[-1].epoch, epochs[-1].epochs] if epochs else None,
                          "diagnostics": dict(op.diagnostic)}}
 
 
