@@ -211,7 +211,8 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
 
 def test_a_recordings_bags_are_the_recorders_events_through_the_one_its_stop_closed() -> None:
     """The demo's wait for bags (closed_bags): the events after ``since`` up to the first ``stop``, waited for as
-    they come; none of an earlier recording, none after; no stop in time is a timeout naming the topic."""
+    they come; none of an earlier recording, none after, no snapshot; no stop in time is a timeout naming the
+    topic."""
     import threading
 
     from msg_adapters.events import BagClosedEvent
@@ -222,7 +223,7 @@ def test_a_recordings_bags_are_the_recorders_events_through_the_one_its_stop_clo
         return BagClosedEvent(f"/bags/{name}", 1, 30, 1, 2, reason)
 
     class Op:
-        bags_closed = [event("old", "stop"), event("a", "reset"), event("b", "dropped")]
+        bags_closed = [event("old", "stop"), event("a", "reset"), event("snap", "snapshot"), event("b", "dropped")]
         wait_until = staticmethod(waiting)
 
     class Suite:

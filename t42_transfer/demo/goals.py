@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from msg_adapters import grasp_seed, names, status_event
-from msg_adapters.events import STOP, BagClosedEvent
+from msg_adapters.events import SNAPSHOT, STOP, BagClosedEvent
 from msg_adapters.reach import reach_goal, reach_outcome, reach_progress
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.demo.settings import (
@@ -80,13 +80,14 @@ class GoalRun:
 def closed_bags(op: Any, suite: Suite, since: int, timeout_s: float = 30.0) -> list[BagClosedEvent]:
     """The bags a recording closed, as the recorder announced them on ``recorder/bag_closed`` from event ``since``
     on, through the one its stop closed (reason ``stop``: the recording's last; a stop completes after the step in
-    progress).  Each is closed and final when announced, so a transfer may use it at once."""
+    progress).  Each is closed and final when announced, so a transfer may use it at once.  Snapshots (reason
+    ``snapshot``: seconds the bags hold too) are not among them."""
     def stopped() -> int | None:
         return next((k for k, e in enumerate(op.bags_closed[since:], since) if e.reason == STOP), None)
 
     op.wait_until(lambda: stopped() is not None, timeout_s,
                   f"the recorder to announce the bag its stop closed on {names.BAG_CLOSED}", suite.check)
-    return list(op.bags_closed[since: stopped() + 1])
+    return [e for e in op.bags_closed[since: stopped() + 1] if e.reason != SNAPSHOT]
 
 
 def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
