@@ -90,7 +90,9 @@ def test_topic_filter_pause_resume_and_loop(ros: Any) -> None:
     ros.spin_for(0.1)
     assert [d for _, _, d in sink.got] == [d for _, _, d in poses]
 
-    looping = add_player(ros, rate=200.0, topics=[POSE], loop=True)
+    # 50x as above: at 200x a loaded machine's sink fell more than the publisher's history (depth 10, the
+    # recorded QoS, as rosbag2 plays) behind, and a reliable keep-last writer drops what it overwrote.
+    looping = add_player(ros, rate=50.0, topics=[POSE], loop=True)
     looping.resume()
     assert ros.spin_until(lambda: looping.loops >= 2, 10.0)
     assert not looping.finished
