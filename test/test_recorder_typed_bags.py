@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from rclpy.parameter import Parameter
@@ -25,6 +26,7 @@ from msg_adapters import STRING, TYPESTORE, names, status_message
 from msg_adapters.events import SNAPSHOT
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.data.bag import bag_info, read_bag, verify_bag
+from t42_transfer.nodes.recorder_params import RecorderParams
 
 READER = Path(__file__).with_name("independent_reader.py")
 
@@ -169,3 +171,15 @@ def test_snapshot_mode_writes_exactly_the_last_seconds_on_the_service_and_on_a_d
     assert rec.set_parameters([Parameter("snapshot_s", value=0.0)])[0].successful
     off = snapshot()
     assert not off.success and "snapshot mode is off" in off.message and rec.snapshots.buffer is None
+
+
+def test_recorder_params_record_both_events_by_default_and_refuse_bad_values(tmp_path: Path) -> None:
+    params = RecorderParams(out_dir=tmp_path)
+    assert params.topics == (names.OBJECT_POSE, names.JOINT_STATES, names.APPLIED_ACTION, names.PLAN_RESULT,
+                             names.MODEL_UPDATED)
+    assert params.snapshot_s == 0.0 and params.snapshot_on == names.SPLIT_EVENTS
+    with pytest.raises(ValueError, match="must name a hand topic"):
+        RecorderParams(out_dir=tmp_path, topics=(names.PLAN_RESULT,))  # events are written only beside steps
+    for field, value in (("snapshot_s", -1.0), ("snapshot_s", math.inf), ("snapshot_max_mb", 0.0)):
+        with pytest.raises(ValueError, match=field):
+            RecorderParams(out_dir=tmp_path, **{field: value})
