@@ -114,7 +114,7 @@ class Change:
     """A bag change waiting for the steps up to ``after`` (a stamp) to be written."""
 
     kind: str
-    """``start``, ``stop``, ``split`` or ``episode`` (a split only if the bag holds messages)."""
+    """``start``, ``stop``, ``split``, ``episode`` (a split only if the bag holds messages) or ``snapshot``."""
     after: int | None
     why: str = ""
     word: str = ""
