@@ -1,11 +1,13 @@
 """A ROS 2 user's plain rclpy script against the t42 suite: it imports nothing from the project.
 
     python stock_user.py graph [NAMESPACE]     nodes, parameters, /rosout, hand state, hand/reset
-    python stock_user.py transfer [NAMESPACE]  t42/transfer_now, then a goal -> JointTrajectory and Path
+    python stock_user.py transfer [NAMESPACE]  the t42/transfer action on the bags recorder/bag_closed announced,
+                                               then t42/reach goals: one to its result, one cancelled
 
 It prints one JSON object with what it saw; exit 0 when every step got an answer.
-Only stock interfaces are used: the standard parameter services, /rosout,
-std_srvs/Trigger, geometry_msgs, sensor_msgs, trajectory_msgs, nav_msgs.
+Only stock interfaces and the suite's interface package are used: the standard parameter services, /rosout,
+std_srvs/Trigger, geometry_msgs, sensor_msgs, trajectory_msgs, nav_msgs, action_msgs, and t42_interfaces (the
+Reach and Transfer actions, BagClosed, PlanResult) through rclpy's ActionClient.
 """
 
 from __future__ import annotations
@@ -16,16 +18,19 @@ import sys
 import time
 
 import rclpy
+from action_msgs.msg import GoalStatus
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import Log, Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
+from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
-from t42_interfaces.msg import PlanResult
+from t42_interfaces.action import Reach, Transfer
+from t42_interfaces.msg import BagClosed, PlanResult
 from trajectory_msgs.msg import JointTrajectory
 
 SUITE = ("mock_driver", "recorder", "transfer_server", "planner")
@@ -57,6 +62,23 @@ class User(Node):
         self.wait(future.done, timeout_s, f"answer from {name}")
         return future.result()
 
+    def send_goal(self, action, name: str, goal, feedback: list, timeout_s: float = 30.0):
+        """Send an action goal, collecting its feedback; the accepted goal handle."""
+        client = ActionClient(self, action, name)
+        if not client.wait_for_server(timeout_sec=timeout_s):
+            raise TimeoutError(f"action {name} not available")
+        sent = client.send_goal_async(goal, feedback_callback=lambda m: feedback.append(m.feedback))
+        self.wait(sent.done, timeout_s, f"goal response from {name}")
+        if not sent.result().accepted:
+            raise TimeoutError(f"{name} rejected the goal")
+        return sent.result()
+
+    def result_of(self, handle, timeout_s: float, what: str, future=None):
+        """The goal's status and result once it ended (``future``: its get_result_async() asked before)."""
+        future = future or handle.get_result_async()
+        self.wait(future.done, timeout_s, what)
+        return future.result()
+
     def set_param(self, node: str, name: str, value) -> tuple[bool, str]:
         if isinstance(value, float):
             pv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=value)
@@ -70,7 +92,8 @@ class User(Node):
         value = self.call(GetParameters, f"{self.ns}/{node}/get_parameters",
                           GetParameters.Request(names=[name])).values[0]
         return {ParameterType.PARAMETER_DOUBLE: value.double_value,
-                ParameterType.PARAMETER_INTEGER: value.integer_value}.get(value.type)
+                ParameterType.PARAMETER_INTEGER: value.integer_value,
+                ParameterType.PARAMETER_STRING: value.string_value}.get(value.type)
 
 
 def graph(user: User) -> dict:
@@ -125,41 +148,103 @@ def graph(user: User) -> dict:
 
 def transfer(user: User) -> dict:
     out: dict = {}
+    # The bags the recorder closed (its events are latched: a late joiner gets the recent ones), each with episodes.
+    closed: list[BagClosed] = []
+    user.create_subscription(BagClosed, user.name("recorder/bag_closed"), closed.append,
+                             QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    user.wait(lambda: any(b.reason == "stop" for b in closed), 30.0, "the recorder's bag_closed events")
+    bags = [b.path for b in closed if b.episodes > 0]
+    out["bags_closed"] = [[b.path, b.episodes, b.reason] for b in closed]
+    # t42/transfer with the server's method named and exactly those bags; feedback per epoch.
+    method = user.get_param("transfer_server", "method")
     started = time.monotonic()
-    answer = user.call(Trigger, user.name("t42/transfer_now"), Trigger.Request(), timeout_s=600.0)
-    out["transfer"] = [answer.success, answer.message, time.monotonic() - started]
-    if not answer.success:
+    feedback: list[Transfer.Feedback] = []
+    handle = user.send_goal(Transfer, user.name("t42/transfer"), Transfer.Goal(method=method, bags=bags), feedback)
+    got = user.result_of(handle, 600.0, "the transfer's result")
+    result = got.result
+    out["transfer"] = [result.success, result.message, time.monotonic() - started]
+    out["transfer_goal"] = {"method": method, "bags": len(bags), "status": got.status}
+    out["transfer_feedback"] = [[f.phase, f.epoch, f.epochs, f.train_loss] for f in feedback]
+    out["transfer_result"] = {"model_path": result.model_path, "model_divergence_steps": result.model_divergence_steps,
+                              "source_divergence_steps": result.source_divergence_steps,
+                              "hold_still_divergence_steps": result.hold_still_divergence_steps,
+                              "skipped_bags": list(result.skipped_bags)}
+    if not result.success:
         return out
     poses: list[PoseStamped] = []
     trajectories: list[JointTrajectory] = []
     paths: list[Path] = []
     statuses: list[String] = []
     results: list[PlanResult] = []
+    applied: list[tuple[float, JointState]] = []
     user.create_subscription(PlanResult, user.name("t42/plan_result"), results.append, 10)
     user.create_subscription(String, user.name("hand/status"), statuses.append,
                              QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL))
     user.create_subscription(PoseStamped, user.name("hand/object_pose"), poses.append, 10)
     user.create_subscription(JointTrajectory, user.name("hand/trajectory"), trajectories.append, 10)
     user.create_subscription(Path, user.name("t42/planned_path"), paths.append, 10)
-    goal_pub = user.create_publisher(PointStamped, user.name("t42/goal"), 10)
-    user.wait(lambda: poses and goal_pub.get_subscription_count() > 0, 30.0, "hand state and the planner")
+    user.create_subscription(JointState, user.name("hand/applied_action"),
+                             lambda m: applied.append((time.monotonic(), m)), 100)
+    user.wait(lambda: poses, 30.0, "hand state")
     time.sleep(1.0)  # let the planner load the announced model
-    here = poses[-1]
-    goal = PointStamped()
-    goal.header.frame_id = here.header.frame_id
-    goal.header.stamp = here.header.stamp
-    goal.point.x, goal.point.y = here.pose.position.x + 0.004, here.pose.position.y + 0.004
-    goal_pub.publish(goal)
+
+    def target(dx: float, dy: float) -> PointStamped:
+        here = poses[-1]
+        goal = PointStamped()
+        goal.header.frame_id = here.header.frame_id
+        goal.header.stamp = here.header.stamp
+        goal.point.x, goal.point.y = here.pose.position.x + dx, here.pose.position.y + dy
+        return goal
+
+    # t42/reach: a goal 4 mm away, its feedback, its result; the driver runs the plan.
+    feedback = []
+    handle = user.send_goal(Reach, user.name("t42/reach"), Reach.Goal(target=target(0.004, 0.004)), feedback)
     try:
-        user.wait(lambda: trajectories and paths, 120.0, "a JointTrajectory and a Path")
+        got = user.result_of(handle, 120.0, "the Reach result")
     except TimeoutError as err:
         raise TimeoutError(f"{err}; plan results: {[(r.status, r.reason) for r in results]}") from None
+    out["reach"] = {"status": got.status, "verdict": got.result.verdict, "reason": got.result.reason,
+                    "final_error_m": got.result.final_error_m, "executed": len(got.result.executed.poses),
+                    "predicted": len(got.result.predicted.poses), "feedback": [f.step for f in feedback]}
+    user.wait(lambda: trajectories and paths and results, 10.0, "a JointTrajectory, a Path and a PlanResult")
     out["trajectory"] = {"joint_names": list(trajectories[0].joint_names), "points": len(trajectories[0].points)}
     out["path"] = {"frame_id": paths[0].header.frame_id, "poses": len(paths[0].poses)}
+    out["plan_result"] = {"accepted": results[0].accepted, "status": results[0].status,
+                          "frame_id": results[0].header.frame_id, "horizon": results[0].horizon}
     # the driver executes it: its status says when the last point is applied
     user.wait(lambda: any(s.data.startswith("trajectory_done") for s in statuses), 60.0, "trajectory_done")
     out["driver_status"] = [s.data for s in statuses]
+    out["cancel"] = cancel_one(user, target, applied)
     return out
+
+
+def cancel_one(user: User, target, applied: list) -> dict:
+    """A 10-step Reach goal cancelled once it runs, on a driver slowed to half real time (a step each 0.2 s):
+    the result is CANCELED, and the applied actions are zero from the first step after the cancel's answer."""
+    rate = user.get_param("mock_driver", "rate_factor")
+    slowed, why = user.set_param("mock_driver", "rate_factor", 0.5)
+    if not slowed:
+        raise TimeoutError(f"the driver refused rate_factor 0.5: {why}")
+    try:
+        before = len(applied)
+        feedback: list = []
+        handle = user.send_goal(Reach, user.name("t42/reach"), Reach.Goal(target=target(0.002, 0.002), steps=10),
+                                feedback)
+        result = handle.get_result_async()
+        user.wait(lambda: len(feedback) >= 2 or result.done(), 60.0, "the goal to run")
+        moving = [m for _, m in applied[before:] if any(v != 0.0 for v in m.velocity)]
+        cancel = handle.cancel_goal_async()
+        user.wait(cancel.done, 10.0, "the cancel's answer")
+        answered = time.monotonic()
+        got = user.result_of(handle, 30.0, "the cancelled goal's result", result)
+        user.wait(lambda: sum(t > answered for t, _ in applied) >= 4, 10.0, "steps after the cancel")
+        after = [any(v != 0.0 for v in m.velocity) for t, m in applied if t > answered]
+    finally:
+        user.set_param("mock_driver", "rate_factor", float(rate))
+    return {"status": got.status, "canceled": got.status == GoalStatus.STATUS_CANCELED,
+            "verdict": got.result.verdict, "reason": got.result.reason, "moving_before": len(moving),
+            "steps_at_cancel": feedback[-1].step if feedback else -1, "moving_after": after,
+            "cancelling": len(cancel.result().goals_canceling)}
 
 
 def main() -> int:

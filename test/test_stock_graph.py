@@ -137,9 +137,27 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         success, message, seconds = seen["transfer"]
         assert success, (message, suite.output()[-4000:])
         assert "naive_finetune" in message and (tmp_path / "models" / "current.safetensors").is_file()
+        # the Transfer goal named the method and the bags the recorder announced; feedback came per epoch
+        assert seen["transfer_goal"] == {"method": "naive_finetune", "bags": 3, "status": 4}  # SUCCEEDED
+        assert sorted(p for p, episodes, _ in seen["bags_closed"] if episodes) == \
+            [str(b) for b in sorted((tmp_path / "bags").glob("episode_*"))]
+        assert [(f[1], f[2]) for f in seen["transfer_feedback"] if f[1]] == [(1, 2), (2, 2)]
+        assert seen["transfer_result"]["model_path"].endswith(".safetensors") and not seen["transfer_result"][
+            "skipped_bags"] and seen["transfer_result"]["model_divergence_steps"] >= 0
+        # a Reach goal: feedback, then a result with the verdict and both paths; the driver ran the plan
+        reach = seen["reach"]
+        assert reach["verdict"] in ("hit", "miss", "no_progress", "incomplete"), reach
+        assert reach["feedback"] and reach["predicted"] == seen["trajectory"]["points"] + 1 and reach["executed"] >= 2
+        assert seen["plan_result"] == {"accepted": True, "status": "ok", "frame_id": "t42_base",
+                                       "horizon": seen["trajectory"]["points"]}
         assert seen["trajectory"]["joint_names"] == ["actuator_1", "actuator_2"]
         assert 1 <= seen["trajectory"]["points"] <= 10
         assert seen["path"]["poses"] == seen["trajectory"]["points"] + 1 and seen["path"]["frame_id"]
+        # a Reach goal cancelled while the hand moved: CANCELED, and the hand holds still from the next step on
+        cancel = seen["cancel"]
+        assert cancel["canceled"] and cancel["verdict"] == "incomplete" and "cancelled" in cancel["reason"], cancel
+        assert cancel["moving_before"] >= 1 and 1 <= cancel["steps_at_cancel"] < 10, cancel
+        assert len(cancel["moving_after"]) >= 4 and not any(cancel["moving_after"][1:]), cancel
     finally:
         code = suite.stop()
     assert code == 0, suite.output()[-4000:]
