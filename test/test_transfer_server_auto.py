@@ -13,7 +13,7 @@ from test_recorder import Hand, add_recorder, now_ns
 from test_transfer_server import Rig, add_synthetic_bag, add_target_bag, gated_method
 
 from msg_adapters import names, status_message
-from msg_adapters.events import BagClosedEvent, bag_closed_msg
+from msg_adapters.events import SNAPSHOT, BagClosedEvent, bag_closed_msg
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import read_bag
 from t42_transfer.models.checkpoint import read_metadata
@@ -30,8 +30,8 @@ class Recorder:
         self.pub = rig.tester.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS))
         assert rig.wait_graph(subscribers={names.BAG_CLOSED: 1}), "the transfer server never subscribed"
 
-    def closed(self, bag: Path) -> None:
-        event = BagClosedEvent(str(bag), len(read_bag(bag)), 1, 1, 2, "split")
+    def closed(self, bag: Path, reason: str = "split") -> None:
+        event = BagClosedEvent(str(bag), len(read_bag(bag)), 1, 1, 2, reason)
         self.pub.publish(bag_closed_msg(event))
         self.rig.ros.spin_for(0.3)
 
@@ -54,6 +54,17 @@ def test_two_closed_bags_start_one_transfer_that_announces_a_model(ros: Any, tmp
     assert rig.server.new_bags == 0
     ros.spin_for(0.5)
     assert len(rig.server.auto_results) == 1 and len(rig.updates) == 1  # one transfer for two bags
+
+
+def test_snapshot_bags_do_not_count(ros: Any, tmp_path: Path, source_model: Path, make_set: Any) -> None:
+    """A snapshot bag repeats steps the recorder's own bags hold: it starts no transfer."""
+    rig = Rig(ros, tmp_path, source_model, auto_transfer_after_bags=1)
+    rec = Recorder(rig)
+    rec.closed(add_synthetic_bag(rig.bag_dir, make_set, "episode_000"), reason=SNAPSHOT)
+    ros.spin_for(0.5)
+    assert rig.server.new_bags == 0 and not rig.server.auto_results and not rig.updates
+    rec.closed(rig.bag_dir / "episode_000")  # the same bag closed as a recording: it counts
+    assert ros.spin_until(lambda: len(rig.updates) == 1, 60.0), rig.updates
 
 
 def test_off_by_default_nothing_happens(ros: Any, tmp_path: Path, source_model: Path, make_set: Any) -> None:

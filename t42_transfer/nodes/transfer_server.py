@@ -79,7 +79,7 @@ from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed, ModelUpdated
 
 from msg_adapters import RCLPY, diagnostic_array, names
-from msg_adapters.events import bag_closed_event
+from msg_adapters.events import SNAPSHOT, bag_closed_event
 from msg_adapters.transfer import (
     Scores,
     TransferOutcome,
@@ -383,7 +383,7 @@ class TransferServer(Node):
         try:
             every = self.params.auto_transfer_after_bags
             event = bag_closed_event(msg)
-            if every <= 0 or event.episodes == 0:
+            if every <= 0 or event.episodes == 0 or event.reason == SNAPSHOT:  # a snapshot repeats recorded steps
                 return
             self.new_bags += 1
             self.log.info(f"{event.path} closed ({event.reason}, {event.episodes} episodes): "
