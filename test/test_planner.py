@@ -240,6 +240,24 @@ def test_chunking_gives_the_same_plan_as_one_batch(kind: str) -> None:
     assert whole.rejected == chunked.rejected and whole.evaluated == chunked.evaluated == 200 + 190
 
 
+def test_candidates_are_the_lowest_cost_paths_best_first_and_the_plan_unchanged() -> None:
+    goal = (START[0] + 4.0, START[1] - 2.0)
+    config = {"samples": 300, "horizon": 10, "sampler": "uniform", "refine_iterations": 2, "tolerance_mm": 0.5}
+    none = plan(Toy(), goal, **config)
+    kept = plan(Toy(), goal, candidates=5, **config)
+    assert none.candidates == () and len(kept.candidates) == 5
+    assert np.array_equal(kept.actions, none.actions)  # keeping them changes nothing planned
+    assert np.array_equal(kept.candidates[0], kept.predicted[:, :2])  # the best is the plan's own path
+    ends = [float(np.linalg.norm(c[-1] - goal)) for c in kept.candidates]
+    assert ends == sorted(ends) and ends[-1] > ends[0]  # distinct sequences, lowest cost (final distance) first
+    assert all(np.array_equal(c[0], START[:2]) and c.shape == (11, 2) for c in kept.candidates)
+    assert kept.to_dict()["candidates"][1] == kept.candidates[1].tolist()
+    refused = plan(Toy(), (START[0] + 500.0, START[1]), candidates=5, **config)  # goal outside the box
+    assert not refused.ok and refused.candidates == ()
+    with pytest.raises(ValueError, match="candidates"):
+        PlannerConfig(candidates=-1)
+
+
 # ------------------------------------------------------------------------------------ workspace
 
 

@@ -68,6 +68,8 @@ CHUNK = 1000
 at any K.  Measured at K = 10k (1 thread): chunks of 500-2000 alike, 5000 -23 %, 10000 -30 %."""
 
 UNCERTAINTY = ("none", "dropout", "ensemble")
+MAX_CANDIDATES = 50
+"""Most candidate paths a plan keeps (:attr:`PlannerConfig.candidates`): a picture, not a data set."""
 REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "workspace": "left the workspace"}
 """Why a sample was rejected (key: description), in order of precedence at its first bad step."""
 
@@ -100,6 +102,9 @@ class PlannerConfig:
     risk: float = 1.0
     """Weight of the members' spread in the cost (``mean + risk * std`` of the final distances)."""
     seed: int = 0
+    candidates: int = 0
+    """Keep the predicted object paths of this many lowest-cost sequences (:attr:`Plan.candidates`), for a user
+    to see what the search weighed; 0 keeps none and costs nothing."""
 
     def __post_init__(self) -> None:
         check(self, PLANNER_RULES)  # here, so the CLI, the planner node and code share one message
@@ -117,6 +122,7 @@ PLANNER_RULES: dict[str, Rule] = {
     "refine_iterations": between(0, MAX_REFINE),
     "elite_fraction": FRACTION,
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
+    "candidates": between(0, MAX_CANDIDATES),
 }
 """What each :class:`PlannerConfig` setting must be beyond its type."""
 
@@ -142,11 +148,15 @@ class Plan:
     rejected: dict[str, int] = field(default_factory=dict)
     """Samples whose prediction broke a rule within the horizon, by the rule at their first bad step
     (with horizon search their safe prefixes stay usable)."""
+    candidates: tuple[np.ndarray, ...] = ()
+    """With ``PlannerConfig.candidates`` K: the predicted object paths (``[n + 1, 2]`` mm, from the start) of the K
+    lowest-cost safe sequences evaluated, lowest first (the first is the plan's); empty when refused."""
 
     def to_dict(self) -> dict[str, Any]:
         out = asdict(self)
         for key in ("actions", "predicted", "goal"):
             out[key] = getattr(self, key).tolist()
+        out["candidates"] = [c.tolist() for c in self.candidates]
         out["error_mm"] = None if math.isinf(self.error_mm) else self.error_mm
         return out
 
@@ -282,6 +292,8 @@ class _Search:
         self.best_states = x0[None]
         self.evaluated = 0
         self.rejected = dict.fromkeys(REJECTIONS, 0)
+        self.top: list[tuple[float, Tensor]] = []
+        """(cost, predicted xy path) of the ``cfg.candidates`` lowest-cost sequences so far."""
 
     def evaluate(self, actions: Tensor) -> Tensor:
         """Cost of each sequence ``actions[N, T, 2]`` (inf when no usable prefix); updates the best."""
@@ -294,6 +306,8 @@ class _Search:
             cost, length = self._score(states)
             if len(members) > 1:
                 cost = self._risk_averse(torch.stack(members), cost)
+            if self.cfg.candidates:
+                self._keep_top(cost, length, states)
             i = int(torch.argmin(cost))
             if cost[i] < self.best_cost:
                 n = int(length[i])
@@ -303,6 +317,14 @@ class _Search:
             costs.append(cost)
         self.evaluated += len(actions)
         return torch.cat(costs)
+
+    def _keep_top(self, cost: Tensor, length: Tensor, states: Tensor) -> None:
+        """Merge this chunk's lowest finite costs into :attr:`top` (ties: the earlier sample first)."""
+        k = min(self.cfg.candidates, len(cost))
+        order = torch.argsort(cost, stable=True)[:k]
+        for i in order[torch.isfinite(cost[order])].tolist():
+            self.top.append((float(cost[i]), states[: int(length[i]) + 1, i, :2].float().clone()))
+        self.top = sorted(self.top, key=lambda t: t[0])[: self.cfg.candidates]
 
     def _risk_averse(self, members: Tensor, cost: Tensor) -> Tensor:
         """``mean + risk * std`` of the members' final distances (``members[M, T+1, C, 4]``), inf where unsafe."""
@@ -382,4 +404,5 @@ class _Search:
             goal=goal.numpy().copy(),
             evaluated=self.evaluated,
             rejected=dict(self.rejected),
+            candidates=tuple(path.numpy().copy() for _, path in self.top),
         )
