@@ -72,3 +72,19 @@ def path_xy_mm(msg: Any) -> np.ndarray:
     if not msg.poses:
         return np.zeros((0, 2), np.float32)
     return np.stack([object_xy_mm(pose) for pose in msg.poses])
+
+
+PLAN_CANDIDATES = "t42_interfaces/msg/PlanCandidates"
+
+
+def candidates_msg(paths_mm: Sequence[np.ndarray], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
+    """``PlanCandidates`` of predicted object paths (each ``[N, 2]`` mm, lowest cost first), stamped ``stamp_ns``."""
+    return kit.make(PLAN_CANDIDATES, header=_header(stamp_ns, FRAME_ID, kit),
+                    paths=[path_msg(p, stamp_ns, kit=kit) for p in paths_mm])
+
+
+def candidates_xy_mm(msg: Any) -> list[np.ndarray]:
+    """The paths of a ``PlanCandidates`` (``[N, 2]`` mm each, as sent); refuses other frames."""
+    if msg.header.frame_id != FRAME_ID:
+        raise ValueError(f"plan candidates are in frame {msg.header.frame_id!r}, expected {FRAME_ID!r}")
+    return [path_xy_mm(p) for p in msg.paths]

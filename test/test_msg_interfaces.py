@@ -14,7 +14,7 @@ import msg_adapters as ma
 from msg_adapters import interfaces
 from msg_adapters.kit import INTERFACE_TYPES
 
-MESSAGES = ("BagClosed", "ModelUpdated", "PlanResult")
+MESSAGES = ("BagClosed", "ModelUpdated", "PlanCandidates", "PlanResult")
 
 
 def test_the_typestore_holds_the_installed_messages_with_rclpys_type_hashes() -> None:

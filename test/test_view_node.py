@@ -259,3 +259,28 @@ def test_a_port_in_use_or_a_bad_hand_is_one_line_and_exit_2(ros_domain, tmp_path
                                 (["view", "--ros-args", "-p", "hand:=no_such_hand"], "no_such_hand")])
         with pytest.raises(ValueError, match=f"cannot serve on 127.0.0.1:{port}"):
             BagServer(write_bag(tmp_path / "bag", small_set), port=port)
+
+
+def test_the_planners_candidates_are_drawn_when_it_publishes_them(ros, view):
+    from t42_interfaces.msg import PlanCandidates
+
+    from msg_adapters.planning import candidates_msg
+
+    tester = Tester(ros)
+    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
+    pub = tester.tester.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, 10)
+    goal_pub = tester.tester.create_publisher(PointStamped, names.GOAL, 10)
+    assert tester.wait_graph(subscribers={names.PLAN_CANDIDATES: 1, names.GOAL: 1},
+                             publishers={names.VIEW_MARKERS: 1})
+
+    def drawn() -> list[Any]:
+        return [m for m in markers[-1].markers if m.ns == "candidates"] if markers else []
+
+    goal_pub.publish(ma.goal_msg(GOAL_MM, T0_NS, ma.RCLPY))
+    assert ros.spin_until(lambda: markers and any(m.ns == "goal" for m in markers[-1].markers), 5)
+    assert drawn() == []  # none published: none drawn
+    paths = [np.array([[0.0, 80.0], [1.0 + k, 81.0], [2.0 + k, 83.0]], np.float32) for k in range(3)]
+    pub.publish(candidates_msg(paths, T0_NS, ma.RCLPY))
+    assert ros.spin_until(lambda: len(drawn()) == 3, 5), "the candidates were not drawn"
+    for marker, path in zip(sorted(drawn(), key=lambda m: m.id), paths, strict=True):
+        assert np.allclose([(p.x, p.y) for p in marker.points], path / 1000)

@@ -37,7 +37,8 @@ def _snapshot(args: argparse.Namespace) -> int:
         if value is not None:
             setattr(inputs, field, np.asarray(value, dtype=float))
     scene = build_scene(args.hand, actuator_angles=inputs.actuator_angles, object_xy_mm=inputs.object_xy_mm,
-                        goal_xy_mm=inputs.goal_xy_mm, tolerance_mm=args.tolerance, path_xy_mm=inputs.path_xy_mm)
+                        goal_xy_mm=inputs.goal_xy_mm, tolerance_mm=args.tolerance, path_xy_mm=inputs.path_xy_mm,
+                        candidates=inputs.candidates or ())
     title = f"{args.bag.name} at {(inputs.log_ns - inputs.start_ns) / 1e9:.1f} s" if args.bag is not None else ""
     render(scene, args.snapshot, title=title)
     drawn = [name for name, value in (("object", scene.object_xy_mm), ("goal", scene.goal_xy_mm),

@@ -15,6 +15,9 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``t42/planned_path`` (nav_msgs/msg/Path): published with each trajectory; the
   predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
+* ``t42/plan_candidates`` (t42_interfaces/msg/PlanCandidates): with the parameter ``candidates`` K > 0 (0, off,
+  by default), the predicted paths of each new plan's K lowest-cost sequences, the plan's own first, published
+  with its first piece (the view draws them);
 * ``t42/plan_result`` (t42_interfaces/msg/PlanResult): exactly one per goal (``t42/goal`` and ``t42/reach``
   alike), :class:`PlanResult` (:mod:`msg_adapters.plan_result`: metres in ``t42_base``): accepted, or refused
   with a status code and a reason, with the goal and its stamp, the start, the predicted error, the plan's
@@ -88,7 +91,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
-from t42_interfaces.msg import ModelUpdated
+from t42_interfaces.msg import ModelUpdated, PlanCandidates
 from t42_interfaces.msg import PlanResult as PlanResultMsg
 from trajectory_msgs.msg import JointTrajectory
 
@@ -105,6 +108,7 @@ from msg_adapters import (
     status_event,
 )
 from msg_adapters.plan_result import plan_result_msg
+from msg_adapters.planning import candidates_msg
 from msg_adapters.reach import reach_request
 from msg_adapters.transfer import model_announcement
 from t42_transfer.conventions import (
@@ -128,6 +132,7 @@ from t42_transfer.nodes.planner_parts import (
 from t42_transfer.nodes.reach import ABORT, CANCELED, ReachRun, judge, reach_server, refused_verdict
 from t42_transfer.planning import Plan, Planner, PlannerConfig
 from t42_transfer.planning.execution import receding_horizon
+from t42_transfer.planning.planner import MAX_CANDIDATES
 from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
@@ -163,6 +168,9 @@ class PlannerNodeParams:
                                  "from the measured state (MPC)", min=0)
     piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
                                    min=0.0, constraints="positive, finite")
+    candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
+                                                  "lowest-cost sequences on t42/plan_candidates (0: off)",
+                            min=0, max=MAX_CANDIDATES)
 
     def __post_init__(self) -> None:
         _ = self.planner_config  # PlannerConfig validates the planner fields
@@ -179,7 +187,7 @@ class PlannerNodeParams:
     def planner_config(self) -> PlannerConfig:
         return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
                              horizon_search=self.horizon_search,
-                             tolerance_mm=self.tolerance_mm, seed=self.seed)
+                             tolerance_mm=self.tolerance_mm, seed=self.seed, candidates=self.candidates)
 
     @property
     def max_state_age_ns(self) -> int:
@@ -211,6 +219,7 @@ class PlannerNode(Node):
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
+        self._candidates_pub = self.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, 10)
         self._result_pub = self.create_publisher(PlanResultMsg, names.PLAN_RESULT, profile(names.RESULTS))
         model = str(file_in_namespace(self.params.model, self.get_namespace())) if self.params.model else ""
         if model and Path(model).exists():
@@ -508,6 +517,8 @@ class PlannerNode(Node):
                 stamp = self._now_ns()
                 self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
+            if offset == 0 and current.candidates:  # a new plan: what its search weighed
+                self._candidates_pub.publish(candidates_msg(current.candidates, stamp, kit=RCLPY))
             if run is not None:
                 run.planned(current.predicted[:, :2], stamp - offset * CONTROL_PERIOD_NS, current.error_mm)
                 run.sent(stamp, len(piece))

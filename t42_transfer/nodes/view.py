@@ -13,7 +13,9 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
 * ``/clock`` as the server's time (the Time capability), so the app's clock is the driver's sim time;
 * ``view/markers`` (visualization_msgs/MarkerArray, also published on the graph for RViz): the scene of
   :mod:`t42_transfer.view.scene` from ``hand/joint_states``, ``hand/object_pose``, ``t42/goal`` and
-  ``t42/planned_path`` (the plan's predicted path, published with each accepted plan), drawn with the links of
+  ``t42/planned_path`` (the plan's predicted path, published with each accepted plan) and
+  ``t42/plan_candidates`` (the planner's lowest-cost candidates, with its parameter ``candidates`` above 0),
+  drawn with the links of
   ``hand`` and a tolerance circle of ``tolerance_mm``, red with the planner's status word when ``t42/plan_result``
   says it refused that goal; at most ``marker_rate_hz``, when something changed;
 * Parameters: every node's parameters, as ``/namespace/node.parameter``, read and set through the nodes'
@@ -48,6 +50,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from t42_interfaces.msg import PlanCandidates
 from t42_interfaces.msg import PlanResult as PlanResultMsg
 from visualization_msgs.msg import MarkerArray
 
@@ -55,6 +58,7 @@ import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.markers import scene_markers
 from msg_adapters.plan_result import plan_result
+from msg_adapters.planning import candidates_xy_mm
 from msg_adapters.schemas import message_definition
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.view_params import GraphParameters
@@ -183,6 +187,7 @@ class View(Node):
         self.create_subscription(PoseStamped, names.OBJECT_POSE, lambda m: self._input("pose", m), 10)
         self.create_subscription(PointStamped, names.GOAL, lambda m: self._input("goal", m), 10)
         self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self._input("path", m), 10)
+        self.create_subscription(PlanCandidates, names.PLAN_CANDIDATES, lambda m: self._input("candidates", m), 10)
         self.create_subscription(PlanResultMsg, names.PLAN_RESULT, self._on_plan_result, profile(names.EVENT_READER))
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p.marker_rate_hz, self._draw, clock=steady)
@@ -288,12 +293,14 @@ class View(Node):
 
     def scene(self) -> Any:
         """The scene of the newest inputs; ValueError for one that cannot be drawn (another frame, NaN)."""
-        joints, pose, goal, path = (self._inputs.get(k) for k in ("joints", "pose", "goal", "path"))
+        joints, pose, goal, path, candidates = (self._inputs.get(k) for k in ("joints", "pose", "goal", "path",
+                                                                               "candidates"))
         return build_scene(self.hand, actuator_angles=None if joints is None else ma.joint_state_arrays(joints)[1],
                            object_xy_mm=None if pose is None else ma.object_xy_mm(pose),
                            goal_xy_mm=None if goal is None else ma.goal_xy_mm(goal),
                            tolerance_mm=self.params.tolerance_mm,
-                           path_xy_mm=None if path is None else ma.path_xy_mm(path), goal_refused=self._refused)
+                           path_xy_mm=None if path is None else ma.path_xy_mm(path), goal_refused=self._refused,
+                           candidates=() if candidates is None else candidates_xy_mm(candidates))
 
     def _draw(self) -> None:
         if not self._dirty:

@@ -13,6 +13,7 @@ from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
 from msg_adapters import names
+from msg_adapters.planning import candidates_xy_mm
 from t42_transfer.data.errors import BagError
 
 
@@ -24,6 +25,7 @@ class SceneInputs:
     object_xy_mm: np.ndarray | None = None
     goal_xy_mm: np.ndarray | None = None
     path_xy_mm: np.ndarray | None = None
+    candidates: list[np.ndarray] | None = None
     log_ns: int = 0
     """Log time of the newest message used."""
     start_ns: int = 0
@@ -35,6 +37,7 @@ _READERS = {
     names.OBJECT_POSE: ("object_xy_mm", ma.object_xy_mm),
     names.GOAL: ("goal_xy_mm", ma.goal_xy_mm),
     names.PLANNED_PATH: ("path_xy_mm", ma.path_xy_mm),
+    names.PLAN_CANDIDATES: ("candidates", candidates_xy_mm),
 }
 
 

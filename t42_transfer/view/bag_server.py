@@ -163,7 +163,8 @@ class BagServer:
                 return
             i = self._inputs
             scene = build_scene(self._hand, actuator_angles=i.actuator_angles, object_xy_mm=i.object_xy_mm,
-                                goal_xy_mm=i.goal_xy_mm, tolerance_mm=self._tolerance_mm, path_xy_mm=i.path_xy_mm)
+                                goal_xy_mm=i.goal_xy_mm, tolerance_mm=self._tolerance_mm, path_xy_mm=i.path_xy_mm,
+                                candidates=i.candidates or ())
         except ValueError:  # a message the scene cannot use (another frame, NaN): the picture waits for the next
             return
         self._markers.log(serialize_message(scene_markers(scene, log_ns, ma.RCLPY)), log_time=log_ns)
