@@ -190,6 +190,29 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
     assert driver_log.warnings() == []
 
 
+def test_candidates_are_off_by_default_and_k_paths_with_the_plan_first_when_asked(ros, rig: Rig) -> None:
+    from t42_interfaces.msg import PlanCandidates
+
+    from msg_adapters.planning import candidates_xy_mm
+
+    got: list = rig.listen(PlanCandidates, names.PLAN_CANDIDATES, 10)
+    assert rig.wait_graph(publishers={names.PLAN_CANDIDATES: 1})
+    rig.tick()
+    rig.goal(START_XY + [6.0, -4.0])
+    ros.spin_for(0.3)
+    assert got == []  # off by default: nothing published
+    assert rig.planner.set_parameters([Parameter("candidates", value=4)])[0].successful
+    assert not rig.planner.set_parameters([Parameter("candidates", value=-1)])[0].successful
+    rig.paths.clear()
+    rig.goal(START_XY + [-5.0, 3.0])
+    assert ros.spin_until(lambda: got and rig.paths, 5.0), "no candidates published with the plan"
+    (msg,) = got
+    paths = candidates_xy_mm(msg)
+    assert msg.header.frame_id == FRAME_ID and msg.header.stamp == rig.paths[-1].header.stamp
+    assert len(paths) == 4 and np.array_equal(paths[0], path_xy_mm(rig.paths[-1]))  # the plan's own first
+    assert all(np.allclose(p[0], paths[0][0]) for p in paths)  # all from the start planned from
+
+
 def test_a_model_announced_before_the_node_starts_is_loaded_from_the_latched_topic(ros, toy: Path) -> None:
     tester = ros.node("announcer")
     announcer = tester.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
@@ -494,7 +517,8 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan_as_execute_does(ro
     publish_state(START_XY, start_stamp)
     assert ros.spin_until(lambda: rig.planner.state_stamp_ns == start_stamp, 5.0)
     rig.publish_goal(START_XY + [6.0, -4.0])
-    assert ros.spin_until(lambda: rig.results and rig.trajectories, 20.0)
+    # the path goes out just after the trajectory: wait for it too (an IndexError at rig.paths[0], 1 run in 2)
+    assert ros.spin_until(lambda: rig.results and rig.trajectories and rig.paths, 20.0)
     assert rig.results[0]["accepted"], rig.results[0]
     first = np.diff(path_xy_mm(rig.paths[0]), axis=0)  # the toy moves (x, y) by the action: its actions
     assert len(first) == horizon
