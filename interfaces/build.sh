@@ -4,8 +4,8 @@
 #
 #   interfaces/build.sh [VENV]        (default: <repository>/.venv; scripts/bootstrap.sh runs it)
 #
-# Exit status: 0 built (or already up to date), 3 skipped because a build tool is missing (one line on
-# stderr names the Debian packages), 1 failed (the log's last lines on stderr).
+# Exit status: 0 built (or already up to date), 3 a build tool is missing (one line on stderr names the
+# Debian packages; the suite's nodes cannot run without the package), 1 failed (the log's last lines on stderr).
 #
 # Why the venv's prefix: the ros-jazzy-* wheels install their C libraries into <venv>/lib, their Python
 # packages into site-packages and their ament index into <venv>/share, and the wheels' own
@@ -36,7 +36,8 @@ STAMP="$VENV/.t42-interfaces-installed"
 MANIFEST="$VENV/.t42-interfaces-manifest.txt"
 LOG="$VENV/.t42-interfaces-build.log"
 
-skip() { echo "interfaces: skipped: $* (the suite does not need t42_interfaces yet)" >&2; exit 3; }
+# Exit 3: a build tool is missing.  The suite's nodes need t42_interfaces, so that is an error (the bootstrap stops).
+missing_tool() { echo "interfaces: error: $* (the suite's nodes need t42_interfaces)" >&2; exit 3; }
 fail() {
     echo "interfaces: error: $*; last lines of $LOG:" >&2
     tail -n 25 "$LOG" >&2 || true
@@ -69,11 +70,11 @@ command -v cmake >/dev/null 2>&1 || missing+=(cmake)
 if ! command -v c++ >/dev/null 2>&1 && ! command -v g++ >/dev/null 2>&1; then missing+=(g++); fi
 if ! command -v make >/dev/null 2>&1 && ! command -v ninja >/dev/null 2>&1; then missing+=(make); fi
 if ((${#missing[@]})); then
-    skip "no ${missing[*]}: install them (Debian: sudo apt-get install cmake g++ make) and rerun scripts/bootstrap.sh"
+    missing_tool "no ${missing[*]}: install them (Debian: sudo apt-get install cmake g++ make) and rerun scripts/bootstrap.sh"
 fi
 PY_INCLUDE="$("$VPY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
 if [[ ! -f "$PY_INCLUDE/Python.h" ]]; then
-    skip "no Python.h in $PY_INCLUDE: install the interpreter's headers (Debian: sudo apt-get install python3-dev)"
+    missing_tool "no Python.h in $PY_INCLUDE: install the interpreter's headers (Debian: sudo apt-get install python3-dev)"
 fi
 
 rm -f "$STAMP"

@@ -15,9 +15,9 @@
 # Python of the venv with <venv>/lib on LD_LIBRARY_PATH, where its C type
 # support libraries are (rosidl looks them up by name there; an RPATH would
 # not be enough); rclpy needs no AMENT_PREFIX_PATH for it.  Without cmake, a
-# C++ compiler or the Python headers it is skipped with one line naming the
-# Debian packages, and the rest of the bootstrap stands (nothing uses the
-# package yet).  interfaces/build.sh says more (the wheels' two snags).
+# C++ compiler or the Python headers the bootstrap stops with one line naming
+# the Debian packages (the suite's nodes import the package).
+# interfaces/build.sh says more (the wheels' two snags).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -60,7 +60,7 @@ build_interfaces() {
     bash "$ROOT/interfaces/build.sh" "$VENV" || rc=$?
     case $rc in
         0) ;;
-        3) echo "bootstrap: the t42_interfaces package was skipped (see the line above); the rest is done" >&2 ;;
+        3) die "t42_interfaces cannot be built here (the line above names what to install); its nodes need it" ;;
         *) die "building t42_interfaces failed (see above)" ;;
     esac
 }
