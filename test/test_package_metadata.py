@@ -20,7 +20,7 @@ LAUNCH_DEPS = {"launch", "launch_ros", "ament_index_python"}
 ROS_MESSAGE_PACKAGES = {
     "rcl_interfaces", "builtin_interfaces", "std_msgs", "std_srvs", "geometry_msgs", "sensor_msgs",
     "trajectory_msgs", "nav_msgs", "diagnostic_msgs", "rosgraph_msgs", "action_msgs", "lifecycle_msgs",
-    "visualization_msgs", "shape_msgs", "stereo_msgs", "actionlib_msgs", "unique_identifier_msgs",
+    "visualization_msgs", "shape_msgs", "stereo_msgs", "actionlib_msgs", "unique_identifier_msgs", "t42_interfaces",
 }
 """ROS interface packages the code could name (an import or a ``pkg/msg/Name`` type string)."""
 ROSDEP_PYTHON_DEPS = {"python3-numpy", "python3-yaml", "python3-matplotlib", "python3-tqdm"}
@@ -73,10 +73,10 @@ def _ros_packages_used() -> set[str]:
         text = path.read_text()
         if re.search(r"^\s*(from|import) rclpy\b", text, re.M):
             used.add("rclpy")
-        for pkg in re.findall(r"^\s*(?:from|import) ([a-z_]+)(?:\.(?:msg|srv)|\b)", text, re.M):
+        for pkg in re.findall(r"^\s*(?:from|import) ([a-z][a-z0-9_]*)(?:\.(?:msg|srv|action)|\b)", text, re.M):
             if pkg in ROS_MESSAGE_PACKAGES | LAUNCH_DEPS:
                 used.add(pkg)
-        for pkg in re.findall(r"[\"']([a-z_]+)/(?:msg|srv)/[A-Z]\w*[\"']", text):
+        for pkg in re.findall(r"[\"']([a-z][a-z0-9_]*)/(?:msg|srv|action)/[A-Z]\w*[\"']", text):
             used.add(pkg)
     return used
 
