@@ -25,7 +25,11 @@ The machine's load is recorded after each run: on a shared machine, repeat on a 
 One more run says where the driver's CPU goes:
 
 * ``idle_rclpy_node``: a plain rclpy node with one no-op timer at the control period, spun as ``t42 node``
-  spins its node: the CPU any rclpy node pays per period (executor and DDS) before its callback does anything.
+  spins its node: the CPU any rclpy node pays per period (executor and DDS) before its callback does anything;
+* ``idle_rclpy_node_events_executor``: the same node on rclpy's experimental EventsExecutor (C++ event queue,
+  no wait set rebuilt per wake), the cheapest executor rclpy offers.  The driver cannot use it as it stands:
+  in rclpy 7.1.6 it does not await a coroutine service callback (``hand/reset`` answers once the grasp closed,
+  which the steps run), so the floor it shows is what a redesign could reach, not what the driver pays.
 """
 
 from __future__ import annotations
@@ -84,12 +88,13 @@ import os, sys, time
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
-seconds, period = float(sys.argv[1]), float(sys.argv[2])
+seconds, period, kind = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
 context = rclpy.Context(); rclpy.init(args=["idle"], context=context)
 node = Node("idle_floor", context=context); ticks = []
 node.create_timer(period, lambda: ticks.append(None))
-executor = SingleThreadedExecutor(context=context); executor.add_node(node)
+executor = (EventsExecutor if kind == "events" else SingleThreadedExecutor)(context=context); executor.add_node(node)
 warm = time.monotonic() + 2.0
 while time.monotonic() < warm: executor.spin_once(timeout_sec=0.1)
 first, cpu, start = len(ticks), time.process_time(), time.monotonic()
@@ -264,9 +269,10 @@ def bare_run(seconds: float, read_wait_s: float | None = None) -> dict:
             "round_trip_max_ms": 1e3 * worst, "load_after": os.getloadavg()}
 
 
-def idle_node_run(seconds: float) -> dict:
-    """CPU per period of an rclpy node that does nothing: the floor under any node's callback."""
-    out = subprocess.run([sys.executable, "-c", IDLE_NODE, str(seconds), str(CONTROL_PERIOD_S)], cwd=REPO,
+def idle_node_run(seconds: float, executor: str = "single") -> dict:
+    """CPU per period of an rclpy node that does nothing: the floor under any node's callback (``executor``:
+    ``single``, the SingleThreadedExecutor ``t42 node`` spins, or ``events``, rclpy's EventsExecutor)."""
+    out = subprocess.run([sys.executable, "-c", IDLE_NODE, str(seconds), str(CONTROL_PERIOD_S), executor], cwd=REPO,
                          capture_output=True, text=True, timeout=seconds + 60, check=True)
     cpu, ticks = (float(v) for v in out.stdout.split())
     return {"periods": int(ticks), "cpu_ms_per_period": 1e3 * cpu / max(ticks, 1), "load_after": os.getloadavg()}
@@ -281,6 +287,7 @@ def main() -> int:
     machine = machine_info()
     driver, bare = driver_run(args.seconds), bare_run(args.seconds)
     bare_select, idle_run = bare_run(args.seconds, READ_WAIT_S), idle_node_run(args.seconds)
+    idle_events = idle_node_run(args.seconds, "events")
     idle_ms = idle_run["cpu_ms_per_period"]
     stock = driver["cpu_ms_per_step"] / bare["cpu_ms_per_step"]
     same_work = driver["cpu_ms_per_step"] / bare_select["cpu_ms_per_step"]
@@ -295,7 +302,9 @@ def main() -> int:
                       f"({select_ms:.2f} ms); an rclpy node that does nothing costs {idle_ms:.2f} ms per period "
                       f"({idle_ms / select_ms:.2f}x that loop) before any callback, which leaves "
                       f"{driver['cpu_ms_per_step'] - idle_ms:.2f} ms a step for the driver's own work (the command, "
-                      f"the read, three messages published, the write)")
+                      f"the read, three messages published, the write); on rclpy's EventsExecutor, which the driver "
+                      f"cannot use as it stands, an idle node still costs {idle_events['cpu_ms_per_period']:.2f} ms "
+                      f"({idle_events['cpu_ms_per_period'] / select_ms:.2f}x that loop)")
     if driver["late_steps"] > target["late_steps"]:
         missed.append(f"{driver['late_steps']} late step(s) (> 1.5 periods), load {driver['load_after'][0]:.2f}")
     if episode["joint_states"] < driver["steps"] - 1 or episode["applied_actions"] < driver["steps"] - 1:
@@ -320,6 +329,7 @@ def main() -> int:
                        "round trip, so cpu_ratio_driver_to_stock_sdk_loop compares the driver with that polling, "
                        "not with the same work",
         "idle_rclpy_node": idle_run,
+        "idle_rclpy_node_events_executor": idle_events,
         "driver_cpu_above_idle_node_ms_per_step": driver["cpu_ms_per_step"] - idle_ms,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -234,7 +234,8 @@ def test_bench_suite_latency(tmp_path: Path, ros_domain: int) -> None:
 
 
 def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
-    """Four runs one after the other (driver, bare loop, bare loop reading in select, idle node), each 1 s timed:
+    """Five runs one after the other (driver, bare loop, bare loop reading in select, idle node on each of two
+    executors), each 1 s timed:
     ~10 steps at 10 Hz, enough for the intervals and above a clock tick of driver CPU (~2-4 ms a step).  The
     driver's window is an episode (hand/reset first, a command each period): its steps publish the full step."""
     result = run_bench("bench_driver.py", "--seconds", "1", out=tmp_path / "driver.json")
@@ -254,6 +255,8 @@ def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
     select, idle = result["bare_sdk_loop_select_reads"], result["idle_rclpy_node"]
     assert 5 <= select["steps"] <= 15 and positive(select["cpu_ms_per_step"]) and positive(select["round_trip_ms"])
     assert 5 <= idle["periods"] <= 15 and positive(idle["cpu_ms_per_period"])
+    events = result["idle_rclpy_node_events_executor"]
+    assert 5 <= events["periods"] <= 15 and positive(events["cpu_ms_per_period"])
     assert math.isfinite(result["driver_cpu_above_idle_node_ms_per_step"])
 
 
