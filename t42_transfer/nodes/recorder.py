@@ -110,7 +110,6 @@ from t42_interfaces.msg import BagClosed
 
 from msg_adapters import (
     RCLPY,
-    TYPESTORE,
     diagnostic_array,
     names,
     rclpy_class,
@@ -502,13 +501,9 @@ class Recorder(LooseMessages, Node):
     def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
         try:
             log_ns = self.get_clock().now().nanoseconds
-            try:
-                stamp = stamp_to_ns(TYPESTORE.deserialize_cdr(data, msgtype).header.stamp)
-            except Exception as err:  # the decoder raises whatever it trips over
-                self.dropped += 1
-                self.per_message.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
-                                         f"({type(err).__name__}: {err})")
+            if (msg := self._decoded(topic, msgtype, data)) is None:
                 return
+            stamp = stamp_to_ns(msg.header.stamp)
             with self._lock:
                 if self._closed:
                     return

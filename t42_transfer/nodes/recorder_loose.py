@@ -70,15 +70,20 @@ class LooseMessages:
             after = now if after is None else max(now, after)
         return after
 
+    def _decoded(self, topic: str, msgtype: str, data: bytes) -> Any:
+        """``data`` as a ``msgtype``; None, the message dropped with a warning, when it is none."""
+        try:
+            return TYPESTORE.deserialize_cdr(data, msgtype)
+        except Exception as err:  # the decoder raises whatever it trips over
+            self.dropped += 1
+            self.per_message.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
+                                     f"({type(err).__name__}: {err})")
+            return None
+
     def _on_event(self, topic: str, msgtype: str, data: bytes) -> None:
         """A typed event (``t42/plan_result``...): written as it comes, as a status."""
         try:
-            try:
-                TYPESTORE.deserialize_cdr(data, msgtype)
-            except Exception as err:  # the decoder raises whatever it trips over
-                self.dropped += 1
-                self.per_message.warning(f"dropped a message on {topic}: its {len(data)} bytes are not a {msgtype} "
-                                         f"({type(err).__name__}: {err})")
+            if self._decoded(topic, msgtype, data) is None:
                 return
             if self.paused:
                 self.paused_dropped += 1
