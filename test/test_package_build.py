@@ -7,7 +7,9 @@ and must leave no build/, install/, log/ or *.egg-info behind in it.
 
 The interface package t42_interfaces (interfaces/t42_interfaces) is built by interfaces/build.sh into the venv
 (scripts/bootstrap.sh runs it): its tests reuse that install when it is up to date (a no-op of a fraction of a
-second) and build it otherwise (about 30 s), once per session; without cmake or a C++ compiler they skip.
+second) and build it otherwise (about 30 s), once per session; without cmake or a C++ compiler they fail,
+as the bootstrap does (the suite's nodes import the package). On a machine with ROS 2 Jazzy in /opt/ros/jazzy the
+slow suite also builds both packages there.
 """
 
 from __future__ import annotations
@@ -393,3 +395,24 @@ def test_colcon_builds_both_packages_with_the_venv_as_underlay(interfaces_instal
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert Path(proc.stdout.strip()).is_relative_to((install / "t42_interfaces").resolve())
+
+
+ROS_SETUP = Path("/opt/ros/jazzy/setup.bash")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not ROS_SETUP.is_file(), reason=f"no ROS 2 Jazzy install here ({ROS_SETUP} is absent); the "
+                                                    "build with the wheels' venv as the underlay stands in for it")
+def test_colcon_builds_both_packages_on_a_ros_install(tmp_path):
+    """The workspace build as a ROS user runs it: /opt/ros/jazzy sourced, its colcon and its Python, no venv."""
+    script = (f'source "{ROS_SETUP}" && colcon --log-base "$1/log" build --base-paths "{REPO}" "{REPO / "interfaces"}" '
+              '--build-base "$1/build" --install-base "$1/install" --event-handlers console_direct- '
+              '&& source "$1/install/local_setup.bash" '
+              '&& python3 -c "from t42_interfaces.action import Reach, Transfer; import t42_transfer"')
+    env = {k: v for k, v in _clean_env(tmp_path).items() if k not in _NOT_INHERITED and k != "VIRTUAL_ENV"}
+    env["PATH"] = "/usr/local/bin:/usr/bin:/bin"
+    before = _build_artefacts(REPO)
+    proc = subprocess.run(["bash", "-c", script, "bash", str(tmp_path)], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=900)
+    assert proc.returncode == 0, f"the build on the ROS install failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    assert _build_artefacts(REPO) - before == set()
