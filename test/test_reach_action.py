@@ -179,3 +179,30 @@ def test_a_closed_loop_goal_replans_every_k_steps_and_reports_each_step(ros, rig
     assert len(got.result.predicted.poses) == 6  # the last plan: the 5 steps left, from where it started
     assert [f.step for f in feedback] == list(range(executed))  # every step, none skipped
     assert rig.results[-1]["replan_every"] == 5 and rig.results[-1]["horizon"] == 15
+
+
+def test_goals_end_right_after_many_trajectories_and_episode_ends_have_been_heard(ros, tmp_path: Any) -> None:
+    """The planner tells a piece's trajectory_done, and an episode's end, by what came since it was sent: after more
+    than the ten it keeps (a demo explores twelve episodes first) a goal still ends when its plan has run, not after
+    piece_timeout_s with no state, and a drop still ends it."""
+    from std_msgs.msg import String
+
+    from msg_adapters import names, status_message
+    from t42_transfer.ros.qos import profile
+
+    rig = ReachRig(ros, toy_file(tmp_path / "toy.safetensors"), **{**SMALL, "piece_timeout_s": 3.0})
+    status = rig.tester.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
+    assert rig.wait_graph(subscribers={names.HAND_STATUS: 1}), "discovery"
+    for k in range(12):  # earlier episodes' trajectories and drops
+        status.publish(String(data=status_message(names.TRAJECTORY_DONE, f"episode {k}", 1_000 + k)))
+        status.publish(String(data=status_message(names.DROPPED, f"episode {k}", 1_000 + k)))
+    rig.ros.spin_for(0.3)
+    rig.tick()
+    got = rig.run_until(rig.send(START_XY + [6.0, -4.0]).get_result_async())
+    assert got.result.verdict in VERDICTS - {"incomplete"}, got.result.reason  # judged on the state after the plan
+    handle = rig.send(START_XY + [0.0, 6.0], steps=20)
+    rig.wait_sent()
+    rig.tick(2)
+    status.publish(String(data=status_message(names.DROPPED, "the object fell", rig.now_ns())))
+    got = rig.run_until(handle.get_result_async(), 5)
+    assert got.status == GoalStatus.STATUS_ABORTED and "the episode ended (dropped)" in got.result.reason

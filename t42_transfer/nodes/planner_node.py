@@ -211,11 +211,15 @@ class PlannerNode(Node):
         self._planning = False
         self._stopping = False
         self._done_stamps: list[int] = []
-        """Last-step stamps of the driver's trajectory_done statuses, newest last."""
+        """Last-step stamps of the driver's trajectory_done statuses, newest last (the ten newest)."""
+        self._dones = 0
+        """trajectory_done statuses received in all: a piece has run when this grew (the list stops growing)."""
         self._active: ReachRun | None = None
         """The action goal being planned or executed."""
         self._episode_ends: list[str] = []
-        """The driver's episode-end events (dropped, ...), newest last."""
+        """The driver's episode-end events (dropped, ...), newest last (the ten newest)."""
+        self._ends = 0
+        """Episode-end events received in all."""
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
@@ -319,12 +323,14 @@ class PlannerNode(Node):
         if event in names.END_EVENTS:
             with self._cond:
                 self._episode_ends = [*self._episode_ends[-9:], event]
+                self._ends += 1
                 self._cond.notify_all()
         if event != names.TRAJECTORY_DONE:
             return
         stamp = last_step_stamp(msg.data)
         with self._cond:
             self._done_stamps = [*self._done_stamps[-9:], -1 if stamp is None else stamp]
+            self._dones += 1
             self._cond.notify_all()
 
     def _on_model_updated(self, msg: ModelUpdated) -> None:
@@ -493,7 +499,7 @@ class PlannerNode(Node):
         # the plan the next piece comes from, how much of it was sent, steps sent, pieces done before
         current, offset, executed, done_before = first, 0, 0, 0
         with self._cond:
-            ends_before = len(self._episode_ends)
+            ends_before = self._ends
 
         def plan_at(state: np.ndarray, left: int) -> Plan:
             nonlocal current, offset
@@ -513,7 +519,7 @@ class PlannerNode(Node):
             with self._cond:
                 if self._interrupted(run, ends_before):
                     return "interrupted"
-                done_before = len(self._done_stamps)
+                done_before = self._dones
                 stamp = self._now_ns()
                 self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
@@ -545,7 +551,9 @@ class PlannerNode(Node):
         run = goal.run
         tolerance = goal.tolerance_mm or self.params.tolerance_mm
         with self._cond:
-            ends, pending, stopping = self._episode_ends[ends_before:], self._pending is not None, self._stopping
+            new_ends = min(self._ends - ends_before, len(self._episode_ends))
+            ends = self._episode_ends[len(self._episode_ends) - new_ends:]
+            pending, stopping = self._pending is not None, self._stopping
             if final is None and not run.cancelled and (pending or stopping):
                 self._stop_hand()
         run.end_at(None if final is None else final.state[:2])
@@ -557,7 +565,7 @@ class PlannerNode(Node):
         """Whether the goal being executed must stop (call with the lock held): stopping, a newer goal waits,
         its action was cancelled, or the episode ended."""
         return (self._stopping or self._pending is not None
-                or (run is not None and (run.cancelled or len(self._episode_ends) > ends_before)))
+                or (run is not None and (run.cancelled or self._ends > ends_before)))
 
     def _stop_hand(self) -> None:
         """Cancel the driver's trajectory: an empty one is its "stop" (zero actions from the next step)."""
@@ -571,14 +579,14 @@ class PlannerNode(Node):
         deadline = time.monotonic() + p.piece_timeout_s
 
         def ready() -> bool:
-            return self._interrupted(run, ends_before) or len(self._done_stamps) > done_before
+            return self._interrupted(run, ends_before) or self._dones > done_before
 
         with self._cond:
             while not ready() and time.monotonic() < deadline:
                 self._cond.wait(timeout=0.05)
             if self._interrupted(run, ends_before):
                 return None
-            if len(self._done_stamps) <= done_before:
+            if self._dones <= done_before:
                 self.log.warning(f"a piece did not finish within {p.piece_timeout_s} s; closed loop ends")
                 return None
             last = self._done_stamps[-1]
