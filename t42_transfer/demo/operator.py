@@ -7,6 +7,7 @@ the story waits on what it has seen.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -55,6 +56,8 @@ class Operator(Node):
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("t42_demo", parameter_overrides=[Parameter("use_sim_time", value=True)], **node_kwargs)
+        self.spin_lock = threading.Lock()
+        """Held by each ``spin_once`` of :meth:`spin` and while an action request is sent."""
         self.poses: list[tuple[int, np.ndarray]] = []
         self.truths: list[tuple[int, np.ndarray]] = []
         """The simulated hand's true object pose (``sim/object_pose``), where a node publishes it."""
@@ -99,6 +102,16 @@ class Operator(Node):
             return
         self.diagnostic = {"message": report.message, **report.values}
 
+    def spin(self, executor: Any, stop: threading.Event) -> None:
+        """Spin ``executor`` (single-threaded: each callback runs inside ``spin_once``) until ``stop``, each
+        ``spin_once`` under :attr:`spin_lock`.  rclpy 7.1.6's ActionClient files a request's future only after
+        sending it, with no lock: an executor thread that takes the answer in between drops it ("Ignoring
+        unexpected goal response", seen in 1 of 2 quick demos here, which then waited in vain).  Requests are
+        sent under the same lock, so no answer is taken while one is being sent."""
+        while not stop.is_set():
+            with self.spin_lock:
+                executor.spin_once(timeout_sec=0.02)
+
     def ready(self) -> bool:
         return all(c.service_is_ready() for c in self.trigger_clients.values()) \
             and self.reach_client.server_is_ready() and self.transfer_client.server_is_ready()
@@ -118,8 +131,9 @@ class Operator(Node):
                   alive: Callable[[], None] | None = None, feedback: Callable[[Any], None] | None = None) -> Any:
         """Send a goal to action ``name`` (``feedback`` gets each ``Feedback``); its goal handle once accepted."""
         self.wait_until(client.server_is_ready, timeout_s, f"the {name} action server", alive)
-        sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else
-                                      (lambda message: feedback(message.feedback)))
+        with self.spin_lock:  # see spin(): the answer must not be taken before the client expects it
+            sent = client.send_goal_async(goal, feedback_callback=None if feedback is None else
+                                          (lambda message: feedback(message.feedback)))
         self.wait_until(sent.done, timeout_s, f"{name} to take the goal", alive)
         handle = sent.result()
         if not handle.accepted:
@@ -129,7 +143,8 @@ class Operator(Node):
     def goal_result(self, handle: Any, timeout_s: float, what: str, alive: Callable[[], None] | None = None,
                     progress: Callable[[], None] | None = None) -> Any:
         """Wait for an action goal's end (showing progress meanwhile); its ``Result``."""
-        future = handle.get_result_async()
+        with self.spin_lock:
+            future = handle.get_result_async()
         self.wait_until(future.done, timeout_s, what, alive, progress)
         return future.result().result
 

@@ -48,7 +48,8 @@ class Story:
     summary: dict[str, Any] = field(default_factory=dict)
     runs: list[GoalRun] = field(default_factory=list)
     spinner: threading.Thread | None = None
-    """The thread spinning the operator's executor."""
+    """The thread spinning the operator's executor (:meth:`Operator.spin`)."""
+    stop_spinning: threading.Event = field(default_factory=threading.Event)
 
     @property
     def phases(self) -> int:
@@ -59,7 +60,7 @@ class Story:
 def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardware: str = "sim") -> int:
     """Run the whole story (see the package docstring) on ``hardware``; 0 when every step completed."""
     import rclpy
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     from t42_transfer.models.checkpoint import read_metadata
     from t42_transfer.planning.workspace import Workspace
@@ -87,7 +88,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
                      "discovery": discovery, "middleware": "", "source_model": str(model), "suite": str(params_file)}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
-    executor = MultiThreadedExecutor(context=context)
+    executor = SingleThreadedExecutor(context=context)
     failed = True
     try:
         story.summary["middleware"] = rclpy.get_rmw_implementation_identifier()
@@ -100,6 +101,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     except (RuntimeError, TimeoutError) as err:
         say(f"FAILED: {err}")
     finally:  # whatever happened (Ctrl-C, a bug), no node process outlives the demo
+        story.stop_spinning.set()
         _shutdown(executor, context, story.spinner)
         story.summary["exit_codes"] = suite.stop()
     return _finish(story, failed, started)
@@ -116,7 +118,7 @@ def _start_suite(story: Story, executor: Any, context: Any, started: float) -> N
             wait_until(link.exists, 60.0, f"the emulated servo bus at {link}", suite.check)
     story.op = Operator(context=context)
     executor.add_node(story.op)
-    story.spinner = threading.Thread(target=executor.spin, daemon=True)
+    story.spinner = threading.Thread(target=story.op.spin, args=(executor, story.stop_spinning), daemon=True)
     story.spinner.start()
     story.op.wait_until(story.op.ready, 120.0, "the suite's services", suite.check)
     if story.hardware == "emulated":
