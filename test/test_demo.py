@@ -191,17 +191,17 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
                                                       monkeypatch: pytest.MonkeyPatch,
                                                       quick_source_model: Path) -> None:
     """A bug once the suite's processes run (here rclpy refusing the demo's node) leaves none of them behind."""
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     from t42_transfer.demo import run_demo
 
     started: list[str] = []
 
-    def broken(executor: MultiThreadedExecutor, node: object) -> None:
+    def broken(executor: SingleThreadedExecutor, node: object) -> None:
         started.extend(node_processes_of(tmp_path))
         raise KeyError("a bug after the suite started")
 
-    monkeypatch.setattr(MultiThreadedExecutor, "add_node", broken)
+    monkeypatch.setattr(SingleThreadedExecutor, "add_node", broken)  # the operator's executor
     with_source_model(tmp_path, quick_source_model)
     with pytest.raises(KeyError):
         run_demo(tmp_path, quick=True, workers=1)
