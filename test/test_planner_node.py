@@ -41,12 +41,9 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.nodes.mock_driver import MockDriver
-from t42_transfer.nodes.planner_node import (
-    PlannerNode,
-    PlannerNodeParams,
-    Refused,
-    hand_state,
-)
+from t42_transfer.nodes.planner_node import PlannerNode
+from t42_transfer.nodes.planner_params import PlannerNodeParams
+from t42_transfer.nodes.planner_parts import Refused, hand_state
 from t42_transfer.planning import Plan, Planner, Workspace
 from t42_transfer.planning.execution import execute
 from t42_transfer.ros.qos import profile

@@ -80,7 +80,7 @@ import math
 import threading
 import time
 import traceback
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -114,11 +114,9 @@ from msg_adapters.transfer import model_announcement
 from t42_transfer.conventions import (
     CONTROL_PERIOD_NS,
     MAX_PLAN_HORIZON,
-    MAX_PLAN_SAMPLES,
-    MAX_REFINE,
-    MAX_SAMPLED_STEPS,
 )
 from t42_transfer.driver.commands import check_stamp
+from t42_transfer.nodes.planner_params import PlannerNodeParams
 from t42_transfer.nodes.planner_parts import (
     Goal,
     HandState,
@@ -132,66 +130,10 @@ from t42_transfer.nodes.planner_parts import (
 from t42_transfer.nodes.reach import ABORT, CANCELED, ReachRun, judge, reach_server, refused_verdict
 from t42_transfer.planning import Plan, Planner, PlannerConfig
 from t42_transfer.planning.execution import receding_horizon
-from t42_transfer.planning.planner import MAX_CANDIDATES
 from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
-from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
-
-_DEFAULTS = PlannerConfig()
-
-
-@dataclass(frozen=True)
-class PlannerNodeParams:
-    """Parameters of :class:`PlannerNode` (the node's ROS parameters)."""
-
-    model: str = param("", "model file to start with (a relative one under the namespace's folder, as the "
-                           "transfer server writes it); empty or missing: wait for t42/model_updated (goals are "
-                           "refused meanwhile)", read_only=True)
-    samples: int = param(_DEFAULTS.samples, "action sequences sampled per round of a plan (samples x horizon at "
-                                            f"most {MAX_SAMPLED_STEPS})", min=1, max=MAX_PLAN_SAMPLES)
-    refine_iterations: int = param(_DEFAULTS.refine_iterations, "cross-entropy rounds after the first draw "
-                                                                "(a plan rolls out samples x (1 + this))", min=0,
-                                   max=MAX_REFINE)
-    horizon: int = param(_DEFAULTS.horizon, "steps of a sampled sequence (0.1 s each); with horizon_search "
-                                            "the longest plan", min=1, max=MAX_PLAN_HORIZON)
-    horizon_search: bool = param(True, "plan the shortest sequence that reaches the goal "
-                                       "(false: always plan horizon steps)")
-    tolerance_mm: float = param(_DEFAULTS.tolerance_mm, "a prediction this close to the goal reaches it (mm)",
-                                min=0.0, constraints="positive, finite")
-    seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")
-    max_state_age_s: float = param(0.5, "plan only from a hand state at most this old (or this far in the future)",
-                                   min=0.0, constraints="positive, finite")
-    max_goal_age_s: float = param(30.0, "refuse a goal stamped longer ago than this (or this far in the future); "
-                                       "a zero stamp means now", min=0.0, constraints="positive, finite")
-    replan_every: int = param(0, "0: open loop, the whole plan at once; k: send k steps, then replan the rest "
-                                 "from the measured state (MPC)", min=0)
-    piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
-                                   min=0.0, constraints="positive, finite")
-    candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
-                                                  "lowest-cost sequences on t42/plan_candidates (0: off)",
-                            min=0, max=MAX_CANDIDATES)
-
-    def __post_init__(self) -> None:
-        _ = self.planner_config  # PlannerConfig validates the planner fields
-        if not math.isfinite(self.tolerance_mm):
-            raise ValueError(f"tolerance_mm must be finite, got {self.tolerance_mm!r}")
-        for name in ("max_state_age_s", "max_goal_age_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be positive and finite, got {value!r}")
-        if self.replan_every < 0 or not (math.isfinite(self.piece_timeout_s) and self.piece_timeout_s > 0):
-            raise ValueError("replan_every must be >= 0 and piece_timeout_s positive and finite")
-
-    @property
-    def planner_config(self) -> PlannerConfig:
-        return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
-                             horizon_search=self.horizon_search,
-                             tolerance_mm=self.tolerance_mm, seed=self.seed, candidates=self.candidates)
-
-    @property
-    def max_state_age_ns(self) -> int:
-        return round(self.max_state_age_s * 1e9)
 
 
 class PlannerNode(Node):
