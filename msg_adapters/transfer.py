@@ -132,10 +132,11 @@ def _float(value: object) -> float:
         return math.nan
 
 
-def skipped_pairs(bags: Sequence[object], reasons: Sequence[str]) -> tuple[tuple[str, str], ...]:
-    """``(bag, why)`` pairs, each ``why`` without the ``"<bag>: "`` it starts with when it names its bag."""
+def skipped_pairs(skipped: Sequence[tuple[object, str]]) -> tuple[tuple[str, str], ...]:
+    """The ``(bag, why)`` pairs as strings, each ``why`` without the ``"<bag>: "`` it starts with when it names its
+    bag."""
     pairs = []
-    for bag, why in zip(bags, reasons, strict=True):
+    for bag, why in skipped:
         prefix = f"{bag}: "
         pairs.append((str(bag), why[len(prefix):] if why.startswith(prefix) else why))
     return tuple(pairs)

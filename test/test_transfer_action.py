@@ -221,7 +221,7 @@ def test_feedback_carries_the_stage_and_the_epoch_only_while_training():
 def test_skipped_reasons_drop_the_bag_they_name_and_announcements_check_their_counts():
     from msg_adapters.transfer import model_announcement, model_updated_msg, skipped_pairs
 
-    assert skipped_pairs(["/b/e1", "/b/e2"], ["/b/e1: does not exist", "odd"]) == (
+    assert skipped_pairs([("/b/e1", "/b/e1: does not exist"), ("/b/e2", "odd")]) == (
         ("/b/e1", "does not exist"), ("/b/e2", "odd"))
     msg = model_updated_msg(1_500_000_000, " /m/transferred_000.safetensors", "residual", 7)
     assert model_announcement(msg) == (1_500_000_000, "/m/transferred_000.safetensors", "residual", 7)

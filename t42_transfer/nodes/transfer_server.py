@@ -476,8 +476,7 @@ class TransferServer(Node):
             if "refused" in outcome:
                 refused = outcome["refused"]
                 done_outcome = self._not_done(str(refused), refused=True)
-                return dataclasses.replace(done_outcome, skipped=skipped_pairs(
-                    [bag for bag, _ in refused.skipped], [why for _, why in refused.skipped]))
+                return dataclasses.replace(done_outcome, skipped=skipped_pairs(refused.skipped))
             return self._not_done(outcome["error"], refused=False)
         self.last_result = result
         summary = result.summary()
@@ -558,5 +557,5 @@ def outcome_of(result: TransferResult) -> TransferOutcome:
         Scores(result.divergence_steps, result.position_mse_mm2),
         Scores(result.source_divergence_steps, result.source_position_mse_mm2),
         Scores(result.hold_still_divergence_steps, result.hold_still_position_mse_mm2),
-        candidates, skipped_pairs(result.skipped_bags, result.skipped),
+        candidates, skipped_pairs(result.skipped_bags),
     )

@@ -143,10 +143,9 @@ class TransferResult:
     source_position_mse_mm2: float
     model_path: Path
     seconds: float
-    skipped: tuple[str, ...] = ()
-    """Why each new bag that could not be read was skipped (each names its bag)."""
-    skipped_bags: tuple[Path, ...] = ()
-    """The bags of :attr:`skipped`, in its order."""
+    skipped_bags: tuple[tuple[Path, str], ...] = ()
+    """Each new bag that could not be read, with why it was skipped (``why`` names the bag), as
+    :attr:`TransferRefused.skipped` gives them."""
     hold_still_divergence_steps: float = math.nan
     """The hold-still baseline (predicts no motion) on the same held-out episodes: what a model must beat."""
     hold_still_position_mse_mm2: float = math.nan
@@ -156,6 +155,11 @@ class TransferResult:
     """Steps the driver ran late, kept as data in the training and held-out episodes."""
     selection: Selection | None = None
     """What ``auto`` picked and every candidate's score (None for a named method)."""
+
+    @property
+    def skipped(self) -> tuple[str, ...]:
+        """Why each skipped bag was skipped (each names its bag)."""
+        return tuple(why for _, why in self.skipped_bags)
 
     def summary(self) -> str:
         """The one-line answer of the transfer service."""
@@ -453,7 +457,7 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
         position_mse_mm2=scores["position_mse_mean"], source_divergence_steps=baseline["divergence_mean"],
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
-        skipped=tuple(skipped), skipped_bags=tuple(bag for bag, _ in skipped_pairs),
+        skipped_bags=tuple(skipped_pairs),
         hold_still_divergence_steps=still["divergence_mean"], hold_still_position_mse_mm2=still["position_mse_mean"],
         notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data), selection=selection,
     )
