@@ -173,12 +173,14 @@ def ros(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[RosRig]:
     """rclpy in this process on the test's own domain: add nodes, spin until a condition; all torn down after.
 
     One executor thread, as ``t42 node`` gives most nodes; ``@pytest.mark.executor_threads(n)`` asks for
-    a MultiThreadedExecutor (as the transfer server's process has).
+    a MultiThreadedExecutor (as the transfer server's process has), ``@pytest.mark.events_executor`` for
+    rclpy's EventsExecutor (as the driver's process has).
     """
     from ros_rig import RosRig
 
     marker = request.node.get_closest_marker("executor_threads")
-    rig = RosRig(ros_domain, threads=marker.args[0] if marker else 1)
+    events = request.node.get_closest_marker("events_executor") is not None
+    rig = RosRig(ros_domain, threads=marker.args[0] if marker else 1, events=events)
     try:
         yield rig
     finally:

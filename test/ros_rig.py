@@ -13,6 +13,7 @@ from typing import Any, TypeVar
 
 import rclpy
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -21,13 +22,17 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 class RosRig:
-    """``threads > 1``: a MultiThreadedExecutor, for nodes with callbacks that run beside each other."""
+    """``threads > 1``: a MultiThreadedExecutor, for nodes with callbacks that run beside each other;
+    ``events``: rclpy's EventsExecutor, as ``t42 node`` spins a node that asks for it (the driver)."""
 
-    def __init__(self, domain_id: int, threads: int = 1) -> None:
+    def __init__(self, domain_id: int, threads: int = 1, events: bool = False) -> None:
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
-        self.executor = (SingleThreadedExecutor(context=self.context) if threads <= 1
-                         else MultiThreadedExecutor(num_threads=threads, context=self.context))
+        if events:
+            self.executor = EventsExecutor(context=self.context)
+        else:
+            self.executor = (SingleThreadedExecutor(context=self.context) if threads <= 1
+                             else MultiThreadedExecutor(num_threads=threads, context=self.context))
         self.nodes: list[Node] = []
 
     def add(self, node_cls: Callable[..., N], params: dict[str, Any] | None = None, **kwargs: Any) -> N:

@@ -234,8 +234,8 @@ def test_bench_suite_latency(tmp_path: Path, ros_domain: int) -> None:
 
 
 def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
-    """Five runs one after the other (driver, bare loop, bare loop reading in select, idle node on each of two
-    executors), each 1 s timed:
+    """Six runs one after the other (driver, bare loop, bare loop reading in select, idle node on each of two
+    executors, the driver's ROS traffic without a bus), each 1 s timed:
     ~10 steps at 10 Hz, enough for the intervals and above a clock tick of driver CPU (~2-4 ms a step).  The
     driver's window is an episode (hand/reset first, a command each period): its steps publish the full step."""
     result = run_bench("bench_driver.py", "--seconds", "1", out=tmp_path / "driver.json")
@@ -258,6 +258,13 @@ def test_bench_driver(tmp_path: Path, ros_domain: int) -> None:
     events = result["idle_rclpy_node_events_executor"]
     assert 5 <= events["periods"] <= 15 and positive(events["cpu_ms_per_period"])
     assert math.isfinite(result["driver_cpu_above_idle_node_ms_per_step"])
+    floor = result["rclpy_interface_floor"]
+    assert 5 <= floor["periods"] <= 15 and positive(floor["cpu_ms_per_period"])
+    assert floor["joint_states_received"] >= 5  # its messages reached the peer: the traffic was the driver's
+    assert result["driver_cpu_above_interface_floor_ms_per_step"] == pytest.approx(
+        driver["cpu_ms_per_step"] - floor["cpu_ms_per_period"])
+    assert result["cpu_ratio_interface_floor_to_select_reads_loop"] == pytest.approx(
+        floor["cpu_ms_per_period"] / select["cpu_ms_per_step"])
 
 
 def test_bench_startup(tmp_path: Path, ros_domain: int) -> None:

@@ -2,7 +2,8 @@
 
 The lifecycle goes through the stock ``change_state`` / ``get_state`` services; the hand's tracker pose
 comes from the test, as a camera node would send it.  The emulator's plant steps on its own thread at the
-control rate, unsynchronised with the driver, as a real hand is.
+control rate, unsynchronised with the driver, as a real hand is.  The driver spins on rclpy's EventsExecutor,
+as ``t42 node`` spins it.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, Pt
 from t42_transfer.hardware.hand_plant import HandPlant
 from t42_transfer.nodes.dynamixel_driver import REFUSED, STATUS_NAME, DynamixelDriver
 from t42_transfer.ros.qos import profile
+
+pytestmark = pytest.mark.events_executor
 
 
 class Bench:
@@ -123,7 +126,7 @@ def shared_rig(module_ros_domain: int) -> Iterator[Rig]:
     """One bench and driver for the tests below that need an active driver on a grasped hand: a grasp through the
     servos is ~5.6 s at 10 Hz, and each of these tests grasped on a rig of its own before; now a test that passed
     leaves the next its grasp (see :func:`rig`)."""
-    ros = RosRig(module_ros_domain)
+    ros = RosRig(module_ros_domain, events=True)
     r = Rig(ros)
     try:
         yield r

@@ -287,3 +287,19 @@ def test_quick_announcements_unless_a_profile_or_another_middleware_was_chosen(t
     assert announce_often(mine) == str(tmp_path / "mine.xml")  # the user's profile is kept
     other = {"RMW_IMPLEMENTATION": "rmw_zenoh_cpp"}
     assert announce_often(other) is None and FASTDDS_PROFILE_ENV not in other
+
+
+def test_each_node_spins_on_the_executor_it_asks_for() -> None:
+    import rclpy
+
+    from t42_transfer.ros.runner import make_executor
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        kinds = {name: type(make_executor(spec.node_class(), context)).__name__ for name, spec in NODES.items()}
+    finally:
+        context.try_shutdown()
+    assert kinds["dynamixel_driver"] == "EventsExecutor"  # its CPU per step is benchmarked (bench_driver)
+    assert kinds["transfer_server"] == "MultiThreadedExecutor"  # a long transfer beside its other callbacks
+    assert kinds["recorder"] == kinds["mock_driver"] == "SingleThreadedExecutor"

@@ -44,7 +44,8 @@ the hand is back (a reset starts the next episode).  Late steps are counted and 
 says ``late`` on ``hand/status`` with its stamp (a recording keeps it as data); a
 timer tick less than half a period after the last step (catching up after a late one) does not step, so
 two steps are never stamped closer than the bag reader accepts.  Steps follow the graph's clock: with
-``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock does.
+``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock does.  ``t42 node`` spins the
+driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
 """
 
 from __future__ import annotations
@@ -55,11 +56,9 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
-from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -82,6 +81,7 @@ from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
 from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
+from t42_transfer.ros.deferred_service import DeferredService, Pending
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
@@ -145,6 +145,9 @@ class DynamixelDriverParams:
 class DynamixelDriver(LifecycleNode):
     """A real (or emulated) T42 on the driver topics; see the module docstring."""
 
+    events_executor = True
+    """``t42 node`` spins it on rclpy's EventsExecutor (:func:`~t42_transfer.ros.runner.make_executor`)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("dynamixel_driver", **node_kwargs)
         self._servo_limits_rad: tuple[float, ...] | None = None
@@ -167,7 +170,7 @@ class DynamixelDriver(LifecycleNode):
         """Timer ticks that came less than half a period after a step (after a late one) and did not step."""
         self.fault: ServoFault | None = None
         self._grasp: Grasp | None = None
-        self._grasp_answer: Future | None = None
+        self._grasp_answer: Pending | None = None
         self._stepping = False
         self._last_step_ns: int | None = None
         self._late_by_ns: int | None = None
@@ -186,9 +189,9 @@ class DynamixelDriver(LifecycleNode):
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True, **sub)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True, **sub)
-        # Its own group: the answer awaits the grasp that the timer's steps run, which a shared group would block.
-        self.create_service(Trigger, names.HAND_RESET, self._on_reset, qos_profile=profile(names.REQUESTS),
-                            callback_group=MutuallyExclusiveCallbackGroup())
+        # Answered once the grasp closed, which the next steps run: a pending answer (deferred_service says why).
+        self._reset = DeferredService(self, Trigger, names.HAND_RESET, self._on_reset,
+                                      qos_profile=profile(names.REQUESTS))
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
         if self.params.autostart:  # on the wall clock: a port is retried in seconds, whatever the graph's time
             self._autostart = self.create_timer(0.0, self._start, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -341,7 +344,7 @@ class DynamixelDriver(LifecycleNode):
         if actions is not None:
             self.queue.set_plan(actions)
 
-    async def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response | Pending:
         """Open, then close until the grasp load; answered when the grasp closed (the steps run it)."""
         if not self._stepping or self.hand is None:
             response.success, response.message = False, "the driver is not active (configure and activate it)"
@@ -350,9 +353,8 @@ class DynamixelDriver(LifecycleNode):
             response.success, response.message = False, f"the hand has a fault: {self.fault}"
             return response
         self._stop_episode("a new reset")
-        self._grasp, self._grasp_answer = Grasp(self.hand), Future()
-        response.success, response.message = await self._grasp_answer
-        return response
+        self._grasp, self._grasp_answer = Grasp(self.hand), self._reset.later()
+        return self._grasp_answer
 
     # ------------------------------------------------------------------ steps
     def _on_timer(self) -> None:
@@ -437,8 +439,8 @@ class DynamixelDriver(LifecycleNode):
 
     def _answer(self, ok: bool, message: str) -> None:
         answer, self._grasp_answer = self._grasp_answer, None
-        if answer is not None and not answer.done():
-            answer.set_result((ok, message))
+        if answer is not None:
+            answer.answer(Trigger.Response(success=ok, message=message))
 
     def _stop_episode(self, why: str) -> None:
         self.queue.clear()

@@ -35,16 +35,24 @@ short, not an unclean stop)."""
 
 
 def make_executor(node_cls: type, context: object) -> object:
-    """The executor a node class asks for with its ``executor_threads`` attribute (default 1).
+    """The executor a node class asks for with its ``executor_threads`` attribute (default 1), or its
+    ``events_executor`` one.
 
     One thread (a SingleThreadedExecutor) unless the node has a callback that must run beside
     its others (the transfer server's long service call): rclpy's MultiThreadedExecutor spins
     without sleeping while a mutually exclusive callback runs and another of its group is ready
     (measured: a driver and a recorder in one such executor made 10 of 200 steps in 2 s), so it is
-    used only where it is needed, with at least as many threads as such callbacks.
+    used only where it is needed, with at least as many threads as such callbacks.  A node with
+    ``events_executor = True`` (the Dynamixel driver, whose CPU per step is benchmarked against a bare
+    servo loop) spins on rclpy's EventsExecutor, which builds no wait set at each wake; it awaits no
+    coroutine callback in rclpy 7.1.6, so such a node has none.
     """
     from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
+    if getattr(node_cls, "events_executor", False):
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor(context=context)
     threads = int(getattr(node_cls, "executor_threads", 1))
     if threads <= 1:
         return SingleThreadedExecutor(context=context)
