@@ -494,3 +494,17 @@ def test_twenty_simultaneous_calls_are_all_answered(ros, tmp_path, source_model)
     assert sum(a.success for a in answers) >= 1
     assert all(a.success or a.message.startswith(("busy", "no new bags")) for a in answers), \
         [a.message for a in answers]
+
+
+def test_torch_threads_sets_the_process_threads_and_is_read_only(ros: Any, tmp_path: Path, source_model: Path) -> None:
+    import torch
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    rig = Rig(ros, tmp_path, source_model, torch_threads=2)
+    assert torch.get_num_threads() == 2  # (one_torch_thread restores the suite's count afterwards)
+    client = rig.tester.create_client(SetParameters, "transfer_server/set_parameters")
+    request = SetParameters.Request(parameters=[Parameter("torch_threads", value=1).to_parameter_msg()])
+    answer = ros.call(client, request).results[0]
+    assert not answer.successful and "read-only" in answer.reason.lower()
+    assert torch.get_num_threads() == 2

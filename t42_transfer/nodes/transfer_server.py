@@ -147,6 +147,9 @@ class TransferServerParams:
                                      min=0.001, max=3600.0)
     auto_transfer_after_bags: int = param(0, "transfer by itself after this many new bags closed by the recorder "
                                              "(recorder/bag_closed, bags holding an episode); 0: off", min=0)
+    torch_threads: int = param(1, "torch's intra-op threads in this process (training is small-batch: one thread "
+                                  "trained as fast as two on a quiet 2-core machine, and twice as fast with both "
+                                  "cores busy)", min=1, max=1024, read_only=True)
 
     def __post_init__(self) -> None:
         if not self.bag_dir and not self.bags:
@@ -246,6 +249,10 @@ class TransferServer(Node):
             goal_service_qos_profile=profile(names.REQUESTS), cancel_service_qos_profile=profile(names.REQUESTS),
             result_service_qos_profile=profile(names.REQUESTS),
         )
+        import torch
+
+        torch.set_num_threads(self.params.torch_threads)
+        threading.Thread(target=_import_optimizer_machinery, name="import-torch-optim", daemon=True).start()
         model_dir = in_namespace(self.params.model_dir, self.get_namespace())
         for directory in (model_dir, self.params.bag_dir):  # at start, so a shared directory fails in one line
             if directory:
@@ -559,3 +566,10 @@ def outcome_of(result: TransferResult) -> TransferOutcome:
         Scores(result.hold_still_divergence_steps, result.hold_still_position_mse_mm2),
         candidates, skipped_pairs(result.skipped_bags),
     )
+
+
+def _import_optimizer_machinery() -> None:
+    """In a thread of its own while the server waits for its first goal, not inside its first transfer."""
+    from t42_transfer.models.training import import_optimizer_machinery
+
+    import_optimizer_machinery()
