@@ -386,13 +386,14 @@ def test_parameter_changes_apply_to_the_next_plan_and_bad_values_are_refused(rig
     for name, value, why in (("samples", 0, "range"), ("samples", "many", "type"),
                              ("tolerance_mm", 0.0, "tolerance_mm must be positive"),
                              ("tolerance_mm", math.inf, "finite"), ("max_state_age_s", -1.0, "range"),
-                             ("model", "other.safetensors", "read-only")):
+                             ("model", "other.safetensors", "read-only"), ("torch_threads", 2, "read-only")):
         (refused,) = rig.set(**{name: value})
         assert not refused.successful and why in refused.reason, (name, refused.reason)
     assert rig.planner.params == before
     described = rig.planner.describe_parameter("samples")
     assert described.description and described.integer_range[0].from_value == 1
     assert rig.planner.describe_parameter("model").read_only
+    assert rig.planner.params.torch_threads == 1 and torch.get_num_threads() == 1  # the node set it at start
 
 
 def test_bad_startup_parameters_are_one_line_errors(ros) -> None:

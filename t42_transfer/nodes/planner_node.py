@@ -85,6 +85,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -143,6 +144,7 @@ class PlannerNode(Node):
         super().__init__("planner", **node_kwargs)
         self._params = LiveParams(self, PlannerNodeParams, self._on_params)
         self.log = self.get_logger()
+        torch.set_num_threads(self.params.torch_threads)
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
         self._cond = threading.Condition()

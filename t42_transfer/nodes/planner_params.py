@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS
 from t42_transfer.planning import PlannerConfig
 from t42_transfer.planning.planner import MAX_CANDIDATES
-from t42_transfer.ros.params import param
+from t42_transfer.ros.params import param, torch_threads_param
 
 _DEFAULTS = PlannerConfig()
 
@@ -43,6 +43,7 @@ class PlannerNodeParams:
     candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
                                                   "lowest-cost sequences on t42/plan_candidates (0: off)",
                             min=0, max=MAX_CANDIDATES)
+    torch_threads: int = torch_threads_param()
 
     def __post_init__(self) -> None:
         _ = self.planner_config  # PlannerConfig validates the planner fields

@@ -91,7 +91,7 @@ from msg_adapters.transfer import (
     transfer_type,
 )
 from t42_transfer.ros.dirs import claim, in_namespace
-from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.params import LiveParams, param, torch_threads_param
 from t42_transfer.ros.qos import profile
 
 if TYPE_CHECKING:  # the science is imported on first use (node start-up time)
@@ -147,9 +147,7 @@ class TransferServerParams:
                                      min=0.001, max=3600.0)
     auto_transfer_after_bags: int = param(0, "transfer by itself after this many new bags closed by the recorder "
                                              "(recorder/bag_closed, bags holding an episode); 0: off", min=0)
-    torch_threads: int = param(1, "torch's intra-op threads in this process (training is small-batch: one thread "
-                                  "trained as fast as two on a quiet 2-core machine, and twice as fast with both "
-                                  "cores busy)", min=1, max=1024, read_only=True)
+    torch_threads: int = torch_threads_param()
 
     def __post_init__(self) -> None:
         if not self.bag_dir and not self.bags:
