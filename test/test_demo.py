@@ -241,3 +241,38 @@ def test_a_recordings_bags_are_the_recorders_events_through_the_one_its_stop_clo
     got = closed_bags(op, Suite(), 1, timeout_s=10.0)
     later.join()
     assert [e.path for e in got] == ["/bags/a", "/bags/b", "/bags/c"]
+
+
+def test_demo_sizes_lengthen_the_loop_with_goals_cycling_through_the_sizes_lengths() -> None:
+    from t42_transfer.demo.settings import FULL, QUICK, demo_size
+
+    assert demo_size() == FULL and demo_size(quick=True) == QUICK
+    longer = demo_size(quick=True, rounds=3, goals=5)
+    assert longer.rounds == 3 and longer.goal_steps == (30, 40, 30, 40, 30)
+    assert demo_size(rounds=1, goals=2).goal_steps == FULL.goal_steps[:2]
+
+
+@pytest.mark.parametrize("option", [["--rounds", "0"], ["--goals", "0"], ["--rounds", "many"]])
+def test_bad_loop_sizes_are_one_line_errors(option: list[str], capsys: pytest.CaptureFixture[str],
+                                            tmp_path: Path) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["demo", "--quick", "--out", str(tmp_path), *option])
+    assert stop.value.code == 2 and option[0] in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing was written
+
+
+@pytest.mark.slow
+def test_a_loop_that_never_updates_plans_every_round_with_the_first_model(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int, quick_source_model: Path) -> None:
+    out_dir = with_source_model(tmp_path, quick_source_model)
+    assert main(["demo", "--quick", "--rounds", "3", "--goals", "1", "--no-update", "--out", str(out_dir),
+                 "--workers", "1"]) == 0, capsys.readouterr()
+    (run_dir,) = [p for p in out_dir.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
+    summary = json.loads((run_dir / "demo.json").read_text())
+    rounds = summary["rounds"]
+    assert summary["update"] is False and [r["round"] for r in rounds] == [1, 2, 3]
+    assert rounds[0]["transfer"]["success"] and "updated" not in rounds[0]["transfer"]
+    assert all(r["model"] == rounds[0]["model"] and r["transfer"]["updated"] is False for r in rounds[1:])
+    models = sorted(p.name for p in (run_dir / "models").glob("transferred_*.safetensors"))
+    assert models == ["transferred_000.safetensors"]
+    assert len(summary["goals"]) == 3 and "not updated" in (run_dir / "report.md").read_text()

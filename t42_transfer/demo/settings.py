@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import itertools
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from msg_adapters import names
@@ -63,6 +64,16 @@ FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_e
 QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
                  goal_steps=(30, 40), planner_samples=100, rate_factor=10.0, heldout_episodes=3,
                  transfer={"l2_finetune": {"train": {"epochs": 10}}})
+
+
+def demo_size(quick: bool = False, rounds: int | None = None, goals: int | None = None) -> DemoSize:
+    """:data:`QUICK` or :data:`FULL`, with ``rounds`` rounds and ``goals`` goals a round (None: the size's own),
+    the goals' lengths cycling through the size's."""
+    size = QUICK if quick else FULL
+    steps = itertools.islice(itertools.cycle(size.goal_steps), goals or len(size.goal_steps))
+    return replace(size, rounds=rounds or size.rounds, goal_steps=tuple(steps))
+
+
 TOLERANCE_MM = 10.0
 """The paper's peg-in-hole tolerance."""
 MIN_GOAL_DISTANCE_MM = 2 * TOLERANCE_MM

@@ -19,13 +19,12 @@ from t42_transfer.demo.goals import GoalRun, closed_bags, run_goal
 from t42_transfer.demo.report import goal_table, plot_paths, rounds_table, write_report
 from t42_transfer.demo.settings import (
     DRIVER,
-    FULL,
     HELDOUT_SEED,
     POSE_SOURCE,
-    QUICK,
     RECORDER_START,
     RECORDER_STOP,
     DemoSize,
+    demo_size,
     suite_nodes,
 )
 from t42_transfer.demo.suite import Suite, say, servo_link, source_model, suite_params
@@ -50,6 +49,8 @@ class Story:
     spinner: threading.Thread | None = None
     """The thread spinning the operator's executor (:meth:`Operator.spin`)."""
     stop_spinning: threading.Event = field(default_factory=threading.Event)
+    update: bool = True
+    """False: the transfer runs in round 1 only, and later rounds plan with its model (a loop that never updates)."""
 
     @property
     def phases(self) -> int:
@@ -57,8 +58,12 @@ class Story:
         return 4 + self.size.rounds
 
 
-def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardware: str = "sim") -> int:
-    """Run the whole story (see the package docstring) on ``hardware``; 0 when every step completed."""
+def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardware: str = "sim",
+             rounds: int | None = None, goals: int | None = None, update: bool = True) -> int:
+    """Run the whole story (see the package docstring) on ``hardware``; 0 when every step completed.
+
+    ``rounds`` and ``goals`` (per round, their lengths cycling through the size's) lengthen the online loop;
+    ``update=False`` transfers in round 1 only, the loop that never updates its model, to set beside it."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
@@ -66,7 +71,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     from t42_transfer.planning.workspace import Workspace
     from t42_transfer.ros.runner import keep_discovery_local
 
-    size = QUICK if quick else FULL
+    size = demo_size(quick, rounds, goals)
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     run_dir = out / time.strftime("%Y%m%d-%H%M%S")
@@ -82,10 +87,11 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
     discovery = keep_discovery_local()
     suite = Suite(run_dir, params_file, dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1"))
     story = Story(size, hardware, run_dir, model, Workspace.from_dict(read_metadata(model)["extra"]["workspace"]),
-                  suite)
-    story.summary = {"mode": "quick" if quick else "full", "hardware": hardware, "driver": DRIVER[hardware],
-                     "pose_source": POSE_SOURCE[hardware], "size": asdict(size), "domain": domain,
-                     "discovery": discovery, "middleware": "", "source_model": str(model), "suite": str(params_file)}
+                  suite, update=update)
+    story.summary = {"mode": "quick" if quick else "full", "update": update, "hardware": hardware,
+                     "driver": DRIVER[hardware], "pose_source": POSE_SOURCE[hardware], "size": asdict(size),
+                     "domain": domain, "discovery": discovery, "middleware": "", "source_model": str(model),
+                     "suite": str(params_file)}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     executor = SingleThreadedExecutor(context=context)
@@ -164,7 +170,7 @@ def _explore(story: Story, workers: int | None) -> None:
 def _round(story: Story, round_: int) -> None:
     """Transfer, score the model on the held-out episodes, then the round's goals, recorded like any episode."""
     op, suite, size = story.op, story.suite, story.size
-    record = transfer(story, round_)
+    record = transfer(story, round_) if story.update or round_ == 1 else _kept(story, round_)
     record["heldout"] = heldout_scores(record["model"], story.model, story.heldout)
     say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
         f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
@@ -255,6 +261,15 @@ def transfer(story: Story, round_: int) -> dict[str, Any]:
                          "feedback": len(feedback), "epochs_reported": len(epochs),
                          "last_epoch": [epochs[-1].epoch, epochs[-1].epochs] if epochs else None,
                          "diagnostics": dict(op.diagnostic)}}
+
+
+def _kept(story: Story, round_: int) -> dict[str, Any]:
+    """The round's record without a transfer (``update=False``): round 1's model, still the planner's."""
+    first = story.summary["rounds"][0]
+    message = f"not updated (the loop that never updates): round 1's model {first['model']}"
+    say(f"[{4 + round_ - 1}/{story.phases}] round {round_}: {message}")
+    return {"round": round_, "model": first["model"], "episodes": first["episodes"],
+            "transfer": dict(first["transfer"], message=message, seconds=0.0, updated=False)}
 
 
 def heldout_scores(model_path: str | Path, source: str | Path, episodes: Any) -> dict[str, float]:

@@ -1,0 +1,69 @@
+"""Each round's model of an updating online loop, scored on executed-plan episodes that no model trained on.
+
+The loop's held-out episodes (random actions, collected apart) measure the regime of exploration. The loop's own
+use is the executed plans: sustained actions from a settled grasp. This scores every round's model, the source
+and holding still on the last round's executed-plan episodes (recorded after the last transfer, so no model saw
+them): whole episodes, and from each episode's first commanded step on (the plan and the hold after it, without
+the settling before it).
+
+    .venv/bin/python docs/experiments/online_loop/plan_regime.py RUN_DIR SOURCE_MODEL
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from t42_transfer.data.bag import read_bag
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.models.baselines import HoldStill
+from t42_transfer.models.checkpoint import load_model
+
+MIN_STEPS = 15
+
+
+def from_first_action(data: TrajectorySet) -> TrajectorySet:
+    """Each episode from its first commanded step on (episodes shorter than MIN_STEPS then are left out)."""
+    kept = []
+    for t in data:
+        moved = np.flatnonzero(np.abs(t.actions).sum(axis=1) > 0)
+        if len(moved) and len(t.actions) - moved[0] >= MIN_STEPS:
+            kept.append(Trajectory(t.states[moved[0]:], t.actions[moved[0]:], end_reason=t.end_reason, hand=t.hand))
+    return TrajectorySet(kept, hand=data.hand)
+
+
+def main() -> int:
+    run_dir, source = Path(sys.argv[1]), Path(sys.argv[2])
+    summary = json.loads((run_dir / "demo.json").read_text())
+    last = summary["rounds"][-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (episodes too short to keep are named by the reader; counted below)
+        episodes = [t for bag in last["bags_closed"] if bag["episodes"] for t in read_bag(bag["path"])]
+    whole = TrajectorySet(episodes, hand="target")
+    sets = {"whole episodes": whole, "from the first commanded step": from_first_action(whole)}
+    models = {"source": load_model(source)[0], "hold still": HoldStill()}
+    models.update({f"round {r['round']} model": load_model(r["model"])[0] for r in summary["rounds"]})
+    print(f"round {last['round']}'s executed-plan episodes: {len(whole)} ({whole.num_transitions} transitions)\n")
+    print("| model | " + " | ".join(f"{name}: divergence (steps), position MSE (mm²)" for name in sets) + " |")
+    print("|---|" + "---:|" * len(sets))
+    results = {}
+    for name, model in models.items():
+        cells = []
+        for set_name, data in sets.items():
+            scores = evaluate_model(model, data)
+            results.setdefault(name, {})[set_name] = {"divergence_mean": float(scores["divergence_mean"]),
+                                                       "position_mse": float(scores["position_mse_mean"])}
+            cells.append(f"{scores['divergence_mean']:.1f}, {scores['position_mse_mean']:.2f}")
+        print(f"| {name} | " + " | ".join(cells) + " |")
+    out = Path(__file__).parent / "plan_regime.json"
+    out.write_text(json.dumps({"run": str(run_dir), "episodes": len(whole), "results": results}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
