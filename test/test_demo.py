@@ -140,6 +140,11 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
         assert all(v >= 0 for v in record["heldout"].values())
         assert record["still_hits"] == 0 and 0 <= record["hits"] <= record["goals"] == len(size["goal_steps"])
     assert rounds[0]["model"] != rounds[1]["model"]
+    # each round's model scored on the last round's executed plans, which no model trained on
+    plans = summary["executed_plans"]
+    assert plans["round"] == size["rounds"] and 1 <= plans["episodes"] <= len(size["goal_steps"]) + 1, plans
+    assert set(plans["scores"]) == {"source", "hold_still", "round 1", "round 2"}
+    assert all(s["divergence_steps"] >= 0 and s["position_mse_mm2"] >= 0 for s in plans["scores"].values())
 
     # every goal lay at least twice the tolerance away; it was planned and executed; doing nothing never hits
     goals = summary["goals"]
@@ -169,7 +174,7 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     assert all(code == 0 for name, code in summary["exit_codes"].items()), summary["exit_codes"]
     assert (run_dir / "paths.png").stat().st_size > 10_000
     report = (run_dir / "report.md").read_text()
-    assert "## Rounds" in report and "## Peg-in-hole goals" in report
+    assert "## Rounds" in report and "## Peg-in-hole goals" in report and "## The models on executed plans" in report
     assert summary["middleware"] == "rmw_fastrtps_cpp" and "rmw_fastrtps_cpp" in report  # what it actually used
     assert summary["discovery"] == "LOCALHOST"
     assert "[6/6] peg-in-hole, 2 round(s)" in out and "report:" in out

@@ -87,6 +87,22 @@ def rounds_table(rounds: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def executed_plans_section(plans: dict[str, Any] | None) -> list[str]:
+    """The report's lines on each round's model scored on the last round's executed plans (none: no lines)."""
+    if not plans:
+        return []
+    if not plans["scores"]:
+        return ["## The models on executed plans", "", f"Nothing to score: {plans['why']}.", ""]
+    lines = ["## The models on executed plans", "",
+             f"Divergence (4 mm) and position MSE of each round's model on round {plans['round']}'s executed goal "
+             f"episodes ({plans['episodes']}, from each one's first command), which no model trained on: the regime "
+             "the planner uses, which random-action held-out episodes do not show (docs/evaluation.md, section 9).",
+             "", "| model | divergence (steps) | position MSE (mm²) |", "|---|---:|---:|"]
+    lines += [f"| {name} | {s['divergence_steps']:.1f} | {s['position_mse_mm2']:.2f} |"
+              for name, s in plans["scores"].items()]
+    return [*lines, ""]
+
+
 def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) -> Path:
     lines = [
         "# t42 demo",
@@ -112,6 +128,7 @@ def write_report(run_dir: Path, summary: dict[str, Any], runs: list[GoalRun]) ->
         "",
         rounds_table(summary["rounds"]),
         "",
+        *executed_plans_section(summary.get("executed_plans")),
         "## Peg-in-hole goals",
         "",
         goal_table(runs),

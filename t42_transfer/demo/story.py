@@ -102,6 +102,7 @@ def run_demo(out: Path, quick: bool = False, workers: int | None = None, hardwar
         _explore(story, workers)
         for round_ in range(1, size.rounds + 1):
             _round(story, round_)
+        story.summary["executed_plans"] = executed_plans(story)
         story.summary["transfer"] = story.summary["rounds"][0]["transfer"]
         failed = False
     except (RuntimeError, TimeoutError) as err:
@@ -280,6 +281,35 @@ def heldout_scores(model_path: str | Path, source: str | Path, episodes: Any) ->
 
     models = {"model": load_model(model_path)[0], "source": load_model(source)[0], "hold_still": HoldStill()}
     return {name: float(evaluate_model(m, episodes)["divergence_mean"]) for name, m in models.items()}
+
+
+def executed_plans(story: Story) -> dict[str, Any]:
+    """Each round's model, the source and holding still on the last round's executed goal episodes, which no
+    model trained on (recorded after the last transfer), from each one's first command
+    (:mod:`t42_transfer.evaluation.online_loop`)."""
+    import warnings
+
+    from t42_transfer.data.bag import read_bag
+    from t42_transfer.data.trajectory import TrajectorySet
+    from t42_transfer.evaluation.online_loop import commanded, executed_plan_scores
+    from t42_transfer.models.baselines import HoldStill
+    from t42_transfer.models.checkpoint import load_model
+
+    rounds = story.summary["rounds"]
+    with warnings.catch_warnings():  # (a goal's episode cut short by a drop is left out by the reader, as always)
+        warnings.simplefilter("ignore")
+        episodes = TrajectorySet([t for bag in rounds[-1]["bags_closed"] if bag["episodes"]
+                                  for t in read_bag(bag["path"])], hand="target")
+    models = {"source": load_model(story.model)[0], "hold_still": HoldStill(),
+              **{f"round {r['round']}": load_model(r["model"])[0] for r in rounds}}
+    try:
+        scores = executed_plan_scores(models, episodes)
+    except ValueError as err:  # (every goal refused, or cut short): nothing to score, said so in the report
+        say(f"      no executed plan of round {rounds[-1]['round']} to score the models on: {err}")
+        return {"round": rounds[-1]["round"], "episodes": 0, "scores": {}, "why": str(err)}
+    say(f"      each round's model on round {rounds[-1]['round']}'s executed plans (no model trained on them), "
+        "position MSE: " + ", ".join(f"{name} {s['position_mse_mm2']:.1f} mm^2" for name, s in scores.items()))
+    return {"round": rounds[-1]["round"], "episodes": len(commanded(episodes)), "scores": scores}
 
 
 def _finish(story: Story, failed: bool, started: float) -> int:

@@ -16,25 +16,12 @@ import sys
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 from t42_transfer.data.bag import read_bag
-from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.evaluation.online_loop import commanded
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model
-
-MIN_STEPS = 15
-
-
-def from_first_action(data: TrajectorySet) -> TrajectorySet:
-    """Each episode from its first commanded step on (episodes shorter than MIN_STEPS then are left out)."""
-    kept = []
-    for t in data:
-        moved = np.flatnonzero(np.abs(t.actions).sum(axis=1) > 0)
-        if len(moved) and len(t.actions) - moved[0] >= MIN_STEPS:
-            kept.append(Trajectory(t.states[moved[0]:], t.actions[moved[0]:], end_reason=t.end_reason, hand=t.hand))
-    return TrajectorySet(kept, hand=data.hand)
 
 
 def main() -> int:
@@ -45,7 +32,7 @@ def main() -> int:
         warnings.simplefilter("ignore")  # (episodes too short to keep are named by the reader; counted below)
         episodes = [t for bag in last["bags_closed"] if bag["episodes"] for t in read_bag(bag["path"])]
     whole = TrajectorySet(episodes, hand="target")
-    sets = {"whole episodes": whole, "from the first commanded step": from_first_action(whole)}
+    sets = {"whole episodes": whole, "from the first commanded step": commanded(whole)}
     models = {"source": load_model(source)[0], "hold still": HoldStill()}
     models.update({f"round {r['round']} model": load_model(r["model"])[0] for r in summary["rounds"]})
     print(f"round {last['round']}'s executed-plan episodes: {len(whole)} ({whole.num_transitions} transitions)\n")

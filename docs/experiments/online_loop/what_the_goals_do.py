@@ -19,34 +19,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from t42_transfer.data.trajectory import Trajectory, TrajectorySet
+from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.evaluation.online_loop import commanded, idle_share
 from t42_transfer.hand.collect import collect
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model
 from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import transfer
 from t42_transfer.transfer.online import hold_out, read_target
-
-MIN_STEPS = 15
-
-
-def idle_share(data: TrajectorySet) -> float:
-    actions = np.concatenate([t.actions for t in data])
-    return float((np.abs(actions).sum(axis=1) == 0).mean())
-
-
-def cut(data: TrajectorySet, to_last_action: bool) -> TrajectorySet:
-    """Each episode from its first commanded step to its last (``to_last_action``) or to its end."""
-    kept = []
-    for t in data:
-        moved = np.flatnonzero(np.abs(t.actions).sum(axis=1) > 0)
-        if not len(moved):
-            continue
-        a, b = moved[0], (moved[-1] + 1 if to_last_action else len(t.actions))
-        if b - a >= MIN_STEPS:
-            kept.append(Trajectory(t.states[a:b + 1], t.actions[a:b], end_reason="length", hand=t.hand))
-    return TrajectorySet(kept, hand=data.hand)
 
 
 def one_step_mse(model, data: TrajectorySet) -> float:  # noqa: ANN001
@@ -68,11 +49,11 @@ def main() -> int:
           f"goal episodes {idle_share(goals):.2f} of {goals.num_transitions}")
     print(f"30 held-out random-action episodes: source {evaluate_model(source, heldout)['divergence_mean']:.1f} "
           f"steps, hold still {evaluate_model(HoldStill(), heldout)['divergence_mean']:.1f}\n")
-    plans = cut(goals, to_last_action=True)
+    plans = commanded(goals, to_last_command=True)
     both = lambda extra: TrajectorySet([*exploration, *extra], hand=exploration.hand)  # noqa: E731
     variants = {"exploration only": exploration, "exploration + goal episodes": both(goals),
                 "exploration + commanded stretches": both(plans),
-                "exploration + from the first command": both(cut(goals, to_last_action=False))}
+                "exploration + from the first command": both(commanded(goals))}
     print("| training set | episodes | transitions | idle share | held-out divergence per seed (steps) | mean |")
     print("|---|---:|---:|---:|---|---:|")
     models = {}
