@@ -78,16 +78,24 @@ def test_bench_planner(tmp_path: Path) -> None:
     assert result["benchmark"] == "planner"
     params = result["parameters"]
     assert (params["samples"], params["horizon"], params["repeats"]) == (50, 5, 1)
-    cases = {"planner", "fused_rollout", "eager_loop", "matmul_bound"}
+    cases = {"planner_default", "planner_one_round", "fused_rollout", "eager_loop", "matmul_bound"}
     cases |= set() if "mppi" in result["notes"] else {"mppi"}  # a note instead when pytorch_mppi is absent
-    for key in ("sample_steps_per_s", "best_sample_steps_per_s", "ms_per_call", "repeats_s"):
+    for key in ("sample_steps_per_s", "best_sample_steps_per_s", "ms_per_call", "repeats_s", "rollouts_per_call"):
         assert set(result[key]) == cases, key
     assert all(positive(v) for v in result["sample_steps_per_s"].values())
     assert all(len(ts) == 1 for ts in result["repeats_s"].values())
-    pairs = {"planner_vs_eager_loop", "planner_vs_matmul_bound", "fused_rollout_vs_matmul_bound"}
-    assert set(result["ratios"]) == pairs | ({"planner_vs_mppi"} if "mppi" in cases else set())
+    # rates count the rollouts made: the default mode refines (about 1 + refine_iterations draws of K), one round not
+    made = result["rollouts_per_call"]
+    assert made["planner_one_round"] == 50 and made["planner_default"] > 2 * 50 and made["fused_rollout"] == 50
+    for name, per_s in result["sample_steps_per_s"].items():
+        assert per_s == pytest.approx(made[name] * 5 / (result["ms_per_call"][name] / 1e3)), name
+    pairs = {f"{p}_vs_{b}" for p in ("planner_default", "planner_one_round") for b in ("eager_loop", "matmul_bound")}
+    pairs |= {"fused_rollout_vs_matmul_bound"}
+    pairs |= {f"{p}_vs_mppi" for p in ("planner_default", "planner_one_round")} if "mppi" in cases else set()
+    assert set(result["ratios"]) == set(result["ratios_described"]) == pairs
     assert all(positive(v) for v in result["ratios"].values())
-    assert set(result["targets"]) == {"planner_vs_mppi >= 2", "planner_vs_matmul_bound >= 0.5"}
+    assert set(result["targets"]) == {"fused_rollout_vs_matmul_bound >= 0.8", "planner_default_vs_matmul_bound >= 0.5"}
+    assert "time_to_rate" in result["latency_at_equal_success"] or "note" in result["latency_at_equal_success"]
     assert [(r["samples"], r["chunk"]) for r in result["peak_rss"]] == [(200, params["chunk"]), (200, 200)]
     for r in result["peak_rss"]:
         assert r["peak_rss_mib"] >= r["rss_mib_before"] > 0 and positive(r["seconds"])
