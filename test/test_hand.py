@@ -288,3 +288,20 @@ def test_collect_runs_named_policies() -> None:
     for t in data:
         assert {tuple(a) for a in t.actions} <= {tuple(a) for a in REAL_HAND_ACTIONS}
         assert _holds(t.actions)[1][0] >= min(len(t.actions), 120)
+
+
+def test_a_settled_grasp_continued_is_the_whole_episode_run_again() -> None:
+    """run_settled replays exactly what run_episode gives for the settling then the actions: the goal search of the
+    demo's same-grasp goals relies on it (one settling, many attempts)."""
+    from t42_transfer.hand.collect import run_episode, run_settled, settle
+
+    hand = SimulatedHand("target")
+    rng = np.random.default_rng(3)
+    settled = settle(hand, seed=11, steps=20)
+    assert len(settled.prefix) == 20 and settled.snapshot is not None
+    for _ in range(3):
+        actions = rng.uniform(-1, 1, size=(25, 2)).astype(np.float32)
+        again = run_settled(hand, settled, actions)
+        whole = run_episode(hand, np.concatenate([np.zeros((20, 2), np.float32), actions]), 11)
+        assert again == whole and np.array_equal(again.actuator_angles, whole.actuator_angles)
+        assert again.end_reason == whole.end_reason

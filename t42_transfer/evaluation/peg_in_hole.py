@@ -36,7 +36,7 @@ import torch
 
 from t42_transfer.conventions import ACTION_DIM, PLAN_LENGTHS
 from t42_transfer.evaluation.stats import wilson_interval
-from t42_transfer.hand.collect import run_episode
+from t42_transfer.hand.collect import Settled, run_episode, run_settled, settle
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import Execution, execute
@@ -258,12 +258,19 @@ def reachable_goal(
     ``grasp`` is then the settled state, where a plan that starts later begins.
     """
     tried = 0
+    settled: Settled | None = None
+    """One grasp for every attempt (``grasp_seed``): its settling simulated once, each attempt going on from it."""
     for seed in action_seeds:
         tried += 1
         grasp_with = seed if grasp_seed is None else grasp_seed
         actions = sample_actions("piecewise", 1, steps, torch.Generator().manual_seed(seed), hold_steps)[0].numpy()
         try:
-            traj = run_episode(hand, np.concatenate([np.zeros((settle_steps, actions.shape[1])), actions]), grasp_with)
+            if grasp_seed is not None and settle_steps:
+                settled = settled or settle(hand, grasp_seed, settle_steps)
+                traj = run_settled(hand, settled, actions)
+            else:
+                traj = run_episode(hand, np.concatenate([np.zeros((settle_steps, actions.shape[1])), actions]),
+                                   grasp_with)
         except GraspFailed:
             continue
         if traj.end_reason != "length" or len(traj) != settle_steps + steps:

@@ -24,7 +24,7 @@ from t42_transfer.conventions import (
     REAL_HAND_ACTIONS,
 )
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-from t42_transfer.hand.sim import GraspFailed, SimulatedHand
+from t42_transfer.hand.sim import GraspFailed, HandSnapshot, SimulatedHand
 
 MAX_EPISODES = 100_000
 MAX_STEPS = 100_000
@@ -129,9 +129,39 @@ def run_episode(hand: SimulatedHand, actions: np.ndarray, seed: int) -> Trajecto
 
     A drop's last transition (the object falling) is not hand dynamics and is cut.
     """
-    states = [hand.reset(seed)]
-    angles = [hand.actuator_angles]
-    applied: list[np.ndarray] = []
+    start = hand.reset(seed)
+    return _run_on(hand, [start], [hand.actuator_angles], [], actions)
+
+
+@dataclass(frozen=True)
+class Settled:
+    """A grasp held still for a while (:func:`settle`): its steps, and the hand's state after them."""
+
+    prefix: Trajectory
+    snapshot: HandSnapshot | None
+    """None: the episode ended while the hand held still (every continuation is the prefix)."""
+
+
+def settle(hand: SimulatedHand, seed: int, steps: int) -> Settled:
+    """The grasp made with ``seed``, then ``steps`` of holding still (the object sinks into the fingers)."""
+    prefix = run_episode(hand, np.zeros((steps, ACTION_DIM)), seed)
+    return Settled(prefix, hand.snapshot() if len(prefix) == steps and not hand.done else None)
+
+
+def run_settled(hand: SimulatedHand, settled: Settled, actions: np.ndarray) -> Trajectory:
+    """Exactly ``run_episode(hand, [zeros(settle steps), actions], seed)``, from the settled snapshot: many
+    continuations of one grasp pay for its settling once."""
+    if settled.snapshot is None:
+        return settled.prefix
+    hand.restore(settled.snapshot)
+    p = settled.prefix
+    assert p.actuator_angles is not None
+    return _run_on(hand, list(p.states), list(p.actuator_angles), list(p.actions), actions)
+
+
+def _run_on(hand: SimulatedHand, states: list[np.ndarray], angles: list[np.ndarray], applied: list[np.ndarray],
+            actions: np.ndarray) -> Trajectory:
+    """Step ``hand`` through ``actions`` after the steps already in ``states``, ``angles`` and ``applied``."""
     for action in actions:
         info = hand.step_info(action)
         if info.end_reason in DROP_REASONS:
