@@ -87,7 +87,7 @@ while time.perf_counter() - start < seconds:
 print(time.process_time() - cpu, steps, sum(trips) / len(trips), max(trips))
 """
 
-IDLE_NODE = """
+FLOOR_NODE = """
 import os, sys, time
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 import rclpy
@@ -95,53 +95,41 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 seconds, period, kind = float(sys.argv[1]), float(sys.argv[2]), sys.argv[3]
-context = rclpy.Context(); rclpy.init(args=["idle"], context=context)
-node = Node("idle_floor", context=context); ticks = []
-node.create_timer(period, lambda: ticks.append(None))
-executor = (EventsExecutor if kind == "events" else SingleThreadedExecutor)(context=context); executor.add_node(node)
-warm = time.monotonic() + 2.0
-while time.monotonic() < warm: executor.spin_once(timeout_sec=0.1)
-first, cpu, start = len(ticks), time.process_time(), time.monotonic()
-while time.monotonic() - start < seconds: executor.spin_once(timeout_sec=0.1)
-print(time.process_time() - cpu, len(ticks) - first)
-"""
-
-INTERFACE_FLOOR = """
-import os, sys, time
-os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-import rclpy
-from geometry_msgs.msg import PoseStamped
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.experimental import EventsExecutor
-from rclpy.node import Node
-from sensor_msgs.msg import JointState
-from msg_adapters import RCLPY, applied_action_msg, joint_state_msg, names, object_pose_msg
-seconds, period = float(sys.argv[1]), float(sys.argv[2])
 context = rclpy.Context(); rclpy.init(args=["floor"], context=context)
-node = Node("interface_floor", context=context); ticks = []; taken = []
-pub = {"event_callbacks": PublisherEventCallbacks(use_default_callbacks=False)}
-sub = {"event_callbacks": SubscriptionEventCallbacks(use_default_callbacks=False)}
-outs = [(node.create_publisher(JointState, names.JOINT_STATES, 10, **pub),
-         joint_state_msg([1.0, 2.0], [0.5, 0.6], 0, RCLPY)),
-        (node.create_publisher(PoseStamped, names.OBJECT_POSE, 10, **pub), object_pose_msg([1.0, 90.0], 0, RCLPY)),
-        (node.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub), applied_action_msg([0.1, 0.1], 0, RCLPY))]
-node.create_subscription(PoseStamped, names.TRACKER_POSE, taken.append, 10, **sub)
-node.create_subscription(JointState, names.HAND_COMMAND, taken.append, 10, raw=True, **sub)
+node = Node("floor", context=context); ticks = []; outs = []
+if kind == "traffic":
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+    from sensor_msgs.msg import JointState
+    from msg_adapters import RCLPY, applied_action_msg, joint_state_msg, names, object_pose_msg
+    pub = {"event_callbacks": PublisherEventCallbacks(use_default_callbacks=False)}
+    sub = {"event_callbacks": SubscriptionEventCallbacks(use_default_callbacks=False)}
+    outs = [(node.create_publisher(JointState, names.JOINT_STATES, 10, **pub),
+             joint_state_msg([1.0, 2.0], [0.5, 0.6], 0, RCLPY)),
+            (node.create_publisher(PoseStamped, names.OBJECT_POSE, 10, **pub), object_pose_msg([1.0, 90.0], 0, RCLPY)),
+            (node.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub),
+             applied_action_msg([0.1, 0.1], 0, RCLPY))]
+    node.create_subscription(PoseStamped, names.TRACKER_POSE, lambda m: None, 10, **sub)
+    node.create_subscription(JointState, names.HAND_COMMAND, lambda m: None, 10, raw=True, **sub)
 def tick():
-    ticks.append(None); taken.clear(); now = node.get_clock().now().to_msg()
-    for publisher, msg in outs:
-        msg.header.stamp = now; publisher.publish(msg)
+    ticks.append(None)
+    if outs:
+        now = node.get_clock().now().to_msg()
+        for publisher, msg in outs:
+            msg.header.stamp = now; publisher.publish(msg)
 node.create_timer(period, tick)
-executor = EventsExecutor(context=context); executor.add_node(node)
+executor = (SingleThreadedExecutor if kind == "single" else EventsExecutor)(context=context); executor.add_node(node)
 warm = time.monotonic() + 3.0
 while time.monotonic() < warm: executor.spin_once(timeout_sec=0.1)
 first, cpu, start = len(ticks), time.process_time(), time.monotonic()
 while time.monotonic() - start < seconds: executor.spin_once(timeout_sec=0.1)
 print(time.process_time() - cpu, len(ticks) - first)
 """
-"""The driver's ROS traffic and nothing else, on the driver's executor: each period one timer wake, the
-tracker's pose and a command taken (the command raw), the three step messages published (built once, stamps
-renewed), no servo bus: what rclpy and Fast DDS cost any node with the driver's interface."""
+"""A node with one timer at the control period, its CPU per period measured: ``single`` and ``events``, doing
+nothing on the SingleThreadedExecutor or the EventsExecutor; ``traffic``, on the EventsExecutor, the driver's ROS
+traffic and nothing else (each period the tracker's pose and a command taken, the command raw, and the three step
+messages published, built once with their stamps renewed), no servo bus: what rclpy and Fast DDS cost any node
+with the driver's interface."""
 
 
 def cpu_s(pid: int) -> float:
@@ -310,29 +298,25 @@ def bare_run(seconds: float, read_wait_s: float | None = None) -> dict:
             "round_trip_max_ms": 1e3 * worst, "load_after": os.getloadavg()}
 
 
-def idle_node_run(seconds: float, executor: str = "single") -> dict:
-    """CPU per period of an rclpy node that does nothing: the floor under any node's callback (``executor``:
-    ``single``, the SingleThreadedExecutor ``t42 node`` spins, or ``events``, rclpy's EventsExecutor)."""
-    out = subprocess.run([sys.executable, "-c", IDLE_NODE, str(seconds), str(CONTROL_PERIOD_S), executor], cwd=REPO,
-                         capture_output=True, text=True, timeout=seconds + 60, check=True)
+def floor_node_run(seconds: float, kind: str) -> dict:
+    """CPU per period of :data:`FLOOR_NODE` of ``kind``; ``traffic`` beside this process's peers of the driver's
+    run (the emulated hand's tracker, a command each period, subscribers of the three step messages)."""
+    command = [sys.executable, "-c", FLOOR_NODE, str(seconds), str(CONTROL_PERIOD_S), kind]
+    run = {}
+    if kind == "traffic":
+        with tempfile.TemporaryDirectory(prefix="bench_driver_") as tmp:
+            client = EpisodeClient(str(Path(tmp) / "ttyT42"))
+            client.commanding = True
+            try:
+                out = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=seconds + 60,
+                                     check=True)
+                run["joint_states_received"] = len(client.joints)
+            finally:
+                client.close()
+    else:
+        out = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=seconds + 60, check=True)
     cpu, ticks = (float(v) for v in out.stdout.split())
-    return {"periods": int(ticks), "cpu_ms_per_period": 1e3 * cpu / max(ticks, 1), "load_after": os.getloadavg()}
-
-
-def interface_floor_run(seconds: float) -> dict:
-    """CPU per period of :data:`INTERFACE_FLOOR` beside this process's peers of the driver's run (the emulated
-    hand's tracker, a command each period, subscribers of the three step messages)."""
-    with tempfile.TemporaryDirectory(prefix="bench_driver_") as tmp:
-        client = EpisodeClient(str(Path(tmp) / "ttyT42"))
-        client.commanding = True
-        try:
-            out = subprocess.run([sys.executable, "-c", INTERFACE_FLOOR, str(seconds), str(CONTROL_PERIOD_S)],
-                                 cwd=REPO, capture_output=True, text=True, timeout=seconds + 60, check=True)
-            received = len(client.joints)
-        finally:
-            client.close()
-    cpu, ticks = (float(v) for v in out.stdout.split())
-    return {"periods": int(ticks), "cpu_ms_per_period": 1e3 * cpu / max(ticks, 1), "joint_states_received": received,
+    return {"periods": int(ticks), "cpu_ms_per_period": 1e3 * cpu / max(ticks, 1), **run,
             "load_after": os.getloadavg()}
 
 
@@ -344,8 +328,8 @@ def main() -> int:
     threading.current_thread().name = "bench"
     machine = machine_info()
     driver, bare = driver_run(args.seconds), bare_run(args.seconds)
-    bare_select, idle_run = bare_run(args.seconds, READ_WAIT_S), idle_node_run(args.seconds)
-    idle_events, floor = idle_node_run(args.seconds, "events"), interface_floor_run(args.seconds)
+    bare_select, idle_run = bare_run(args.seconds, READ_WAIT_S), floor_node_run(args.seconds, "single")
+    idle_events, floor = floor_node_run(args.seconds, "events"), floor_node_run(args.seconds, "traffic")
     floor_ms = floor["cpu_ms_per_period"]
     idle_ms = idle_run["cpu_ms_per_period"]
     stock = driver["cpu_ms_per_step"] / bare["cpu_ms_per_step"]

@@ -33,7 +33,8 @@ def test_commanded_cuts_the_settling_and_optionally_the_hold_and_drops_what_is_t
 
 def test_holding_still_diverges_once_a_plan_has_moved_the_object_4_mm() -> None:
     data = TrajectorySet([goal_episode(80, 20, 30, step_mm=1.0)], hand="target")
-    scores = executed_plan_scores({"hold_still": HoldStill()}, data)
+    plans, scores = executed_plan_scores({"hold_still": HoldStill()}, data)
+    assert plans == 1
     assert scores["hold_still"]["divergence_steps"] == pytest.approx(4, abs=1)  # 4 mm off after about 4 steps
     assert scores["hold_still"]["position_mse_mm2"] > 100.0
     with pytest.raises(ValueError, match="first command"):

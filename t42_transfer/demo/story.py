@@ -291,7 +291,7 @@ def executed_plans(story: Story) -> dict[str, Any]:
 
     from t42_transfer.data.bag import read_bag
     from t42_transfer.data.trajectory import TrajectorySet
-    from t42_transfer.evaluation.online_loop import commanded, executed_plan_scores
+    from t42_transfer.evaluation.online_loop import executed_plan_scores
     from t42_transfer.models.baselines import HoldStill
     from t42_transfer.models.checkpoint import load_model
 
@@ -303,13 +303,13 @@ def executed_plans(story: Story) -> dict[str, Any]:
     models = {"source": load_model(story.model)[0], "hold_still": HoldStill(),
               **{f"round {r['round']}": load_model(r["model"])[0] for r in rounds}}
     try:
-        scores = executed_plan_scores(models, episodes)
+        plans, scores = executed_plan_scores(models, episodes)
     except ValueError as err:  # (every goal refused, or cut short): nothing to score, said so in the report
         say(f"      no executed plan of round {rounds[-1]['round']} to score the models on: {err}")
         return {"round": rounds[-1]["round"], "episodes": 0, "scores": {}, "why": str(err)}
     say(f"      each round's model on round {rounds[-1]['round']}'s executed plans (no model trained on them), "
         "position MSE: " + ", ".join(f"{name} {s['position_mse_mm2']:.1f} mm^2" for name, s in scores.items()))
-    return {"round": rounds[-1]["round"], "episodes": len(commanded(episodes)), "scores": scores}
+    return {"round": rounds[-1]["round"], "episodes": plans, "scores": scores}
 
 
 def _finish(story: Story, failed: bool, started: float) -> int:

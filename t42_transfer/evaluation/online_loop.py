@@ -39,14 +39,20 @@ def idle_share(data: TrajectorySet) -> float:
     return float((np.abs(actions).sum(axis=1) == 0).mean())
 
 
-def executed_plan_scores(models: Mapping[str, LatentDynamics], episodes: TrajectorySet) -> dict[str, dict[str, float]]:
-    """Divergence (4 mm, steps) and position MSE (mm²) of each model on ``episodes`` from their first command."""
-    plans = commanded(episodes)
-    if not len(plans):
-        raise ValueError(f"none of the {len(episodes)} episodes has {MIN_EPISODE_STEPS} steps from its first command")
+def scores_on(models: Mapping[str, LatentDynamics], data: TrajectorySet) -> dict[str, dict[str, float]]:
+    """Divergence (4 mm, steps) and position MSE (mm²) of each model on ``data``."""
     scores = {}
     for name, model in models.items():
-        result = evaluate_model(model, plans)
+        result = evaluate_model(model, data)
         scores[name] = {"divergence_steps": float(result["divergence_mean"]),
                         "position_mse_mm2": float(result["position_mse_mean"])}
     return scores
+
+
+def executed_plan_scores(models: Mapping[str, LatentDynamics],
+                         episodes: TrajectorySet) -> tuple[int, dict[str, dict[str, float]]]:
+    """How many of ``episodes`` have a plan (:func:`commanded`), and each model's :func:`scores_on` them."""
+    plans = commanded(episodes)
+    if not len(plans):
+        raise ValueError(f"none of the {len(episodes)} episodes has {MIN_EPISODE_STEPS} steps from its first command")
+    return len(plans), scores_on(models, plans)

@@ -36,11 +36,11 @@ LOAD_LOSS_WEIGHT = 0.1
 """The authors' trajectory loss weighs loads 0.1 against positions 1.0."""
 
 
-
 def import_optimizer_machinery() -> None:
     """Import what torch's first optimizer imports (``torch._dynamo``, from ``Optimizer.__init__``): measured 1.1 s
     on a quiet machine, inside the first transfer of a process; a server calls this while it waits for work."""
     import torch._dynamo  # noqa: F401
+
 
 @dataclass(frozen=True)
 class TrainConfig:

@@ -249,8 +249,11 @@ class TransferServer(Node):
         )
         import torch
 
+        from t42_transfer.models.training import import_optimizer_machinery
+
         torch.set_num_threads(self.params.torch_threads)
-        threading.Thread(target=_import_optimizer_machinery, name="import-torch-optim", daemon=True).start()
+        # In a thread of its own while the server waits for its first goal, not inside its first transfer.
+        threading.Thread(target=import_optimizer_machinery, name="import-torch-optim", daemon=True).start()
         model_dir = in_namespace(self.params.model_dir, self.get_namespace())
         for directory in (model_dir, self.params.bag_dir):  # at start, so a shared directory fails in one line
             if directory:
@@ -564,10 +567,3 @@ def outcome_of(result: TransferResult) -> TransferOutcome:
         Scores(result.hold_still_divergence_steps, result.hold_still_position_mse_mm2),
         candidates, skipped_pairs(result.skipped_bags),
     )
-
-
-def _import_optimizer_machinery() -> None:
-    """In a thread of its own while the server waits for its first goal, not inside its first transfer."""
-    from t42_transfer.models.training import import_optimizer_machinery
-
-    import_optimizer_machinery()

@@ -48,8 +48,7 @@ class DeferredService:
 
     def __init__(self, node: Any, srv_type: Any, name: str, callback: Callable[[Any, Any], Any],
                  **kwargs: Any) -> None:
-        self._callback = callback
-        self.service = node.create_service(srv_type, name, self._callback, **kwargs)
+        self.service = node.create_service(srv_type, name, callback, **kwargs)
         self._send = self.service.send_response
         self.service.send_response = self._route  # the executor sends what the callback returned through here
 

@@ -64,13 +64,13 @@ def param(default: Any = dataclasses.MISSING, description: str = "", *, read_onl
     return dataclasses.field(default=default, metadata={_META: info})
 
 
-
 def torch_threads_param() -> Any:
     """``torch_threads``, the same parameter on every node that runs torch (the transfer server, the planner)."""
     return param(1, "torch's intra-op threads in this process (set at start): the suite's models are small, and a "
                     "second thread waiting for a busy core slows them (measured on 2 cores with both busy: training "
                     "2x, planning 2.3x slower; quiet: training alike, planning 13 % faster)",
                  min=1, max=1024, read_only=True)
+
 
 _SCALARS = {
     bool: ParameterType.PARAMETER_BOOL,

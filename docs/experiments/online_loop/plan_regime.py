@@ -18,8 +18,7 @@ from pathlib import Path
 
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import TrajectorySet
-from t42_transfer.evaluation.metrics import evaluate_model
-from t42_transfer.evaluation.online_loop import commanded
+from t42_transfer.evaluation.online_loop import commanded, scores_on
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model
 
@@ -38,15 +37,11 @@ def main() -> int:
     print(f"round {last['round']}'s executed-plan episodes: {len(whole)} ({whole.num_transitions} transitions)\n")
     print("| model | " + " | ".join(f"{name}: divergence (steps), position MSE (mm²)" for name in sets) + " |")
     print("|---|" + "---:|" * len(sets))
-    results = {}
-    for name, model in models.items():
-        cells = []
-        for set_name, data in sets.items():
-            scores = evaluate_model(model, data)
-            results.setdefault(name, {})[set_name] = {"divergence_mean": float(scores["divergence_mean"]),
-                                                       "position_mse": float(scores["position_mse_mean"])}
-            cells.append(f"{scores['divergence_mean']:.1f}, {scores['position_mse_mean']:.2f}")
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    by_set = {set_name: scores_on(models, data) for set_name, data in sets.items()}
+    results = {name: {set_name: by_set[set_name][name] for set_name in sets} for name in models}
+    for name, cells in results.items():
+        print(f"| {name} | " + " | ".join(f"{c['divergence_steps']:.1f}, {c['position_mse_mm2']:.2f}"
+                                          for c in cells.values()) + " |")
     out = Path(__file__).parent / "plan_regime.json"
     out.write_text(json.dumps({"run": str(run_dir), "episodes": len(whole), "results": results}, indent=1) + "\n")
     return 0
