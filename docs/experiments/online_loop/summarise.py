@@ -27,22 +27,24 @@ def reduced(run_dir: Path) -> dict:
                        "updated": record["transfer"].get("updated", True),
                        "transfer_message": record["transfer"]["message"], "heldout": record["heldout"],
                        "goals": [{"steps": g["steps"], "goal_mm": g["goal_mm"], "grasp_seed": g["grasp_seed"],
-                                  "verdict": g["verdict"], "error_mm": g["error_mm"]} for g in mine]})
+                                  "verdict": g["verdict"], "error_mm": g["error_mm"],
+                                  "doing_nothing_verdict": g["still_verdict"]} for g in mine]})
     return {"run": str(run_dir), "update": summary.get("update", True), "size": summary["size"],
             "seconds": summary.get("seconds"), "rounds": rounds}
 
 
 def table(runs: dict[str, dict]) -> str:
-    lines = ["| loop | round | goals hit (95 % Wilson) | held-out divergence, model (steps) | source alone "
-             "| hold still |",
-             "|---|---:|---|---:|---:|---:|"]
+    lines = ["| loop | round | goals hit (95 % Wilson) | doing nothing hits | held-out divergence, model (steps) "
+             "| source alone | hold still |",
+             "|---|---:|---|---|---:|---:|---:|"]
     for name, run in runs.items():
         for r in run["rounds"]:
             hits, n = sum(g["verdict"] == "hit" for g in r["goals"]), len(r["goals"])
             low, high = wilson_interval(hits, n)
+            still = sum(g["doing_nothing_verdict"] == "hit" for g in r["goals"])
             h = r["heldout"]
-            lines.append(f"| {name} | {r['round']} | {hits}/{n} ({low:.2f}-{high:.2f}) | {h['model']:.1f} | "
-                         f"{h['source']:.1f} | {h['hold_still']:.1f} |")
+            lines.append(f"| {name} | {r['round']} | {hits}/{n} ({low:.2f}-{high:.2f}) | {still}/{n} | "
+                         f"{h['model']:.1f} | {h['source']:.1f} | {h['hold_still']:.1f} |")
     return "\n".join(lines)
 
 
