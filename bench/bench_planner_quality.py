@@ -11,10 +11,15 @@ true target hand (:func:`~t42_transfer.planning.execution.execute`) and judged
 by :func:`~t42_transfer.evaluation.peg_in_hole.verdict` at 10 and 4 mm.  The
 budget B counts B model rollouts of the whole horizon per plan:
 
-- ``ours``: :class:`~t42_transfer.planning.planner.Planner`, piecewise sampler, ``samples = B``, no refinement;
+- ``default``: the Planner with its default configuration (:class:`~t42_transfer.planning.planner.PlannerConfig`,
+  the planner node's and ``t42 peg-in-hole``'s), ``samples = B / (refine_iterations + 1)`` (its refinement keeps
+  the elites, so it rolls out slightly fewer than B; ``rollouts`` records how many);
+- ``default_search``: the same with horizon search (the shortest prefix predicted within the tolerance), then
+  holding still (zero actions) for the rest of the goal's steps: what the rule "shortest sequence, then hold"
+  costs against optimising the whole fixed horizon to its final state;
+- ``ours``: the Planner with the piecewise sampler (holds of 5-40 steps), ``samples = B``, no refinement;
 - ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)``, the Planner's default
-  since this bench (its refinement keeps the elites, so it rolls out slightly fewer than B; ``rollouts``
-  records how many);
+  before ``default`` (until 2026-12-04);
 - ``random_shooting``: the Planner with i.i.d. uniform actions (``sampler="uniform"``), ``samples = B``;
 - ``cem``: a plain cross-entropy method written here: a per-step Gaussian over the sequence (mean 0, std
   ``cem_std``) clipped to the box, ``B / cem_iterations`` samples per iteration, refitted to the best 10 %
@@ -78,7 +83,9 @@ from t42_transfer.planning.workspace import Workspace
 RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
 DEFAULT_MODELS = Path("runs/peg_in_hole_models/models")
 MAKE_MODELS = "t42 experiment configs/peg_in_hole_models.yaml --out runs"
-OPTIMISERS = ("ours", "ours_cem", "random_shooting", "cem", "mppi")
+OPTIMISERS = ("default", "default_search", "ours", "ours_cem", "random_shooting", "cem", "mppi")
+DRIFT_STEPS = 10
+"""Steps of holding still (1 s) after a completed plan over which the object's drift is measured."""
 UNSAFE_PENALTY_MM = 1000.0
 """Added to an MPPI sample's terminal cost when its prediction breaks a safety rule (MPPI needs finite costs)."""
 
@@ -128,6 +135,9 @@ class Outcome:
     """Whether that prediction keeps every safety rule (the Planner and CEM only return such sequences)."""
     rollouts: int
     """Model rollouts of the whole horizon spent."""
+    status: str = ""
+    """The Planner's status for its plan (``ok``, ``unreachable`` ...: what the planner node would refuse), ''
+    for the other optimisers."""
 
 
 @dataclass(frozen=True)
@@ -145,6 +155,11 @@ class TrialResult:
     progress_mm: float | None
     verdicts: dict[str, str]
     """Verdict per tolerance (its ``g`` string: '10', '4')."""
+    status: str = ""
+    """The Planner's status of its plan ('' for the other optimisers)."""
+    drift_mm: float | None = None
+    """How far the object moved in :data:`DRIFT_STEPS` of holding still after a completed plan (the hand
+    settling: what a judge after the plan's last step does not see)."""
 
 
 # ------------------------------------------------------------------ optimisers
@@ -231,13 +246,34 @@ def planner_plan(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: 
                  seed: int, config: PlannerConfig) -> Outcome:
     plan = Planner(model, workspace, replace(config, horizon=steps, horizon_search=False)).plan(x0, goal, seed=seed)
     found = len(plan.actions) > 0
-    return Outcome(plan.actions, plan.error_mm, found, plan.evaluated)
+    return Outcome(plan.actions, plan.error_mm, found, plan.evaluated, plan.status)
+
+
+def search_then_hold(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int, seed: int,
+                     config: PlannerConfig) -> Outcome:
+    """The shortest prefix of at most ``steps`` predicted to reach the goal, then zero actions up to ``steps``;
+    its predicted error is the model's for the whole padded sequence (the hold's drift included)."""
+    plan = Planner(model, workspace, replace(config, horizon=steps, horizon_search=True)).plan(x0, goal, seed=seed)
+    if len(plan.actions) == 0:
+        return Outcome(plan.actions, math.inf, False, plan.evaluated, plan.status)
+    actions = np.zeros((steps, 2), np.float32)
+    actions[: len(plan.actions)] = plan.actions
+    states = make_rollout(model)(x0[None], torch.as_tensor(actions)[None])
+    safe = bool(workspace.allows(states[1:].float()).all())
+    error = float(torch.linalg.vector_norm(states[-1, 0, :2].float() - goal))
+    return Outcome(actions, error, safe, plan.evaluated + 1, plan.status)
 
 
 def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int,
              budget: int, seed: int, setting: Setting) -> Outcome:
     """Optimiser ``name``'s ``steps``-action plan from ``x0`` towards ``goal`` with ``budget`` rollouts."""
-    base = replace(PegInHoleConfig().planner, refine_iterations=0)  # each optimiser sets its own rounds
+    if name in ("default", "default_search"):
+        default = PegInHoleConfig().planner
+        cfg = replace(default, samples=max(2, budget // (default.refine_iterations + 1)))
+        if name == "default":
+            return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
+        return search_then_hold(model, workspace, x0, goal, steps, seed, cfg)
+    base = replace(PegInHoleConfig().planner, sampler="piecewise", hold_steps=(5, 40), refine_iterations=0)
     if name == "ours":
         return planner_plan(model, workspace, x0, goal, steps, budget, seed, replace(base, samples=budget))
     if name == "ours_cem":
@@ -276,8 +312,14 @@ def run_trial(name: str, budget: int, model: LatentDynamics, workspace: Workspac
     verdicts = {f"{tol:g}": verdict(goal.distance_mm, error, progress, run.completed, tol)
                 for tol in setting.tolerances_mm}
     predicted = None if math.isinf(outcome.predicted_error_mm) else outcome.predicted_error_mm
+    drift = None
+    if run.completed:
+        for _ in range(DRIFT_STEPS):
+            if hand.step_info(np.zeros(2)).done:
+                break
+        drift = float(np.linalg.norm(hand.state[:2] - final))
     return TrialResult(name, budget, goal.trial, goal.distance_mm, seconds, outcome.rollouts, predicted,
-                       outcome.predicted_safe, run.end_reason, error, progress, verdicts)
+                       outcome.predicted_safe, run.end_reason, error, progress, verdicts, outcome.status, drift)
 
 
 def warm_up(model: LatentDynamics, workspace: Workspace, goal: Goal, setting: Setting) -> None:
@@ -329,6 +371,9 @@ def summarise(trials: Sequence[TrialResult], setting: Setting) -> list[dict]:
                 "median_predicted_error_mm": _median([t.predicted_error_mm for t in group]),
                 "median_plan_seconds": _median([t.plan_seconds for t in group]),
                 "median_rollouts": _median([t.rollouts for t in group]),
+                "median_drift_mm": _median([t.drift_mm for t in group]),
+                "planner_status": {k: sum(t.status == k for t in group) for k in sorted({t.status for t in group})
+                                   if k},
                 "predicted_unsafe": sum(not t.predicted_safe for t in group),
             })
     return rows
@@ -371,13 +416,15 @@ def markdown(result: dict) -> str:
     for k, tol in enumerate(result["setting"]["tolerances_mm"]):
         out.append(f"Tolerance {tol:g} mm ({result['goals']['count']} goals, {result['goals']['steps']} steps)\n\n"
                    "| optimiser | budget | rollouts | success | 95 % interval | median true error mm "
-                   "| median predicted error mm | median plan ms |\n|---|---|---|---|---|---|---|---|\n")
+                   "| median predicted error mm | median drift mm | median plan ms |\n"
+                   "|---|---|---|---|---|---|---|---|---|\n")
         for r in result["rows"]:
             s = r["success"][k]
             out.append(f"| {r['optimiser']} | {r['budget']} | {r['median_rollouts']:.0f} "
                        f"| {s['successes']}/{r['trials']} ({s['success_rate']:.0%}) "
                        f"| {s['ci_low']:.0%}-{s['ci_high']:.0%} | {_fmt(r['median_final_error_mm'])} "
-                       f"| {_fmt(r['median_predicted_error_mm'])} | {1e3 * r['median_plan_seconds']:.1f} |\n")
+                       f"| {_fmt(r['median_predicted_error_mm'])} | {_fmt(r['median_drift_mm'])} "
+                       f"| {1e3 * r['median_plan_seconds']:.1f} |\n")
         out.append("\n")
     out.append("Median planning time to reach a success rate (budget in brackets; - : no budget reached it)\n\n"
                "| optimiser | tolerance mm | rate | plan ms |\n|---|---|---|---|\n")

@@ -107,3 +107,23 @@ def test_without_the_model_it_says_how_to_make_it(tmp_path, capsys: pytest.Captu
     assert bench.main(["--model", str(tmp_path / "absent.safetensors"), "--out", str(tmp_path / "q.json")]) == 2
     assert bench.MAKE_MODELS in capsys.readouterr().err
     assert not (tmp_path / "q.json").exists()
+
+
+def test_trials_carry_the_planners_status_and_the_drift_after_a_completed_plan(result: dict) -> None:
+    planners = {"default", "default_search", "ours", "ours_cem", "random_shooting"}
+    for t in result["trials"]:
+        assert (t["status"] != "") == (t["optimiser"] in planners)
+        assert (t["drift_mm"] is not None) == (t["end_reason"] == "length")
+        assert t["drift_mm"] is None or t["drift_mm"] >= 0.0
+    for r in result["rows"]:
+        assert sum(r["planner_status"].values()) == (r["trials"] if r["optimiser"] in planners else 0)
+
+
+def test_search_then_hold_pads_the_shortest_prefix_with_zeros_to_the_goals_steps(goals: list) -> None:
+    x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
+    target = torch.as_tensor(goals[0].position, dtype=torch.float32)
+    out = bench.optimise("default_search", drift(), WORKSPACE, x0, target, STEPS, 320, 0, TOY)
+    assert out.actions.shape == (STEPS, 2) and out.status == "ok"
+    moving = np.abs(out.actions).sum(1) > 0
+    first_hold = int(np.argmin(moving))  # the toy moves 2 mm a step: the goal is reached well before STEPS
+    assert 0 < first_hold < STEPS and moving[:first_hold].all() and not moving[first_hold:].any()

@@ -33,7 +33,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
     cfg = PlannerConfig(  # first: its checks (samples x horizon among them) come before anything is loaded
         samples=PlannerConfig.samples if args.samples is None else args.samples, horizon=args.horizon,
-        sampler=args.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,
+        sampler=args.sampler or PlannerConfig.sampler, tolerance_mm=args.tolerance, horizon_search=args.horizon_search,
         refine_iterations=PlannerConfig.refine_iterations if args.refine is None else args.refine, seed=args.seed,
     )
     for path in (args.workspace or []):
@@ -154,7 +154,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     plan.add_argument("--samples", type=int_arg(1, MAX_PLAN_SAMPLES), default=None,
                       help="sequences sampled per round (default: PlannerConfig's)")
     plan.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
-    plan.add_argument("--sampler", choices=("piecewise", "uniform", "discrete"), default="piecewise")
+    plan.add_argument("--sampler", choices=("gaussian", "piecewise", "uniform", "discrete"), default=None,
+                      help="first draw's sampler (default: PlannerConfig's)")
     plan.add_argument("--tolerance", type=float_arg(0, low_open=True), default=2.0,
                       help="predicted error that reaches the goal (mm, default 2)")
     plan.add_argument("--horizon-search", action="store_true", help="return the shortest sequence reaching the goal")

@@ -114,7 +114,8 @@ def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, roun
     statuses = len(op.statuses)
     stamp = op.now_ns()
     sent = time.perf_counter()
-    handle = op.send_goal(op.reach_client, names.REACH, reach_goal(goal.position, stamp), 30.0, suite.check,
+    handle = op.send_goal(op.reach_client, names.REACH, reach_goal(goal.position, stamp, TOLERANCE_MM, steps),
+                          30.0, suite.check,
                           lambda message: feedback.append(reach_progress(message)))
     outcome = reach_outcome(op.goal_result(handle, 180.0, f"the result of the {names.REACH} goal", suite.check))
     op.wait_until(lambda: op.plan_result_for(stamp) is not None, 10.0, f"the goal's {names.PLAN_RESULT}",

@@ -49,7 +49,6 @@ class DemoSize:
     target_steps: int
     goal_steps: tuple[int, ...]
     """One peg-in-hole goal per entry, that many control steps from the grasp."""
-    planner_samples: int
     rate_factor: float
     rounds: int = 2
     """Transfer-then-goals rounds; from the second on, the transfer also learns from the executed plans."""
@@ -60,9 +59,9 @@ class DemoSize:
 
 
 FULL = DemoSize(source_episodes=80, source_steps=400, source_epochs=40, target_episodes=12, target_steps=150,
-                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), planner_samples=250, rate_factor=5.0)
+                goal_steps=(30, 40, 50, 60, 30, 40, 50, 60), rate_factor=5.0)
 QUICK = DemoSize(source_episodes=10, source_steps=150, source_epochs=5, target_episodes=4, target_steps=60,
-                 goal_steps=(30, 40), planner_samples=100, rate_factor=10.0, heldout_episodes=3,
+                 goal_steps=(30, 40), rate_factor=10.0, heldout_episodes=3,
                  transfer={"l2_finetune": {"train": {"epochs": 10}}})
 
 

@@ -98,7 +98,7 @@ def suite_params(run_dir: Path, model: Path, size: DemoSize, hardware: str = "si
         "transfer_server": node(source_model=str(model), model_dir=str(run_dir / "models"),
                                 bag_dir=str(run_dir / "bags"),
                                 new_bags_only=False, config=str(methods), use_sim_time=True),
-        "planner": node(samples=size.planner_samples, max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
+        "planner": node(max_state_age_s=0.5 * size.rate_factor, use_sim_time=True),
         "explorer": node(episodes=size.target_episodes, steps=size.target_steps, seed=1,
                          rate_factor=size.rate_factor, record_start_service=RECORDER_START,
                          record_stop_service=RECORDER_STOP, use_sim_time=True),

@@ -27,8 +27,9 @@ class PlannerNodeParams:
                                    max=MAX_REFINE)
     horizon: int = param(_DEFAULTS.horizon, "steps of a sampled sequence (0.1 s each); with horizon_search "
                                             "the longest plan", min=1, max=MAX_PLAN_HORIZON)
-    horizon_search: bool = param(True, "plan the shortest sequence that reaches the goal "
-                                       "(false: always plan horizon steps)")
+    horizon_search: bool = param(_DEFAULTS.horizon_search, "plan the shortest sequence predicted to reach the "
+                                                          "goal, then hold (false: plan horizon steps, or a goal's "
+                                                          "steps, to the final state)")
     tolerance_mm: float = param(_DEFAULTS.tolerance_mm, "a prediction this close to the goal reaches it (mm)",
                                 min=0.0, constraints="positive, finite")
     seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")

@@ -9,6 +9,9 @@
   hand's move ``1.5 a``.
 - ``piecewise``: uniform actions held for random durations (``hold_steps``
   inclusive); a held action drives the servos steadily, which reaches far goals.
+- ``gaussian``: every step i.i.d. normal with mean 0 and std ``std``, clipped to
+  the box: with std 1 about a third of the steps sit on a bound, the bang-bang
+  moves a cross-entropy search starts from (the textbook CEM's initial draw).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from torch import Tensor
 
 from t42_transfer.conventions import ACTION_DIM, ACTION_LIMIT, RANDOM_POLICY_LIMIT, REAL_HAND_ACTIONS
 
-SAMPLERS = ("uniform", "discrete", "piecewise")
+SAMPLERS = ("uniform", "discrete", "piecewise", "gaussian")
 DISCRETE_ACTIONS = torch.tensor(REAL_HAND_ACTIONS) / ACTION_LIMIT
 """The real hand's moves scaled into ``[-1, 1]``, ``[8, 2]``."""
 SAMPLE_BLOCK = 4096
@@ -27,7 +30,8 @@ depend only on the generator, not on how the planner chunks its rollouts."""
 
 
 def sample_actions(
-    sampler: str, count: int, horizon: int, generator: torch.Generator, hold_steps: tuple[int, int] = (5, 40)
+    sampler: str, count: int, horizon: int, generator: torch.Generator, hold_steps: tuple[int, int] = (5, 40),
+    std: float = 1.0,
 ) -> Tensor:
     """``count`` sequences of ``horizon`` actions, float32 ``[count, horizon, 2]``."""
     if sampler not in SAMPLERS:
@@ -37,6 +41,8 @@ def sample_actions(
         block = out[start : start + SAMPLE_BLOCK]
         if sampler == "uniform":
             block.uniform_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT, generator=generator)
+        elif sampler == "gaussian":
+            block.normal_(0.0, std, generator=generator).clamp_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT)
         elif sampler == "discrete":
             block.copy_(DISCRETE_ACTIONS[torch.randint(len(DISCRETE_ACTIONS), block.shape[:2], generator=generator)])
         else:
