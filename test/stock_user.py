@@ -214,6 +214,10 @@ def transfer(user: User) -> dict:
     # the driver executes it: its status says when the last point is applied
     user.wait(lambda: any(s.data.startswith("trajectory_done") for s in statuses), 60.0, "trajectory_done")
     out["driver_status"] = [s.data for s in statuses]
+    # a fresh grasp for the next goal, as a user does between goals (the first plan may have dropped the object)
+    reset = user.call(Trigger, user.name("hand/reset"), Trigger.Request())
+    if not reset.success:
+        raise TimeoutError(f"hand/reset failed before the cancel: {reset.message}")
     out["cancel"] = cancel_one(user, target, applied)
     return out
 

@@ -17,6 +17,7 @@ import pytest
 import yaml
 from ros_rig import REPO, start_node, stop
 
+from t42_transfer.planning import PlannerConfig
 from t42_transfer.ros.launcher import namespace_args
 
 STOCK_USER = Path(__file__).with_name("stock_user.py")
@@ -123,7 +124,7 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         assert not seen["planner_bad_samples"][0] and seen["planner_bad_samples"][1]
         assert seen["planner_good_samples"][0] and seen["planner_samples"] == 64
         assert not seen["planner_bad_replan"][0] and seen["planner_good_replan"][0]  # MPC off, as the demo runs
-        assert seen["planner_refine"] == 3
+        assert seen["planner_refine"] == PlannerConfig.refine_iterations  # the planner's own default, unset here
         assert seen["pose"]["frame_id"] and 0.0 < abs(seen["pose"]["y_m"]) < 0.5  # metres, not mm
         assert seen["joint_state"]["name"] == ["actuator_1", "actuator_2"] and len(seen["joint_state"]["effort"]) == 2
         assert seen["reset"][0] and "grasped" in seen["reset"][1]
