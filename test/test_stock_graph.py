@@ -142,10 +142,8 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         assert seen["transfer_goal"] == {"method": "naive_finetune", "bags": 3, "status": 4}  # SUCCEEDED
         assert sorted(p for p, episodes, _ in seen["bags_closed"] if episodes) == \
             [str(b) for b in sorted((tmp_path / "bags").glob("episode_*"))]
-        # per-epoch feedback, in order; rclpy's ActionClient drops feedback it takes after the result (it removes
-        # the goal's feedback callback then), so the last epoch's may be lost (seen once)
-        epochs = [(f[1], f[2]) for f in seen["transfer_feedback"] if f[1]]
-        assert epochs and epochs == [(k, 2) for k in range(1, len(epochs) + 1)]
+        # every epoch's feedback in order, the last included (the server's last feedback leads its result)
+        assert [(f[1], f[2]) for f in seen["transfer_feedback"] if f[1]] == [(1, 2), (2, 2)]
         assert seen["transfer_result"]["model_path"].endswith(".safetensors") and not seen["transfer_result"][
             "skipped_bags"] and seen["transfer_result"]["model_divergence_steps"] >= 0
         # a Reach goal: feedback, then a result with the verdict and both paths; the driver ran the plan
@@ -204,6 +202,9 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
         for ns, root in roots.items():
             bags = sorted((root / "bags").glob("episode_*"))
             assert len(bags) >= 3, ns
+            # the explorer has exited; the recorder may still be closing its last bag (metadata.yaml comes last)
+            assert ros.spin_until(lambda: all((bag / "metadata.yaml").is_file() for bag in bags), 30.0), \
+                [bag for bag in bags if not (bag / "metadata.yaml").is_file()]
             other = "/right" if ns == "/left" else "/left"
             topics = _topics_in(bags)
             assert f"{ns}/hand/object_pose" in topics and not any(t.startswith(other) for t in topics), topics
