@@ -203,7 +203,7 @@ def test_two_hands_on_one_graph_keep_to_their_namespaces(tmp_path: Path, source_
             bags = sorted((root / "bags").glob("episode_*"))
             assert len(bags) >= 3, ns
             # the explorer has exited; the recorder may still be closing its last bag (metadata.yaml comes last)
-            assert ros.spin_until(lambda: all((bag / "metadata.yaml").is_file() for bag in bags), 30.0), \
+            assert ros.spin_until(lambda bags=bags: all((b / "metadata.yaml").is_file() for b in bags), 30.0), \
                 [bag for bag in bags if not (bag / "metadata.yaml").is_file()]
             other = "/right" if ns == "/left" else "/left"
             topics = _topics_in(bags)

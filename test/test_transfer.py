@@ -110,3 +110,51 @@ def test_cumulative_residual_follows_algorithm_2() -> None:
     np.testing.assert_allclose(states[1:, 1].numpy(), 2 * np.array(expected), rtol=1e-6)
     recurrent = RecurrentResidualModel(source, residual, alpha).rollout(torch.zeros(1, 4), torch.zeros(1, 4, 2))[0]
     np.testing.assert_allclose(recurrent[1:, 0].numpy(), alpha * np.arange(1, 5), rtol=1e-6)
+
+
+def _constant_drift_source(step: tuple[float, float, float, float]) -> TransitionModel:
+    """A source that predicts the same change ``step`` from any state and action (zero last layer)."""
+    norm = Normalisation(np.zeros(4, np.float32), np.ones(4, np.float32), np.asarray(step, np.float32),
+                         np.ones(4, np.float32))
+    model = TransitionModel(norm)
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model.eval()
+
+
+def test_the_papers_recurrent_residual_learns_off_the_diagonal_from_the_sources_own_rollout(make_set) -> None:
+    from t42_transfer.transfer.methods import _rollout_residual_samples
+
+    data = make_set([6, 4], seed=12, hand="tgt")
+    source = _constant_drift_source((1.0, 0.0, -2.0, 0.0))
+    alpha, gamma = 0.5, 0.9
+    x_s, a, x, steps = _rollout_residual_samples(source, data, alpha, gamma)
+    assert x_s.shape == x.shape == steps.shape == (10, 4) and a.shape == (10, 2)
+    row = 0
+    for episode in data:
+        states = torch.tensor(episode.states)
+        t = torch.arange(len(states), dtype=torch.float32)[:, None]
+        rolled = states[0] + t * torch.tensor([1.0, 0.0, -2.0, 0.0])  # the source on its own, from the first state
+        y = states - rolled
+        n = len(episode.actions)
+        assert torch.allclose(x_s[row:row + n], rolled[:-1], atol=1e-4)  # not the recorded state: off the diagonal
+        assert torch.equal(x[row:row + n], states[:-1])
+        assert torch.equal(a[row:row + n], torch.tensor(episode.actions))
+        assert torch.allclose(steps[row:row + n], (y[1:] - gamma * y[:-1]) / alpha, atol=1e-4)
+        row += n
+
+
+def test_the_papers_recurrent_residual_form_is_a_config_choice_and_trains(source, target) -> None:
+    from t42_transfer.models.residual import AdjustedStateResidualModel
+
+    cfg = dataclasses.replace(FAST, recurrent_residual=dataclasses.replace(FAST.recurrent_residual,
+                                                                          residual_inputs="source_rollout"))
+    paper = transfer("recurrent_residual", source, target, cfg, seed=3)
+    ours = transfer("recurrent_residual", source, target, FAST, seed=3)
+    assert isinstance(paper, AdjustedStateResidualModel) and isinstance(ours, AdjustedStateResidualModel)
+    x0, actions = torch.tensor(target[0].states[:1]), torch.from_numpy(target[0].actions)[None]
+    rolled = paper.rollout(x0, actions)
+    assert torch.isfinite(rolled).all() and not torch.equal(rolled, ours.rollout(x0, actions))
+    with pytest.raises(ValueError, match="residual_inputs must be one of"):
+        dataclasses.replace(FAST.recurrent_residual, residual_inputs="diagonal")

@@ -32,6 +32,7 @@ AUTHORS_RESIDUAL_TRAINING = TrainConfig(lr=2e-5, epochs=5, patience=None)
 TRAJECTORY_LOSSES = ("paper", "authors")
 RESIDUAL_NORMALISATIONS = ("residual", "source")
 RECURRENT_FORMS = ("adjusted_state", "normalised_sum")
+RESIDUAL_INPUTS = ("true_state", "source_rollout")
 GAMMA_RULES = ("fixed", "lyapunov")
 
 
@@ -136,9 +137,16 @@ class RecurrentResidualConfig(ResidualConfig):
     form: str = "adjusted_state"
     """``adjusted_state`` (the paper): Algorithm 2 with the adjusted state ``x + alpha y`` an additional input
     of g; ``normalised_sum`` (the authors' code): ``net_S(x) + alpha res(x)`` in the source's normalised space."""
+    residual_inputs: str = "true_state"
+    """What g is trained on in the ``adjusted_state`` form.  ``true_state`` (ours; the paper is silent on how a
+    single-step sample fills g's two state inputs): the recorded state in both, one-step targets.
+    ``source_rollout`` (the paper's Algorithm 2 with feedback, off the diagonal): along each target episode the
+    source rolls out on its own with the recorded actions, g reads that state ``x_S`` and the recorded state as the
+    adjusted one, and learns ``(y' - gamma y) / alpha`` for ``y = x - x_S``, the step that keeps the adjusted state
+    on the recorded one."""
 
     def __post_init__(self) -> None:
-        check(self, {**_RESIDUAL_RULES, "form": one_of(RECURRENT_FORMS)})
+        check(self, {**_RESIDUAL_RULES, "form": one_of(RECURRENT_FORMS), "residual_inputs": one_of(RESIDUAL_INPUTS)})
 
 
 @dataclass(frozen=True)

@@ -235,14 +235,68 @@ def cumulative_residual(
     return CumulativeResidualModel(copy.deepcopy(source), g, c.alpha, _gamma(c, source, target)).eval()
 
 
+def _rollout_residual_samples(
+    source: TransitionModel, data: TrajectorySet, alpha: float, gamma: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """g's single-step samples off the diagonal (``residual_inputs: source_rollout``), raw: per step of every
+    episode the source's own open-loop state ``x_S`` along the recorded actions, the action, the recorded state
+    ``x`` (the adjusted state g should keep), and the target ``(y' - gamma y) / alpha`` for ``y = x - x_S``.
+    Steps from the first one whose rollout or target is not finite on are left out."""
+    parts = []
+    source.eval()
+    for episode in data:
+        states, actions = torch.tensor(episode.states), torch.tensor(episode.actions)  # copies: episodes are read-only
+        with torch.no_grad():
+            rolled = source.rollout(states[:1], actions[None])[0].to(states.dtype)
+        y = states - rolled
+        step = (y[1:] - gamma * y[:-1]) / alpha
+        usable = torch.cumprod((torch.isfinite(rolled[1:]).all(1) & torch.isfinite(step).all(1)).long(), 0).bool()
+        parts.append((rolled[:-1][usable], actions[usable], states[:-1][usable], step[usable]))
+    x_s, a, x, steps = (torch.cat(column) for column in zip(*parts, strict=True))
+    if len(x_s) < 2:
+        raise ValueError("the source's rollouts along the target episodes give fewer than 2 usable steps")
+    return x_s, a, x, steps
+
+
+def _paper_recurrent_net(
+    source: TransitionModel, target: TrajectorySet, c: ResidualConfig, seed: int, gamma: float,
+    on_epoch: ProgressHook | None,
+) -> TransitionModel:
+    """g of the paper's recurrent residual, fitted on the source's own rollouts (:func:`_rollout_residual_samples`)."""
+    if c.normalisation == "source":
+        norm = dataclasses.replace(source.norm, delta_mean=np.zeros_like(source.norm.delta_mean))
+    else:  # g's own statistics: the source states it reads and the steps it learns
+        x_s, _, _, steps = _rollout_residual_samples(source, target, c.alpha, gamma)
+        norm = Normalisation.from_transitions(x_s.numpy(), (x_s + steps).numpy())
+    torch.manual_seed(seed)
+    g = TransitionModel(norm, grasp_input=True)
+
+    def batch_of(data: TrajectorySet) -> StepBatch:
+        x_s, a, x, steps = _rollout_residual_samples(source, data, c.alpha, gamma)
+        with torch.no_grad():
+            return StepBatch(g.features(x_s, a, x), g.normalise_delta(steps))
+
+    train, val = validation_split(target, c.val_fraction, seed)
+    batch = batch_of(train)
+    val_batch = batch_of(val) if val is not None and len(val) else None
+    val_fn = None if val_batch is None else (lambda: float(step_loss(g.net, val_batch, slice(None))))
+    fit(list(g.net.parameters()), g, lambda idx: step_loss(g.net, batch, idx), len(batch), val_fn,
+        _seeded(c.train, seed), "residual", on_epoch)
+    return g
+
+
 def recurrent_residual(
     source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
 ) -> LatentDynamics:
     """The residual fed back inside the loop: the paper's adjusted-state form or the authors' normalised sum."""
     c = cfg.recurrent_residual
     if c.form == "adjusted_state":
-        g = _residual_net(source, target, c, seed, on_epoch, adjusted_input=True)
-        return AdjustedStateResidualModel(copy.deepcopy(source), g, c.alpha, _gamma(c, source, target)).eval()
+        gamma = _gamma(c, source, target)
+        if c.residual_inputs == "source_rollout":
+            g = _paper_recurrent_net(source, target, c, seed, gamma, on_epoch)
+        else:
+            g = _residual_net(source, target, c, seed, on_epoch, adjusted_input=True)
+        return AdjustedStateResidualModel(copy.deepcopy(source), g, c.alpha, gamma).eval()
     g = _residual_net(source, target, c, seed, on_epoch)
     return RecurrentResidualModel(copy.deepcopy(source), g, c.alpha).eval()
 
