@@ -83,7 +83,7 @@ def _mean_and_difference(rows: list[dict], metric: str, method: str, reference: 
     own = [r[metric] for r in rows if r["method"] == method]
     if not own:
         return "-"
-    if method == reference:
+    if method == reference or not any(r["method"] == reference for r in rows):  # nothing to pair with: the mean
         return f"{sum(own) / len(own):.1f}"
     paired = compare_methods(rows, metric, method, reference)["all"]
     low, high = paired.t_interval

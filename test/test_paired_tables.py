@@ -38,6 +38,14 @@ def test_grid_gives_means_and_paired_differences(tables, tmp_path: Path) -> None
     assert "| naive_finetune | 26.0 (+6.0, " in tables.grid_table([run], "divergence_mean_10mm", "direct")
 
 
+def test_a_run_without_the_reference_shows_its_means_unpaired(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    full = _run(tmp_path, "full", {"direct": [[10, 10], [10, 10]], "recurrent_residual": [[12, 14], [11, 15]]})
+    sweep = _run(tmp_path, "sweep", {"recurrent_residual": [[20, 22], [21, 25]]})  # one method, no direct
+    text = tables.grid_table([full, sweep], "divergence_mean_4mm", "direct")
+    assert "| recurrent_residual | 13.0 (+3.0, " in text and text.rstrip().endswith("| 22.0 |")
+    assert "| direct | 10.0 | - |" in text
+
+
 def test_winners_name_the_best_per_amount_and_its_lead(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     run = _run(tmp_path, "a", {"direct": [[10, 10], [30, 30]], "naive_finetune": [[12, 14], [20, 22]],
                                "l2_finetune": [[11, 11], [25, 27]]})
