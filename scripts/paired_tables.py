@@ -22,7 +22,8 @@ reference at each threshold, ``*`` where the 95 % t interval lies above 0 and ``
 where it lies below, ``†`` after either where it does not survive Holm's adjustment
 over the run's methods at that threshold (the verdict's headline table).
 ``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
-cell, against BASE's reference (e.g. the direct cells of the full run it extends).
+cell, against BASE's reference (e.g. the direct cells of the full run it extends); a
+run of the reference method itself in another setting is paired with it too.
 
     .venv/bin/python scripts/paired_tables.py --grid --metric divergence_mean_10mm docs/experiments/*_paper_random
     .venv/bin/python scripts/paired_tables.py --variants docs/experiments/abrupt_paper_random \\
@@ -170,7 +171,9 @@ def variants_table(base: Path, runs: list[Path], reference: str) -> str:
         cells = [_mean_and_difference(base_rows + still, metric, "hold_still", reference) for metric in METRICS]
         out.append(f"| {base.name}, hold_still | " + " | ".join(cells) + " |\n")
     for run in runs:
-        rows = [r for r in _rows(run) if r["method"] not in (reference, "hold_still")]
+        # the reference method itself in a variant run (another setting of it) is paired as a method of its own
+        rows = [r if r["method"] != reference else {**r, "method": f"{reference} ({run.name})"}
+                for r in _rows(run) if r["method"] != "hold_still"]
         for method in dict.fromkeys(r["method"] for r in rows):
             cells = [_mean_and_difference(base_rows + rows, metric, method, reference) for metric in METRICS]
             out.append(f"| {run.name}, {method} | " + " | ".join(cells) + " |\n")

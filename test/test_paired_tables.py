@@ -46,6 +46,13 @@ def test_a_run_without_the_reference_shows_its_means_unpaired(tables, tmp_path: 
     assert "| direct | 10.0 | - |" in text
 
 
+def test_a_variant_of_the_reference_method_is_paired_with_the_bases_cells(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    base = _run(tmp_path, "grid", {"direct": [[10, 10], [10, 10]], "recurrent_residual": [[12, 14], [11, 15]]})
+    other = _run(tmp_path, "other_form", {"recurrent_residual": [[13, 16], [11, 19]]})  # +1, +2, 0, +4
+    text = tables.variants_table(base, [other], "recurrent_residual")
+    assert "| other_form, recurrent_residual (other_form) | 14.8 (+1.8, " in text and "; 3/0) |" in text
+
+
 def test_winners_name_the_best_per_amount_and_its_lead(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     run = _run(tmp_path, "a", {"direct": [[10, 10], [30, 30]], "naive_finetune": [[12, 14], [20, 22]],
                                "l2_finetune": [[11, 11], [25, 27]]})
