@@ -14,7 +14,6 @@ torque off) before it propagates (exit 1, with its traceback).
 
 from __future__ import annotations
 
-import faulthandler
 import os
 import signal
 import sys
@@ -24,6 +23,7 @@ from pathlib import Path
 from types import FrameType
 
 from t42_transfer.nodes.registry import NODES
+from t42_transfer.ros.exit_watchdog import ExitWatchdog
 
 DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 TEARDOWN_TIMEOUT_S = 8.0
@@ -164,11 +164,13 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
     node_cls = spec.node_class()
     executor = make_executor(node_cls, context)
     node = None
+    status = 1  # what the process exits with should releasing rclpy's handles hang (an exception: 1)
     try:
         try:
             node = node_cls(context=context)
         except ValueError as err:
-            return _error(str(err))
+            status = _error(str(err))
+            return status
         executor.add_node(node)
         node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; {RUNNING}")
         try:
@@ -180,16 +182,17 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
             raise
         node.close()
         node.get_logger().info("shut down cleanly")
-        return 0
+        status = 0
+        return status
     finally:
-        # The node's own work is closed above; should releasing rclpy's handles block (seen once in a
-        # busy graph, after "shut down cleanly"), the process still ends instead of waiting for SIGKILL.
-        # faulthandler's watchdog runs without the GIL, which a blocked rcl call may hold: it prints where
-        # the process is stuck and exits.
-        faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_S, exit=True)
+        # The node's own work is closed above.  Releasing rclpy's handles can block inside the middleware
+        # (seen in a busy graph, after "shut down cleanly", in rcl's node teardown) with the GIL held: a
+        # native timer then prints where the process is stuck and exits with the node's own status.
+        watchdog = ExitWatchdog()
+        watchdog.arm(TEARDOWN_TIMEOUT_S, status)
         executor.shutdown(timeout_sec=5.0)
         if node is not None:
             node.destroy_node()
         if context.ok():
             rclpy.shutdown(context=context)
-        faulthandler.cancel_dump_traceback_later()
+        watchdog.disarm()
