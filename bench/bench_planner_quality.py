@@ -17,6 +17,14 @@ budget B counts B model rollouts of the whole horizon per plan:
 - ``default_search``: the same with horizon search (the shortest prefix predicted within the tolerance), then
   holding still (zero actions) for the rest of the goal's steps: what the rule "shortest sequence, then hold"
   costs against optimising the whole fixed horizon to its final state;
+- ``default_settled``: the default, its cost the predicted distance after the plan and :data:`DRIFT_STEPS` more
+  steps of holding still (zero actions), where the hand has settled (the issue's "cost on the settled end
+  state"); the executed plan is the same ``steps`` actions, judged at its last step like every other;
+- ``default_robust``: the default with the planner's perturbed copies (``PlannerConfig.perturbations =
+  robust_copies``, ``perturbation_std = robust_sigma``): each sequence scored by the mean final distance
+  over it and its copies with fixed action perturbations, at the same rollout budget (``samples /
+  robust_copies`` sequences a round): a plan whose end is insensitive to its actions should be
+  insensitive to the model's errors too;
 - ``ours``: the Planner with the piecewise sampler (holds of 5-40 steps), ``samples = B``, no refinement;
 - ``ours_cem``: the same with ``refine_iterations = r`` and ``samples = B / (r + 1)``, the Planner's default
   before ``default`` (until 2026-12-04);
@@ -83,7 +91,8 @@ from t42_transfer.planning.workspace import Workspace
 RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
 DEFAULT_MODELS = Path("runs/peg_in_hole_models/models")
 MAKE_MODELS = "t42 experiment configs/peg_in_hole_models.yaml --out runs"
-OPTIMISERS = ("default", "default_search", "ours", "ours_cem", "random_shooting", "cem", "mppi")
+OPTIMISERS = ("default", "default_search", "default_settled", "default_robust", "ours", "ours_cem", "random_shooting",
+              "cem", "mppi")
 DRIFT_STEPS = 10
 """Steps of holding still (1 s) after a completed plan over which the object's drift is measured."""
 UNSAFE_PENALTY_MM = 1000.0
@@ -111,6 +120,10 @@ class Setting:
     """MPPI's per-action noise std (``noise_sigma = sigma^2 I``)."""
     mppi_lambda: float = 0.03
     """MPPI's temperature, in mm of terminal cost."""
+    robust_copies: int = 3
+    """default_robust: rollouts per sequence (the first unperturbed)."""
+    robust_sigma: float = 0.1
+    """default_robust: std of the fixed action perturbations of the other copies."""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.optimisers) - set(OPTIMISERS))
@@ -118,9 +131,10 @@ class Setting:
             raise ValueError(f"optimisers must be among {OPTIMISERS}, got {list(self.optimisers)}")
         if not self.budgets or min(self.budgets) < 2:
             raise ValueError(f"budgets must be at least 2 rollouts, got {list(self.budgets)}")
-        if min(self.refine_iterations, self.cem_iterations, self.mppi_iterations) < 1:
+        if min(self.refine_iterations, self.cem_iterations, self.mppi_iterations, self.robust_copies) < 1:
             raise ValueError("iterations must be positive")
-        if not 0 < self.cem_elite_fraction < 1 or min(self.cem_std, self.mppi_sigma, self.mppi_lambda) <= 0:
+        if not 0 < self.cem_elite_fraction < 1 or min(self.cem_std, self.mppi_sigma, self.mppi_lambda) <= 0 \
+                or not self.robust_sigma >= 0:
             raise ValueError("need 0 < cem_elite_fraction < 1 and positive cem_std, mppi_sigma, mppi_lambda")
 
 
@@ -264,14 +278,34 @@ def search_then_hold(model: LatentDynamics, workspace: Workspace, x0: Tensor, go
     return Outcome(actions, error, safe, plan.evaluated + 1, plan.status)
 
 
+def settled_plan(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int, seed: int,
+                 config: PlannerConfig) -> Outcome:
+    """The default scored at the settled end: each sequence rolled out with :data:`DRIFT_STEPS` zero actions after it;
+    the plan is the sequence alone, its predicted error the settled one."""
+    rollout = make_rollout(model)
+
+    def then_hold(start: Tensor, actions: Tensor) -> Tensor:
+        return rollout(start, torch.cat([actions, actions.new_zeros(len(actions), DRIFT_STEPS, 2)], dim=1))
+
+    plan = Planner(then_hold, workspace, replace(config, horizon=steps, horizon_search=False)).plan(x0, goal, seed=seed)
+    return Outcome(plan.actions[:steps], plan.error_mm, len(plan.actions) > 0, plan.evaluated, plan.status)
+
+
 def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int,
              budget: int, seed: int, setting: Setting) -> Outcome:
     """Optimiser ``name``'s ``steps``-action plan from ``x0`` towards ``goal`` with ``budget`` rollouts."""
-    if name in ("default", "default_search"):
+    if name.startswith("default"):
         default = PegInHoleConfig().planner
         cfg = replace(default, samples=max(2, budget // (default.refine_iterations + 1)))
         if name == "default":
             return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
+        if name == "default_settled":
+            return settled_plan(model, workspace, x0, goal, steps, seed, cfg)
+        if name == "default_robust":
+            cfg = replace(cfg, samples=max(2 * setting.robust_copies, cfg.samples),
+                          perturbations=setting.robust_copies, perturbation_std=setting.robust_sigma)
+            outcome = planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
+            return replace(outcome, rollouts=outcome.rollouts * setting.robust_copies)
         return search_then_hold(model, workspace, x0, goal, steps, seed, cfg)
     base = replace(PegInHoleConfig().planner, sampler="piecewise", hold_steps=(5, 40), refine_iterations=0)
     if name == "ours":
@@ -464,6 +498,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mppi-iterations", type=int, default=Setting.mppi_iterations)
     parser.add_argument("--mppi-sigma", type=float, default=Setting.mppi_sigma)
     parser.add_argument("--mppi-lambda", type=float, default=Setting.mppi_lambda)
+    parser.add_argument("--robust-copies", type=int, default=Setting.robust_copies)
+    parser.add_argument("--robust-sigma", type=float, default=Setting.robust_sigma)
     parser.add_argument("--seed", type=int, default=0, help="goal seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -473,7 +509,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         setting = Setting(tuple(args.budgets), tuple(args.optimisers), targets=tuple(args.targets),
                           refine_iterations=args.refine_iterations, cem_iterations=args.cem_iterations,
                           cem_std=args.cem_std, mppi_iterations=args.mppi_iterations, mppi_sigma=args.mppi_sigma,
-                          mppi_lambda=args.mppi_lambda)
+                          mppi_lambda=args.mppi_lambda, robust_copies=args.robust_copies,
+                          robust_sigma=args.robust_sigma)
     except ValueError as err:
         parser.error(str(err))
     if args.goals < 1 or args.steps < 1:

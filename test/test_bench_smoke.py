@@ -124,7 +124,8 @@ def test_bench_planner_quality(tmp_path: Path) -> None:
                        "--mppi-iterations", "1", "--targets", "0.5", "--quiet",
                        out=tmp_path / "planner_quality.json")
     assert result["benchmark"] == "planner_quality"
-    optimisers = ["default", "default_search", "ours", "ours_cem", "random_shooting", "cem", "mppi"]
+    optimisers = ["default", "default_search", "default_settled", "default_robust", "ours", "ours_cem",
+                  "random_shooting", "cem", "mppi"]
     assert result["setting"]["budgets"] == [4] and result["setting"]["optimisers"] == optimisers
     assert result["model"]["path"] == str(model) and result["model"]["method"] == "naive_finetune"
     assert result["workspace"] == "stored in the model file" and positive(result["seconds_total"])

@@ -1,4 +1,5 @@
-"""Uncertainty-aware planning (ensembles, dropout samples, risk-averse cost) and closed-loop execution (MPC)."""
+"""Uncertainty-aware planning (ensembles, dropout samples, risk-averse cost, perturbed copies) and closed-loop
+execution (MPC)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import numpy as np
 import pytest
 import torch
 from test_planner import BOX, START, hand_norm
-from toys import Toy, ToyHand
+from torch import Tensor
+from toys import StateIsLatent, Toy, ToyHand
 
 from t42_transfer.models import TransitionModel
-from t42_transfer.planning import Planner, PlannerConfig
+from t42_transfer.planning import Planner, PlannerConfig, Workspace
 from t42_transfer.planning.execution import execute
+from t42_transfer.planning.planner import _perturbations, _shifted
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -137,3 +140,74 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan() -> None:
     run = execute(ToyHand(1.0, START.copy()), plan_at, 10, 3)
     assert calls == [10, 7, 4, 1] and run.completed
     assert np.linalg.norm(run.states[-1, :2] - GOAL) <= 0.2 + 1e-5
+
+
+# --------------------------------------------------------------------- perturbed copies (the robust cost)
+
+
+class Sensitive(StateIsLatent):
+    """``x += a_x (1 + 4 a_y^2)``: every ``a_y`` reaches the same ``x`` with its own ``a_x``, but the end moves with
+    ``a_y`` except near ``a_y = 0``, which the robust cost should find."""
+
+    kind = "test_sensitive"
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        dx = action[:, :1] * (1.0 + 4.0 * action[:, 1:] ** 2)
+        return z + torch.cat([dx, torch.zeros_like(z[:, 1:])], -1)
+
+
+def _end_spread(model: StateIsLatent, actions: np.ndarray, std: float, draws: int = 200) -> float:
+    """Std of the predicted end x over random N(0, std) perturbations of ``actions`` (clipped)."""
+    gen = torch.Generator().manual_seed(99)
+    seq = torch.as_tensor(actions, dtype=torch.float32)
+    shaken = (seq + std * torch.randn(draws, *seq.shape, generator=gen)).clamp(-1.0, 1.0)
+    ends = model.rollout(torch.as_tensor(START, dtype=torch.float32).expand(draws, 4), shaken)[:, -1, 0]
+    return float(ends.std())
+
+
+def test_perturbed_copies_with_zero_std_plan_exactly_as_the_sequences_alone_at_equal_sequences() -> None:
+    alone = Planner(Toy(), BOX, fixed(samples=200)).plan(START, GOAL, seed=4)
+    copies = Planner(Toy(), BOX, fixed(samples=600, perturbations=3, perturbation_std=0.0)).plan(START, GOAL, seed=4)
+    assert np.array_equal(alone.actions, copies.actions) and alone.error_mm == copies.error_mm
+    assert copies.evaluated == alone.evaluated  # sequences drawn; each rolled out three times
+
+
+def test_the_robust_cost_prefers_a_sequence_whose_end_does_not_depend_on_its_exact_actions() -> None:
+    goal = np.array([START[0] + 4.0, START[1]])
+    config = fixed(samples=1200, refine_iterations=15, tolerance_mm=0.5)
+    plain = Planner(Sensitive(), BOX, config).plan(START, goal, seed=0)
+    robust = Planner(Sensitive(), BOX, replace(config, perturbations=6, perturbation_std=0.1)).plan(START, goal, seed=0)
+    assert plain.ok and robust.ok, (plain.reason, robust.reason)
+    assert np.abs(robust.actions[:, 1]).mean() < np.abs(plain.actions[:, 1]).mean()
+    assert _end_spread(Sensitive(), robust.actions, 0.2) < 0.8 * _end_spread(Sensitive(), plain.actions, 0.2)
+    assert np.allclose(robust.predicted, Sensitive().rollout(torch.as_tensor(START, dtype=torch.float32)[None],
+                                                             torch.as_tensor(robust.actions)[None])[0], atol=1e-5)
+
+
+def test_every_perturbed_copy_of_the_plan_keeps_the_safety_rules() -> None:
+    """Goals near the edge of the workspace: the plan is unusable if any copy leaves it, so the plan keeps a margin."""
+    edge = Workspace.box(-50.0, START[0] + 6.0, 40.0, 120.0)
+    config = fixed(samples=400, perturbations=4, perturbation_std=0.3)
+    for seed in range(5):
+        plan = Planner(Toy(), edge, config).plan(START, (START[0] + 5.5, START[1]), seed=seed)
+        assert len(plan.actions) == 10 and np.abs(plan.actions).max() <= 1.0 and np.isfinite(plan.actions).all()
+        shifts = _perturbations(config, 10, seed)
+        copies = _shifted(torch.as_tensor(plan.actions)[None], shifts)
+        states = Toy().rollout(torch.as_tensor(START, dtype=torch.float32).expand(len(copies), 4), copies)
+        assert edge.allows(states[:, 1:]).all()
+        assert edge.allows(torch.as_tensor(plan.predicted[1:])).all()
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        (dict(perturbations=0), "perturbations"),
+        (dict(perturbations=2, horizon_search=True), "fixed-length"),
+        (dict(perturbations=2, uncertainty="dropout", members=2), "fixed-length"),
+        (dict(perturbation_std=-0.1), "perturbation_std"),
+        (dict(perturbation_std=float("nan")), "perturbation_std"),
+    ],
+)
+def test_perturbation_settings_are_checked(config: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        PlannerConfig(**config)  # type: ignore[arg-type]

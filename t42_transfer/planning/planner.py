@@ -28,6 +28,18 @@ nearest approach`` if it never is.  Refinement (cross-entropy) refits a
 per-step Gaussian to the best samples and redraws the rest; the best samples
 stay in the population, so the returned cost never gets worse.
 
+Perturbations.  A search strong enough finds sequences that exploit the
+model's errors: their predicted end is near the goal and their true end is
+not.  With ``perturbations = P > 1`` each sequence is also rolled out with
+``P - 1`` fixed perturbations of its actions (N(0, ``perturbation_std``) per
+step, clipped; drawn once per plan from its seed, the same for every
+sequence), and its cost is the mean final distance over the P rollouts,
+unusable when any breaks a safety rule.  A sequence whose end depends on the
+exact actions then costs more.  The plan and its prediction are the
+unperturbed sequence's.  The rollout budget stays ``samples``: ``samples //
+P`` sequences are drawn.  Fixed-length plans only; each rejected copy counts
+in ``rejected``.
+
 Uncertainty.  A transferred model is trusted far outside its few target
 episodes.  With ``uncertainty="ensemble"`` (several models) or ``"dropout"``
 (``members`` dropout samples of one model) every sequence is predicted by each
@@ -70,6 +82,8 @@ at any K.  Measured at K = 10k (1 thread): chunks of 500-2000 alike, 5000 -23 %,
 UNCERTAINTY = ("none", "dropout", "ensemble")
 MAX_CANDIDATES = 50
 """Most candidate paths a plan keeps (:attr:`PlannerConfig.candidates`): a picture, not a data set."""
+MAX_PERTURBATIONS = 64
+"""Most rollouts per sequence: beyond a few the mean settles and only the number of sequences drawn falls."""
 REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "workspace": "left the workspace"}
 """Why a sample was rejected (key: description), in order of precedence at its first bad step."""
 
@@ -106,6 +120,10 @@ class PlannerConfig:
     """Dropout samples per sequence; an ensemble has one member per model."""
     risk: float = 1.0
     """Weight of the members' spread in the cost (``mean + risk * std`` of the final distances)."""
+    perturbations: int = 1
+    """Rollouts per sequence for the robust cost (the module docstring's Perturbations); 1 scores the sequence alone."""
+    perturbation_std: float = 0.1
+    """Std of the fixed action perturbations of the copies, in the actions' [-1, 1] units."""
     seed: int = 0
     candidates: int = 0
     """Keep the predicted object paths of this many lowest-cost sequences (:attr:`Plan.candidates`), for a user
@@ -118,6 +136,9 @@ class PlannerConfig:
                              "sampled steps")
         if self.uncertainty != "none" and self.horizon_search:
             raise ValueError("uncertainty-aware planning scores fixed-length plans: set horizon_search false")
+        if self.perturbations > 1 and (self.horizon_search or self.uncertainty != "none"):
+            raise ValueError("perturbations score fixed-length plans of one deterministic model: set horizon_search "
+                             "false and uncertainty 'none'")
 
 
 _AT_LEAST_ONE = between(1, math.inf)
@@ -127,7 +148,8 @@ PLANNER_RULES: dict[str, Rule] = {
     "refine_iterations": between(0, MAX_REFINE),
     "elite_fraction": FRACTION, "init_std": ((lambda v: 0 < v < math.inf), "positive and finite"),
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
-    "candidates": between(0, MAX_CANDIDATES),
+    "candidates": between(0, MAX_CANDIDATES), "perturbations": between(1, MAX_PERTURBATIONS),
+    "perturbation_std": between(0, RANDOM_POLICY_LIMIT),
 }
 """What each :class:`PlannerConfig` setting must be beyond its type."""
 
@@ -206,8 +228,8 @@ class Planner:
             return refused
         seed = cfg.seed if seed is None else seed
         gen = torch.Generator().manual_seed(seed)
-        search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg)
-        count = max(1, cfg.samples // len(search.rollouts))
+        search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg, _perturbations(cfg, horizon, seed))
+        count = max(1, cfg.samples // (len(search.rollouts) * cfg.perturbations))
         actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std)
         cost = search.evaluate(actions)
         elite_count = max(2, int(cfg.elite_fraction * count))
@@ -240,6 +262,15 @@ class Planner:
                 "goal_outside_workspace", f"goal {goal.tolist()} is outside the trained workspace", x0, goal
             )
         return None
+
+
+def _perturbations(cfg: PlannerConfig, horizon: int, seed: int) -> Tensor | None:
+    """``[P - 1, horizon, 2]`` action shifts of the copies, from a generator of their own (the draws of a plan without
+    perturbations stay as they were); None when P is 1."""
+    if cfg.perturbations <= 1:
+        return None
+    gen = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, horizon]).generate_state(1)[0]))
+    return cfg.perturbation_std * torch.randn(cfg.perturbations - 1, horizon, 2, generator=gen)
 
 
 def _vector(value: np.ndarray | Tensor, size: int, name: str) -> Tensor:
@@ -285,13 +316,23 @@ class _DropoutRollout:
                 self.model.train(was_training)
 
 
+def _shifted(chunk: Tensor, shifts: Tensor) -> Tensor:
+    """The copies of ``chunk[N, T, 2]`` shifted by each of ``shifts[P - 1, T, 2]``, clipped, copy-major
+    ``[(P - 1) N, T, 2]``."""
+    copies = (chunk.unsqueeze(0) + shifts.unsqueeze(1)).clamp_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT)
+    return copies.reshape(-1, *chunk.shape[1:])
+
+
 class _Search:
     """Rolls out samples chunk by chunk, scores them, and keeps the best (sequence, prediction) seen."""
 
     def __init__(
-        self, rollouts: list[TimeMajorRollout], workspace: Workspace, x0: Tensor, goal: Tensor, cfg: PlannerConfig
+        self, rollouts: list[TimeMajorRollout], workspace: Workspace, x0: Tensor, goal: Tensor, cfg: PlannerConfig,
+        shifts: Tensor | None = None,
     ) -> None:
         self.rollouts, self.workspace, self.x0, self.goal, self.cfg = rollouts, workspace, x0, goal, cfg
+        self.shifts = shifts
+        """The copies' action shifts ``[P - 1, T, 2]``, or None (:func:`_perturbations`)."""
         self.best_cost = math.inf
         self.best_actions = torch.zeros(0, 2)
         self.best_states = x0[None]
@@ -303,12 +344,18 @@ class _Search:
     def evaluate(self, actions: Tensor) -> Tensor:
         """Cost of each sequence ``actions[N, T, 2]`` (inf when no usable prefix); updates the best."""
         costs = []
-        for start in range(0, len(actions), self.cfg.chunk):
-            chunk = actions[start : start + self.cfg.chunk]
-            x0 = self.x0.expand(len(chunk), STATE_DIM)
-            members = [rollout(x0, chunk) for rollout in self.rollouts]
+        copies = 1 if self.shifts is None else 1 + len(self.shifts)
+        step = max(1, self.cfg.chunk // copies)
+        for start in range(0, len(actions), step):
+            chunk = actions[start : start + step]
+            batch = chunk if self.shifts is None else torch.cat([chunk, _shifted(chunk, self.shifts)])
+            x0 = self.x0.expand(len(batch), STATE_DIM)
+            members = [rollout(x0, batch) for rollout in self.rollouts]
             states = members[0] if len(members) == 1 else torch.stack(members).mean(0)
             cost, length = self._score(states)
+            if copies > 1:  # the copies' mean final distance (inf when any is unsafe); the unperturbed prediction
+                n = len(chunk)
+                cost, length, states = cost.view(copies, n).mean(0), length[:n], states[:, :n]
             if len(members) > 1:
                 cost = self._risk_averse(torch.stack(members), cost)
             if self.cfg.candidates:
