@@ -281,6 +281,7 @@ def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -
     methods = dataclasses.asdict(cfg.transfer)
     for residual in ("cumulative_residual", "recurrent_residual"):  # before the gamma rule could be chosen
         del methods[residual]["gamma_rule"]
+    del methods["multistep_l2_finetune"]  # before that method was registered
     before = {  # what a cell's key hashed before configs could name a test set
         "cell": {"method": "direct", "amount": 1, "seed": 0}, "target": cfg.target.describe(), "split": "paths",
         "test_fraction": 0.2, "epsilon": 4.0, "offsets": [0], "horizon": None, "lyapunov_steps": 20,
@@ -290,6 +291,9 @@ def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -
     rule = dataclasses.replace(cfg.transfer.cumulative_residual, gamma_rule="lyapunov")
     ruled = dataclasses.replace(cfg, transfer=dataclasses.replace(cfg.transfer, cumulative_residual=rule))
     assert exp._cell_key(ruled, cell, source) != exp._cell_key(cfg, cell, source)
+    longer = dataclasses.replace(cfg.transfer.multistep_l2_finetune, horizon=20)  # a changed setting is hashed
+    stretched = dataclasses.replace(cfg, transfer=dataclasses.replace(cfg.transfer, multistep_l2_finetune=longer))
+    assert exp._cell_key(stretched, cell, source) != exp._cell_key(cfg, cell, source)
     sustained = dataclasses.replace(cfg, test=DataSpec(hand="target", policy="sustained"))
     random = dataclasses.replace(cfg, test=DataSpec(hand="target"))
     keys = {exp._cell_key(c, cell, source) for c in (cfg, sustained, random)}

@@ -19,6 +19,9 @@ FAST = TransferConfig(
         TransferConfig().naive_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)
     ),
     l2_finetune=dataclasses.replace(TransferConfig().l2_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)),
+    multistep_l2_finetune=dataclasses.replace(
+        TransferConfig().multistep_l2_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)
+    ),
     trajectory_finetune=dataclasses.replace(
         TransferConfig().trajectory_finetune, train=TrainConfig(lr=1e-3, epochs=2, batch_size=1, patience=None)
     ),
@@ -41,11 +44,37 @@ def target(make_set):
 SINGLE_METHODS = [m for m in METHODS if m != "auto"]  # auto picks among these: test/test_transfer_auto.py
 
 
-def test_registry_has_the_papers_six_methods_l2_and_auto() -> None:
+def test_registry_has_the_papers_six_methods_l2_auto_and_ours() -> None:
     assert PAPER_METHODS == (
         "new_model", "direct", "naive_finetune", "trajectory_finetune", "cumulative_residual", "recurrent_residual"
     )
-    assert set(METHODS) == set(PAPER_METHODS) | {"l2_finetune", "auto"}
+    assert set(METHODS) == set(PAPER_METHODS) | {"l2_finetune", "auto", "multistep_l2_finetune"}
+
+
+@pytest.mark.parametrize("grasp_input", [False, True])
+def test_multistep_l2_finetuning_over_one_step_is_l2_finetuning(make_set, grasp_input: bool) -> None:
+    """Its first step is the single-step loss: with a horizon of 1 it trains the same model (up to rounding)."""
+    source, _ = train_transition_model(make_set([30] * 4, seed=12, hand="src"), TrainConfig(epochs=2),
+                                       grasp_input=grasp_input)
+    target = make_set([20, 25], seed=13, hand="tgt")
+    train = TrainConfig(lr=1e-3, epochs=3, patience=None)
+    cfg = dataclasses.replace(
+        FAST, l2_finetune=dataclasses.replace(FAST.l2_finetune, train=train),
+        multistep_l2_finetune=dataclasses.replace(FAST.multistep_l2_finetune, train=train, horizon=1),
+    )
+    single, multi = (transfer(m, source, target, cfg, seed=5) for m in ("l2_finetune", "multistep_l2_finetune"))
+    x0, actions = torch.tensor(target[0].states[:1]).repeat(4, 1), torch.rand(4, 30, 2) * 2 - 1
+    assert torch.allclose(single.rollout(x0, actions), multi.rollout(x0, actions), atol=1e-3)
+    assert not torch.allclose(single.rollout(x0, actions), source.rollout(x0, actions), atol=1e-3)
+    longer = transfer("multistep_l2_finetune", source, target, dataclasses.replace(
+        cfg, multistep_l2_finetune=dataclasses.replace(cfg.multistep_l2_finetune, horizon=8)), seed=5)
+    assert not torch.allclose(longer.rollout(x0, actions), single.rollout(x0, actions), atol=1e-3)
+
+
+def test_multistep_l2_finetuning_refuses_episodes_shorter_than_its_horizon(source, make_set) -> None:
+    cfg = dataclasses.replace(FAST, multistep_l2_finetune=dataclasses.replace(FAST.multistep_l2_finetune, horizon=50))
+    with pytest.raises(ValueError, match="at least 50 steps; the longest has 35"):
+        transfer("multistep_l2_finetune", source, make_set([30, 35], seed=14, hand="tgt"), cfg)
 
 
 @pytest.mark.parametrize("method", SINGLE_METHODS)

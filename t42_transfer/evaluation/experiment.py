@@ -52,6 +52,7 @@ from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, train_transition_model
+from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import select_method, transfer
 
 if TYPE_CHECKING:
@@ -329,6 +330,11 @@ def cell_excluded(
     return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
+METHODS_ADDED_LATER = ("multistep_l2_finetune",)
+"""Methods whose settings joined the transfer config after runs were stored: hashed only when changed."""
+_DEFAULT_SETTINGS = dataclasses.asdict(TransferConfig())
+
+
 def _cells(cfg: ExperimentConfig) -> list[Cell]:
     return [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
 
@@ -340,6 +346,9 @@ def _method_config(cfg: ExperimentConfig) -> dict[str, Any]:
     for method in ("cumulative_residual", "recurrent_residual"):
         if settings[method]["gamma_rule"] == "fixed":
             del settings[method]["gamma_rule"]
+    for method in METHODS_ADDED_LATER:
+        if settings[method] == _DEFAULT_SETTINGS[method]:
+            del settings[method]
     return settings
 
 

@@ -85,6 +85,25 @@ class L2FineTuneConfig:
 
 
 @dataclass(frozen=True)
+class MultiStepL2Config:
+    """L2 fine-tuning on short open-loop rollouts instead of single steps (issue 24's candidate of our own).
+
+    The same optimiser and pull toward the source as :class:`L2FineTuneConfig`; the loss is the mean over
+    ``horizon`` steps of rollouts from every window of the target episodes, each step's state error divided by
+    the source's change std, so that its first step is the single-step loss and the pull keeps its strength.
+    The compounding error the single-step loss cannot see is what the later steps carry.
+    """
+
+    train: TrainConfig = TrainConfig(lr=1e-4, epochs=30, patience=None)
+    l2: float = 1e-2
+    horizon: int = 10
+    """Steps of each training rollout (chosen before any run: about a second of the hand)."""
+
+    def __post_init__(self) -> None:
+        check(self, {"l2": NON_NEGATIVE, "horizon": between(1, 1000)})
+
+
+@dataclass(frozen=True)
 class TrajectoryFineTuneConfig:
     """Algorithm 1: open-loop rollouts of whole target episodes from their first true state, loss weighted 1/i.
 
@@ -176,6 +195,7 @@ class TransferConfig:
     new_model: NewModelConfig = field(default_factory=NewModelConfig)
     naive_finetune: NaiveFineTuneConfig = field(default_factory=NaiveFineTuneConfig)
     l2_finetune: L2FineTuneConfig = field(default_factory=L2FineTuneConfig)
+    multistep_l2_finetune: MultiStepL2Config = field(default_factory=MultiStepL2Config)
     trajectory_finetune: TrajectoryFineTuneConfig = field(default_factory=TrajectoryFineTuneConfig)
     cumulative_residual: ResidualConfig = field(default_factory=ResidualConfig)
     recurrent_residual: RecurrentResidualConfig = field(default_factory=RecurrentResidualConfig)
