@@ -302,8 +302,7 @@ def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor,
         if name == "default_settled":
             return settled_plan(model, workspace, x0, goal, steps, seed, cfg)
         if name == "default_robust":
-            cfg = replace(cfg, samples=max(2 * setting.robust_copies, cfg.samples),
-                          perturbations=setting.robust_copies, perturbation_std=setting.robust_sigma)
+            cfg = replace(cfg, perturbations=setting.robust_copies, perturbation_std=setting.robust_sigma)
             outcome = planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
             return replace(outcome, rollouts=outcome.rollouts * setting.robust_copies)
         return search_then_hold(model, workspace, x0, goal, steps, seed, cfg)

@@ -110,7 +110,7 @@ def test_without_the_model_it_says_how_to_make_it(tmp_path, capsys: pytest.Captu
 
 
 def test_trials_carry_the_planners_status_and_the_drift_after_a_completed_plan(result: dict) -> None:
-    planners = {"default", "default_search", "ours", "ours_cem", "random_shooting"}
+    planners = {"default", "default_search", "default_settled", "default_robust", "ours", "ours_cem", "random_shooting"}
     for t in result["trials"]:
         assert (t["status"] != "") == (t["optimiser"] in planners)
         assert (t["drift_mm"] is not None) == (t["end_reason"] == "length")

@@ -22,6 +22,9 @@ FAST = TransferConfig(
     multistep_l2_finetune=dataclasses.replace(
         TransferConfig().multistep_l2_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)
     ),
+    anchored_finetune=dataclasses.replace(
+        TransferConfig().anchored_finetune, train=TrainConfig(lr=1e-3, epochs=2, patience=None)
+    ),
     trajectory_finetune=dataclasses.replace(
         TransferConfig().trajectory_finetune, train=TrainConfig(lr=1e-3, epochs=2, batch_size=1, patience=None)
     ),
@@ -48,7 +51,7 @@ def test_registry_has_the_papers_six_methods_l2_auto_and_ours() -> None:
     assert PAPER_METHODS == (
         "new_model", "direct", "naive_finetune", "trajectory_finetune", "cumulative_residual", "recurrent_residual"
     )
-    assert set(METHODS) == set(PAPER_METHODS) | {"l2_finetune", "auto", "multistep_l2_finetune"}
+    assert set(METHODS) == set(PAPER_METHODS) | {"l2_finetune", "auto", "multistep_l2_finetune", "anchored_finetune"}
 
 
 @pytest.mark.parametrize("grasp_input", [False, True])
@@ -69,6 +72,25 @@ def test_multistep_l2_finetuning_over_one_step_is_l2_finetuning(make_set, grasp_
     longer = transfer("multistep_l2_finetune", source, target, dataclasses.replace(
         cfg, multistep_l2_finetune=dataclasses.replace(cfg.multistep_l2_finetune, horizon=8)), seed=5)
     assert not torch.allclose(longer.rollout(x0, actions), single.rollout(x0, actions), atol=1e-3)
+
+
+def test_anchored_finetuning_without_its_pull_is_naive_finetuning_and_its_pull_holds_the_source_off_the_data(
+        source, target) -> None:
+    """anchor 0 leaves the data term alone (naive fine-tuning's loss at this lr); a strong anchor keeps the model's
+    predictions at off-data points nearer the source's than no anchor does."""
+    train = TrainConfig(lr=1e-3, epochs=3, patience=None)
+    cfg = dataclasses.replace(FAST, naive_finetune=dataclasses.replace(FAST.naive_finetune, train=train),
+                              anchored_finetune=dataclasses.replace(FAST.anchored_finetune, train=train, anchor=0.0))
+    naive, free = (transfer(m, source, target, cfg, seed=2) for m in ("naive_finetune", "anchored_finetune"))
+    x0, actions = torch.tensor(target[0].states[:1]).repeat(4, 1), torch.rand(4, 20, 2) * 2 - 1
+    assert torch.allclose(naive.rollout(x0, actions), free.rollout(x0, actions), atol=1e-3)
+    held = transfer("anchored_finetune", source, target, dataclasses.replace(
+        cfg, anchored_finetune=dataclasses.replace(cfg.anchored_finetune, anchor=100.0)), seed=2)
+    off = torch.cat([torch.randn(256, 4) * source.state_std + source.state_mean, torch.rand(256, 2) * 2 - 1], dim=1)
+    with torch.no_grad():
+        reference = source.net.eval()(off)
+        gaps = [float(((m.net.eval()(off) - reference) ** 2).mean()) for m in (free, held)]
+    assert gaps[1] < 0.5 * gaps[0], gaps
 
 
 def test_multistep_l2_finetuning_refuses_episodes_shorter_than_its_horizon(source, make_set) -> None:

@@ -330,7 +330,7 @@ def cell_excluded(
     return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
-METHODS_ADDED_LATER = ("multistep_l2_finetune",)
+METHODS_ADDED_LATER = ("multistep_l2_finetune", "anchored_finetune")
 """Methods whose settings joined the transfer config after runs were stored: hashed only when changed."""
 _DEFAULT_SETTINGS = dataclasses.asdict(TransferConfig())
 

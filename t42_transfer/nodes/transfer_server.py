@@ -135,9 +135,9 @@ class TransferServerParams:
                                       "is new (the suite keeps learning from all it recorded)")
     method: str = param("l2_finetune", "transfer method, one of new_model, direct, naive_finetune, "
                                        "trajectory_finetune, cumulative_residual, recurrent_residual, l2_finetune, "
-                                       "multistep_l2_finetune, auto (default: the evaluations' choice, "
-                                       "docs/evaluation.md; auto: train the candidates, keep the best on held-out "
-                                       "episodes, report all); a t42/transfer goal may name another")
+                                       "multistep_l2_finetune, anchored_finetune, auto (default: the evaluations' "
+                                       "choice, docs/evaluation.md; auto: train the candidates, keep the best on "
+                                       "held-out episodes, report all); a t42/transfer goal may name another")
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")

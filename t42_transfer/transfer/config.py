@@ -104,6 +104,25 @@ class MultiStepL2Config:
 
 
 @dataclass(frozen=True)
+class AnchoredFineTuneConfig:
+    """Single-step fine-tuning held to the source's function off the target data (issue 24's second candidate).
+
+    Each batch of target transitions is paired with as many points off the data: the same normalised states
+    moved by N(0, ``state_noise``) (in units of the source's state std) and actions drawn uniformly over the
+    target data's action range; there the fine-tuned network's output is pulled toward the frozen source's,
+    weighted ``anchor`` against the data term.  Where L2 fine-tuning holds the weights, this holds what the
+    model predicts where the target data say nothing, which is where a dense source is right.
+    """
+
+    train: TrainConfig = TrainConfig(lr=1e-4, epochs=30, patience=None)
+    anchor: float = 1.0
+    state_noise: float = 1.0
+
+    def __post_init__(self) -> None:
+        check(self, {"anchor": NON_NEGATIVE, "state_noise": NON_NEGATIVE})
+
+
+@dataclass(frozen=True)
 class TrajectoryFineTuneConfig:
     """Algorithm 1: open-loop rollouts of whole target episodes from their first true state, loss weighted 1/i.
 
@@ -196,6 +215,7 @@ class TransferConfig:
     naive_finetune: NaiveFineTuneConfig = field(default_factory=NaiveFineTuneConfig)
     l2_finetune: L2FineTuneConfig = field(default_factory=L2FineTuneConfig)
     multistep_l2_finetune: MultiStepL2Config = field(default_factory=MultiStepL2Config)
+    anchored_finetune: AnchoredFineTuneConfig = field(default_factory=AnchoredFineTuneConfig)
     trajectory_finetune: TrajectoryFineTuneConfig = field(default_factory=TrajectoryFineTuneConfig)
     cumulative_residual: ResidualConfig = field(default_factory=ResidualConfig)
     recurrent_residual: RecurrentResidualConfig = field(default_factory=RecurrentResidualConfig)

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from t42_transfer.conventions import ACTION_DIM, STATE_DIM
 from t42_transfer.data.trajectory import TrajectorySet, split_by_fraction
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.models.dynamics import LatentDynamics
@@ -31,6 +32,7 @@ from t42_transfer.models.training import (
     TrainConfig,
     fit,
     fit_single_step,
+    step_batch,
     step_loss,
     train_transition_model,
     trajectory_weights,
@@ -139,6 +141,35 @@ def multistep_l2_finetune(
 
     fit(list(model.net.parameters()), model, loss_on, len(windows), None, _seeded(c.train, seed),
         "multi-step L2 fine-tune", on_epoch, penalty=_pull_toward(source, model, c.l2))
+    return model
+
+
+def anchored_finetune(
+    source: TransitionModel, target: TrajectorySet, cfg: TransferConfig, seed: int, on_epoch: ProgressHook | None = None
+) -> LatentDynamics:
+    """Single-step fine-tuning plus a pull toward the frozen source's outputs at points off the target data
+    (:class:`~t42_transfer.transfer.config.AnchoredFineTuneConfig`)."""
+    c = cfg.anchored_finetune
+    model = _copy_trainable(source)
+    batch = step_batch(model, target)
+    frozen = copy.deepcopy(source.net).eval().requires_grad_(False)
+    actions = batch.features[:, STATE_DIM : STATE_DIM + ACTION_DIM]
+    low, span = actions.min(0).values, actions.max(0).values - actions.min(0).values
+    draws = torch.Generator().manual_seed(seed)
+
+    def loss_on(idx: Tensor) -> Tensor:
+        if not c.anchor:  # no off-data points drawn: the network's dropout draws stay naive fine-tuning's
+            return step_loss(model.net, batch, idx)
+        off = batch.features[idx].clone()
+        off[:, :STATE_DIM] += c.state_noise * torch.randn(len(idx), STATE_DIM, generator=draws)
+        off[:, STATE_DIM : STATE_DIM + ACTION_DIM] = low + span * torch.rand(len(idx), ACTION_DIM, generator=draws)
+        with torch.no_grad():
+            reference = frozen(off)
+        pull = torch.mean((model.net(off) - reference) ** 2)
+        return step_loss(model.net, batch, idx) + c.anchor * pull
+
+    fit(list(model.net.parameters()), model, loss_on, len(batch), None, _seeded(c.train, seed),
+        "anchored fine-tune", on_epoch)
     return model
 
 
@@ -446,9 +477,10 @@ METHODS: dict[str, Method] = {
     "l2_finetune": l2_finetune,
     "auto": auto,
     "multistep_l2_finetune": multistep_l2_finetune,
+    "anchored_finetune": anchored_finetune,
 }
-"""The paper's six methods, in its order, the authors' L2-constrained fine-tuning, the pick by evidence, and L2
-fine-tuning on short rollouts (issue 24's candidate of our own)."""
+"""The paper's six methods, in its order, the authors' L2-constrained fine-tuning, the pick by evidence, and issue
+24's candidates of our own: L2 fine-tuning on short rollouts, and fine-tuning held to the source off the data."""
 
 PAPER_METHODS = tuple(list(METHODS)[:6])
 
