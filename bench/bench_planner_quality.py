@@ -85,7 +85,7 @@ from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
 from t42_transfer.planning.fused import make_rollout
-from t42_transfer.planning.planner import CHUNK, Plan, Planner, PlannerConfig
+from t42_transfer.planning.planner import CHUNK, MAX_PERTURBATIONS, Plan, Planner, PlannerConfig
 from t42_transfer.planning.workspace import Workspace
 
 RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
@@ -132,9 +132,10 @@ class Setting:
         if not self.budgets or min(self.budgets) < 2:
             raise ValueError(f"budgets must be at least 2 rollouts, got {list(self.budgets)}")
         if min(self.refine_iterations, self.cem_iterations, self.mppi_iterations, self.robust_copies) < 1:
-            raise ValueError("iterations must be positive")
-        if not 0 < self.cem_elite_fraction < 1 or min(self.cem_std, self.mppi_sigma, self.mppi_lambda) <= 0 \
-                or not self.robust_sigma >= 0:
+            raise ValueError("iterations and robust_copies must be positive")
+        if self.robust_copies > MAX_PERTURBATIONS or not 0 <= self.robust_sigma <= 1:
+            raise ValueError(f"need robust_copies <= {MAX_PERTURBATIONS} and 0 <= robust_sigma <= 1")
+        if not 0 < self.cem_elite_fraction < 1 or min(self.cem_std, self.mppi_sigma, self.mppi_lambda) <= 0:
             raise ValueError("need 0 < cem_elite_fraction < 1 and positive cem_std, mppi_sigma, mppi_lambda")
 
 

@@ -52,7 +52,6 @@ from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, train_transition_model
-from t42_transfer.transfer.config import TransferConfig
 from t42_transfer.transfer.methods import select_method, transfer
 
 if TYPE_CHECKING:
@@ -330,9 +329,14 @@ def cell_excluded(
     return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
-METHODS_ADDED_LATER = ("multistep_l2_finetune", "anchored_finetune")
-"""Methods whose settings joined the transfer config after runs were stored: hashed only when changed."""
-_DEFAULT_SETTINGS = dataclasses.asdict(TransferConfig())
+_TRAINING_WHEN_ADDED = {"lr": 1e-4, "epochs": 30, "batch_size": 64, "weight_decay": 1e-3, "grad_clip": 10.0,
+                        "patience": None, "seed": 0}
+METHODS_ADDED_LATER = {
+    "multistep_l2_finetune": {"train": _TRAINING_WHEN_ADDED, "l2": 1e-2, "horizon": 10},
+    "anchored_finetune": {"train": _TRAINING_WHEN_ADDED, "anchor": 1.0, "state_noise": 1.0},
+}
+"""Methods whose settings joined the transfer config after runs were stored, with their settings when they joined:
+hashed only when they differ from those (a later change of the defaults changes the keys, as it should)."""
 
 
 def _cells(cfg: ExperimentConfig) -> list[Cell]:
@@ -346,8 +350,8 @@ def _method_config(cfg: ExperimentConfig) -> dict[str, Any]:
     for method in ("cumulative_residual", "recurrent_residual"):
         if settings[method]["gamma_rule"] == "fixed":
             del settings[method]["gamma_rule"]
-    for method in METHODS_ADDED_LATER:
-        if settings[method] == _DEFAULT_SETTINGS[method]:
+    for method, when_added in METHODS_ADDED_LATER.items():
+        if settings[method] == when_added:
             del settings[method]
     return settings
 

@@ -269,7 +269,8 @@ def _perturbations(cfg: PlannerConfig, horizon: int, seed: int) -> Tensor | None
     perturbations stay as they were); None when P is 1."""
     if cfg.perturbations <= 1:
         return None
-    gen = torch.Generator().manual_seed(int(np.random.SeedSequence([seed, horizon]).generate_state(1)[0]))
+    entropy = [int(seed) % (1 << 64), horizon]  # SeedSequence takes no negative numbers; torch's seeds may be
+    gen = torch.Generator().manual_seed(int(np.random.SeedSequence(entropy).generate_state(1)[0]))
     return cfg.perturbation_std * torch.randn(cfg.perturbations - 1, horizon, 2, generator=gen)
 
 
@@ -423,7 +424,9 @@ class _Search:
         if math.isinf(self.best_cost):
             counts = ", ".join(f"{n} {REJECTIONS[k]}" for k, n in self.rejected.items() if n)
             reason = f"all {self.evaluated} sampled sequences were rejected ({counts})"
-            if not cfg.horizon_search:
+            if cfg.perturbations > 1:
+                reason += f" (each of a sequence's {cfg.perturbations} perturbed rollouts counted)"
+            elif not cfg.horizon_search:
                 reason += "; horizon search would keep their safe prefixes"
             return _refusal("no_safe_sequence", reason, x0, goal, self.evaluated, dict(self.rejected))
         actions = self.best_actions.float()

@@ -190,9 +190,11 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         # native timer then prints where the process is stuck and exits with the node's own status.
         watchdog = ExitWatchdog()
         watchdog.arm(TEARDOWN_TIMEOUT_S, status)
-        executor.shutdown(timeout_sec=5.0)
-        if node is not None:
-            node.destroy_node()
-        if context.ok():
-            rclpy.shutdown(context=context)
-        watchdog.disarm()
+        try:
+            executor.shutdown(timeout_sec=5.0)
+            if node is not None:
+                node.destroy_node()
+            if context.ok():
+                rclpy.shutdown(context=context)
+        finally:  # returned or raised: nothing hangs, and a raised error keeps its own exit
+            watchdog.disarm()
