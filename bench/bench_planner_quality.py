@@ -19,7 +19,8 @@ budget B counts B model rollouts of the whole horizon per plan:
   costs against optimising the whole fixed horizon to its final state;
 - ``default_settled``: the default, its cost the predicted distance after the plan and :data:`DRIFT_STEPS` more
   steps of holding still (zero actions), where the hand has settled (the issue's "cost on the settled end
-  state"); the executed plan is the same ``steps`` actions, judged at its last step like every other;
+  state"); the executed plan is the same ``steps`` actions, judged at its last step like every other (each
+  of its rollouts is :data:`DRIFT_STEPS` steps longer than the others' and counts as one);
 - ``default_robust``: the default with the planner's perturbed copies (``PlannerConfig.perturbations =
   robust_copies``, ``perturbation_std = robust_sigma``): each sequence scored by the mean final distance
   over it and its copies with fixed action perturbations, at the same rollout budget (``samples /

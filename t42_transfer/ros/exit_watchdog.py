@@ -57,26 +57,26 @@ class ExitWatchdog:
         if not (math.isfinite(seconds) and seconds > TRACEBACK_LEAD_S) or not 0 <= code <= 255:
             raise ValueError(f"need seconds > {TRACEBACK_LEAD_S} and an exit code 0-255, got {seconds}, {code}")
         self.disarm()
-        if not self.native:
+        if self.native and self._start_timer(seconds, code):
+            faulthandler.dump_traceback_later(seconds - TRACEBACK_LEAD_S, exit=False)
+        else:
             faulthandler.dump_traceback_later(seconds, exit=True)
-            return
-        faulthandler.dump_traceback_later(seconds - TRACEBACK_LEAD_S, exit=False)
+
+    def _start_timer(self, seconds: float, code: int) -> bool:
+        """Whether the native timer calling ``_exit(code)`` in ``seconds`` is set."""
         libc = self._libc
         event = _SigEvent(sigev_value=code, sigev_notify=SIGEV_THREAD,
                           sigev_notify_function=ctypes.cast(libc._exit, ctypes.c_void_p).value)
         timer = ctypes.c_void_p()
         if libc.timer_create(CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
-            faulthandler.cancel_dump_traceback_later()
-            faulthandler.dump_traceback_later(seconds, exit=True)
-            return
+            return False
         whole = int(seconds)
         when = _ITimerSpec(it_value=_TimeSpec(whole, int((seconds - whole) * 1e9)))
         if libc.timer_settime(timer, 0, ctypes.byref(when), None) != 0:
             libc.timer_delete(timer)
-            faulthandler.cancel_dump_traceback_later()
-            faulthandler.dump_traceback_later(seconds, exit=True)
-            return
+            return False
         self._timer = timer
+        return True
 
     def disarm(self) -> None:
         faulthandler.cancel_dump_traceback_later()
