@@ -124,7 +124,8 @@ def test_a_driver_frozen_three_times_mid_episode_costs_no_bag(ros, tmp_path: Pat
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # nothing split, nothing dropped
         (stalled,) = read_bag(bags[0])
-    assert len(stalled.late_steps) >= 3 and stalled.step_ns[stalled.late_steps].min() > 300_000_000
+    # Each stall makes one late step of over 0.3 s; a busy machine may add shorter late steps of its own.
+    assert (stalled.step_ns[stalled.late_steps] > 300_000_000).sum() >= 3, stalled.step_ns[stalled.late_steps]
 
     answer = rig.call()
     assert answer.success, answer.message
