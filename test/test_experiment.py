@@ -95,7 +95,7 @@ def test_hold_still_is_scored_on_every_test_set_once(config_file: Path, tmp_path
     direct = {(r["amount"], r["seed"]): r for r in rows if r["method"] == "direct"}
     assert sorted(still) == sorted(direct) == sorted((a, s) for a in amounts for s in range(2))
     for (amount, seed), row in still.items():
-        _, test = exp._target_split(cfg, target, exp.Cell("direct", amount, seed))
+        _, test = exp.target_split(cfg, target, exp.Cell("direct", amount, seed))
         expected = evaluate_model(HoldStill(), test, cfg.epsilon_mm, cfg.start_offsets, cfg.horizon, cfg.definition)
         assert row["divergence_mean"] == expected["divergence_mean"]
         for eps in (4.0, 10.0):  # both thresholds in use, counted by the run's definition
@@ -334,12 +334,12 @@ def test_a_test_set_replaces_the_held_out_episodes_and_keeps_the_training_subset
     for amount in amounts:
         for seed in range(2):
             cell = exp.Cell("direct", amount, seed)
-            train, held_out = exp._target_split(plain, episodes, cell)
-            train_t, test_t = exp._target_split(with_test, episodes, cell, tested.data)
+            train, held_out = exp.target_split(plain, episodes, cell)
+            train_t, test_t = exp.target_split(with_test, episodes, cell, tested.data)
             assert [t.fingerprint() for t in train_t] == [t.fingerprint() for t in train] and len(train)
             assert test_t is tested.data and len(held_out) and {len(t) for t in held_out} == {30}  # test: 50 steps
     with pytest.raises(ValueError, match="exactly when the config names a test set"):
-        exp._target_split(with_test, episodes, exp.Cell("direct", amounts[0], 0))
+        exp.target_split(with_test, episodes, exp.Cell("direct", amounts[0], 0))
 
 
 def test_a_run_scores_every_cell_on_the_test_set(config_file: Path, tmp_path: Path, make_set) -> None:
@@ -455,7 +455,7 @@ def test_source_leaves_out_the_episodes_that_ran_a_test_sequence(tmp_path: Path,
     sides = [exp.load_side(cfg, side, tmp_path / "cache") for side in ("source", "target")]
     for seed in range(2):
         cell = exp.Cell("direct", 2, seed)
-        _, test = exp._target_split(cfg, sides[1].data, cell)
+        _, test = exp.target_split(cfg, sides[1].data, cell)
         tested = [i for i, t in enumerate(sides[1].data) if any(t is u for u in test)]
         assert exp.cell_excluded(cfg, cell, *sides) == tuple(tested) and len(tested) == 2
     unrelated = dataclasses.replace(cfg, source=dataclasses.replace(cfg.source, exclude_test_sequences=False))
@@ -522,7 +522,7 @@ def test_the_authors_b_to_a_keeps_test_sequences_out_of_the_source(t42_real_dir:
     sides = [exp.load_side(cfg, side, tmp_path) for side in ("source", "target")]
     for seed in range(2):
         cell = exp.Cell("direct", 3, seed)
-        _, test = exp._target_split(cfg, sides[1].data, cell)
+        _, test = exp.target_split(cfg, sides[1].data, cell)
         tested = tuple(i for i, t in enumerate(sides[1].data) if any(t is u for u in test))
         assert exp.cell_excluded(cfg, cell, *sides) == tested  # path i of hand B ran path i of hand A's sequence
     run_experiment(cfg, tmp_path / "runs", progress=False)

@@ -174,10 +174,68 @@ def zero_net_model(grasp_input: bool = False) -> TransitionModel:
 
 
 @pytest.mark.parametrize("grasp_input", [False, True])
-def test_translation_model_has_zero_exponents_over_its_whole_latent(grasp_input, small_set):
+def test_translation_model_has_zero_exponents_over_its_state(grasp_input, small_set):
     spectrum = model_lyapunov_spectrum(zero_net_model(grasp_input), small_set)
-    assert spectrum.shape == (len(small_set), 8 if grasp_input else 4)
+    assert spectrum.shape == (len(small_set), 4)  # the grasp input is a parameter of the episode, not state
     torch.testing.assert_close(spectrum, torch.zeros_like(spectrum), rtol=0, atol=1e-12)
+
+
+class ContractingWithGrasp(LatentDynamics):
+    """Latent ``[x, g]``: ``x' = 0.9 x + 0.5 g`` and ``g' = g``, the grasp held as a network's start-state input is.
+
+    Over the whole latent the spectrum is ``ln 0.9`` (x4) and 0 (x4, the held block); the dynamics is ``ln 0.9``.
+    """
+
+    kind = "test_contracting_with_grasp"
+    latent_dim = 8
+
+    def config(self) -> dict:
+        return {}
+
+    @classmethod
+    def from_config(cls, config: dict) -> ContractingWithGrasp:
+        return cls()
+
+    def initial_latent(self, x0: Tensor) -> Tensor:
+        return torch.cat([x0, x0], dim=-1)
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        x, g = z[:, :4], z[:, 4:]
+        return torch.cat([0.9 * x + 0.5 * g + 0.0 * action.sum(-1, keepdim=True), g], dim=-1)
+
+    def observe(self, z: Tensor) -> Tensor:
+        return z[:, :4]
+
+    def held_latents(self) -> tuple[int, ...]:
+        return (4, 5, 6, 7)
+
+
+def test_held_grasp_coordinates_do_not_make_a_contracting_model_look_neutral(small_set):
+    model = ContractingWithGrasp()
+    spectrum = model_lyapunov_spectrum(model, small_set, burn_in=2)
+    torch.testing.assert_close(spectrum, torch.full_like(spectrum, math.log(0.9)), rtol=0, atol=1e-9)
+    scaled = model_lyapunov(model, small_set, scales=np.array([2.0, 3.0, 50.0, 60.0]))  # per state, repeated
+    torch.testing.assert_close(scaled, torch.full_like(scaled, math.log(0.9)), rtol=0, atol=1e-9)
+    # The same map with the grasp counted as state: its spectrum adds the held block's four exponents of 0.
+    whole = lyapunov_spectrum(model.latent_step, model.initial_latent(torch.as_tensor(
+        np.stack([t.states[0] for t in small_set]), dtype=torch.float64)), torch.zeros(len(small_set), 15, 2))
+    torch.testing.assert_close(whole.sort(dim=1).values, torch.tensor([[math.log(0.9)] * 4 + [0.0] * 4],
+                               dtype=torch.float64).expand(len(small_set), -1), rtol=0, atol=1e-9)
+
+
+def test_held_latents_of_the_project_models():
+    from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
+    from t42_transfer.models.start_state import StartStateCumulativeResidualModel
+
+    plain, grasp = TransitionModel(Normalisation.identity()), TransitionModel(Normalisation.identity(), True)
+    assert plain.held_latents() == () and grasp.held_latents() == (4, 5, 6, 7)
+    assert RecurrentResidualModel(grasp, TransitionModel(Normalisation.identity()), 1.0).held_latents() == (4, 5, 6, 7)
+    cumulative = StartStateCumulativeResidualModel(grasp, TransitionModel(Normalisation.identity(), True), 1.0, 0.9)
+    x0 = torch.zeros(3, 4)
+    assert cumulative.held_latents() == (4, 5, 6, 7)
+    assert cumulative.latent_dim == cumulative.initial_latent(x0).shape[1] == 12  # state, grasp, residual sum
+    plain_sum = CumulativeResidualModel(plain, TransitionModel(Normalisation.identity()), 1.0, 0.9)
+    assert plain_sum.held_latents() == () and plain_sum.latent_dim == plain_sum.initial_latent(x0).shape[1] == 8
 
 
 def test_model_lyapunov_leaves_the_model_alone_and_ignores_dropout(small_set):
@@ -205,14 +263,16 @@ def test_model_exponents_in_the_models_normalised_coordinates(grasp_input):
     np.testing.assert_array_equal(std, [20, 10, 50, 50])
     x0 = torch.tensor([[0.0, 90.0, 100.0, -100.0]], dtype=torch.float64).repeat(3, 1) + torch.randn(3, 4).double()
     actions = torch.rand(3, 40, 2, dtype=torch.float64) * 2 - 1
-    latent_scales = torch.tensor(np.tile(std, 2 if grasp_input else 1))
+    scales = torch.tensor(std)
 
-    def in_units_of_std(u: Tensor, a: Tensor) -> Tensor:
-        return model.latent_step(u * latent_scales, a) / latent_scales
+    def in_units_of_std(u: Tensor, a: Tensor) -> Tensor:  # the grasp, when there is one, rides in a's columns 2-5
+        z = torch.cat([u * scales, a[:, 2:]], dim=1)
+        return model.latent_step(z, a[:, :2])[:, :4] / scales
 
     got = model_lyapunov_spectrum(model, (x0, actions), burn_in=10, scales=std)
-    z0 = model.initial_latent(x0) / latent_scales
-    torch.testing.assert_close(got, lyapunov_spectrum(in_units_of_std, z0, actions, burn_in=10), rtol=0, atol=1e-10)
+    grasp = x0[:, None, :].expand(-1, actions.shape[1], -1)[..., : 4 if grasp_input else 0]
+    expected = lyapunov_spectrum(in_units_of_std, x0 / scales, torch.cat([actions, grasp], dim=2), burn_in=10)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-10)
     assert not torch.allclose(got, model_lyapunov_spectrum(model, (x0, actions), burn_in=10), atol=1e-3)
     with pytest.raises(ValueError, match="scales must have"):
         model_lyapunov_spectrum(model, (x0, actions), scales=np.ones(3))

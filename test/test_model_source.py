@@ -64,7 +64,7 @@ def test_a_model_file_is_the_source_as_it_is(source_model: Path, tmp_path: Path,
     assert {r["method"] for r in rows} == {"direct", "naive_finetune", "hold_still"}
     kept = exp.source_model_path(cfg, tmp_path / "runs" / "m")
     assert kept.read_bytes() == source_model.read_bytes()  # kept under its content's name, unchanged
-    _, test = exp._target_split(cfg, read_bag(TARGET), exp.Cell("direct", 2, 0))
+    _, test = exp.target_split(cfg, read_bag(TARGET), exp.Cell("direct", 2, 0))
     expected = evaluate_model(load_model(source_model)[0], test, cfg.epsilon_mm)
     assert _direct_row(rows)["divergence_mean"] == expected["divergence_mean"]
     quality = json.loads((tmp_path / "runs" / "m" / "data_quality.json").read_text())
@@ -88,7 +88,7 @@ def test_an_authors_file_is_imported_on_the_fly_with_the_specs_negation(authors_
     episode = read_bag(TARGET)[0]
     x0, actions = torch.tensor(episode.states[:1]), torch.tensor(episode.actions[None])
     assert torch.equal(kept.rollout(x0, actions), imported.rollout(x0, actions))
-    _, test = exp._target_split(cfg, read_bag(TARGET), exp.Cell("direct", 2, 0))
+    _, test = exp.target_split(cfg, read_bag(TARGET), exp.Cell("direct", 2, 0))
     assert _direct_row(rows)["divergence_mean"] == evaluate_model(imported, test, cfg.epsilon_mm)["divergence_mean"]
 
 

@@ -16,6 +16,7 @@ from t42_transfer.evaluation.stats import (
     matched_scores,
     one_per_draw,
     sign_test,
+    spearman,
     student_t_cdf,
     student_t_quantile,
     t_interval,
@@ -199,3 +200,23 @@ def test_seeds_that_drew_the_same_episodes_are_one_cell():
     assert cells == [(1, 0), (1, 2)] and a.tolist() == [12.0, 30.0] and b.tolist() == [8.0, 20.0]
     assert [r["draws_merged"] for r in merged if r["seed"] == 0] == [2, 2]
     assert {"method": "a", "amount": 1, "seed": 9, "score": 1.0} in merged
+
+
+def test_spearman_ranks_with_ties_and_agrees_with_scipy():
+    rho, p = spearman([1, 2, 3, 4, 5], [10, 20, 30, 40, 1000])
+    assert rho == pytest.approx(1.0) and p < 1e-6  # monotone, whatever the scale
+    assert spearman([1, 2, 3, 4], [4, 3, 2, 1])[0] == pytest.approx(-1.0)
+    scipy_stats = pytest.importorskip("scipy.stats")
+    rng = np.random.default_rng(4)
+    for n in (5, 12, 40):
+        x, y = rng.normal(size=n), rng.normal(size=n)
+        y[: n // 3] = x[: n // 3]  # some agreement
+        x[1] = x[0]  # a tie
+        expected = scipy_stats.spearmanr(x, y)
+        got = spearman(x, y)
+        assert got[0] == pytest.approx(expected.statistic, abs=1e-12)
+        assert got[1] == pytest.approx(expected.pvalue, rel=1e-6)
+    with pytest.raises(ValueError, match="at least 3"):
+        spearman([1, 2], [3, 4])
+    with pytest.raises(ValueError, match="constant"):
+        spearman([1, 1, 1], [1, 2, 3])

@@ -184,7 +184,7 @@ class Cell:
     seed: int
 
 
-def _target_split(
+def target_split(
     cfg: ExperimentConfig, target: TrajectorySet, cell: Cell, test: TrajectorySet | None = None
 ) -> tuple[TrajectorySet, TrajectorySet]:
     """(training subset, test episodes) of a cell.
@@ -264,7 +264,7 @@ def baseline_rows(
     for amount in cfg.amounts:
         for seed in range(cfg.seeds):
             start = time.perf_counter()
-            train, test = _target_split(cfg, target, Cell(BASELINE, amount, seed), test_set)
+            train, test = target_split(cfg, target, Cell(BASELINE, amount, seed), test_set)
             key = test.fingerprint()
             if key not in scored:
                 scored[key] = _test_scores(model, test, cfg)
@@ -293,7 +293,7 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
         _WORKER["test"] = None if test_side is None else test_side.data
         _WORKER["data_key"] = data_key
     source, target = sources[source_path], _WORKER["target"]
-    train, test = _target_split(cfg, target, cell, _WORKER["test"])
+    train, test = target_split(cfg, target, cell, _WORKER["test"])
     start = time.perf_counter()
     row = {
         "method": cell.method, "amount": cell.amount, "seed": cell.seed,
@@ -325,7 +325,7 @@ def cell_excluded(
 
     ``test``: :func:`load_test`'s, when the config names a test set.
     """
-    episodes = _target_split(cfg, target.data, cell, None if test is None else test.data)[1]
+    episodes = target_split(cfg, target.data, cell, None if test is None else test.data)[1]
     return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
@@ -366,6 +366,13 @@ def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     if cfg.test is not None:  # absent otherwise: keys of runs without a test set stay valid
         depends["test"] = cfg.test.describe()
     return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
+
+
+def cell_model_file(cfg: ExperimentConfig, run_dir: Path, cell: Cell, source: SideData, target: SideData,
+                    test: SideData | None = None) -> Path:
+    """Where a run keeps the model ``cell`` trained (``run_dir/models/<cell key>.safetensors``), made or not."""
+    source_path = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, source, target, test))
+    return run_dir / "models" / f"{_cell_key(cfg, cell, source_path)}.safetensors"
 
 
 def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int, ...] = ()) -> Path:
@@ -462,7 +469,7 @@ def _check_methods_fit(cfg: ExperimentConfig, target: TrajectorySet, test: Traje
     from t42_transfer.transfer.methods import data_problem
 
     for cell in _cells(cfg):
-        train = _target_split(cfg, target, cell, test)[0]
+        train = target_split(cfg, target, cell, test)[0]
         if (why := data_problem(cell.method, len(train), train.num_transitions, cfg.transfer)) is not None:
             raise ValueError(f"{cell.method} at amount {cell.amount:g} (seed {cell.seed}, {len(train)} training "
                              f"episode(s)): {why}")

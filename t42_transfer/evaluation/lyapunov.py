@@ -10,7 +10,12 @@ from ``vmap(jacrev)`` and the frames from one batched Householder QR per step.
 
 A model is analysed through its latent map ``latent_step``, so hidden state
 (e.g. the residual sum of a cumulative residual model) is part of the system, as
-in the paper's theorem.  Exponents are per 0.1 s step, natural log.
+in the paper's theorem.  Coordinates the map carries unchanged (the grasp state a
+network reads, :meth:`~t42_transfer.models.dynamics.LatentDynamics.held_latents`)
+are parameters, not state: the Jacobian is block triangular with an identity block
+there, which only adds exponents of exactly 0, and left in they would make every
+such model's maximal exponent at least 0.  They are held at their orbit's values
+and left out.  Exponents are per 0.1 s step, natural log.
 
 Two settings make a finite-time estimate mean something.  ``burn_in`` steps move
 the orbit onto its attractor and turn the frame toward the growing directions
@@ -171,6 +176,24 @@ def _starts_and_actions(
     return x0, actions[:, :steps], None
 
 
+def dynamic_coordinates(model: LatentDynamics) -> tuple[int, ...]:
+    """The latent coordinates that change along an orbit: all but the model's held ones (parameters)."""
+    held = set(model.held_latents())
+    return tuple(i for i in range(model.latent_dim) if i not in held)
+
+
+def _over_dynamic(step: StepFn, dynamic: tuple[int, ...], held: tuple[int, ...]) -> StepFn:
+    """``step`` restricted to the ``dynamic`` coordinates; the ``held`` ones ride along as extra action columns."""
+    order = torch.argsort(torch.tensor(dynamic + held))
+
+    def restricted(zd: Tensor, extended: Tensor) -> Tensor:
+        action, fixed = extended[:, : extended.shape[1] - len(held)], extended[:, extended.shape[1] - len(held):]
+        z = torch.cat([zd, fixed], dim=1)[:, order]
+        return step(z, action)[:, list(dynamic)]
+
+    return restricted
+
+
 def model_lyapunov_spectrum(
     model: LatentDynamics,
     data: TrajectorySet | tuple[Tensor | np.ndarray, Tensor | np.ndarray],
@@ -188,21 +211,27 @@ def model_lyapunov_spectrum(
     burn-in included (``steps - burn_in`` steps are averaged).  ``scales`` (see
     :func:`lyapunov_spectrum`) may be per hand-state coordinate (e.g.
     :func:`state_scales`), repeated over the latent's state blocks.
-    The map is ``latent_step`` of a float64 copy in eval mode (dropout off); the
+    The map is ``latent_step`` of a float64 copy in eval mode (dropout off), over
+    the :func:`dynamic_coordinates` (the held ones stay at their start values); the
     caller's model is left untouched.  The full spectrum gives the source model's
     smallest exponent, which the paper uses to choose ``gamma``.
     """
     x0, actions, lengths = _starts_and_actions(data, steps)
     analysed = copy.deepcopy(model).to(torch.float64).eval().requires_grad_(False)
     device = model_device(analysed)
-    x0 = x0.to(device=device, dtype=torch.float64)
+    x0, actions = x0.to(device=device, dtype=torch.float64), actions.to(device=device, dtype=torch.float64)
     with torch.no_grad():
         z0 = analysed.initial_latent(x0)
     if scales is not None:
         scales = _latent_scales(scales, z0.shape[1])
-    return lyapunov_spectrum(
-        analysed.latent_step, z0, actions.to(device), k, burn_in=burn_in, lengths=lengths, scales=scales
-    )
+    dynamic, step = dynamic_coordinates(analysed), analysed.latent_step
+    held = tuple(sorted(set(range(z0.shape[1])) - set(dynamic)))
+    if held:
+        step = _over_dynamic(step, dynamic, held)
+        fixed = z0[:, list(held)][:, None, :].expand(-1, actions.shape[1], -1)
+        actions, z0 = torch.cat([actions, fixed], dim=2), z0[:, list(dynamic)]
+        scales = None if scales is None else scales[list(dynamic)]
+    return lyapunov_spectrum(step, z0, actions, k, burn_in=burn_in, lengths=lengths, scales=scales)
 
 
 def model_lyapunov(

@@ -99,16 +99,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
 
     plt = pyplot()
 
-    from t42_transfer.evaluation.experiment import (
-        Cell,
-        _cell_key,
-        _target_split,
-        cell_excluded,
-        data_cache,
-        load_side,
-        load_test,
-        source_model_path,
-    )
+    from t42_transfer.evaluation.experiment import Cell, cell_model_file, data_cache, load_side, load_test, target_split
     from t42_transfer.evaluation.experiment_config import load_config
     from t42_transfer.models.checkpoint import load_model
 
@@ -129,13 +120,12 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
         if method == BASELINE:
             model = HoldStill()
         else:
-            source = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, *sides))
-            model_file = run_dir / "models" / f"{_cell_key(cfg, cell, source)}.safetensors"
+            model_file = cell_model_file(cfg, run_dir, cell, *sides)
             if not model_file.exists():
                 ax.set_title(f"{method}: no model", fontsize=8)
                 continue
             model, _ = load_model(model_file)
-        _, test = _target_split(cfg, target, cell, test_set)
+        _, test = target_split(cfg, target, cell, test_set)
         for i, traj in enumerate(test.trajectories[:episodes]):
             predicted = model.rollout(torch.tensor(traj.states[:1]), torch.tensor(traj.actions[None]))[0].numpy()
             ax.plot(traj.states[:, 0], traj.states[:, 1], color=f"C{i}", lw=1.2, label="true" if i == 0 else None)

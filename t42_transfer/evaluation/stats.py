@@ -177,6 +177,22 @@ def _ranks(values: np.ndarray) -> np.ndarray:
     return ranks
 
 
+def spearman(x: Sequence[float] | np.ndarray, y: Sequence[float] | np.ndarray) -> tuple[float, float]:
+    """Spearman's rank correlation of paired values and its two-sided p (the t approximation, n - 2 degrees of
+    freedom); ties share their mean rank.  ValueError below 3 pairs or for a constant side (no ranking)."""
+    a, b = _finite(x, "x"), _finite(y, "y")
+    if len(a) != len(b) or len(a) < 3:
+        raise ValueError(f"need at least 3 pairs of equal length, got {len(a)} and {len(b)}")
+    ra, rb = _ranks(a), _ranks(b)
+    if ra.std() == 0 or rb.std() == 0:
+        raise ValueError("a constant side has no ranking to correlate")
+    rho = float(np.clip(np.corrcoef(ra, rb)[0, 1], -1.0, 1.0))
+    if 1.0 - rho * rho < 1e-15:  # a perfect ranking, up to rounding
+        return rho, 0.0
+    t = abs(rho) * math.sqrt((len(a) - 2) / (1.0 - rho * rho))
+    return rho, min(1.0, 2.0 * (1.0 - student_t_cdf(t, len(a) - 2)))
+
+
 def wilcoxon_signed_rank(differences: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """``(W+, p)``: the sum of the ranks of |d| over positive ``d`` and its two-sided p-value.
 

@@ -64,6 +64,11 @@ class LatentDynamics(nn.Module, abc.ABC):
     def observe(self, z: Tensor) -> Tensor:
         """Hand state ``[B, 4]`` shown by latent ``z``."""
 
+    def held_latents(self) -> tuple[int, ...]:
+        """Latent coordinates ``latent_step`` carries unchanged: parameters of the episode (the grasp state some
+        networks read), not state. Their directions are neutral by construction, so dynamics analyses leave them out."""
+        return ()
+
     def rollout_with_grad(self, x0: Tensor, actions: Tensor) -> Tensor:
         """Open-loop prediction keeping the autograd graph (trajectory training)."""
         _check_shapes(x0, actions)

@@ -121,6 +121,9 @@ class TransitionModel(LatentDynamics):
     def observe(self, z: Tensor) -> Tensor:
         return z[:, :STATE_DIM]
 
+    def held_latents(self) -> tuple[int, ...]:
+        return tuple(range(STATE_DIM, 2 * STATE_DIM)) if self.grasp_input else ()
+
     def config(self) -> dict:
         return {"grasp_input": self.grasp_input, "hidden": self.hidden, "dropout": self.dropout}
 

@@ -14,6 +14,7 @@ import sys
 import torch
 from torch import Tensor
 
+from t42_transfer.conventions import STATE_DIM
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 from t42_transfer.models.network import TransitionModel, config_number
 
@@ -50,7 +51,7 @@ class CumulativeResidualModel(LatentDynamics):
         self.residual = residual
         self.alpha = float(alpha)
         self.gamma = float(gamma)
-        self.latent_dim = source.latent_dim + residual.latent_dim
+        self.latent_dim = source.latent_dim + STATE_DIM  # y: a sum of hand-state changes
         for p in self.source.parameters():
             p.requires_grad_(False)
 
@@ -66,6 +67,9 @@ class CumulativeResidualModel(LatentDynamics):
     def observe(self, z: Tensor) -> Tensor:
         zs, y = z[:, : self.source.latent_dim], z[:, self.source.latent_dim :]
         return self.source.observe(zs) + y
+
+    def held_latents(self) -> tuple[int, ...]:
+        return self.source.held_latents()  # the residual sum y changes every step
 
     def config(self) -> dict:
         return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha,
@@ -109,6 +113,9 @@ class RecurrentResidualModel(LatentDynamics):
 
     def observe(self, z: Tensor) -> Tensor:
         return self.source.observe(z)
+
+    def held_latents(self) -> tuple[int, ...]:
+        return self.source.held_latents()
 
     def config(self) -> dict:
         return {"source": _spec(self.source), "residual": _spec(self.residual), "alpha": self.alpha}
