@@ -28,6 +28,10 @@ run of the reference method itself in another setting is paired with it too.
     .venv/bin/python scripts/paired_tables.py --grid --metric divergence_mean_10mm docs/experiments/*_paper_random
     .venv/bin/python scripts/paired_tables.py --variants docs/experiments/abrupt_paper_random \\
         docs/experiments/abrupt_cumres_*
+
+``--sources``: runs that differ only in their source model (e.g. its training seed): each method against the
+reference paired within each source, per source, pooled over all cells, and over the sources (their mean
+differences as the sample: the interval that counts a source model as the unit it is).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import json
 import sys
 from pathlib import Path
 
-from t42_transfer.evaluation.stats import compare_methods, holm, one_per_draw
+from t42_transfer.evaluation.stats import compare_methods, holm, one_per_draw, t_interval
 
 METRICS = {"divergence_mean_4mm": "4 mm", "divergence_mean_10mm": "10 mm"}
 GRID_METRICS = {**METRICS, "position_mse_mean": "position MSE, mm² (lower is better; won = higher)"}
@@ -180,6 +184,42 @@ def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     return "".join(out)
 
 
+def sources_table(runs: list[Path], reference: str) -> str:
+    """Runs that differ only in the source model (its training seed): every method against ``reference`` paired
+    cell by cell within each source, per source and pooled, and over the sources (their means as the sample)."""
+    rows = [{**r, "source": i} for i, run in enumerate(runs) for r in _rows(run)]
+    match = ("source", "amount", "seed")
+    methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m != reference]
+    out = [f"Sources: {', '.join(f'{i}: {run.name}' for i, run in enumerate(runs))}\n"]
+    for metric, label in METRICS.items():
+        out.append(f"\n{label}, against {reference} (steps; cells paired within each source)\n\n")
+        out.append("| method | " + " | ".join(f"source {i}" for i in range(len(runs)))
+                   + " | pooled: cells, mean, 95 % t, p (Holm) | over sources: mean, 95 % t (df "
+                   + f"{len(runs) - 1}) | sources below 0 |\n")
+        out.append("|---|" + "---|" * len(runs) + "---|---|---|\n")
+        pooled = {m: compare_methods(rows, metric, m, reference, match=match)["all"] for m in methods}
+        adjusted = dict(zip(methods, holm([pooled[m].t_p for m in methods]), strict=True))
+        for method in methods:
+            per = compare_methods(rows, metric, method, reference, match=match, by="source")
+            cells = []
+            for i in range(len(runs)):
+                if i not in per:
+                    cells.append("-")
+                    continue
+                low, high = per[i].t_interval
+                cells.append(f"{per[i].mean_difference:+.1f} ({low:+.1f} to {high:+.1f})")
+            means = [per[i].mean_difference for i in per]
+            between = "-"
+            if len(means) >= 2:
+                low, high = t_interval(means)
+                between = f"{sum(means) / len(means):+.1f} ({low:+.1f} to {high:+.1f})"
+            low, high = pooled[method].t_interval
+            out.append(f"| {method} | " + " | ".join(cells) + f" | {pooled[method].n}, "
+                       f"{pooled[method].mean_difference:+.1f}, {low:+.1f} to {high:+.1f}, {pooled[method].t_p:.2g} "
+                       f"({adjusted[method]:.2g}) | {between} | {sum(m < 0 for m in means)} of {len(means)} |\n")
+    return "".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="experiment run directories (with results.json)")
@@ -188,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--winners", action="store_true", help="the best method per run and amount")
     mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
+    mode.add_argument("--sources", action="store_true",
+                      help="the runs differ only in their source model: pair within each, pool over them")
     parser.add_argument("--metric", choices=sorted(GRID_METRICS), default="divergence_mean_4mm",
                         help="for --grid and --winners (position MSE: --grid only)")
     parser.add_argument("--reference", default="direct", help="for --grid and --variants (default: direct)")
@@ -205,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         print(winners_table(args.runs, args.metric))
     elif args.variants:
         print(variants_table(args.variants, args.runs, args.reference))
+    elif args.sources:
+        print(sources_table(args.runs, args.reference))
     else:
         for run in args.runs:
             print(tables(run))

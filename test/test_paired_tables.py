@@ -95,3 +95,20 @@ def test_tables_give_t_p_with_its_holm_adjustment_over_the_tables_methods(tables
     adjusted = holm(raw)
     assert "| naive_finetune | 4 | +3.0 | " in text and f"| {raw[0]:.2g} ({adjusted[0]:.2g}) |" in text
     assert f"| {raw[1]:.2g} ({adjusted[1]:.2g}) |" in text and adjusted[0] == 2 * raw[0]
+
+
+def test_sources_pair_within_each_source_and_pool_over_them(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Three runs with other source models: direct differs per source, so only within-source pairs are right."""
+    s0 = _run(tmp_path, "s0", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]]})  # +3
+    s1 = _run(tmp_path, "s1", {"direct": [[50, 50], [50, 50]], "naive_finetune": [[49, 49], [49, 49]]})  # -1
+    s2 = _run(tmp_path, "s2", {"direct": [[20, 20], [20, 20]], "naive_finetune": [[22, 22], [22, 22]]})  # +2
+    text = tables.sources_table([s0, s1, s2], "direct")
+    row = next(line for line in text.splitlines() if line.startswith("| naive_finetune |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1].startswith("+3.0 (") and cells[2].startswith("-1.0 (") and cells[3].startswith("+2.0 (")
+    assert cells[4].startswith("12, +1.3,")  # 12 cells pooled: (4 * 3 - 4 * 1 + 4 * 2) / 12
+    assert cells[5].startswith("+1.3 (") and cells[6] == "1 of 3"
+    # Pairing across sources would mix direct's 10, 50 and 20: the pooled mean would still be +1.3, so check that a
+    # source's own interval is its own: s1's differences are all -1, a zero-width interval.
+    assert cells[2] == "-1.0 (-1.0 to -1.0)"
+    assert "10 mm" in text and cells[0] == "naive_finetune"
