@@ -39,3 +39,12 @@ def test_holding_still_diverges_once_a_plan_has_moved_the_object_4_mm() -> None:
     assert scores["hold_still"]["position_mse_mm2"] > 100.0
     with pytest.raises(ValueError, match="first command"):
         executed_plan_scores({"hold_still": HoldStill()}, TrajectorySet([goal_episode(80, 5, 5)], hand="target"))
+
+
+def test_an_episode_that_mostly_holds_still_is_a_plan() -> None:
+    from t42_transfer.evaluation.online_loop import episode_kind
+
+    assert episode_kind(goal_episode(80, 20, 30)) == "plan"  # 110 of 130 steps idle
+    assert episode_kind(goal_episode(5, 60, 0)) == "exploration"
+    explored = Trajectory(np.zeros((41, 4)), np.random.default_rng(0).uniform(-1, 1, (40, 2)), hand="target")
+    assert episode_kind(explored) == "exploration"

@@ -143,3 +143,45 @@ def test_the_service_refuses_auto_when_too_few_episodes_remain(tmp_path, source_
     with pytest.raises(TransferRefused, match="auto needs at least 2 target episodes .* got 1"):
         run_transfer(spec)
     assert not (tmp_path / "models").exists() or not any((tmp_path / "models").iterdir())
+
+
+def _plan_like(episode: Trajectory) -> Trajectory:
+    """The episode with its actions zeroed but for a stretch in the middle: an executed plan's shape."""
+    actions = np.zeros_like(episode.actions)
+    actions[5:10] = episode.actions[5:10]
+    return dataclasses.replace(episode, actions=actions)
+
+
+def test_hold_out_takes_a_share_of_each_kind_of_episode(make_set) -> None:
+    from t42_transfer.transfer.online import hold_out
+
+    explored = list(make_set([30] * 6, seed=13, hand="target"))
+    plans = [_plan_like(t) for t in make_set([30] * 4, seed=14, hand="target")]
+    data = TrajectorySet(explored + plans, hand="target")
+    for seed in range(10):  # a share of all ten at random would hold out no plan for some seeds
+        train, held = hold_out(data, 0.25, seed)
+        kinds = sorted(int(np.abs(t.actions).sum(axis=1).astype(bool).mean() < 0.5) for t in held)
+        assert kinds == [0, 1] and len(train) == 8  # int(0.25 * 6) = 1 exploration, int(0.25 * 4) -> 1 plan
+    one_plan = TrajectorySet(explored + plans[:1], hand="target")
+    train, held = hold_out(one_plan, 0.25, 0)  # a kind with one episode trains
+    assert len(held) == 1 and all(np.abs(t.actions).sum() > 0 for t in held) and plans[0] in list(train)
+    only_two = TrajectorySet([explored[0], plans[0]], hand="target")
+    assert [len(part) for part in hold_out(only_two, 0.25, 0)] == [1, 1]  # no kind can split: one held out of all
+
+
+def test_the_service_scores_each_kind_of_held_out_episode(tmp_path, source_file, make_set) -> None:
+    explored = list(make_set([30] * 6, seed=15, hand="target"))
+    plans = [_plan_like(t) for t in make_set([30] * 4, seed=16, hand="target")]
+    write_bag(tmp_path / "bags" / "b0", TrajectorySet(assign_start_times(explored + plans)))
+    fast = dataclasses.replace(TransferConfig().l2_finetune, train=TrainConfig(epochs=1, patience=None))
+    spec = OnlineTransferSpec(source_model=source_file, model_dir=tmp_path / "models", bag_dir=tmp_path / "bags",
+                              config=dataclasses.replace(TransferConfig(), l2_finetune=fast))
+    result = run_transfer(spec)
+    by_kind = result.held_out_by_kind
+    assert sorted(by_kind) == ["exploration", "plan"] and by_kind["exploration"]["episodes"] == 1
+    assert by_kind["plan"]["episodes"] == 1 and result.held_out_episodes == 2
+    for scores in by_kind.values():
+        assert scores["hold_still_divergence_steps"] >= 1 and scores["model_position_mse_mm2"] > 0
+    assert "held out by kind: exploration (1):" in result.summary() and ", plan (1):" in result.summary()
+    _, meta = load_model(result.model_path)
+    assert meta["extra"]["evaluation"]["by_kind"] == json.loads(json.dumps(by_kind))

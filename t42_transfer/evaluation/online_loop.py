@@ -39,6 +39,19 @@ def idle_share(data: TrajectorySet) -> float:
     return float((np.abs(actions).sum(axis=1) == 0).mean())
 
 
+PLAN_IDLE_SHARE = 0.5
+"""An episode idle (zero action) on at least this share of its steps is an executed plan: the suite's plan episodes
+settle after the grasp, run a plan and hold (0.79 of their steps idle in the measured loop); exploration with
+random actions is about 0.05 idle (docs/experiments/online_loop)."""
+EPISODE_KINDS = ("exploration", "plan")
+
+
+def episode_kind(episode: Trajectory) -> str:
+    """``"plan"`` for an episode that mostly holds still (:data:`PLAN_IDLE_SHARE`), else ``"exploration"``."""
+    idle = float((np.abs(episode.actions).sum(axis=1) == 0).mean()) if len(episode.actions) else 1.0
+    return "plan" if idle >= PLAN_IDLE_SHARE else "exploration"
+
+
 def scores_on(models: Mapping[str, LatentDynamics], data: TrajectorySet) -> dict[str, dict[str, float]]:
     """Divergence (4 mm, steps) and position MSE (mm²) of each model on ``data``."""
     scores = {}

@@ -141,7 +141,8 @@ class TransferServerParams:
     config: str = param("", "YAML file of overrides of the methods' settings, e.g. "
                                  "'cumulative_residual: {train: {epochs: 50}}' (empty: the paper's defaults); "
                                  "checked when set, read at every call")
-    holdout_fraction: float = param(0.25, "share of the new episodes held out (at least one) to score the model",
+    holdout_fraction: float = param(0.25, "share of the new episodes held out (at least one) to score the model, "
+                                    "of exploration and of executed plans apart",
                                     min=0.0, max=1.0, constraints="strictly between 0 and 1")
     min_episodes: int = param(2, "fewer new episodes than this are refused as too little data", min=2)
     seed: int = param(0, "seed of the hold-out split and the training", min=0)

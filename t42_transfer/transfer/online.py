@@ -8,13 +8,15 @@ the rest of the science.  One :func:`run_transfer`:
    previous successful transfer used, as recorded in ``model_dir/transfer_state.json``;
 2. loads the source model (a plain transition model) and reads the new bags,
    skipping (and naming, with why) any it cannot read;
-3. holds out whole target episodes (``holdout_fraction`` of them, at least
-   one, never all) and transfers with the rest; method ``auto`` trains every
+3. holds out whole target episodes (``holdout_fraction`` of each kind,
+   exploration and executed plans, at least one, never all) and transfers with
+   the rest; method ``auto`` trains every
    candidate on part of the rest, scores each on other whole episodes of it and
    keeps the best (:func:`~t42_transfer.transfer.methods.select_method`), so the
    held-out episodes still score a model they did not help choose;
 4. scores the transferred model and, for reference, the source alone and the
-   hold-still baseline on the held-out episodes (divergence time at 4 mm, position MSE);
+   hold-still baseline on the held-out episodes (divergence time at 4 mm, position MSE),
+   all of them and each kind apart;
 5. saves ``model_dir/transferred_<NNN>.safetensors``, then replaces
    ``model_dir/current.safetensors``, then records the bags as used.
 
@@ -56,6 +58,7 @@ from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
+from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.network import TransitionModel
@@ -155,6 +158,8 @@ class TransferResult:
     """Steps the driver ran late, kept as data in the training and held-out episodes."""
     selection: Selection | None = None
     """What ``auto`` picked and every candidate's score (None for a named method)."""
+    held_out_by_kind: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
+    """:func:`scores_by_kind` of the held-out episodes: exploration and executed plans apart."""
 
     @property
     def skipped(self) -> tuple[str, ...]:
@@ -171,8 +176,16 @@ class TransferResult:
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
             f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2; hold-still "
             f"{self.hold_still_divergence_steps:.1f} steps, {self.hold_still_position_mse_mm2:.2f} mm^2); "
-            f"model {self.model_path}{skipped_note(self.skipped)}{reading_note(self.notes)}"
+            f"model {self.model_path}{self._kinds_note()}{skipped_note(self.skipped)}{reading_note(self.notes)}"
         )
+
+    def _kinds_note(self) -> str:
+        if len(self.held_out_by_kind) < 2:
+            return ""
+        parts = [f"{kind} ({int(s['episodes'])}): {s['model_divergence_steps']:.1f} steps, source "
+                 f"{s['source_divergence_steps']:.1f}, {s['model_position_mse_mm2']:.2f} mm^2"
+                 for kind, s in self.held_out_by_kind.items()]
+        return "; held out by kind: " + ", ".join(parts)
 
 
 # ---------------------------------------------------------------- configuration
@@ -353,17 +366,42 @@ def merged_workspace(source_meta: Mapping[str, Any], target: TrajectorySet) -> W
 
 
 def hold_out(data: TrajectorySet, fraction: float, seed: int) -> tuple[TrajectorySet, TrajectorySet]:
-    """``(train, held_out)``: ``fraction`` of the episodes (rounded down, at least one, never all) held out.
+    """``(train, held_out)``: ``fraction`` of the episodes (rounded down, at least one, never all) held out, of
+    each kind apart (:func:`~t42_transfer.evaluation.online_loop.episode_kind`).
 
     Counted in episodes, not transitions: the score is one open-loop rollout per
     held-out episode, and with the few episodes of one session a transition
-    count would hold out more than asked.
+    count would hold out more than asked.  Per kind: once the loop has recorded
+    executed plans beside exploration, a share of each is held out (a kind with
+    one episode trains), so the score covers the regime the planner uses as well
+    as random actions, which predict it badly (docs/evaluation.md, section 9).
     """
     if len(data) < 2:
         raise ValueError(f"need at least 2 episodes to hold one out, got {len(data)}")
-    order = np.random.default_rng(seed).permutation(len(data))
-    count = min(max(1, int(fraction * len(data))), len(data) - 1)
-    return data.subset(sorted(order[count:])), data.subset(sorted(order[:count]))
+    kinds = [episode_kind(t) for t in data]
+    groups = [[i for i, k in enumerate(kinds) if k == kind] for kind in EPISODE_KINDS]
+    groups = [g for g in groups if len(g) >= 2] or [list(range(len(data)))]
+    rng, held = np.random.default_rng(seed), []
+    for group in groups:
+        order = np.asarray(group)[rng.permutation(len(group))]
+        held.extend(order[: min(max(1, int(fraction * len(group))), len(group) - 1)].tolist())
+    return data.subset(sorted(set(range(len(data))) - set(held))), data.subset(sorted(held))
+
+
+def scores_by_kind(model: Any, source: Any, held_out: TrajectorySet) -> dict[str, dict[str, float]]:
+    """Per episode kind among ``held_out``: its count and the model's, the source's and hold-still's divergence
+    (4 mm, steps) and position MSE (mm²): random actions and executed plans are predicted differently."""
+    out = {}
+    for kind in EPISODE_KINDS:
+        episodes = TrajectorySet([t for t in held_out if episode_kind(t) == kind], hand=held_out.hand)
+        if not len(episodes):
+            continue
+        out[kind] = {"episodes": len(episodes)}
+        for name, scored in (("model", model), ("source", source), ("hold_still", HoldStill())):
+            result = evaluate_model(scored, episodes)
+            out[kind][f"{name}_divergence_steps"] = float(result["divergence_mean"])
+            out[kind][f"{name}_position_mse_mm2"] = float(result["position_mse_mean"])
+    return out
 
 
 # ---------------------------------------------------------------- the transfer
@@ -449,9 +487,11 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     scores = evaluate_model(model, held_out)
     baseline = evaluate_model(source, held_out)
     still = evaluate_model(HoldStill(), held_out)
+    by_kind = scores_by_kind(model, source, held_out)
     check_cancel("evaluating")
     report("saving", {})
-    path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace, scores, selection)
+    path = _commit(model, spec, state, readable, source_meta, train, held_out, workspace,
+                   {**scores, "by_kind": by_kind}, selection)
     return TransferResult(
         method=spec.method, bags=tuple(readable), episodes=len(train), transitions=train.num_transitions,
         held_out_episodes=len(held_out), divergence_steps=scores["divergence_mean"],
@@ -460,6 +500,7 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         skipped_bags=tuple(skipped_pairs),
         hold_still_divergence_steps=still["divergence_mean"], hold_still_position_mse_mm2=still["position_mse_mean"],
         notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data), selection=selection,
+        held_out_by_kind=by_kind,
     )
 
 
@@ -476,6 +517,7 @@ def _commit(
     evaluation = {
         "held_out": held_out.fingerprint(), "episodes": len(held_out),
         "divergence_steps": scores["divergence_mean"], "position_mse_mm2": scores["position_mse_mean"],
+        "by_kind": scores.get("by_kind", {}),
     }
     made_by = spec.method if selection is None else selection.best
     section = getattr(spec.config, made_by, None)
