@@ -44,12 +44,14 @@ def with_source_model(out_dir: Path, model: Path) -> Path:
     return out_dir
 
 
+@pytest.mark.serial
 def test_demo_quick_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str], ros_domain: int,
                                          quick_source_model: Path) -> None:
     summary, report = story_told(with_source_model(tmp_path, quick_source_model), capsys)
     assert summary["hardware"] == "sim" and summary["driver"] == "mock_driver" and "`mock_driver` (sim)" in report
 
 
+@pytest.mark.serial
 def test_demo_quick_on_emulated_hardware_runs_the_whole_story(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                               ros_domain: int, quick_source_model: Path) -> None:
     """The same story through the real hand's nodes: the Dynamixel driver on the emulated servo bus, the object
@@ -88,8 +90,10 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
                quick: bool = True) -> tuple[dict, str]:
     """Run ``t42 demo [--quick] *options`` and check the story every hand tells; its summary and report."""
     size = ["--quick"] if quick else []
-    assert main(["demo", *size, "--out", str(out_dir), "--workers", "1", *options]) == 0, capsys.readouterr()
-    out = capsys.readouterr().out
+    code = main(["demo", *size, "--out", str(out_dir), "--workers", "1", *options])
+    captured = capsys.readouterr()
+    assert code == 0, f"exit {code}\n{captured.out[-4000:]}\n{captured.err[-4000:]}"
+    out = captured.out
     (run_dir,) = [p for p in out_dir.iterdir() if p.is_dir() and (p / "demo.json").is_file()]
     summary = json.loads((run_dir / "demo.json").read_text())
     if quick:  # the module's source model, copied in: the demo took it from its cache

@@ -93,6 +93,7 @@ def test_a_bad_parameter_ends_the_process_with_one_line(ros_domain: int, tmp_pat
     assert len(errors) == 1 and "method must be one of" in errors[0], done.stderr
 
 
+@pytest.mark.serial
 @pytest.mark.executor_threads(4)
 def test_a_driver_frozen_three_times_mid_episode_costs_no_bag(ros, tmp_path: Path,
                                                               source_model: Path) -> None:  # noqa: F811
