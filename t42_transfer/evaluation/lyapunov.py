@@ -13,9 +13,10 @@ A model is analysed through its latent map ``latent_step``, so hidden state
 in the paper's theorem.  Coordinates the map carries unchanged (the grasp state a
 network reads, :meth:`~t42_transfer.models.dynamics.LatentDynamics.held_latents`)
 are parameters, not state: the Jacobian is block triangular with an identity block
-there, which only adds exponents of exactly 0, and left in they would make every
-such model's maximal exponent at least 0.  They are held at their orbit's values
-and left out.  Exponents are per 0.1 s step, natural log.
+there, which only adds exponents of exactly 0 to the full spectrum (a frame started
+in the state block stays there, so the maximal exponent is the same either way).
+They are held at their orbit's values and left out.  Exponents are per 0.1 s step,
+natural log.
 
 Two settings make a finite-time estimate mean something.  ``burn_in`` steps move
 the orbit onto its attractor and turn the frame toward the growing directions

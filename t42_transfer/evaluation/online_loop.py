@@ -35,8 +35,11 @@ def commanded(data: TrajectorySet, to_last_command: bool = False, min_steps: int
 
 def idle_share(data: TrajectorySet) -> float:
     """The share of steps whose action is zero (holding still)."""
-    actions = np.concatenate([t.actions for t in data])
-    return float((np.abs(actions).sum(axis=1) == 0).mean())
+    return _idle(np.concatenate([t.actions for t in data]))
+
+
+def _idle(actions: np.ndarray) -> float:
+    return float((np.abs(actions).sum(axis=1) == 0).mean()) if len(actions) else 1.0
 
 
 PLAN_IDLE_SHARE = 0.5
@@ -48,8 +51,7 @@ EPISODE_KINDS = ("exploration", "plan")
 
 def episode_kind(episode: Trajectory) -> str:
     """``"plan"`` for an episode that mostly holds still (:data:`PLAN_IDLE_SHARE`), else ``"exploration"``."""
-    idle = float((np.abs(episode.actions).sum(axis=1) == 0).mean()) if len(episode.actions) else 1.0
-    return "plan" if idle >= PLAN_IDLE_SHARE else "exploration"
+    return "plan" if _idle(episode.actions) >= PLAN_IDLE_SHARE else "exploration"
 
 
 def scores_on(models: Mapping[str, LatentDynamics], data: TrajectorySet) -> dict[str, dict[str, float]]:
