@@ -82,6 +82,14 @@ def plain(value: ParameterValue) -> object:
             ParameterType.PARAMETER_DOUBLE_ARRAY: list(value.double_array_value)}.get(value.type, f"type {value.type}")
 
 
+def stamp_ns(message: PoseStamped | CameraInfo) -> int:
+    return message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+
+
+def counted(poses: list[PoseStamped], first_info_ns: int) -> list[PoseStamped]:
+    return [p for p in poses if stamp_ns(p) >= first_info_ns]
+
+
 def main(argv: list[str]) -> int:
     want_poses = int(argv[0]) if argv else 5
     rclpy.init()
@@ -113,13 +121,18 @@ def main(argv: list[str]) -> int:
         user.wait(lambda: any(i.header.frame_id == NEW_FRAME_ID for i in user.infos), 20.0,
                   f"camera_info with frame_id {NEW_FRAME_ID}")
 
+        # A pose may come from an image whose camera_info went out before this script's subscription matched
+        # (the tracker lags the camera under load): count only poses of images after the first info seen, and
+        # wait until the infos of the counted poses' images have arrived too.
         user.create_subscription(PoseStamped, "/tracker/object_pose", user.poses.append, 10)
-        user.wait(lambda: len(user.poses) >= want_poses, 30.0, f"{want_poses} object poses")
-        seen["poses"] = [{"frame_id": p.header.frame_id,
-                          "stamp_ns": p.header.stamp.sec * 1_000_000_000 + p.header.stamp.nanosec,
-                          "xyz_m": [p.pose.position.x, p.pose.position.y, p.pose.position.z]} for p in user.poses]
-        seen["camera_info_stamps_ns"] = [i.header.stamp.sec * 1_000_000_000 + i.header.stamp.nanosec
-                                         for i in user.infos]
+        first_info_ns = stamp_ns(user.infos[0])
+        user.wait(lambda: len(counted(user.poses, first_info_ns)) >= want_poses, 30.0, f"{want_poses} object poses")
+        poses = counted(user.poses, first_info_ns)
+        user.wait(lambda: stamp_ns(user.infos[-1]) >= max(stamp_ns(p) for p in poses), 10.0,
+                  "camera_info of the last pose's image")
+        seen["poses"] = [{"frame_id": p.header.frame_id, "stamp_ns": stamp_ns(p),
+                          "xyz_m": [p.pose.position.x, p.pose.position.y, p.pose.position.z]} for p in poses]
+        seen["camera_info_stamps_ns"] = [stamp_ns(i) for i in user.infos]
     except TimeoutError as err:
         seen["error"] = str(err)
     print(json.dumps(seen))
