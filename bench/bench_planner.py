@@ -18,7 +18,15 @@ in that round, which a shared machine's changing load disturbs least:
   (baseline b): one command rolls out K samples once; skipped with a note when
   pytorch_mppi is not installed (``pip install pytorch_mppi==0.9.1``);
 - ``matmul_bound``: only the three ``addmm`` of one step at batch K, into
-  preallocated outputs: the matrix work of one step, the reference ceiling.
+  preallocated outputs: the matrix work of one step, the reference ceiling;
+- ``transcendental_floor``: ``matmul_bound`` plus the two transcendental passes
+  every step of this MLP needs, one ``exp2`` over the first hidden layer (SELU's
+  negative branch) and one ``sigmoid`` over the second (tanh), as eager torch
+  kernels at batch K.  ``transcendental_floor_vs_matmul_bound`` is the most an
+  eager rollout evaluating those two functions over whole layers with torch's
+  kernels can reach against the bound; ``fused_rollout_vs_transcendental_floor``
+  is what the fused rollout's other work (clamps, adds, copies, dispatch) leaves
+  of that.
 
 Every rate counts the rollouts a call actually made (``rollouts_per_call`` x horizon
 sample-steps): a planner call in the default mode rolls out about four times K, so
@@ -96,6 +104,26 @@ def matmul_only(model: TransitionModel, batch: int, horizon: int) -> Callable[[]
         for _ in range(horizon):
             torch.addmm(b1, inputs, w1, out=h1)
             torch.addmm(b2, h1, w2, out=h2)
+            torch.addmm(b3, h2, w3, out=out)
+
+    return run
+
+
+def transcendental_floor(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
+    """``matmul_only`` plus one exp2 pass over the first hidden layer and one sigmoid pass over the second."""
+    l1, l2, l3 = (model.net[i] for i in (0, 3, 6))
+    w1, w2, w3 = (layer.weight.detach().T.contiguous() for layer in (l1, l2, l3))
+    b1, b2, b3 = (layer.bias.detach() for layer in (l1, l2, l3))
+    inputs = torch.randn(batch, w1.shape[0])
+    h1, h2, out = torch.empty(batch, w1.shape[1]), torch.empty(batch, w2.shape[1]), torch.empty(batch, w3.shape[1])
+    exp2, sigmoid = torch.empty_like(h1), torch.empty_like(h2)
+
+    def run() -> None:
+        for _ in range(horizon):
+            torch.addmm(b1, inputs, w1, out=h1)
+            torch.exp2(h1, out=exp2)
+            torch.addmm(b2, h1, w2, out=h2)
+            torch.sigmoid(h2, out=sigmoid)
             torch.addmm(b3, h2, w3, out=out)
 
     return run
@@ -215,6 +243,7 @@ def main() -> None:
         "fused_rollout": lambda: fused(x0, actions),
         "eager_loop": lambda: eager_loop(net, x0, actions),
         "matmul_bound": matmul_only(model, k, horizon),
+        "transcendental_floor": transcendental_floor(model, k, horizon),
     }
     mppi = mppi_command(net, k, horizon)
     notes = {}
@@ -243,7 +272,8 @@ def main() -> None:
                                  for ta, tb in zip(times[a], times[b], strict=True))
 
     pairs = [(p, b) for p in ("planner_default", "planner_one_round") for b in ("eager_loop", "matmul_bound", "mppi")]
-    pairs.append(("fused_rollout", "matmul_bound"))
+    pairs += [("fused_rollout", "matmul_bound"), ("transcendental_floor", "matmul_bound"),
+              ("fused_rollout", "transcendental_floor")]
     pairs = [(a, b) for a, b in pairs if b in times]
     ratios = {f"{a}_vs_{b}": paired(a, b) for a, b in pairs}
     described = {f"{a}_vs_{b}": f"sample-steps per second of the rollouts {a} made, over those of {b}"

@@ -78,7 +78,8 @@ def test_bench_planner(tmp_path: Path) -> None:
     assert result["benchmark"] == "planner"
     params = result["parameters"]
     assert (params["samples"], params["horizon"], params["repeats"]) == (50, 5, 1)
-    cases = {"planner_default", "planner_one_round", "fused_rollout", "eager_loop", "matmul_bound"}
+    cases = {"planner_default", "planner_one_round", "fused_rollout", "eager_loop", "matmul_bound",
+             "transcendental_floor"}
     cases |= set() if "mppi" in result["notes"] else {"mppi"}  # a note instead when pytorch_mppi is absent
     for key in ("sample_steps_per_s", "best_sample_steps_per_s", "ms_per_call", "repeats_s", "rollouts_per_call"):
         assert set(result[key]) == cases, key
@@ -90,7 +91,8 @@ def test_bench_planner(tmp_path: Path) -> None:
     for name, per_s in result["sample_steps_per_s"].items():
         assert per_s == pytest.approx(made[name] * 5 / (result["ms_per_call"][name] / 1e3)), name
     pairs = {f"{p}_vs_{b}" for p in ("planner_default", "planner_one_round") for b in ("eager_loop", "matmul_bound")}
-    pairs |= {"fused_rollout_vs_matmul_bound"}
+    pairs |= {"fused_rollout_vs_matmul_bound", "transcendental_floor_vs_matmul_bound",
+              "fused_rollout_vs_transcendental_floor"}
     pairs |= {f"{p}_vs_mppi" for p in ("planner_default", "planner_one_round")} if "mppi" in cases else set()
     assert set(result["ratios"]) == set(result["ratios_described"]) == pairs
     assert all(positive(v) for v in result["ratios"].values())
