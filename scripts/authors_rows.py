@@ -16,7 +16,7 @@ paper's text); the recurrent residual at ``--recurrent-alphas``.
 
 One JSON per group (``direct``, ``new_model``, ``naive_finetune``, ``trajectory_finetune``,
 ``recurrent_residual_a<alpha>``, ``cumulative_residual_a<alpha>_g<gamma>``) plus ``hold_still``
-in OUT (default docs/authors_models); each row carries its file's sha256, the 1-minute load
+in OUT (default docs/experiments/authors_models); each row carries its file's sha256, the 1-minute load
 average when it was scored and its seconds.  A row already in OUT with the same settings is kept
 (an interrupted run resumes).  ``table`` prints the markdown tables from OUT (mean and sample
 standard deviation over the five repeats per family x amount, each mode and threshold, beside
@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 MODELS_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "authors_models"
-OUT = Path("docs/authors_models")
+OUT = Path("docs/experiments/authors_models")
 NAME = re.compile(r"(?:real_(?P<hand>[AB])|transferB2A_(?P<method>[a-z_]+?))_heldout(?P<h>[0-9.]+)_(?P<r>[0-9]+)\.pkl")
 GROUPS = {"real_B": "direct", "real_A": "new_model", "retrain_naive": "naive_finetune",
           "retrain": "trajectory_finetune", "traj_transfer_timeless": "cumulative_residual",

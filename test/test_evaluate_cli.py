@@ -133,7 +133,11 @@ def test_dropout_draws_are_seeded_averaged_and_reported_beside_dropout_off(made,
     assert both.models[0] == on and both.dropout_off[0] == off
     out = tmp_path / "e.json"
     assert _run(made, "--dropout-draws", "8", "--seed", "1", "--json", str(out), models=("noisy",)) == 0
-    assert json.loads(out.read_text())["models"][0]["divergence_mean_4mm"] == on.divergence_mean_4mm
+    stored = json.loads(out.read_text())
+    assert set(stored) == {"models", "hold_still", "dropout_draws", "dropout_off"} and stored["dropout_draws"] == 8
+    assert stored["models"][0]["divergence_mean_4mm"] == on.divergence_mean_4mm
+    kept_off = {**json.loads(json.dumps(off.as_dict())), "path": str(made["noisy"])}
+    assert stored["dropout_off"][0] == kept_off  # both modes kept
     table = capsys.readouterr().out
     assert "dropout off" in table and "dropout on (8 draws)" in table
 

@@ -595,9 +595,20 @@ def test_rows_name_their_training_draw_the_same_for_every_method(config_file: Pa
     import dataclasses
 
     cfg = dataclasses.replace(load_config(config_file), methods=("direct", "naive_finetune"), amounts=(1, 2))
-    rows = [r for r in run_experiment(cfg, tmp_path, progress=False) if r["method"] != "hold_still"]
+    rows = run_experiment(cfg, tmp_path, progress=False)
+    assert {r["method"] for r in rows} == {"direct", "naive_finetune", "hold_still"}
     draws = {(r["amount"], r["seed"]): set() for r in rows}
     for row in rows:
         draws[(row["amount"], row["seed"])].add(row["train_draw"])
-    assert all(len(d) == 1 for d in draws.values())  # one draw per cell, whatever the method
+    assert all(len(d) == 1 for d in draws.values())  # one draw per cell, whatever the method, hold-still too
     assert len({next(iter(d)) for (amount, _), d in draws.items() if amount == 2}) == 2  # two seeds, two draws
+
+    # cells kept from before the column get their draw back when the run is resumed, from the split alone
+    for cell in (tmp_path / cfg.name / "cells").glob("*.json"):
+        row = json.loads(cell.read_text())
+        del row["train_draw"]
+        cell.write_text(json.dumps(row))
+    def untimed(table: list[dict]) -> list[dict]:
+        return [{k: v for k, v in row.items() if k != "seconds"} for row in table]
+
+    assert untimed(run_experiment(cfg, tmp_path, progress=False)) == untimed(rows)

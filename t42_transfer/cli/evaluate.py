@@ -68,7 +68,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                     help="path numbers in the data set (default: all)")
     ev.add_argument("--dropout-draws", type=int_arg(1, 1000), default=None, metavar="K",
                     help="also roll out with dropout on, K draws per path, and report their mean (as the paper's "
-                         "numbers were taken); the JSON then holds the dropout-on numbers")
+                         "numbers were taken); the JSON's models then hold the dropout-on numbers and its "
+                         "dropout_off the others")
     ev.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0, help="seed of the dropout draws (default 0)")
     ev.add_argument("--definition", choices=("paper", "authors"), default="paper",
                     help="paper: steps before the first crossing, MSE of dx^2+dy^2; authors: the crossing step counts "

@@ -75,8 +75,14 @@ class Evaluation:
     """Steps over all paths."""
 
     def as_json(self) -> dict[str, Any]:
-        """``{"models": [...], "hold_still": {...}}``, each with the keys of :meth:`Scores.as_dict`."""
-        return {"models": [m.as_dict() for m in self.models], "hold_still": self.hold_still.as_dict()}
+        """``{"models": [...], "hold_still": {...}}``, each with the keys of :meth:`Scores.as_dict`; with
+        ``dropout_draws``, ``models`` holds the dropout-on numbers and ``dropout_off`` (same keys) and
+        ``dropout_draws`` are added, so both modes are kept."""
+        out: dict[str, Any] = {"models": [m.as_dict() for m in self.models], "hold_still": self.hold_still.as_dict()}
+        if self.dropout_off is not None:
+            out["dropout_draws"] = self.dropout_draws
+            out["dropout_off"] = [m.as_dict() for m in self.dropout_off]
+        return out
 
 
 @contextlib.contextmanager

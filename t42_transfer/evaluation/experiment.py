@@ -271,7 +271,8 @@ def baseline_rows(
             paired = next(r for c, r in cell_rows.items() if (c.amount, c.seed) == (amount, seed))
             rows.append({
                 "method": BASELINE, "amount": amount, "seed": seed, "train_episodes": len(train),
-                "train_transitions": train.num_transitions, **scored[key], "covering_radius": paired["covering_radius"],
+                "train_transitions": train.num_transitions, "train_draw": train.fingerprint()[:16], **scored[key],
+                "covering_radius": paired["covering_radius"],
                 **_training_error(model, train, test), "seconds": time.perf_counter() - start,
             })
     return rows
@@ -534,6 +535,9 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
         done = run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json"
         if done.exists():
             rows[cell] = json.loads(done.read_text())
+            if "train_draw" not in rows[cell]:  # a cell kept from before the column: its split's draw, recomputed
+                train = target_split(cfg, target.data, cell, None if test is None else test.data)[0]
+                rows[cell]["train_draw"] = train.fingerprint()[:16]
         else:
             todo.append(cell)
     for left_out in sorted({excluded[c] for c in todo}):
