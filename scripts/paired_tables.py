@@ -21,6 +21,9 @@ over the runner-up (paired over the seeds, 95 % t interval) and the runner-up.
 reference at each threshold, ``*`` where the 95 % t interval lies above 0 and ``!``
 where it lies below, ``†`` after either where it does not survive Holm's adjustment
 over the run's methods at that threshold (the verdict's headline table).
+``--adjusted``: the ranking's numbers in full, a row per run and method: the paired
+difference with its 95 % t interval, p and its Holm adjustment over the run's methods,
+and whether an interval that excludes 0 survives the adjustment (``-``: it does not exclude 0).
 ``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
 cell, against BASE's reference (e.g. the direct cells of the full run it extends); a
 run of the reference method itself in another setting is paired with it too.
@@ -163,6 +166,34 @@ def ranking_table(runs: list[Path], reference: str) -> str:
     return "".join(out)
 
 
+def adjusted_table(runs: list[Path], reference: str) -> str:
+    """The ranking's numbers in full: per run and method, at each threshold, the paired difference to ``reference``
+    with its 95 % t interval, the paired t test's p and its Holm adjustment over the run's methods at that
+    threshold, and whether the interval's conclusion survives the adjustment."""
+    out = ["| run, method | cells | " + " | ".join(f"{label}: difference, 95 % t, p (Holm), survives"
+                                                  for label in METRICS.values()) + " |\n",
+           "|---|---|" + "---|" * len(METRICS) + "\n"]
+    for run in runs:
+        rows = _rows(run)
+        methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+        cells: dict[str, list[str]] = {m: [] for m in methods}
+        counts: dict[str, int] = {}
+        for metric in METRICS:
+            paired = {m: compare_methods(rows, metric, m, reference)["all"] for m in methods}
+            adjusted = dict(zip(methods, holm([paired[m].t_p for m in methods]), strict=True))
+            for method in methods:
+                low, high = paired[method].t_interval
+                excludes_zero = low > 0 or high < 0
+                verdict = ("yes" if adjusted[method] < 0.05 else "no") if excludes_zero else "-"
+                cells[method].append(f"{paired[method].mean_difference:+.1f} ({low:+.1f} to {high:+.1f}), "
+                                     f"{paired[method].t_p:.2g} ({adjusted[method]:.2g}), {verdict}")
+                counts[method] = paired[method].n
+        for method in methods:
+            out.append(f"| {run.name}, {SHORT.get(method, method)} | {counts[method]} | "
+                       + " | ".join(cells[method]) + " |\n")
+    return "".join(out)
+
+
 def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
     every = _rows(base)
@@ -227,6 +258,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--grid", action="store_true", help="one table, a column per run")
     mode.add_argument("--winners", action="store_true", help="the best method per run and amount")
     mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
+    mode.add_argument("--adjusted", action="store_true",
+                      help="the ranking in full: intervals, p and Holm-adjusted p, what survives")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
     mode.add_argument("--sources", action="store_true",
                       help="the runs differ only in their source model: pair within each, pool over them")
@@ -243,6 +276,8 @@ def main(argv: list[str] | None = None) -> int:
         print(grid_table(args.runs, args.metric, args.reference))
     elif args.ranking:
         print(ranking_table(args.runs, args.reference))
+    elif args.adjusted:
+        print(adjusted_table(args.runs, args.reference))
     elif args.winners:
         print(winners_table(args.runs, args.metric))
     elif args.variants:

@@ -97,6 +97,24 @@ def test_tables_give_t_p_with_its_holm_adjustment_over_the_tables_methods(tables
     assert f"| {raw[1]:.2g} ({adjusted[1]:.2g}) |" in text and adjusted[0] == 2 * raw[0]
 
 
+def test_adjusted_gives_each_rankings_interval_p_and_holm_and_what_survives(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    from t42_transfer.evaluation.stats import holm, t_test_p
+
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]],
+                               "cumulative_residual": [[9, 11], [8, 10]], "hold_still": [[1, 1], [1, 1]]})
+    clear = _run(tmp_path, "b", {"direct": [[10, 10, 10], [10, 10, 10]],
+                                 "naive_finetune": [[20, 21, 20], [21, 20, 21]]})
+    lines = tables.adjusted_table([run, clear], "direct").splitlines()
+    assert [line.split(" | ")[0] for line in lines[2:]] == ["| a, naive", "| a, cumres", "| b, naive"]  # no hold
+    raw = [t_test_p([2, 4, 1, 5]), t_test_p([-1, 1, -2, 0])]
+    adjusted = holm(raw)
+    naive_4mm = lines[2].split(" | ")[2]
+    # the interval excludes 0 (the ranking's *), but not after Holm over the two methods: it does not survive
+    assert naive_4mm.startswith("+3.0 (+") and naive_4mm.endswith(f", {raw[0]:.2g} ({adjusted[0]:.2g}), no")
+    assert lines[3].split(" | ")[1] == "4" and lines[3].split(" | ")[2].endswith(", -")  # cumres: interval over 0
+    assert lines[4].split(" | ")[2].endswith(", yes")  # one method, six clear cells: survives
+
+
 def test_sources_pair_within_each_source_and_pool_over_them(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """Three runs with other source models: direct differs per source, so only within-source pairs are right."""
     s0 = _run(tmp_path, "s0", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]]})  # +3
