@@ -24,6 +24,9 @@ over the run's methods at that threshold (the verdict's headline table).
 ``--adjusted``: the ranking's numbers in full, a row per run and method: the paired
 difference with its 95 % t interval, p and its Holm adjustment over the run's methods,
 and whether an interval that excludes 0 survives the adjustment (``-``: it does not exclude 0).
+``--crossovers``: where pooling over the amounts hides a crossover: each comparison with
+the reference whose per-amount mean differences take both signs (each by a step or more),
+the pooled difference beside every amount's.
 ``--variants BASE``: each run given (e.g. one setting of a sweep) paired, cell by
 cell, against BASE's reference (e.g. the direct cells of the full run it extends); a
 run of the reference method itself in another setting is paired with it too.
@@ -194,6 +197,31 @@ def adjusted_table(runs: list[Path], reference: str) -> str:
     return "".join(out)
 
 
+def crossovers_table(runs: list[Path], reference: str, min_steps: float = 1.0) -> str:
+    """Where pooling over the amounts hides a crossover: per run, threshold and method, the comparisons with
+    ``reference`` whose per-amount mean differences take both signs, each by at least ``min_steps``; the pooled
+    difference beside each amount's (mean, 95 % t over its cells)."""
+    out = ["| run, threshold, method | pooled (95 % t) | per amount: mean (95 % t), cells |\n", "|---|---|---|\n"]
+    for run in runs:
+        rows = _rows(run)
+        methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+        for metric, label in METRICS.items():
+            for method in methods:
+                per = compare_methods(rows, metric, method, reference, by="amount")
+                means = [c.mean_difference for c in per.values()]
+                if not (max(means) >= min_steps and min(means) <= -min_steps):
+                    continue
+                pooled = compare_methods(rows, metric, method, reference)["all"]
+                low, high = pooled.t_interval
+                amounts = []
+                for amount, c in sorted(per.items()):
+                    a_low, a_high = c.t_interval
+                    amounts.append(f"{amount:g}: {c.mean_difference:+.1f} ({a_low:+.1f} to {a_high:+.1f}), {c.n}")
+                out.append(f"| {run.name}, {label}, {SHORT.get(method, method)} | {pooled.mean_difference:+.1f} "
+                           f"({low:+.1f} to {high:+.1f}) | " + "; ".join(amounts) + " |\n")
+    return "".join(out)
+
+
 def variants_table(base: Path, runs: list[Path], reference: str) -> str:
     """Each run's methods paired with ``base``'s ``reference`` cells, at both thresholds."""
     every = _rows(base)
@@ -260,6 +288,8 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
     mode.add_argument("--adjusted", action="store_true",
                       help="the ranking in full: intervals, p and Holm-adjusted p, what survives")
+    mode.add_argument("--crossovers", action="store_true",
+                      help="comparisons whose per-amount differences take both signs (what pooling hides)")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
     mode.add_argument("--sources", action="store_true",
                       help="the runs differ only in their source model: pair within each, pool over them")
@@ -278,6 +308,8 @@ def main(argv: list[str] | None = None) -> int:
         print(ranking_table(args.runs, args.reference))
     elif args.adjusted:
         print(adjusted_table(args.runs, args.reference))
+    elif args.crossovers:
+        print(crossovers_table(args.runs, args.reference))
     elif args.winners:
         print(winners_table(args.runs, args.metric))
     elif args.variants:

@@ -115,6 +115,17 @@ def test_adjusted_gives_each_rankings_interval_p_and_holm_and_what_survives(tabl
     assert lines[4].split(" | ")[2].endswith(", yes")  # one method, six clear cells: survives
 
 
+def test_crossovers_list_the_comparisons_whose_amounts_disagree_in_sign(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    run = _run(tmp_path, "a", {"direct": [[10, 10], [10, 10]], "trajectory_finetune": [[6, 7], [14, 15]],
+                               "naive_finetune": [[12, 14], [11, 15]], "cumulative_residual": [[9.5, 10], [10.2, 10]]})
+    lines = tables.crossovers_table([run], "direct").splitlines()[2:]
+    # trajectory: -3.5 at the first amount, +4.5 at the second, at both thresholds; naive gains at both amounts;
+    # cumres crosses by less than a step at 4 mm, and by -0.5 / +0.2 steps x 2 at 10 mm: under a step, left out
+    assert [line.split(" | ")[0] for line in lines] == ["| a, 4 mm, trajectory", "| a, 10 mm, trajectory"]
+    assert lines[0].split(" | ")[1] == "+0.5 (-6.9 to +7.9)"  # -4, -3, +4, +5: sd 4.65, t(3) 3.18
+    assert lines[0].split(" | ")[2].startswith("0.01: -3.5 (") and "0.1: +4.5 (" in lines[0]
+
+
 def test_sources_pair_within_each_source_and_pool_over_them(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """Three runs with other source models: direct differs per source, so only within-source pairs are right."""
     s0 = _run(tmp_path, "s0", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]]})  # +3
