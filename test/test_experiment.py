@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -409,6 +410,9 @@ def test_the_run_records_what_was_found_per_data_set(tmp_path: Path, make_set) -
     ("{real: A}\ntest: {hand: target, policy: Sustained}", "test.policy must be one of .*, got 'Sustained'"),
     ("{real: A}\ntest: {real: B, real_object: egg50}", "test.real: .*testpaths_egg50_red_d_v0.pkl: no such file"),
     ("{real: A}\ntest: {real: B, exclude_test_sequences: true}", "test.exclude_test_sequences: only the source"),
+    ("{hand: target, paths: [0]}", "target.paths picks episodes of a file: it needs target.real or target.bag"),
+    ("{real: B, paths: [1, 1]}", "target.paths must name distinct episodes, got \\[1, 1\\]"),
+    ("{real: B, paths: [-1]}", "target.paths must be a path number"),
 ])
 def test_bad_data_specs_are_one_line_errors_before_any_run_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                                      capsys: pytest.CaptureFixture[str], spec: str,
@@ -612,3 +616,33 @@ def test_rows_name_their_training_draw_the_same_for_every_method(config_file: Pa
         return [{k: v for k, v in row.items() if k != "seconds"} for row in table]
 
     assert untimed(run_experiment(cfg, tmp_path, progress=False)) == untimed(rows)
+
+
+def test_paths_pick_a_files_episodes_in_order_and_refuse_what_is_not_there(tmp_path: Path) -> None:
+    from t42_transfer.evaluation.experiment import load_spec
+    from t42_transfer.evaluation.experiment_config import DataSpec
+
+    bag = str(REPO / "bags" / "target_small")
+    every = load_spec(DataSpec(bag=bag), tmp_path).data
+    assert len(every) >= 3
+    picked = load_spec(DataSpec(bag=bag, paths=(2, 0)), tmp_path).data
+    assert len(picked) == 2
+    for got, want in zip(picked, (every[2], every[0]), strict=True):
+        np.testing.assert_array_equal(got.states, want.states)
+        np.testing.assert_array_equal(got.actions, want.actions)
+    with pytest.raises(ValueError, match=rf"paths: the data has {len(every)} episodes \(0 to {len(every) - 1}\), "
+                                         rf"not {len(every)}"):
+        load_spec(DataSpec(bag=bag, paths=(0, len(every))), tmp_path)
+
+
+@pytest.mark.parametrize("side", ["source", "target"])
+def test_a_path_the_file_lacks_is_refused_before_anything_is_written(side: str, config_file: Path, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    bag = REPO / "bags" / f"{side}_small"
+    text = config_file.read_text().replace(f"{side}: {{bag: {bag}}}", f"{side}: {{bag: {bag}, paths: [0, 999]}}")
+    assert "999" in text
+    config_file.write_text(text)
+    assert main(["experiment", str(config_file), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "paths: the data has" in err and "not 999" in err, err
+    assert not (tmp_path / "out" / "tiny").exists()

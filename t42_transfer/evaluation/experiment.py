@@ -137,6 +137,11 @@ def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None) -> Sid
         return SideData(empty, empty, (), {"model": spec.model, "model_sha256": file_sha256(spec.model),
                                            "negate_actions": spec.negate_actions, "episodes": 0, "transitions": 0})
     raw = load_data(spec, cache)
+    if spec.paths is not None:
+        beyond = [i for i in spec.paths if i >= len(raw)]
+        if beyond:
+            raise ValueError(f"paths: the data has {len(raw)} episodes (0 to {len(raw) - 1}), not {beyond[0]}")
+        raw = raw.subset(spec.paths)
     if spec.negate_actions:
         raw = TrajectorySet((dataclasses.replace(t, actions=-t.actions) for t in raw), hand=raw.hand)
     if spec.mirror_x:
@@ -454,6 +459,8 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
         raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
                          f"{len(target.data)}" + ("" if test is not None else ": some must stay for testing"))
     _check_methods_fit(cfg, target.data, None if test is None else test.data)
+    if cfg.source.paths is not None:  # a path the file lacks is refused before anything is written
+        load_side(cfg, "source", data_cache(run_dir))
     if cfg.source.exclude_test_sequences:
         source = load_side(cfg, "source", data_cache(run_dir))
         for cell in _cells(cfg):

@@ -64,6 +64,7 @@ DATA_RULES: dict[str, Rule] = {
     "episodes": between(1, MAX_EPISODES), "steps": between(1, MAX_STEPS), "seed": SEED, "real": one_of(REAL_HANDS),
     "real_object": ((lambda v: bool(SAFE_OBJECT.fullmatch(v))), "an object name such as cyl35 or egg50"),
     "mirror_about": one_of(MIRRORS), "flagged": one_of(HANDLING), "policy": one_of(POLICIES),
+    "paths": ((lambda v: v >= 0), "a path number (0 or more)"),
     "model": ((lambda v: isinstance(v, str) and 0 < len(v) <= MAX_PATH_CHARS and "\0" not in v),
               f"a file path (at most {MAX_PATH_CHARS} characters)"),
 }
@@ -111,6 +112,9 @@ class DataSpec:
     policy: str = "random"
     """``hand`` only: how the simulated hand is driven (:data:`t42_transfer.hand.collect.POLICIES`): ``random``,
     the paper's training data, or ``sustained``, test paths like the real hands' (long holds of discrete moves)."""
+    paths: tuple[int, ...] | None = None
+    """The episodes of ``real``'s or ``bag``'s data to use, by number in the file, in this order (e.g. the
+    authors' test paths 0-3 as a test set, the others as target data); None: all of them."""
     model: str | None = None
     """Source only, instead of data: a trained model used as the source as it is, so the source needs no data
     and no training.  A project model file (``.safetensors``, e.g. from ``t42 model import-authors``) or one of
@@ -264,6 +268,11 @@ def check_spec(spec: DataSpec, where: str, model_allowed: bool = False) -> None:
         check_collection(spec.hand, spec.episodes, spec.steps, hold_max=POLICIES[spec.policy]().hold_max)
     elif spec.policy != _SPEC_DEFAULTS["policy"]:
         raise ValueError(f"{where}.policy drives a simulated hand: it needs {where}.hand")
+    if spec.paths is not None:
+        if spec.hand is not None:
+            raise ValueError(f"{where}.paths picks episodes of a file: it needs {where}.real or {where}.bag")
+        if not spec.paths or len(set(spec.paths)) != len(spec.paths):
+            raise ValueError(f"{where}.paths must name distinct episodes, got {list(spec.paths)}")
     if spec.real_object != REAL_OBJECT and spec.real is None:
         raise ValueError(f"{where}.real_object names the object of a real-hand file: it needs {where}.real")
     if spec.mirror_about != "origin" and not spec.mirror_x:
