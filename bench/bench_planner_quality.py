@@ -125,6 +125,9 @@ class Setting:
     """default_robust: rollouts per sequence (the first unperturbed)."""
     robust_sigma: float = 0.1
     """default_robust: std of the fixed action perturbations of the other copies."""
+    noise_beta: float | None = None
+    """The default family's sampling colour (PlannerConfig.noise_beta) in place of the planner's default, to try
+    another on tuning goals; None: the default's own."""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.optimisers) - set(OPTIMISERS))
@@ -299,6 +302,8 @@ def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor,
     if name.startswith("default"):
         default = PegInHoleConfig().planner
         cfg = replace(default, samples=max(2, budget // (default.refine_iterations + 1)))
+        if setting.noise_beta is not None:
+            cfg = replace(cfg, noise_beta=setting.noise_beta)
         if name == "default":
             return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
         if name == "default_settled":
@@ -501,6 +506,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mppi-lambda", type=float, default=Setting.mppi_lambda)
     parser.add_argument("--robust-copies", type=int, default=Setting.robust_copies)
     parser.add_argument("--robust-sigma", type=float, default=Setting.robust_sigma)
+    parser.add_argument("--noise-beta", type=float, default=None,
+                        help="the default family's sampling colour instead of the planner's default (tuning)")
     parser.add_argument("--seed", type=int, default=0, help="goal seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -511,7 +518,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           refine_iterations=args.refine_iterations, cem_iterations=args.cem_iterations,
                           cem_std=args.cem_std, mppi_iterations=args.mppi_iterations, mppi_sigma=args.mppi_sigma,
                           mppi_lambda=args.mppi_lambda, robust_copies=args.robust_copies,
-                          robust_sigma=args.robust_sigma)
+                          robust_sigma=args.robust_sigma, noise_beta=args.noise_beta)
     except ValueError as err:
         parser.error(str(err))
     if args.goals < 1 or args.steps < 1:

@@ -19,7 +19,7 @@ from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normali
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.planning import DISCRETE_ACTIONS, SAMPLERS, Planner, PlannerConfig, Workspace, sample_actions
 from t42_transfer.planning.fused import FusedRollout, is_paper_mlp, make_rollout
-from t42_transfer.planning.sampling import REAL_HAND_ACTIONS
+from t42_transfer.planning.sampling import REAL_HAND_ACTIONS, colored_noise
 
 START = np.array([0.0, 80.0, 100.0, -100.0])
 
@@ -65,6 +65,35 @@ def test_samplers_draw_bounded_actions_of_their_kind() -> None:
         changes = [0, *((seq[1:] != seq[:-1]).any(1).nonzero().flatten() + 1).tolist(), 40]
         runs = np.diff(changes)
         assert (runs[:-1] >= 5).all() and (runs <= 12).all()  # the last hold may be cut by the horizon
+
+
+@pytest.mark.parametrize("horizon", [40, 41])
+def test_colored_noise_has_unit_variance_and_smooths_with_its_colour(horizon: int) -> None:
+    lag_one = []
+    for beta in (0.0, 1.0, 2.0):
+        noise = colored_noise(20_000, horizon, beta, torch.Generator().manual_seed(0))
+        assert noise.shape == (20_000, horizon, 2) and noise.dtype == torch.float32
+        assert noise.var().item() == pytest.approx(1.0, abs=0.02)  # every step, at every colour
+        assert noise[:, 0].var().item() == pytest.approx(1.0, abs=0.05) and abs(noise.mean().item()) < 0.02
+        lag_one.append(((noise[:, 1:] * noise[:, :-1]).mean() / noise.var()).item())
+    assert abs(lag_one[0]) < 0.02 and 0.4 < lag_one[1] < lag_one[2] < 1.0  # white, pink, brown
+    # white is randn itself: the planner's draws at beta 0 are what they were before the option
+    assert torch.equal(colored_noise(3, horizon, 0.0, torch.Generator().manual_seed(5)),
+                       torch.randn(3, 2, horizon, generator=torch.Generator().manual_seed(5)).transpose(1, 2))
+
+
+@pytest.mark.parametrize("beta", [1.0, 2.5])
+def test_coloured_plans_are_bounded_seeded_and_reach_a_linear_models_goal(beta: float) -> None:
+    goal = (START[0] + 12.0, START[1] - 9.0)
+    config = PlannerConfig(horizon=40, noise_beta=beta)
+    first = Planner(Toy(), BOX, config).plan(START, np.array(goal))
+    again = Planner(Toy(), BOX, config).plan(START, np.array(goal))
+    white = Planner(Toy(), BOX, PlannerConfig(horizon=40)).plan(START, np.array(goal))
+    assert np.array_equal(first.actions, again.actions) and not np.array_equal(first.actions, white.actions)
+    assert np.isfinite(first.actions).all() and np.abs(first.actions).max() <= 1.0
+    assert first.ok and np.linalg.norm(executed(first.actions) - goal) <= config.tolerance_mm + 1e-4
+    with pytest.raises(ValueError, match="noise_beta"):
+        PlannerConfig(noise_beta=-1.0)
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)

@@ -72,7 +72,7 @@ from t42_transfer.conventions import (
 )
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.fused import TimeMajorRollout, make_rollout
-from t42_transfer.planning.sampling import SAMPLERS, project, sample_actions
+from t42_transfer.planning.sampling import SAMPLERS, colored_noise, project, sample_actions
 from t42_transfer.planning.workspace import Workspace
 
 CHUNK = 1000
@@ -84,6 +84,8 @@ MAX_CANDIDATES = 50
 """Most candidate paths a plan keeps (:attr:`PlannerConfig.candidates`): a picture, not a data set."""
 MAX_PERTURBATIONS = 64
 """Most rollouts per sequence: beyond a few the mean settles and only the number of sequences drawn falls."""
+MAX_NOISE_BETA = 4.0
+"""Most colour of the sampling noise: beyond brown (2) a draw is nearly one slow drift per sequence."""
 REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "workspace": "left the workspace"}
 """Why a sample was rejected (key: description), in order of precedence at its first bad step."""
 
@@ -98,6 +100,9 @@ class PlannerConfig:
     """Piecewise sampler: each action is held for this many steps (inclusive range)."""
     init_std: float = 1.0
     """Gaussian sampler: the std of the first draw's actions (clipped to the box)."""
+    noise_beta: float = 0.0
+    """Colour of the gaussian sampler's first draw and of every refinement round's noise: power spectrum along
+    time ``1 / f**beta`` (0: independent steps; 1 pink, 2 brown: smoother sequences; sampling.colored_noise)."""
     tolerance_mm: float = 2.0
     """A prediction within this of the goal reaches it (``ok``; the horizon search's target)."""
     horizon_search: bool = False
@@ -149,7 +154,7 @@ PLANNER_RULES: dict[str, Rule] = {
     "elite_fraction": FRACTION, "init_std": ((lambda v: 0 < v < math.inf), "positive and finite"),
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
     "candidates": between(0, MAX_CANDIDATES), "perturbations": between(1, MAX_PERTURBATIONS),
-    "perturbation_std": between(0, RANDOM_POLICY_LIMIT),
+    "perturbation_std": between(0, RANDOM_POLICY_LIMIT), "noise_beta": between(0, MAX_NOISE_BETA),
 }
 """What each :class:`PlannerConfig` setting must be beyond its type."""
 
@@ -230,7 +235,7 @@ class Planner:
         gen = torch.Generator().manual_seed(seed)
         search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg, _perturbations(cfg, horizon, seed))
         count = max(1, cfg.samples // (len(search.rollouts) * cfg.perturbations))
-        actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std)
+        actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std, cfg.noise_beta)
         cost = search.evaluate(actions)
         elite_count = max(2, int(cfg.elite_fraction * count))
         for _ in range(cfg.refine_iterations):
@@ -240,7 +245,9 @@ class Planner:
                 break
             elites, elite_cost = actions[order], cost[order]
             mean, std = elites.mean(0), elites.std(0).clamp_min(cfg.refine_min_std)
-            noise = torch.randn((max(1, count - len(order)), *mean.shape), generator=gen)
+            fresh_count = max(1, count - len(order))
+            noise = (torch.randn((fresh_count, *mean.shape), generator=gen) if cfg.noise_beta == 0
+                     else colored_noise(fresh_count, horizon, cfg.noise_beta, gen))
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
         return search.result()

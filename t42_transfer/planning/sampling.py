@@ -9,9 +9,11 @@
   hand's move ``1.5 a``.
 - ``piecewise``: uniform actions held for random durations (``hold_steps``
   inclusive); a held action drives the servos steadily, which reaches far goals.
-- ``gaussian``: every step i.i.d. normal with mean 0 and std ``std``, clipped to
+- ``gaussian``: every step normal with mean 0 and std ``std``, clipped to
   the box: with std 1 about a third of the steps sit on a bound, the bang-bang
   moves a cross-entropy search starts from (the textbook CEM's initial draw).
+  With ``beta`` > 0 the steps are not independent but coloured noise
+  (:func:`colored_noise`), as in iCEM (Pinneri et al., 2020).
 """
 
 from __future__ import annotations
@@ -29,11 +31,35 @@ SAMPLE_BLOCK = 4096
 depend only on the generator, not on how the planner chunks its rollouts."""
 
 
+def colored_noise(count: int, horizon: int, beta: float, generator: torch.Generator) -> Tensor:
+    """``[count, horizon, 2]`` stationary Gaussian noise, unit variance per step, whose power spectrum along time
+    falls as ``1 / f**beta``: 0 is white (i.i.d. steps; ``randn`` itself), 1 pink, 2 brown.  A coloured sequence
+    wanders slowly, like an action held and changed gradually, where white noise flips sign every other step.
+
+    White noise filtered in the frequency domain (circularly), the filter scaled so each step's variance is
+    exactly 1; the zero frequency gets the lowest nonzero frequency's gain, so the mean stays finite."""
+    white = torch.randn(count, ACTION_DIM, horizon, generator=generator)
+    if beta == 0 or horizon < 2:
+        return white.transpose(1, 2).contiguous()
+    freqs = torch.fft.rfftfreq(horizon, dtype=torch.float64)
+    freqs[0] = freqs[1]
+    gain = freqs ** (-beta / 2)
+    # Parseval: a step's variance is the mean of |gain|^2 over the full spectrum (the rfft's inner bins twice).
+    weights = torch.full_like(gain, 2.0)
+    weights[0] = 1.0
+    if horizon % 2 == 0:
+        weights[-1] = 1.0
+    gain = gain / torch.sqrt((weights * gain**2).sum() / horizon)
+    colored = torch.fft.irfft(torch.fft.rfft(white.double(), dim=-1) * gain, n=horizon, dim=-1)
+    return colored.float().transpose(1, 2).contiguous()
+
+
 def sample_actions(
     sampler: str, count: int, horizon: int, generator: torch.Generator, hold_steps: tuple[int, int] = (5, 40),
-    std: float = 1.0,
+    std: float = 1.0, beta: float = 0.0,
 ) -> Tensor:
-    """``count`` sequences of ``horizon`` actions, float32 ``[count, horizon, 2]``."""
+    """``count`` sequences of ``horizon`` actions, float32 ``[count, horizon, 2]``; ``beta``: the gaussian
+    sampler's colour (:func:`colored_noise`; 0: i.i.d. steps)."""
     if sampler not in SAMPLERS:
         raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
     out = torch.empty(count, horizon, ACTION_DIM)
@@ -41,8 +67,11 @@ def sample_actions(
         block = out[start : start + SAMPLE_BLOCK]
         if sampler == "uniform":
             block.uniform_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT, generator=generator)
-        elif sampler == "gaussian":
+        elif sampler == "gaussian" and beta == 0:
             block.normal_(0.0, std, generator=generator).clamp_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT)
+        elif sampler == "gaussian":
+            noise = colored_noise(len(block), horizon, beta, generator)
+            block.copy_(noise.mul_(std).clamp_(-RANDOM_POLICY_LIMIT, RANDOM_POLICY_LIMIT))
         elif sampler == "discrete":
             block.copy_(DISCRETE_ACTIONS[torch.randint(len(DISCRETE_ACTIONS), block.shape[:2], generator=generator)])
         else:
