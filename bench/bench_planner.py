@@ -93,12 +93,16 @@ def eager_loop(net: nn.Module, x0: Tensor, actions: Tensor) -> Tensor:
     return torch.stack(out, dim=1)
 
 
+def _layers(model: TransitionModel, batch: int) -> tuple[Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
+    """Random inputs at batch ``batch`` and, per linear layer of the MLP, ``(weight [in, out], bias, output)``."""
+    layers = [model.net[i] for i in (0, 3, 6)]
+    inputs = torch.randn(batch, layers[0].in_features)
+    return inputs, [(layer.weight.detach().T.contiguous(), layer.bias.detach(), torch.empty(batch, layer.out_features))
+                    for layer in layers]
+
+
 def matmul_only(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
-    l1, l2, l3 = (model.net[i] for i in (0, 3, 6))
-    w1, w2, w3 = (layer.weight.detach().T.contiguous() for layer in (l1, l2, l3))
-    b1, b2, b3 = (layer.bias.detach() for layer in (l1, l2, l3))
-    inputs = torch.randn(batch, w1.shape[0])
-    h1, h2, out = torch.empty(batch, w1.shape[1]), torch.empty(batch, w2.shape[1]), torch.empty(batch, w3.shape[1])
+    inputs, ((w1, b1, h1), (w2, b2, h2), (w3, b3, out)) = _layers(model, batch)
 
     def run() -> None:
         for _ in range(horizon):
@@ -111,11 +115,7 @@ def matmul_only(model: TransitionModel, batch: int, horizon: int) -> Callable[[]
 
 def transcendental_floor(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
     """``matmul_only`` plus one exp2 pass over the first hidden layer and one sigmoid pass over the second."""
-    l1, l2, l3 = (model.net[i] for i in (0, 3, 6))
-    w1, w2, w3 = (layer.weight.detach().T.contiguous() for layer in (l1, l2, l3))
-    b1, b2, b3 = (layer.bias.detach() for layer in (l1, l2, l3))
-    inputs = torch.randn(batch, w1.shape[0])
-    h1, h2, out = torch.empty(batch, w1.shape[1]), torch.empty(batch, w2.shape[1]), torch.empty(batch, w3.shape[1])
+    inputs, ((w1, b1, h1), (w2, b2, h2), (w3, b3, out)) = _layers(model, batch)
     exp2, sigmoid = torch.empty_like(h1), torch.empty_like(h2)
 
     def run() -> None:
