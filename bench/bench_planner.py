@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shlex
 import statistics
 import subprocess
@@ -59,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from machine import machine_info  # bench/machine.py (scripts run from bench/)
 from torch import Tensor, nn
 
 from t42_transfer.models import Normalisation, TransitionModel
@@ -288,14 +288,7 @@ def main() -> None:
     result = {
         "benchmark": "planner",
         "command": " ".join(["python", *map(shlex.quote, sys.argv)]),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "processor": platform.processor() or platform.machine(),
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "load_average_at_start": load_start,
-        },
+        "machine": {**machine_info(), "load_average_at_start": load_start},
         "parameters": {
             "samples": k,
             "horizon": horizon,
