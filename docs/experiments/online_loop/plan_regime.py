@@ -7,6 +7,7 @@ them): whole episodes, and from each episode's first commanded step on (the plan
 the settling before it).
 
     .venv/bin/python docs/experiments/online_loop/plan_regime.py RUN_DIR SOURCE_MODEL
+    .venv/bin/python docs/experiments/online_loop/plan_regime.py docs/experiments/online_loop/plan_regime.json  # stored
 """
 
 from __future__ import annotations
@@ -23,7 +24,23 @@ from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model
 
 
+def print_table(results: dict, episodes: int, transitions: int | None, last_round: int | None) -> None:
+    sets = list(next(iter(results.values())))
+    if last_round is not None:
+        print(f"round {last_round}'s executed-plan episodes: {episodes} ({transitions} transitions)\n")
+    print("| model | " + " | ".join(f"{name}: divergence (steps), position MSE (mm²)" for name in sets) + " |")
+    print("|---|" + "---:|" * len(sets))
+    for name, cells in results.items():
+        print(f"| {name} | " + " | ".join(f"{c['divergence_steps']:.1f}, {c['position_mse_mm2']:.2f}"
+                                          for c in cells.values()) + " |")
+
+
 def main() -> int:
+    if len(sys.argv) == 2:  # a stored record: its table again
+        stored = json.loads(Path(sys.argv[1]).read_text())
+        print(f"{stored['episodes']} executed-plan episodes of {stored['run']}\n")
+        print_table(stored["results"], stored["episodes"], None, None)
+        return 0
     run_dir, source = Path(sys.argv[1]), Path(sys.argv[2])
     summary = json.loads((run_dir / "demo.json").read_text())
     last = summary["rounds"][-1]
@@ -34,14 +51,9 @@ def main() -> int:
     sets = {"whole episodes": whole, "from the first commanded step": commanded(whole)}
     models = {"source": load_model(source)[0], "hold still": HoldStill()}
     models.update({f"round {r['round']} model": load_model(r["model"])[0] for r in summary["rounds"]})
-    print(f"round {last['round']}'s executed-plan episodes: {len(whole)} ({whole.num_transitions} transitions)\n")
-    print("| model | " + " | ".join(f"{name}: divergence (steps), position MSE (mm²)" for name in sets) + " |")
-    print("|---|" + "---:|" * len(sets))
     by_set = {set_name: scores_on(models, data) for set_name, data in sets.items()}
     results = {name: {set_name: by_set[set_name][name] for set_name in sets} for name in models}
-    for name, cells in results.items():
-        print(f"| {name} | " + " | ".join(f"{c['divergence_steps']:.1f}, {c['position_mse_mm2']:.2f}"
-                                          for c in cells.values()) + " |")
+    print_table(results, len(whole), whole.num_transitions, last["round"])
     out = Path(__file__).parent / "plan_regime.json"
     out.write_text(json.dumps({"run": str(run_dir), "episodes": len(whole), "results": results}, indent=1) + "\n")
     return 0

@@ -1,7 +1,9 @@
 """Per-round table of two `t42 demo` runs of the online loop: one that updates its model each round, one that never
 does (``--no-update``).  Reads each run's demo.json; writes the reduced records beside this file and prints markdown.
+Given two reduced records instead (the stored ``updating.json`` and ``frozen.json``), prints the same tables from them.
 
     .venv/bin/python docs/experiments/online_loop/summarise.py UPDATING_RUN_DIR FROZEN_RUN_DIR
+    .venv/bin/python docs/experiments/online_loop/summarise.py docs/experiments/online_loop/{updating,frozen}.json
 """
 
 from __future__ import annotations
@@ -49,10 +51,13 @@ def table(runs: dict[str, dict]) -> str:
 
 
 def main() -> int:
-    updating, frozen = (reduced(Path(p)) for p in sys.argv[1:3])
+    paths = [Path(p) for p in sys.argv[1:3]]
+    stored = all(p.suffix == ".json" for p in paths)
+    updating, frozen = (json.loads(p.read_text()) if stored else reduced(p) for p in paths)
     runs = {"updates each round": updating, "never updates": frozen}
     for name, run in (("updating", updating), ("frozen", frozen)):
-        (HERE / f"{name}.json").write_text(json.dumps(run, indent=1) + "\n")
+        if not stored:
+            (HERE / f"{name}.json").write_text(json.dumps(run, indent=1) + "\n")
     same = [[(g["grasp_seed"], g["goal_mm"]) for g in r["goals"]] for r in updating["rounds"]] == \
            [[(g["grasp_seed"], g["goal_mm"]) for g in r["goals"]] for r in frozen["rounds"]]
     print(table(runs))
