@@ -24,6 +24,7 @@ over the run's methods at that threshold (the verdict's headline table).
 ``--adjusted``: the ranking's numbers in full, a row per run and method: the paired
 difference with its 95 % t interval, p and its Holm adjustment over the run's methods,
 and whether an interval that excludes 0 survives the adjustment (``-``: it does not exclude 0).
+``--means``: each method's mean per amount (over its cells) at both thresholds, unpaired.
 ``--crossovers``: where pooling over the amounts hides a crossover: each comparison with
 the reference whose per-amount mean differences take both signs (each by a step or more),
 the pooled difference beside every amount's.
@@ -197,6 +198,22 @@ def adjusted_table(runs: list[Path], reference: str) -> str:
     return "".join(out)
 
 
+def means_table(runs: list[Path]) -> str:
+    """Per run and method, each amount's mean over its cells at both thresholds (``4 mm / 10 mm``, steps)."""
+    stored = {run: _rows(run) for run in runs}
+    amounts = sorted({r["amount"] for rows in stored.values() for r in rows})
+    out = [f"| run, method: {' / '.join(METRICS.values())} | " + " | ".join(f"{a:g}" for a in amounts) + " |\n",
+           "|---|" + "---|" * len(amounts) + "\n"]
+    for run, rows in stored.items():
+        for method in dict.fromkeys(r["method"] for r in rows):
+            cells = []
+            for amount in amounts:
+                at = [r for r in rows if r["method"] == method and r["amount"] == amount]
+                cells.append(" / ".join(f"{sum(r[m] for r in at) / len(at):.0f}" for m in METRICS) if at else "-")
+            out.append(f"| {run.name}, {method} | " + " | ".join(cells) + " |\n")
+    return "".join(out)
+
+
 def crossovers_table(runs: list[Path], reference: str, min_steps: float = 1.0) -> str:
     """Where pooling over the amounts hides a crossover: per run, threshold and method, the comparisons with
     ``reference`` whose per-amount mean differences take both signs, each by at least ``min_steps``; the pooled
@@ -288,6 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     mode.add_argument("--ranking", action="store_true", help="methods ordered by their difference to the reference")
     mode.add_argument("--adjusted", action="store_true",
                       help="the ranking in full: intervals, p and Holm-adjusted p, what survives")
+    mode.add_argument("--means", action="store_true", help="each method's mean per amount at both thresholds")
     mode.add_argument("--crossovers", action="store_true",
                       help="comparisons whose per-amount differences take both signs (what pooling hides)")
     mode.add_argument("--variants", type=Path, metavar="BASE", help="pair every run with BASE's reference cells")
@@ -308,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
         print(ranking_table(args.runs, args.reference))
     elif args.adjusted:
         print(adjusted_table(args.runs, args.reference))
+    elif args.means:
+        print(means_table(args.runs))
     elif args.crossovers:
         print(crossovers_table(args.runs, args.reference))
     elif args.winners:

@@ -126,6 +126,13 @@ def test_crossovers_list_the_comparisons_whose_amounts_disagree_in_sign(tables, 
     assert lines[0].split(" | ")[2].startswith("0.01: -3.5 (") and "0.1: +4.5 (" in lines[0]
 
 
+def test_means_give_each_methods_mean_per_amount_at_both_thresholds(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    run = _run(tmp_path, "a", {"direct": [[10, 12], [20, 21]], "naive_finetune": [[3, 4], [5, 8]]})
+    lines = tables.means_table([run]).splitlines()
+    assert lines[0] == "| run, method: 4 mm / 10 mm | 0.01 | 0.1 |"
+    assert lines[2:] == ["| a, direct | 11 / 22 | 20 / 41 |", "| a, naive_finetune | 4 / 7 | 6 / 13 |"]
+
+
 def test_sources_pair_within_each_source_and_pool_over_them(tables, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """Three runs with other source models: direct differs per source, so only within-source pairs are right."""
     s0 = _run(tmp_path, "s0", {"direct": [[10, 10], [10, 10]], "naive_finetune": [[12, 14], [11, 15]]})  # +3
