@@ -36,6 +36,9 @@ budget B counts B model rollouts of the whole horizon per plan:
   the planner's fused path (planning/fused.py), in the planner's chunks.  The Planner's own refinement with
   ``sampler="uniform"`` is not this: it keeps the elites in the population, floors the std at 0.05 and
   starts from uniform samples;
+- ``cem_mean``: the same CEM returning its last fitted mean (the mean of the last round's elites) instead of
+  the best sequence it evaluated, when that mean is safe (else the best), as MPPI returns its weighted mean:
+  an average of good sequences leans less on any one of the model's errors; its one extra rollout counts;
 - ``mppi``: pytorch_mppi 0.9.1 ``MPPI`` as an open-loop optimiser: dynamics = the model's one-step map
   (``latent_step``, eager, under no_grad: pytorch_mppi steps a batch one step at a time, so the fused path
   does not apply), running cost 0, terminal cost = final distance to the goal (mm, + the penalty), horizon
@@ -93,7 +96,7 @@ RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
 DEFAULT_MODELS = Path("runs/peg_in_hole_models/models")
 MAKE_MODELS = "t42 experiment configs/peg_in_hole_models.yaml --out runs"
 OPTIMISERS = ("default", "default_search", "default_settled", "default_robust", "ours", "ours_cem", "random_shooting",
-              "cem", "mppi")
+              "cem", "cem_mean", "mppi")
 DRIFT_STEPS = 10
 """Steps of holding still (1 s) after a completed plan over which the object's drift is measured."""
 UNSAFE_PENALTY_MM = 1000.0
@@ -198,8 +201,9 @@ def final_costs(rollout: Callable[[Tensor, Tensor], Tensor], workspace: Workspac
 
 
 def plain_cem(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int, budget: int,
-              seed: int, setting: Setting) -> Outcome:
-    """The textbook cross-entropy method (see the module docstring); returns the best sequence evaluated."""
+              seed: int, setting: Setting, final_mean: bool = False) -> Outcome:
+    """The textbook cross-entropy method (see the module docstring); returns the best sequence evaluated, or with
+    ``final_mean`` the last fitted mean when it is safe."""
     rollout = make_rollout(model)
     gen = torch.Generator().manual_seed(seed)
     per = max(2, budget // setting.cem_iterations)
@@ -216,7 +220,13 @@ def plain_cem(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Ten
         order = order[torch.isfinite(cost[order])]
         if len(order) >= 2:
             mean, std = samples[order].mean(0), samples[order].std(0)
-    return Outcome(best.numpy(), best_cost, math.isfinite(best_cost), per * setting.cem_iterations)
+    rollouts = per * setting.cem_iterations
+    if final_mean:
+        mean_cost = float(final_costs(rollout, workspace, x0, goal, mean[None])[0])
+        if math.isfinite(mean_cost):
+            return Outcome(mean.numpy(), mean_cost, True, rollouts + 1)
+        rollouts += 1
+    return Outcome(best.numpy(), best_cost, math.isfinite(best_cost), rollouts)
 
 
 def mppi_plan(model: LatentDynamics, workspace: Workspace, x0: Tensor, goal: Tensor, steps: int, budget: int,
@@ -323,8 +333,8 @@ def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor,
     if name == "random_shooting":
         cfg = replace(base, samples=budget, sampler="uniform")
         return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
-    if name == "cem":
-        return plain_cem(model, workspace, x0, goal, steps, budget, seed, setting)
+    if name in ("cem", "cem_mean"):
+        return plain_cem(model, workspace, x0, goal, steps, budget, seed, setting, final_mean=name == "cem_mean")
     if name == "mppi":
         return mppi_plan(model, workspace, x0, goal, steps, budget, seed, setting)
     raise ValueError(f"unknown optimiser {name!r}; known: {OPTIMISERS}")

@@ -82,7 +82,7 @@ def test_a_larger_budget_predicts_no_worse(name: str, goals: list) -> None:
     assert np.mean(large) < np.mean(small)
 
 
-@pytest.mark.parametrize("name", ["ours", "ours_cem", "cem", "mppi"])
+@pytest.mark.parametrize("name", ["ours", "ours_cem", "cem", "cem_mean", "mppi"])
 def test_each_optimiser_solves_a_reachable_toy_goal(name: str, goals: list) -> None:
     """The toy moves 2 mm per unit action: a goal 8 mm along x in 10 steps needs mean action 0.4 on x."""
     x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
@@ -127,3 +127,15 @@ def test_search_then_hold_pads_the_shortest_prefix_with_zeros_to_the_goals_steps
     moving = np.abs(out.actions).sum(1) > 0
     first_hold = int(np.argmin(moving))  # the toy moves 2 mm a step: the goal is reached well before STEPS
     assert 0 < first_hold < STEPS and moving[:first_hold].all() and not moving[first_hold:].any()
+
+
+def test_cem_mean_returns_the_last_fitted_mean_not_a_sample(goals: list) -> None:
+    """The same draws as ``cem``; the answer is their last elites' mean, scored by its own rollout."""
+    x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
+    target = x0[:2] + torch.tensor([8.0, 0.0])
+    best = bench.optimise("cem", drift(), WORKSPACE, x0, target, STEPS, 300, 0, bench.Setting())
+    mean = bench.optimise("cem_mean", drift(), WORKSPACE, x0, target, STEPS, 300, 0, bench.Setting())
+    assert mean.rollouts == best.rollouts + 1 and not np.array_equal(mean.actions, best.actions)
+    assert np.abs(mean.actions).max() <= 1.0 and mean.predicted_safe
+    end = x0[:2].numpy() + GAIN * mean.actions.sum(0)
+    assert np.linalg.norm(end - target.numpy()) == pytest.approx(mean.predicted_error_mm, abs=1e-3)
