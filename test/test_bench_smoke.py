@@ -127,7 +127,7 @@ def test_bench_planner_quality(tmp_path: Path) -> None:
                        out=tmp_path / "planner_quality.json")
     assert result["benchmark"] == "planner_quality"
     optimisers = ["default", "default_search", "default_settled", "default_robust", "ours", "ours_cem",
-                  "random_shooting", "cem", "mppi"]
+                  "random_shooting", "cem", "cem_mean", "mppi"]
     assert result["setting"]["budgets"] == [4] and result["setting"]["optimisers"] == optimisers
     assert result["model"]["path"] == str(model) and result["model"]["method"] == "naive_finetune"
     assert result["workspace"] == "stored in the model file" and positive(result["seconds_total"])
