@@ -48,7 +48,7 @@ import json
 import sys
 from pathlib import Path
 
-from t42_transfer.evaluation.stats import compare_methods, holm, one_per_draw, t_interval
+from t42_transfer.evaluation.stats import PairedComparison, compare_methods, holm, one_per_draw, t_interval
 
 METRICS = {"divergence_mean_4mm": "4 mm", "divergence_mean_10mm": "10 mm"}
 GRID_METRICS = {**METRICS, "position_mse_mean": "position MSE, mm² (lower is better; won = higher)"}
@@ -144,12 +144,26 @@ def winners_table(runs: list[Path], metric: str) -> str:
     return "".join(out)
 
 
+def _methods(rows: list[dict], reference: str) -> list[str]:
+    """The run's methods compared with ``reference``: every one but it and hold-still, in the rows' order."""
+    return [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+
+
+def _against(rows: list[dict], metric: str, reference: str) -> dict[str, tuple[PairedComparison, float]]:
+    """Each of the run's methods paired with ``reference`` over all cells, with its t test's p adjusted by Holm
+    over those methods (the family of one run at one threshold)."""
+    methods = _methods(rows, reference)
+    paired = [compare_methods(rows, metric, m, reference)["all"] for m in methods]
+    return dict(zip(methods, zip(paired, holm([c.t_p for c in paired]), strict=True), strict=True))
+
+
 def _ranked(rows: list[dict], metric: str, reference: str) -> str:
     """Methods by paired difference to ``reference``: ``*`` / ``!`` where the 95 % t interval lies above / below 0,
     then ``†`` where that conclusion does not survive Holm's adjustment over the run's methods at this threshold."""
-    methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
-    paired = {m: compare_methods(rows, metric, m, reference)["all"] for m in methods}
-    adjusted = dict(zip(methods, holm([paired[m].t_p for m in methods]), strict=True))
+    against = _against(rows, metric, reference)
+    paired = {m: c for m, (c, _) in against.items()}
+    adjusted = {m: a for m, (_, a) in against.items()}
+    methods = list(against)
     ranked = []
     for method in methods:
         low, high = paired[method].t_interval
@@ -179,19 +193,17 @@ def adjusted_table(runs: list[Path], reference: str) -> str:
            "|---|---|" + "---|" * len(METRICS) + "\n"]
     for run in runs:
         rows = _rows(run)
-        methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+        methods = _methods(rows, reference)
         cells: dict[str, list[str]] = {m: [] for m in methods}
         counts: dict[str, int] = {}
         for metric in METRICS:
-            paired = {m: compare_methods(rows, metric, m, reference)["all"] for m in methods}
-            adjusted = dict(zip(methods, holm([paired[m].t_p for m in methods]), strict=True))
-            for method in methods:
-                low, high = paired[method].t_interval
+            for method, (paired, adjusted) in _against(rows, metric, reference).items():
+                low, high = paired.t_interval
                 excludes_zero = low > 0 or high < 0
-                verdict = ("yes" if adjusted[method] < 0.05 else "no") if excludes_zero else "-"
-                cells[method].append(f"{paired[method].mean_difference:+.1f} ({low:+.1f} to {high:+.1f}), "
-                                     f"{paired[method].t_p:.2g} ({adjusted[method]:.2g}), {verdict}")
-                counts[method] = paired[method].n
+                verdict = ("yes" if adjusted < 0.05 else "no") if excludes_zero else "-"
+                cells[method].append(f"{paired.mean_difference:+.1f} ({low:+.1f} to {high:+.1f}), "
+                                     f"{paired.t_p:.2g} ({adjusted:.2g}), {verdict}")
+                counts[method] = paired.n
         for method in methods:
             out.append(f"| {run.name}, {SHORT.get(method, method)} | {counts[method]} | "
                        + " | ".join(cells[method]) + " |\n")
@@ -221,7 +233,7 @@ def crossovers_table(runs: list[Path], reference: str, min_steps: float = 1.0) -
     out = ["| run, threshold, method | pooled (95 % t) | per amount: mean (95 % t), cells |\n", "|---|---|---|\n"]
     for run in runs:
         rows = _rows(run)
-        methods = [m for m in dict.fromkeys(r["method"] for r in rows) if m not in (reference, "hold_still")]
+        methods = _methods(rows, reference)
         for metric, label in METRICS.items():
             for method in methods:
                 per = compare_methods(rows, metric, method, reference, by="amount")
