@@ -459,10 +459,9 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
         raise ValueError(f"amounts up to {max(cfg.amounts)} episodes with split: paths, but the target set has "
                          f"{len(target.data)}" + ("" if test is not None else ": some must stay for testing"))
     _check_methods_fit(cfg, target.data, None if test is None else test.data)
-    if cfg.source.paths is not None:  # a path the file lacks is refused before anything is written
-        load_side(cfg, "source", data_cache(run_dir))
-    if cfg.source.exclude_test_sequences:
+    if cfg.source.exclude_test_sequences or cfg.source.paths is not None:  # (a path the file lacks: refused here)
         source = load_side(cfg, "source", data_cache(run_dir))
+    if cfg.source.exclude_test_sequences:
         for cell in _cells(cfg):
             if not set(source.origins) - set(cell_excluded(cfg, cell, source, target, test)):
                 raise ValueError(f"every source episode ran a test sequence of {cell}: none is left to train on")

@@ -245,9 +245,7 @@ class Planner:
                 break
             elites, elite_cost = actions[order], cost[order]
             mean, std = elites.mean(0), elites.std(0).clamp_min(cfg.refine_min_std)
-            fresh_count = max(1, count - len(order))
-            noise = (torch.randn((fresh_count, *mean.shape), generator=gen) if cfg.noise_beta == 0
-                     else colored_noise(fresh_count, horizon, cfg.noise_beta, gen))
+            noise = colored_noise(max(1, count - len(order)), horizon, cfg.noise_beta, gen)
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
         return search.result()

@@ -38,9 +38,9 @@ def colored_noise(count: int, horizon: int, beta: float, generator: torch.Genera
 
     White noise filtered in the frequency domain (circularly), the filter scaled so each step's variance is
     exactly 1; the zero frequency gets the lowest nonzero frequency's gain, so the mean stays finite."""
-    white = torch.randn(count, ACTION_DIM, horizon, generator=generator)
     if beta == 0 or horizon < 2:
-        return white.transpose(1, 2).contiguous()
+        return torch.randn(count, horizon, ACTION_DIM, generator=generator)
+    white = torch.randn(count, ACTION_DIM, horizon, generator=generator)
     freqs = torch.fft.rfftfreq(horizon, dtype=torch.float64)
     freqs[0] = freqs[1]
     gain = freqs ** (-beta / 2)
