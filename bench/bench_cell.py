@@ -40,8 +40,8 @@ from t42_transfer.evaluation.experiment import (
     Cell,
     _run_cell,
     _score,
-    _target_split,
     load_data,
+    target_split,
     train_source,
 )
 from t42_transfer.evaluation.experiment_config import DataSpec, ExperimentConfig
@@ -129,7 +129,7 @@ def main() -> None:
         }
         if args.split:
             source = load_model(source_path)[0]
-            train, test = _target_split(cfg, target, Cell(method, args.amount, 0))
+            train, test = target_split(cfg, target, Cell(method, args.amount, 0))
             start = time.perf_counter()
             model = transfer(method, source, train, cfg.transfer, seed=0)
             entry["transfer_s"] = time.perf_counter() - start

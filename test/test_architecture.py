@@ -175,3 +175,47 @@ def test_every_topic_service_and_status_word_is_written_once() -> None:
 @pytest.mark.parametrize("text", ['x = "hand/status"\n', 'f(["dropped"])\n', 'g(f"{a}/clock")\n'])
 def test_the_literal_scan_sees_a_name_written_again(text: str) -> None:
     assert [value for _, value in _literals(ast.parse(text)) if value in INTERFACE_WORDS]
+
+
+def _defines(tree: ast.Module) -> set[str]:
+    """Names a module binds at its top level (definitions, assignments, imports)."""
+    names: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names.update(n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name))
+            exported = any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets)
+            if exported and isinstance(node.value, (ast.List, ast.Tuple)):  # names __getattr__ may serve
+                names.update(e.value for e in node.value.elts if isinstance(e, ast.Constant))
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, (ast.If, ast.Try)):
+            names.update(_defines(ast.Module(body=node.body + getattr(node, "orelse", []), type_ignores=[])))
+    return names
+
+
+def _unresolved(files: list[Path]) -> list[str]:
+    """``from <project module> import name`` lines whose name the module does not define."""
+    defined = {m: _defines(ast.parse(f.read_text())) for m, f in MODULES.items()}
+    missing = []
+    for file in files:
+        for node in ast.walk(ast.parse(file.read_text())):
+            if isinstance(node, ast.ImportFrom) and not node.level and node.module in MODULES:
+                missing += [f"{file.name}:{node.lineno}: {node.module}.{a.name}" for a in node.names
+                            if a.name != "*" and a.name not in defined[node.module]
+                            and f"{node.module}.{a.name}" not in MODULES]
+    return missing
+
+
+def test_the_resolver_sees_a_name_that_is_gone(tmp_path: Path) -> None:
+    script = tmp_path / "script.py"
+    script.write_text("from t42_transfer.evaluation.experiment import target_split, _gone\n")
+    assert [line.split(": ")[1] for line in _unresolved([script])] == ["t42_transfer.evaluation.experiment._gone"]
+
+
+def test_scripts_benchmarks_and_tests_import_only_names_the_package_has() -> None:
+    """Benchmarks and scripts run in the slow suite or by hand: a renamed function must fail here first."""
+    files = [f for d in ("bench", "scripts", "docs", "test", *PACKAGES) for f in sorted((ROOT / d).rglob("*.py"))]
+    assert _unresolved(files) == []
