@@ -89,7 +89,7 @@ from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
 from t42_transfer.planning.fused import make_rollout
-from t42_transfer.planning.planner import CHUNK, MAX_PERTURBATIONS, Plan, Planner, PlannerConfig
+from t42_transfer.planning.planner import ANSWERS, CHUNK, MAX_PERTURBATIONS, Plan, Planner, PlannerConfig
 from t42_transfer.planning.workspace import Workspace
 
 RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
@@ -131,6 +131,9 @@ class Setting:
     noise_beta: float | None = None
     """The default family's sampling colour (PlannerConfig.noise_beta) in place of the planner's default, to try
     another on tuning goals; None: the default's own."""
+    answer: str | None = None
+    """The default family's answer (PlannerConfig.answer: best or elite_mean) in place of the planner's default, to
+    try another on tuning goals; None: the default's own."""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.optimisers) - set(OPTIMISERS))
@@ -314,6 +317,8 @@ def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor,
         cfg = replace(default, samples=max(2, budget // (default.refine_iterations + 1)))
         if setting.noise_beta is not None:
             cfg = replace(cfg, noise_beta=setting.noise_beta)
+        if setting.answer is not None:
+            cfg = replace(cfg, answer=setting.answer)
         if name == "default":
             return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
         if name == "default_settled":
@@ -518,6 +523,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--robust-sigma", type=float, default=Setting.robust_sigma)
     parser.add_argument("--noise-beta", type=float, default=None,
                         help="the default family's sampling colour instead of the planner's default (tuning)")
+    parser.add_argument("--answer", choices=ANSWERS, default=None,
+                        help="the default family's answer instead of the planner's default (tuning)")
     parser.add_argument("--seed", type=int, default=0, help="goal seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -528,7 +535,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                           refine_iterations=args.refine_iterations, cem_iterations=args.cem_iterations,
                           cem_std=args.cem_std, mppi_iterations=args.mppi_iterations, mppi_sigma=args.mppi_sigma,
                           mppi_lambda=args.mppi_lambda, robust_copies=args.robust_copies,
-                          robust_sigma=args.robust_sigma, noise_beta=args.noise_beta)
+                          robust_sigma=args.robust_sigma, noise_beta=args.noise_beta,
+                          answer=args.answer)
     except ValueError as err:
         parser.error(str(err))
     if args.goals < 1 or args.steps < 1:

@@ -4,6 +4,7 @@ chunking, CLI."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import math
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normali
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.planning import DISCRETE_ACTIONS, SAMPLERS, Planner, PlannerConfig, Workspace, sample_actions
 from t42_transfer.planning.fused import FusedRollout, is_paper_mlp, make_rollout
+from t42_transfer.planning.planner import ANSWERS
 from t42_transfer.planning.sampling import REAL_HAND_ACTIONS, colored_noise
 
 START = np.array([0.0, 80.0, 100.0, -100.0])
@@ -122,12 +124,14 @@ def test_plans_are_bounded_finite_and_seeded(sampler: str) -> None:
     search=st.booleans(),
     gain=st.floats(0.1, 20.0),
     goal=st.tuples(st.floats(-45.0, 45.0), st.floats(45.0, 115.0)),
+    answer=st.sampled_from(ANSWERS),
 )
 def test_any_plan_is_bounded_and_keeps_its_prediction_safe(
-    sampler: str, seed: int, refine: int, search: bool, gain: float, goal: tuple[float, float]
+    sampler: str, seed: int, refine: int, search: bool, gain: float, goal: tuple[float, float], answer: str
 ) -> None:
     config = PlannerConfig(
-        samples=64, horizon=8, sampler=sampler, refine_iterations=refine, horizon_search=search, seed=seed
+        samples=64, horizon=8, sampler=sampler, refine_iterations=refine, horizon_search=search, seed=seed,
+        answer=answer,
     )
     result = Planner(Toy(gain=gain), BOX, config).plan(START, goal)
     assert np.isfinite(result.actions).all() and (np.abs(result.actions) <= 1.0).all()
@@ -159,6 +163,37 @@ def test_the_default_planner_reaches_a_linear_models_optimum_over_its_whole_hori
     assert np.linalg.norm(end - goal) <= defaults.tolerance_mm + 1e-4
     assert np.allclose(end, result.predicted[-1, :2], atol=1e-4)
     assert result.evaluated <= defaults.samples * (1 + defaults.refine_iterations)
+
+
+def test_the_elite_mean_answer_reaches_a_linear_models_goal_for_one_more_rollout() -> None:
+    goal = np.array([START[0] + 12.0, START[1] - 9.0])
+    config = PlannerConfig(horizon=40, answer="elite_mean")
+    mean = Planner(Toy(), BOX, config).plan(START, goal)
+    best = Planner(Toy(), BOX, PlannerConfig(horizon=40)).plan(START, goal)
+    assert mean.ok and np.linalg.norm(executed(mean.actions) - goal) <= config.tolerance_mm + 1e-4
+    assert not np.array_equal(mean.actions, best.actions) and np.abs(mean.actions).max() <= 1.0
+    assert mean.evaluated == best.evaluated + 1
+    with pytest.raises(ValueError, match="answer"):
+        PlannerConfig(answer="median")
+
+
+def _unsafe_between(x0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """A time-major rollout, ``x += a``, whose safe sequences are not convex: NaN when the first action's
+    x is within 0.3 of zero, so the mean of safe sequences on both sides is unsafe."""
+    steps = x0[:, None, :2] + actions.cumsum(1)
+    states = torch.cat([x0[:, None], torch.cat([steps, x0[:, None, 2:].expand(-1, actions.shape[1], 2)], -1)], 1)
+    unsafe = actions[:, 0, 0].abs() < 0.3
+    states[unsafe, 1:] = math.nan
+    return states.transpose(0, 1)
+
+
+def test_an_unsafe_elite_mean_falls_back_to_the_best_sequence() -> None:
+    goal = np.array([START[0], START[1]])  # (+a, -a) and (-a, +a) both reach it; their mean (0, 0) is unsafe
+    config = PlannerConfig(samples=400, horizon=2, refine_iterations=0, answer="elite_mean", tolerance_mm=0.5)
+    mean = Planner(_unsafe_between, BOX, config).plan(START, goal)
+    best = Planner(_unsafe_between, BOX, replace(config, answer="best")).plan(START, goal)
+    assert abs(mean.actions[0, 0]) >= 0.3 and np.array_equal(mean.actions, best.actions)
+    assert mean.rejected["nan"] == best.rejected["nan"] + 1 and mean.ok
 
 
 def test_discrete_sampler_finds_the_exact_sequence() -> None:

@@ -26,7 +26,8 @@ predicted distance to the goal.  With it, a sample's cost is ``t + e / tol`` for
 at which it is within ``tol`` (shortest first, then nearest), or ``T + 1 + the
 nearest approach`` if it never is.  Refinement (cross-entropy) refits a
 per-step Gaussian to the best samples and redraws the rest; the best samples
-stay in the population, so the returned cost never gets worse.
+stay in the population, so the returned cost never gets worse.  With ``answer="elite_mean"`` the plan is
+instead the mean of the last population's elites, rolled out once more, when that mean is safe.
 
 Perturbations.  A search strong enough finds sequences that exploit the
 model's errors: their predicted end is near the goal and their true end is
@@ -80,6 +81,7 @@ CHUNK = 1000
 at any K.  Measured at K = 10k (1 thread): chunks of 500-2000 alike, 5000 -23 %, 10000 -30 %."""
 
 UNCERTAINTY = ("none", "dropout", "ensemble")
+ANSWERS = ("best", "elite_mean")
 MAX_CANDIDATES = 50
 """Most candidate paths a plan keeps (:attr:`PlannerConfig.candidates`): a picture, not a data set."""
 MAX_PERTURBATIONS = 64
@@ -116,6 +118,10 @@ class PlannerConfig:
     elite_fraction: float = 0.1
     refine_min_std: float = 0.05
     """Floor of the refitted action std, so refinement keeps exploring."""
+    answer: str = "best"
+    """What a plan returns: ``best``, the lowest-cost sequence evaluated, or ``elite_mean``, the mean of the
+    last population's elites (one more rollout), when it is safe (else the best): an average of good sequences
+    leans less on any one of the model's errors, as MPPI's weighted mean does."""
     chunk: int = CHUNK
     fast_path: bool = True
     """Use the fused MLP rollout for plain transition models (fused.py)."""
@@ -155,6 +161,7 @@ PLANNER_RULES: dict[str, Rule] = {
     "uncertainty": one_of(UNCERTAINTY), "members": _AT_LEAST_ONE, "risk": NON_NEGATIVE,
     "candidates": between(0, MAX_CANDIDATES), "perturbations": between(1, MAX_PERTURBATIONS),
     "perturbation_std": between(0, RANDOM_POLICY_LIMIT), "noise_beta": between(0, MAX_NOISE_BETA),
+    "answer": one_of(ANSWERS),
 }
 """What each :class:`PlannerConfig` setting must be beyond its type."""
 
@@ -248,6 +255,11 @@ class Planner:
             noise = colored_noise(max(1, count - len(order)), horizon, cfg.noise_beta, gen)
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
+        if cfg.answer == "elite_mean":
+            order = torch.argsort(cost, stable=True)[:elite_count]
+            order = order[torch.isfinite(cost[order])]
+            if len(order):
+                search.answer_with(project(cfg.sampler, actions[order].mean(0, keepdim=True)))
         return search.result()
 
     def _rollouts(self, seed: int) -> list[TimeMajorRollout]:
@@ -375,6 +387,15 @@ class _Search:
             costs.append(cost)
         self.evaluated += len(actions)
         return torch.cat(costs)
+
+    def answer_with(self, actions: Tensor) -> None:
+        """Evaluate the one sequence ``actions[1, T, 2]`` and make it the answer, whatever its cost, when it has a
+        usable prefix (else the best stays)."""
+        best = (self.best_cost, self.best_actions, self.best_states)
+        self.best_cost = math.inf
+        cost = float(self.evaluate(actions)[0])
+        if math.isinf(cost):
+            self.best_cost, self.best_actions, self.best_states = best
 
     def _keep_top(self, cost: Tensor, length: Tensor, states: Tensor) -> None:
         """Merge this chunk's lowest finite costs into :attr:`top` (ties: the earlier sample first)."""
