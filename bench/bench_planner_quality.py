@@ -76,20 +76,23 @@ import shlex
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+import yaml
 from torch import Tensor
 
+from t42_transfer.config import from_mapping
 from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
 from t42_transfer.planning.fused import make_rollout
-from t42_transfer.planning.planner import ANSWERS, CHUNK, MAX_PERTURBATIONS, Plan, Planner, PlannerConfig
+from t42_transfer.planning.planner import CHUNK, MAX_PERTURBATIONS, Plan, Planner, PlannerConfig
 from t42_transfer.planning.workspace import Workspace
 
 RESULTS = Path(__file__).parent / "results" / "planner_quality.json"
@@ -128,12 +131,9 @@ class Setting:
     """default_robust: rollouts per sequence (the first unperturbed)."""
     robust_sigma: float = 0.1
     """default_robust: std of the fixed action perturbations of the other copies."""
-    noise_beta: float | None = None
-    """The default family's sampling colour (PlannerConfig.noise_beta) in place of the planner's default, to try
-    another on tuning goals; None: the default's own."""
-    answer: str | None = None
-    """The default family's answer (PlannerConfig.answer: best or elite_mean) in place of the planner's default, to
-    try another on tuning goals; None: the default's own."""
+    planner: dict[str, Any] = field(default_factory=dict)
+    """PlannerConfig settings that replace the default's in the default family (``--planner '{answer:
+    elite_mean}'``), to try another setting on tuning goals; empty: the default itself."""
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.optimisers) - set(OPTIMISERS))
@@ -315,10 +315,7 @@ def optimise(name: str, model: LatentDynamics, workspace: Workspace, x0: Tensor,
     if name.startswith("default"):
         default = PegInHoleConfig().planner
         cfg = replace(default, samples=max(2, budget // (default.refine_iterations + 1)))
-        if setting.noise_beta is not None:
-            cfg = replace(cfg, noise_beta=setting.noise_beta)
-        if setting.answer is not None:
-            cfg = replace(cfg, answer=setting.answer)
+        cfg = from_mapping(PlannerConfig, setting.planner, "--planner", base=cfg)
         if name == "default":
             return planner_plan(model, workspace, x0, goal, steps, budget, seed, cfg)
         if name == "default_settled":
@@ -398,6 +395,20 @@ def run(model: LatentDynamics, workspace: Workspace, goals: Sequence[Goal], sett
         if progress:
             print(f"goal {i + 1}/{len(goals)} done", file=sys.stderr, flush=True)
     return trials
+
+
+def _planner_settings(text: str) -> dict[str, Any]:
+    """``--planner``: a YAML mapping of PlannerConfig settings, checked against the default's."""
+    try:
+        raw = yaml.safe_load(text)
+        if not isinstance(raw, dict):
+            raise ValueError(f"a mapping of PlannerConfig settings such as '{{noise_beta: 1}}', got {text!r}")
+        if fixed := sorted(set(raw) & {"samples", "horizon", "horizon_search", "seed"}):
+            raise ValueError(f"{fixed} are set per plan by the budget, the goal and the optimiser, not by --planner")
+        from_mapping(PlannerConfig, raw, "--planner", base=PegInHoleConfig().planner)
+    except (yaml.YAMLError, ValueError) as err:
+        raise argparse.ArgumentTypeError(" ".join(str(err).split())[:300]) from None
+    return raw
 
 
 def _median(values: Sequence[float | None]) -> float | None:
@@ -521,10 +532,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--mppi-lambda", type=float, default=Setting.mppi_lambda)
     parser.add_argument("--robust-copies", type=int, default=Setting.robust_copies)
     parser.add_argument("--robust-sigma", type=float, default=Setting.robust_sigma)
-    parser.add_argument("--noise-beta", type=float, default=None,
-                        help="the default family's sampling colour instead of the planner's default (tuning)")
-    parser.add_argument("--answer", choices=ANSWERS, default=None,
-                        help="the default family's answer instead of the planner's default (tuning)")
+    parser.add_argument("--planner", type=_planner_settings, default={}, metavar="MAPPING",
+                        help="PlannerConfig settings replacing the default's in the default family, e.g. "
+                             "'{noise_beta: 1}' (tuning)")
     parser.add_argument("--seed", type=int, default=0, help="goal seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -535,8 +545,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           refine_iterations=args.refine_iterations, cem_iterations=args.cem_iterations,
                           cem_std=args.cem_std, mppi_iterations=args.mppi_iterations, mppi_sigma=args.mppi_sigma,
                           mppi_lambda=args.mppi_lambda, robust_copies=args.robust_copies,
-                          robust_sigma=args.robust_sigma, noise_beta=args.noise_beta,
-                          answer=args.answer)
+                          robust_sigma=args.robust_sigma, planner=args.planner)
     except ValueError as err:
         parser.error(str(err))
     if args.goals < 1 or args.steps < 1:

@@ -139,3 +139,19 @@ def test_cem_mean_returns_the_last_fitted_mean_not_a_sample(goals: list) -> None
     assert np.abs(mean.actions).max() <= 1.0 and mean.predicted_safe
     end = x0[:2].numpy() + GAIN * mean.actions.sum(0)
     assert np.linalg.norm(end - target.numpy()) == pytest.approx(mean.predicted_error_mm, abs=1e-3)
+
+
+def test_planner_settings_replace_the_defaults_and_bad_ones_are_refused(goals: list, capsys) -> None:
+    """``--planner`` changes the default family's planner (here its answer: one more rollout); it cannot set what
+    the budget and the goal decide, nor an unknown or out-of-range setting."""
+    x0 = torch.as_tensor(goals[0].grasp, dtype=torch.float32)
+    target = x0[:2] + torch.tensor([8.0, 0.0])
+    plain = bench.optimise("default", drift(), WORKSPACE, x0, target, STEPS, 300, 0, bench.Setting())
+    mean = bench.optimise("default", drift(), WORKSPACE, x0, target, STEPS, 300, 0,
+                          bench.Setting(planner=bench._planner_settings("{answer: elite_mean}")))
+    assert mean.rollouts == plain.rollouts + 1 and not np.array_equal(mean.actions, plain.actions)
+    for bad, says in (("{samples: 5}", "set per plan"), ("{bogus: 1}", "unknown PlannerConfig"),
+                      ("{noise_beta: -1}", "noise_beta"), ("[1]", "a mapping")):
+        with pytest.raises(SystemExit):
+            bench.main(["--planner", bad, "--goals", "1"])
+        assert says in capsys.readouterr().err
