@@ -4,7 +4,9 @@
     .venv/bin/python docs/experiments/planner_tuning/summarise.py FILES --pair default@300 mppi@1000
 
 ``--pair A@B C@D`` compares two (optimiser, budget) rows goal by goal (the same goals in every file): goals
-only the first hits, only the second, and the exact two-sided sign-test (McNemar) p.
+only the first hits, only the second, and the exact two-sided sign-test (McNemar) p.  ``--by-predicted A@B C@D``
+groups the goals by the first row's predicted error and gives both rows' hits and median true errors per group:
+whether more search helps the goals the first left far from the goal in prediction.
 """
 
 from __future__ import annotations
@@ -35,10 +37,33 @@ def table(results: list[dict]) -> None:
         print(f"| {name} | {budget} | {ten}/{trials} | {four}/{trials} | {np.median(millis[name, budget]):.1f} |")
 
 
-def _hits(results: list[dict], which: str) -> dict[tuple[int, int, str], bool]:
+def _trials(results: list[dict], which: str) -> dict[tuple[int, int], dict]:
     name, _, budget = which.partition("@")
-    return {(i, t["trial"], tol): verdict == "hit" for i, result in enumerate(results) for t in result["trials"]
-            if t["optimiser"] == name and t["budget"] == int(budget) for tol, verdict in t["verdicts"].items()}
+    return {(i, t["trial"]): t for i, result in enumerate(results) for t in result["trials"]
+            if t["optimiser"] == name and t["budget"] == int(budget)}
+
+
+def _hits(results: list[dict], which: str) -> dict[tuple[int, int, str], bool]:
+    return {(*key, tol): verdict == "hit" for key, t in _trials(results, which).items()
+            for tol, verdict in t["verdicts"].items()}
+
+
+PREDICTED_MM = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, float("inf"))
+
+
+def by_predicted(results: list[dict], first: str, second: str) -> None:
+    a, b = _trials(results, first), _trials(results, second)
+    if not a or a.keys() != b.keys():
+        raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
+    print(f"| {first} predicted mm | goals | {first} hits 10 / 4 mm | {second} hits 10 / 4 mm "
+          f"| median true mm, {first} / {second} |\n|---|---|---|---|---|")
+    for low, high in zip(PREDICTED_MM, PREDICTED_MM[1:]):
+        keys = [k for k, t in a.items() if t["predicted_error_mm"] is not None and low <= t["predicted_error_mm"] < high]
+        if not keys:
+            continue
+        hits = [" / ".join(str(sum(t[k]["verdicts"][tol] == "hit" for k in keys)) for tol in ("10", "4")) for t in (a, b)]
+        true = [np.median([t[k]["final_error_mm"] for k in keys if t[k]["final_error_mm"] is not None]) for t in (a, b)]
+        print(f"| {low:g}-{high:g} | {len(keys)} | {hits[0]} | {hits[1]} | {true[0]:.1f} / {true[1]:.1f} |")
 
 
 def pair(results: list[dict], first: str, second: str) -> None:
@@ -57,6 +82,12 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("files", nargs="+", type=Path)
     parser.add_argument("--pair", nargs=2, metavar=("OPTIMISER@BUDGET", "OPTIMISER@BUDGET"))
+    parser.add_argument("--by-predicted", nargs=2, metavar=("OPTIMISER@BUDGET", "OPTIMISER@BUDGET"))
     args = parser.parse_args()
     loaded = [json.loads(path.read_text()) for path in args.files]
-    pair(loaded, *args.pair) if args.pair else table(loaded)
+    if args.pair:
+        pair(loaded, *args.pair)
+    elif args.by_predicted:
+        by_predicted(loaded, *args.by_predicted)
+    else:
+        table(loaded)
