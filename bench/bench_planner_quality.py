@@ -87,7 +87,7 @@ from torch import Tensor
 
 from t42_transfer.config import from_mapping
 from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
-from t42_transfer.evaluation.stats import wilson_interval
+from t42_transfer.evaluation.stats import sign_test, wilson_interval
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.execution import execute
@@ -461,8 +461,49 @@ def time_to_rate(rows: Sequence[dict], setting: Setting) -> list[dict]:
     return out
 
 
+TIME_SHARE = 1 / 3
+"""The planner's target: another optimiser's best success at most this share of its plan time (issue 23)."""
+
+
+def _best(rows: Sequence[dict], name: str, k: int) -> dict:
+    """``name``'s row with the most hits at tolerance index ``k`` (ties: the faster)."""
+    return min((r for r in rows if r["optimiser"] == name),
+               key=lambda r: (-r["success"][k]["successes"], r["median_plan_seconds"]))
+
+
+def against_default(rows: Sequence[dict], trials: Sequence[TrialResult], setting: Setting) -> list[dict]:
+    """Per tolerance and other optimiser: its best budget against the default's, goal by goal (the goals the
+    default alone hits, those the other alone hits, the sign test's p), and whether the default reaches the
+    other's best rate at most :data:`TIME_SHARE` of its plan time (``target_met``).  Empty without ``default``."""
+    if "default" not in setting.optimisers:
+        return []
+    hit = {(t.optimiser, t.budget, t.trial, tol): v == "hit" for t in trials for tol, v in t.verdicts.items()}
+    out = []
+    for k, tol in enumerate(setting.tolerances_mm):
+        key = f"{tol:g}"
+        mine = _best(rows, "default", k)
+        for name in setting.optimisers:
+            if name == "default":
+                continue
+            other = _best(rows, name, k)
+            goals = sorted({t.trial for t in trials if t.optimiser == name and t.budget == other["budget"]})
+            wins, losses, _, p = sign_test([int(hit["default", mine["budget"], g, key])
+                                            - int(hit[name, other["budget"], g, key]) for g in goals])
+            needed = other["success"][k]["successes"]
+            reaching = [r["median_plan_seconds"] for r in rows
+                        if r["optimiser"] == "default" and r["success"][k]["successes"] >= needed]
+            share = min(reaching) / other["median_plan_seconds"] if reaching else None
+            out.append({"tolerance_mm": float(tol), "optimiser": name, "budget": other["budget"],
+                        "successes": needed, "default_budget": mine["budget"],
+                        "default_successes": mine["success"][k]["successes"], "only_default": wins,
+                        "only_other": losses, "sign_test_p": p, "default_time_share": share,
+                        "target_met": share is not None and share <= TIME_SHARE})
+    return out
+
+
 def report(trials: Sequence[TrialResult], goals: Sequence[Goal], setting: Setting) -> dict:
-    """The JSON body (no command or machine): settings, goals, rows, time to each rate, every trial."""
+    """The JSON body (no command or machine): settings, goals, rows, time to each rate, the default against each
+    other optimiser's best, every trial."""
     rows = summarise(trials, setting)
     return {
         "benchmark": "planner_quality",
@@ -472,6 +513,7 @@ def report(trials: Sequence[TrialResult], goals: Sequence[Goal], setting: Settin
                   "min_distance_mm": float(min(g.distance_mm for g in goals))},
         "rows": rows,
         "time_to_rate": time_to_rate(rows, setting),
+        "against_default": against_default(rows, trials, setting),
         "trials": [asdict(t) for t in trials],
     }
 
@@ -497,6 +539,16 @@ def markdown(result: dict) -> str:
     for t in result["time_to_rate"]:
         when = "-" if t["budget"] is None else f"{1e3 * t['median_plan_seconds']:.1f} ({t['budget']})"
         out.append(f"| {t['optimiser']} | {t['tolerance_mm']:g} | {t['success_rate']:.0%} | {when} |\n")
+    if result.get("against_default"):
+        out.append("\nThe default's best budget against each optimiser's best, goal by goal; time share: the default's "
+                   f"plan time at that rate over the other's (target <= {TIME_SHARE:.2f})\n\n"
+                   "| tolerance mm | optimiser (budget) | hits | default (budget) | only default | only other "
+                   "| sign-test p | time share | target met |\n|---|---|---|---|---|---|---|---|---|\n")
+        for a in result["against_default"]:
+            share = "-" if a["default_time_share"] is None else f"{a['default_time_share']:.2f}"
+            out.append(f"| {a['tolerance_mm']:g} | {a['optimiser']} ({a['budget']}) | {a['successes']} "
+                       f"| {a['default_successes']} ({a['default_budget']}) | {a['only_default']} | {a['only_other']} "
+                       f"| {a['sign_test_p']:.2f} | {share} | {'yes' if a['target_met'] else 'no'} |\n")
     return "".join(out)
 
 

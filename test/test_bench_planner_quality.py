@@ -155,3 +155,24 @@ def test_planner_settings_replace_the_defaults_and_bad_ones_are_refused(goals: l
         with pytest.raises(SystemExit):
             bench.main(["--planner", bad, "--goals", "1"])
         assert says in capsys.readouterr().err
+
+
+def test_the_default_is_paired_with_each_optimisers_best_budget(result: dict) -> None:
+    """Goal by goal: the hits only one side made differ by exactly the two rows' hit counts; the time share is the
+    default's fastest row reaching the other's rate over the other's time, and the target follows from it."""
+    against = result["against_default"]
+    others = [n for n in TOY.optimisers if n != "default"]
+    assert [(a["tolerance_mm"], a["optimiser"]) for a in against] == [(t, n) for t in TOY.tolerances_mm for n in others]
+    for a in against:
+        k = TOY.tolerances_mm.index(a["tolerance_mm"])
+        rows = {(r["optimiser"], r["budget"]): r for r in result["rows"]}
+        assert rows["default", a["default_budget"]]["success"][k]["successes"] == a["default_successes"]
+        assert rows[a["optimiser"], a["budget"]]["success"][k]["successes"] == a["successes"]
+        assert a["only_default"] - a["only_other"] == a["default_successes"] - a["successes"]
+        assert 0.0 <= a["sign_test_p"] <= 1.0
+        reaching = [r["median_plan_seconds"] for (n, _), r in rows.items()
+                    if n == "default" and r["success"][k]["successes"] >= a["successes"]]
+        other_time = rows[a["optimiser"], a["budget"]]["median_plan_seconds"]
+        assert a["default_time_share"] == (min(reaching) / other_time if reaching else None)
+        assert a["target_met"] == (a["default_time_share"] is not None and a["default_time_share"] <= 1 / 3)
+    assert "The default's best budget against" in bench.markdown(result)
