@@ -246,8 +246,7 @@ class Planner:
         cost = search.evaluate(actions)
         elite_count = max(2, int(cfg.elite_fraction * count))
         for _ in range(cfg.refine_iterations):
-            order = torch.argsort(cost, stable=True)[:elite_count]
-            order = order[torch.isfinite(cost[order])]
+            order = _elites(cost, elite_count)
             if len(order) < 2:
                 break
             elites, elite_cost = actions[order], cost[order]
@@ -256,8 +255,7 @@ class Planner:
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
         if cfg.answer == "elite_mean":
-            order = torch.argsort(cost, stable=True)[:elite_count]
-            order = order[torch.isfinite(cost[order])]
+            order = _elites(cost, elite_count)
             if len(order):
                 search.answer_with(project(cfg.sampler, actions[order].mean(0, keepdim=True)))
         return search.result()
@@ -279,6 +277,12 @@ class Planner:
                 "goal_outside_workspace", f"goal {goal.tolist()} is outside the trained workspace", x0, goal
             )
         return None
+
+
+def _elites(cost: Tensor, count: int) -> Tensor:
+    """Indices of the ``count`` lowest costs (ties: the earlier sample), the unusable (inf) left out."""
+    order = torch.argsort(cost, stable=True)[:count]
+    return order[torch.isfinite(cost[order])]
 
 
 def _perturbations(cfg: PlannerConfig, horizon: int, seed: int) -> Tensor | None:
