@@ -57,12 +57,15 @@ def by_predicted(results: list[dict], first: str, second: str) -> None:
         raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
     print(f"| {first} predicted mm | goals | {first} hits 10 / 4 mm | {second} hits 10 / 4 mm "
           f"| median true mm, {first} / {second} |\n|---|---|---|---|---|")
-    for low, high in zip(PREDICTED_MM, PREDICTED_MM[1:]):
-        keys = [k for k, t in a.items() if t["predicted_error_mm"] is not None and low <= t["predicted_error_mm"] < high]
+    for low, high in zip(PREDICTED_MM, PREDICTED_MM[1:], strict=False):
+        keys = [k for k, t in a.items()
+                if t["predicted_error_mm"] is not None and low <= t["predicted_error_mm"] < high]
         if not keys:
             continue
-        hits = [" / ".join(str(sum(t[k]["verdicts"][tol] == "hit" for k in keys)) for tol in ("10", "4")) for t in (a, b)]
-        true = [np.median([t[k]["final_error_mm"] for k in keys if t[k]["final_error_mm"] is not None]) for t in (a, b)]
+        hits = [" / ".join(str(sum(t[k]["verdicts"][tol] == "hit" for k in keys)) for tol in ("10", "4"))
+                for t in (a, b)]
+        true = [np.median([t[k]["final_error_mm"] for k in keys if t[k]["final_error_mm"] is not None])
+                for t in (a, b)]
         print(f"| {low:g}-{high:g} | {len(keys)} | {hits[0]} | {hits[1]} | {true[0]:.1f} / {true[1]:.1f} |")
 
 
@@ -70,7 +73,8 @@ def pair(results: list[dict], first: str, second: str) -> None:
     a, b = _hits(results, first), _hits(results, second)
     if not a or a.keys() != b.keys():
         raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
-    print(f"| tolerance mm | {first} | {second} | only {first} | only {second} | sign-test p |\n|---|---|---|---|---|---|")
+    print(f"| tolerance mm | {first} | {second} | only {first} | only {second} | sign-test p |\n"
+          "|---|---|---|---|---|---|")
     for tol in sorted({k[2] for k in a}, key=float, reverse=True):
         keys = [k for k in a if k[2] == tol]
         wins, losses, _, p = sign_test([int(a[k]) - int(b[k]) for k in keys])
