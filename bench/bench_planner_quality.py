@@ -57,10 +57,13 @@ Goals, their order and every optimiser's seed are fixed (the goal's reset seed),
 successes; timings vary with the machine's load, recorded before and after.  Goals x budgets x optimisers
 run interleaved (per goal, every budget and optimiser in turn), so a change of load hits all alike.
 ``time_to_rate`` gives, per optimiser and tolerance, the smallest median planning time among budgets
-whose success rate reaches each target (null: no budget did).
+whose success rate reaches each target (null: no budget did).  ``against_default`` pairs, per tolerance, each
+optimiser's best budget with the default's best goal by goal (hits only one of them made, the sign test's p) and
+says whether the default reaches that rate at most a third of the other's plan time (issue 23's target).
 
     .venv/bin/python bench/bench_planner_quality.py                  # 30 goals, budgets 30 ... 10000
     .venv/bin/python bench/bench_planner_quality.py --goals 5 --budgets 100 1000 --out /tmp/pq.json
+    .venv/bin/python bench/bench_planner_quality.py --seed 1 --optimisers default --planner '{answer: elite_mean}'
 
 The model is the paper-size transferred naive_finetune model of ``t42 experiment
 configs/peg_in_hole_models.yaml --out runs`` (``--model`` for another).
