@@ -85,10 +85,9 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from torch import Tensor
 
-from t42_transfer.config import from_mapping
+from t42_transfer.config import from_mapping, inline_mapping
 from t42_transfer.evaluation.peg_in_hole import VERDICTS, Goal, PegInHoleConfig, make_goals, progress_towards, verdict
 from t42_transfer.evaluation.stats import sign_test, wilson_interval
 from t42_transfer.hand.sim import SimulatedHand
@@ -403,13 +402,11 @@ def run(model: LatentDynamics, workspace: Workspace, goals: Sequence[Goal], sett
 def _planner_settings(text: str) -> dict[str, Any]:
     """``--planner``: a YAML mapping of PlannerConfig settings, checked against the default's."""
     try:
-        raw = yaml.safe_load(text)
-        if not isinstance(raw, dict):
-            raise ValueError(f"a mapping of PlannerConfig settings such as '{{noise_beta: 1}}', got {text!r}")
+        raw = inline_mapping(text, "--planner", "PlannerConfig settings", "{noise_beta: 1}")
         if fixed := sorted(set(raw) & {"samples", "horizon", "horizon_search", "seed"}):
             raise ValueError(f"{fixed} are set per plan by the budget, the goal and the optimiser, not by --planner")
         from_mapping(PlannerConfig, raw, "--planner", base=PegInHoleConfig().planner)
-    except (yaml.YAMLError, ValueError) as err:
+    except ValueError as err:
         raise argparse.ArgumentTypeError(" ".join(str(err).split())[:300]) from None
     return raw
 

@@ -17,6 +17,8 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
 
+import yaml
+
 T = TypeVar("T")
 Rule = tuple[Callable[[Any], bool], str]
 """``(ok(value), what it must be)``: a setting's range beyond its type."""
@@ -24,6 +26,20 @@ Rule = tuple[Callable[[Any], bool], str]
 MAX_EVAL_STEPS = 100_000
 """Bound of every step count (offsets, horizons, windows, epochs)."""
 SEED_RANGE = (0, 2**32 - 1)
+
+
+def inline_mapping(text: str, where: str, what: str, example: str, max_chars: int = 4096) -> dict:
+    """A short YAML/JSON mapping written on a command line (``example``: one of ``what``), parsed; a one-line
+    ValueError naming ``where`` otherwise.  :func:`from_mapping` then builds the settings from it."""
+    if len(text) > max_chars:
+        raise ValueError(f"{where}: {len(text)} characters; {what} are a short mapping")
+    try:
+        raw = yaml.safe_load(text)
+    except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as err:
+        raise ValueError(f"{where}: not a YAML mapping ({' '.join(str(err).split())[:200]})") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"{where} must be a mapping of {what} such as '{example}', got {show(text)}")
+    return raw
 
 
 def show(value: Any) -> str:

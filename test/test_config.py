@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 
 import pytest
 
 from t42_transfer.cli import main as t42
-from t42_transfer.config import between, check, from_mapping, one_of
+from t42_transfer.config import between, check, from_mapping, inline_mapping, one_of
 from t42_transfer.models.training import TrainConfig
 from t42_transfer.planning.planner import PlannerConfig
 from t42_transfer.transfer.config import TransferConfig
@@ -106,3 +107,11 @@ def test_an_experiment_transfer_section_keeps_the_definition_settings_it_does_no
     assert cfg.transfer is not None
     assert cfg.transfer.l2_finetune.train == dataclasses.replace(authors.l2_finetune.train, epochs=3)
     assert cfg.transfer.cumulative_residual == authors.cumulative_residual
+
+
+def test_an_inline_mapping_is_parsed_or_refused_in_one_line_naming_where() -> None:
+    assert inline_mapping("{a: 1, b: [2, 3]}", "--x", "things", "{a: 1}") == {"a": 1, "b": [2, 3]}
+    for text, says in (("[1]", "--x must be a mapping of things such as '{a: 1}'"), ("{a: 1", "--x: not a YAML"),
+                       ("{a: " + "1" * 5000 + "}", "--x: 5005 characters; things are a short mapping")):
+        with pytest.raises(ValueError, match=re.escape(says)):
+            inline_mapping(text, "--x", "things", "{a: 1}")

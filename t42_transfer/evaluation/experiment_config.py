@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from t42_transfer.config import (
     FRACTION,
     MAX_EVAL_STEPS,
@@ -30,6 +28,7 @@ from t42_transfer.config import (
     between,
     check,
     from_mapping,
+    inline_mapping,
     one_of,
     show,
 )
@@ -282,14 +281,7 @@ def check_spec(spec: DataSpec, where: str, model_allowed: bool = False) -> None:
 def parse_data_spec(text: str, where: str) -> DataSpec:
     """A data spec written as a YAML/JSON mapping (``{real: A, negate_actions: true}``), checked as an
     experiment's sides are; ValueError naming ``where`` otherwise.  Never a model: this is data."""
-    if len(text) > MAX_PATH_CHARS:
-        raise ValueError(f"{where}: {len(text)} characters; a data spec is a short mapping")
-    try:
-        raw = yaml.safe_load(text)
-    except (yaml.YAMLError, ValueError, OverflowError, RecursionError) as err:
-        raise ValueError(f"{where}: not a YAML mapping ({' '.join(str(err).split())[:200]})") from None
-    if not isinstance(raw, dict):
-        raise ValueError(f"{where} must be a mapping of data settings such as '{{real: A}}', got {show(text)}")
+    raw = inline_mapping(text, where, "data settings", "{real: A}", MAX_PATH_CHARS)
     spec = from_mapping(DataSpec, raw, where)
     check_spec(spec, where)
     return spec
