@@ -43,18 +43,19 @@ def _trials(results: list[dict], which: str) -> dict[tuple[int, int], dict]:
             if t["optimiser"] == name and t["budget"] == int(budget)}
 
 
-def _hits(results: list[dict], which: str) -> dict[tuple[int, int, str], bool]:
-    return {(*key, tol): verdict == "hit" for key, t in _trials(results, which).items()
-            for tol, verdict in t["verdicts"].items()}
+def _paired(results: list[dict], first: str, second: str) -> tuple[dict, dict]:
+    """Both rows' trials by (file, goal); exits unless both cover the same goals."""
+    a, b = _trials(results, first), _trials(results, second)
+    if not a or a.keys() != b.keys():
+        raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
+    return a, b
 
 
 PREDICTED_MM = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, float("inf"))
 
 
 def by_predicted(results: list[dict], first: str, second: str) -> None:
-    a, b = _trials(results, first), _trials(results, second)
-    if not a or a.keys() != b.keys():
-        raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
+    a, b = _paired(results, first, second)
     print(f"| {first} predicted mm | goals | {first} hits 10 / 4 mm | {second} hits 10 / 4 mm "
           f"| median true mm, {first} / {second} |\n|---|---|---|---|---|")
     for low, high in zip(PREDICTED_MM, PREDICTED_MM[1:], strict=False):
@@ -70,16 +71,13 @@ def by_predicted(results: list[dict], first: str, second: str) -> None:
 
 
 def pair(results: list[dict], first: str, second: str) -> None:
-    a, b = _hits(results, first), _hits(results, second)
-    if not a or a.keys() != b.keys():
-        raise SystemExit(f"{first} and {second} must both be in every file, on the same goals")
+    a, b = _paired(results, first, second)
     print(f"| tolerance mm | {first} | {second} | only {first} | only {second} | sign-test p |\n"
           "|---|---|---|---|---|---|")
-    for tol in sorted({k[2] for k in a}, key=float, reverse=True):
-        keys = [k for k in a if k[2] == tol]
-        wins, losses, _, p = sign_test([int(a[k]) - int(b[k]) for k in keys])
-        print(f"| {tol} | {sum(a[k] for k in keys)}/{len(keys)} | {sum(b[k] for k in keys)}/{len(keys)} "
-              f"| {wins} | {losses} | {p:.2f} |")
+    for tol in sorted(next(iter(a.values()))["verdicts"], key=float, reverse=True):
+        hits = [[t[k]["verdicts"][tol] == "hit" for k in a] for t in (a, b)]
+        wins, losses, _, p = sign_test([int(x) - int(y) for x, y in zip(*hits, strict=True)])
+        print(f"| {tol} | {sum(hits[0])}/{len(a)} | {sum(hits[1])}/{len(a)} | {wins} | {losses} | {p:.2f} |")
 
 
 if __name__ == "__main__":
