@@ -17,12 +17,19 @@ in that round, which a shared machine's changing load disturbs least:
   (``s + net(cat(s, a))``) and a squared goal distance as running cost
   (baseline b): one command rolls out K samples once; skipped with a note when
   pytorch_mppi is not installed (``pip install pytorch_mppi==0.9.1``);
-- ``matmul_bound``: only the three ``addmm`` of one step at batch K, into
-  preallocated outputs: the matrix work of one step, the reference ceiling;
+- ``matmul_bound``: only the three products of one step at batch K, each in the
+  form torch computes it fastest on the CPU (MKL's ``addmm`` with the weight
+  stored transposed, as a transposed view, or the output transposed, or oneDNN's
+  linear; timed per layer at the start: ``matmul_forms``): the matrix work of one
+  step, the reference ceiling.  ``matmul_bound_mkl``: ``addmm`` with the weight
+  stored transposed for all three, the bound as this benchmark defined it until
+  2026-12-05 (on the AMD host other forms are faster at two of the three
+  shapes, so that bound was no ceiling);
 - ``transcendental_floor``: ``matmul_bound`` plus the two transcendental passes
   every step of this MLP needs, one ``exp2`` over the first hidden layer (SELU's
   negative branch) and one ``sigmoid`` over the second (tanh), as eager torch
-  kernels at batch K.  ``transcendental_floor_vs_matmul_bound`` is the most an
+  kernels at batch K (the sigmoid inside oneDNN's product when the second layer's
+  form is oneDNN).  ``transcendental_floor_vs_matmul_bound`` is the most an
   eager rollout evaluating those two functions over whole layers with torch's
   kernels can reach against the bound; ``fused_rollout_vs_transcendental_floor``
   is what the fused rollout's other work (clamps, adds, copies, dispatch) leaves
@@ -63,7 +70,7 @@ from torch import Tensor, nn
 
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
-from t42_transfer.planning.fused import FusedRollout
+from t42_transfer.planning.fused import FusedRollout, onednn_available, onednn_linear
 from t42_transfer.planning.planner import CHUNK
 
 RESULTS = Path(__file__).parent / "results" / "planner.json"
@@ -93,38 +100,88 @@ def eager_loop(net: nn.Module, x0: Tensor, actions: Tensor) -> Tensor:
     return torch.stack(out, dim=1)
 
 
-def _layers(model: TransitionModel, batch: int) -> tuple[Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
-    """Random inputs at batch ``batch`` and, per linear layer of the MLP, ``(weight [in, out], bias, output)``."""
+FORMS = ("mkl", "mkl_weight_view", "mkl_transposed_output", *(("onednn",) if onednn_available() else ()))
+"""The ways torch computes ``x @ W.T + b`` from a row-major ``x`` [K, in] on the CPU: MKL's ``addmm`` with ``W.T``
+stored contiguous, or as a transposed view of ``W``, or computing the transposed output ``W @ x.T + b`` [out, K];
+oneDNN's linear."""
+
+
+def _product(form: str, inputs: Tensor, weight: Tensor, bias: Tensor, out: Tensor,
+             activation: str = "none") -> Callable[[], object]:
+    """One layer's product at the benchmark's shapes in ``form`` (:data:`FORMS`), into ``out`` (or its transpose)
+    where the form takes an output, optionally with oneDNN's fused activation."""
+    if activation != "none" and form != "onednn":
+        raise ValueError("only oneDNN fuses an activation into the product")
+    if form == "mkl":
+        wt = weight.T.contiguous()
+        return lambda: torch.addmm(bias, inputs, wt, out=out)
+    if form == "mkl_weight_view":
+        return lambda: torch.addmm(bias, inputs, weight.T, out=out)
+    if form == "mkl_transposed_output":
+        column, out_t = bias[:, None].contiguous(), out.T.contiguous()
+        return lambda: torch.addmm(column, weight, inputs.T, out=out_t)
+    return lambda: onednn_linear(inputs, weight, bias, activation)
+
+
+def _products(model: TransitionModel, batch: int) -> list[tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """Random inputs and, per linear layer of the MLP, ``(inputs, weight [out, in], bias, output)``."""
     layers = [model.net[i] for i in (0, 3, 6)]
-    inputs = torch.randn(batch, layers[0].in_features)
-    return inputs, [(layer.weight.detach().T.contiguous(), layer.bias.detach(), torch.empty(batch, layer.out_features))
-                    for layer in layers]
+    return [(torch.randn(batch, layer.in_features), layer.weight.detach().contiguous(), layer.bias.detach(),
+             torch.empty(batch, layer.out_features)) for layer in layers]
 
 
-def matmul_only(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
-    inputs, ((w1, b1, h1), (w2, b2, h2), (w3, b3, out)) = _layers(model, batch)
+def fastest_forms(model: TransitionModel, batch: int, calls: int = 200, rounds: int = 5) -> dict[str, dict]:
+    """Per layer, each form's median microseconds a product over ``rounds`` (forms alternating) and the fastest."""
+    layers = {}
+    for i, layer in enumerate(_products(model, batch), start=1):
+        runs = {form: _product(form, *layer) for form in FORMS}
+        times: dict[str, list[float]] = {form: [] for form in runs}
+        for _ in range(rounds):
+            for form, run in runs.items():
+                run()
+                times[form].append(timed(lambda run=run: [run() for _ in range(calls)]) / calls * 1e6)
+        us = {form: statistics.median(ts) for form, ts in times.items()}
+        layers[f"layer{i}"] = {"us_per_product": us, "form": min(us, key=us.get)}
+    return layers
+
+
+def matmul_only(model: TransitionModel, batch: int, horizon: int,
+                forms: tuple[str, str, str] = ("mkl", "mkl", "mkl")) -> Callable[[], None]:
+    """The three products of a step, ``horizon`` times, layer i in ``forms[i]``."""
+    first, second, third = (_product(form, *layer) for form, layer in zip(forms, _products(model, batch),
+                                                                          strict=True))
 
     def run() -> None:
         for _ in range(horizon):
-            torch.addmm(b1, inputs, w1, out=h1)
-            torch.addmm(b2, h1, w2, out=h2)
-            torch.addmm(b3, h2, w3, out=out)
+            first()
+            second()
+            third()
 
     return run
 
 
-def transcendental_floor(model: TransitionModel, batch: int, horizon: int) -> Callable[[], None]:
-    """``matmul_only`` plus one exp2 pass over the first hidden layer and one sigmoid pass over the second."""
-    inputs, ((w1, b1, h1), (w2, b2, h2), (w3, b3, out)) = _layers(model, batch)
-    exp2, sigmoid = torch.empty_like(h1), torch.empty_like(h2)
+def transcendental_floor(model: TransitionModel, batch: int, horizon: int,
+                         forms: tuple[str, str, str] = ("mkl", "mkl", "mkl")) -> Callable[[], None]:
+    """``matmul_only`` plus one exp2 pass over the first hidden layer and one sigmoid over the second (inside
+    oneDNN's product when that layer's form is oneDNN)."""
+    (i1, w1, b1, h1), (i2, w2, b2, h2), (i3, w3, b3, h3) = _products(model, batch)
+    exp2 = torch.empty_like(h1)
+    first, third = _product(forms[0], i1, w1, b1, h1), _product(forms[2], i3, w3, b3, h3)
+    if forms[1] == "onednn":
+        second = _product("onednn", i2, w2, b2, h2, "sigmoid")
+    else:
+        product, sigmoid = _product(forms[1], i2, w2, b2, h2), torch.empty_like(h2)
+
+        def second() -> None:
+            product()
+            torch.sigmoid(h2, out=sigmoid)
 
     def run() -> None:
         for _ in range(horizon):
-            torch.addmm(b1, inputs, w1, out=h1)
+            first()
             torch.exp2(h1, out=exp2)
-            torch.addmm(b2, h1, w2, out=h2)
-            torch.sigmoid(h2, out=sigmoid)
-            torch.addmm(b3, h2, w3, out=out)
+            second()
+            third()
 
     return run
 
@@ -237,13 +294,16 @@ def main() -> None:
     planner = Planner(model, WORKSPACE, PlannerConfig(samples=k, horizon=horizon))
     one_round = Planner(model, WORKSPACE, PlannerConfig(samples=k, horizon=horizon, refine_iterations=0))
     fused = FusedRollout(model)
+    forms = fastest_forms(model, k)
+    fastest = tuple(forms[f"layer{i}"]["form"] for i in (1, 2, 3))
     cases: dict[str, Callable[[], object]] = {
         "planner_default": lambda: planner.plan(START, GOAL),
         "planner_one_round": lambda: one_round.plan(START, GOAL),
         "fused_rollout": lambda: fused(x0, actions),
         "eager_loop": lambda: eager_loop(net, x0, actions),
-        "matmul_bound": matmul_only(model, k, horizon),
-        "transcendental_floor": transcendental_floor(model, k, horizon),
+        "matmul_bound": matmul_only(model, k, horizon, fastest),
+        "matmul_bound_mkl": matmul_only(model, k, horizon),
+        "transcendental_floor": transcendental_floor(model, k, horizon, fastest),
     }
     mppi = mppi_command(net, k, horizon)
     notes = {}
@@ -272,7 +332,8 @@ def main() -> None:
                                  for ta, tb in zip(times[a], times[b], strict=True))
 
     pairs = [(p, b) for p in ("planner_default", "planner_one_round") for b in ("eager_loop", "matmul_bound", "mppi")]
-    pairs += [("fused_rollout", "matmul_bound"), ("transcendental_floor", "matmul_bound"),
+    pairs += [("fused_rollout", "matmul_bound"), ("fused_rollout", "matmul_bound_mkl"),
+              ("matmul_bound_mkl", "matmul_bound"), ("transcendental_floor", "matmul_bound"),
               ("fused_rollout", "transcendental_floor")]
     pairs = [(a, b) for a, b in pairs if b in times]
     ratios = {f"{a}_vs_{b}": paired(a, b) for a, b in pairs}
@@ -300,6 +361,7 @@ def main() -> None:
             "chunk": planner.config.chunk,
             "torch_compile": False,
         },
+        "matmul_forms": forms,
         "rollouts_per_call": rollouts,
         "sample_steps_per_s": rate,
         "best_sample_steps_per_s": best,

@@ -79,7 +79,7 @@ def test_bench_planner(tmp_path: Path) -> None:
     params = result["parameters"]
     assert (params["samples"], params["horizon"], params["repeats"]) == (50, 5, 1)
     cases = {"planner_default", "planner_one_round", "fused_rollout", "eager_loop", "matmul_bound",
-             "transcendental_floor"}
+             "matmul_bound_mkl", "transcendental_floor"}
     cases |= set() if "mppi" in result["notes"] else {"mppi"}  # a note instead when pytorch_mppi is absent
     for key in ("sample_steps_per_s", "best_sample_steps_per_s", "ms_per_call", "repeats_s", "rollouts_per_call"):
         assert set(result[key]) == cases, key
@@ -92,10 +92,18 @@ def test_bench_planner(tmp_path: Path) -> None:
         assert per_s == pytest.approx(made[name] * 5 / (result["ms_per_call"][name] / 1e3)), name
     pairs = {f"{p}_vs_{b}" for p in ("planner_default", "planner_one_round") for b in ("eager_loop", "matmul_bound")}
     pairs |= {"fused_rollout_vs_matmul_bound", "transcendental_floor_vs_matmul_bound",
-              "fused_rollout_vs_transcendental_floor"}
+              "fused_rollout_vs_transcendental_floor", "fused_rollout_vs_matmul_bound_mkl",
+              "matmul_bound_mkl_vs_matmul_bound"}
     pairs |= {f"{p}_vs_mppi" for p in ("planner_default", "planner_one_round")} if "mppi" in cases else set()
     assert set(result["ratios"]) == set(result["ratios_described"]) == pairs
     assert all(positive(v) for v in result["ratios"].values())
+    # the bound takes, per layer, whichever form was fastest in this run
+    forms = result["matmul_forms"]
+    assert set(forms) == {"layer1", "layer2", "layer3"}
+    for layer in forms.values():
+        us = layer["us_per_product"]
+        assert {"mkl", "mkl_weight_view", "mkl_transposed_output"} <= set(us) and all(positive(v) for v in us.values())
+        assert layer["form"] == min(us, key=us.get)
     assert set(result["targets"]) == {"fused_rollout_vs_matmul_bound >= 0.8", "planner_default_vs_matmul_bound >= 0.5"}
     assert "time_to_rate" in result["latency_at_equal_success"] or "note" in result["latency_at_equal_success"]
     assert [(r["samples"], r["chunk"]) for r in result["peak_rss"]] == [(200, params["chunk"]), (200, 200)]

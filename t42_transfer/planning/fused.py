@@ -3,30 +3,38 @@
 ``model.rollout`` is right for every model kind but spends most of a planning
 call outside the matrix products: normalising, concatenating, SELU and tanh
 kernels, broadcasting biases, and allocating each step's tensors.  For a plain
-:class:`~t42_transfer.models.network.TransitionModel` all of that folds away:
+float32 :class:`~t42_transfer.models.network.TransitionModel` all of that folds away:
 
 - input normalisation ``(x - m) / s`` goes into the first layer (``W1 / s``,
-  ``b1 - W1 m / s``); its bias becomes the row of a constant-1 input column, and
-  the grasp input (constant per sample) four more input columns;
-- ``selu(u) = scale * (relu(u) + alpha * exp(min(u, 0)) - alpha)``: ``scale`` and
-  ``- alpha`` go into the second layer, leaving four cheap in-place passes
-  (eager ``torch.selu`` costs about twice that here).  The first layer is divided by
+  ``b1 - W1 m / s``), and the grasp input (constant per sample) four more input columns;
+- ``selu(u) = scale * (relu(u) + alpha * (min(exp(u), 1) - 1))``: ``scale`` and
+  ``- alpha`` go into the second layer, leaving four cheap passes (eager
+  ``torch.selu`` costs about twice that here).  The first layer is divided by
   ln 2 so that the exponential is ``exp2`` (``u = v ln 2``: ``relu(u) = ln 2 relu(v)``,
-  ``exp(min(u, 0)) = exp2(min(v, 0))``, ln 2 going into the second layer): torch's
-  ``exp2_`` took 52 us on a [1000, 129] block where ``exp_`` took 138 (one thread,
-  AVX-512).  One extra hidden unit with zero weights comes out of them as exactly
-  ``alpha / ln 2`` and carries the second layer's bias, so neither big product
-  broadcasts a bias (7 % per step);
+  ``exp(u) = exp2(v)``, ln 2 going into the second layer): torch's ``exp2_`` took
+  52 us on a [1000, 129] block where ``exp_`` took 138 (one thread, AVX-512);
 - ``tanh(v) = 2 sigmoid(2 v) - 1``: the 2s go into the second layer and the
-  third, leaving one in-place sigmoid.  The reference AMD Zen 4 machines run
-  eager tanh ~3x slower than sigmoid; on this project's Intel hosts tanh_ wins on
-  unit-normal inputs but lost in the full loop (its cost depends on the inputs);
+  third, and oneDNN applies the sigmoid inside the second product, on each
+  block while it is in cache (one pass fewer over the layer);
 - output de-normalisation ``d * s_d + m_d`` goes into the third layer.
 
-Each step is then two ``mm`` and one small ``addmm`` into preallocated buffers
-plus the activations, in inference mode, writing states time-major so every
-step's output is one contiguous block.  Equal to ``model.rollout`` up to float
-rounding (the tests check 1e-4); dropout is off, as in ``rollout``.
+Each product runs in the form that was fastest for its shape (2026-12-05, AMD
+EPYC, one thread, K = 1000; ``bench/bench_planner.py`` measures the forms again
+as ``matmul_engines``): MKL's ``addmm`` for the first (25 us against oneDNN's 35:
+6 or 10 inputs), oneDNN's linear for the second (315 us against MKL's 330; 366
+with the sigmoid against 330 + 68 as two calls), and MKL with the output
+transposed, ``W3 @ h2.T``, for the third (29 us, against 141 as ``h2 @ W3.T``
+and oneDNN's 55: 4 outputs).  oneDNN's fused linear is
+``torch.ops.mkldnn._linear_pointwise``, what inductor emits for CPU linears; a
+torch without it, or a model in another dtype, gets the contract's
+``model.rollout``.
+
+The network's inputs for every step live in one buffer ``[T + 1, B, I]``: the
+actions are written into it once, and each step's new state straight into the
+next step's row, so no step copies its inputs.  Each step is then one ``addmm``,
+the exponential's passes, one oneDNN product and one small ``addmm``, in
+inference mode.  Equal to ``model.rollout`` up to float rounding (the tests check
+1e-4); dropout is off, as in ``rollout``.
 """
 
 from __future__ import annotations
@@ -50,9 +58,35 @@ contiguous rows, and the fused path produces that layout without a copy."""
 SELU_ALPHA = 1.6732632423543772848170429916717
 SELU_SCALE = 1.0507009873554804934193349852946
 LN2 = 0.69314718055994530941723212145818
-CARRIER = SELU_ALPHA / LN2
-"""What the first layer's activation makes of a zero input: the bias-carrying hidden unit's value."""
+NEGATIVE_BRANCH = SELU_ALPHA / LN2
+"""The weight of ``min(exp2(v), 1)`` beside ``relu(v)`` in the first hidden layer, in ln 2 units."""
 _LAYOUT = (nn.Linear, nn.SELU, nn.AlphaDropout, nn.Linear, nn.Tanh, nn.Dropout, nn.Linear)
+
+
+def _find_onednn_linear() -> Callable[..., Tensor] | None:
+    if not torch.backends.mkldnn.is_available():
+        return None
+    try:
+        return torch.ops.mkldnn._linear_pointwise
+    except (AttributeError, RuntimeError):
+        return None
+
+
+_ONEDNN_LINEAR = _find_onednn_linear()
+
+
+def onednn_available() -> bool:
+    """Whether this torch has oneDNN's fused linear, which the fused rollout needs."""
+    return _ONEDNN_LINEAR is not None
+
+
+def onednn_linear(x: Tensor, weight: Tensor, bias: Tensor | None, activation: str = "none") -> Tensor:
+    """``activation(x @ weight.T + bias)`` as one oneDNN call (``none``, ``sigmoid``, ``relu``, ``tanh``, ...).
+
+    ``weight`` is ``[out, in]``, as ``nn.Linear`` stores it; float32 only."""
+    if _ONEDNN_LINEAR is None:
+        raise RuntimeError("this torch has no oneDNN linear (torch.ops.mkldnn._linear_pointwise)")
+    return _ONEDNN_LINEAR(x, weight, bias, activation, [], "")
 
 
 def is_paper_mlp(model: LatentDynamics) -> bool:
@@ -63,26 +97,35 @@ def is_paper_mlp(model: LatentDynamics) -> bool:
     return len(layers) == len(_LAYOUT) and all(type(layer) is kind for layer, kind in zip(layers, _LAYOUT, strict=True))
 
 
+def can_fuse(model: LatentDynamics) -> bool:
+    """Whether :class:`FusedRollout` takes ``model``: the paper's MLP in float32, on a torch with oneDNN."""
+    return is_paper_mlp(model) and model.net[0].weight.dtype == torch.float32 and onednn_available()
+
+
 @dataclass(frozen=True)
 class FusedWeights:
-    """Folded weights, stored ``[in, out]`` for ``mm(inputs, w)``."""
+    """Folded weights and biases of the three layers, each stored as its product's engine takes it."""
 
     w1: Tensor
-    """``[I + 1, H + 1]``, divided by ln 2: rows for the raw state (4), the action (2), the raw grasp state (4,
-    with grasp input), then the bias (the constant-1 input); column H is zero (the bias carrier)."""
+    """``[I, H]`` for MKL's ``addmm``, divided by ln 2: rows for the raw state (4), the action (2), then the raw
+    grasp state (4, with grasp input)."""
+    b1: Tensor
     w2: Tensor
-    """``[H + 1, H]``: the last row is the second layer's bias divided by :data:`CARRIER`."""
+    """``[H, H]``, ``[out, in]`` for oneDNN."""
+    b2: Tensor
     w3: Tensor
+    """``[4, H]``, ``[out, in]``, for MKL's ``W3 @ h2.T``."""
     b3: Tensor
+    """``[4, 1]``: a column, as that product's output is ``[4, B]``."""
     grasp_input: bool
 
 
 def fuse(model: TransitionModel) -> FusedWeights:
-    """Fold ``model``'s normalisation, biases and activation constants into its layers (computed in float64)."""
+    """Fold ``model``'s normalisation and activation constants into its layers (computed in float64)."""
     if not is_paper_mlp(model):
         raise TypeError(f"cannot fuse a {type(model).__name__} that is not the paper's MLP")
     l1, l2, l3 = (model.net[i] for i in (0, 3, 6))
-    dtype, hidden = l1.weight.dtype, l1.out_features
+    dtype = l1.weight.dtype
     f64 = {"dtype": torch.float64}
     with torch.no_grad():
         mean, std = model.state_mean.to(**f64), model.state_std.to(**f64)
@@ -95,11 +138,10 @@ def fuse(model: TransitionModel) -> FusedWeights:
             w1_grasp = w1[:, STATE_DIM + ACTION_DIM :] / std
             parts.append(w1_grasp)
             b1 = b1 - w1_grasp @ mean
-        w1_f = torch.zeros(hidden + 1, sum(p.shape[1] for p in parts) + 1, **f64)
-        w1_f[:hidden] = torch.cat([*parts, b1[:, None]], dim=1) / LN2
+        w1_f, b1_f = torch.cat(parts, dim=1).T / LN2, b1 / LN2
         w2, b2 = l2.weight.to(**f64), l2.bias.to(**f64)
+        w2_f = 2.0 * SELU_SCALE * LN2 * w2
         b2_f = 2.0 * (b2 - SELU_SCALE * SELU_ALPHA * w2.sum(1))
-        w2_f = torch.cat([2.0 * SELU_SCALE * LN2 * w2, b2_f[:, None] / CARRIER], dim=1)
         w3, b3 = l3.weight.to(**f64), l3.bias.to(**f64)
         w3_f = 2.0 * w3 * d_std[:, None]
         b3_f = (b3 - w3.sum(1)) * d_std + d_mean
@@ -107,13 +149,16 @@ def fuse(model: TransitionModel) -> FusedWeights:
     def out(t: Tensor) -> Tensor:
         return t.to(dtype).contiguous()
 
-    return FusedWeights(out(w1_f.T), out(w2_f.T), out(w3_f.T), out(b3_f), model.grasp_input)
+    return FusedWeights(out(w1_f), out(b1_f), out(w2_f), out(b2_f), out(w3_f), out(b3_f[:, None]), model.grasp_input)
 
 
 class FusedRollout:
     """``model.rollout`` for the paper's MLP, fast; built per planning call, so it sees current weights."""
 
     def __init__(self, model: TransitionModel) -> None:
+        if not can_fuse(model):
+            raise TypeError("the fused rollout takes the paper's MLP in float32 on a torch with oneDNN "
+                            "(see can_fuse); use model.rollout")
         self.weights = fuse(model)
 
     def __call__(self, x0: Tensor, actions: Tensor) -> Tensor:
@@ -124,38 +169,32 @@ class FusedRollout:
     def time_major(self, x0: Tensor, actions: Tensor) -> Tensor:
         """``states[T + 1, B, 4]``, contiguous."""
         w = self.weights
-        dtype, hidden = w.w1.dtype, w.w2.shape[1]
+        dtype, hidden = w.w1.dtype, w.w1.shape[1]
         batch, horizon = actions.shape[:2]
         x0, actions = x0.to(dtype), actions.to(dtype)
-        states = torch.empty(horizon + 1, batch, STATE_DIM, dtype=dtype)
-        states[0] = x0
-        inputs = torch.ones(batch, w.w1.shape[0], dtype=dtype)  # state, action, [grasp,] 1
+        inputs = torch.empty(horizon + 1, batch, w.w1.shape[0], dtype=dtype)  # state, action[, grasp] per step
+        inputs[0, :, :STATE_DIM] = x0
+        inputs[:horizon, :, STATE_DIM : STATE_DIM + ACTION_DIM] = actions.transpose(0, 1)
         if w.grasp_input:
-            inputs[:, STATE_DIM + ACTION_DIM : -1] = x0
-        h1, negative = (torch.empty(batch, hidden + 1, dtype=dtype) for _ in range(2))
-        h2 = torch.empty(batch, hidden, dtype=dtype)
-        delta = torch.empty(batch, STATE_DIM, dtype=dtype)
+            inputs[:, :, STATE_DIM + ACTION_DIM :] = x0
+        h1, exponential = (torch.empty(batch, hidden, dtype=dtype) for _ in range(2))
+        delta = torch.empty(STATE_DIM, batch, dtype=dtype)
         # Views made once: per-step indexing would cost as much as the small kernels.
-        step_states, step_actions = states.unbind(0), actions.unbind(1)
-        input_state, input_action = inputs[:, :STATE_DIM], inputs[:, STATE_DIM : STATE_DIM + ACTION_DIM]
+        step_inputs = inputs.unbind(0)
+        step_states = [step[:, :STATE_DIM] for step in step_inputs]
         for t in range(horizon):
-            input_state.copy_(step_states[t])
-            input_action.copy_(step_actions[t])
-            torch.mm(inputs, w.w1, out=h1)
-            torch.clamp_max(h1, 0.0, out=negative)
-            negative.exp2_()
-            h1.clamp_min_(0.0).add_(negative, alpha=CARRIER)  # column H: 0 -> CARRIER
-            torch.mm(h1, w.w2, out=h2)
-            h2.sigmoid_()
+            torch.addmm(w.b1, step_inputs[t], w.w1, out=h1)
+            torch.exp2(h1, out=exponential).clamp_max_(1.0)
+            h1.clamp_min_(0.0).add_(exponential, alpha=NEGATIVE_BRANCH)
+            h2 = onednn_linear(h1, w.w2, w.b2, "sigmoid")
             # The change first, then the add: accumulating the products onto the
-            # state (~100 mm) inside addmm would round each at the state's scale.
-            torch.addmm(w.b3, h2, w.w3, out=delta)
-            torch.add(step_states[t], delta, out=step_states[t + 1])
-        return states
-
+            # state (~100 mm) inside the product would round each at the state's scale.
+            torch.addmm(w.b3, w.w3, h2.T, out=delta)
+            torch.add(step_states[t], delta.T, out=step_states[t + 1])
+        return inputs[:, :, :STATE_DIM].contiguous()
 
 def make_rollout(model: LatentDynamics, fast: bool = True) -> TimeMajorRollout:
-    """The fused path when ``fast`` and ``model`` is the paper's MLP, else the contract's ``model.rollout``."""
-    if fast and is_paper_mlp(model):
+    """The fused path when ``fast`` and :func:`can_fuse`, else the contract's ``model.rollout``."""
+    if fast and can_fuse(model):
         return FusedRollout(model).time_major
     return lambda x0, actions: model.rollout(x0, actions).transpose(0, 1)
