@@ -130,6 +130,12 @@ def _products(model: TransitionModel, batch: int) -> list[tuple[Tensor, Tensor, 
              torch.empty(batch, layer.out_features)) for layer in layers]
 
 
+def _repeat(fn: Callable[[], object], times: int) -> None:
+    """``fn`` ``times`` times, each result dropped at once (a list of them would time the allocator)."""
+    for _ in range(times):
+        fn()
+
+
 def fastest_forms(model: TransitionModel, batch: int, calls: int = 200, rounds: int = 5) -> dict[str, dict]:
     """Per layer, each form's median microseconds a product over ``rounds`` (forms alternating) and the fastest."""
     layers = {}
@@ -139,7 +145,7 @@ def fastest_forms(model: TransitionModel, batch: int, calls: int = 200, rounds: 
         for _ in range(rounds):
             for form, run in runs.items():
                 run()
-                times[form].append(timed(lambda run=run: [run() for _ in range(calls)]) / calls * 1e6)
+                times[form].append(timed(lambda run=run: _repeat(run, calls)) / calls * 1e6)
         us = {form: statistics.median(ts) for form, ts in times.items()}
         layers[f"layer{i}"] = {"us_per_product": us, "form": min(us, key=us.get)}
     return layers
