@@ -70,7 +70,7 @@ from torch import Tensor, nn
 
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
-from t42_transfer.planning.fused import FusedRollout, onednn_available, onednn_linear
+from t42_transfer.planning.fused import FusedRollout
 from t42_transfer.planning.planner import CHUNK
 
 RESULTS = Path(__file__).parent / "results" / "planner.json"
@@ -100,7 +100,18 @@ def eager_loop(net: nn.Module, x0: Tensor, actions: Tensor) -> Tensor:
     return torch.stack(out, dim=1)
 
 
-FORMS = ("mkl", "mkl_weight_view", "mkl_transposed_output", *(("onednn",) if onednn_available() else ()))
+def _find_onednn_linear() -> Callable[..., Tensor] | None:
+    """oneDNN's fused linear (what inductor emits for CPU linears), when this torch has it."""
+    if not torch.backends.mkldnn.is_available():
+        return None
+    try:
+        return torch.ops.mkldnn._linear_pointwise
+    except (AttributeError, RuntimeError):
+        return None
+
+
+ONEDNN_LINEAR = _find_onednn_linear()
+FORMS = ("mkl", "mkl_weight_view", "mkl_transposed_output", *(("onednn",) if ONEDNN_LINEAR else ()))
 """The ways torch computes ``x @ W.T + b`` from a row-major ``x`` [K, in] on the CPU: MKL's ``addmm`` with ``W.T``
 stored contiguous, or as a transposed view of ``W``, or computing the transposed output ``W @ x.T + b`` [out, K];
 oneDNN's linear."""
@@ -120,7 +131,7 @@ def _product(form: str, inputs: Tensor, weight: Tensor, bias: Tensor, out: Tenso
     if form == "mkl_transposed_output":
         column, out_t = bias[:, None].contiguous(), out.T.contiguous()
         return lambda: torch.addmm(column, weight, inputs.T, out=out_t)
-    return lambda: onednn_linear(inputs, weight, bias, activation)
+    return lambda: ONEDNN_LINEAR(inputs, weight, bias, activation, [], "")
 
 
 def _products(model: TransitionModel, batch: int) -> list[tuple[Tensor, Tensor, Tensor, Tensor]]:

@@ -3,38 +3,34 @@
 ``model.rollout`` is right for every model kind but spends most of a planning
 call outside the matrix products: normalising, concatenating, SELU and tanh
 kernels, broadcasting biases, and allocating each step's tensors.  For a plain
-float32 :class:`~t42_transfer.models.network.TransitionModel` all of that folds away:
+:class:`~t42_transfer.models.network.TransitionModel` all of that folds away:
 
 - input normalisation ``(x - m) / s`` goes into the first layer (``W1 / s``,
   ``b1 - W1 m / s``), and the grasp input (constant per sample) four more input columns;
 - ``selu(u) = scale * (relu(u) + alpha * (min(exp(u), 1) - 1))``: ``scale`` and
-  ``- alpha`` go into the second layer, leaving four cheap passes (eager
+  ``- alpha`` go into the second layer, leaving four passes, one of them the exponential (eager
   ``torch.selu`` costs about twice that here).  The first layer is divided by
   ln 2 so that the exponential is ``exp2`` (``u = v ln 2``: ``relu(u) = ln 2 relu(v)``,
   ``exp(u) = exp2(v)``, ln 2 going into the second layer): torch's ``exp2_`` took
   52 us on a [1000, 129] block where ``exp_`` took 138 (one thread, AVX-512);
 - ``tanh(v) = 2 sigmoid(2 v) - 1``: the 2s go into the second layer and the
-  third, and oneDNN applies the sigmoid inside the second product, on each
-  block while it is in cache (one pass fewer over the layer);
-- output de-normalisation ``d * s_d + m_d`` goes into the third layer.
-
-Each product runs in the form that was fastest for its shape (2026-12-05, AMD
-EPYC, one thread, K = 1000; ``bench/bench_planner.py`` measures the forms again
-as ``matmul_engines``): MKL's ``addmm`` for the first (25 us against oneDNN's 35:
-6 or 10 inputs), oneDNN's linear for the second (315 us against MKL's 330; 366
-with the sigmoid against 330 + 68 as two calls), and MKL with the output
-transposed, ``W3 @ h2.T``, for the third (29 us, against 141 as ``h2 @ W3.T``
-and oneDNN's 55: 4 outputs).  oneDNN's fused linear is
-``torch.ops.mkldnn._linear_pointwise``, what inductor emits for CPU linears; a
-torch without it, or a model in another dtype, gets the contract's
-``model.rollout``.
+  third, leaving one in-place sigmoid.  The reference AMD Zen 4 machines run
+  eager tanh ~3x slower than sigmoid; on this project's Intel hosts tanh_ wins on
+  unit-normal inputs but lost in the full loop (its cost depends on the inputs);
+- output de-normalisation ``d * s_d + m_d`` goes into the third layer, computed
+  transposed, ``W3 @ h2.T`` [4, B]: MKL took 141 us for ``h2 @ W3.T`` at B = 1000
+  (4 outputs) and 29 us for the transposed product (2026-12-05, AMD EPYC, one thread).
 
 The network's inputs for every step live in one buffer ``[T + 1, B, I]``: the
 actions are written into it once, and each step's new state straight into the
-next step's row, so no step copies its inputs.  Each step is then one ``addmm``,
-the exponential's passes, one oneDNN product and one small ``addmm``, in
-inference mode.  Equal to ``model.rollout`` up to float rounding (the tests check
-1e-4); dropout is off, as in ``rollout``.
+next step's row, so no step copies its inputs.  Each step is then three
+``addmm`` and the activations' passes, in inference mode.  oneDNN's linear with
+the sigmoid inside the product (``torch.ops.mkldnn._linear_pointwise``) was
+tried: at B = 1000 it takes 365 us against 383 for ``addmm`` and a sigmoid, but
+at B = 30, the planner's refinement batches, 32 us against 15, and a step there
+took 1.6 times as long (``bench/bench_planner.py`` measures each product's
+forms as ``matmul_forms``).  Equal to ``model.rollout`` up
+to float rounding (the tests check 1e-4); dropout is off, as in ``rollout``.
 """
 
 from __future__ import annotations
@@ -63,32 +59,6 @@ NEGATIVE_BRANCH = SELU_ALPHA / LN2
 _LAYOUT = (nn.Linear, nn.SELU, nn.AlphaDropout, nn.Linear, nn.Tanh, nn.Dropout, nn.Linear)
 
 
-def _find_onednn_linear() -> Callable[..., Tensor] | None:
-    if not torch.backends.mkldnn.is_available():
-        return None
-    try:
-        return torch.ops.mkldnn._linear_pointwise
-    except (AttributeError, RuntimeError):
-        return None
-
-
-_ONEDNN_LINEAR = _find_onednn_linear()
-
-
-def onednn_available() -> bool:
-    """Whether this torch has oneDNN's fused linear, which the fused rollout needs."""
-    return _ONEDNN_LINEAR is not None
-
-
-def onednn_linear(x: Tensor, weight: Tensor, bias: Tensor | None, activation: str = "none") -> Tensor:
-    """``activation(x @ weight.T + bias)`` as one oneDNN call (``none``, ``sigmoid``, ``relu``, ``tanh``, ...).
-
-    ``weight`` is ``[out, in]``, as ``nn.Linear`` stores it; float32 only."""
-    if _ONEDNN_LINEAR is None:
-        raise RuntimeError("this torch has no oneDNN linear (torch.ops.mkldnn._linear_pointwise)")
-    return _ONEDNN_LINEAR(x, weight, bias, activation, [], "")
-
-
 def is_paper_mlp(model: LatentDynamics) -> bool:
     """Whether ``model`` is a TransitionModel with exactly the paper's layer layout (what :func:`fuse` folds)."""
     if type(model) is not TransitionModel:
@@ -97,21 +67,16 @@ def is_paper_mlp(model: LatentDynamics) -> bool:
     return len(layers) == len(_LAYOUT) and all(type(layer) is kind for layer, kind in zip(layers, _LAYOUT, strict=True))
 
 
-def can_fuse(model: LatentDynamics) -> bool:
-    """Whether :class:`FusedRollout` takes ``model``: the paper's MLP in float32, on a torch with oneDNN."""
-    return is_paper_mlp(model) and model.net[0].weight.dtype == torch.float32 and onednn_available()
-
-
 @dataclass(frozen=True)
 class FusedWeights:
-    """Folded weights and biases of the three layers, each stored as its product's engine takes it."""
+    """Folded weights and biases of the three layers, each stored as its product takes it."""
 
     w1: Tensor
-    """``[I, H]`` for MKL's ``addmm``, divided by ln 2: rows for the raw state (4), the action (2), then the raw
+    """``[I, H]``, ``[in, out]``, divided by ln 2: rows for the raw state (4), the action (2), then the raw
     grasp state (4, with grasp input)."""
     b1: Tensor
     w2: Tensor
-    """``[H, H]``, ``[out, in]`` for oneDNN."""
+    """``[H, H]``, ``[in, out]``."""
     b2: Tensor
     w3: Tensor
     """``[4, H]``, ``[out, in]``, for MKL's ``W3 @ h2.T``."""
@@ -140,7 +105,7 @@ def fuse(model: TransitionModel) -> FusedWeights:
             b1 = b1 - w1_grasp @ mean
         w1_f, b1_f = torch.cat(parts, dim=1).T / LN2, b1 / LN2
         w2, b2 = l2.weight.to(**f64), l2.bias.to(**f64)
-        w2_f = 2.0 * SELU_SCALE * LN2 * w2
+        w2_f = (2.0 * SELU_SCALE * LN2 * w2).T
         b2_f = 2.0 * (b2 - SELU_SCALE * SELU_ALPHA * w2.sum(1))
         w3, b3 = l3.weight.to(**f64), l3.bias.to(**f64)
         w3_f = 2.0 * w3 * d_std[:, None]
@@ -156,9 +121,6 @@ class FusedRollout:
     """``model.rollout`` for the paper's MLP, fast; built per planning call, so it sees current weights."""
 
     def __init__(self, model: TransitionModel) -> None:
-        if not can_fuse(model):
-            raise TypeError("the fused rollout takes the paper's MLP in float32 on a torch with oneDNN "
-                            "(see can_fuse); use model.rollout")
         self.weights = fuse(model)
 
     def __call__(self, x0: Tensor, actions: Tensor) -> Tensor:
@@ -177,7 +139,7 @@ class FusedRollout:
         inputs[:horizon, :, STATE_DIM : STATE_DIM + ACTION_DIM] = actions.transpose(0, 1)
         if w.grasp_input:
             inputs[:, :, STATE_DIM + ACTION_DIM :] = x0
-        h1, exponential = (torch.empty(batch, hidden, dtype=dtype) for _ in range(2))
+        h1, exponential, h2 = (torch.empty(batch, hidden, dtype=dtype) for _ in range(3))
         delta = torch.empty(STATE_DIM, batch, dtype=dtype)
         # Views made once: per-step indexing would cost as much as the small kernels.
         step_inputs = inputs.unbind(0)
@@ -186,7 +148,7 @@ class FusedRollout:
             torch.addmm(w.b1, step_inputs[t], w.w1, out=h1)
             torch.exp2(h1, out=exponential).clamp_max_(1.0)
             h1.clamp_min_(0.0).add_(exponential, alpha=NEGATIVE_BRANCH)
-            h2 = onednn_linear(h1, w.w2, w.b2, "sigmoid")
+            torch.addmm(w.b2, h1, w.w2, out=h2).sigmoid_()
             # The change first, then the add: accumulating the products onto the
             # state (~100 mm) inside the product would round each at the state's scale.
             torch.addmm(w.b3, w.w3, h2.T, out=delta)
@@ -194,7 +156,7 @@ class FusedRollout:
         return inputs[:, :, :STATE_DIM].contiguous()
 
 def make_rollout(model: LatentDynamics, fast: bool = True) -> TimeMajorRollout:
-    """The fused path when ``fast`` and :func:`can_fuse`, else the contract's ``model.rollout``."""
-    if fast and can_fuse(model):
+    """The fused path when ``fast`` and ``model`` is the paper's MLP, else the contract's ``model.rollout``."""
+    if fast and is_paper_mlp(model):
         return FusedRollout(model).time_major
     return lambda x0, actions: model.rollout(x0, actions).transpose(0, 1)
