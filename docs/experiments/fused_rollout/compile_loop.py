@@ -42,7 +42,7 @@ def main() -> None:
         for t in range(actions.shape[1]):
             h1 = torch.addmm(w.b1, torch.cat([state, actions[:, t]], 1), w.w1)
             h1 = h1.clamp_min(0) + NEGATIVE_BRANCH * torch.exp2(h1.clamp_max(0))
-            state = state + F.linear(torch.sigmoid(F.linear(h1, w.w2, w.b2)), w.w3, w.b3[:, 0])
+            state = state + F.linear(torch.sigmoid(torch.addmm(w.b2, h1, w.w2)), w.w3, w.b3[:, 0])
             states.append(state)
         return torch.stack(states)
 
