@@ -8,8 +8,8 @@ kernels, broadcasting biases, and allocating each step's tensors.  For a plain
 - input normalisation ``(x - m) / s`` goes into the first layer (``W1 / s``,
   ``b1 - W1 m / s``), and the grasp input (constant per sample) four more input columns;
 - ``selu(u) = scale * (relu(u) + alpha * (min(exp(u), 1) - 1))``: ``scale`` and
-  ``- alpha`` go into the second layer, leaving four passes, one of them the exponential (eager
-  ``torch.selu`` costs about twice that here).  The first layer is divided by
+  ``- alpha`` go into the second layer, leaving four passes, one of them the
+  exponential (eager ``torch.selu`` costs about twice that here).  The first layer is divided by
   ln 2 so that the exponential is ``exp2`` (``u = v ln 2``: ``relu(u) = ln 2 relu(v)``,
   ``exp(u) = exp2(v)``, ln 2 going into the second layer): torch's ``exp2_`` took
   52 us on a [1000, 129] block where ``exp_`` took 138 (one thread, AVX-512);
@@ -29,8 +29,8 @@ the sigmoid inside the product (``torch.ops.mkldnn._linear_pointwise``) was
 tried: at B = 1000 it takes 365 us against 383 for ``addmm`` and a sigmoid, but
 at B = 30, the planner's refinement batches, 32 us against 15, and a step there
 took 1.6 times as long (``bench/bench_planner.py`` measures each product's
-forms as ``matmul_forms``).  Equal to ``model.rollout`` up
-to float rounding (the tests check 1e-4); dropout is off, as in ``rollout``.
+forms as ``matmul_forms``).  Equal to ``model.rollout`` up to float rounding
+(the tests check 1e-4); dropout is off, as in ``rollout``.
 """
 
 from __future__ import annotations
