@@ -12,7 +12,8 @@ kernels, broadcasting biases, and allocating each step's tensors.  For a plain
   exponential (eager ``torch.selu`` costs about twice that here).  The first layer is divided by
   ln 2 so that the exponential is ``exp2`` (``u = v ln 2``: ``relu(u) = ln 2 relu(v)``,
   ``exp(u) = exp2(v)``, ln 2 going into the second layer): torch's ``exp2_`` took
-  52 us on a [1000, 129] block where ``exp_`` took 138 (one thread, AVX-512);
+  52 us on a [1000, 129] block (the earlier layout's) where ``exp_`` took 138 (one
+  thread, AVX-512);
 - ``tanh(v) = 2 sigmoid(2 v) - 1``: the 2s go into the second layer and the
   third, leaving one in-place sigmoid.  The reference AMD Zen 4 machines run
   eager tanh ~3x slower than sigmoid; on this project's Intel hosts tanh_ wins on
