@@ -133,8 +133,6 @@ class Qos(NamedTuple):
     latched: bool = False
 
 
-DEFAULT = Qos(10)
-"""ROS's default (KEEP_LAST 10, RELIABLE, VOLATILE): every topic not named below."""
 IMAGES = Qos(2)
 """Camera frames and their CameraInfo: a short queue, as only the newest frame matters (a flood is dropped at
 the reader, not queued)."""

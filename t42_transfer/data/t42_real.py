@@ -39,9 +39,6 @@ REAL_HANDS = {"A": "", "B": "_red"}
 REAL_OBJECT = "cyl35"
 """The object of the files beside the project (a 35 mm cylinder)."""
 
-REAL_PAIRS = ("cyl35", "egg50", "poly6")
-"""Objects the public repository holds for both hands; others (cyl20, sqr30, ...) were run on hand A only."""
-
 
 def real_file(hand: str, obj: str = REAL_OBJECT) -> str:
     """The public file name of ``obj``'s test paths on ``hand`` (``A`` or ``B``), as the public repository names it."""

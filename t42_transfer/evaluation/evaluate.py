@@ -39,7 +39,6 @@ THRESHOLDS_MM = (4.0, 10.0)
 MAX_DROPOUT_DRAWS = 1000
 MAX_BATCH_STATES = 4_000_000
 """Predicted states held at once (64 MB of float32): draws are rolled out in chunks under it."""
-HOLD_STILL = "hold_still"
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,6 @@ HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
 STATUS = 0x55
 PING, READ, WRITE, REBOOT, SYNC_READ, SYNC_WRITE = 0x01, 0x02, 0x03, 0x08, 0x82, 0x83
-INSTRUCTIONS = {PING: "ping", READ: "read", WRITE: "write", REBOOT: "reboot", SYNC_READ: "sync read",
-                SYNC_WRITE: "sync write"}
 
 # Status packet error byte: bit 7 is the hardware alert, the rest one of these.
 RESULT_FAIL, INSTRUCTION_ERROR, CRC_ERROR, DATA_RANGE_ERROR, DATA_LENGTH_ERROR, DATA_LIMIT_ERROR, ACCESS_ERROR = (
@@ -66,7 +64,7 @@ def status_packet(servo_id: int, error: int = 0, params: bytes = b"") -> bytes:
 
 
 def instruction_packet(servo_id: int, instruction: int, params: bytes = b"") -> bytes:
-    """An instruction, framed and checked (what dynamixel-sdk sends; the tests' and the emulator's own use)."""
+    """An instruction, framed and checked (what dynamixel-sdk sends; the tests build their packets with it)."""
     body = stuff(bytes([instruction]) + params)
     packet = HEADER + bytes([servo_id]) + (len(body) + 2).to_bytes(2, "little") + body
     return packet + crc16(packet).to_bytes(2, "little")

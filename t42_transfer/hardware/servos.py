@@ -29,7 +29,6 @@ from t42_transfer.hardware import protocol as p
 from t42_transfer.hardware import xm430 as xm
 
 PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED = "port", "timeout", "corrupt", "hardware", "refused"
-FAULT_KINDS = (PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED)
 _PORT_ERRORS = (OSError, termios.error, serial.SerialException, ValueError)
 READ_WAIT_S = 0.001
 """Longest one read of the port blocks for bytes; dynamixel-sdk checks its own packet timeout between reads, so a
@@ -37,7 +36,8 @@ silent servo is still reported after that timeout (at most this much later)."""
 
 
 class ServoFault(RuntimeError):
-    """``kind`` (one of :data:`FAULT_KINDS`) on servo ``servo_id`` (None: the port); one line."""
+    """``kind`` (``port``, ``timeout``, ``corrupt``, ``hardware`` or ``refused``) on servo ``servo_id`` (None: the
+    port); one line."""
 
     def __init__(self, kind: str, servo_id: int | None, detail: str) -> None:
         where = "the port" if servo_id is None else f"servo {servo_id}"
@@ -122,10 +122,6 @@ class HandServos:
                 port.closePort()
             except _PORT_ERRORS:
                 pass
-
-    @property
-    def is_open(self) -> bool:
-        return self._port is not None
 
     def _need_port(self) -> PortHandler:
         if self._port is None:

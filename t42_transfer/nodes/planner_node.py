@@ -471,7 +471,7 @@ class PlannerNode(Node):
                 self._candidates_pub.publish(candidates_msg(current.candidates, stamp, kit=RCLPY))
             if run is not None:
                 run.planned(current.predicted[:, :2], stamp - offset * CONTROL_PERIOD_NS, current.error_mm)
-                run.sent(stamp, len(piece))
+                run.sent(stamp)
             if executed == 0:
                 self._publish_result(result)
             offset, executed = offset + len(piece), executed + len(piece)

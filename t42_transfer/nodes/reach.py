@@ -45,7 +45,6 @@ class ReachRun:
         """Set by the cancel callback before the handle turns CANCELING (the worker checks both)."""
         self.executed: list[tuple[int, np.ndarray]] = []
         self._sent_ns: int | None = None
-        self.steps_sent = 0
         self._poses_after_send = 0
         self.predicted = np.zeros((0, 2), np.float32)
         self.predicted_ns = 0
@@ -72,11 +71,11 @@ class ReachRun:
         with self._lock:
             self.predicted, self.predicted_ns, self.predicted_error_mm = predicted_mm, stamp_ns, error_mm
 
-    def sent(self, stamp_ns: int, steps: int) -> None:
+    def sent(self, stamp_ns: int) -> None:
+        """A piece of the plan went to the hand at ``stamp_ns``: poses after the first such stamp are the run's."""
         with self._lock:
             if self._sent_ns is None:
                 self._sent_ns = stamp_ns
-            self.steps_sent += steps
 
     def on_pose(self, stamp_ns: int, xy_mm: np.ndarray) -> None:
         with self._lock:

@@ -135,7 +135,6 @@ from t42_transfer.ros.qos import profile, recording
 
 STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 """The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
-ACTION_TOPIC = names.APPLIED_ACTION
 
 STATUS_NAME = "t42_transfer: recorder"
 """The recorder's status name on ``diagnostics`` (a write failure and the resume)."""

@@ -109,7 +109,7 @@ class PlannerConfig:
     """A prediction within this of the goal reaches it (``ok``; the horizon search's target)."""
     horizon_search: bool = False
     refine_iterations: int = 9
-    """Cross-entropy rounds after the first draw.  The defaults (30 clipped N(0, 1) sequences, ten rounds, the best
+    """Cross-entropy rounds after the first draw.  The defaults (30 clipped N(0, 1) sequences, ten draws, the best
     10 %) were chosen on 100 goals of seeds 1-5 (tuning; the benchmark's goals are seed 0), executed on the true
     target hand: more rollouts predict better but land worse (at 1000, 79 % / 28 % at 10 / 4 mm against 83 % /
     42 % at 300), since a stronger search finds more of the model's errors; the old default, piecewise holds of

@@ -229,10 +229,6 @@ class Supervisor:
         self.say(f"started {name} (pid {proc.pid})")
         return child
 
-    def exited(self) -> list[str]:
-        """``"<name> exited with code N"`` for every child no longer running."""
-        return [f"{c.name} exited with code {c.proc.returncode}" for c in self.dead()]
-
     def dead(self) -> list[Child]:
         """The children no longer running."""
         return [c for c in self.children if c.proc.poll() is not None]

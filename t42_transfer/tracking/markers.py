@@ -96,9 +96,6 @@ class Intrinsics:
         except (KeyError, TypeError, AttributeError) as err:
             raise ValueError(f"not a camera_info YAML document: missing or malformed {err}") from None
 
-    def scaled_focal(self) -> float:
-        return float(math.sqrt(self.k[0, 0] * self.k[1, 1]))
-
 
 def gray_image(image: np.ndarray, encoding: str, intrinsics: Intrinsics | None = None) -> np.ndarray:
     """The 8-bit grey image of ``image`` (``encoding`` as sensor_msgs names it), checked against the camera."""

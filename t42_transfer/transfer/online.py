@@ -71,14 +71,12 @@ from t42_transfer.yaml_files import read_yaml
 STATE_FILE = "transfer_state.json"
 CURRENT_MODEL = "current.safetensors"
 MODEL_PREFIX = "transferred"
-STAGES = ("loading", "training", "evaluating", "saving", "done", "failed", "cancelled")
-"""Stages a transfer reports, in order (``done``, ``failed`` or ``cancelled`` ends it: the last three are the
-caller's words for how it ended)."""
 
 _MODEL_NAME = re.compile(rf"^{MODEL_PREFIX}_(\d{{3,}})\.safetensors$")
 
 Report = Callable[[str, Mapping[str, object]], None]
-"""``report(stage, info)``: called at each stage change with what is known so far, and while ``training``
+"""``report(stage, info)``: called at each stage change (``loading``, ``training``, ``evaluating``, ``saving``)
+with what is known so far, and while ``training``
 after every epoch with :func:`epoch_info` (``phase``, ``epoch``, ``epochs``, ``train_loss``, ``val_loss``)."""
 
 
@@ -278,12 +276,6 @@ def write_state(model_dir: Path, state: Mapping[str, Any]) -> None:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-
-
-def latest_model(model_dir: Path) -> Path | None:
-    """The model the last recorded transfer saved, if it is still there."""
-    latest = latest_transfer(model_dir)
-    return None if latest is None else latest[0]
 
 
 def latest_transfer(model_dir: Path) -> tuple[Path, dict[str, Any]] | None:

@@ -87,10 +87,6 @@ class SnapshotBuffer:
         return round(self.window_s * 1e9)
 
     @property
-    def newest_stamp(self) -> int | None:
-        return self._steps[-1].stamp if self._steps else None
-
-    @property
     def steps(self) -> list[Step]:
         return list(self._steps)
 
