@@ -14,11 +14,11 @@ from setuptools import find_packages, setup
 package_name = "t42_transfer"
 
 
-def _files(pattern):
+def _files(pattern: str) -> list[str]:
     return sorted(glob(pattern))
 
 
-def _node_names():
+def _node_names() -> list[str]:
     """Keys of NODES in t42_transfer/nodes/registry.py, parsed (not imported: the build needs no dependencies)."""
     path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "t42_transfer", "nodes", "registry.py")
     with open(path) as f:

@@ -19,7 +19,7 @@ NODES = ("mock_driver", "recorder", "transfer_server", "planner")
 """The suite: every node of configs/suite.yaml (the explorer is run on its own, it ends when done)."""
 
 
-def generate_launch_description():
+def generate_launch_description() -> LaunchDescription:
     default_params = os.path.join(get_package_share_directory("t42_transfer"), "config", "suite.yaml")
     params_file = LaunchConfiguration("params_file")
     namespace = LaunchConfiguration("namespace")

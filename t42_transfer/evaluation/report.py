@@ -14,12 +14,15 @@ from __future__ import annotations
 import json
 from collections import defaultdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from t42_transfer.models.baselines import HoldStill
+
+if TYPE_CHECKING:
+    from t42_transfer.evaluation.experiment_config import ExperimentConfig
 
 BASELINE = HoldStill.kind
 METRICS = {
@@ -46,12 +49,16 @@ def beside_direct(methods: list[str]) -> list[str]:
     return rest[:at] + [BASELINE] + rest[at:]
 
 
-def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[float, dict[str, tuple[float, float, int]]]]:
+Summary = dict[str, dict[float, dict[str, tuple[float, float, int]]]]
+"""method -> amount -> metric -> (mean, std, n) over seeds."""
+
+
+def summarise(rows: list[dict[str, Any]]) -> Summary:
     """method -> amount -> metric -> (mean, std, n) over seeds; methods as :func:`beside_direct` orders them."""
     groups: dict[tuple[str, float], list[dict[str, Any]]] = defaultdict(list)
     for row in rows:
         groups[(row["method"], float(row["amount"]))].append(row)
-    out: dict[str, dict[float, dict[str, tuple[float, float, int]]]] = defaultdict(dict)
+    out: Summary = defaultdict(dict)
     for (method, amount), group in groups.items():
         stats = {}
         for key in (*METRICS, "covering_radius", "train_error_normalised", "train_error_xy_mm", "train_transitions"):
@@ -65,7 +72,7 @@ def _amount_label(config: dict[str, Any]) -> str:
     return "target episodes" if config.get("split") == "paths" else "fraction of target data"
 
 
-def plot_metric(summary, metric: str, config: dict[str, Any], path: Path) -> Path:  # type: ignore[no-untyped-def]
+def plot_metric(summary: Summary, metric: str, config: dict[str, Any], path: Path) -> Path:
     from t42_transfer.plots import pyplot, save
 
     plt = pyplot()
@@ -143,7 +150,7 @@ def plot_paths(run_dir: Path, amount: float, path: Path, episodes: int = 2) -> P
     return save(fig, path, dpi=100)
 
 
-def _as_dict(cfg) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+def _as_dict(cfg: ExperimentConfig) -> dict[str, Any]:
     return {"split": cfg.split, "name": cfg.name}
 
 
@@ -152,7 +159,7 @@ def _fmt(stat: tuple[float, float, int], digits: int = 1) -> str:
     return f"{mean:.{digits}f} ± {std:.{digits}f}"
 
 
-def findings(summary, config: dict[str, Any]) -> list[str]:  # type: ignore[no-untyped-def]
+def findings(summary: Summary, config: dict[str, Any]) -> list[str]:
     """Plain statements, in numbers, of what the results say about the paper's claims."""
     lines = []
     amounts = sorted({a for by in summary.values() for a in by})

@@ -12,7 +12,7 @@ which burns the CPU for the whole round trip of every exchange.
 from __future__ import annotations
 
 import termios
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import serial
@@ -142,7 +142,7 @@ class HandServos:
         if error:
             raise ServoFault(REFUSED, servo_id, f"{what} refused ({self._packets.getRxPacketError(error)})")
 
-    def _call(self, servo_id: int, what: str, fn, *args) -> tuple:  # type: ignore[no-untyped-def]
+    def _call(self, servo_id: int, what: str, fn: Callable[..., tuple], *args: object) -> tuple:
         try:
             return fn(self._need_port(), servo_id, *args)
         except _PORT_ERRORS as err:
