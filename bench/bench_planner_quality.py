@@ -64,6 +64,9 @@ says whether the default reaches that rate at most a third of the other's plan t
     .venv/bin/python bench/bench_planner_quality.py                  # 30 goals, budgets 30 ... 10000
     .venv/bin/python bench/bench_planner_quality.py --goals 5 --budgets 100 1000 --out /tmp/pq.json
     .venv/bin/python bench/bench_planner_quality.py --seed 1 --optimisers default --planner '{answer: elite_mean}'
+    .venv/bin/python bench/bench_planner_quality.py --plot-from bench/results/planner_quality.json   # the figure only
+
+Beside the JSON it draws ``.png``: success against median plan time per tolerance (:func:`plot`).
 
 The model is the paper-size transferred naive_finetune model of ``t42 experiment
 configs/peg_in_hole_models.yaml --out runs`` (``--model`` for another).
@@ -556,6 +559,48 @@ def _fmt(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
 
+def curves(result: dict, k: int) -> dict[str, list[tuple[float, float, float, float]]]:
+    """Per optimiser at tolerance index ``k``, its budgets in order as ``(median plan ms, success rate, 95 % low,
+    95 % high)``: what :func:`plot` draws."""
+    out: dict[str, list[tuple[float, float, float, float]]] = {}
+    for r in sorted(result["rows"], key=lambda r: r["budget"]):
+        s = r["success"][k]
+        out.setdefault(r["optimiser"], []).append(
+            (1e3 * r["median_plan_seconds"], s["success_rate"], s["ci_low"], s["ci_high"]))
+    return out
+
+
+def plot(result: dict, path: Path) -> Path:
+    """Success against median plan time, one panel per tolerance, one line per optimiser through its budgets;
+    where MPPI ran, its best rate (dashed) and a third of its time at that rate (dotted) bound the corner the
+    default must reach (issue 23's target)."""
+    from t42_transfer.plots import pyplot, save
+
+    plt = pyplot()
+    tolerances = result["setting"]["tolerances_mm"]
+    fig, axes = plt.subplots(1, len(tolerances), figsize=(5.2 * len(tolerances), 4.2), squeeze=False)
+    for k, (ax, tol) in enumerate(zip(axes.flat, tolerances, strict=True)):
+        for i, (name, points) in enumerate(curves(result, k).items()):
+            ms, rate, low, high = (np.array(v) for v in zip(*points, strict=True))
+            main = name in ("default", "mppi")
+            ax.errorbar(ms, 100 * rate, yerr=100 * np.array([rate - low, high - rate]), color=f"C{i}",
+                        marker="o" if main else ".", lw=2.0 if main else 0.8, elinewidth=0.6, capsize=2,
+                        alpha=1.0 if main else 0.6, label=name, zorder=3 if main else 2)
+        if "mppi" in result["setting"]["optimisers"]:
+            best = _best(result["rows"], "mppi", k)
+            rate = best["success"][k]["success_rate"]
+            ax.axhline(100 * rate, color="grey", ls="--", lw=0.8)
+            ax.axvline(1e3 * best["median_plan_seconds"] * TIME_SHARE, color="grey", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_xlabel("median plan time (ms, log)")
+        ax.set_ylabel("success (%), 95 % Wilson interval")
+        steps = "/".join(map(str, result["goals"]["steps"]))
+        ax.set_title(f"{tol:g} mm: {result['goals']['count']} goals of {steps} steps", fontsize=9)
+        ax.grid(alpha=0.3, which="both")
+    axes.flat[0].legend(fontsize=7, ncol=2)
+    return save(fig, path)
+
+
 # ------------------------------------------------------------------ command line
 
 
@@ -591,7 +636,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1: robust on a busy machine)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--plot-from", type=Path, default=None, metavar="JSON",
+                        help="only redraw the figure of a stored result (beside it, .png), running nothing")
     args = parser.parse_args(argv)
+    if args.plot_from is not None:
+        try:
+            stored = json.loads(args.plot_from.read_text())
+        except (OSError, ValueError) as err:
+            parser.error(f"--plot-from {args.plot_from}: {err}")
+        if not isinstance(stored, dict) or stored.get("benchmark") != "planner_quality":
+            parser.error(f"--plot-from {args.plot_from}: not a result of this benchmark (no \"benchmark\": "
+                         "\"planner_quality\")")
+        print(f"wrote {plot(stored, args.plot_from.with_suffix('.png'))}")
+        return 0
     try:
         setting = Setting(tuple(args.budgets), tuple(args.optimisers), targets=tuple(args.targets),
                           refine_iterations=args.refine_iterations, cem_iterations=args.cem_iterations,
@@ -643,8 +700,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
+    figure = plot(result, args.out.with_suffix(".png"))
     print(markdown(result))
-    print(f"load average {load_start} at start, {load_end} at end; wrote {args.out}")
+    print(f"load average {load_start} at start, {load_end} at end; wrote {args.out} and {figure}")
     return 0
 
 

@@ -176,3 +176,26 @@ def test_the_default_is_paired_with_each_optimisers_best_budget(result: dict) ->
         assert a["default_time_share"] == (min(reaching) / other_time if reaching else None)
         assert a["target_met"] == (a["default_time_share"] is not None and a["default_time_share"] <= 1 / 3)
     assert "The default's best budget against" in bench.markdown(result)
+
+
+def test_the_figures_curves_are_each_optimisers_budgets_in_order(result: dict) -> None:
+    for k in range(2):
+        drawn = bench.curves(result, k)
+        assert list(drawn) == list(bench.OPTIMISERS)
+        for name, points in drawn.items():
+            rows = sorted((r for r in result["rows"] if r["optimiser"] == name), key=lambda r: r["budget"])
+            assert points == [(1e3 * r["median_plan_seconds"], r["success"][k]["success_rate"],
+                               r["success"][k]["ci_low"], r["success"][k]["ci_high"]) for r in rows]
+
+
+def test_plot_from_redraws_a_stored_result_and_refuses_other_files(result: dict, tmp_path, capsys) -> None:
+    stored = tmp_path / "pq.json"
+    stored.write_text(json.dumps({**result, "command": "x", "machine": {}}))
+    assert bench.main(["--plot-from", str(stored)]) == 0
+    assert (tmp_path / "pq.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"benchmark": "planner"}))
+    with pytest.raises(SystemExit) as exit_:
+        bench.main(["--plot-from", str(other)])
+    assert exit_.value.code == 2 and "not a result of this benchmark" in capsys.readouterr().err
+    assert not (tmp_path / "other.png").exists()

@@ -148,6 +148,7 @@ def test_bench_planner_quality(tmp_path: Path) -> None:
         assert positive(r["median_plan_seconds"]) and r["median_rollouts"] >= 1
     assert len(result["time_to_rate"]) == len(optimisers) * 2  # x tolerances, one target rate
     assert len(result["trials"]) == len(optimisers)
+    assert (tmp_path / "planner_quality.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the figure, beside
     assert {"command", "machine"} <= set(result)
 
 
