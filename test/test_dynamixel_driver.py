@@ -74,11 +74,10 @@ class Bench:
 
 
 class Rig(Tester):
-    def __init__(self, ros: RosRig) -> None:
+    def __init__(self, ros: RosRig, driver: type[DynamixelDriver] = DynamixelDriver) -> None:
         super().__init__(ros)
         self.bench = Bench(self.tester)
-        self.driver = ros.add(DynamixelDriver, {"port": self.bench.bus.port,
-                                                "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
+        self.driver = ros.add(driver, {"port": self.bench.bus.port, "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
         self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
         self.joints = self.listen(JointState, names.JOINT_STATES)
         self.poses = self.listen(PoseStamped, names.OBJECT_POSE)
@@ -492,6 +491,34 @@ def test_an_exception_out_of_a_callback_still_turns_the_torque_off(ros_domain: i
                                         "-p", f"latency_timer_ms:={EMULATED_LATENCY_TIMER_MS}"])
         assert any(turned_on)
         assert [s.torque for s in bus.bus.servos.values()] == [False, False]
+
+
+class ActivateWithABug(DynamixelDriver):
+    """The driver with a bug in activate, after the torque came on."""
+
+    def _activate(self, state: Any) -> Any:
+        super()._activate(state)
+        raise RuntimeError("a bug in activate")
+
+
+def test_a_transition_that_raises_releases_the_hand_and_says_why(ros: RosRig) -> None:
+    """rclpy answers ERROR and goes to on_error, dropping the exception; the driver says it and lets go."""
+    rig = Rig(ros, ActivateWithABug)
+    diagnostics = rig.listen(DiagnosticArray, names.DIAGNOSTICS)
+    try:
+        assert rig.transition(Transition.TRANSITION_CONFIGURE)
+        assert not rig.transition(Transition.TRANSITION_ACTIVATE)
+        assert rig.state() == "unconfigured" and rig.driver.hand is None
+        assert rig.bench.torque() == [False, False]
+        assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.0), rig.events()
+        said = "activate raised RuntimeError: a bug in activate: torque off, port closed"
+        assert said in rig.statuses[-1].data
+        assert rig.ros.spin_until(lambda: any(said in status_report(d, STATUS_NAME).message for d in diagnostics),
+                                  2.0)
+        assert rig.transition(Transition.TRANSITION_CONFIGURE)  # the port was closed: it opens again
+    finally:
+        rig.driver.close()
+        rig.bench.close()
 
 
 @pytest.mark.parametrize("config", ["hardware_real.yaml", "hardware_emulated.yaml"])

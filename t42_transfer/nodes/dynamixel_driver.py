@@ -6,7 +6,11 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
   operating mode and the position limits, read where the fingers stand;
 * activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
 * deactivate: hold the position, stop stepping (torque stays on);
-* cleanup and shutdown: torque off, close the port.  The process's exit (Ctrl-C, SIGTERM, an exception out of a
+* cleanup and shutdown: torque off, close the port;
+* a transition that raises (a bug: faults are answered FAILURE) is said with its reason on /rosout,
+  ``hand/status`` and ``diagnostics``, and ``on_error`` turns the torque off and closes the port before the
+  node goes back to unconfigured (rclpy would otherwise drop the exception unsaid and leave both as they
+  were).  The process's exit (Ctrl-C, SIGTERM, an exception out of a
   callback) turns the torque off too, whatever the state, on each servo that answers.  ``autostart`` configures
   and activates at start, for a suite run without a lifecycle manager (``t42 up``), trying configure again
   every second until the port is there.
@@ -51,6 +55,7 @@ driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -123,9 +128,11 @@ class DynamixelDriverParams:
     rad_per_action: float = param(_T42.rad_per_action, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
     max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad); "
                                              "at run time lowered at once, raised only unconfigured")
-    load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this", min=1.0, max=2000.0)
-    grasp_load: float = param(_T42.grasp_load, "a reset closes each finger until its load passes this", min=1.0,
-                              max=2000.0)
+    load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this, in the servos' raw "
+                              "load units (0.1 % of stall torque, 0.0041 N m: 280 is 1.15 N m of effort on "
+                              "hand/joint_states)", min=1.0, max=2000.0)
+    grasp_load: float = param(_T42.grasp_load, "a reset closes each finger until its load passes this, in raw load "
+                              "units as load_limit (100 is 0.41 N m)", min=1.0, max=2000.0)
     max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
                                   min=0.01, max=10.0)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
@@ -160,6 +167,8 @@ class DynamixelDriver(LifecycleNode):
         """Commands refused or cut short, on /rosout and ``hand/status`` alike, throttled as :attr:`per_message`."""
         self._configure_error = ""
         """The last configure failure reported on ``hand/status`` (autostart retries say a new one only)."""
+        self._transition_error = ""
+        """Why the transition in progress raised, for :meth:`on_error` ("" when none did)."""
         self.hand: ServoHand | None = None
         self.queue = ActionQueue()
         self.episode = -1
@@ -218,6 +227,30 @@ class DynamixelDriver(LifecycleNode):
 
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:
+        return self._transition("configure", self._configure)
+
+    def _transition(self, name: str, run: Callable[[], TransitionCallbackReturn]) -> TransitionCallbackReturn:
+        """``run()``; an exception out of it is kept with its reason for :meth:`on_error` and answered ERROR."""
+        try:
+            return run()
+        except Exception as err:  # rclpy would answer ERROR too, saying nothing of why
+            self._transition_error = f"{name} raised {type(err).__name__}: {err}"
+            self.log.error(self._transition_error)
+            return TransitionCallbackReturn.ERROR
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        """A transition raised: the hand released (torque off, port closed) and the reason said; unconfigured
+        next, from where configure starts over."""
+        reason = self._transition_error or f"a transition from {state.label} failed"
+        self._transition_error = ""
+        message = f"{reason}: torque off, port closed; configure to start again"
+        self._release()
+        self.log.error(message)
+        self._status(names.FAULT, message)
+        self._publish_diagnostics("ERROR", message)
+        return TransitionCallbackReturn.SUCCESS
+
+    def _configure(self) -> TransitionCallbackReturn:
         p = self.params
         servos = HandServos(p.port, p.baud, p.servo_ids, p.latency_timer_ms)
         try:
@@ -251,6 +284,9 @@ class DynamixelDriver(LifecycleNode):
             self._status(names.FAULT, message)
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
+        return self._transition("activate", lambda: self._activate(state))
+
+    def _activate(self, state: State) -> TransitionCallbackReturn:
         try:
             self._need_hand().start_from_present()
             self._need_hand().servos.torque(True)
@@ -264,6 +300,9 @@ class DynamixelDriver(LifecycleNode):
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        return self._transition("deactivate", lambda: self._deactivate(state))
+
+    def _deactivate(self, state: State) -> TransitionCallbackReturn:
         self._stop_episode("deactivated")
         self._stepping = False
         try:
