@@ -51,9 +51,10 @@ Decisions, and why:
 
 * Plans run in one worker thread, not in an executor callback: K samples x T steps
   take 0.1-1 s, and the node must keep tracking the hand state meanwhile (the plan
-  for the next goal starts from it).  State callbacks stay in the node's default
-  callback group; model loading has its own, so reading a large file does not
-  stall state tracking either.  State and model are swapped under a lock.
+  for the next goal starts from it).  An announced model is read in a loader thread
+  of its own (the newest announcement wins), so reading a large file stalls
+  neither the executor's callbacks (state, goals, the reach action) nor a plan or
+  run in progress.  State and model are swapped under a lock.
 * The latest goal wins.  A goal arriving while another waits replaces it; one
   arriving while a plan runs lets that plan finish (the planner cannot be
   interrupted) and then discards it unpublished.  Either way the older goal
@@ -88,7 +89,6 @@ import numpy as np
 import torch
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -154,6 +154,8 @@ class PlannerNode(Node):
         self._pending: Goal | None = None
         self._planning = False
         self._stopping = False
+        self._announced: str | None = None
+        """A model path announced and not yet read (the loader thread reads it)."""
         self._done_stamps: list[int] = []
         """Last-step stamps of the driver's trajectory_done statuses, newest last (the ten newest)."""
         self._dones = 0
@@ -176,13 +178,14 @@ class PlannerNode(Node):
             self.log.info(f"no model file {model!r} yet; waiting for {self._model_topic}")
         self.create_subscription(PoseStamped, names.OBJECT_POSE, self._on_pose, 10)
         self.create_subscription(JointState, names.JOINT_STATES, self._on_joints, 10)
-        self.create_subscription(ModelUpdated, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED),
-                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_subscription(ModelUpdated, names.MODEL_UPDATED, self._on_model_updated, profile(names.LATCHED))
         self.create_subscription(PointStamped, names.GOAL, self._on_goal, profile(names.REQUESTS))
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._reach_server = reach_server(self, self._on_reach, self._on_reach_cancel)
         self._worker = threading.Thread(target=self._work, name=f"{self.get_name()}_planner", daemon=True)
         self._worker.start()
+        self._loader = threading.Thread(target=self._load_announced, name=f"{self.get_name()}_loader", daemon=True)
+        self._loader.start()
 
     # ------------------------------------------------------------------ state
     @property
@@ -230,6 +233,7 @@ class PlannerNode(Node):
             self._stopping = True
             self._cond.notify_all()
         self._worker.join()
+        self._loader.join()
 
     def destroy_node(self) -> None:
         """Stop the worker first, so it never publishes through destroyed publishers."""
@@ -278,7 +282,21 @@ class PlannerNode(Node):
             self._cond.notify_all()
 
     def _on_model_updated(self, msg: ModelUpdated) -> None:
-        self.load(model_announcement(msg).path)
+        path = model_announcement(msg).path
+        with self._cond:
+            self._announced = path  # replaces one not yet read: only the newest is worth reading
+            self._cond.notify_all()
+
+    def _load_announced(self) -> None:
+        """The loader thread: each announced model in turn, the newest when several came during one read."""
+        while True:
+            with self._cond:
+                while self._announced is None and not self._stopping:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                path, self._announced = self._announced, None
+            self.load(path)
 
     def _on_goal(self, msg: PointStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
