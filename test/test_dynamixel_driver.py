@@ -22,6 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
 from ros_rig import RosRig, Tester, start_node, stop
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -44,11 +45,11 @@ pytestmark = pytest.mark.events_executor
 class Bench:
     """The emulated hand: its bus on a pty, and a thread stepping its physics and sending tracker poses."""
 
-    def __init__(self, tester: Any) -> None:
+    def __init__(self, tester: Any, pose_qos: Any = 10) -> None:
         self.plant = HandPlant(SimulatedHand("target"))
         self.bus = PtyBus(t42_bus(plant=self.plant))
         self.tracking = True
-        self._pose_pub = tester.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
+        self._pose_pub = tester.create_publisher(PoseStamped, names.TRACKER_POSE, pose_qos)
         self._clock = tester.get_clock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -74,9 +75,9 @@ class Bench:
 
 
 class Rig(Tester):
-    def __init__(self, ros: RosRig, driver: type[DynamixelDriver] = DynamixelDriver) -> None:
+    def __init__(self, ros: RosRig, driver: type[DynamixelDriver] = DynamixelDriver, pose_qos: Any = 10) -> None:
         super().__init__(ros)
-        self.bench = Bench(self.tester)
+        self.bench = Bench(self.tester, pose_qos)
         self.driver = ros.add(driver, {"port": self.bench.bus.port, "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
         self.statuses = self.listen(String, names.HAND_STATUS, profile(names.EVENTS))
         self.joints = self.listen(JointState, names.JOINT_STATES)
@@ -491,6 +492,21 @@ def test_an_exception_out_of_a_callback_still_turns_the_torque_off(ros_domain: i
                                         "-p", f"latency_timer_ms:={EMULATED_LATENCY_TIMER_MS}"])
         assert any(turned_on)
         assert [s.torque for s in bus.bus.servos.values()] == [False, False]
+
+
+def test_a_best_effort_tracker_is_heard(ros: RosRig) -> None:
+    """A motion-capture bridge publishing as REP 2003 has sensors publish (best effort): a reliable reader
+    would never match it, and every step would be stale."""
+    rig = Rig(ros, pose_qos=qos_profile_sensor_data)
+    try:
+        assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+        assert rig.reset().success
+        rig.forget()
+        rig.ros.spin_for(1.0)
+        assert len(rig.poses) >= 5 and names.STALE not in rig.events(), (len(rig.poses), rig.events())
+    finally:
+        rig.driver.close()
+        rig.bench.close()
 
 
 class ActivateWithABug(DynamixelDriver):
