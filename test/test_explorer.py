@@ -167,6 +167,24 @@ def test_an_absent_recorder_and_failed_resets_do_not_stop_exploring(ros) -> None
     assert len(resets) == 2
 
 
+def test_without_a_driver_it_says_what_it_waits_for(ros, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No hand/reset service anywhere: the explorer waits (a driver may come) and says so on /rosout."""
+    from ros_rig import Rosout
+
+    from t42_transfer.nodes import explorer as module
+
+    monkeypatch.setattr(module, "WAITING_NOTE_S", 0.3)
+    log = Rosout(ros, "explorer")
+    explorer = ros.add(Explorer, {"episodes": 1})
+
+    def notes() -> list[str]:
+        return [m.msg for m in log.lines if m.name.endswith("explorer") and "waiting" in m.msg]
+
+    assert ros.spin_until(lambda: len(notes()) >= 2, 5.0), [m.msg for m in log.lines]
+    assert f"for /{names.HAND_RESET} (is the hand's driver running" in notes()[0]
+    assert not explorer.finished and explorer.completed == []
+
+
 @pytest.mark.parametrize("field, value", [
     ("episodes", 0), ("steps", -1), ("hold_max", 0), ("limit", 2.0), ("limit", 0.0), ("rate_factor", 0.0),
     ("seed", -1), ("record_stop_service", "1stop"), ("record_start_service", "with space"),

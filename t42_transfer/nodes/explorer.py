@@ -45,6 +45,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -115,14 +116,21 @@ class ExplorerParams:
         _check_service_name("record_stop_service", self.record_stop_service)
 
 
+WAITING_NOTE_S = 5.0
+"""While a service awaited with no deadline (``hand/reset``) is not there, a line this often says so."""
+
+
 class _Call:
     """One Trigger call polled by a timer: waits for the service, sends the request, waits for the answer."""
 
-    def __init__(self, client: Client, wait_s: float | None, answer_s: float) -> None:
+    def __init__(self, client: Client, wait_s: float | None, answer_s: float,
+                 note: Callable[[str], None] | None = None) -> None:
         self.client = client
         self._answer_s = answer_s
         self._deadline = None if wait_s is None else time.monotonic() + wait_s
         self._future: Future | None = None
+        self._note, self._since = note, time.monotonic()
+        self._noted = self._since
 
     def poll(self) -> Trigger.Response | str | None:
         """The response once answered, the reason (str) when it failed, None while pending."""
@@ -133,6 +141,10 @@ class _Call:
                 self._deadline = time.monotonic() + self._answer_s
             elif self._deadline is not None and time.monotonic() > self._deadline:
                 return f"{name} is not available"
+            elif self._note is not None and time.monotonic() - self._noted >= WAITING_NOTE_S:
+                self._noted = time.monotonic()
+                self._note(f"waiting {self._noted - self._since:.0f} s for {self.client.service_name} (is the hand's "
+                           "driver running, in this namespace?)")
             return None
         if self._future.done():
             err = self._future.exception()
@@ -273,7 +285,7 @@ class Explorer(Node):
                     self._call = _Call(self._record_stop, self.SERVICE_TIMEOUT_S, self.SERVICE_TIMEOUT_S)
             else:
                 self._phase = "resetting"
-                self._call = _Call(self._reset, None, self.SERVICE_TIMEOUT_S)
+                self._call = _Call(self._reset, None, self.SERVICE_TIMEOUT_S, note=self.log.info)
         if self._phase == "resetting":
             self._on_reset_answer(self._call.poll())
         elif self._phase == "starting_recorder":
