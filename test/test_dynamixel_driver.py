@@ -494,6 +494,26 @@ def test_an_exception_out_of_a_callback_still_turns_the_torque_off(ros_domain: i
         assert [s.torque for s in bus.bus.servos.values()] == [False, False]
 
 
+def test_a_fault_that_changes_while_held_is_said_again(fresh_rig: Rig) -> None:
+    """Servo 1 dies; while the driver retries, servo 1 comes back and servo 2 dies: the new cause goes to
+    hand/status (and /rosout), not to diagnostics alone; the same cause again each second does not."""
+    rig = fresh_rig
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
+    rig.forget()
+    faults = rig.bench.bus.bus.faults
+    faults.dead.add(1)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.0), rig.events()
+    assert "servo 1" in rig.statuses[-1].data
+    rig.ros.spin_for(2.5)  # retries failing the same way
+    assert rig.events().count(names.FAULT) == 1, [s.data for s in rig.statuses]
+    faults.dead.clear()
+    faults.dead.add(2)
+    assert rig.ros.spin_until(lambda: rig.events().count(names.FAULT) == 2, 3.0), [s.data for s in rig.statuses]
+    assert "servo 2" in rig.statuses[-1].data
+    faults.dead.clear()
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
+
+
 def test_a_best_effort_tracker_is_heard(ros: RosRig) -> None:
     """A motion-capture bridge publishing as REP 2003 has sensors publish (best effort): a reliable reader
     would never match it, and every step would be stale."""

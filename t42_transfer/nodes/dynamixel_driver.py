@@ -490,11 +490,14 @@ class DynamixelDriver(LifecycleNode):
 
     # ------------------------------------------------------------------ faults
     def _on_fault(self, fault: ServoFault) -> None:
-        first = self.fault is None
+        """A fault, or a retry that failed: on /rosout and ``hand/status`` when its cause (kind and servo) differs
+        from the one held (a retry failing the same way every second says so on ``diagnostics`` only)."""
+        held = self.fault
+        new = held is None or (fault.kind, fault.servo_id) != (held.kind, held.servo_id)
         self.fault = fault
         self._stop_episode(str(fault))
         self._next_retry_s = time.monotonic() + RETRY_PERIOD_S
-        if first:
+        if new:
             self.log.error(f"{fault}; holding, retrying every {RETRY_PERIOD_S:g} s")
             self._status(names.FAULT, str(fault))
         self._publish_diagnostics("ERROR", str(fault))
