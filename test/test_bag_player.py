@@ -216,3 +216,28 @@ def test_cli_plays_a_bag_and_refuses_bad_input(ros_domain: int, tmp_path: Path,
     assert main(["bag", "play", str(tmp_path / "notabag")]) == 2
     err = capsys.readouterr().err
     assert "cannot be played" in err and err.count("\n") == 1
+
+
+def test_cli_remaps_a_topic_as_ros2_bag_play_does(ros: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """A bag recorded at the root played into a namespace: ``--remap /hand/object_pose:=/left/hand/object_pose``."""
+    import threading
+
+    moved = "/left" + POSE
+    got: list[bytes] = []
+    ros.node("sink").create_subscription(rclpy_class(HAND_TOPICS[POSE]), moved, got.append, recording(10_000),
+                                         raw=True)
+    codes: list[int] = []
+    play = threading.Thread(target=lambda: codes.append(main(
+        ["bag", "play", str(BAG), "--rate", "400", "--topics", POSE, "--remap", f"{POSE}:={moved}",
+         "--wait-subscribers", "10"])))
+    play.start()
+    while play.is_alive():
+        ros.spin_for(0.1)
+    ros.spin_for(0.3)
+    assert codes == [0]
+    assert got == [raw for topic, _, raw in bag_messages() if topic == POSE]
+    assert "not every topic had a subscriber" not in capsys.readouterr().err  # the sink matched the moved topic
+    for rule in ("nocolon", ":=/x", "/a:=", "/a:=/b:=/c"):
+        with pytest.raises(SystemExit) as exit_:
+            main(["bag", "play", str(BAG), "--remap", rule])
+        assert exit_.value.code == 2 and "a remapping is OLD:=NEW" in capsys.readouterr().err

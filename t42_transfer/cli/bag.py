@@ -77,6 +77,14 @@ def _cmd_bag_repair(args: argparse.Namespace) -> int:
     return 0
 
 
+def _remap_rule(text: str) -> str:
+    """``OLD:=NEW``, both sides non-empty: a ROS remapping rule (passed to rclpy as ``--ros-args -r``)."""
+    old, sep, new = text.partition(":=")
+    if not sep or not old.strip() or not new.strip() or ":=" in new:
+        raise argparse.ArgumentTypeError(f"a remapping is OLD:=NEW, got {text!r}")
+    return text
+
+
 def _cmd_bag_play(args: argparse.Namespace) -> int:
     from t42_transfer.nodes.player import PlayerParams
     from t42_transfer.ros.runner import keep_discovery_local
@@ -98,7 +106,9 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
     if topics:
         overrides.append(Parameter("topics", value=list(topics)))
     context = rclpy.Context()
-    rclpy.init(args=[], context=context, signal_handler_options=SignalHandlerOptions.NO)
+    ros_args = [arg for rule in args.remap for arg in ("-r", rule)]
+    rclpy.init(args=["--ros-args", *ros_args] if ros_args else [], context=context,
+               signal_handler_options=SignalHandlerOptions.NO)
     try:
         player = BagPlayer(context=context, parameter_overrides=overrides)
         executor = SingleThreadedExecutor(context=context)
@@ -147,6 +157,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
                       help="publish /clock from the bag's time at HZ (40 when HZ is not given), "
                            "as ros2 bag play --clock")
+    play.add_argument("--remap", "-m", nargs="+", type=_remap_rule, default=[], metavar="OLD:=NEW",
+                      help="publish topic OLD (as named in the bag) on NEW, as ros2 bag play --remap; e.g. "
+                           "/hand/object_pose:=/left/hand/object_pose")
     play.add_argument("--wait-subscribers", type=float_arg(0, 3600), default=2.0, metavar="S",
                       help="wait up to S seconds for every topic's subscriber to match before starting (default 2)")
     play.set_defaults(func=_cmd_bag_play)

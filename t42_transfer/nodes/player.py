@@ -2,7 +2,8 @@
 
 Each message goes out as the CDR bytes stored in the bag (``Publisher.publish(bytes)``,
 nothing is decoded), on its topic as named in the bag (absolute: a bag recorded
-under ``/left`` plays on ``/left/hand/...``; remap to move it) with its type, at
+under ``/left`` plays on ``/left/hand/...``; remap it by its absolute name to move it,
+``t42 bag play --remap OLD:=NEW``) with its type, at
 its log-time offset from the bag's first message divided by ``rate``.  Each topic's
 publisher offers the QoS the bag recorded for it (reliability, durability, history,
 depth), else ROS's default.
