@@ -19,6 +19,9 @@ DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 
 LEVELS: dict[str, int] = {"OK": 0, "WARN": 1, "ERROR": 2, "STALE": 3}
 """``DiagnosticStatus`` level names and their byte values."""
+PERIOD_S = 1.0
+"""How often a node says its status even when nothing changed (diagnostic_updater's 1 Hz): a monitor started
+later, on a topic that keeps no history, still hears a failure within a second."""
 
 
 def _text(value: object) -> str:

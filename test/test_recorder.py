@@ -577,14 +577,20 @@ def test_a_full_disk_is_reported_once_and_recording_resumes_when_space_returns(r
     first = rec.bags[0]
     filler = _fill(small_disk)
     hand.episode(t0 + 40 * CONTROL_PERIOD_NS, 150, seed=1)  # far more than the disk holds
-    assert ros.spin_until(lambda: any(status_report(r, STATUS_NAME).level == "ERROR" for r in reports), 5.0)
+    def level_reports(level: str) -> int:
+        return sum(status_report(r, STATUS_NAME).level == level for r in reports)
+
+    assert ros.spin_until(lambda: level_reports("ERROR"), 5.0)
+    said = level_reports("ERROR")  # and said again each second while it lasts, for a monitor that joins late
+    assert ros.spin_until(lambda: level_reports("ERROR") > said, 2.5)
     errors = [m for m in log.lines if m.level >= 40 and m.name.endswith(rec.get_name())]
     assert 1 <= len(errors) <= 3, [m.msg for m in errors]  # said once, not once per message
     split = hand.call("split")
     assert not split.success and "failed" in split.message
     assert len(read_bag(first)[0]) == 20  # what was written before the disk filled is intact
+    oks = level_reports("OK")  # none comes while writing fails: a new one says it resumed
     filler.unlink()
-    assert ros.spin_until(lambda: any(status_report(r, STATUS_NAME).level == "OK" for r in reports), 5.0)
+    assert ros.spin_until(lambda: level_reports("OK") > oks, 5.0)
     hand.episode(t0 + 300 * CONTROL_PERIOD_NS, 20, seed=2)
     hand.settle()
     assert hand.call("stop").success

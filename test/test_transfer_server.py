@@ -85,12 +85,16 @@ class Rig(Tester):
         self.bag_dir.mkdir(exist_ok=True)
         self.reports: list[DiagnosticReport] = []
         self.updates: list[str] = []
-        self.tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
-                                        lambda m: self.reports.append(status_report(m, STATUS_NAME)), 10_000)
+        self.tester.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_diagnostics, 10_000)
         self.announcements: list[ModelUpdated] = []
         self.tester.create_subscription(ModelUpdated, names.MODEL_UPDATED, self._on_model, profile(names.LATCHED))
         self.server = ros.add(TransferServer, server_params(tmp_path, source, **params), namespace=namespace)
         self.client = self.tester.create_client(Trigger, names.TRANSFER_NOW)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """The server's statuses; other nodes' (a recorder's, on the same topic) are not the server's."""
+        if any(status.name == STATUS_NAME for status in msg.status):
+            self.reports.append(status_report(msg, STATUS_NAME))
 
     def _on_model(self, msg: ModelUpdated) -> None:
         self.announcements.append(msg)
@@ -162,6 +166,8 @@ def test_diagnostics_follow_the_training_epochs(ros, tmp_path, source_model):
     assert all(r.values["phase"] == "L2 fine-tune" and r.values["epochs"] == "4" for r in trained)
     assert all(math.isfinite(float(r.values["train_loss"])) for r in trained)
     assert trained[-1].message == "training L2 fine-tune: epoch 4/4"
+    ends = len(rig.ends())  # how it ended is said again each second, for a monitor that joins late
+    assert ros.spin_until(lambda: len(rig.ends()) > ends, 2.5) and rig.reports[-1].values["stage"] == "done"
 
 
 def test_bags_are_used_once(ros, tmp_path, source_model, make_set):

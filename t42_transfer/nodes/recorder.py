@@ -115,6 +115,7 @@ from msg_adapters import (
     rclpy_class,
     stamp_to_ns,
 )
+from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.steps import Step, StepBuffer
@@ -137,7 +138,8 @@ STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 """The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
 
 STATUS_NAME = "t42_transfer: recorder"
-"""The recorder's status name on ``diagnostics`` (a write failure and the resume)."""
+"""The recorder's status name on ``diagnostics``: at once on a write failure and on the resume, and each
+:data:`~msg_adapters.diagnostics.PERIOD_S` (ERROR while writing fails; OK recording, paused or idle)."""
 
 
 # --------------------------------------------------------------------------- the node
@@ -219,6 +221,7 @@ class Recorder(LooseMessages, Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
+        self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD_S, self._report_state, clock=steady)
         if p.start_immediately:
             ok, message = self.start()
             if not ok:
@@ -465,6 +468,16 @@ class Recorder(LooseMessages, Node):
     def _spanned(self, log_ns: int) -> None:
         span = self._span
         self._span = [log_ns, log_ns] if not span else [min(span[0], log_ns), max(span[1], log_ns)]
+
+    def _report_state(self) -> None:
+        """The periodic status: what a monitor that joined late needs (a write failure is still an ERROR)."""
+        failure, bag, paused = self.write_failure, self._bag, self.paused
+        if failure is not None:
+            self._report("ERROR", failure)
+        elif bag is not None:
+            self._report("OK", f"{'paused' if paused else 'recording'} {bag.path} ({bag.count} messages)")
+        else:
+            self._report("OK", f"not recording (call {names.RECORDER_START})")
 
     def _report(self, level: str, message: str) -> None:
         self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, {"dropped": self.dropped},

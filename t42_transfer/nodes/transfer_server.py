@@ -32,7 +32,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   ``train_loss`` and, when the method validates, ``val_loss``; when done with
   method ``auto``, ``picked_method`` and one ``candidate.<method>`` per candidate
   (its held-out score, or why it failed).  Published at
-  every stage change, every epoch and every ``progress_period_s`` while running;
+  every stage change, every epoch and every ``progress_period_s`` while running, and
+  every second from the first transfer on, so a monitor started later hears how the last one ended;
 * ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): each new
   ``transferred_<NNN>.safetensors`` (its absolute path: a file never rewritten, so a planner can load
   it while the next transfer replaces ``current.safetensors``), when it was saved, the method that made it and
@@ -79,6 +80,7 @@ from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed, ModelUpdated
 
 from msg_adapters import RCLPY, diagnostic_array, names
+from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SNAPSHOT, bag_closed_event
 from msg_adapters.transfer import (
     Scores,
@@ -238,6 +240,7 @@ class TransferServer(Node):
         self._started = time.monotonic()
         self._closed = False
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_periodic)
         self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
         group = ReentrantCallbackGroup()
         self.create_service(Trigger, names.TRANSFER_NOW, self._on_transfer, qos_profile=profile(names.REQUESTS),
@@ -542,6 +545,11 @@ class TransferServer(Node):
         values = {**self._status["values"], **info}
         self._status = {"stage": stage, "level": level, "message": message, "values": values}
         self._publish_status()
+
+    def _publish_periodic(self) -> None:
+        """The status each second once a transfer has begun (before: nothing to say)."""
+        if self._status["stage"] != "idle":
+            self._publish_status()
 
     def _publish_status(self) -> None:
         """Publish the current status; failures are logged (it runs from worker and callback threads).
