@@ -64,7 +64,7 @@ def test_a_plain_rclpy_script_sets_parameters_and_receives_poses(ros_domain: int
     assert {"device", "fps", "loop", "frame_id", "calibration_file", "width", "height"} <= set(camera), camera
     assert {"object_id", "max_jump_mm", "object_marker_height_m", "base_ids", "dictionary"} <= set(tracker), tracker
     assert seen["camera_values"]["device"] == str(hand_video["video"]) and seen["camera_values"]["loop"] is True
-    assert seen["camera_values"]["frame_id"] == "camera"
+    assert seen["camera_values"]["frame_id"] == "camera_optical"
     assert seen["tracker_values"] == {"object_id": 0, "max_jump_mm": 8.0,
                                       "object_marker_height_m": hand_video["height_m"]}
 
@@ -77,7 +77,7 @@ def test_a_plain_rclpy_script_sets_parameters_and_receives_poses(ros_domain: int
     empty, slash, fps = seen["camera_bad"]
     assert not empty[0] and "frame_id" in empty[1] and not slash[0] and "frame_id" in slash[1], seen["camera_bad"]
     assert not fps[0] and "read-only" in fps[1], seen["camera_bad"]
-    assert seen["camera_after_bad"] == {"frame_id": "camera", "fps": 0.0}
+    assert seen["camera_after_bad"] == {"frame_id": "camera_optical", "fps": 0.0}
     assert seen["camera_good"] == [True, ""] and seen["camera_after_good"] == {"frame_id": "hand_camera_optical"}
 
     poses = seen["poses"]

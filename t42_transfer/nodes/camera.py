@@ -60,7 +60,8 @@ class CameraParams:
                         read_only=True, min=0, max=MAX_SIDE)
     fps: float = param(0.0, "frames per second asked of the source and published at most (0: the source's own)",
                        read_only=True, min=0.0, max=MAX_FPS)
-    frame_id: str = param("camera", "frame id of the images and camera infos (the camera's optical frame)")
+    frame_id: str = param("camera_optical", "frame id of the images and camera infos: the camera's optical frame "
+                          "(z forward, x right, y down; REP 103's _optical suffix)")
     calibration_file: Path | None = param(None, "ROS camera_info YAML of the camera (unset: uncalibrated, K = 0)",
                                           read_only=True)
     loop: bool = param(False, "at a video file's end, start it again (else the node is finished)", read_only=True)

@@ -45,7 +45,8 @@ class SimCameraParams:
     camera_height: int = param(480, "height of the rendered frames (px)", read_only=True, min=16, max=4096)
     camera_noise: float = param(0.0, "Gaussian pixel noise of the rendered frames (grey levels)", read_only=True,
                                 min=0.0, max=100.0)
-    camera_frame_id: str = param("camera", "frame id of the rendered frames (the camera's optical frame)",
+    camera_frame_id: str = param("camera_optical", "frame id of the rendered frames: the camera's optical frame "
+                                 "(REP 103's _optical suffix)",
                                  read_only=True)
 
     def check_camera(self) -> None:
