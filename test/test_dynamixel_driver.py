@@ -504,7 +504,7 @@ def test_a_fault_that_changes_while_held_is_said_again(fresh_rig: Rig) -> None:
     faults.dead.add(1)
     assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.0), rig.events()
     assert "servo 1" in rig.statuses[-1].data
-    rig.ros.spin_for(2.5)  # retries failing the same way
+    rig.ros.spin_for(1.5)  # a retry (each second) failing the same way
     assert rig.events().count(names.FAULT) == 1, [s.data for s in rig.statuses]
     faults.dead.clear()
     faults.dead.add(2)
@@ -518,12 +518,9 @@ def test_a_best_effort_tracker_is_heard(ros: RosRig) -> None:
     """A motion-capture bridge publishing as REP 2003 has sensors publish (best effort): a reliable reader
     would never match it, and every step would be stale."""
     rig = Rig(ros, pose_qos=qos_profile_sensor_data)
-    try:
-        assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.transition(Transition.TRANSITION_ACTIVATE)
-        assert rig.reset().success
-        rig.forget()
-        rig.ros.spin_for(1.0)
-        assert len(rig.poses) >= 5 and names.STALE not in rig.events(), (len(rig.poses), rig.events())
+    try:  # the driver takes the tracker's poses from its start, configured or not
+        stamps: set[int] = set()
+        assert rig.ros.spin_until(lambda: stamps.add(rig.driver.pose.stamp_ns or 0) or len(stamps) >= 6, 3.0), stamps
     finally:
         rig.driver.close()
         rig.bench.close()
