@@ -54,7 +54,8 @@ Decisions, and why:
   for the next goal starts from it).  An announced model is read in a loader thread
   of its own (the newest announcement wins), so reading a large file stalls
   neither the executor's callbacks (state, goals, the reach action) nor a plan or
-  run in progress.  State and model are swapped under a lock.
+  run in progress; a goal waiting meanwhile is planned once it is read, with it.
+  State and model are swapped under a lock.
 * The latest goal wins.  A goal arriving while another waits replaces it; one
   arriving while a plan runs lets that plan finish (the planner cannot be
   interrupted) and then discards it unpublished.  Either way the older goal
@@ -81,9 +82,10 @@ import math
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -136,6 +138,8 @@ from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
+T = TypeVar("T")
+
 
 class PlannerNode(Node):
     """Plans for goals with the latest model and hand state; see the module docstring for behaviour."""
@@ -156,6 +160,8 @@ class PlannerNode(Node):
         self._stopping = False
         self._announced: str | None = None
         """A model path announced and not yet read (the loader thread reads it)."""
+        self._loading = False
+        """The loader is reading an announced model (goals wait for it)."""
         self._done_stamps: list[int] = []
         """Last-step stamps of the driver's trajectory_done statuses, newest last (the ten newest)."""
         self._dones = 0
@@ -289,14 +295,29 @@ class PlannerNode(Node):
 
     def _load_announced(self) -> None:
         """The loader thread: each announced model in turn, the newest when several came during one read."""
-        while True:
-            with self._cond:
-                while self._announced is None and not self._stopping:
-                    self._cond.wait()
-                if self._stopping:
-                    return
-                path, self._announced = self._announced, None
-            self.load(path)
+        while (path := self._wait_to_take(self._take_announced)) is not None:
+            try:
+                self.load(path)
+            finally:
+                with self._cond:
+                    self._loading = False
+                    self._cond.notify_all()
+
+    def _take_announced(self) -> str | None:
+        path, self._announced = self._announced, None
+        self._loading = path is not None
+        return path
+
+    def _wait_to_take(self, take: Callable[[], T | None]) -> T | None:
+        """For the node's threads: under the lock, wait until ``take()`` gives something (None: nothing yet), or the
+        node stops (then None)."""
+        with self._cond:
+            while not self._stopping:
+                taken = take()
+                if taken is not None:
+                    return taken
+                self._cond.wait()
+            return None
 
     def _on_goal(self, msg: PointStamped) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -354,15 +375,18 @@ class PlannerNode(Node):
                 replaced.run.finish(ABORT, refused_verdict(), "superseded: a newer goal arrived before it was planned")
 
     # ------------------------------------------------------------------ the worker
+    def _take_goal(self) -> Goal | None:
+        """The goal waiting, now being planned (under the lock); none while an announced model is still to be read:
+        a goal sent after an announcement is planned with that model."""
+        if self._announced is not None or self._loading:
+            return None
+        goal, self._pending = self._pending, None
+        if goal is not None:
+            self._planning, self._active = True, goal.run
+        return goal
+
     def _work(self) -> None:
-        while True:
-            with self._cond:
-                while self._pending is None and not self._stopping:
-                    self._cond.wait()
-                if self._stopping:
-                    return
-                goal, self._pending, self._planning = self._pending, None, True
-                self._active = goal.run
+        while (goal := self._wait_to_take(self._take_goal)) is not None:
             try:
                 self._serve(goal)
             except Exception as err:  # the worker outlives any one goal
