@@ -288,9 +288,8 @@ class PlannerNode(Node):
             self._cond.notify_all()
 
     def _on_model_updated(self, msg: ModelUpdated) -> None:
-        path = model_announcement(msg).path
-        with self._cond:
-            self._announced = path  # replaces one not yet read: only the newest is worth reading
+        with self._cond:  # replaces one not yet read: only the newest is worth reading
+            self._announced = model_announcement(msg).path
             self._cond.notify_all()
 
     def _load_announced(self) -> None:
@@ -309,8 +308,7 @@ class PlannerNode(Node):
         return path
 
     def _wait_to_take(self, take: Callable[[], T | None]) -> T | None:
-        """For the node's threads: under the lock, wait until ``take()`` gives something (None: nothing yet), or the
-        node stops (then None)."""
+        """Under the lock, wait until ``take()`` gives something (not None) or the node stops (None)."""
         with self._cond:
             while not self._stopping:
                 taken = take()
@@ -376,8 +374,7 @@ class PlannerNode(Node):
 
     # ------------------------------------------------------------------ the worker
     def _take_goal(self) -> Goal | None:
-        """The goal waiting, now being planned (under the lock); none while an announced model is still to be read:
-        a goal sent after an announcement is planned with that model."""
+        """The goal waiting, now planned; none while an announced model is read (a goal after it is planned with it)."""
         if self._announced is not None or self._loading:
             return None
         goal, self._pending = self._pending, None
