@@ -64,10 +64,15 @@ def test_the_camera_suite_records_the_tracked_poses_with_the_frames_stamps(ros, 
     assert len(heard) >= 30 and len(heard) >= 0.9 * len(listened), (len(heard), len(listened), len(recorded))
     # Each topic's first messages may go by before the test hears that topic: a stamp is checked against what the
     # test heard of a topic once it heard that topic (frames and truths come with every frame, from then on).
+    # A frame's stamp: on the frames' grid.  The camera keeps 2 frames for a slow reader (only the newest matters),
+    # so a test process starved on a busy machine may miss a frame's info that the tracker had.
+    first, period = min(frames), int(np.diff(sorted(frames)).min())
     for stamp, xy in heard.items():
         np.testing.assert_allclose(xy, by_stamp[stamp], atol=1e-3)  # the tracked pose, not the simulator's
-        if stamp >= min(frames):
-            assert stamp in frames  # the frame's stamp
+        if stamp >= first:
+            assert (stamp - first) % period == 0, (stamp, first, period)
+    missed = [s for s in heard if s >= first and s not in frames]
+    assert len(missed) <= 0.1 * len(heard), (missed, len(heard))
     judged = {s: xy for s, xy in heard.items() if s >= min(truth)}
     assert len(judged) >= 25 and all(s in truth for s in judged)
     assert all(np.linalg.norm(xy - truth[s]) < 1.0 for s, xy in judged.items())
