@@ -285,7 +285,16 @@ def test_a_fault_mid_episode_loses_nothing_already_recorded_and_splits_the_episo
         rig.inject(port_closed=False)
         assert ros.spin_until(lambda: names.RECOVERED in rig.events(), 5.0), rig.events()
         assert rig.reset()  # the next episode (and the next test's grasp)
-        ros.spin_for(2.0)  # MIN_EPISODE_STEPS (15) and more: the reader keeps it
+        reset_ns = max(stamp_to_ns(j.header.stamp) for j in rig.joints)
+
+        def stepped() -> int:  # whole steps since: a joint state and its pose
+            posed = {stamp_to_ns(p.header.stamp) for p in rig.poses}
+            stamps = (stamp_to_ns(j.header.stamp) for j in rig.joints)
+            return sum(stamp > reset_ns and stamp in posed for stamp in stamps)
+
+        # MIN_EPISODE_STEPS (15) and more, so the reader keeps it (a fixed 2 s was too short once under the suite)
+        assert ros.spin_until(lambda: stepped() >= 25, 10.0), stepped()
+        ros.spin_for(0.5)  # the recorder takes the last of them
     finally:
         recorder.close()
         ros.executor.remove_node(recorder)
