@@ -127,21 +127,15 @@ def private_of(node: str, private: str) -> str:
 
 # ------------------------------------------------------------------ QoS
 class Qos(NamedTuple):
-    """A QoS profile as data: KEEP_LAST ``depth``, RELIABLE (BEST_EFFORT when ``best_effort``); TRANSIENT_LOCAL
-    when ``latched``."""
+    """A QoS profile as data: KEEP_LAST ``depth``, RELIABLE; TRANSIENT_LOCAL when ``latched``."""
 
     depth: int
     latched: bool = False
-    best_effort: bool = False
 
 
 IMAGES = Qos(2)
 """Camera frames and their CameraInfo: a short queue, as only the newest frame matters (a flood is dropped at
 the reader, not queued)."""
-SENSOR_READER = Qos(10, best_effort=True)
-"""Reading the tracker's pose (``tracker/object_pose``), as REP 2003 has sensor data read: a best-effort reader
-matches reliable and best-effort writers alike (a motion-capture bridge often publishes best effort, which a
-reliable reader never hears), and only the newest pose is used."""
 LATCHED = Qos(1, latched=True)
 """A late joiner still gets the last message (model announcements)."""
 EVENTS = Qos(100, latched=True)

@@ -194,7 +194,7 @@ class DynamixelDriver(LifecycleNode):
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub)
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS), **pub)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10, **pub)
-        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, profile(names.SENSOR_READER), **sub)
+        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10, **sub)
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True, **sub)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True, **sub)

@@ -253,8 +253,7 @@ class MockDriver(Node):
 
     def _listen_to_the_tracker(self, p: MockDriverParams) -> None:
         if p.pose_source == "topic" and self._tracker_sub is None:
-            self._tracker_sub = self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose,
-                                                         profile(names.SENSOR_READER))
+            self._tracker_sub = self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10)
 
     def _on_seed_set(self, parameters: list[Any]) -> None:
         """A seed set, even to the value it had, applies from the next reset (a grasp made again)."""

@@ -11,10 +11,9 @@ from msg_adapters.names import Qos
 
 @cache
 def profile(qos: Qos) -> QoSProfile:
-    """The rclpy profile of ``qos``: KEEP_LAST ``depth``, RELIABLE or BEST_EFFORT, TRANSIENT_LOCAL when latched."""
+    """The rclpy profile of ``qos``: KEEP_LAST ``depth``, RELIABLE, TRANSIENT_LOCAL when latched."""
     durability = DurabilityPolicy.TRANSIENT_LOCAL if qos.latched else DurabilityPolicy.VOLATILE
-    reliability = ReliabilityPolicy.BEST_EFFORT if qos.best_effort else ReliabilityPolicy.RELIABLE
-    return QoSProfile(depth=qos.depth, history=HistoryPolicy.KEEP_LAST, reliability=reliability,
+    return QoSProfile(depth=qos.depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=durability)
 
 
