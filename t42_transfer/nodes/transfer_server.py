@@ -33,7 +33,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   method ``auto``, ``picked_method`` and one ``candidate.<method>`` per candidate
   (its held-out score, or why it failed).  Published at
   every stage change, every epoch and every ``progress_period_s`` while running, and
-  every second from the first transfer on, so a monitor started later hears how the last one ended;
+  every second after a transfer ended, so a monitor started later hears how the last one ended;
 * ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): each new
   ``transferred_<NNN>.safetensors`` (its absolute path: a file never rewritten, so a planner can load
   it while the next transfer replaces ``current.safetensors``), when it was saved, the method that made it and
@@ -547,8 +547,9 @@ class TransferServer(Node):
         self._publish_status()
 
     def _publish_periodic(self) -> None:
-        """The status each second once a transfer has begun (before: nothing to say)."""
-        if self._status["stage"] != "idle":
+        """The status each second once a transfer has ended (before: nothing to say; while one runs, its worker
+        publishes every ``progress_period_s``)."""
+        if self._status["stage"] != "idle" and not self.busy:
             self._publish_status()
 
     def _publish_status(self) -> None:
