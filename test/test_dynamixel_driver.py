@@ -30,7 +30,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_to_ns, status_event, status_report
 from msg_adapters.wire import ACTUATOR_NAMES
-from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_S, LOAD_UNIT_NM, MIN_STEP_NS
+from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_S, LATE_STEP_NS, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, PtyBus, t42_bus
@@ -263,6 +263,28 @@ def test_a_stalled_step_is_taken_late_and_said_so_with_its_stamp(rig: Rig) -> No
     assert rig.driver.late_steps >= late_before + 1
 
 
+def test_a_slow_read_is_judged_on_the_stamps_published(rig: Rig) -> None:
+    """A read held up (a busy host, a buffering adapter) makes the step late by its stamp, not by its tick: it
+    says so, and the tick after it, on time but now too close to that stamp, does not step (under the parallel
+    suite a driver once published stamps 152 and then 46 ms apart, and the bag reader split the episode)."""
+    rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture)
+    start = len(rig.joints)
+    faults = rig.bench.bus.bus.faults
+    faults.reply_delay_s, faults.slow_replies = 0.08, 1  # one step's sync read answers 80 ms late
+    rig.ros.spin_for(1.0)
+    assert faults.slow_replies == 0
+    stamps = [stamp_to_ns(j.header.stamp) for j in rig.joints[start - 1:]]
+    gaps = np.diff(stamps)
+    assert gaps.min() >= MIN_STEP_NS, gaps  # no two steps closer than the reader accepts
+    late = [b for a, b in zip(stamps, stamps[1:], strict=False) if b - a > LATE_STEP_NS]
+    assert late, gaps  # the slow read made a step late ...
+
+    def said() -> set[int | None]:
+        return {last_step_stamp(s.data) for s in rig.statuses if status_event(s.data) == names.LATE}
+
+    assert rig.ros.spin_until(lambda: set(late) <= said(), 2.0), (late, said())  # ... and each one says so
+
+
 def test_with_the_tracker_stopped_no_fresh_looking_pose_goes_out(rig: Rig) -> None:
     rig.ros.spin_for(0.5)  # (on a grasped hand: see the rig fixture, which turns the tracker on again after)
     rig.bench.tracking = False
@@ -447,9 +469,10 @@ def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: 
         while [s.torque for s in bus.bus.servos.values()] != [True, True]:
             assert time.monotonic() < deadline and proc.poll() is None, "the driver never turned the torque on"
             time.sleep(0.05)
-        handled = bus.bus.handled
-        time.sleep(0.5)
-        assert bus.bus.handled > handled + 5  # it steps: one sync read and one sync write each period
+        handled, deadline = bus.bus.handled, time.monotonic() + 5.0
+        while bus.bus.handled <= handled + 5:  # it steps: one sync read and one sync write each period
+            assert time.monotonic() < deadline and proc.poll() is None, "the driver does not step"
+            time.sleep(0.05)  # (0.5 s once held only one step, under the parallel suite)
         assert stop([proc], timeout_s=10.0, sig=sig) == [0]
         assert [s.torque for s in bus.bus.servos.values()] == [False, False]
     finally:

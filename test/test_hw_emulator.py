@@ -123,6 +123,25 @@ def test_faults_a_driver_must_see(wire) -> None:
     assert ph.read1ByteTxRx(port, 2, xm.HARDWARE_ERROR_STATUS.address) == (0, COMM_SUCCESS, 0)
 
 
+def test_a_slow_answer_comes_late_and_whole() -> None:
+    """``slow_replies`` holds back whole answers (a busy host): the packet is intact, only late, and the count
+    runs down.  (The driver's port, whose answer timeout allows for the emulated bus's latency timer.)"""
+    from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
+    from t42_transfer.hardware.servos import HandServos
+
+    with PtyBus(t42_bus()) as bus:
+        servos = HandServos(bus.port, 1_000_000, (1, 2), EMULATED_LATENCY_TIMER_MS)
+        servos.open()
+        try:
+            bus.bus.faults.reply_delay_s, bus.bus.faults.slow_replies = 0.1, 1
+            began = time.monotonic()
+            assert servos.ping(1) == xm.XM430_W350
+            assert time.monotonic() - began >= 0.1 and bus.bus.faults.slow_replies == 0
+            assert servos.read_state() is not None  # the next answers as ever
+        finally:
+            servos.close()
+
+
 def test_a_closed_port_fails_the_next_exchange(wire) -> None:
     """Unplugged: pyserial raises (EIO from termios) or the exchange times out; it never succeeds."""
     bus, port, ph = wire

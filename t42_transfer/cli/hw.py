@@ -10,7 +10,9 @@ from pathlib import Path
 
 from t42_transfer.cli.args import SEED_MAX, float_arg, int_arg
 
-FAULT = re.compile(r"^(drop_replies|corrupt_replies|dead_servos|error_bits|port_closed)=(\S+)$")
+FAULTS = ("drop_replies", "corrupt_replies", "slow_replies", "reply_delay_s", "dead_servos", "error_bits",
+          "port_closed")
+FAULT = re.compile(rf"^({'|'.join(FAULTS)})=(\S+)$")
 """``--fault NAME=VALUE``: one of the emulator's fault parameters (see ``t42_transfer.nodes.hw_emulator``)."""
 
 
@@ -18,8 +20,7 @@ def fault_arg(text: str) -> str:
     """An argparse type: ``NAME=VALUE`` naming a fault parameter, returned as a ROS ``-p`` argument."""
     match = FAULT.match(text)
     if match is None:
-        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of drop_replies, "
-                                         "corrupt_replies, dead_servos, error_bits, port_closed")
+        raise argparse.ArgumentTypeError(f"{text!r} is not NAME=VALUE with NAME one of {', '.join(FAULTS)}")
     return f"{match.group(1)}:={match.group(2)}"
 
 

@@ -6,8 +6,8 @@ torque is on, goals outside the position limits refused, a Hardware Error Status
 and raising the alert bit of every reply until a reboot.  A :class:`Plant` moves behind it: Goal Position and
 Torque Enable go to the plant, Present Position and Present Current come from it.
 
-Faults are injected through :class:`Faults`: replies dropped or corrupted, a servo that stops answering, an
-error bit, the port closing.  Nothing here needs ROS.
+Faults are injected through :class:`Faults`: replies dropped, corrupted or late, a servo that stops answering,
+an error bit, the port closing.  Nothing here needs ROS.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import os
 import random
 import select
 import threading
+import time
 import tty
 from collections import deque
 from collections.abc import Iterable
@@ -141,6 +142,10 @@ class Faults:
     """Replies still to send with one byte flipped (the driver sees a CRC error)."""
     dead: set[int] = field(default_factory=set)
     """Servo ids that no longer answer at all."""
+    slow_replies: int = 0
+    """Answers still to send ``reply_delay_s`` late (a busy host, a USB adapter that buffers: the read takes
+    longer than the period allows, and the driver's step comes late)."""
+    reply_delay_s: float = 0.05
 
 
 GOALS_KEPT = 10_000
@@ -170,8 +175,14 @@ class ServoBus:
         """The bytes the bus answers ``ins`` with (b"" for none: a broadcast write, a sync write, a dead servo)."""
         with self.lock:
             self.handled += 1
-            replies = self._answer(ins)
-            return b"".join(self._faulted(r) for r in replies)
+            answer = b"".join(self._faulted(r) for r in self._answer(ins))
+            delay = 0.0
+            if answer and self.faults.slow_replies > 0:
+                self.faults.slow_replies -= 1
+                delay = self.faults.reply_delay_s
+        if delay:
+            time.sleep(delay)  # outside the lock: the plant keeps moving meanwhile
+        return answer
 
     def _answer(self, ins: p.Instruction) -> list[bytes]:
         targets = list(self.servos) if ins.servo_id == p.BROADCAST_ID else [ins.servo_id]

@@ -18,7 +18,8 @@ What a driver meets where a real hand would be (``t42 hw emulate``):
   periods (a real hand cannot wait: on wall time there is no lockstep).
 
 Faults are parameters, so they are injected at start (``-p drop_replies:=5``) or at run time
-(``ros2 param set``): ``drop_replies`` and ``corrupt_replies`` count down as replies go, ``dead_servos``
+(``ros2 param set``): ``drop_replies``, ``corrupt_replies`` and ``slow_replies`` (each answer
+``reply_delay_s`` late) count down as replies go, ``dead_servos``
 never answer, ``error_bits`` sets a Hardware Error Status on the servos in id order (e.g. ``[0, 32]``:
 overload on the second), ``port_closed`` takes the terminal away (and back when set false: a new pty at
 the same link).
@@ -66,6 +67,9 @@ class HwEmulatorParams(SimCameraParams):
     pose_dropout: float = param(0.0, "probability that a frame is lost", min=0.0, max=1.0)
     drop_replies: int = param(0, "replies still to drop", min=0, max=1_000_000)
     corrupt_replies: int = param(0, "replies still to corrupt (one byte flipped)", min=0, max=1_000_000)
+    slow_replies: int = param(0, "answers still to send reply_delay_s late (a busy host, a buffering adapter)",
+                              min=0, max=1_000_000)
+    reply_delay_s: float = param(0.05, "how late a slow answer comes", min=0.0, max=1.0)
     dead_servos: tuple[int, ...] = param((0,), "ids of servos that no longer answer (0: none)")
     error_bits: tuple[int, ...] = param((0, 0), "Hardware Error Status to raise on the servos, in id order")
     port_closed: bool = param(False, "the adapter unplugged: the pty goes away until set false")
@@ -132,6 +136,7 @@ class HwEmulator(Node):
         faults = self.bus.faults
         with self.bus.lock:
             faults.drop_replies, faults.corrupt_replies = p.drop_replies, p.corrupt_replies
+            faults.slow_replies, faults.reply_delay_s = p.slow_replies, p.reply_delay_s
             faults.dead = {i for i in p.dead_servos if i}
             for servo, bits in zip(sorted(self.bus.servos), p.error_bits, strict=False):
                 if bits:
