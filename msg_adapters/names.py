@@ -137,7 +137,8 @@ IMAGES = Qos(2)
 """Camera frames and their CameraInfo: a short queue, as only the newest frame matters (a flood is dropped at
 the reader, not queued)."""
 LATCHED = Qos(1, latched=True)
-"""A late joiner still gets the last message (model announcements)."""
+"""A late joiner still gets the last message: model announcements, and what a viewer opened later should draw at
+once (the plan's path and candidates, the view's scene; RViz or Foxglove with durability transient local)."""
 EVENTS = Qos(100, latched=True)
 """``hand/status`` as the driver writes it: none may be lost in a burst, which a depth of 1 allows
 (a reliable KEEP_LAST 1 writer replaces an unacknowledged sample), and a late joiner gets the recent ones."""

@@ -187,6 +187,8 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
     assert rig.driver.pending_actions == 0
     ros.spin_for(0.1)
     assert driver_log.warnings() == []
+    late = rig.listen(PathMsg, names.PLANNED_PATH, profile(names.LATCHED))  # a viewer opened now
+    assert ros.spin_until(lambda: late, 5.0) and late == [path]  # gets the plan's path (latched)
 
 
 def test_candidates_are_off_by_default_and_k_paths_with_the_plan_first_when_asked(ros, rig: Rig) -> None:

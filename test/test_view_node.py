@@ -25,6 +25,7 @@ import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.wire import CONTROL_PERIOD_NS
 from t42_transfer.nodes.view import View
+from t42_transfer.ros.qos import profile
 
 POSE_MM = np.array([4.0, 92.0], np.float32)
 GOAL_MM = (12.0, 104.0)
@@ -241,6 +242,9 @@ def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
     assert goal_markers()[1].color.r == pytest.approx(COLORS["refused"][0])
     goal_pub.publish(ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY))  # a new goal: not refused (yet)
     assert ros.spin_until(lambda: 2 not in goal_markers() and goal_markers()[0].pose.position.x < 0, 5)
+    late = tester.listen(MarkerArray, names.VIEW_MARKERS, profile(names.LATCHED))  # RViz opened now
+    assert ros.spin_until(lambda: late, 5), "a viewer that joins late gets the scene (latched)"
+    assert late[0] == markers[-1]
 
 
 def test_a_port_in_use_or_a_bad_hand_is_one_line_and_exit_2(ros_domain, tmp_path, small_set):

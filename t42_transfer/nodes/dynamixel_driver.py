@@ -43,14 +43,13 @@ another model: ``fault: configure failed: ...``, said again on ``hand/status`` o
 refused or cut short (clamped at a position limit, a finger held for its load) says ``refused`` on
 ``hand/status`` as on /rosout, at most once a second per kind.  Recovery is automatic: once a second the
 driver reopens the port if it went, pings, reboots a servo that raised an error bit, turns the torque back on
-and holds; ``recovered`` then says
-the hand is back (a reset starts the next episode).  Late steps are counted and reported in diagnostics, and each
-says ``late`` on ``hand/status`` with its stamp (a recording keeps it as data); a
-tick whose stamp would come less than half a period after the last step's (a timer catching up after a late
-one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on the
-stamps published, taken after the read (a read held up by a busy host makes the step late, not its tick).  Steps follow the graph's clock: with
-``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock does.  ``t42 node`` spins the
-driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
+and holds; ``recovered`` then says the hand is back (a reset starts the next episode).  Late steps are counted
+and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
+data); a tick whose stamp would come less than half a period after the last step's (a timer catching up after a
+late one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on
+the stamps published, taken after the read (a read held up by a busy host makes the step late, not its tick).
+Steps follow the graph's clock: with ``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock
+does.  ``t42 node`` spins the driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
 """
 
 from __future__ import annotations

@@ -12,10 +12,10 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an
   accepted plan; actuator-angle targets one per control period, starting from the
   angles of the state planned from, stamped when published (the driver refuses it stale);
-* ``t42/planned_path`` (nav_msgs/msg/Path): published with each trajectory; the
+* ``t42/planned_path`` (nav_msgs/msg/Path, latched): published with each trajectory; the
   predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
-* ``t42/plan_candidates`` (t42_interfaces/msg/PlanCandidates): with the parameter ``candidates`` K > 0 (0, off,
+* ``t42/plan_candidates`` (t42_interfaces/msg/PlanCandidates, latched): with the parameter ``candidates`` K > 0 (0, off,
   by default), the predicted paths of each new plan's K lowest-cost sequences, the plan's own first, published
   with its first piece (the view draws them);
 * ``t42/plan_result`` (t42_interfaces/msg/PlanResult): exactly one per goal (``t42/goal`` and ``t42/reach``
@@ -174,8 +174,8 @@ class PlannerNode(Node):
         """Episode-end events received in all."""
 
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
-        self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, 10)
-        self._candidates_pub = self.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, 10)
+        self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, profile(names.LATCHED))
+        self._candidates_pub = self.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, profile(names.LATCHED))
         self._result_pub = self.create_publisher(PlanResultMsg, names.PLAN_RESULT, profile(names.RESULTS))
         model = str(file_in_namespace(self.params.model, self.get_namespace())) if self.params.model else ""
         if model and Path(model).exists():

@@ -11,7 +11,7 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
   and the model announcements), BEST_EFFORT when one is.  A topic whose type is not installed here, or has no
   definition, is left out with one warning;
 * ``/clock`` as the server's time (the Time capability), so the app's clock is the driver's sim time;
-* ``view/markers`` (visualization_msgs/MarkerArray, also published on the graph for RViz): the scene of
+* ``view/markers`` (visualization_msgs/MarkerArray, also published on the graph for RViz, latched): the scene of
   :mod:`t42_transfer.view.scene` from ``hand/joint_states``, ``hand/object_pose``, ``t42/goal`` and
   ``t42/planned_path`` (the plan's predicted path, published with each accepted plan) and
   ``t42/plan_candidates`` (the planner's lowest-cost candidates, with its parameter ``candidates`` above 0),
@@ -181,7 +181,7 @@ class View(Node):
             capabilities=[Capability.ClientPublish, Capability.Time, Capability.Parameters], supported_encodings=[CDR],
             server_listener=_Listener(self), context=self._foxglove)
         self.port = self.server.port
-        self._marker_pub = self.create_publisher(MarkerArray, names.VIEW_MARKERS, 10)
+        self._marker_pub = self.create_publisher(MarkerArray, names.VIEW_MARKERS, profile(names.LATCHED))
         self.create_subscription(Clock, names.CLOCK, self._on_clock, 10)
         self.create_subscription(JointState, names.JOINT_STATES, lambda m: self._input("joints", m), 10)
         self.create_subscription(PoseStamped, names.OBJECT_POSE, lambda m: self._input("pose", m), 10)
