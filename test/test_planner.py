@@ -18,7 +18,15 @@ from toys import Toy
 from t42_transfer.cli import main
 from t42_transfer.models import CumulativeResidualModel, LatentDynamics, Normalisation, TransitionModel
 from t42_transfer.models.checkpoint import save_model
-from t42_transfer.planning import DISCRETE_ACTIONS, SAMPLERS, Planner, PlannerConfig, Workspace, sample_actions
+from t42_transfer.planning import (
+    DISCRETE_ACTIONS,
+    SAMPLERS,
+    Planner,
+    PlannerConfig,
+    PlanStopped,
+    Workspace,
+    sample_actions,
+)
 from t42_transfer.planning.fused import FusedRollout, is_paper_mlp, make_rollout
 from t42_transfer.planning.planner import ANSWERS
 from t42_transfer.planning.sampling import REAL_HAND_ACTIONS, colored_noise
@@ -163,6 +171,24 @@ def test_the_default_planner_reaches_a_linear_models_optimum_over_its_whole_hori
     assert np.linalg.norm(end - goal) <= defaults.tolerance_mm + 1e-4
     assert np.allclose(end, result.predicted[-1, :2], atol=1e-4)
     assert result.evaluated <= defaults.samples * (1 + defaults.refine_iterations)
+
+
+def test_stop_ends_a_plan_before_its_next_chunk_and_a_stop_never_asked_changes_nothing() -> None:
+    planner = Planner(Toy(), BOX, PlannerConfig(horizon=20, samples=300, chunk=100, refine_iterations=2))
+    goal = np.array([START[0] + 5.0, START[1] - 3.0])
+    asked = []
+
+    def stop_at_third() -> bool:
+        asked.append(True)
+        return len(asked) == 3
+
+    with pytest.raises(PlanStopped, match="after 200 of the samples"):
+        planner.plan(START, goal, stop=stop_at_third)
+    assert len(asked) == 3  # asked before each chunk, and none after it said stop
+    with pytest.raises(PlanStopped):
+        planner.plan(START, goal, stop=lambda: True)
+    plain, unstopped = planner.plan(START, goal), planner.plan(START, goal, stop=lambda: False)
+    assert np.array_equal(plain.actions, unstopped.actions) and plain.evaluated == unstopped.evaluated
 
 
 def test_the_elite_mean_answer_reaches_a_linear_models_goal_for_one_more_rollout() -> None:

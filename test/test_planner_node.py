@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -189,6 +190,26 @@ def test_goal_gives_a_trajectory_the_driver_executes_and_its_predicted_path(ros,
     assert driver_log.warnings() == []
     late = rig.listen(PathMsg, names.PLANNED_PATH, profile(names.LATCHED))  # a viewer opened now
     assert ros.spin_until(lambda: late, 5.0) and late == [path]  # gets the plan's path (latched)
+
+
+def test_closing_the_node_stops_a_plan_under_way_and_publishes_nothing_of_it(ros, tmp_path: Path) -> None:
+    """Ctrl-C during a long plan: the node stops at the plan's next chunk, not after the whole plan."""
+    from toys import SlowToy
+
+    from t42_transfer.nodes.planner_node import JOIN_TIMEOUT_S
+
+    slow = save_model(SlowToy(step_s=0.05), tmp_path / "slow.safetensors", method="slow",
+                      extra={"workspace": BOX.to_dict()})
+    rig = Rig(ros, slow, **{**SMALL, "samples": 2000, "refine_iterations": 9})  # 20 chunks of 1 s: a 20 s plan
+    rig.tick()
+    rig.publish_goal(START_XY + [6.0, -4.0])
+    assert ros.spin_until(lambda: not rig.planner.idle, 5.0)
+    ros.spin_for(0.5)  # the plan is under way
+    began = time.monotonic()
+    rig.planner.close()
+    assert time.monotonic() - began < JOIN_TIMEOUT_S  # joined: not waited out, and not the 20 s of the plan
+    ros.spin_for(0.5)
+    assert rig.results == [] and rig.trajectories == []
 
 
 def test_candidates_are_off_by_default_and_k_paths_with_the_plan_first_when_asked(ros, rig: Rig) -> None:

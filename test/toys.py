@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,23 @@ class Toy(StateIsLatent):
         loads = torch.tensor([self.load_rate, -self.load_rate]).expand_as(action)
         nxt = z + torch.cat([self.gain * action + torch.tensor(self.drift), loads], -1)
         return nxt.masked_fill((nxt[:, :1] > self.nan_beyond).expand_as(nxt), math.nan)
+
+
+class SlowToy(Toy):
+    """:class:`Toy` taking ``step_s`` seconds a step: a plan long enough to stop in the middle of."""
+
+    kind = "test_slow_toy"
+
+    def __init__(self, step_s: float = 0.05, **toy: object) -> None:
+        super().__init__(**toy)  # type: ignore[arg-type]
+        self.step_s = step_s
+
+    def config(self) -> dict:
+        return {**super().config(), "step_s": self.step_s}
+
+    def latent_step(self, z: Tensor, action: Tensor) -> Tensor:
+        time.sleep(self.step_s)
+        return super().latent_step(z, action)
 
 
 @dataclass

@@ -56,10 +56,9 @@ Decisions, and why:
   neither the executor's callbacks (state, goals, the reach action) nor a plan or
   run in progress; a goal waiting meanwhile is planned once it is read, with it.
   State and model are swapped under a lock.
-* The latest goal wins.  A goal arriving while another waits replaces it; one
-  arriving while a plan runs lets that plan finish (the planner cannot be
-  interrupted) and then discards it unpublished.  Either way the older goal
-  gets the result ``superseded``: a stale plan must not move the hand.
+* The latest goal wins.  A goal arriving while another waits replaces it; one arriving while a plan runs lets
+  that plan finish and then discards it unpublished (only stopping the node ends a plan early, at its next
+  chunk).  Either way the older goal gets the result ``superseded``: a stale plan must not move the hand.
 * A model file without a stored workspace (``extra.workspace``) is refused like
   an unreadable one, keeping the previous model: the workspace is the planner's
   only guard against trusting extrapolations, and no default box can know where
@@ -68,9 +67,8 @@ Decisions, and why:
   are executed; ``unreachable`` ones are refused with their predicted error.
 * Hand state further than ``max_state_age_s`` from now (driver stopped, episode
   ended) is refused: an open-loop plan from an old state is a plan for another hand.
-* Results are published reliable and TRANSIENT_LOCAL with a depth of 10: both
-  volatile and latched subscribers match, a late latched one gets the last result,
-  and a ``superseded`` result published just before the plan's is not overwritten.
+* Results are published reliable and TRANSIENT_LOCAL with a deep queue (``names.RESULTS``): volatile and latched
+  subscribers both match, and a ``superseded`` result published just before the plan's is not overwritten.
 
 Nothing here raises from a callback: failures are logged and, for goals, answered
 on the result topic.
@@ -114,10 +112,7 @@ from msg_adapters.plan_result import plan_result_msg
 from msg_adapters.planning import candidates_msg
 from msg_adapters.reach import reach_request
 from msg_adapters.transfer import model_announcement
-from t42_transfer.conventions import (
-    CONTROL_PERIOD_NS,
-    MAX_PLAN_HORIZON,
-)
+from t42_transfer.conventions import CONTROL_PERIOD_NS, MAX_PLAN_HORIZON
 from t42_transfer.driver.commands import check_stamp
 from t42_transfer.nodes.planner_params import PlannerNodeParams
 from t42_transfer.nodes.planner_parts import (
@@ -131,7 +126,7 @@ from t42_transfer.nodes.planner_parts import (
     superseded,
 )
 from t42_transfer.nodes.reach import ABORT, CANCELED, ReachRun, judge, reach_server, refused_verdict
-from t42_transfer.planning import Plan, Planner, PlannerConfig
+from t42_transfer.planning import Plan, Planner, PlannerConfig, PlanStopped
 from t42_transfer.planning.execution import receding_horizon
 from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
@@ -139,6 +134,8 @@ from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
 T = TypeVar("T")
+JOIN_TIMEOUT_S = 5.0
+"""How long closing waits for the worker and the loader (a plan stops at its next chunk, a read takes longer)."""
 
 
 class PlannerNode(Node):
@@ -156,8 +153,7 @@ class PlannerNode(Node):
         self._pose: tuple[int, np.ndarray] | None = None
         self._joints: tuple[int, np.ndarray, np.ndarray | None] | None = None
         self._pending: Goal | None = None
-        self._planning = False
-        self._stopping = False
+        self._planning = self._stopping = False
         self._announced: str | None = None
         """A model path announced and not yet read (the loader thread reads it)."""
         self._loading = False
@@ -172,7 +168,6 @@ class PlannerNode(Node):
         """The driver's episode-end events (dropped, ...), newest last (the ten newest)."""
         self._ends = 0
         """Episode-end events received in all."""
-
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, profile(names.LATCHED))
         self._candidates_pub = self.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, profile(names.LATCHED))
@@ -234,12 +229,14 @@ class PlannerNode(Node):
         return True
 
     def close(self) -> None:
-        """Stop the worker after its current plan (left unpublished); idempotent."""
+        """Stop the worker (a plan under way stops at its next chunk, unpublished) and the loader; idempotent."""
         with self._cond:
             self._stopping = True
             self._cond.notify_all()
-        self._worker.join()
-        self._loader.join()
+        for thread in (self._worker, self._loader):
+            thread.join(timeout=JOIN_TIMEOUT_S)
+            if thread.is_alive():  # a daemon: it goes with the process
+                self.log.warning(f"{thread.name} still runs {JOIN_TIMEOUT_S:g} s after the node was asked to stop")
 
     def destroy_node(self) -> None:
         """Stop the worker first, so it never publishes through destroyed publishers."""
@@ -386,6 +383,8 @@ class PlannerNode(Node):
         while (goal := self._wait_to_take(self._take_goal)) is not None:
             try:
                 self._serve(goal)
+            except PlanStopped:  # the node stops: nothing more goes out
+                return
             except Exception as err:  # the worker outlives any one goal
                 self.log.error(f"planning failed: {err!r}\n{traceback.format_exc()}")
                 self._publish_result(PlanResult(False, "error", f"planning failed: {err!r}", goal.xy.tolist(),
@@ -398,7 +397,6 @@ class PlannerNode(Node):
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
-
     def _config(self, goal: Goal) -> tuple[PlannerConfig, int]:
         """The planner settings and ``replan_every`` for ``goal``: the node's, or the action goal's where set."""
         p = self.params
@@ -431,7 +429,7 @@ class PlannerNode(Node):
                 goal.run.finish(ABORT, refused_verdict(), f"{status}: {reason}")
             return
         started = time.perf_counter()
-        plan = planner.plan(hand.state, goal.xy)
+        plan = planner.plan(hand.state, goal.xy, stop=lambda: self._stopping)
         result = PlanResult(
             accepted=plan.ok,
             status=plan.status,
@@ -486,7 +484,7 @@ class PlannerNode(Node):
 
         def plan_at(state: np.ndarray, left: int) -> Plan:
             nonlocal current, offset
-            plan = planner.plan(state, goal.xy, horizon=left)
+            plan = planner.plan(state, goal.xy, horizon=left, stop=lambda: self._stopping)
             if len(plan.actions) == 0:
                 self.log.warning(f"goal {goal.xy.tolist()} mm: replan after {executed} steps refused "
                                  f"({plan.status}: {plan.reason}); keeping the rest of the previous plan")

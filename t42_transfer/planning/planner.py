@@ -54,7 +54,7 @@ only.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -205,6 +205,10 @@ Model = LatentDynamics | TimeMajorRollout
 (e.g. the true simulated hand, :mod:`t42_transfer.planning.oracle`)."""
 
 
+class PlanStopped(Exception):
+    """``plan``'s ``stop`` said so before a chunk: no plan (a node shutting down does not wait for a whole one)."""
+
+
 class Planner:
     """Plans for one model (or an ensemble) in one workspace; ``plan`` may be called for any (state, goal)."""
 
@@ -226,9 +230,10 @@ class Planner:
 
     def plan(
         self, state: np.ndarray | Tensor, goal: np.ndarray | Tensor, seed: int | None = None,
-        horizon: int | None = None,
+        horizon: int | None = None, stop: Callable[[], bool] | None = None,
     ) -> Plan:
-        """The best sampled sequence from ``state`` towards ``goal``; ``seed`` and ``horizon`` override the config's."""
+        """The best sampled sequence from ``state`` towards ``goal``; ``seed`` and ``horizon`` override the config's.
+        ``stop``, asked before each chunk of rollouts, ends the search with :class:`PlanStopped` when true."""
         cfg = self.config
         x0 = _vector(state, STATE_DIM, "state")
         target = _vector(goal, 2, "goal")
@@ -240,7 +245,8 @@ class Planner:
             return refused
         seed = cfg.seed if seed is None else seed
         gen = torch.Generator().manual_seed(seed)
-        search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg, _perturbations(cfg, horizon, seed))
+        search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg, _perturbations(cfg, horizon, seed),
+                         stop)
         count = max(1, cfg.samples // (len(search.rollouts) * cfg.perturbations))
         actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std, cfg.noise_beta)
         cost = search.evaluate(actions)
@@ -350,9 +356,10 @@ class _Search:
 
     def __init__(
         self, rollouts: list[TimeMajorRollout], workspace: Workspace, x0: Tensor, goal: Tensor, cfg: PlannerConfig,
-        shifts: Tensor | None = None,
+        shifts: Tensor | None = None, stop: Callable[[], bool] | None = None,
     ) -> None:
         self.rollouts, self.workspace, self.x0, self.goal, self.cfg = rollouts, workspace, x0, goal, cfg
+        self.stop = stop
         self.shifts = shifts
         """The copies' action shifts ``[P - 1, T, 2]``, or None (:func:`_perturbations`)."""
         self.best_cost = math.inf
@@ -369,6 +376,8 @@ class _Search:
         copies = 1 if self.shifts is None else 1 + len(self.shifts)
         step = max(1, self.cfg.chunk // copies)
         for start in range(0, len(actions), step):
+            if self.stop is not None and self.stop():
+                raise PlanStopped(f"stopped after {self.evaluated + start} of the samples")
             chunk = actions[start : start + step]
             batch = chunk if self.shifts is None else torch.cat([chunk, _shifted(chunk, self.shifts)])
             x0 = self.x0.expand(len(batch), STATE_DIM)
