@@ -241,3 +241,26 @@ def test_cli_remaps_a_topic_as_ros2_bag_play_does(ros: Any, capsys: pytest.Captu
         with pytest.raises(SystemExit) as exit_:
             main(["bag", "play", str(BAG), "--remap", rule])
         assert exit_.value.code == 2 and "a remapping is OLD:=NEW" in capsys.readouterr().err
+
+
+def test_cli_play_stops_on_sigterm_as_on_ctrl_c(ros: Any) -> None:
+    """A launch file or supervisor stops a player with SIGTERM: it closes cleanly and says what it published."""
+    import signal
+    import subprocess
+    import sys
+
+    from ros_rig import stop, unbuffered_env
+
+    got: list[bytes] = []
+    ros.node("sink").create_subscription(rclpy_class(HAND_TOPICS[POSE]), POSE, got.append, recording(10_000),
+                                         raw=True)
+    proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "bag", "play", str(BAG), "--loop",
+                             "--topics", POSE, "--wait-subscribers", "10"], cwd=REPO, env=unbuffered_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert ros.spin_until(lambda: len(got) >= 5, 60.0), "the player never played"
+    finally:
+        codes = stop([proc], timeout_s=10.0, sig=signal.SIGTERM)
+    out, err = proc.communicate()
+    assert codes == [0], (codes, err)
+    assert f"{BAG}: published" in out and "Traceback" not in err, (out, err)

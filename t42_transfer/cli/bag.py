@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from t42_transfer.cli.args import existing_dir, existing_file, float_arg, new_output
@@ -109,6 +111,9 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
     ros_args = [arg for rule in args.remap for arg in ("-r", rule)]
     rclpy.init(args=["--ros-args", *ros_args] if ros_args else [], context=context,
                signal_handler_options=SignalHandlerOptions.NO)
+    # SIGTERM (a launch file, a supervisor) ends the play as Ctrl-C does: closed cleanly, DDS's shared memory freed
+    main_thread = threading.current_thread() is threading.main_thread()  # (signals are the main thread's only)
+    on_term = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
     try:
         player = BagPlayer(context=context, parameter_overrides=overrides)
         executor = SingleThreadedExecutor(context=context)
@@ -129,6 +134,8 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
             player.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+        if main_thread:
+            signal.signal(signal.SIGTERM, on_term)
     print(f"{args.bag}: published {player.published} messages on {len(player.topic_publishers)} topics")
     return 0
 
