@@ -359,6 +359,57 @@ def test_the_camera_node_loops_a_video_file_when_asked(ros, video) -> None:
     assert not calibration.k.any()  # without a calibration file K is zero: ROS's "uncalibrated"
 
 
+def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, tmp_path) -> None:
+    """``autostart: false``: nothing opens or goes out until configure and activate (as ``ros2 lifecycle set``
+    asks them); deactivate stops the frames, activate resumes them, cleanup releases the source; a configure
+    that fails leaves the node unconfigured, saying why, and may be tried again."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    from t42_transfer.nodes.camera import STATUS_NAME as CAMERA_STATUS
+
+    tester = Tester(ros)
+    images = tester.listen(Image, names.CAMERA_IMAGE)
+    diagnostics = tester.listen(DiagnosticArray, names.DIAGNOSTICS)
+    change = tester.tester.create_client(ChangeState, "camera/change_state")
+    get = tester.tester.create_client(GetState, "camera/get_state")
+    missing = tmp_path / "later.avi"
+    node = ros.add(Camera, {"device": str(missing), "loop": True, "fps": 50.0, "autostart": False})
+
+    def go(transition: int) -> bool:
+        return ros.call(change, ChangeState.Request(transition=Transition(id=transition))).success
+
+    def state() -> str:
+        return ros.call(get, GetState.Request()).current_state.label
+
+    def reports(level: str) -> list:
+        found = []
+        for array in diagnostics:
+            try:
+                found.append(status_report(array, CAMERA_STATUS))
+            except KeyError:
+                continue
+        return [r for r in found if r.level == level]
+
+    assert state() == "unconfigured" and node.capture is None
+    assert not go(Transition.TRANSITION_CONFIGURE) and state() == "unconfigured"  # no such file yet
+    assert ros.spin_until(lambda: any("no such device" in r.message for r in reports("ERROR")), 3.0)
+    missing.write_bytes(video.read_bytes())  # the camera is plugged in
+    assert go(Transition.TRANSITION_CONFIGURE) and state() == "inactive"
+    ros.spin_for(0.3)
+    assert images == []  # configured, not publishing
+    assert go(Transition.TRANSITION_ACTIVATE)
+    assert ros.spin_until(lambda: len(images) >= 5, 5.0)
+    assert go(Transition.TRANSITION_DEACTIVATE) and state() == "inactive"
+    ros.spin_for(0.2)  # what was in flight arrives
+    stopped = len(images)
+    ros.spin_for(0.5)
+    assert len(images) == stopped and node.capture is not None  # no frames, the source kept open
+    assert go(Transition.TRANSITION_ACTIVATE) and ros.spin_until(lambda: len(images) >= stopped + 5, 5.0)
+    assert go(Transition.TRANSITION_DEACTIVATE) and go(Transition.TRANSITION_CLEANUP)
+    assert state() == "unconfigured" and node.capture is None
+
+
 def test_camera_and_tracker_nodes_together_track_a_video_of_rendered_frames(ros, scene, tmp_path) -> None:
     """The whole path: a video file (MJPG) of rendered frames -> camera node -> object_tracker -> the true pose."""
     frames = scene["frames"] * 2

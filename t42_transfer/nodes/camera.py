@@ -13,8 +13,14 @@ The source (``device``) is a device index (``0``), a device path (``/dev/video0`
 read on a thread of their own (a device's read blocks until its next frame), paced at ``fps`` (0: the source's
 own rate, 30 for a file that gives none).  With a calibration file the source must give frames of its size.
 
-Failures: a missing device, a file that is not video, a bad calibration file or a size that disagrees with it
-stop the node at start with one line (``t42 node camera`` exits 2).  A failed read while running is an error
+A lifecycle node, as hardware is in ROS 2: configure opens the source (and reads the calibration), activate starts
+publishing, deactivate stops it with the source kept open, cleanup releases the source.  With ``autostart`` (the
+default) the node configures and activates itself at start; without it a lifecycle manager or ``ros2 lifecycle
+set /camera configure`` drives it, and a configure that fails leaves it unconfigured with the reason on /rosout
+and diagnostics, to be tried again (a camera plugged in later).
+
+Failures: with ``autostart``, a missing device, a file that is not video, a bad calibration file or a size that
+disagrees with it stop the node at start with one line (``t42 node camera`` exits 2).  A failed read while running is an error
 line (at most one a second, with a count) and an ERROR on diagnostics; the node retries.  At a video file's end
 the node starts the file again (``loop``) or is finished (its process exits 0).
 """
@@ -31,7 +37,7 @@ from typing import Any
 import cv2
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import RCLPY, camera_info_msg, diagnostic_array, image_msg, names
@@ -65,6 +71,8 @@ class CameraParams:
     calibration_file: Path | None = param(None, "ROS camera_info YAML of the camera (unset: uncalibrated, K = 0)",
                                           read_only=True)
     loop: bool = param(False, "at a video file's end, start it again (else the node is finished)", read_only=True)
+    autostart: bool = param(True, "configure and activate at start, a source that fails ending the node (false: "
+                            "drive the lifecycle yourself: ros2 lifecycle set /camera configure)", read_only=True)
 
     def __post_init__(self) -> None:
         if not self.frame_id.strip() or self.frame_id.startswith("/"):  # tf2 refuses both
@@ -95,40 +103,34 @@ def _size(p: CameraParams, calibration: Intrinsics | None) -> tuple[int, int]:
     return calibration.width, calibration.height
 
 
-class Camera(Node):
-    """An OpenCV capture on the camera topics; see the module docstring."""
+class Camera(LifecycleNode):
+    """An OpenCV capture on the camera topics, as a lifecycle node; see the module docstring."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("camera", **node_kwargs)
         self._params = LiveParams(self, CameraParams)
-        p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
-        where = self.get_fully_qualified_name()
-        try:
-            self.calibration = None if p.calibration_file is None else load_camera_info(p.calibration_file)
-            self.width, self.height = _size(p, self.calibration)
-            self.capture = self._open()
-            self._first: Frame | None = self.capture.read()  # a source that opens but gives nothing fails here
-        except ValueError as err:  # CaptureError included: one line, and the runner exits 2
-            raise ValueError(f"{where}: {err}") from None
-        self.period_s = 1.0 / p.fps if p.fps else _file_period_s(p.device) if self.capture.is_file else 0.0
+        self.calibration: Intrinsics | None = None
+        self.width = self.height = 0
+        self.capture: Capture | None = None
+        self._first: Frame | None = None
+        self.period_s = 0.0
         self.published = 0
         self.failed_reads = 0
         self.last_error = ""
         self._finished = threading.Event()
         self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
         self._image_pub = self.create_publisher(Image, names.CAMERA_IMAGE, profile(names.IMAGES))
         self._info_pub = self.create_publisher(CameraInfo, names.CAMERA_INFO, profile(names.IMAGES))
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self._timer = self.create_timer(1.0, self.publish_diagnostics)
         self._rate_from: tuple[float, int] = (time.monotonic(), 0)
-        rate = f"{1.0 / self.period_s:.1f} fps" if self.period_s else "the device's rate"
-        height, width = self._first.image.shape[:2]
-        self.log.info(f"capturing {p.device!r}, {width}x{height} {self._first.encoding}, at {rate}"
-                      + ("" if self.calibration else " (uncalibrated: no calibration_file)"))
-        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
-        self._thread.start()
+        if self.params.autostart:  # a source that cannot be opened ends the process with one line (exit 2)
+            if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+                raise ValueError(f"{self.get_fully_qualified_name()}: {self.last_error}")
+            self.trigger_activate()
 
     @property
     def params(self) -> CameraParams:
@@ -139,11 +141,73 @@ class Camera(Node):
         """True once a video file ended (without ``loop``): the runner then ends the process."""
         return self._finished.is_set()
 
+    @property
+    def state(self) -> str:
+        """The lifecycle state's label (``unconfigured``, ``inactive``, ``active``, ``finalized``)."""
+        return self._state_machine.current_state[1]
+
+    # ------------------------------------------------------------------ lifecycle
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        """Open the source (and the calibration): a source that opens but gives no frame fails here."""
+        p = self.params
+        try:
+            self.calibration = None if p.calibration_file is None else load_camera_info(p.calibration_file)
+            self.width, self.height = _size(p, self.calibration)
+            self.capture = self._open()
+            self._first = self.capture.read()
+        except ValueError as err:  # CaptureError included
+            self.last_error = str(err)
+            self.log.error(f"configure failed: {err}")
+            self._release()
+            return TransitionCallbackReturn.FAILURE
+        self.period_s = 1.0 / p.fps if p.fps else _file_period_s(p.device) if self.capture.is_file else 0.0
+        self.last_error, self._finished = "", threading.Event()
+        rate = f"{1.0 / self.period_s:.1f} fps" if self.period_s else "the device's rate"
+        height, width = self._first.image.shape[:2]
+        self.log.info(f"opened {p.device!r}, {width}x{height} {self._first.encoding}, at {rate}"
+                      + ("" if self.calibration else " (uncalibrated: no calibration_file)"))
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        """Frames go out from now on, read on a thread of their own."""
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
+        self._thread.start()
+        self.log.info("active: publishing frames")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        """No frame goes out; the source stays open (activate again resumes it)."""
+        self._halt()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self.close()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        self.close()
+        return TransitionCallbackReturn.SUCCESS
+
     def close(self) -> None:
-        """Stop reading and release the source (the owner destroys the node)."""
+        """Stop reading and release the source, whatever the state (the owner destroys the node)."""
+        self._halt()
+        self._release()
+
+    def _halt(self) -> None:
         self._stop.set()
-        self._thread.join(5.0)
-        self.capture.close()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+
+    def _release(self) -> None:
+        capture, self.capture, self._first = self.capture, None, None
+        if capture is not None:
+            capture.close()
 
     # ------------------------------------------------------------------ the capture thread
     def _open(self) -> Capture:
@@ -154,7 +218,7 @@ class Camera(Node):
         due = time.monotonic()
         while not self._stop.is_set():
             try:
-                frame, self._first = self._first or self.capture.read(), None
+                frame, self._first = self._first or self._source().read(), None
             except Exception as err:  # CaptureError, or OpenCV failing: reported, and the thread goes on
                 if not self._after_failed_read(err):
                     return
@@ -168,15 +232,21 @@ class Camera(Node):
             self._stop.wait(max(0.0, due - time.monotonic()))
             due = max(due, time.monotonic() - self.period_s)  # a slow source does not earn a burst later
 
+    def _source(self) -> Capture:
+        if self.capture is None:
+            raise CaptureError("the source is closed")
+        return self.capture
+
     def _after_failed_read(self, err: Exception) -> bool:
         """Handle a failed read; False when the thread should end (a video file's end without ``loop``)."""
-        if isinstance(err, CaptureError) and self.capture.is_file and self.capture.frames:
+        capture = self.capture
+        if isinstance(err, CaptureError) and capture is not None and capture.is_file and capture.frames:
             if not self.params.loop:
                 self.log.info(f"{err}; finished")
                 self._finished.set()
                 return False
             try:
-                self.capture.close()
+                capture.close()
                 self.capture = self._open()
                 return True
             except CaptureError as reopen:
@@ -209,6 +279,8 @@ class Camera(Node):
         level, message = ("ERROR", self.last_error) if failing and rate == 0 else ("OK", "capturing")
         if self.finished:
             level, message = "OK", "the video file ended"
+        elif self.state != "active":  # (a configure that failed is an ERROR until one passes)
+            level, message = ("ERROR", self.last_error) if self.last_error else ("OK", self.state)
         values = {"frames": published, "failed_reads": self.failed_reads, "fps": round(rate, 2),
                   "device": self.params.device, "calibrated": self.calibration is not None}
         self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, values,
