@@ -575,3 +575,24 @@ def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> 
     params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})
     assert params.geometry().limits()  # the geometry checks itself: servo range, grasp below the load limit
 
+
+@pytest.mark.parametrize("override", [False, True], ids=["reliable reader", "best effort by qos_overrides"])
+def test_a_best_effort_tracker_is_heard_once_the_reader_is_overridden_to_best_effort(ros: RosRig,
+                                                                                    override: bool) -> None:
+    """A motion-capture bridge publishing best effort (sensor data QoS) never matches the default reliable
+    reader; ROS's QoS override parameter makes the reader best effort, and then its poses come in."""
+    from rclpy.qos import qos_profile_sensor_data
+
+    params = {"port": "/nonexistent"}
+    if override:
+        params[f"qos_overrides./{names.TRACKER_POSE}.subscription.reliability"] = "best_effort"
+    driver = ros.add(DynamixelDriver, params)
+    tester = Tester(ros)
+    bridge = tester.tester.create_publisher(PoseStamped, names.TRACKER_POSE, qos_profile_sensor_data)
+    ros.spin_for(1.0)  # discovery (a reader that cannot match never shows as matched)
+    assert bridge.get_subscription_count() == (1 if override else 0)
+    stamp = tester.tester.get_clock().now().nanoseconds
+    for _ in range(5):
+        bridge.publish(object_pose_msg(np.array([3.0, 95.0]), stamp, RCLPY))
+        ros.spin_for(0.05)
+    assert (driver.pose.stamp_ns == stamp) == override

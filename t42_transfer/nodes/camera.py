@@ -20,9 +20,9 @@ set /camera configure`` drives it, and a configure that fails leaves it unconfig
 and diagnostics, to be tried again (a camera plugged in later).
 
 Failures: with ``autostart``, a missing device, a file that is not video, a bad calibration file or a size that
-disagrees with it stop the node at start with one line (``t42 node camera`` exits 2).  A failed read while running is an error
-line (at most one a second, with a count) and an ERROR on diagnostics; the node retries.  At a video file's end
-the node starts the file again (``loop``) or is finished (its process exits 0).
+disagrees with it stop the node at start with one line (``t42 node camera`` exits 2).  A failed read while
+running is an error line (at most one a second, with a count) and an ERROR on diagnostics; the node retries.  At
+a video file's end the node starts the file again (``loop``) or is finished (its process exits 0).
 """
 
 from __future__ import annotations

@@ -64,6 +64,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -191,7 +192,10 @@ class DynamixelDriver(LifecycleNode):
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub)
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS), **pub)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10, **pub)
-        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10, **sub)
+        # A motion-capture bridge may publish best effort (sensor data QoS), which a reliable reader never
+        # matches: ``-p qos_overrides./tracker/object_pose.subscription.reliability:=best_effort`` (ROS's overrides).
+        self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_pose, 10, **sub,
+                                 qos_overriding_options=QoSOverridingOptions.with_default_policies())
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
         self.create_subscription(JointState, names.HAND_COMMAND, self._on_command, 10, raw=True, **sub)
         self.create_subscription(JointTrajectory, names.HAND_TRAJECTORY, self._on_trajectory, 10, raw=True, **sub)
