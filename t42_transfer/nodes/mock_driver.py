@@ -351,21 +351,23 @@ class MockDriver(Node):
         if not (self.running and self.steps > 0 and self._clock_pub is None):
             self.tick()
             return
-        since, rate = self.now_ns() - self._last_stamp, self.params.rate_factor
+        stamp = self.now_ns()  # judged and published alike: no clock reading between the two
+        since, rate = stamp - self._last_stamp, self.params.rate_factor
         if since < MIN_STEP_NS / rate:
             self.skipped_ticks += 1
             return
         late = since > LATE_STEP_NS / rate
         self.late_steps += late
-        self.tick(late_by_ns=since if late else None)
+        self.tick(late_by_ns=since if late else None, stamp_ns=stamp)
 
-    def tick(self, late_by_ns: int | None = None) -> None:
+    def tick(self, late_by_ns: int | None = None, stamp_ns: int | None = None) -> None:
         """One control step: publish the state (and the action applied from it), then step the hand.
 
-        ``late_by_ns``: the step comes that long after the one before, which ``hand/status`` says (``late``)."""
+        ``late_by_ns``: the step comes that long after the one before, which ``hand/status`` says (``late``);
+        ``stamp_ns``: the step's stamp (now when None)."""
         if not self.running:
             return
-        stamp = self.now_ns()
+        stamp = self.now_ns() if stamp_ns is None else stamp_ns
         state = self.hand.state
         self._last_stamp = stamp
         self._publish_pose(state[:2], stamp)
