@@ -72,3 +72,17 @@ def test_hw_read_a_port_that_is_not_there_or_bad_ids(tmp_path, capsys: pytest.Ca
         with pytest.raises(SystemExit) as exit_code:
             main(_read("--port", "/dev/null", "--ids", bad))
         assert exit_code.value.code == 2
+
+
+def test_every_fault_the_emulate_command_takes_is_an_emulator_parameter() -> None:
+    import argparse
+    from dataclasses import fields
+
+    from t42_transfer.cli.hw import FAULTS, fault_arg
+    from t42_transfer.nodes.hw_emulator import HwEmulatorParams
+
+    assert set(FAULTS) <= {f.name for f in fields(HwEmulatorParams)}
+    assert fault_arg("slow_replies=3") == "slow_replies:=3" and fault_arg("reply_delay_s=0.1") == "reply_delay_s:=0.1"
+    for bad in ("rate_factor=2", "slow_replies", "=3"):  # not a fault, no value, no name
+        with pytest.raises(argparse.ArgumentTypeError, match="slow_replies"):
+            fault_arg(bad)
