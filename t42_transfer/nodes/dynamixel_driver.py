@@ -47,7 +47,7 @@ and holds; ``recovered`` then says the hand is back (a reset starts the next epi
 and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
 data); a tick whose stamp would come less than half a period after the last step's (a timer catching up after a
 late one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on
-the stamps published, taken after the read (a read held up by a busy host makes the step late, not its tick).
+the stamps published, taken after the read (:mod:`t42_transfer.driver.timing`).
 Steps follow the graph's clock: with ``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock
 does.  ``t42 node`` spins the driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
 """
@@ -80,10 +80,11 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
+from t42_transfer.conventions import CONTROL_PERIOD_S
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.pose import NewestPose
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
+from t42_transfer.driver.timing import StepTiming, step_timing
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
 from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
@@ -425,17 +426,16 @@ class DynamixelDriver(LifecycleNode):
         if not self.running:
             hand.hold()
             return
-        stamp = self.now_ns()  # the graph's clock: on sim time the steps follow /clock, however fast
-        # Judged on the stamps published, after the read: a tick's own time missed reads that a busy machine
-        # held up (stamps 152 ms and then 46 ms apart, from ticks 149 and 51 ms apart), and the reader split there.
-        since = stamp - self._last_stamp if self.steps > 0 else 0
-        if since and since < MIN_STEP_NS:  # a timer catching up after a late step: two stamps this close
-            self.skipped_ticks += 1  # would not be two steps (the bag reader splits there); the goals stay
+        stamp = self.now_ns()  # the graph's clock, after the read: the stamp published is the one judged
+        since = stamp - self._last_stamp if self.steps > 0 else None
+        timing = step_timing(since)
+        if timing is StepTiming.TOO_SOON:
+            self.skipped_ticks += 1  # the goals stay until the next tick
             return
         self._last_stamp = stamp
         self._publish_pose(stamp)
         self._joints_pub.publish(joint_state_msg(loads, angles, stamp, RCLPY))
-        if since > LATE_STEP_NS:  # a recording keeps the step: none is missing
+        if timing is StepTiming.LATE and since is not None:  # a recording keeps the step: none is missing
             self.late_steps += 1
             self._status(names.LATE, f"{since / 1e6:.1f} ms after the step before")
         action, last = self.queue.next()

@@ -86,9 +86,10 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S, LATE_STEP_NS, MIN_STEP_NS
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.pose import NewestPose
+from t42_transfer.driver.timing import StepTiming, step_timing
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.logs import ThrottledLog
@@ -352,11 +353,12 @@ class MockDriver(Node):
             self.tick()
             return
         stamp = self.now_ns()  # judged and published alike: no clock reading between the two
-        since, rate = stamp - self._last_stamp, self.params.rate_factor
-        if since < MIN_STEP_NS / rate:
+        since = stamp - self._last_stamp
+        timing = step_timing(since, self.params.rate_factor)
+        if timing is StepTiming.TOO_SOON:
             self.skipped_ticks += 1
             return
-        late = since > LATE_STEP_NS / rate
+        late = timing is StepTiming.LATE
         self.late_steps += late
         self.tick(late_by_ns=since if late else None, stamp_ns=stamp)
 
