@@ -186,6 +186,8 @@ class View(Node):
         self.create_subscription(JointState, names.JOINT_STATES, lambda m: self._input("joints", m), 10)
         self.create_subscription(PoseStamped, names.OBJECT_POSE, lambda m: self._input("pose", m), 10)
         self.create_subscription(PointStamped, names.GOAL, lambda m: self._input("goal", m), 10)
+        # Volatile, though the planner latches these two: a transient-local reader would not match a volatile
+        # publisher (a bag played, another planner), and a view drawing nothing is worse than one a plan late.
         self.create_subscription(PathMsg, names.PLANNED_PATH, lambda m: self._input("path", m), 10)
         self.create_subscription(PlanCandidates, names.PLAN_CANDIDATES, lambda m: self._input("candidates", m), 10)
         self.create_subscription(PlanResultMsg, names.PLAN_RESULT, self._on_plan_result, profile(names.EVENT_READER))
