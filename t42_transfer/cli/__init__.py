@@ -27,7 +27,8 @@ def build_parser(groups: Sequence[ModuleType] = GROUPS) -> argparse.ArgumentPars
         prog="t42",
         description=(
             "t42: transfer learned dynamics models between Yale Model-T42 hands. "
-            "Simulate hands, collect random-policy data, and move trajectories in and out of rosbag2 bags."
+            "Record a hand into rosbag2 bags, transfer a source model to it, plan open-loop reaches with the "
+            "transferred model, on simulated, emulated or real hands; the experiments and evaluation of the paper."
         ),
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")

@@ -21,13 +21,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     demo.add_argument("--quick", action="store_true", help="tiny sizes (about 30 s), as CI runs it")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default runs/demo)")
     demo.add_argument("--hardware", choices=tuple(HARDWARE), default="sim",
-                      help="the hand: sim (mock driver, default) or emulated (the Dynamixel driver on an emulated "
-                           "servo bus with an emulated tracker: the real hand's nodes without a hand)")
+                      help="the hand: sim (mock driver, default); emulated (the Dynamixel driver on an emulated "
+                           "servo bus with an emulated tracker: the real hand's nodes without a hand); or camera "
+                           "(the mock driver's hand rendered, its pose from the object tracker on the frames)")
     demo.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
     demo.add_argument("--rounds", type=int_arg(1, 20), default=None,
                       help="transfer-then-goals rounds (default 2): a longer online loop")
     demo.add_argument("--goals", type=int_arg(1, 200), default=None,
-                      help="goals per round (default 8, --quick 2), their lengths cycling through 30-60 steps")
+                      help="goals per round (default 8, --quick 2), their lengths cycling through 30-60 steps "
+                           "(--quick: 30 and 40)")
     demo.add_argument("--no-update", action="store_true",
                       help="transfer in round 1 only: the loop that never updates its model, to compare with")
     demo.set_defaults(func=_cmd_demo)

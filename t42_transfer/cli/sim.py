@@ -56,7 +56,7 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
 def add_commands(commands: argparse._SubParsersAction) -> None:
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
     col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
-    col.add_argument("--hand", default="source", help="source, target or family-<seed> (default source)")
+    col.add_argument("--hand", default="source", help="source, target, target_abrupt or family-<seed> (default source)")
     col.add_argument("--episodes", type=int_arg(1), default=300, help="episodes (paper: 300)")
     col.add_argument("--steps", type=int_arg(1), default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
     col.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)

@@ -52,7 +52,8 @@ class HwEmulatorParams(SimCameraParams):
     """The emulator's ROS parameters (and its rendered camera's)."""
 
     link: str = param("", "symlink to the servo bus's pty (empty: none; the log names the pty)", read_only=True)
-    hand: str = param("target", f"simulated hand behind the servos: {', '.join(NAMED_VARIANTS)}", read_only=True)
+    hand: str = param("target", f"simulated hand behind the servos: {', '.join(NAMED_VARIANTS)} or family-<seed>",
+                      read_only=True)
     seed: int = param(0, "seed of the first object placement; each placement after uses the next", min=0,
                       read_only=True)
     rate_factor: float = param(1.0, "physics runs this many times faster than real time", min=1e-3, max=100.0)
