@@ -9,9 +9,11 @@ given here, so the words a user reads are the same whatever the file.
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 from pathlib import Path
+from typing import Any
 
 _KINDS = (
     (stat.S_ISDIR, "a directory"),
@@ -59,3 +61,48 @@ def regular_file(path: str | os.PathLike[str]) -> os.stat_result:
     info = Path(path).stat()
     require_regular(path, info.st_mode)
     return info
+
+
+def read_whole(path: str | os.PathLike[str], what: str, max_bytes: int) -> bytes:
+    """The bytes of the regular file ``path`` (a ``what``, for messages); ValueError naming the file on any problem.
+
+    Opened non-blocking and checked with ``fstat`` before a byte is read (no race with a swap between a check and
+    the open); a file over ``max_bytes`` is refused rather than read whole."""
+    file = Path(path)
+    try:
+        fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as err:
+        raise ValueError(f"{file}: cannot read the {what} ({err.strerror or err})") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{file}: the {what} {not_regular_reason(info.st_mode)}")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{file}: the {what} has {info.st_size} bytes; at most {max_bytes} are read")
+        with os.fdopen(os.dup(fd), "rb") as stream:
+            data = stream.read(max_bytes + 1)
+    except OSError as err:
+        raise ValueError(f"{file}: cannot read the {what} ({err.strerror or err})") from None
+    finally:
+        os.close(fd)
+    if len(data) > max_bytes:
+        raise ValueError(f"{file}: the {what} has more than {max_bytes} bytes")
+    return data
+
+
+JSON_MAX_BYTES = 1 << 28
+"""Largest JSON result file read (256 MiB); a 100-goal benchmark's trials are about 1 MiB."""
+
+
+def read_json(path: str | os.PathLike[str], what: str) -> Any:
+    """The JSON document in ``path`` (a ``what`` this project wrote, read back); ValueError naming the file."""
+    data = read_whole(path, what, JSON_MAX_BYTES)
+    try:
+        return json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: the {what} is not UTF-8 text (byte {err.start})") from None
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: the {what} is not valid JSON: {err.msg} at line {err.lineno}, "
+                         f"column {err.colno}") from None
+    except RecursionError:
+        raise ValueError(f"{path}: the {what} is nested too deeply to read") from None

@@ -10,11 +10,12 @@ and a caret): errors here are one line naming the file, the problem and its posi
 from __future__ import annotations
 
 import os
-import stat
 from pathlib import Path
 from typing import Any
 
 import yaml
+
+from t42_transfer.files import read_whole
 
 MAX_BYTES = 1 << 20
 """Largest config read (1 MiB); the shipped ones are under 2 kB."""
@@ -32,24 +33,7 @@ class _NoAliases(yaml.SafeLoader):
 def read_yaml(path: str | os.PathLike[str], what: str, aliases: bool = True) -> Any:
     """The document in ``path`` (a ``what``, for messages); ValueError naming the file on any problem."""
     file = Path(path)
-    try:
-        fd = os.open(file, os.O_RDONLY | os.O_NONBLOCK)
-    except OSError as err:
-        raise ValueError(f"{file}: cannot read the {what} ({err.strerror or err})") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise ValueError(f"{file}: the {what} is not a regular file")
-        if info.st_size > MAX_BYTES:
-            raise ValueError(f"{file}: the {what} has {info.st_size} bytes; at most {MAX_BYTES} are read")
-        with os.fdopen(os.dup(fd), "rb") as stream:
-            data = stream.read(MAX_BYTES + 1)
-    except OSError as err:
-        raise ValueError(f"{file}: cannot read the {what} ({err.strerror or err})") from None
-    finally:
-        os.close(fd)
-    if len(data) > MAX_BYTES:
-        raise ValueError(f"{file}: the {what} has more than {MAX_BYTES} bytes")
+    data = read_whole(file, what, MAX_BYTES)
     try:
         return yaml.load(data.decode("utf-8"), yaml.SafeLoader if aliases else _NoAliases)
     except UnicodeDecodeError as err:

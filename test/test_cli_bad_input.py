@@ -446,3 +446,84 @@ def test_unreadable_and_unwritable_paths(paths: dict[str, str], capsys: pytest.C
         assert "Permission denied" in refused(shlex.split(plan), capsys)
     finally:
         locked.chmod(0o700)
+
+
+_TRIAL = {"model": "a", "steps": 20, "trial": 0, "status": "ok", "end_reason": "length", "goal_distance_mm": 20.0,
+          "final_error_mm": 2.0, "progress_mm": 18.0, "predicted_error_mm": 1.0, "plan_steps": 20, "plans": 1,
+          "plan_seconds": 0.1}
+
+
+@pytest.mark.parametrize("content, expected", [
+    (b"", "not valid JSON"),
+    (b'{"config": {', "not valid JSON"),
+    (b"\xff\xfe{}", "not UTF-8"),
+    (b"{}", "no 'config' object"),
+    (b"[]", "no 'config' object"),
+    (json.dumps({"config": {"tolerances_mm": [10.0]}, "trials": []}).encode(), "no 'trials'"),
+    (json.dumps({"config": {"tolerances_mm": [-1]}, "trials": [_TRIAL]}).encode(), "tolerances_mm"),
+    (json.dumps({"config": {"tolerances_mm": [10.0]}, "trials": [{"model": "a"}]}).encode(), "trial 0 is not"),
+    (json.dumps({"config": {"tolerances_mm": [10.0]},
+                 "trials": [{**_TRIAL, "goal_distance_mm": "far"}]}).encode(), "goal_distance_mm 'far'"),
+], ids=["empty", "truncated", "not utf8", "no config", "a list", "no trials", "negative tolerance",
+        "missing fields", "a string for a number"])
+def test_a_bad_stored_peg_in_hole_json_is_one_line_and_nothing_is_rewritten(
+        content: bytes, expected: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    stored = tmp_path / "peg_in_hole.json"
+    stored.write_bytes(content)
+    (tmp_path / "peg_in_hole.md").write_text("the earlier report")
+    line = refused(["peg-in-hole", "--from-json", str(stored)], capsys)
+    assert str(stored) in line and expected in line, line
+    assert (tmp_path / "peg_in_hole.md").read_text() == "the earlier report"
+
+
+def _results(**changes: object) -> bytes:
+    row = {"method": "direct", "amount": 1, "divergence_mean": 10.0, "position_mse_mean": 1.0,
+           "lyapunov_mean": 0.01, "covering_radius": 1.0, "train_error_normalised": 0.1, "train_error_xy_mm": 0.5,
+           "train_transitions": 100}
+    content = {"config": {"name": "x", "source": {}, "target": {}, "split": "paths", "seeds": 1, "epsilon_mm": 10},
+               "rows": [row]}
+    for key, value in changes.items():
+        if key in row:
+            row[key] = value
+        else:
+            content[key] = value
+    return json.dumps(content).encode()
+
+
+@pytest.mark.parametrize("content, expected", [
+    (b"", "not valid JSON"),
+    (b"\x00\xff", "not UTF-8"),
+    (b"{}", "no 'config' object"),
+    (_results(config={}), "its config lacks name"),
+    (_results(rows=[]), "no 'rows'"),
+    (_results(rows=[{"a": 1}]), "row 0 is not a cell's row"),
+    (_results(divergence_mean="long"), "'divergence_mean' is 'long'"),
+], ids=["empty", "not utf8", "no config", "config without keys", "no rows", "a row without method",
+        "a string for a number"])
+def test_a_bad_results_json_is_one_line_and_no_figure_is_replaced(
+        content: bytes, expected: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "results.json").write_bytes(content)
+    figure = tmp_path / "report" / "divergence_mean.png"
+    figure.parent.mkdir()
+    figure.write_bytes(b"the earlier figure")
+    line = refused(["report", str(tmp_path)], capsys)
+    assert "results.json" in line and expected in line, line
+    assert figure.read_bytes() == b"the earlier figure"
+
+
+def test_the_programs_warnings_are_one_line_like_its_errors(tmp_path: Path) -> None:
+    """A salvaged bag's warning reads ``t42: warning: ...``, without the Python source line behind it."""
+    import shutil
+    import subprocess
+    import sys
+
+    bag = tmp_path / "bag"
+    shutil.copytree(BAG, bag)
+    mcap = next(bag.glob("*.mcap"))
+    os.truncate(mcap, mcap.stat().st_size - 3000)  # the end cut off: the prefix is recovered, with a warning
+    done = subprocess.run([sys.executable, "-m", "t42_transfer.cli", "bag", "info", str(bag)], capture_output=True,
+                          text=True, timeout=TIMEOUT_S, cwd=REPO)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert lines and all(line.startswith("t42: warning: ") for line in lines), done.stderr
+    assert "recovered the readable prefix" in done.stderr and ".py:" not in done.stderr

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Sequence
 from types import ModuleType
 
@@ -46,7 +47,17 @@ def _groups_for(argv: Sequence[str]) -> Sequence[ModuleType]:
     return (view,) if argv[:1] == ["view"] else GROUPS  # the view node runs in the `t42 view` process
 
 
+def one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                     line: str | None = None) -> str:
+    """A warning as ``t42: warning: ...`` on one line, as errors are, without the source file and line a user
+    has no use for (a salvaged bag's losses, a cell that failed)."""
+    kind = "" if category is UserWarning else f"{category.__name__}: "
+    return f"t42: warning: {kind}{' '.join(str(message).split())}\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    if argv is None:  # the program itself (a caller passing argv keeps its own warning format)
+        warnings.formatwarning = one_line_warning
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(_groups_for(argv))
     args = parser.parse_args(argv)

@@ -6,7 +6,7 @@ evaluation produced, so a stored ``peg_in_hole.json`` rebuilds the same tables a
 
 from __future__ import annotations
 
-import json
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from t42_transfer.evaluation.peg_in_hole import BASELINES, DO_NOTHING, Row, Trial, summarise
+from t42_transfer.files import read_json
 
 
 @dataclass(frozen=True)
@@ -152,20 +153,60 @@ def plot_success(rows: Sequence[Row], path: Path) -> Path:
     return save(fig, path)
 
 
-def write_report(out: Path, rows: Sequence[Row], trials: Sequence[Trial], tolerances_mm: Sequence[float]) -> int:
+def write_report(out: Path, rows: Sequence[Row], trials: Sequence[Trial], tolerances_mm: Sequence[float],
+                 wrote: str = "peg_in_hole.json, .md and .png") -> int:
     """``peg_in_hole.md`` (tables, paired comparisons) and ``.png`` beside the JSON; prints the tables."""
     table = markdown_table(rows) + paired_table(paired(trials, tolerances_mm))
     (out / "peg_in_hole.md").write_text(table)
     plot_success(rows, out / "peg_in_hole.png")
     print(table)
-    print(f"wrote {out / 'peg_in_hole.json'}, .md and .png")
+    print(f"wrote {wrote} in {out}")
     return 0
+
+
+_FIELD_CHECKS = {
+    "str": lambda v: isinstance(v, str),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+    "float": lambda v: _is_number(v),
+    "float | None": lambda v: v is None or _is_number(v),
+}
+"""A stored trial's field, by its annotation in :class:`Trial`: whether a value read back from JSON is one."""
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def stored_trials(path: Path) -> tuple[list[Trial], tuple[float, ...]]:
+    """The trials and tolerances of a ``peg_in_hole.json``, checked field by field; ValueError naming the file."""
+    stored = read_json(path, "peg-in-hole results")
+
+    def refuse(problem: str) -> ValueError:
+        return ValueError(f"{path}: not the results of `t42 peg-in-hole`: {problem}")
+
+    if not isinstance(stored, dict) or not isinstance(stored.get("config"), dict):
+        raise refuse("no 'config' object")
+    tolerances = stored["config"].get("tolerances_mm")
+    if (not isinstance(tolerances, list) or not tolerances
+            or not all(_is_number(t) and 0 < t < float("inf") for t in tolerances)):
+        raise refuse(f"its config's tolerances_mm {tolerances!r} are not positive numbers")
+    raw = stored.get("trials")
+    if not isinstance(raw, list) or not raw:
+        raise refuse("no 'trials' (a list, at least one)")
+    fields = {f.name: f.type for f in dataclasses.fields(Trial)}
+    trials = []
+    for i, trial in enumerate(raw):
+        if not isinstance(trial, dict) or set(trial) != set(fields):
+            raise refuse(f"trial {i} is not an object with the fields {', '.join(fields)}")
+        wrong = [name for name, kind in fields.items() if not _FIELD_CHECKS[kind](trial[name])]
+        if wrong:
+            raise refuse(f"trial {i}: {', '.join(f'{n} {trial[n]!r}' for n in wrong)}")
+        trials.append(Trial(**trial))
+    return trials, tuple(float(t) for t in tolerances)
 
 
 def report_from_json(path: Path) -> int:
     """Rebuild the tables and the figure from a stored ``peg_in_hole.json`` (nothing is planned again)."""
-    stored = json.loads(Path(path).read_text())
-    trials = [Trial(**t) for t in stored["trials"]]
-    tolerances = tuple(stored["config"]["tolerances_mm"])
-    return write_report(Path(path).parent, summarise(trials, tolerances), trials, tolerances)
-
+    trials, tolerances = stored_trials(path)
+    return write_report(Path(path).parent, summarise(trials, tolerances), trials, tolerances,
+                        wrote="peg_in_hole.md and .png")

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from t42_transfer.files import read_json
 from t42_transfer.models.baselines import HoldStill
 
 if TYPE_CHECKING:
@@ -32,12 +33,43 @@ METRICS = {
 }
 
 
+CONFIG_KEYS = ("name", "source", "target", "split", "seeds", "epsilon_mm")
+"""What the report reads of ``results.json``'s ``config``."""
+ROW_NUMBERS = ("amount", *METRICS, "covering_radius", "train_error_normalised", "train_error_xy_mm",
+               "train_transitions")
+"""What the report reads of each row, beside its ``method``: numbers (NaN and null allowed: a metric not defined)."""
+
+
 def load_results(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """``results.json``'s config and rows, checked for what the report reads; ValueError naming the file."""
     file = Path(run_dir) / "results.json"
-    if not file.is_file():
+    if not file.exists():
         raise ValueError(f"{file}: no results here; run `t42 experiment` first")
-    content = json.loads(file.read_text())
+    content = read_json(file, "experiment's results")
+    bad = _results_problem(content)
+    if bad:
+        raise ValueError(f"{file}: not the results of `t42 experiment`: {bad}")
     return content["config"], content["rows"]
+
+
+def _results_problem(content: Any) -> str | None:
+    """What is wrong with ``content`` as ``results.json``, or None."""
+    if not isinstance(content, dict) or not isinstance(content.get("config"), dict):
+        return "no 'config' object"
+    config, rows = content["config"], content.get("rows")
+    missing = [k for k in CONFIG_KEYS if k not in config]
+    if missing:
+        return f"its config lacks {', '.join(missing)}"
+    if not isinstance(rows, list) or not rows:
+        return "no 'rows' (a list of cells, at least one)"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict) or not isinstance(row.get("method"), str):
+            return f"row {i} is not a cell's row (an object with its 'method')"
+        for key in ROW_NUMBERS:
+            value = row.get(key, "missing")
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+                return f"row {i} ({row['method']}): {key!r} is {value!r}, not a number"
+    return None
 
 
 def beside_direct(methods: list[str]) -> list[str]:
@@ -219,8 +251,8 @@ def write_report(run_dir: Path, out_dir: Path | None = None) -> Path:
     """Figures (PNG) and ``report.md`` for ``run_dir``; returns the Markdown's path."""
     run_dir = Path(run_dir)
     out_dir = Path(out_dir) if out_dir else run_dir / "report"
+    config, rows = load_results(run_dir)  # checked before a figure of an earlier report is replaced
     out_dir.mkdir(parents=True, exist_ok=True)
-    config, rows = load_results(run_dir)
     summary = summarise(rows)
     figures = {metric: plot_metric(summary, metric, config, out_dir / f"{metric}.png") for metric in METRICS}
     amounts = sorted({float(r["amount"]) for r in rows})
