@@ -124,6 +124,15 @@ def test_t42_node_log_level_is_rclpys(ros) -> None:
     assert "[INFO]" not in out, out
 
 
+def test_a_parameter_the_node_does_not_have_is_named_in_a_warning(ros) -> None:
+    """rclpy ignores an override the node never declares: a typo would run on the default without a word."""
+    poses, code, _, out = _run_driver_until_poses(ros, "-p", "rate_factr:=2.0")
+    assert len(poses) >= 3 and code == 0, out
+    warned = [line for line in out.splitlines() if line.startswith("[WARN]") and "rate_factr" in line]
+    assert len(warned) == 1 and "not parameters of this node" in warned[0], out
+    assert "rate_factor" not in warned[0]  # only what the node lacks is named
+
+
 def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
     cases = (
         (["mock_driver", "--ros-args", "-p", "rate_factor:=-2.0"], "rate_factor"),

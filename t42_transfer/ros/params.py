@@ -227,6 +227,15 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
         raise ValueError(f"{where}: {err}") from None
 
 
+def undeclared_overrides(node: Node) -> list[str]:
+    """Parameters the command line or a params file gave ``node`` that it has not declared, sorted.
+
+    rclpy drops them without a word, so ``-p rate_factr:=2.0`` (a typo) runs on the default: the runner warns.
+    rclpy keeps the overrides in a private attribute only; without it the list is empty."""
+    given = getattr(node, "_parameter_overrides", None) or {}
+    return sorted(name for name in given if not node.has_parameter(name))
+
+
 class LiveParams(Generic[P]):
     """A node's params dataclass kept in step with ``ros2 param set``: bad values refused with the reason.
 

@@ -161,6 +161,8 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         rclpy.init(args=["t42"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as err:
         return _error(f"bad --ros-args: {err}")
+    from t42_transfer.ros.params import undeclared_overrides
+
     node_cls = spec.node_class()
     executor = make_executor(node_cls, context)
     node = None
@@ -172,6 +174,11 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
             status = _error(str(err))
             return status
         executor.add_node(node)
+        unknown = undeclared_overrides(node)
+        if unknown:
+            node.get_logger().warning(
+                f"ignored, not parameters of this node: {', '.join(unknown)} (a typo? "
+                f"`ros2 param list {node.get_fully_qualified_name()}` lists its parameters)")
         node.get_logger().info(f"running on {rclpy.get_rmw_implementation_identifier()}; {RUNNING}")
         try:
             while not stop.is_set() and not getattr(node, "finished", False):
