@@ -561,6 +561,18 @@ def test_a_bad_scheduler_is_a_one_line_error(config_file: Path, tmp_path: Path, 
     assert not (tmp_path / "tiny").exists()
 
 
+def test_a_scheduler_address_nothing_answers_is_refused_before_any_work(config_file: Path, tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    import socket
+
+    with socket.socket() as closed:  # a port just freed: nothing listens there
+        closed.bind(("127.0.0.1", 0))
+        port = closed.getsockname()[1]
+    assert main(["experiment", str(config_file), "--out", str(tmp_path), "--scheduler", f"tcp://127.0.0.1:{port}"]) == 2
+    assert f"no Dask scheduler answers at tcp://127.0.0.1:{port}" in capsys.readouterr().err
+    assert not (tmp_path / "tiny").exists()  # no source model trained, no cell run
+
+
 @pytest.mark.slow
 def test_a_worker_killed_mid_run_loses_only_its_cell(config_file: Path, tmp_path: Path) -> None:
     """A Dask worker SIGKILLed while cells run: its nanny starts a new one, the scheduler reruns the lost cell, and

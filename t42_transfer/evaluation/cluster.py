@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import multiprocessing
 import re
+import socket
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from typing import Any, TypeVar
+from urllib.parse import urlsplit
 
 Task = TypeVar("Task")
 Row = dict[str, Any]
@@ -34,6 +36,25 @@ def check_scheduler(text: str) -> str:
         return text
     raise ValueError(f"scheduler must be local:N (N worker processes here, N >= 1) or a Dask scheduler address "
                      f"such as tcp://host:8786, got {text!r}")
+
+
+def check_reachable(scheduler: str, timeout_s: float = 5.0) -> None:
+    """ValueError unless something listens at a ``tcp://`` scheduler's address: checked before the source model
+    is trained, not after (other schemes and ``local:N`` pass: only Dask itself can reach them)."""
+    address = urlsplit(scheduler)
+    if address.scheme != "tcp":
+        return
+    try:
+        port = address.port
+    except ValueError:
+        port = None
+    if not address.hostname or port is None:
+        raise ValueError(f"scheduler {scheduler!r}: a tcp address names its host and port, e.g. tcp://host:8786")
+    try:
+        socket.create_connection((address.hostname, port), timeout=timeout_s).close()
+    except OSError as err:
+        raise ValueError(f"no Dask scheduler answers at {scheduler} ({err.strerror or err}): start one "
+                         "(`dask scheduler`) or check the address") from None
 
 
 def run_cells(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],

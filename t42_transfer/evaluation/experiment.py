@@ -38,7 +38,7 @@ from t42_transfer.data.trajectory import (
     same_action_sequence,
     split_by_fraction,
 )
-from t42_transfer.evaluation.cluster import check_scheduler, run_cells
+from t42_transfer.evaluation.cluster import check_reachable, check_scheduler, run_cells
 from t42_transfer.evaluation.experiment_config import (
     DataSpec,
     ExperimentConfig,
@@ -443,7 +443,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
     """
     check_config(cfg)
     if scheduler is not None:
-        check_scheduler(scheduler)
+        check_reachable(check_scheduler(scheduler))
     for side in sides(cfg):
         _check_input(getattr(cfg, side), side)
     if cfg.source.model is not None:
