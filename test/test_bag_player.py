@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
+from bag_builders import fixture_copy
+from fuzz_harness import DecoderWorker
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
@@ -183,7 +186,7 @@ def test_bad_input_is_refused(ros: Any, tmp_path: Path) -> None:
     junk = tmp_path / "junk"
     junk.mkdir()
     (junk / "notes.txt").write_text("not a bag")
-    with pytest.raises(BagError, match="cannot be played"):
+    with pytest.raises(BagError, match="is not a rosbag2 bag"):
         ros.add(BagPlayer, params={"bag": str(junk)})
     killed = tmp_path / "killed"
     shutil.copytree(BAG, killed)
@@ -215,7 +218,21 @@ def test_cli_plays_a_bag_and_refuses_bad_input(ros_domain: int, tmp_path: Path,
     (tmp_path / "notabag").mkdir()
     assert main(["bag", "play", str(tmp_path / "notabag")]) == 2
     err = capsys.readouterr().err
-    assert "cannot be played" in err and err.count("\n") == 1
+    assert "is not a rosbag2 bag" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("where", ["metadata.yaml", "target_small.mcap", "bare file"])
+def test_a_fifo_where_a_bag_file_belongs_is_refused_before_opening(where: str) -> None:
+    """Opening a FIFO blocks forever (``t42 bag play`` hung): the worker's alarm fails a hang, not the suite."""
+    with DecoderWorker("t42_transfer.nodes.player:open_bag", timeout_s=10.0) as worker:
+        if where == "bare file":
+            bag = worker.new_case_dir() / "bag.mcap"
+        else:
+            bag = fixture_copy(worker.new_case_dir())
+            (bag / where).unlink()
+        os.mkfifo(bag if where == "bare file" else bag / where)
+        verdict = worker.check_path(bag)
+    assert verdict.outcome == "refused" and "is a FIFO" in verdict.detail, verdict
 
 
 def test_cli_remaps_a_topic_as_ros2_bag_play_does(ros: Any, capsys: pytest.CaptureFixture[str]) -> None:

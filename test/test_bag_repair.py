@@ -13,7 +13,7 @@ import pytest
 import yaml
 from fuzz_harness import DecoderWorker
 from mcap.reader import make_reader
-from mcap.records import Chunk, Message
+from mcap.records import Chunk, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.highlevel import AnyReader
 from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
@@ -21,8 +21,9 @@ from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand
 from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
 from t42_transfer.cli import main
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag import bag_info, read_bag, verify_bag, write_bag
+from t42_transfer.data.bag import EPISODES_KEY, REPAIRED_KEY, bag_info, read_bag, verify_bag, write_bag
 from t42_transfer.data.bag.repair import repair_bag
+from t42_transfer.data.bag.storage import scan_mcap
 from t42_transfer.data.errors import BagError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -175,6 +176,37 @@ def test_an_earlier_repairs_originals_are_never_overwritten(ros: Any, tmp_path: 
     with pytest.raises(FileExistsError):
         repair_bag(bag)
     assert (bag / f"{bag.name}.mcap.orig").read_text() == "kept"
+
+
+def test_the_old_metadata_yaml_is_kept_and_its_custom_data_carried_over(tmp_path: Path) -> None:
+    """A closed bag's copy cut short loses the MCAP's own metadata record (written last), not its metadata.yaml:
+    the yaml's custom_data is the only copy of the collector, seed, hand and episodes."""
+    bag = Path(shutil.copytree(REPO / "bags" / "target_small", tmp_path / "target_small"))
+    mcap, meta_file = bag / "target_small.mcap", bag / "metadata.yaml"
+    old_yaml = meta_file.read_bytes()
+    old_custom = yaml.safe_load(old_yaml)["rosbag2_bagfile_information"]["custom_data"]
+    assert {"collector", "seed", EPISODES_KEY} <= set(old_custom)
+    with mcap.open("rb") as stream:  # cut where rosbag2's metadata record starts: every message stays
+        cut = 0
+        for record in StreamReader(stream).records:
+            if isinstance(record, Metadata):
+                break
+            cut = stream.tell()
+    mcap.write_bytes(mcap.read_bytes()[:cut])
+    assert scan_mcap([mcap], None).custom == {}  # the yaml is the only copy left
+    report = repair_bag(bag)
+    assert report.repaired and report.message_count == 1088 and bag / "metadata.yaml.orig" in report.originals
+    assert (bag / "metadata.yaml.orig").read_bytes() == old_yaml  # nothing lost
+    custom = yaml.safe_load(meta_file.read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert {k: v for k, v in custom.items() if k != REPAIRED_KEY} == old_custom and REPAIRED_KEY in custom
+    info = bag_info(bag)
+    assert info["metadata"]["collector"] == old_custom["collector"] and info["episodes"] == 4
+    meta = yaml.safe_load(meta_file.read_text())
+    meta["rosbag2_bagfile_information"]["message_count"] = 7  # stale again
+    meta_file.write_text(yaml.safe_dump(meta))
+    with pytest.raises(FileExistsError, match="metadata.yaml.orig"):
+        repair_bag(bag)  # an earlier repair's original is never overwritten
+    assert (bag / "metadata.yaml.orig").read_bytes() == old_yaml
 
 
 def test_cli_bag_repair(ros: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import struct
 import subprocess
 import sys
@@ -12,7 +13,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from bag_builders import fixture_copy
 from foxglove_probe import SUBPROTOCOLS
+from fuzz_harness import DecoderWorker
 from ros_rig import REPO, stop
 from rosbags.highlevel import AnyReader
 
@@ -169,3 +172,16 @@ def test_t42_view_bag_serves_until_ctrl_c_and_refuses_a_missing_bag(bag, tmp_pat
         assert "3 topics" in log.read_text()
     finally:
         assert stop([proc]) == [0], log.read_text()
+
+
+@pytest.mark.parametrize("target", ["t42_transfer.view.bag_scene:bag_scene_inputs",
+                                    "t42_transfer.view.bag_server:BagServer"])
+def test_a_fifo_where_a_bag_file_belongs_is_refused_before_opening(target):
+    """Opening a FIFO blocks forever (``t42 view --bag`` hung, deaf to SIGTERM): the worker's alarm fails a hang."""
+    with DecoderWorker(target, timeout_s=10.0) as worker:
+        for name in ("metadata.yaml", "target_small.mcap"):
+            bag = fixture_copy(worker.new_case_dir())
+            (bag / name).unlink()
+            os.mkfifo(bag / name)
+            verdict = worker.check_path(bag)
+            assert verdict.outcome == "refused" and f"{name} is a FIFO" in verdict.detail, verdict

@@ -17,9 +17,9 @@ play --clock`` does, so nodes run with ``use_sim_time:=true`` live in the bag's
 time (it stands still while paused and jumps back on each loop).
 
 Messages are read lazily through rosbags, so memory does not grow with the bag.
-A missing path, a directory that is no bag, or a bag without ``metadata.yaml`` or
-with a cut-off MCAP (a killed recorder) is refused with a :class:`BagError` naming
-it (``t42 bag repair`` makes the last playable).
+A missing path, a directory that is no bag, a FIFO or directory where a bag file belongs, or a
+bag without ``metadata.yaml`` or with a cut-off MCAP (a killed recorder) is refused with a
+:class:`BagError` naming it (``t42 bag repair`` makes the last playable).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from rosgraph_msgs.msg import Clock
 
 from msg_adapters import RCLPY, names, ns_to_stamp, rclpy_class
+from t42_transfer.data.bag.storage import bag_files
 from t42_transfer.data.errors import BagError
 from t42_transfer.ros.params import LiveParams, param
 
@@ -141,8 +142,7 @@ class Timeline:
 def open_bag(path: str | Path) -> AnyReader:
     """An open rosbags reader of ``path``, or BagError saying why it cannot be played."""
     bag = Path(path)
-    if not bag.exists():
-        raise BagError(bag, "does not exist")
+    bag_files(bag)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     try:
         reader = AnyReader([bag])
         reader.open()

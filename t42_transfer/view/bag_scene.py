@@ -14,6 +14,7 @@ from rosbags.highlevel import AnyReader
 import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.planning import candidates_xy_mm
+from t42_transfer.data.bag.storage import bag_files
 from t42_transfer.data.errors import BagError
 
 
@@ -51,10 +52,9 @@ def input_reader(topic: str) -> tuple[str, Callable[[Any], Any]] | None:
 
 def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
     """The inputs at ``at_s`` seconds after the bag's first message (None: its end); BagError for what cannot be
-    read (a missing path, no bag, a message that is not what its topic carries)."""
+    read (a missing path, no bag, a FIFO where a bag file belongs, a message that is not what its topic carries)."""
     path = Path(bag)
-    if not path.exists():
-        raise BagError(path, "does not exist")
+    bag_files(path)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     inputs = SceneInputs()
     try:
         with AnyReader([path], default_typestore=ma.TYPESTORE) as reader:

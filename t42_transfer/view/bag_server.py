@@ -33,6 +33,7 @@ import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.markers import MARKER_ARRAY, scene_markers
 from msg_adapters.schemas import message_definition
+from t42_transfer.data.bag.storage import bag_files
 from t42_transfer.data.errors import BagError
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.player import Timeline
@@ -59,8 +60,7 @@ class BagServer:
     def __init__(self, bag: str | Path, host: str = "127.0.0.1", port: int = 8765, hand: str = "target",
                  tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> None:
         path = Path(bag)
-        if not path.exists():
-            raise BagError(path, "does not exist")
+        bag_files(path)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
         try:
             self._reader = AnyReader([path], default_typestore=ma.TYPESTORE)
             self._reader.open()

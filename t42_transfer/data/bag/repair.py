@@ -8,10 +8,11 @@ through :class:`~.writer.JazzyWriter`, as the recorder and :mod:`.writer` write 
 (same layout, ``ros_distro: jazzy``), so ``ros2 bag`` and :mod:`t42_transfer.data.bag` read it
 cleanly, with ``metadata.yaml`` giving per-topic counts, start time, duration,
 types and each topic's offered QoS as recorded in its MCAP channel.  Each
-original file is kept as ``<name>.orig``.
-``custom_data`` keeps what the bag had and gains ``REPAIRED_KEY`` (what was
-wrong), so :func:`~t42_transfer.data.bag.read_bag` still treats a cut-off last step as a cut,
-not an error.
+original file, ``metadata.yaml`` included, is kept as ``<name>.orig``.
+``custom_data`` keeps what the bag had (the MCAP's own record, written only on a clean
+close, else the old ``metadata.yaml``'s: a cut file loses its record, not its yaml) and
+gains ``REPAIRED_KEY`` (what was wrong), so :func:`~t42_transfer.data.bag.read_bag` still
+treats a cut-off last step as a cut, not an error.
 
 What is wrong is found as ``t42 bag info --verify`` finds it (the same scan of
 every record, the same comparison with ``metadata.yaml``), plus files without a
@@ -33,7 +34,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
 
 from msg_adapters import TYPESTORE
-from t42_transfer.data.bag.metadata import REPAIRED_KEY, metadata_yaml, record_metadata
+from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
 from t42_transfer.data.bag.reader import refusals
 from t42_transfer.data.bag.storage import (
     RawBag,
@@ -61,7 +62,7 @@ class RepairReport:
     counts: dict[str, int]
     """Messages per topic in the (repaired) bag."""
     originals: tuple[Path, ...] = ()
-    """Where the original storage files were moved."""
+    """Where the original storage files and metadata.yaml were moved."""
     stopped: str = ""
     """Where reading stopped in a damaged file ("" when every file read to its end)."""
 
@@ -71,7 +72,7 @@ class RepairReport:
 
 
 def repair_bag(path: str | Path) -> RepairReport:
-    """Rewrite a damaged MCAP bag directory in place (originals kept as ``*.mcap.orig``).
+    """Rewrite a damaged MCAP bag directory in place (originals kept as ``*.mcap.orig``, ``metadata.yaml.orig``).
 
     A sound bag (every file read to its summary, ``metadata.yaml`` agreeing with
     the data in files, counts, start and duration) is left as it is; one with
@@ -84,21 +85,23 @@ def repair_bag(path: str | Path) -> RepairReport:
     with refusals(bag):
         files = _mcap_files(bag)
         raw = scan_mcap(files, None)
-        problems = _problems(bag, raw)
+        meta, problems = _problems(bag, raw)
         if not problems:
             return RepairReport(bag, False, (), {topic: t.count for topic, t in raw.topics.items()})
-        kept = [f.with_name(f.name + ORIG_SUFFIX) for f in files]
+        meta_file = bag / "metadata.yaml"
+        originals = [*files, meta_file] if meta_file.exists() or meta_file.is_symlink() else files
+        kept = [f.with_name(f.name + ORIG_SUFFIX) for f in originals]
         in_the_way = [str(k) for k in kept if k.exists() or k.is_symlink()]
         if in_the_way:
             raise FileExistsError(f"{bag}: {', '.join(in_the_way)} exist already; move them away to repair again")
         with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
             rebuilt = Path(staging) / bag.name
             # Nothing readable (a recorder killed right after it opened the file) makes an empty, valid bag.
-            counts, stopped = _rewrite(files, rebuilt, "; ".join(problems))
-            for original, orig in zip(files, kept, strict=True):
+            counts, stopped = _rewrite(files, rebuilt, "; ".join(problems), meta.custom if meta else {})
+            for original, orig in zip(originals, kept, strict=True):
                 original.rename(orig)
             (rebuilt / f"{bag.name}.mcap").rename(files[0])
-            _write_metadata(rebuilt / "metadata.yaml", bag / "metadata.yaml", files[0].name)
+            _write_metadata(rebuilt / "metadata.yaml", meta_file, files[0].name)
     return RepairReport(bag, True, tuple(problems), counts, tuple(kept), stopped)
 
 
@@ -119,8 +122,9 @@ def _mcap_files(bag: Path) -> list[Path]:
     return files
 
 
-def _problems(bag: Path, raw: RawBag) -> list[str]:
-    """What is wrong with the bag; empty when its files read to their summaries and metadata.yaml agrees."""
+def _problems(bag: Path, raw: RawBag) -> tuple[BagMetadata | None, list[str]]:
+    """The bag's metadata.yaml (None where missing or unusable) and what is wrong with the bag; no problems when
+    its files read to their summaries and metadata.yaml agrees."""
     problems = [raw.stopped] if raw.stopped else []
     problems += [f"{name} has no summary" for name in raw.unsummarized]
     try:
@@ -128,8 +132,8 @@ def _problems(bag: Path, raw: RawBag) -> list[str]:
     except BagError as err:  # wrong types, a compressed bag: the rewritten metadata.yaml replaces it
         meta, problem = None, f"metadata.yaml is unusable ({err.problem})"
     if meta is None:
-        return [*problems, problem]
-    return [*problems, *metadata_mismatches(bag, meta, raw)]
+        return None, [*problems, problem]
+    return meta, [*problems, *metadata_mismatches(bag, meta, raw)]
 
 
 class _Rewriter:
@@ -139,7 +143,8 @@ class _Rewriter:
         self.writer = writer
         self.connections: dict[tuple[str, str, str], Any] = {}
         self.counts: dict[str, int] = {}
-        self.custom_seen = False
+        self.custom: dict[str, str] | None = None
+        """custom_data of the files' rosbag2 metadata record (None: none was read)."""
 
     def file(self, stream: BinaryIO, size: int) -> None:
         schemas: dict[int, Schema] = {}
@@ -153,7 +158,7 @@ class _Rewriter:
                 connection = channels[record.channel_id]
                 self.writer.write(connection, record.log_time, record.data)
                 self.counts[connection.topic] += 1
-            elif isinstance(record, Metadata) and record.name == "rosbag2" and not self.custom_seen:
+            elif isinstance(record, Metadata) and record.name == "rosbag2" and self.custom is None:
                 self._custom_data(record)
 
     def _connection(self, channel: Channel, schema: Schema) -> Any:
@@ -174,14 +179,21 @@ class _Rewriter:
 
     def _custom_data(self, record: Metadata) -> None:
         """custom_data of rosbag2's own metadata record (written only on a clean close)."""
-        for key, value in record_metadata(record)[0].items():
+        self.custom = record_metadata(record)[0]
+        self.keep_custom(self.custom)
+
+    def keep_custom(self, custom: dict[str, str]) -> None:
+        """Carry the bag's custom_data into the new one."""
+        for key, value in custom.items():
             if key != REPAIRED_KEY:  # this repair's own entry stands
                 self.writer.set_custom_data(key, value)
-        self.custom_seen = True
 
 
-def _rewrite(files: list[Path], rebuilt: Path, problems: str) -> tuple[dict[str, int], str]:
-    """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped)."""
+def _rewrite(files: list[Path], rebuilt: Path, problems: str, old_custom: dict[str, str]) -> tuple[dict[str, int], str]:
+    """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped).
+
+    ``old_custom`` (the old metadata.yaml's custom_data) stands in where no file's metadata record was read.
+    """
     stopped = []
     with JazzyWriter(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         rewriter = _Rewriter(writer)
@@ -193,6 +205,8 @@ def _rewrite(files: list[Path], rebuilt: Path, problems: str) -> tuple[dict[str,
                 except Exception as err:  # whatever the damage, the records before it stand
                     stopped.append(f"{file.name} is unreadable from offset {stream.tell()} "
                                    f"({type(err).__name__}: {err})")
+        if rewriter.custom is None:
+            rewriter.keep_custom(old_custom)
     return rewriter.counts, "; ".join(stopped)
 
 

@@ -84,19 +84,27 @@ class RawBag:
         return bool(self.stopped) or REPAIRED_KEY in self.custom
 
 
-def load_raw(bag: Path) -> RawBag:
-    """The bag's storage files (MCAP scanned record by record, sqlite3 through rosbags) and its metadata.yaml."""
+def bag_files(bag: Path) -> tuple[str, list[Path], BagMetadata | None, str]:
+    """Storage plugin and files of a bag path, its metadata.yaml and why that is None ("" when it is not).
+
+    The one check before anything opens a bag, here or through rosbags (``t42 bag play``, ``t42 view --bag``):
+    BagError for a path that is no rosbag2 bag, or a FIFO, directory or device where a file belongs (opening a
+    FIFO blocks forever).
+    """
     mode = path_mode(bag)
-    meta, problem = None, ""
     if stat.S_ISDIR(mode):
         meta, problem = metadata_yaml(bag)
-        storage, files = _storage_files(bag, meta)
-    elif not stat.S_ISREG(mode):
+        return (*_storage_files(bag, meta), meta, problem)
+    if not stat.S_ISREG(mode):
         raise BagError(bag, f"is {file_kind(mode)}, not a bag directory or storage file")
-    elif bag.suffix in SUFFIXES:
-        storage, files = SUFFIXES[bag.suffix], [bag]
-    else:
-        raise BagError(bag, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
+    if bag.suffix in SUFFIXES:
+        return SUFFIXES[bag.suffix], [bag], None, ""
+    raise BagError(bag, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
+
+
+def load_raw(bag: Path) -> RawBag:
+    """The bag's storage files (MCAP scanned record by record, sqlite3 through rosbags) and its metadata.yaml."""
+    storage, files, meta, problem = bag_files(bag)
     raw = scan_mcap(files, meta) if storage == "mcap" else _read_sqlite3(bag, files, meta)
     raw.meta, raw.problem = meta, problem
     return raw
