@@ -75,8 +75,22 @@ def test_truncated_file(saved: Path, keep: int) -> None:
 def test_garbage_file(tmp_path: Path) -> None:
     bad = tmp_path / "bad.safetensors"
     bad.write_bytes(b"\x80\x04\x95 this is a pickle, not a model")
-    with pytest.raises(CheckpointError, match="truncated or corrupt"):
-        load_model(bad)
+    _refused(bad, "is a pickle .*convert an authors' model first: t42 model import-authors")
+    bad.write_bytes(b"\x00\xff this is garbage, not a model")
+    _refused(bad, "truncated or corrupt")
+
+
+def test_a_safetensors_header_that_starts_as_a_pickle_still_loads(tmp_path: Path) -> None:
+    """A header of 0x280, 0x380, 0x480 or 0x580 bytes starts 80 02 to 80 05, as a pickle does: only a size out of
+    range is taken for one."""
+    for pad in range(0, 800, 8):  # safetensors pads its header to 8 bytes
+        path = save_model(TransitionModel(Normalisation.identity()), tmp_path / "m.safetensors", method="direct",
+                          extra={"p": "x" * pad})
+        if path.read_bytes()[0] == 0x80 and 2 <= path.read_bytes()[1] <= 5:
+            break
+    else:
+        pytest.fail("no padding gave a header size that starts as a pickle")
+    load_model(path)
 
 
 def test_other_method_is_refused(saved: Path) -> None:
@@ -249,6 +263,19 @@ def test_non_finite_weights_are_refused(saved: Path, bad: float, redigest: bool)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UnverifiedCheckpointWarning)
         _refused(saved, r"non-finite weights \(NaN or infinity\) in net\.3\.weight")
+
+
+@pytest.mark.parametrize("name", ["state_std", "delta_std"])
+@pytest.mark.parametrize("bad", [0.0, -1.0])
+def test_a_std_that_is_not_positive_is_refused(saved: Path, name: str, bad: float) -> None:
+    """A model divides by its stds: a zero one made every prediction NaN (evaluate exited 0 with NaN MSE)."""
+    _rewrite_metadata(saved, lambda _, tensors: tensors[name].__setitem__(2, bad), redigest=True)
+    _refused(saved, rf"normalisation std that is not positive in {name} \(smallest {bad:g}\)$")
+
+
+def test_a_sub_models_std_is_checked_too(residual_file: Path) -> None:
+    _rewrite_metadata(residual_file, lambda _, tensors: tensors["residual.delta_std"].zero_(), redigest=True)
+    _refused(residual_file, r"not positive in residual\.delta_std")
 
 
 def test_weights_of_another_dtype_are_refused(saved: Path) -> None:

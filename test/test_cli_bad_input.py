@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import pickle
 import shlex
 import signal
 from collections.abc import Iterator
@@ -23,6 +24,7 @@ import yaml
 from t42_transfer.cli import main
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.models.checkpoint import save_model
+from t42_transfer.models.legacy_torch import LEGACY_MAGIC, LEGACY_PROTOCOL
 from t42_transfer.planning import Workspace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,8 +77,20 @@ def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
                       extra={"workspace": Workspace.box(-60, 60, 30, 130).to_dict()})
 
 
+@pytest.fixture(scope="module")
+def other_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Files a user takes for model files: an authors' model (``pkl``), a model whose delta_std has a 0."""
+    folder = tmp_path_factory.mktemp("other_models")
+    # how the authors' legacy torch.save files start: pickles of the format's magic number and protocol
+    (folder / "real_B.pkl").write_bytes(pickle.dumps(LEGACY_MAGIC, 2) + pickle.dumps(LEGACY_PROTOCOL, 2))
+    zeros, ones = np.zeros(4, np.float32), np.ones(4, np.float32)
+    norm = Normalisation(zeros, ones, zeros, np.array([1, 0, 1, 1], np.float32))
+    return {"pkl": folder / "real_B.pkl",
+            "zero_std": save_model(TransitionModel(norm), folder / "zero_std.safetensors", method="new_model")}
+
+
 @pytest.fixture()
-def paths(tmp_path: Path, model_file: Path) -> dict[str, str]:
+def paths(tmp_path: Path, model_file: Path, other_models: dict[str, Path]) -> dict[str, str]:
     """Names the cases use: real inputs, wrong kinds of path, and ``out`` (which must never appear)."""
     (tmp_path / "file").write_text("not a directory, not a model, not a bag\n")
     (tmp_path / "dir").mkdir()
@@ -85,6 +99,7 @@ def paths(tmp_path: Path, model_file: Path) -> dict[str, str]:
     run.mkdir()
     (run / "results.json").write_text(json.dumps({"config": {}, "rows": []}))
     return {
+        **{name: str(path) for name, path in other_models.items()},
         "model": str(model_file), "bag": str(BAG), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "fifo": str(tmp_path / "fifo"), "missing": str(tmp_path / "missing"), "under": str(tmp_path / "file" / "sub"),
         "out": str(tmp_path / "out"), "run": str(run), "tmp": str(tmp_path),
@@ -125,6 +140,11 @@ CASES = {
                                   "{dir}: is a directory, not a regular file"),
     "plan model is a FIFO": ("plan {fifo} --start 0 80 120 -120 --goal 1 85 --out {out}",
                              "{fifo}: is a FIFO, not a regular file"),
+    "plan model is an authors' pickle": ("plan {pkl} --start 0 80 120 -120 --goal 1 85 --out {out}",
+                                         "{pkl}: is a pickle (as the paper authors' models are), not a model file; "
+                                         "convert an authors' model first: t42 model import-authors {pkl}"),
+    "plan model with a zero std": ("plan {zero_std} --start 0 80 120 -120 --goal 1 85 --out {out}",
+                                   "{zero_std}: holds a normalisation std that is not positive in delta_std"),
     "plan --workspace missing": (PLAN + " --workspace {missing}", "{missing}: does not exist"),
     "plan --workspace is a file": (PLAN + " --workspace {file}", "{file}: not a directory"),
     "plan --out is a file": ("plan {model} --start 0 80 120 -120 --goal 1 85 --out {file}", "{file}"),
@@ -148,6 +168,7 @@ CASES = {
     "peg --hand bogus": (PEG + " --hand bogus", "bogus"),
     "peg model missing": ("peg-in-hole {missing} --out {out}", "{missing}: does not exist"),
     "peg NAME=model missing": ("peg-in-hole a={missing} --out {out}", "{missing}: does not exist"),
+    "peg model is an authors' pickle": ("peg-in-hole {pkl} --out {out}", "{pkl}: is a pickle"),
     "peg model is a FIFO": ("peg-in-hole {fifo} --out {out}", "{fifo}: is a FIFO, not a regular file"),
     "peg --workspace missing": (PEG + " --workspace {missing}", "{missing}: does not exist"),
     "peg --out is a file": ("peg-in-hole {model} --out {file}", "{file}"),
@@ -179,8 +200,10 @@ CASES = {
     "compare-real --out-dir is a file": ("sim compare-real --real-dir {dir} --out-dir {file}", "{file}"),
     # t42 experiment (the config's own cases are in the next test)
     "experiment config missing": ("experiment {missing} --out {out}", "{missing}"),
-    "experiment config is a directory": ("experiment {dir} --out {out}", "{dir}: the experiment config is not a"),
-    "experiment config is a FIFO": ("experiment {fifo} --out {out}", "{fifo}: the experiment config is not a"),
+    "experiment config is a directory": ("experiment {dir} --out {out}",
+                                         "{dir}: the experiment config is a directory, not a regular file"),
+    "experiment config is a FIFO": ("experiment {fifo} --out {out}",
+                                    "{fifo}: the experiment config is a FIFO, not a regular file"),
     "experiment --workers 0": ("experiment {file} --workers 0 --out {out}", "--workers"),
     "experiment --workers -2": ("experiment {file} --workers -2 --out {out}", "--workers"),
     # t42 report
@@ -211,8 +234,8 @@ CASES = {
     "play --wait-subscribers inf": ("bag play {bag} --wait-subscribers inf", "--wait-subscribers"),
     # t42 up (params-file contents are in the next tests)
     "up params file missing": ("up {missing}", "{missing}"),
-    "up params file is a directory": ("up {dir}", "{dir}: the params file is not a regular"),
-    "up params file is a FIFO": ("up {fifo}", "{fifo}: the params file is not a regular"),
+    "up params file is a directory": ("up {dir}", "{dir}: the params file is a directory, not a regular file"),
+    "up params file is a FIFO": ("up {fifo}", "{fifo}: the params file is a FIFO, not a regular file"),
     "up --stop-timeout -1": ("up {file} --stop-timeout -1", "--stop-timeout"),
     "up --stop-timeout nan": ("up {file} --stop-timeout nan", "--stop-timeout"),
     "up --stop-timeout 0": ("up {file} --stop-timeout 0", "--stop-timeout"),

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 
 from t42_transfer.cli import main
@@ -86,3 +89,17 @@ def test_every_fault_the_emulate_command_takes_is_an_emulator_parameter() -> Non
     for bad in ("rate_factor=2", "slow_replies", "=3"):  # not a fault, no value, no name
         with pytest.raises(argparse.ArgumentTypeError, match="slow_replies"):
             fault_arg(bad)
+
+
+@pytest.mark.parametrize("form", ["hw emulate --link {}", "node hw_emulator --ros-args -p link:={}"])
+def test_emulate_refuses_a_link_path_it_did_not_make_in_one_line(form: str, tmp_path) -> None:
+    """The user's own symlink stays as it was (it was once replaced, then removed on exit); a path that cannot
+    be a link is named, not the pty."""
+    (tmp_path / "precious.txt").write_text("keep me\n")
+    (tmp_path / "L").symlink_to("precious.txt")
+    for link, problem in (("L", "exists and is not an emulator's pty link"),
+                          ("missing/tty", "cannot make the link: No such file or directory")):
+        done = subprocess.run([sys.executable, "-m", "t42_transfer.cli", *form.format(tmp_path / link).split()],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and done.stderr == f"t42: error: {tmp_path / link}: {problem}\n", done.stderr
+    assert (tmp_path / "L").is_symlink() and (tmp_path / "L").read_text() == "keep me\n"

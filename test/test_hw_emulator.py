@@ -168,6 +168,40 @@ def test_the_link_names_the_port_and_goes_with_it(tmp_path) -> None:
     assert not link.exists()
 
 
+def test_the_link_replaces_only_an_earlier_emulators_link(tmp_path) -> None:
+    """A stale link into /dev/pts/ (an emulator killed before its exit) goes; the user's own link stays."""
+    stale = tmp_path / "ttyT42"
+    stale.symlink_to("/dev/pts/999")
+    with PtyBus(t42_bus(), link=stale) as bus:
+        assert stale.resolve() == bus.path
+    assert not stale.is_symlink()
+    (tmp_path / "precious.txt").write_text("keep me\n")
+    mine = tmp_path / "L"
+    mine.symlink_to("precious.txt")
+    with pytest.raises(ValueError, match=f"^{mine}: exists and is not an emulator's pty link$"):
+        PtyBus(t42_bus(), link=mine)
+    assert mine.is_symlink() and mine.read_text() == "keep me\n"
+
+
+def test_a_link_path_that_cannot_be_made_is_named_not_the_pty(tmp_path) -> None:
+    (tmp_path / "file").write_text("the user's\n")
+    with pytest.raises(ValueError, match=f"^{tmp_path / 'file'}: exists and is not an emulator's pty link$"):
+        PtyBus(t42_bus(), link=tmp_path / "file")
+    assert (tmp_path / "file").read_text() == "the user's\n"
+    for link, problem in ((tmp_path / "missing" / "tty", "No such file or directory"),
+                          (tmp_path / "file" / "tty", "Not a directory")):
+        with pytest.raises(ValueError, match=f"^{link}: cannot make the link: {problem}$"):
+            PtyBus(t42_bus(), link=link)
+
+
+def test_closing_leaves_a_link_another_emulator_took_since(tmp_path) -> None:
+    link = tmp_path / "ttyT42"
+    with PtyBus(t42_bus(), link=link):
+        link.unlink()
+        link.symlink_to("/dev/pts/999")  # another emulator's, made after ours
+    assert link.is_symlink() and str(link.readlink()) == "/dev/pts/999"
+
+
 def test_the_bus_records_every_sync_written_goal_also_those_the_servos_refuse(wire) -> None:
     """A check of the goals a driver writes reads this record: Goal Position keeps only what the servo accepted."""
     bus, port, ph = wire

@@ -272,23 +272,35 @@ class ServoBus:
         return reply
 
 
+def _is_pty_link(path: Path) -> bool:
+    """Whether ``path`` is a symlink into /dev/pts/: an emulator's link, which a new emulator may replace."""
+    return path.is_symlink() and os.readlink(path).startswith("/dev/pts/")
+
+
 class PtyBus:
     """A :class:`ServoBus` on a pseudo-terminal: ``path`` (or the ``link`` made to it) is the port to open.
 
     A thread answers every packet written to the port.  :meth:`close_port` is the unplugged adapter: the
-    terminal goes away and the driver's next read or write fails.
+    terminal goes away and the driver's next read or write fails.  ``link`` replaces only an earlier
+    emulator's link (one into /dev/pts/); anything else at that path is a ValueError naming it.
     """
 
     def __init__(self, bus: ServoBus, link: str | os.PathLike[str] | None = None) -> None:
         self.bus = bus
+        self.link = None if link is None else Path(link)
+        if self.link is not None and os.path.lexists(self.link):
+            if not _is_pty_link(self.link):  # the user's own file or link: never replaced, never removed
+                raise ValueError(f"{self.link}: exists and is not an emulator's pty link")
+            self.link.unlink()  # an earlier emulator's, left behind
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no line editing: a serial line's bytes as they are
         self.path = Path(os.ttyname(self._slave))
-        self.link = None if link is None else Path(link)
         if self.link is not None:
-            if self.link.is_symlink():
-                self.link.unlink()
-            self.link.symlink_to(self.path)
+            try:
+                self.link.symlink_to(self.path)
+            except OSError as err:  # its filename is the pty: name the user's link instead
+                self._close_fds()
+                raise ValueError(f"{self.link}: cannot make the link: {err.strerror}") from None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._serve, name="servo-bus", daemon=True)
         self._thread.start()
@@ -320,13 +332,16 @@ class PtyBus:
         """Take the terminal away, as pulling the USB adapter does."""
         self._stop.set()
         self._thread.join(timeout=2.0)
+        self._close_fds()
+        if self.link is not None and self.link.is_symlink() and Path(os.readlink(self.link)) == self.path:
+            self.link.unlink()  # only our own link: another emulator may have taken the path since
+
+    def _close_fds(self) -> None:
         for fd in (self._master, self._slave):
             try:
                 os.close(fd)
             except OSError:
                 pass
-        if self.link is not None and self.link.is_symlink():
-            self.link.unlink()
 
     def __enter__(self) -> PtyBus:
         return self

@@ -13,7 +13,7 @@ a safetensors header of bounded size whose tensors fit the file's real size; met
 is a JSON object of bounded depth with fields of the right types; an architecture
 whose ``from_config`` accepts it, built on the ``meta`` device so nothing is
 allocated; the file's tensor names and shapes against that architecture; only then
-the weights themselves, which must match their digest and be finite.  So a model
+the weights themselves, which must match their digest and be finite (each normalisation std above 0).  So a model
 never takes more memory than its file justifies, and a new model kind's
 ``from_config`` must check its (untrusted) config the way ``TransitionModel``'s does.
 
@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
 import reprlib
 import tempfile
 import time
@@ -168,13 +169,24 @@ def _open(file: Path) -> Any:
     """The file's safetensors reader; the header is bounded and its tensors already fit the file's size."""
     try:
         with open(file, "rb") as raw:
-            header_size = int.from_bytes(raw.read(8), "little")  # a shorter file is safetensors' to report
+            head = raw.read(8)
+        header_size = int.from_bytes(head, "little")  # a shorter file is safetensors' to report
         if header_size > MAX_HEADER_BYTES:
+            if _is_pickle(head):
+                raise CheckpointError(file, f"is a pickle (as the paper authors' models are), not a model file; "
+                                      f"convert an authors' model first: t42 model import-authors {file} "
+                                      f"OUT.safetensors")
             raise CheckpointError(file, f"is not a readable model file (truncated or corrupt: its header claims "
                                   f"{header_size} bytes, a model file's has under {MAX_HEADER_BYTES})")
         return safe_open(str(file), framework="pt")
     except (SafetensorError, OSError) as err:
         raise CheckpointError(file, f"is not a readable model file (truncated or corrupt: {err})") from None
+
+
+def _is_pickle(head: bytes) -> bool:
+    """Whether ``head`` opens a pickle of protocol 2 or later, as the authors' ``torch.save`` files do (so the user
+    hears to convert it, not a header size); asked only of a size out of range: a 0x280-byte header starts 80 02."""
+    return len(head) > 1 and head[:1] == pickle.PROTO and 2 <= head[1] <= pickle.HIGHEST_PROTOCOL
 
 
 def _metadata(file: Path, f: Any) -> dict[str, Any]:
@@ -257,7 +269,8 @@ def _read_tensors(file: Path, f: Any, expected: Mapping[str, Tensor]) -> dict[st
 
 
 def _check_weights(file: Path, meta: dict[str, Any], tensors: Mapping[str, Tensor]) -> None:
-    """Weights that match their digest (or a warning for files saved before digests) and are finite."""
+    """Weights that match their digest (or a warning for files saved before digests), finite, and every
+    normalisation std (``state_std``, ``delta_std``, in any sub-model) above 0: a model divides by it."""
     if DIGEST_KEY not in meta:
         warnings.warn(f"{file}: has no weights digest (saved before digests existed); loaded unverified",
                       UnverifiedCheckpointWarning, stacklevel=3)
@@ -266,3 +279,6 @@ def _check_weights(file: Path, meta: dict[str, Any], tensors: Mapping[str, Tenso
     for name, tensor in tensors.items():
         if (tensor.is_floating_point() or tensor.is_complex()) and not bool(torch.isfinite(tensor).all()):
             raise CheckpointError(file, f"holds non-finite weights (NaN or infinity) in {name}")
+        if name.rpartition(".")[2].endswith("_std") and not bool((tensor > 0).all()):  # a division by it: NaN
+            raise CheckpointError(file, f"holds a normalisation std that is not positive in {name} "
+                                  f"(smallest {tensor.min().item():g})")

@@ -51,7 +51,8 @@ from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
 class HwEmulatorParams(SimCameraParams):
     """The emulator's ROS parameters (and its rendered camera's)."""
 
-    link: str = param("", "symlink to the servo bus's pty (empty: none; the log names the pty)", read_only=True)
+    link: str = param("", "symlink to the servo bus's pty (empty: none; the log names the pty); replaces only "
+                          "an earlier emulator's link into /dev/pts/", read_only=True)
     hand: str = param("target", f"simulated hand behind the servos: {', '.join(NAMED_VARIANTS)} or family-<seed>",
                       read_only=True)
     seed: int = param(0, "seed of the first object placement; each placement after uses the next", min=0,
