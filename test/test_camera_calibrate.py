@@ -62,6 +62,7 @@ def test_calibrated_focal_lengths_and_principal_point_within_one_percent(board_v
     (["{views}", "{existing}"], "exists already"),
     (["{views}", "{out}", "--pattern", "9by6"], "board pattern must be COLSxROWS"),
     (["{views}", "{out}", "--pattern", "1x6"], "need at least 2x2"),
+    (["{views}", "{out}", "--pattern", "1000x1000"], "at most 10000 inner corners"),
     (["{bad}", "{out}"], "not an image OpenCV can read"),
     (["{mixed}", "{out}"], "is 320x240, the first one 640x480"),
 ])

@@ -550,3 +550,17 @@ def test_the_programs_warnings_are_one_line_like_its_errors(tmp_path: Path) -> N
     lines = done.stderr.strip().splitlines()
     assert lines and all(line.startswith("t42: warning: ") for line in lines), done.stderr
     assert "recovered the readable prefix" in done.stderr and ".py:" not in done.stderr
+
+
+@pytest.mark.parametrize("stored", ["box", {"lower": [0.0], "upper": [1.0, 2.0]}],
+                         ids=["not an object", "one bound"])
+def test_a_models_bad_stored_workspace_is_named_with_the_model_file(
+        stored: object, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    norm = Normalisation(state_mean=np.zeros(4, np.float32), state_std=np.ones(4, np.float32),
+                         delta_mean=np.zeros(4, np.float32), delta_std=np.ones(4, np.float32))
+    model = save_model(TransitionModel(norm), tmp_path / "m.safetensors", method="new_model",
+                       extra={"workspace": stored})
+    line = refused(["plan", str(model), "--start", "0", "90", "100", "100", "--goal", "0", "95", "--out",
+                    str(tmp_path / "plan")], capsys)
+    assert f"{model}: a stored workspace" in line, line
+    assert not (tmp_path / "plan").exists()

@@ -498,7 +498,7 @@ def _workspace(cfg: ExperimentConfig, source: TrajectorySet, target: TrajectoryS
 
     if cfg.source.model is None:
         return Workspace.from_trajectories(source)
-    return Workspace.from_metadata(load_model(source_file)[1]) or Workspace.from_trajectories(target)
+    return Workspace.from_metadata(load_model(source_file)[1], source_file) or Workspace.from_trajectories(target)
 
 
 @contextlib.contextmanager

@@ -48,7 +48,7 @@ def load_planner_model(path: str | Path) -> LoadedModel:
     file and ``ValueError`` for a file without a workspace (see the module docstring).
     """
     model, meta = load_model(path)
-    workspace = Workspace.from_metadata(meta)
+    workspace = Workspace.from_metadata(meta, path)
     if workspace is None:
         raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
                          "the planner cannot tell where its predictions hold")

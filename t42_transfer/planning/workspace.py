@@ -120,11 +120,17 @@ class Workspace:
         return cls(bounds[0], bounds[1], float(limit))
 
     @classmethod
-    def from_metadata(cls, metadata: Mapping[str, Any]) -> Workspace | None:
-        """The workspace a model file stores under ``extra.workspace``, or None; ValueError if it is malformed."""
+    def from_metadata(cls, metadata: Mapping[str, Any], file: str | Path | None = None) -> Workspace | None:
+        """The workspace a model file stores under ``extra.workspace``, or None; ValueError if it is malformed,
+        naming ``file`` (the model's) when given."""
         extra = metadata.get("extra") or {}
         stored = extra.get("workspace") if isinstance(extra, Mapping) else None
-        return None if stored is None else cls.from_dict(stored)
+        try:
+            return None if stored is None else cls.from_dict(stored)
+        except ValueError as err:
+            if file is None:
+                raise
+            raise ValueError(f"{file}: {err}") from None
 
     @classmethod
     def for_planning(
@@ -137,7 +143,7 @@ class Workspace:
             from t42_transfer.data.bag import read_bag
 
             return cls.from_trajectories(t for bag in bags for t in read_bag(bag))
-        stored = cls.from_metadata(metadata)
+        stored = cls.from_metadata(metadata, model)
         if stored is None:
             raise ValueError(f"{model} stores no workspace: pass --workspace BAG ... (the model's training data)")
         return stored

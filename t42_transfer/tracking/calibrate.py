@@ -55,8 +55,10 @@ def parse_grid(text: str, what: str = "board pattern", unit: str = "inner corner
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ValueError(f"{what} must be COLSxROWS of {unit} such as {example}, got {text[:40]!r}") from None
-    if cols < least or rows < least or cols * rows > 10_000:
+    if cols < least or rows < least:
         raise ValueError(f"{what} {cols}x{rows}: need at least {least}x{least} {unit}")
+    if cols * rows > 10_000:
+        raise ValueError(f"{what} {cols}x{rows}: at most 10000 {unit} in all")
     return cols, rows
 
 
