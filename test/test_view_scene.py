@@ -222,3 +222,20 @@ def test_a_refused_goal_is_drawn_red_with_the_planners_word(tmp_path):
     image = imread(render(scene, tmp_path / "refused.png"))
     assert _near(image, COLORS["refused"], *pixel_of(scene, [26.0, 105.0]))
     assert _count(image, COLORS["goal"]) == 0
+
+
+def test_cli_refuses_what_it_would_not_draw(tmp_path, small_set, capsys):
+    """Snapshot options given to a server, --at without a bag, or a time after the bag's end: refused, not
+    dropped without a word."""
+    from t42_transfer.data.bag import write_bag
+
+    bag = write_bag(tmp_path / "bag", small_set)
+    for argv, says in ((["--port", "0", "--object", "1", "2"], "--object: for a --snapshot only"),
+                       (["--bag", str(bag), "--at", "3"], "--at: for a --snapshot only"),
+                       (["--snapshot", str(tmp_path / "a.png"), "--at", "3"], "give --bag too")):
+        with pytest.raises(SystemExit) as stop:
+            main(["view", *argv])
+        assert stop.value.code == 2 and says in capsys.readouterr().err, argv
+    out = tmp_path / "late.png"
+    assert main(["view", "--snapshot", str(out), "--bag", str(bag), "--at", "1e6"]) == 2
+    assert "no scene at 1e+06 s" in capsys.readouterr().err and not out.exists()

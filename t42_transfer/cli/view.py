@@ -62,9 +62,19 @@ def _live(args: argparse.Namespace) -> int:
     return run_node("view", ros_args)
 
 
+SNAPSHOT_ONLY = {"at": "--at", "angles": "--angles", "object": "--object", "goal": "--goal", "path": "--path"}
+"""Options that only a snapshot draws: given to a server, they would be dropped without a word."""
+
+
 def _cmd_view(args: argparse.Namespace) -> int:
     if args.snapshot is not None:
+        if args.at is not None and args.bag is None:
+            args.parser.error("--at S picks a time in a bag: give --bag too")
         return _snapshot(args)
+    given = [flag for name, flag in SNAPSHOT_ONLY.items() if getattr(args, name) is not None]
+    if given:
+        args.parser.error(f"{', '.join(given)}: for a --snapshot only (a server shows the graph or the bag as "
+                          "they go)")
     if args.bag is not None:
         return _serve_bag(args)
     return _live(args)
@@ -94,4 +104,4 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     view.add_argument("--path", type=Path, default=None, help="snapshot: planned path file, x,y (mm) a line")
     view.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[], metavar="ARG",
                       help="live view: the rest are ROS arguments of the view node (-r __ns:=/left, -p name:=value)")
-    view.set_defaults(func=_cmd_view)
+    view.set_defaults(func=_cmd_view, parser=view)

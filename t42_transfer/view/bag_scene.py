@@ -52,7 +52,8 @@ def input_reader(topic: str) -> tuple[str, Callable[[Any], Any]] | None:
 
 def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
     """The inputs at ``at_s`` seconds after the bag's first message (None: its end); BagError for what cannot be
-    read (a missing path, no bag, a FIFO where a bag file belongs, a message that is not what its topic carries)."""
+    read (a missing path, no bag, a FIFO where a bag file belongs, a message that is not what its topic carries)
+    and for a time after the bag's end."""
     path = Path(bag)
     bag_files(path)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     inputs = SceneInputs()
@@ -61,6 +62,9 @@ def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
             wanted = [c for c in reader.connections if input_reader(c.topic)]
             inputs.start_ns = reader.start_time
             until = None if at_s is None else reader.start_time + round(at_s * 1e9)
+            if until is not None and until > reader.end_time:
+                raise BagError(path, f"ends {(reader.end_time - reader.start_time) / 1e9:.1f} s after its first "
+                                     f"message: no scene at {at_s:g} s")
             for conn, log_ns, raw in reader.messages(connections=wanted):
                 if until is not None and log_ns > until:
                     break
