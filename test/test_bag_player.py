@@ -173,7 +173,7 @@ def test_publishers_offer_the_recorded_qos(ros: Any, tmp_path: Path) -> None:
     assert other.reliability == ReliabilityPolicy.RELIABLE and other.depth == 10  # ROS's default
 
 
-def test_bad_input_is_refused(ros: Any, tmp_path: Path) -> None:
+def test_bad_input_is_refused(ros: Any, tmp_path: Path, small_set: Any) -> None:
     for rate in (0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="rate"):
             PlayerParams(BAG, rate=rate)
@@ -193,6 +193,13 @@ def test_bad_input_is_refused(ros: Any, tmp_path: Path) -> None:
     (killed / "metadata.yaml").unlink()
     with pytest.raises(BagError, match="t42 bag repair"):
         ros.add(BagPlayer, params={"bag": str(killed)})
+    from t42_transfer.data.bag import write_bag
+
+    sqlite = write_bag(tmp_path / "sqlite", small_set, storage="sqlite3")
+    (sqlite / "sqlite.db3").write_bytes(b"SQLite format 3\x00" + bytes(200))  # repair takes MCAP bags only
+    with pytest.raises(BagError, match="cannot be played") as refused:
+        ros.add(BagPlayer, params={"bag": str(sqlite)})
+    assert "repair" not in str(refused.value)
     with pytest.raises(BagError, match="has no topic /nope"):
         ros.add(BagPlayer, params={"bag": str(BAG), "topics": ["/nope"]})
 

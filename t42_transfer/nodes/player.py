@@ -142,13 +142,14 @@ class Timeline:
 def open_bag(path: str | Path) -> AnyReader:
     """An open rosbags reader of ``path``, or BagError saying why it cannot be played."""
     bag = Path(path)
-    bag_files(bag)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
+    storage = bag_files(bag)[0]  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     try:
         reader = AnyReader([bag])
         reader.open()
     except Exception as err:  # rosbags raises many types for what is not a sound bag
-        raise BagError(bag, f"cannot be played ({type(err).__name__}: {err}); "
-                            "a bag left by a killed recorder needs `t42 bag repair` first") from None
+        hint = ("; an MCAP bag left by a killed recorder needs `t42 bag repair` first" if storage == "mcap" else
+                "")
+        raise BagError(bag, f"cannot be played ({type(err).__name__}: {err}){hint}") from None
     return reader
 
 
