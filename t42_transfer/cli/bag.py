@@ -153,7 +153,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     imp.add_argument("pickle", type=Path)
     imp.add_argument("out", type=Path, help="bag directory to create")
     imp.set_defaults(func=_cmd_bag_import_t42)
-    rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (its files and metadata.yaml kept as *.orig)")
+    rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (its files and metadata.yaml kept "
+                                        "as *.orig)")
     rep.add_argument("bag", type=Path, help="bag directory")
     rep.set_defaults(func=_cmd_bag_repair)
     play = bag.add_parser("play", help="publish a bag's messages on their topics over ROS 2 (rclpy), as ros2 bag play")
