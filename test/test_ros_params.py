@@ -93,6 +93,9 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     assert [new.rate for _, new in node.changes] == [4.0, 4.0, 4.0]
     assert node.changes[-1][1].seed == 3
     assert set_(use_sim_time=True) == [(True, "")]  # rclpy's own parameters pass through
+    (unset,) = set_(seed=None)  # PARAMETER_NOT_SET: rclpy would undeclare the parameter
+    assert unset[0] is False and "cannot be unset at run time" in unset[1]
+    assert node.has_parameter("seed") and set_(seed=4) == [(True, "")] and node.live.value.seed == 4
 
 
 def test_declare_params_rejects_types_ros_cannot_carry(ros) -> None:

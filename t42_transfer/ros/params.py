@@ -258,6 +258,9 @@ class LiveParams(Generic[P]):
             field = self._fields.get(p.name)
             if field is None:  # rclpy's own (use_sim_time, ...)
                 continue
+            if p.type_ == Parameter.Type.NOT_SET:  # rclpy would undeclare it: gone until the node restarts
+                return SetParametersResult(successful=False, reason=f"{p.name} cannot be unset at run time (it "
+                                           "would be undeclared); set a value, or restart the node without one")
             try:
                 changes[p.name] = _from_ros(field, p.value)
             except ValueError as err:
