@@ -358,6 +358,26 @@ def test_a_flood_of_bad_commands_is_a_log_line_a_second_that_counts_the_rest(ros
     assert rig.driver.running
 
 
+def test_moves_refused_step_after_step_are_a_log_line_a_second(ros):
+    """A command held against a travel limit is refused at every step: once a /rosout line a step (20 a second
+    at twice real time), now a line a second counting the rest."""
+    import time
+
+    rig = Rig(ros, max_command_age_s=30.0)
+    log = Rosout(rig.ros, "mock_driver")
+    rig.tick()
+    log.clear()
+    started = time.monotonic()
+    rig.trajectory(actions_to_joint_trajectory(np.full((30, 2), 1.5, np.float32), rig.driver.hand.actuator_angles,
+                                               rig.clock(), RCLPY))
+    rig.tick(30)
+    took = time.monotonic() - started
+    rig.ros.spin_for(0.3)
+    refused = [m.msg for m in log.lines if "servo move was refused" in m.msg]
+    assert rig.driver.running and refused, "no refused move to log"
+    assert len(refused) <= int(took) + 1, (took, refused)
+
+
 def test_drop_publishes_status_and_stops_until_reset(rig):
     log = Rosout(rig.ros, "mock_driver")
     for _ in range(60):

@@ -7,8 +7,12 @@ from t42_transfer.ros.logs import ThrottledLog
 
 class Lines:
     def __init__(self) -> None:
+        self.infos: list[str] = []
         self.warnings: list[str] = []
         self.errors: list[str] = []
+
+    def info(self, message: str) -> None:
+        self.infos.append(message)
 
     def warning(self, message: str) -> None:
         self.warnings.append(message)
@@ -37,6 +41,9 @@ def test_other_kinds_and_levels_are_not_held_back_by_a_flood() -> None:
     log.warning("rejected hand/command: non-finite velocity [nan, 1]")
     log.warning("rejected hand/command: unknown joint 'elbow'")
     log.error("rejected hand/command: could not read the message")
+    log.info("step 3: a servo move was refused")
+    log.info("step 4: a servo move was refused")
+    assert lines.infos == ["step 3: a servo move was refused"]
     assert lines.warnings == ["rejected hand/command: non-finite velocity [nan, 0]",
                               "rejected hand/command: unknown joint 'elbow'"]
     assert lines.errors == ["rejected hand/command: could not read the message"]

@@ -390,7 +390,8 @@ class MockDriver(Node):
         self.steps += 1
         self._capture()
         if info.refused:
-            self.log.info(f"step {self.steps}: a servo move was refused (travel limit or load guard)")
+            # Throttled: a command held against a limit is refused at every step (20 lines a second at 2x).
+            self.per_message.info(f"step {self.steps}: a servo move was refused (travel limit or load guard)")
 
     def _publish_pose(self, simulated_xy: np.ndarray, stamp: int) -> None:
         """The step's object pose: the simulator's, or the tracker's newest fresh one (``pose_source: topic``)."""

@@ -20,8 +20,8 @@ PERIOD_S = 1.0
 
 
 class ThrottledLog:
-    """``warning`` / ``error`` on ``logger`` at most once per ``period_s`` per kind of message, with the count
-    of those held back since the last line of the kind; thread-safe."""
+    """``info`` / ``warning`` / ``error`` on ``logger`` at most once per ``period_s`` per kind of message, with
+    the count of those held back since the last line of the kind; thread-safe."""
 
     def __init__(self, logger: Any, period_s: float = PERIOD_S, clock: Callable[[], float] = time.monotonic) -> None:
         self._logger, self._period_s, self._clock = logger, period_s, clock
@@ -30,6 +30,10 @@ class ThrottledLog:
         self._lock = threading.Lock()
 
     # Each level writes from its own line: rclpy keeps one severity per call site and raises on another.
+    def info(self, message: str) -> None:
+        if (line := self._line(message)) is not None:
+            self._logger.info(line)
+
     def warning(self, message: str) -> None:
         if (line := self._line(message)) is not None:
             self._logger.warning(line)
