@@ -62,7 +62,13 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, names, stamp_to_ns
-from t42_transfer.conventions import ACTION_LIMIT, CONTROL_PERIOD_NS, CONTROL_PERIOD_S, RANDOM_POLICY_LIMIT
+from t42_transfer.conventions import (
+    ACTION_LIMIT,
+    CONTROL_PERIOD_NS,
+    CONTROL_PERIOD_S,
+    MAX_PLAN_HORIZON,
+    RANDOM_POLICY_LIMIT,
+)
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
@@ -85,8 +91,8 @@ class ExplorerParams:
     """The explorer's ROS parameters; all but the recorder services take effect with the next episode."""
 
     episodes: int = param(5, "episodes to run; the node finishes after the last", min=1, max=1_000_000)
-    steps: int = param(100, "random actions per episode, sent as one trajectory (the episode may end earlier)",
-                       min=1, max=1_000_000)
+    steps: int = param(100, "random actions per episode, sent as one trajectory (the episode may end earlier; "
+                       "at most the longest trajectory a driver takes)", min=1, max=MAX_PLAN_HORIZON)
     hold_max: int = param(5, "each random action is held 1..hold_max steps", min=1, max=1_000_000)
     limit: float = param(RANDOM_POLICY_LIMIT, "random actions are uniform in [-limit, limit] per actuator",
                          min=0.0, max=ACTION_LIMIT, constraints="> 0")
