@@ -183,6 +183,11 @@ def test_an_unknown_method_is_aborted_with_the_reason_and_nothing_runs(ros, tmp_
     named_nothing = client.result(client.send("direct", ["", str(tmp_path / "missing")]))
     assert named_nothing.status == GoalStatus.STATUS_ABORTED and "too little data" in named_nothing.result.message
     assert len(named_nothing.result.skipped_bags) == 2 == len(named_nothing.result.skipped_reasons)
+    bag = add_target_bag(rig.bag_dir, "episode_001")
+    twice = client.result(client.send("direct", [str(bag), str(rig.bag_dir / ".." / rig.bag_dir.name / bag.name)]))
+    assert twice.status == GoalStatus.STATUS_ABORTED and "named more than once" in twice.result.message, \
+        twice.result.message  # its episodes would be trained on and held out at once
+    assert rig.model_files() == []
 
 
 def test_a_client_that_leaves_mid_goal_does_not_hurt_the_server(ros, tmp_path, source_model, monkeypatch, user):

@@ -400,7 +400,14 @@ def scores_by_kind(model: Any, source: Any, held_out: TrajectorySet) -> dict[str
 def bags_to_read(spec: OnlineTransferSpec, state: Mapping[str, Any]) -> list[Path]:
     """The bags a transfer reads: exactly those named (``exact_bags``), else the candidates (``bags``, or the
     finished bags in ``bag_dir``) no earlier transfer used, or all of them once one is new (not ``new_bags_only``).
-    TransferRefused when there are none."""
+    TransferRefused when there are none, or when a bag is named twice (its episodes would be held out and trained
+    on at once, and the held-out score flatter the model)."""
+    named: dict[str, list[Path]] = {}
+    for bag in spec.bags:
+        named.setdefault(bag_key(bag), []).append(bag)
+    twice = [str(paths[0]) for paths in named.values() if len(paths) > 1]
+    if twice:
+        raise TransferRefused(f"bags named more than once: {', '.join(twice)}")
     if spec.exact_bags:
         if not spec.bags:
             raise TransferRefused("no bags named")
