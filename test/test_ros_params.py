@@ -92,6 +92,7 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3, extra=("a", "b"))
     assert [new.rate for _, new in node.changes] == [4.0, 4.0, 4.0]
     assert node.changes[-1][1].seed == 3
+    assert set_(rate=4.0) == [(True, "")] and len(node.changes) == 3  # set again to its value: no change to act on
     assert set_(use_sim_time=True) == [(True, "")]  # rclpy's own parameters pass through
     (unset,) = set_(seed=None)  # PARAMETER_NOT_SET: rclpy would undeclare the parameter
     assert unset[0] is False and "cannot be unset at run time" in unset[1]

@@ -258,9 +258,10 @@ class MockDriver(Node):
 
     def _on_seed_set(self, parameters: list[Any]) -> None:
         """A seed set, even to the value it had, applies from the next reset (a grasp made again)."""
-        if any(p.name == "seed" for p in parameters):
+        seed = next((p for p in parameters if p.name == "seed"), None)
+        if seed is not None:  # (its value from the set itself: this may run before the params dataclass is updated)
             self._seeded_from = self.episode + 1
-            self.log.info(f"the next reset grasps with seed {self.params.seed}")
+            self.log.info(f"the next reset grasps with seed {seed.value}")
 
     def _on_params(self, old: MockDriverParams, new: MockDriverParams) -> None:
         if new.pose_source != old.pose_source:

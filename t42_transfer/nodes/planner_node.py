@@ -593,5 +593,6 @@ class PlannerNode(Node):
             self.log.info(f"goal {result.goal_mm} mm: {result.horizon}-step plan, "
                           f"predicted error {result.predicted_error_mm:.2f} mm")
         else:
-            self.per_message.warning(f"refused goal {result.goal_mm} mm ({result.status}): {result.reason}")
+            goal = "" if result.goal_mm is None else f" {result.goal_mm} mm"
+            self.per_message.warning(f"refused goal{goal} ({result.status}): {result.reason}")
         self._result_pub.publish(plan_result_msg(result, self._now_ns(), kit=RCLPY))

@@ -281,5 +281,5 @@ class LiveParams(Generic[P]):
         if self._pending is None:
             return
         old, self.value, self._pending = self.value, self._pending, None
-        if self._on_change is not None:
+        if self._on_change is not None and self.value != old:  # a value set again changes nothing
             self._on_change(old, self.value)
