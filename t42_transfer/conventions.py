@@ -44,6 +44,10 @@ REAL_HAND_ACTIONS = (
 )
 """The real hands' discrete moves: both fingers together, against each other, or one alone."""
 
+MAX_OBJECT_DISTANCE_MM = 1000.0
+"""A held object is a few centimetres above the palm: a tracker pose farther than this from ``t42_base`` is not
+of the object in the hand (a marker elsewhere in view, a bridge's unit error) and no driver publishes it."""
+
 MAX_PLAN_SAMPLES = 1_000_000
 MAX_PLAN_HORIZON = 10_000
 MAX_REFINE = 1000

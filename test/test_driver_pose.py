@@ -40,6 +40,8 @@ def test_a_new_grasp_forgets_the_old_pose() -> None:
 @pytest.mark.parametrize("frame, xy, stamp, reason", [
     ("world", (0.0, 80.0), S, "object pose is in frame 'world'"),
     ("t42_base", (float("nan"), 80.0), S, "non-finite"),
+    ("t42_base", (1e33, 80.0), S, "1e+30 m from t42_base cannot be in the hand"),
+    ("t42_base", (-1001.0, 80.0), S, "cannot be in the hand"),
     ("t42_base", (0.0, 80.0), 0, "its header stamp is unset (0)"),
 ])
 def test_a_pose_that_cannot_be_a_steps_is_refused_with_the_reason(frame, xy, stamp, reason) -> None:

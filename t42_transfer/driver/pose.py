@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from msg_adapters import object_xy_mm, stamp_to_ns
+from t42_transfer.conventions import MAX_OBJECT_DISTANCE_MM
 
 
 class NewestPose:
@@ -33,11 +34,16 @@ class NewestPose:
 
     def receive_msg(self, msg: Any) -> str | None:
         """Keep a ``PoseStamped`` from the tracker; the reason it was refused (None: kept).  A pose in another
-        frame, with a non-finite value or an unset stamp is refused: none of them can be a step's pose."""
+        frame, with a non-finite value, farther from the palm than any held object, or with an unset stamp is
+        refused: none of them can be a step's pose."""
         try:
             xy = object_xy_mm(msg)
         except ValueError as err:
             return str(err)
+        distance_mm = float(np.hypot(*xy))
+        if distance_mm > MAX_OBJECT_DISTANCE_MM:
+            return (f"the object at {distance_mm / 1000:.3g} m from t42_base cannot be in the hand (at most "
+                    f"{MAX_OBJECT_DISTANCE_MM / 1000:g} m)")
         stamp = stamp_to_ns(msg.header.stamp)
         if stamp <= 0:
             return "its header stamp is unset (0)"
