@@ -94,6 +94,11 @@ JSON_MAX_BYTES = 1 << 28
 """Largest JSON result file read (256 MiB); a 100-goal benchmark's trials are about 1 MiB."""
 
 
+def json_number(value: object) -> bool:
+    """Whether a value read from JSON is a number (int or float, NaN included), not a bool (an int in Python)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def read_json(path: str | os.PathLike[str], what: str) -> Any:
     """The JSON document in ``path`` (a ``what`` this project wrote, read back); ValueError naming the file."""
     data = read_whole(path, what, JSON_MAX_BYTES)

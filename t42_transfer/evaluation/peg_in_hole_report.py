@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from t42_transfer.evaluation.peg_in_hole import BASELINES, DO_NOTHING, Row, Trial, summarise
-from t42_transfer.files import read_json
+from t42_transfer.files import json_number, read_json
 
 
 @dataclass(frozen=True)
@@ -167,14 +167,10 @@ def write_report(out: Path, rows: Sequence[Row], trials: Sequence[Trial], tolera
 _FIELD_CHECKS = {
     "str": lambda v: isinstance(v, str),
     "int": lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
-    "float": lambda v: _is_number(v),
-    "float | None": lambda v: v is None or _is_number(v),
+    "float": json_number,
+    "float | None": lambda v: v is None or json_number(v),
 }
 """A stored trial's field, by its annotation in :class:`Trial`: whether a value read back from JSON is one."""
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def stored_trials(path: Path) -> tuple[list[Trial], tuple[float, ...]]:
@@ -188,7 +184,7 @@ def stored_trials(path: Path) -> tuple[list[Trial], tuple[float, ...]]:
         raise refuse("no 'config' object")
     tolerances = stored["config"].get("tolerances_mm")
     if (not isinstance(tolerances, list) or not tolerances
-            or not all(_is_number(t) and 0 < t < float("inf") for t in tolerances)):
+            or not all(json_number(t) and 0 < t < float("inf") for t in tolerances)):
         raise refuse(f"its config's tolerances_mm {tolerances!r} are not positive numbers")
     raw = stored.get("trials")
     if not isinstance(raw, list) or not raw:

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from t42_transfer.files import read_json
+from t42_transfer.files import json_number, read_json
 from t42_transfer.models.baselines import HoldStill
 
 if TYPE_CHECKING:
@@ -67,7 +67,7 @@ def _results_problem(content: Any) -> str | None:
             return f"row {i} is not a cell's row (an object with its 'method')"
         for key in ROW_NUMBERS:
             value = row.get(key, "missing")
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+            if value is not None and not json_number(value):
                 return f"row {i} ({row['method']}): {key!r} is {value!r}, not a number"
     return None
 
