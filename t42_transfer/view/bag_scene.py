@@ -9,12 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.planning import candidates_xy_mm
-from t42_transfer.data.bag.storage import bag_files
+from t42_transfer.data.bag.playback import open_bag
 from t42_transfer.data.errors import BagError
 
 
@@ -55,26 +54,27 @@ def bag_scene_inputs(bag: str | Path, at_s: float | None = None) -> SceneInputs:
     read (a missing path, no bag, a FIFO where a bag file belongs, a message that is not what its topic carries)
     and for a time after the bag's end."""
     path = Path(bag)
-    bag_files(path)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
+    reader = open_bag(path, "read for a snapshot")
     inputs = SceneInputs()
     try:
-        with AnyReader([path], default_typestore=ma.TYPESTORE) as reader:
-            wanted = [c for c in reader.connections if input_reader(c.topic)]
-            inputs.start_ns = reader.start_time
-            until = None if at_s is None else reader.start_time + round(at_s * 1e9)
-            if until is not None and until > reader.end_time:
-                raise BagError(path, f"ends {(reader.end_time - reader.start_time) / 1e9:.1f} s after its first "
-                                     f"message: no scene at {at_s:g} s")
-            for conn, log_ns, raw in reader.messages(connections=wanted):
-                if until is not None and log_ns > until:
-                    break
-                field, read = input_reader(conn.topic)
-                value = read(reader.deserialize(raw, conn.msgtype))
-                if value is not None:
-                    setattr(inputs, field, value)
-                    inputs.log_ns = log_ns
+        wanted = [c for c in reader.connections if input_reader(c.topic)]
+        inputs.start_ns = reader.start_time
+        until = None if at_s is None else reader.start_time + round(at_s * 1e9)
+        if until is not None and until > reader.end_time:
+            raise BagError(path, f"ends {(reader.end_time - reader.start_time) / 1e9:.1f} s after its first "
+                                 f"message: no scene at {at_s:g} s")
+        for conn, log_ns, raw in reader.messages(connections=wanted):
+            if until is not None and log_ns > until:
+                break
+            field, read = input_reader(conn.topic)
+            value = read(reader.deserialize(raw, conn.msgtype))
+            if value is not None:
+                setattr(inputs, field, value)
+                inputs.log_ns = log_ns
     except BagError:
         raise
     except Exception as err:  # rosbags and the readers raise many types for what is not a sound bag
         raise BagError(path, f"cannot be read for a snapshot ({type(err).__name__}: {err})") from None
+    finally:
+        reader.close()
     return inputs

@@ -2,7 +2,7 @@
 
 Each bag topic is a channel (``cdr``, the ``ros2msg`` definition the bag stores, else the one this machine knows);
 messages go out as the bag holds them, at their log times (the server's time follows them), paced by a
-:class:`~t42_transfer.nodes.player.Timeline`.  The server advertises the bag's time range and the PlaybackControl
+:class:`~t42_transfer.data.bag.playback.Timeline`.  The server advertises the bag's time range and the PlaybackControl
 capability: the Foxglove app's play/pause button, speed and seek bar drive it.  ``/view/markers`` is added, drawn as
 the live view draws it from the bag's hand topics (and its goals and planned paths, when it holds them), one
 array at each step's joint state.  Playback starts paused at the bag's first message; at the end it reports Ended
@@ -27,16 +27,13 @@ from foxglove.websocket import (
     PlaybackStatus,
 )
 from rclpy.serialization import serialize_message
-from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.markers import MARKER_ARRAY, scene_markers
 from msg_adapters.schemas import message_definition
-from t42_transfer.data.bag.storage import bag_files
-from t42_transfer.data.errors import BagError
+from t42_transfer.data.bag.playback import Timeline, open_bag
 from t42_transfer.hand.params import variant
-from t42_transfer.nodes.player import Timeline
 from t42_transfer.view.bag_scene import SceneInputs, input_reader
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
 from t42_transfer.view.server import start_server
@@ -60,12 +57,7 @@ class BagServer:
     def __init__(self, bag: str | Path, host: str = "127.0.0.1", port: int = 8765, hand: str = "target",
                  tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> None:
         path = Path(bag)
-        bag_files(path)  # before rosbags opens anything: a FIFO where a file belongs would block it forever
-        try:
-            self._reader = AnyReader([path], default_typestore=ma.TYPESTORE)
-            self._reader.open()
-        except Exception as err:  # rosbags raises many types for what is not a sound bag
-            raise BagError(path, f"cannot be served ({type(err).__name__}: {err})") from None
+        self._reader = open_bag(path, "served")
         self.path = path
         self.start_ns, self.end_ns = self._reader.start_time, max(self._reader.end_time - 1, self._reader.start_time)
         self.sent = 0

@@ -1,0 +1,76 @@
+"""Opening a bag to play it (one check for the player, the view's server and its snapshots) and the playback clock."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+from bag_builders import fixture_copy
+from fuzz_harness import DecoderWorker
+
+from t42_transfer.data.bag import write_bag
+from t42_transfer.data.bag.playback import Timeline, open_bag
+from t42_transfer.data.errors import BagError
+
+BAG = Path(__file__).resolve().parents[1] / "bags" / "target_small"
+
+
+def test_a_sound_bag_opens_with_its_topics() -> None:
+    reader = open_bag(BAG)
+    try:
+        assert {c.topic for c in reader.connections} >= {"/hand/object_pose", "/hand/applied_action"}
+        assert reader.end_time > reader.start_time
+    finally:
+        reader.close()
+
+
+def test_refusals_name_the_bag_and_what_it_was_opened_for(tmp_path: Path, small_set: object) -> None:
+    killed = tmp_path / "killed"
+    shutil.copytree(BAG, killed)
+    (killed / "metadata.yaml").unlink()
+    with pytest.raises(BagError, match=r"killed.*cannot be served .*t42 bag repair"):
+        open_bag(killed, "served")
+    sqlite = write_bag(tmp_path / "sqlite", small_set, storage="sqlite3")
+    (sqlite / "sqlite.db3").write_bytes(b"SQLite format 3\x00" + bytes(200))
+    with pytest.raises(BagError, match="cannot be played") as refused:
+        open_bag(sqlite)
+    assert "repair" not in str(refused.value)  # repair takes MCAP bags only
+    with pytest.raises(BagError, match="does not exist"):
+        open_bag(tmp_path / "missing")
+
+
+@pytest.mark.parametrize("where", ["metadata.yaml", "target_small.mcap", "bare file"])
+def test_a_fifo_where_a_bag_file_belongs_is_refused_before_opening(where: str) -> None:
+    """Opening a FIFO blocks forever (``t42 bag play`` hung): the worker's alarm fails a hang, not the suite."""
+    with DecoderWorker("t42_transfer.data.bag.playback:open_bag", timeout_s=10.0) as worker:
+        if where == "bare file":
+            bag = worker.new_case_dir() / "bag.mcap"
+        else:
+            bag = fixture_copy(worker.new_case_dir())
+            (bag / where).unlink()
+        os.mkfifo(bag if where == "bare file" else bag / where)
+        verdict = worker.check_path(bag)
+    assert verdict.outcome == "refused" and "is a FIFO" in verdict.detail, verdict
+
+
+def test_timeline_maps_bag_time_to_steady_time() -> None:
+    now = [1_000]
+    line = Timeline(5_000, rate=2.0, paused=True, now_ns=lambda: now[0])
+    assert line.due_ns(6_000) == float("inf") and line.bag_now() == 5_000
+    now[0] = 2_000
+    line.resume()
+    assert line.due_ns(6_000) == 2_500 and line.bag_now() == 5_000
+    now[0] = 2_500
+    assert line.bag_now() == 6_000
+    line.set_rate(4.0)
+    assert line.due_ns(8_000) == 3_000
+    line.pause()
+    now[0] = 9_999
+    assert line.bag_now() == 6_000
+    line.resume()
+    line.restart(5_000, 10_000.4)  # a loop's next pass: the first message again, at a steady time to come
+    assert line.due_ns(5_400) == 10_100
+    now[0] = 10_050
+    assert line.bag_now() == 5_200
