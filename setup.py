@@ -33,11 +33,14 @@ data_files = [
     ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
     ("share/" + package_name, ["package.xml"]),
 ]
-for directory, pattern in (
-    ("share/" + package_name + "/launch", "launch/*.py"),
-    ("share/" + package_name + "/config", "configs/suite.yaml"),
+for directory, patterns in (
+    ("share/" + package_name + "/launch", ["launch/*.py"]),
+    # The node suite's params files (the launch file's params_file) and the Foxglove layout; the experiment
+    # configs stay in the repository.
+    ("share/" + package_name + "/config", ["configs/suite*.yaml", "configs/hardware_*.yaml",
+                                           "configs/foxglove_layout.json"]),
 ):
-    found = _files(pattern)
+    found = [f for pattern in patterns for f in _files(pattern)]
     if found:
         data_files.append((directory, found))
 

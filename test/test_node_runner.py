@@ -5,7 +5,6 @@ Each process test uses its own ROS_DOMAIN_ID (the ``ros_domain`` fixture) and LO
 
 from __future__ import annotations
 
-import ast
 import os
 import re
 import runpy
@@ -24,7 +23,7 @@ from ros_rig import assert_one_line_errors, unbuffered_env
 
 from t42_transfer.cli import main
 from t42_transfer.nodes.registry import NODES
-from t42_transfer.ros.launcher import node_sections
+from t42_transfer.ros.launcher import PACKAGE, launch_nodes, namespace_args, node_sections
 
 REPO = Path(__file__).resolve().parents[1]
 LAUNCH = REPO / "launch" / "t42_suite.launch.py"
@@ -42,7 +41,8 @@ def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGINT, timeout_s: floa
 
 
 # ------------------------------------------------------------------ registry, setup.py, launch file
-def _console_scripts() -> dict[str, str]:
+def _setup_kwargs() -> dict[str, Any]:
+    """What setup.py gives setuptools.setup, run as a build runs it (from the repository)."""
     captured: dict[str, Any] = {}
     original, cwd = setuptools.setup, os.getcwd()
     try:
@@ -51,26 +51,87 @@ def _console_scripts() -> dict[str, str]:
         runpy.run_path(str(REPO / "setup.py"))
     finally:
         setuptools.setup, _ = original, os.chdir(cwd)
-    pairs = (line.split("=", 1) for line in captured["entry_points"]["console_scripts"])
+    return captured
+
+
+def _console_scripts() -> dict[str, str]:
+    pairs = (line.split("=", 1) for line in _setup_kwargs()["entry_points"]["console_scripts"])
     return {name.strip(): target.strip() for name, target in pairs}
 
 
-def test_registry_setup_py_and_launch_file_agree() -> None:
+SUITE_PARAMS = sorted([*REPO.glob("configs/suite*.yaml"), *REPO.glob("configs/hardware_*.yaml")])
+"""The node suite's params files: the package installs them for the launch file."""
+
+
+def test_registry_and_setup_py_agree() -> None:
     scripts = _console_scripts()
     assert scripts.pop("t42") == "t42_transfer.cli:main"
     assert scripts == {name: "t42_transfer.ros.runner:main" for name in NODES}
     for name, spec in NODES.items():
         assert issubclass(spec.node_class(), Node), name
 
-    tree = ast.parse(LAUNCH.read_text(), str(LAUNCH))
-    compile(tree, str(LAUNCH), "exec")
-    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "Node"]
-    assert len(calls) == 1 and {kw.value.value for kw in calls[0].keywords if kw.arg == "package"} == {"t42_transfer"}
-    suite = [n for n in ast.walk(tree) if isinstance(n, ast.Assign) and getattr(n.targets[0], "id", None) == "NODES"]
-    executables = list(ast.literal_eval(suite[0].value))
-    assert executables == ["mock_driver", "recorder", "transfer_server", "planner"]
-    assert set(executables) <= set(scripts)
-    assert node_sections(SUITE) == executables, "the launch file runs the suite's nodes"
+
+def test_setup_py_installs_the_launch_file_and_every_suite_params_file() -> None:
+    kwargs = _setup_kwargs()
+    installed = {(directory, Path(f).name) for directory, files in kwargs["data_files"] for f in files}
+    share = "share/" + PACKAGE
+    assert kwargs["name"] == PACKAGE
+    assert (share + "/launch", LAUNCH.name) in installed
+    assert len(SUITE_PARAMS) >= 4 and SUITE in SUITE_PARAMS
+    for params in [*SUITE_PARAMS, REPO / "configs" / "foxglove_layout.json"]:
+        assert (share + "/config", params.name) in installed, params.name
+    assert not any(name.startswith("real_") for _, name in installed), "experiment configs are not params files"
+
+
+@pytest.mark.parametrize("params", SUITE_PARAMS, ids=lambda p: p.name)
+def test_launch_starts_the_nodes_of_its_params_file_as_t42_up_does(params: Path) -> None:
+    scripts = _console_scripts()
+    for namespace, expected_ns in (("", ""), ("left", "/left"), ("/right/", "/right")):
+        nodes = launch_nodes(params, namespace)
+        assert [n["executable"] for n in nodes] == [n["name"] for n in nodes] == node_sections(params)
+        for node in nodes:
+            assert node["package"] == PACKAGE and node["executable"] in scripts
+            assert node["parameters"] == [str(params)] and node["namespace"] == expected_ns
+            remaps = [f"{old}:={new}" for old, new in node["remappings"]]
+            # t42 up's arguments for the same namespace: the namespace itself, then the same remappings
+            assert ["-r", f"__ns:={expected_ns}", *[a for r in remaps for a in ("-r", r)]] == (
+                namespace_args(namespace) or ["-r", "__ns:="])
+    drivers = {n["executable"] for n in launch_nodes(params)} & {"mock_driver", "dynamixel_driver"}
+    assert drivers == ({"dynamixel_driver"} if params.name.startswith("hardware_") else {"mock_driver"})
+
+
+def test_the_launch_file_runs_launch_nodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """ROS's launch packages are not among the wheels: the launch file is run against stand-ins of their four
+    names, which record what it asks of them."""
+    import types
+
+    share = tmp_path / "share"
+
+    class Recorded:
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            self.args, self.kwargs = args, kwargs
+
+    class LaunchConfiguration(Recorded):
+        def perform(self, context: dict[str, str]) -> str:
+            return context[self.args[0]]
+
+    stand_ins = {
+        "launch": {"LaunchContext": dict, "LaunchDescription": Recorded},
+        "launch.actions": {"DeclareLaunchArgument": Recorded, "OpaqueFunction": Recorded},
+        "launch.substitutions": {"LaunchConfiguration": LaunchConfiguration},
+        "launch_ros.actions": {"Node": Recorded},
+        "ament_index_python.packages": {"get_package_share_directory": lambda package: str(share / package)},
+    }
+    for module, attributes in stand_ins.items():
+        monkeypatch.setitem(sys.modules, module, types.SimpleNamespace(**attributes))
+    description = runpy.run_path(str(LAUNCH))["generate_launch_description"]()
+    declared = {a.args[0]: a.kwargs["default_value"] for a in description.args[0][:-1]}
+    assert declared == {"params_file": str(share / PACKAGE / "config" / "suite.yaml"), "namespace": ""}
+    opaque = description.args[0][-1]
+    real = REPO / "configs" / "hardware_real.yaml"
+    started = opaque.kwargs["function"]({"params_file": str(real), "namespace": "/left"})
+    assert [node.kwargs for node in started] == launch_nodes(real, "/left")
+    assert "dynamixel_driver" in [node.kwargs["executable"] for node in started]
 
 
 def test_node_list_and_errors(capsys: pytest.CaptureFixture[str]) -> None:

@@ -111,8 +111,11 @@ def test_ament_index_and_package_xml_installed(colcon_build):
     assert installed_xml.read_bytes() == (REPO / "package.xml").read_bytes()
     for launch_file in sorted((REPO / "launch").glob("*.py")):
         assert (share / PKG / "launch" / launch_file.name).is_file()
-    for config_file in sorted((REPO / "config").glob("*.yaml")):
-        assert (share / PKG / "config" / config_file.name).is_file()
+    params_files = sorted([*REPO.glob("configs/suite*.yaml"), *REPO.glob("configs/hardware_*.yaml")])
+    assert len(params_files) >= 4, "the suite's params files moved"
+    for config_file in [*params_files, REPO / "configs" / "foxglove_layout.json"]:
+        installed = share / PKG / "config" / config_file.name
+        assert installed.read_bytes() == config_file.read_bytes(), config_file.name
 
 
 def _site_packages(install: Path) -> Path:

@@ -37,6 +37,8 @@ from t42_transfer.nodes.registry import NODES
 from t42_transfer.ros.runner import RUNNING, keep_discovery_local
 from t42_transfer.yaml_files import read_yaml
 
+PACKAGE = "t42_transfer"
+"""The ROS package whose executables (setup.py's console scripts, one per node) a launch file starts."""
 WILDCARDS = ("/**", "**")
 PARAMS_KEY = "ros__parameters"
 
@@ -67,10 +69,15 @@ def namespace_args(namespace: str) -> list[str]:
     its graph's clock) therefore also remaps ``/clock`` into its namespace, so two simulated hands
     on one graph do not share a clock.
     """
+    namespace = _absolute(namespace)
     if not namespace:
         return []
-    namespace = "/" + namespace.strip("/")
     return ["-r", f"__ns:={namespace}", "-r", f"{names.CLOCK}:={namespace}{names.CLOCK}"]
+
+
+def _absolute(namespace: str) -> str:
+    """``left``, ``/left/`` -> ``/left``; the root namespace -> ``""``."""
+    return "/" + namespace.strip("/") if namespace.strip("/") else ""
 
 
 def read_params_file(path: str | Path) -> dict[str, Any]:
@@ -165,6 +172,18 @@ def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[st
     if not sections:
         raise ValueError(f"{config}: no node sections to run")
     return sections
+
+
+def launch_nodes(params_file: str | Path, namespace: str = "") -> list[dict[str, Any]]:
+    """The launch_ros ``Node`` arguments ``launch/t42_suite.launch.py`` starts for ``params_file``: the nodes
+    :func:`plan_nodes` names, as ``t42 up`` starts them (one process each, the file as their parameters, and in a
+    namespace its own ``/clock``, :func:`namespace_args`).  So ``ros2 launch`` with ``hardware_real.yaml`` starts
+    the Dynamixel driver, not the simulated hand it started before it read the file."""
+    namespace = _absolute(namespace)
+    clock = [(names.CLOCK, namespace + names.CLOCK)] if namespace else []
+    return [{"package": PACKAGE, "executable": name, "name": name, "namespace": namespace,
+             "parameters": [str(params_file)], "remappings": clock, "output": "screen", "emulate_tty": True}
+            for name in plan_nodes(params_file)]
 
 
 def _forward(child: Child, stream: IO[str], out: TextIO, lock: threading.Lock) -> None:
