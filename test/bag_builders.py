@@ -75,6 +75,11 @@ REPO = Path(__file__).resolve().parents[1]
 TARGET = REPO / "bags" / "target_small"
 
 
+def fixture_message_count(bag: Path = TARGET) -> int:
+    """The message count a fixture bag's shipped metadata.yaml gives (what a repair must find again)."""
+    return int(yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["message_count"])
+
+
 def fixture_copy(tmp_path: Path, edit=None) -> Path:
     """The target fixture bag copied; ``edit(info)`` changes its rosbag2_bagfile_information in place."""
     bag = Path(shutil.copytree(TARGET, tmp_path / "target_small"))

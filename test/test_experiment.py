@@ -531,7 +531,9 @@ def test_the_authors_b_to_a_keeps_test_sequences_out_of_the_source(t42_real_dir:
         assert exp.cell_excluded(cfg, cell, *sides) == tested  # path i of hand B ran path i of hand A's sequence
     run_experiment(cfg, tmp_path / "runs", progress=False)
     results = json.loads((tmp_path / "runs" / "real_b_to_a_authors" / "results.json").read_text())
-    for meta in (read_metadata(p) for p in (tmp_path / "runs" / "sources").glob("*.safetensors")):
+    metas = [read_metadata(p) for p in (tmp_path / "runs" / "sources").glob("*.safetensors")]
+    assert len(metas) == len(set(map(tuple, results["excluded_source_episodes"].values()))), "a source per draw"
+    for meta in metas:
         left_out = meta["extra"]["excluded_source_episodes"]
         assert len(left_out) == 3 and left_out in results["excluded_source_episodes"].values()
         kept = [t for t, origin in zip(sides[0].data, sides[0].origins, strict=True) if origin not in left_out]

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from bag_builders import fixture_message_count
 from ros_rig import REPO, start_node, stop
 from rosbags.highlevel import AnyReader
 
@@ -63,7 +64,7 @@ def test_replayed_bag_is_recorded_byte_identical(ros_domain: int, tmp_path: Path
             [sys.executable, "-m", "t42_transfer.cli", "bag", "play", str(BAG), "--rate", "20",
              "--wait-subscribers", "30"], cwd=REPO, capture_output=True, text=True, timeout=120)
         assert player.returncode == 0, player.stderr
-        assert "published 1088 messages on 3 topics" in player.stdout
+        assert f"published {fixture_message_count(BAG)} messages on 3 topics" in player.stdout
         assert "not every topic" not in player.stderr
         time.sleep(1.0)  # the bag's last state waits step_hold_s for an action that never comes
     finally:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from t42_transfer.ros.logs import ThrottledLog
 
 
@@ -49,7 +51,7 @@ def test_other_kinds_and_levels_are_not_held_back_by_a_flood() -> None:
     assert lines.errors == ["rejected hand/command: could not read the message"]
 
 
-def test_warnings_and_errors_mix_on_one_rclpy_logger() -> None:
+def test_warnings_and_errors_mix_on_one_rclpy_logger(capfd: pytest.CaptureFixture[str]) -> None:
     """rclpy keeps one severity per call site: both levels through one write line raised ValueError."""
     from rclpy.logging import get_logger
 
@@ -57,3 +59,6 @@ def test_warnings_and_errors_mix_on_one_rclpy_logger() -> None:
     for _ in range(2):
         log.warning("a refused command")
         log.error("a failed camera frame")
+    err = capfd.readouterr().err
+    assert err.count("a refused command") == 1 and err.count("a failed camera frame") == 1, err  # the second held
+    assert "[WARN]" in err and "[ERROR]" in err

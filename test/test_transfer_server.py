@@ -230,7 +230,7 @@ def gated_method(monkeypatch: pytest.MonkeyPatch, name: str = "slow") -> tuple[t
     return entered, release
 
 
-def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_path, source_model, monkeypatch):
+def test_second_call_while_training_is_answered_busy_without_waiting(ros, tmp_path, source_model, monkeypatch):
     entered, release = gated_method(monkeypatch)
     rig = Rig(ros, tmp_path, source_model, method="slow")
     add_target_bag(rig.bag_dir)
@@ -239,9 +239,7 @@ def test_second_call_while_training_is_answered_busy_within_a_second(ros, tmp_pa
     try:
         assert ros.spin_until(entered.is_set, 60.0)
         assert rig.server.busy
-        start = time.monotonic()
-        second = ros.call(rig.client, Trigger.Request(), timeout_s=5.0)
-        assert time.monotonic() - start < 1.0
+        second = ros.call(rig.client, Trigger.Request(), timeout_s=5.0)  # answered while training is held
         assert not second.success and second.message.startswith("busy") and "slow" in second.message
         assert "training" in second.message
         before = len(rig.reports)
