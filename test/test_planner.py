@@ -203,6 +203,54 @@ def test_the_elite_mean_answer_reaches_a_linear_models_goal_for_one_more_rollout
         PlannerConfig(answer="median")
 
 
+def test_the_polish_takes_a_rough_plan_to_a_linear_models_goal() -> None:
+    """Ten random sequences and no refinement miss a 40-step goal; gradient steps on the best one reach it."""
+    goal = np.array([START[0] + 12.0, START[1] - 9.0])
+    rough = PlannerConfig(horizon=40, samples=10, refine_iterations=0)
+    before = Planner(Toy(), BOX, rough).plan(START, goal)
+    after = Planner(Toy(), BOX, replace(rough, polish_steps=100, polish_lr=0.05)).plan(START, goal)
+    assert not before.ok and after.ok and after.error_mm < 0.5 * before.error_mm
+    assert len(after.actions) == 40 and np.abs(after.actions).max() <= 1.0
+    assert np.allclose(executed(after.actions), after.predicted[-1, :2], atol=1e-4)
+    assert after.evaluated == before.evaluated + 1
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**16), steps=st.integers(1, 5), lr=st.floats(0.01, 2.0))
+def test_a_polished_plan_is_never_predicted_worse_and_stays_in_the_box(seed: int, steps: int, lr: float) -> None:
+    torch.manual_seed(seed)
+    model = TransitionModel(hand_norm())
+    goal = np.array([START[0] + 5.0, START[1] - 5.0])
+    config = PlannerConfig(horizon=12, samples=20, refine_iterations=1, seed=seed)
+    plain = Planner(model, BOX, config).plan(START, goal)
+    polished = Planner(model, BOX, replace(config, polish_steps=steps, polish_lr=lr)).plan(START, goal)
+    assert polished.error_mm <= plain.error_mm
+    assert np.isfinite(polished.actions).all() and np.abs(polished.actions).max() <= 1.0
+    assert all(p.requires_grad and p.grad is None for p in model.parameters())  # the model is not trained
+
+
+def test_a_polish_into_nan_keeps_the_searched_plan() -> None:
+    """The Toy predicts NaN once x passes 4 mm to the right: the goal lies beyond, the polish runs into it."""
+    goal = np.array([START[0] + 6.0, START[1]])
+    config = PlannerConfig(horizon=10, samples=50, refine_iterations=2)
+    toy = Toy(nan_beyond=START[0] + 4.0)
+    plain = Planner(toy, BOX, config).plan(START, goal)
+    polished = Planner(toy, BOX, replace(config, polish_steps=50, polish_lr=0.5)).plan(START, goal)
+    assert np.array_equal(polished.actions, plain.actions) and polished.error_mm == plain.error_mm
+    assert polished.rejected["nan"] == plain.rejected["nan"] + 1
+
+
+def test_the_polish_is_refused_where_it_has_no_gradient_to_follow() -> None:
+    for settings_ in ({"horizon_search": True}, {"perturbations": 3}, {"uncertainty": "dropout", "members": 2}):
+        with pytest.raises(ValueError, match="polish refines a fixed-length plan"):
+            PlannerConfig(polish_steps=5, **settings_)  # type: ignore[arg-type]
+    for bad in ({"polish_steps": -1}, {"polish_steps": 1001}, {"polish_lr": 0.0}, {"polish_lr": math.nan}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            PlannerConfig(**bad)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="differentiable rollout"):
+        Planner(_unsafe_between, BOX, PlannerConfig(polish_steps=1))
+
+
 def _unsafe_between(x0: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
     """A time-major rollout, ``x += a``, whose safe sequences are not convex: NaN when the first action's
     x is within 0.3 of zero, so the mean of safe sequences on both sides is unsafe."""
