@@ -43,3 +43,26 @@ def test_a_message_just_older_than_the_released_step_is_late_not_a_clock_restart
     (step,) = buf.add("p", CLOCK_RESTART_NS, 0, b"p", 0.0)[0]
     assert buf.add("p", 1, 0, b"old", 0.1) == ([], True)  # within CLOCK_RESTART_NS of the newest: late
     assert buf.released_stamp == step.stamp
+
+
+def test_a_step_missing_part_of_its_state_waits_out_a_stalled_publisher() -> None:
+    """The soak's lost step: the driver published a step's pose, then stalled (a loaded machine) before its
+    joint states and action. Silence alone must not write the pose on its own and drop the rest as late."""
+    buf = StepBuffer(["p", "j", "a"], hold_s=1.0, required=["p", "j"])
+    buf.add("p", 10, 0, b"p10", 0.0)
+    assert buf.release(1.0) == [] and buf.release(3.9) == []  # silent for up to HOLD_CAP hold_s: still waiting
+    assert buf.add("j", 10, 0, b"j10", 3.9) == ([], False)  # the driver runs again: nothing late
+    (step,), late = buf.add("a", 10, 0, b"a10", 3.9)
+    assert not late and step.topics == {"p", "j", "a"}
+    buf.add("p", 20, 0, b"p20", 4.0)
+    buf.add("j", 20, 0, b"j20", 4.0)
+    (final,) = buf.release(5.0)  # the whole state, no action (an episode's final state): released on silence
+    assert final.stamp == 20 and final.topics == {"p", "j"}
+    buf.add("p", 30, 0, b"p30", 6.0)
+    assert buf.release(6.0 + HOLD_CAP - 0.01) == []
+    (given_up,) = buf.release(6.0 + HOLD_CAP)  # a state topic that went silent for good: HOLD_CAP hold_s at most
+    assert given_up.topics == {"p"}
+    buf.add("p", 40, 0, b"p40", 11.0)
+    assert buf.add("a", 50, 0, b"a50", 11.1) == ([], False)
+    released, _ = buf.add("j", 50, 0, b"j50", 11.1)  # the topics' next stamps prove j40 and a40 lost: no wait
+    assert [(s.stamp, s.topics) for s in released] == [(40, {"p"})]

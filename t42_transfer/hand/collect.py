@@ -57,7 +57,8 @@ class RandomPolicy:
 
 REAL_PATH_MOVE_WEIGHTS = (4.0, 1.0, 5.5, 5.5, 1.0, 1.0, 1.0, 1.0)
 """How often the real test paths hold each of ``REAL_HAND_ACTIONS`` (same order): of their 20
-holds, 11 move the fingers against each other, 4 close both, 4 move one finger, 1 opens both."""
+holds, 11 move the fingers against each other, 4 move one finger, 3 close both and 2 open both (the weights
+give those two 4 and 1, one hold off, as the stored sustained data sets were drawn)."""
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,7 @@ class SustainedPolicy:
     to ``weights`` (by default the real paths' mix, :data:`REAL_PATH_MOVE_WEIGHTS`), for a
     length log-uniform in ``[hold_min, hold_max]`` steps (rounded down; the last hold is cut
     at the episode's end).  The defaults span the real paths' complete holds (120-700
-    steps, quartiles about 185, 225 and 400); log-uniform keeps short holds common
+    steps, quartiles about 200, 225 and 375-400); log-uniform keeps short holds common
     (quartiles about 185, 290 and 450).
     """
 

@@ -73,8 +73,8 @@ def compare(
 ) -> tuple[list[BehaviourStats], dict[str, TrajectorySet]]:
     """Rows for each real set, then for each simulated hand replaying the real action sequences.
 
-    The real hands all ran the same sequences, so each simulated hand replays those
-    of the first set once; sets with other sequences are refused rather than mixed.
+    The real hands all ran the same sequences (a set may hold a path cut shorter), so each simulated hand
+    replays each path's longest recorded sequence once; sets with other sequences are refused rather than mixed.
     """
     sets = list(real_sets.values())
     first = sets[0]

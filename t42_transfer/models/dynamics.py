@@ -70,7 +70,9 @@ class LatentDynamics(nn.Module, abc.ABC):
         return ()
 
     def rollout_with_grad(self, x0: Tensor, actions: Tensor) -> Tensor:
-        """Open-loop prediction keeping the autograd graph (trajectory training)."""
+        """Open-loop prediction in the model's current mode (dropout on while training), keeping the autograd
+        graph: dropout-on evaluation (``t42 evaluate --dropout-draws``), the planner's dropout members and its gradient
+        polish."""
         _check_shapes(x0, actions)
         z = self.initial_latent(x0)
         states = [self.observe(z)]

@@ -53,8 +53,11 @@ later one (one publisher per topic delivers in order, so nothing more will come
 for it); a step still incomplete ``params.step_hold_s`` after its first message
 (an episode's final state waits for an action that never comes) is written as it
 is once no message has arrived for ``step_hold_s / 2`` (while messages keep
-coming, a backlog is being worked through and the rest of the step may be in it),
-and after ``HOLD_CAP * step_hold_s`` in any case (a topic that went silent).  A message
+coming, a backlog is being worked through and the rest of the step may be in it)
+when it holds the whole state, and after ``HOLD_CAP * step_hold_s`` in any case (a topic that
+went silent).  A step lacking part of its state is not written on silence alone: a
+driver stalled between its messages (a loaded machine) is silent too; the 20-minute
+soak lost a step that way.  A message
 for a stamp already written arrives too late and is dropped with a warning.  Bag
 changes happen between steps:
 
@@ -207,7 +210,7 @@ class Recorder(LooseMessages, Node):
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log)
         """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
-        self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p))
+        self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p), required=self._state_topics)
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
         requests = profile(names.REQUESTS)

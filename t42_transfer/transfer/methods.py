@@ -2,7 +2,8 @@
 
 Every method takes the source model (trained on the full source set), a little
 target data and the one :class:`TransferConfig`, and returns a model obeying the
-one contract (:class:`LatentDynamics`).  The source model is never modified.
+one contract (:class:`LatentDynamics`).  The source model's weights are never modified (the residual
+models hold it, in evaluation mode).
 Each training epoch is reported to ``on_epoch`` (see
 :class:`~t42_transfer.models.training.Progress`) under a phase name saying what
 is trained, so an epoch count reads right whatever the method.

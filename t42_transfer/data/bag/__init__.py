@@ -4,7 +4,8 @@ One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving me
 :mod:`.storage` reads storage files (MCAP record by record, sqlite3 through rosbags), :mod:`.metadata`
 parses ``metadata.yaml`` and ``custom_data``,
 :mod:`.episodes` turns hand messages into episodes, :mod:`.reader` reads a bag whole, :mod:`.playback` opens one
-to play in time order and paces it, and :mod:`.repair` rewrites a killed writer's bag.  The names here are the package's public API.
+to play in time order and paces it, and :mod:`.repair` rewrites a killed writer's bag.  The names here are the
+package's public API.
 """
 
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S, hand_namespace

@@ -4,8 +4,11 @@ Each topic has its own queue, so the messages of a step arrive in any order and 
 step's; writing them as they come could begin a bag with an action whose state is in the bag before.  A step
 is complete once every recorded topic has delivered its message for the stamp or a later one (one publisher
 per topic delivers in order); a step still incomplete ``hold_s`` after its first message is released as it is
-once no message has come for ``hold_s / 2``, and after ``HOLD_CAP * hold_s`` in any case.  Steady times are
-passed in, so the buffer is deterministic in tests; it needs no ROS.
+once no message has come for ``hold_s / 2``, if it holds every ``required`` topic (an episode's final state
+lacks only its action), and after ``HOLD_CAP * hold_s`` in any case.  A step missing a required message is
+not released on silence alone: a publisher stalled in the middle of a step (a loaded machine) is silent too, and
+the rest of the step comes when it runs again; a message that is truly lost is proved so by its topic's next
+stamp.  Steady times are passed in, so the buffer is deterministic in tests; it needs no ROS.
 """
 
 from __future__ import annotations
@@ -42,8 +45,11 @@ class StepBuffer:
     in, so the buffer is deterministic in tests.
     """
 
-    def __init__(self, topics: Iterable[str], hold_s: float, min_age_s: float = 0.0) -> None:
+    def __init__(self, topics: Iterable[str], hold_s: float, min_age_s: float = 0.0,
+                 required: Iterable[str] = ()) -> None:
         self.topics = tuple(topics)
+        self.required = frozenset(required)
+        """Topics a step must hold to be released on silence (the state's); see the module docstring."""
         self.hold_s = hold_s
         self.min_age_s = min_age_s
         """A complete step still waits this long (steady time) after its first message: room for a status
@@ -84,7 +90,9 @@ class StepBuffer:
 
     def _complete(self, step: Step, now_s: float) -> bool:
         age = now_s - step.first_seen_s
-        if age >= self.hold_s and (now_s - self._last_add_s >= self.hold_s / 2 or age >= HOLD_CAP * self.hold_s):
+        if age >= HOLD_CAP * self.hold_s:
+            return True
+        if age >= self.hold_s and now_s - self._last_add_s >= self.hold_s / 2 and self.required <= step.topics:
             return True
         if age < self.min_age_s:
             return False
