@@ -54,7 +54,8 @@ class RecorderParams:
     flush_period_s: float = param(1.0, "the open chunk reaches the file this often: at most this much "
                                        "recording is lost when the process is killed", min=1e-3, max=3600.0)
     step_hold_s: float = param(0.5, "a step still missing a message this long after its first (steady time) "
-                                    "is written as it is", min=1e-3, max=60.0)
+                                    "is written as it is once nothing has come for half of it; a step missing "
+                                    "part of its state waits up to 4x for it", min=1e-3, max=60.0)
     resume_free_mb: float = param(16.0, "after a write failed (a full disk), recording resumes by itself once "
                                         "out_dir's file system has this many MB free (or on ~/start)",
                                   min=0.0, max=1e6)
