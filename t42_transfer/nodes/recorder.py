@@ -58,7 +58,9 @@ when it holds the whole state, and after ``HOLD_CAP * step_hold_s`` in any case 
 went silent).  A step lacking part of its state is not written on silence alone: a
 driver stalled between its messages (a loaded machine) is silent too; the 20-minute
 soak lost a step that way.  A message
-for a stamp already written arrives too late and is dropped with a warning.  Bag
+for a step already written (its step went out on silence before the driver ran on) joins that step in its bag
+when the bag is still open and the step lacks it (a reader aligns a bag's messages by stamp, not by order); one
+for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag
 changes happen between steps:
 
 * start, stop, split: after the step in progress (the newest stamp received): the
@@ -99,7 +101,7 @@ from __future__ import annotations
 import shutil
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -143,6 +145,8 @@ STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 STATUS_NAME = "t42_transfer: recorder"
 """The recorder's status name on ``diagnostics``: at once on a write failure and on the resume, and each
 :data:`~msg_adapters.diagnostics.PERIOD_S` (ERROR while writing fails; OK recording, paused or idle)."""
+RECENT_STEPS = 1000
+"""Steps written lately whose late messages may still join them (100 s of a 10 Hz hand)."""
 
 
 # --------------------------------------------------------------------------- the node
@@ -171,7 +175,11 @@ class Recorder(LooseMessages, Node):
         self.received = 0
         """Messages received on the recorded topics and handled (counted when their callback ends)."""
         self.dropped = 0
-        """Messages not written (undecodable bytes, too late for their step, orphans, a failed write)."""
+        """Messages not written (undecodable bytes, too late for their step's bag, orphans, a failed write)."""
+        self.late_kept = 0
+        """Messages that came after their step was written and joined it in its bag."""
+        self._written: OrderedDict[int, tuple[BagWriter, set[str]]] = OrderedDict()
+        """The last :data:`RECENT_STEPS` steps written: stamp -> (their bag, their topics)."""
         self._bag: BagWriter | None = None
         self.write_failure: str | None = None
         """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
@@ -483,7 +491,8 @@ class Recorder(LooseMessages, Node):
             self._report("OK", f"not recording (call {names.RECORDER_START})")
 
     def _report(self, level: str, message: str) -> None:
-        self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, {"dropped": self.dropped},
+        counts = {"dropped": self.dropped, "late_kept": self.late_kept}
+        self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, counts,
                                                    self.get_clock().now().nanoseconds, kit=RCLPY))
 
     # ------------------------------------------------------------------ steps
@@ -506,6 +515,9 @@ class Recorder(LooseMessages, Node):
                 for topic, log_ns, data in step.messages:
                     bag.write(topic, log_ns, data)
                     self._spanned(log_ns)
+                self._written[step.stamp] = (bag, set(step.topics))
+                if len(self._written) > RECENT_STEPS:
+                    self._written.popitem(last=False)
             except OSError as err:  # a full disk: stop writing, say so once
                 self.dropped += len(step.messages)
                 self._write_failed(bag.path, err)
@@ -531,10 +543,7 @@ class Recorder(LooseMessages, Node):
                     self._first_stamp = stamp
                 released, late = self._buffer.add(topic, stamp, log_ns, bytes(data), time.monotonic())
                 if late:
-                    self.dropped += 1
-                    self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was "
-                                             f"already written (step_hold_s {self.params.step_hold_s} s passed, "
-                                             "or it is a duplicate)")
+                    self._write_late(topic, stamp, log_ns, bytes(data))
                 self._write_steps(released)
                 self._carry_out(self._buffer.oldest_pending)
         except Exception as err:  # never raise from a callback
@@ -542,6 +551,28 @@ class Recorder(LooseMessages, Node):
             self.log.error(f"could not record a message on {topic}: {err!r}")
         finally:
             self.received += 1
+
+    def _write_late(self, topic: str, stamp: int, log_ns: int, data: bytes) -> None:
+        """A message whose step was already written: into that step's bag while it is open and lacks the topic,
+        else dropped with a warning (see the module docstring)."""
+        bag, topics = self._written.get(stamp, (None, set()))
+        if bag is None or bag is not self._bag or topic in topics:
+            self.dropped += 1
+            self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
+                                     f"written to a closed bag (step_hold_s {self.params.step_hold_s} s passed), "
+                                     "or it is a duplicate")
+            return
+        try:
+            bag.write(topic, log_ns, data)
+            self._spanned(log_ns)
+        except OSError as err:
+            self.dropped += 1
+            self._write_failed(bag.path, err)
+            return
+        topics.add(topic)
+        self.late_kept += 1
+        self.per_message.info(f"a message on {topic} stamped {stamp} ns came after its step was written: it joined "
+                              f"the step in {bag.path.name}")
 
     def _on_hold_timer(self) -> None:
         with self._lock:
