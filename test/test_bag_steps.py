@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from t42_transfer.data.bag.steps import CLOCK_RESTART_NS, HOLD_CAP, StepBuffer
+from t42_transfer.data.bag.steps import CLOCK_RESTART_NS, HOLD_CAP, StepBuffer, WrittenSteps
 
 
 def test_step_buffer_releases_whole_steps_in_stamp_order() -> None:
@@ -66,3 +66,23 @@ def test_a_step_missing_part_of_its_state_waits_out_a_stalled_publisher() -> Non
     assert buf.add("a", 50, 0, b"a50", 11.1) == ([], False)
     released, _ = buf.add("j", 50, 0, b"j50", 11.1)  # the topics' next stamps prove j40 and a40 lost: no wait
     assert [(s.stamp, s.topics) for s in released] == [(40, {"p"})]
+
+
+def test_a_late_message_joins_its_step_only_in_the_same_open_bag_and_once() -> None:
+    buf = StepBuffer(["p", "j", "a"], hold_s=1.0)
+    written = WrittenSteps(size=2)
+    first_bag, second_bag = object(), object()
+    buf.add("p", 10, 0, b"p10", 0.0)
+    buf.add("j", 10, 0, b"j10", 0.0)
+    (step,) = buf.release(2.0)  # held long enough, and quiet: written without its action
+    written.add(step, first_bag)
+    assert written.join(10, "a", first_bag)  # the action of a step written without it
+    assert not written.join(10, "a", first_bag)  # a duplicate
+    assert not written.join(10, "p", first_bag)  # the step has it
+    assert not written.join(10, "j", second_bag)  # the step's bag is closed: another is open
+    assert not written.join(11, "a", first_bag)  # no such step written
+    for stamp in (20, 30):
+        buf.add("p", stamp, 0, b"p", 3.0)
+        (later,) = buf.release(10.0)
+        written.add(later, first_bag)
+    assert not written.join(10, "j", first_bag) and written.join(30, "a", first_bag)  # only the last `size` steps

@@ -101,7 +101,7 @@ from __future__ import annotations
 import shutil
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -123,7 +123,7 @@ from msg_adapters import (
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
-from t42_transfer.data.bag.steps import Step, StepBuffer
+from t42_transfer.data.bag.steps import Step, StepBuffer, WrittenSteps
 from t42_transfer.nodes.recorder_loose import LooseMessages
 from t42_transfer.nodes.recorder_params import (
     EVENT_TOPICS,
@@ -145,8 +145,6 @@ STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 STATUS_NAME = "t42_transfer: recorder"
 """The recorder's status name on ``diagnostics``: at once on a write failure and on the resume, and each
 :data:`~msg_adapters.diagnostics.PERIOD_S` (ERROR while writing fails; OK recording, paused or idle)."""
-RECENT_STEPS = 1000
-"""Steps written lately whose late messages may still join them (100 s of a 10 Hz hand)."""
 
 
 # --------------------------------------------------------------------------- the node
@@ -178,8 +176,7 @@ class Recorder(LooseMessages, Node):
         """Messages not written (undecodable bytes, too late for their step's bag, orphans, a failed write)."""
         self.late_kept = 0
         """Messages that came after their step was written and joined it in its bag."""
-        self._written: OrderedDict[int, tuple[BagWriter, set[str]]] = OrderedDict()
-        """The last :data:`RECENT_STEPS` steps written: stamp -> (their bag, their topics)."""
+        self._written = WrittenSteps()
         self._bag: BagWriter | None = None
         self.write_failure: str | None = None
         """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
@@ -203,18 +200,8 @@ class Recorder(LooseMessages, Node):
         self._announcer = Announcer(self.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS)),
                                     self.log)
 
-        qos = recording(p.queue_depth)
-        self._types: dict[str, str] = {}
-        """Resolved topic -> type."""
-        for name in p.topics:
-            msgtype, topic = RECORDABLE[name], self.resolve_topic_name(name)  # namespace and remapping applied
-            if name in EVENT_TOPICS:  # as they come: VOLATILE, so any reliable publisher matches
-                self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_event, topic, msgtype),
-                                         profile(names.EVENT_READER), raw=True)
-                continue
-            self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_message, topic, msgtype), qos,
-                                     raw=True)
-            self._types[topic] = msgtype
+        self._types = self._subscribe(p)
+        """Resolved topic -> type, of the topics grouped into steps."""
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log)
         """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
@@ -237,6 +224,21 @@ class Recorder(LooseMessages, Node):
             ok, message = self.start()
             if not ok:
                 raise ValueError(f"{self.get_fully_qualified_name()}: could not start recording: {message}")
+
+    def _subscribe(self, p: RecorderParams) -> dict[str, str]:
+        """Subscribe to ``p.topics``: the events as they come, the rest into steps (whose resolved topic -> type
+        this returns)."""
+        qos, types = recording(p.queue_depth), {}
+        for name in p.topics:
+            msgtype, topic = RECORDABLE[name], self.resolve_topic_name(name)  # namespace and remapping applied
+            if name in EVENT_TOPICS:  # as they come: VOLATILE, so any reliable publisher matches
+                self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_event, topic, msgtype),
+                                         profile(names.EVENT_READER), raw=True)
+                continue
+            self.create_subscription(rclpy_class(msgtype), topic, partial(self._on_message, topic, msgtype), qos,
+                                     raw=True)
+            types[topic] = msgtype
+        return types
 
     # ------------------------------------------------------------------ state
     @property
@@ -515,9 +517,7 @@ class Recorder(LooseMessages, Node):
                 for topic, log_ns, data in step.messages:
                     bag.write(topic, log_ns, data)
                     self._spanned(log_ns)
-                self._written[step.stamp] = (bag, set(step.topics))
-                if len(self._written) > RECENT_STEPS:
-                    self._written.popitem(last=False)
+                self._written.add(step, bag)
             except OSError as err:  # a full disk: stop writing, say so once
                 self.dropped += len(step.messages)
                 self._write_failed(bag.path, err)
@@ -551,28 +551,6 @@ class Recorder(LooseMessages, Node):
             self.log.error(f"could not record a message on {topic}: {err!r}")
         finally:
             self.received += 1
-
-    def _write_late(self, topic: str, stamp: int, log_ns: int, data: bytes) -> None:
-        """A message whose step was already written: into that step's bag while it is open and lacks the topic,
-        else dropped with a warning (see the module docstring)."""
-        bag, topics = self._written.get(stamp, (None, set()))
-        if bag is None or bag is not self._bag or topic in topics:
-            self.dropped += 1
-            self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
-                                     f"written to a closed bag (step_hold_s {self.params.step_hold_s} s passed), "
-                                     "or it is a duplicate")
-            return
-        try:
-            bag.write(topic, log_ns, data)
-            self._spanned(log_ns)
-        except OSError as err:
-            self.dropped += 1
-            self._write_failed(bag.path, err)
-            return
-        topics.add(topic)
-        self.late_kept += 1
-        self.per_message.info(f"a message on {topic} stamped {stamp} ns came after its step was written: it joined "
-                              f"the step in {bag.path.name}")
 
     def _on_hold_timer(self) -> None:
         with self._lock:

@@ -1,7 +1,8 @@
 """The recorder's messages written as they come, not grouped into steps: ``hand/status`` (whose words also split
-bags in episode mode and trigger snapshots) and the typed events of ``topics`` (``t42/plan_result``,
-``t42/model_updated``).  A part of :class:`~t42_transfer.nodes.recorder.Recorder` (a mixin: it uses the node's
-bag, lock, step buffer and snapshots), kept apart to keep modules short; see that module's docstring."""
+bags in episode mode and trigger snapshots), the typed events of ``topics`` (``t42/plan_result``,
+``t42/model_updated``), and a step's message that came after the step was written.  A part of
+:class:`~t42_transfer.nodes.recorder.Recorder` (a mixin: it uses the node's bag, lock, step buffer and
+snapshots), kept apart to keep modules short; see that module's docstring."""
 
 from __future__ import annotations
 
@@ -22,10 +23,12 @@ class LooseMessages:
     _status_topic: str
     _will_record: bool
     dropped: int
+    late_kept: int
     log: Any
     paused_dropped: int
     per_message: Any
     snapshots: Any
+    _written: Any
 
     def _on_status(self, data: bytes) -> None:
         try:
@@ -112,3 +115,24 @@ class LooseMessages:
                 self._spanned(log_ns)
             except OSError as err:  # a full disk: stop writing, say so once
                 self._write_failed(bag.path, err)
+
+    def _write_late(self, topic: str, stamp: int, log_ns: int, data: bytes) -> None:
+        """A message whose step was already written: into that step's bag while it is open and lacks the topic,
+        else dropped with a warning (the recorder's module docstring)."""
+        bag = self._bag
+        if bag is None or not self._written.join(stamp, topic, bag):
+            self.dropped += 1
+            self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
+                                     f"written to a closed bag (step_hold_s {self.params.step_hold_s} s passed), "
+                                     "or it is a duplicate")
+            return
+        try:
+            bag.write(topic, log_ns, data)
+            self._spanned(log_ns)
+        except OSError as err:
+            self.dropped += 1
+            self._write_failed(bag.path, err)
+            return
+        self.late_kept += 1
+        self.per_message.info(f"a message on {topic} stamped {stamp} ns came after its step was written: it joined "
+                              f"the step in {bag.path.name}")

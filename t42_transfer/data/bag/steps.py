@@ -14,6 +14,7 @@ stamp.  Steady times are passed in, so the buffer is deterministic in tests; it 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -116,3 +117,25 @@ class StepBuffer:
         if out:
             self.released_stamp = out[-1].stamp
         return out
+
+
+class WrittenSteps:
+    """The topics of the last ``size`` steps written and the bag each went into: whether a message that comes after
+    its step was written may still join it there (the bag still open, the topic not yet in the step)."""
+
+    def __init__(self, size: int = 1000) -> None:
+        self.size = size
+        self._steps: OrderedDict[int, tuple[object, set[str]]] = OrderedDict()
+
+    def add(self, step: Step, bag: object) -> None:
+        self._steps[step.stamp] = (bag, step.topics)
+        if len(self._steps) > self.size:
+            self._steps.popitem(last=False)
+
+    def join(self, stamp: int, topic: str, open_bag: object) -> bool:
+        """Whether the message on ``topic`` stamped ``stamp`` may go into ``open_bag`` now; counts it in if so."""
+        bag, topics = self._steps.get(stamp, (None, set()))
+        if bag is None or bag is not open_bag or topic in topics:
+            return False
+        topics.add(topic)
+        return True
