@@ -170,49 +170,53 @@ def test_a_late_step_is_recorded_with_the_drivers_word_for_it_and_read_as_data(r
     assert traj.states[:, 0].tolist() == [float(k) for k in range(21)]
 
 
-def test_a_driver_stalled_between_the_messages_of_a_step_loses_nothing(ros: Any, tmp_path: Path) -> None:
-    """The soak's lost step: a step's pose, then the driver stalls longer than step_hold_s (and half of it with
-    nothing heard) before its joint states and action. The step waits for its state, whole, and nothing drops."""
+def _an_episode_with_step_ten_by(ros: Any, tmp_path: Path, step_ten: Any) -> tuple[Recorder, Any]:
+    """Record 21 steps (step_hold_s 0.5 s), ``step_ten(hand, recorder, stamp)`` publishing the eleventh; check
+    every step went into the bag whole (the last a final state); the recorder and the episode read back."""
     rec = add_recorder(ros, tmp_path / "bags", step_hold_s=0.5)
     hand = Hand(ros, rec)
     t0 = now_ns()
     stamps = [t0 + k * CONTROL_PERIOD_NS for k in range(21)]
     for k, stamp in enumerate(stamps):
         if k == 10:
-            hand.step(stamp, xy=(10.0, 0.0), topics=(POSE,))
-            ros.spin_for(1.2)  # the stall: below HOLD_CAP step_hold_s (2 s), past the silence rule's 0.75 s
-            hand.step(stamp, xy=(10.0, 0.0), topics=(JOINTS, ACTION))
-        else:
-            hand.step(stamp, xy=(float(k), 0.0), action=(0.5, -0.5) if k < 20 else None)
-    assert ros.spin_until(lambda: rec.current_count == 21 + 21 + 20, 5.0), rec.current_count
-    assert hand.call("stop").success and rec.dropped == 0
-    assert steps_in(tmp_path / "bags" / "recording_000") == [(s, WHOLE) for s in stamps[:20]] + [(stamps[20], STATE)]
-    (traj,) = read_bag(tmp_path / "bags" / "recording_000")
-    assert traj.states[:, 0].tolist() == [float(k) for k in range(21)]
-
-
-def test_an_action_after_its_step_went_out_joins_it_in_the_open_bag(ros: Any, tmp_path: Path) -> None:
-    """A stall between a step's state and its action: the state goes out on silence (it could be an episode's
-    final state), then the action comes. It joins its step in the bag still open; a duplicate is dropped."""
-    rec = add_recorder(ros, tmp_path / "bags", step_hold_s=0.5)
-    hand = Hand(ros, rec)
-    t0 = now_ns()
-    stamps = [t0 + k * CONTROL_PERIOD_NS for k in range(21)]
-    for k, stamp in enumerate(stamps):
-        if k == 10:
-            hand.step(stamp, xy=(10.0, 0.0), topics=(POSE, JOINTS))
-            assert ros.spin_until(lambda: rec.current_count == 10 * 3 + 2, 3.0), "the state went out on silence"
-            hand.step(stamp, xy=(10.0, 0.0), topics=(ACTION,))
-            assert rec.late_kept == 1 and rec.dropped == 0
-            hand.step(stamp, xy=(10.0, 0.0), topics=(ACTION,))  # the same action again: a duplicate
-            assert rec.late_kept == 1 and rec.dropped == 1
+            step_ten(hand, rec, stamp)
         else:
             hand.step(stamp, xy=(float(k), 0.0), action=(0.5, -0.5) if k < 20 else None)
     assert ros.spin_until(lambda: rec.current_count == 21 + 21 + 20, 5.0), rec.current_count
     assert hand.call("stop").success
     assert steps_in(tmp_path / "bags" / "recording_000") == [(s, WHOLE) for s in stamps[:20]] + [(stamps[20], STATE)]
     (traj,) = read_bag(tmp_path / "bags" / "recording_000")
+    assert traj.states[:, 0].tolist() == [float(k) for k in range(21)]
     assert len(traj) == 20 and traj.actions.tolist() == [[0.5, -0.5]] * 20
+    return rec, traj
+
+
+def test_a_driver_stalled_between_the_messages_of_a_step_loses_nothing(ros: Any, tmp_path: Path) -> None:
+    """The soak's lost step: a step's pose, then the driver stalls longer than step_hold_s (and half of it with
+    nothing heard) before its joint states and action. The step waits for its state, whole, and nothing drops."""
+
+    def stall_after_the_pose(hand: Hand, rec: Recorder, stamp: int) -> None:
+        hand.step(stamp, xy=(10.0, 0.0), topics=(POSE,))
+        ros.spin_for(1.2)  # the stall: below HOLD_CAP step_hold_s (2 s), past the silence rule's 0.75 s
+        hand.step(stamp, xy=(10.0, 0.0), topics=(JOINTS, ACTION))
+
+    rec, _ = _an_episode_with_step_ten_by(ros, tmp_path, stall_after_the_pose)
+    assert rec.dropped == 0 and rec.late_kept == 0
+
+
+def test_an_action_after_its_step_went_out_joins_it_in_the_open_bag(ros: Any, tmp_path: Path) -> None:
+    """A stall between a step's state and its action: the state goes out on silence (it could be an episode's
+    final state), then the action comes. It joins its step in the bag still open; a duplicate is dropped."""
+
+    def stall_before_the_action(hand: Hand, rec: Recorder, stamp: int) -> None:
+        hand.step(stamp, xy=(10.0, 0.0), topics=(POSE, JOINTS))
+        assert ros.spin_until(lambda: rec.current_count == 10 * 3 + 2, 3.0), "the state went out on silence"
+        hand.step(stamp, xy=(10.0, 0.0), topics=(ACTION,))
+        assert rec.late_kept == 1 and rec.dropped == 0
+        hand.step(stamp, xy=(10.0, 0.0), topics=(ACTION,))  # the same action again: a duplicate
+        assert rec.late_kept == 1 and rec.dropped == 1
+
+    _an_episode_with_step_ten_by(ros, tmp_path, stall_before_the_action)
 
 
 def test_records_bytes_unchanged_and_read_bag_gives_the_trajectory(ros: Any, tmp_path: Path) -> None:
