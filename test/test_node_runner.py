@@ -92,10 +92,10 @@ def test_launch_starts_the_nodes_of_its_params_file_as_t42_up_does(params: Path)
         for node in nodes:
             assert node["package"] == PACKAGE and node["executable"] in scripts
             assert node["parameters"] == [str(params)] and node["namespace"] == expected_ns
-            remaps = [f"{old}:={new}" for old, new in node["remappings"]]
-            # t42 up's arguments for the same namespace: the namespace itself, then the same remappings
-            assert ["-r", f"__ns:={expected_ns}", *[a for r in remaps for a in ("-r", r)]] == (
-                namespace_args(namespace) or ["-r", "__ns:="])
+            # the same remappings as t42 up gives a node of that namespace (after its __ns:=)
+            remaps = [arg for old, new in node["remappings"] for arg in ("-r", f"{old}:={new}")]
+            assert remaps == namespace_args(namespace)[2:]
+            assert remaps == (["-r", f"/clock:={expected_ns}/clock"] if expected_ns else [])
     drivers = {n["executable"] for n in launch_nodes(params)} & {"mock_driver", "dynamixel_driver"}
     assert drivers == ({"dynamixel_driver"} if params.name.startswith("hardware_") else {"mock_driver"})
 

@@ -56,10 +56,9 @@ is once no message has arrived for ``step_hold_s / 2`` (while messages keep
 coming, a backlog is being worked through and the rest of the step may be in it)
 when it holds the whole state, and after ``HOLD_CAP * step_hold_s`` in any case (a topic that
 went silent).  A step lacking part of its state is not written on silence alone: a
-driver stalled between its messages (a loaded machine) is silent too; the 20-minute
-soak lost a step that way.  A message
-for a step already written (its step went out on silence before the driver ran on) joins that step in its bag
-when the bag is still open and the step lacks it (a reader aligns a bag's messages by stamp, not by order); one
+driver stalled between its messages (a loaded machine) is silent too.  A message that
+comes after its step was written joins the step in its bag while that bag is open and
+the step lacks the topic (a reader aligns a bag's messages by stamp, not by order); one
 for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag
 changes happen between steps:
 

@@ -177,8 +177,7 @@ def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[st
 def launch_nodes(params_file: str | Path, namespace: str = "") -> list[dict[str, Any]]:
     """The launch_ros ``Node`` arguments ``launch/t42_suite.launch.py`` starts for ``params_file``: the nodes
     :func:`plan_nodes` names, as ``t42 up`` starts them (one process each, the file as their parameters, and in a
-    namespace its own ``/clock``, :func:`namespace_args`).  So ``ros2 launch`` with ``hardware_real.yaml`` starts
-    the Dynamixel driver, not the simulated hand it started before it read the file."""
+    namespace its own ``/clock``, :func:`namespace_args`): one node list for both ways of starting a suite."""
     namespace = _absolute(namespace)
     clock = [(names.CLOCK, namespace + names.CLOCK)] if namespace else []
     return [{"package": PACKAGE, "executable": name, "name": name, "namespace": namespace,
