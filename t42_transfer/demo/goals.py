@@ -5,6 +5,7 @@ recorder announces them (``recorder/bag_closed``)."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -90,12 +91,17 @@ def closed_bags(op: Any, suite: Suite, since: int, timeout_s: float = 30.0) -> l
     return [e for e in op.bags_closed[since: stopped() + 1] if e.reason != SNAPSHOT]
 
 
-def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1) -> GoalRun:
+def run_goal(op: Any, suite: Suite, steps: int, index: int, workspace: Any, round_: int = 1,
+             after_reset: Callable[[], None] | None = None) -> GoalRun:
+    """Reset the hand, make a goal from its grasp, and reach it through the planner's action; ``after_reset`` runs
+    once the reset has succeeded (a round starts its recording there, so no bag holds the hand before it)."""
     from t42_transfer.evaluation.peg_in_hole import progress_towards, verdict
 
     response = op.call(names.HAND_RESET, 30.0, suite.check)
     if not response.success:
         raise RuntimeError(f"reset failed: {response.message}")
+    if after_reset is not None:
+        after_reset()
     seed = grasp_seed(response.message)
     reset_stamp = op.latest_pose()[0]
     settled = reset_stamp + SETTLE_STEPS * CONTROL_PERIOD_NS

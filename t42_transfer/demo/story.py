@@ -176,12 +176,17 @@ def _round(story: Story, round_: int) -> None:
     say(f"      held-out divergence: model {record['heldout']['model']:.1f} steps, source "
         f"{record['heldout']['source']:.1f}, hold still {record['heldout']['hold_still']:.1f}")
     since = len(op.bags_closed)
-    ok = op.call(RECORDER_START, 30.0, suite.check)
-    if not ok.success:
-        raise RuntimeError(f"{RECORDER_START}: {ok.message}")
+
+    def start_recording() -> None:
+        """Called after the first goal's reset: a bag opened before it would hold only a few steps of the hand
+        still holding the last object, too short to train on."""
+        ok = op.call(RECORDER_START, 30.0, suite.check)
+        if not ok.success:
+            raise RuntimeError(f"{RECORDER_START}: {ok.message}")
+
     mine = []
     for index, steps in enumerate(size.goal_steps):
-        run = run_goal(op, suite, steps, index, story.workspace, round_)
+        run = run_goal(op, suite, steps, index, story.workspace, round_, start_recording if index == 0 else None)
         mine.append(run)
         error = "" if run.error_mm is None else f" final error {run.error_mm:.1f} mm"
         verdict = run.verdict if run.accepted else f"refused: {run.reason}"
