@@ -361,7 +361,7 @@ def run_trial(name: str, budget: int, model: LatentDynamics, workspace: Workspac
     seconds = time.perf_counter() - begin
     plan = Plan(outcome.predicted_safe, "planned", "", np.asarray(outcome.actions, np.float32),
                 np.zeros((0, 4), np.float32), outcome.predicted_error_mm, goal.position.astype(np.float32))
-    run = execute(hand, lambda state, left: plan, goal.steps)
+    run = execute(hand, lambda state, left, _: plan, goal.steps)
     executed = len(run.actions) > 0
     final = run.states[-1, :2]
     error = float(np.linalg.norm(final - goal.position)) if executed else None

@@ -194,10 +194,11 @@ def test_peg_in_hole_runs_on_model_files(tmp_path: Path, target_model: Transitio
         "--out", str(tmp_path / "out"),
         "--distances", "25", "--trials", "2", "--samples", "60", "--tolerances", "10", "4",
         "--ensemble", "few_epochs", "again", "--dropout", "3", "--variants-of", "few_epochs",
-        "--quiet",
+        "--warm-start", "--quiet",
     ]
     assert t42(["peg-in-hole", *argv]) == 0
     report = json.loads((tmp_path / "out" / "peg_in_hole.json").read_text())
+    assert report["config"]["planner"]["warm_start"] is True
     names = list(dict.fromkeys(r["model"] for r in report["rows"]))
     assert names == ["do_nothing", "oracle", "few_epochs", "again", "few_epochs+dropout3", "ensemble2"]
     assert {(r["model"], r["tolerance_mm"]) for r in report["rows"]} >= {("oracle", 10.0), ("oracle", 4.0)}

@@ -465,6 +465,13 @@ def test_params_validate_planner_fields(kwargs: dict) -> None:
         PlannerNodeParams(**kwargs)
 
 
+def test_the_planner_parameters_reach_the_planners_config() -> None:
+    given = dict(samples=5, refine_iterations=2, horizon=3, horizon_search=True, tolerance_mm=1.5, seed=4,
+                 candidates=2, warm_start=True)
+    config = PlannerNodeParams(**given).planner_config  # type: ignore[arg-type]
+    assert {name: getattr(config, name) for name in given} == given
+
+
 # --------------------------------------------------------------------------- closed loop
 def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_towards_the_goal(ros,
                                                                                            tmp_path: Path) -> None:
@@ -556,7 +563,7 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan_as_execute_does(ro
     # the same rule in execute(): the first plan, then replans refused
     plans = iter([first, *[np.zeros((0, 2))] * 2])
     hand = ToyHand(1.0, np.concatenate([START_XY, [0.0, 0.0]]))
-    run = execute(hand, lambda state, left: _plan_of(next(plans)), horizon, k)
+    run = execute(hand, lambda state, left, _: _plan_of(next(plans)), horizon, k)
     assert np.allclose(run.actions, first, atol=1e-6) and run.completed and len(run.plans) == 3
 
 

@@ -106,7 +106,7 @@ NEAR = np.array([START[0] + 6.0, START[1]])
 def _run(model_gain: float, true_gain: float, replan_every: int) -> float:
     planner = Planner(Toy(gain=model_gain), BOX, fixed())
     hand = ToyHand(true_gain, START.copy())
-    run = execute(hand, lambda state, left: planner.plan(state, NEAR, seed=1, horizon=left), 10, replan_every)
+    run = execute(hand, lambda state, left, _: planner.plan(state, NEAR, seed=1, horizon=left), 10, replan_every)
     assert run.completed and len(run.actions) == 10
     assert len(run.plans) == (1 if replan_every == 0 else -(-10 // replan_every))
     return float(np.linalg.norm(run.states[-1, :2] - NEAR))
@@ -129,7 +129,7 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan() -> None:
     planner = Planner(Toy(), BOX, fixed())
     calls = []
 
-    def plan_at(state: np.ndarray, left: int):
+    def plan_at(state: np.ndarray, left: int, previous: np.ndarray):
         calls.append(left)
         plan = planner.plan(state, GOAL, seed=1, horizon=left)
         if len(calls) > 1:  # every replan refused: zero actions
@@ -140,6 +140,81 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan() -> None:
     run = execute(ToyHand(1.0, START.copy()), plan_at, 10, 3)
     assert calls == [10, 7, 4, 1] and run.completed
     assert np.linalg.norm(run.states[-1, :2] - GOAL) <= 0.2 + 1e-5
+
+
+def test_receding_horizon_hands_each_replan_the_rest_of_the_plan_it_replaces() -> None:
+    planner = Planner(Toy(), BOX, fixed())
+    given: list[np.ndarray] = []
+    made = []
+
+    def plan_at(state: np.ndarray, left: int, previous: np.ndarray):
+        given.append(previous.copy())
+        made.append(planner.plan(state, GOAL, seed=1, horizon=left))
+        return made[-1]
+
+    run = execute(ToyHand(1.0, START.copy()), plan_at, 10, 3)
+    assert run.completed and [len(p) for p in given] == [0, 7, 4, 1]
+    for before, rest in zip(made[:-1], given[1:], strict=True):
+        np.testing.assert_array_equal(rest, before.actions[3:])
+
+
+# --------------------------------------------------------------------- warm starts
+
+
+def _warm(**overrides: object) -> Planner:
+    """A search too weak to find the goal alone: one or a few sequences, no refinement."""
+    return Planner(Toy(), BOX, fixed(**{"samples": 3, "refine_iterations": 0, "sampler": "gaussian", **overrides}))
+
+
+EXACT = np.tile([0.8, 0.0], (10, 1)).astype(np.float32)
+"""Ten steps of a = (0.8, 0): the toy's exact way from START to GOAL."""
+
+
+def test_a_warm_replan_is_never_predicted_worse_than_the_rest_it_was_given() -> None:
+    cold = _warm().plan(START, GOAL, seed=1, previous=EXACT)
+    warm = _warm(warm_start=True).plan(START, GOAL, seed=1, previous=EXACT)
+    assert cold.error_mm > 1.0  # the weak search alone misses ...
+    assert warm.ok and warm.error_mm <= 1e-5  # ... and starting from the exact rest it keeps it
+    np.testing.assert_allclose(warm.actions, EXACT)
+    for seed in range(5):  # whatever the draw around it, never worse than the rest itself
+        rough = np.clip(EXACT + np.random.default_rng(seed).normal(0, 0.2, EXACT.shape), -1, 1).astype(np.float32)
+        start_error = float(np.linalg.norm(START[:2] + rough.sum(0) - GOAL))
+        assert _warm(warm_start=True).plan(START, GOAL, seed=seed, previous=rough).error_mm <= start_error + 1e-4
+
+
+def test_the_rest_is_cut_or_padded_with_holds_to_the_horizon() -> None:
+    one = _warm(samples=1, warm_start=True)
+    short = one.plan(START, GOAL, seed=1, previous=EXACT[:4])
+    np.testing.assert_allclose(short.actions, np.concatenate([EXACT[:4], np.zeros((6, 2))]))
+    long = one.plan(START, GOAL, seed=1, previous=np.concatenate([EXACT, EXACT]), horizon=7)
+    np.testing.assert_allclose(long.actions, EXACT[:7])
+    wild = one.plan(START, GOAL, seed=1, previous=np.full((10, 2), 5.0))
+    assert np.abs(wild.actions).max() <= 1.0  # projected into the box like any draw
+
+
+def test_without_warm_start_or_without_a_rest_the_draw_is_the_cold_one() -> None:
+    alone = _warm().plan(START, GOAL, seed=2)
+    np.testing.assert_array_equal(_warm().plan(START, GOAL, seed=2, previous=EXACT).actions, alone.actions)
+    empty = _warm(warm_start=True).plan(START, GOAL, seed=2, previous=np.zeros((0, 2)))
+    np.testing.assert_array_equal(empty.actions, alone.actions)
+
+
+@pytest.mark.parametrize("previous", [np.zeros(10), np.zeros((10, 3)), np.full((10, 2), np.nan)])
+def test_a_malformed_rest_is_a_value_error(previous: np.ndarray) -> None:
+    with pytest.raises(ValueError, match="previous must be"):
+        _warm(warm_start=True).plan(START, GOAL, seed=1, previous=previous)
+
+
+def test_warm_replans_on_a_biased_model_end_as_near_as_cold_ones() -> None:
+    """The MPC loop with warm starts keeps feedback's gain (here: a model whose gain is 25 % too high)."""
+    def run(warm_start: bool) -> float:
+        planner = Planner(Toy(gain=1.0), BOX, fixed(warm_start=warm_start))
+        hand = ToyHand(0.8, START.copy())
+        done = execute(hand, lambda state, left, previous: planner.plan(state, NEAR, seed=1, horizon=left,
+                                                                         previous=previous), 10, 2)
+        return float(np.linalg.norm(done.states[-1, :2] - NEAR))
+
+    assert run(True) < 0.5 * _run(1.0, 0.8, 0) and run(True) <= run(False) + 0.1
 
 
 # --------------------------------------------------------------------- perturbed copies (the robust cost)

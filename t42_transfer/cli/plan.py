@@ -106,7 +106,7 @@ def _run_peg_in_hole(args: argparse.Namespace) -> int:
         existing_dir(bag)
     output_dir(args.out)
     planner = replace(PegInHoleConfig().planner, samples=args.samples, refine_iterations=args.refine,
-                      horizon=args.horizon)
+                      horizon=args.horizon, warm_start=args.warm_start)
     try:
         cfg = PegInHoleConfig(tuple(args.distances), args.trials, tuple(args.tolerances), hand=args.hand,
                               plan_length=args.plan_length, replan_every=args.replan_every, planner=planner,
@@ -196,6 +196,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                         help="0: open loop (default); k: every model replans from the measured state every k steps")
     peg.add_argument("--mpc", type=int_arg(0, MAX_PLAN_HORIZON), default=0,
                         help="also evaluate each model replanning every K steps, beside open loop")
+    peg.add_argument("--warm-start", action="store_true",
+                     help="each replan's search starts from the rest of the plan it replaces")
     peg.add_argument("--dropout", type=int_arg(0, 1000), default=0,
                         help="also evaluate each model with M dropout samples per sequence, "
                              "risk-averse (same rollouts)")

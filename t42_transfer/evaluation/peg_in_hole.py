@@ -318,7 +318,7 @@ def run_trial(
     seconds = 0.0
 
     if contender.baseline == DO_NOTHING:
-        run = execute(hand, lambda state, left: _still(state, goal, left), goal.steps)
+        run = execute(hand, lambda state, left, _: _still(state, goal, left), goal.steps)
         return _trial(contender.name, goal, run, "do_nothing", None, 0.0)
     if contender.baseline == ORACLE:
         oracle = oracle_hand or SimulatedHand(cfg.hand)
@@ -333,18 +333,19 @@ def run_trial(
         def planner_now() -> Planner:
             return planner
 
-    def plan_at(state: np.ndarray, left: int) -> Plan:
+    def plan_at(state: np.ndarray, left: int, previous: np.ndarray) -> Plan:
         nonlocal seconds
         begin = time.perf_counter()
-        plan = planner_now().plan(state, goal.position, seed=goal.seed, horizon=left if fixed else None)
+        plan = planner_now().plan(state, goal.position, seed=goal.seed, horizon=left if fixed else None,
+                                  previous=previous)
         seconds += time.perf_counter() - begin
         return plan
 
     if fixed:
         run = execute(hand, plan_at, goal.steps, replan)
     else:
-        first = plan_at(hand.state, pcfg.horizon)
-        run = execute(hand, lambda state, left: first, max(1, len(first.actions)))
+        first = plan_at(hand.state, pcfg.horizon, np.zeros((0, ACTION_DIM)))
+        run = execute(hand, lambda state, left, _: first, max(1, len(first.actions)))
     first_plan = run.plans[0]
     predicted = None if np.isinf(first_plan.error_mm) else first_plan.error_mm
     return _trial(contender.name, goal, run, first_plan.status, predicted, seconds)

@@ -482,9 +482,9 @@ class PlannerNode(Node):
         with self._cond:
             ends_before = self._ends
 
-        def plan_at(state: np.ndarray, left: int) -> Plan:
+        def plan_at(state: np.ndarray, left: int, previous: np.ndarray) -> Plan:
             nonlocal current, offset
-            plan = planner.plan(state, goal.xy, horizon=left, stop=lambda: self._stopping)
+            plan = planner.plan(state, goal.xy, horizon=left, stop=lambda: self._stopping, previous=previous)
             if len(plan.actions) == 0:
                 self.log.warning(f"goal {goal.xy.tolist()} mm: replan after {executed} steps refused "
                                  f"({plan.status}: {plan.reason}); keeping the rest of the previous plan")

@@ -39,6 +39,8 @@ class PlannerNodeParams:
                                        "a zero stamp means now", min=0.0, constraints="positive, finite")
     replan_every: int = param(0, "0: open loop, the whole plan at once; k: send k steps, then replan the rest "
                                  "from the measured state (MPC)", min=0)
+    warm_start: bool = param(_DEFAULTS.warm_start, "with replan_every: each replan's search starts from the rest "
+                                                  "of the plan it replaces (false: a fresh search)")
     piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
                                    min=0.0, constraints="positive, finite")
     candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
@@ -61,7 +63,8 @@ class PlannerNodeParams:
     def planner_config(self) -> PlannerConfig:
         return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
                              horizon_search=self.horizon_search,
-                             tolerance_mm=self.tolerance_mm, seed=self.seed, candidates=self.candidates)
+                             tolerance_mm=self.tolerance_mm, seed=self.seed, candidates=self.candidates,
+                             warm_start=self.warm_start)
 
     @property
     def max_state_age_ns(self) -> int:

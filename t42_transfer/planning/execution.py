@@ -32,8 +32,10 @@ class Steppable(Protocol):
     def step_info(self, action: np.ndarray) -> StepInfo: ...
 
 
-PlanAt = Callable[[np.ndarray, int], Plan]
-"""``(measured state [4], steps left) -> Plan``: plans the remaining steps from where the hand is."""
+PlanAt = Callable[[np.ndarray, int, np.ndarray], Plan]
+"""``(measured state [4], steps left, previous [n, 2]) -> Plan``: plans the remaining steps from where the hand is;
+``previous`` is what the plan being replaced still had to send (``[0, 2]`` for the first plan), for a planner
+that starts its search there (:attr:`~t42_transfer.planning.planner.PlannerConfig.warm_start`)."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,7 @@ def receding_horizon(plan_at: PlanAt, send: Send, measure: Measure, steps: int, 
     if steps < 1 or replan_every < 0:
         raise ValueError(f"need steps >= 1 and replan_every >= 0, got {steps} and {replan_every}")
     plans: list[Plan] = []
-    queue = np.zeros((0, 2))
+    queue = np.zeros((0, 2), np.float32)
     done = 0
     while done < steps:
         if not plans or replan_every:
@@ -82,7 +84,7 @@ def receding_horizon(plan_at: PlanAt, send: Send, measure: Measure, steps: int, 
                 state = measure()
                 if state is None:
                     return plans, "no_state"
-                plan = plan_at(state, steps - done)
+                plan = plan_at(state, steps - done, queue)
             else:
                 plan = first
             plans.append(plan)

@@ -46,6 +46,11 @@ Polish.  With ``polish_steps = N > 0`` the best sequence of the search then take
 onto the box after each; the polished sequence is rolled out once more and replaces the best only when it is safe
 and predicted nearer.  A plain model of the contract, fixed-length plans only.
 
+Warm start.  With ``warm_start`` a replan starts from the rest of the plan it replaces (``plan(previous=...)``;
+iCEM's shifted mean): the first draw is that rest, cut or padded with holds (zero actions) to the horizon, and
+``count - 1`` sequences around it at ``init_std``, so the replan is never predicted worse than going on with the
+old plan.  Without ``previous`` (a goal's first plan) the draw is the cold one.
+
 Uncertainty.  A transferred model is trusted far outside its few target
 episodes.  With ``uncertainty="ensemble"`` (several models) or ``"dropout"``
 (``members`` dropout samples of one model) every sequence is predicted by each
@@ -147,6 +152,8 @@ class PlannerConfig:
     40-step rollout costs about as much as 200 rollouts in the search (autograd on one sequence is dispatch-bound)."""
     polish_lr: float = 0.05
     """Adam's step size for the polish, in the actions' [-1, 1] units."""
+    warm_start: bool = False
+    """A replan's first draw centres on the rest of the plan it replaces (the module docstring's Warm start)."""
     seed: int = 0
     candidates: int = 0
     """Keep the predicted object paths of this many lowest-cost sequences (:attr:`Plan.candidates`), for a user
@@ -249,15 +256,19 @@ class Planner:
     def plan(
         self, state: np.ndarray | Tensor, goal: np.ndarray | Tensor, seed: int | None = None,
         horizon: int | None = None, stop: Callable[[], bool] | None = None,
+        previous: np.ndarray | Tensor | None = None,
     ) -> Plan:
         """The best sampled sequence from ``state`` towards ``goal``; ``seed`` and ``horizon`` override the config's.
-        ``stop``, asked before each chunk of rollouts, ends the search with :class:`PlanStopped` when true."""
+        ``stop``, asked before each chunk of rollouts, ends the search with :class:`PlanStopped` when true.
+        ``previous`` (``[n, 2]``): the actions of an earlier plan for this goal still to come from ``state``, where
+        a warm start (``warm_start``) begins; else unused."""
         cfg = self.config
         x0 = _vector(state, STATE_DIM, "state")
         target = _vector(goal, 2, "goal")
         horizon = cfg.horizon if horizon is None else int(horizon)
         if horizon < 1:
             raise ValueError(f"horizon must be positive, got {horizon}")
+        warm = None if previous is None else _previous(previous, horizon)
         refused = self._check_ends(x0, target)
         if refused is not None:
             return refused
@@ -266,7 +277,11 @@ class Planner:
         search = _Search(self._rollouts(seed), self.workspace, x0, target, cfg, _perturbations(cfg, horizon, seed),
                          stop)
         count = max(1, cfg.samples // (len(search.rollouts) * cfg.perturbations))
-        actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std, cfg.noise_beta)
+        if cfg.warm_start and warm is not None:
+            noise = colored_noise(count - 1, horizon, cfg.noise_beta, gen)
+            actions = torch.cat([project(cfg.sampler, warm[None]), project(cfg.sampler, warm + cfg.init_std * noise)])
+        else:
+            actions = sample_actions(cfg.sampler, count, horizon, gen, cfg.hold_steps, cfg.init_std, cfg.noise_beta)
         cost = search.evaluate(actions)
         elite_count = max(2, int(cfg.elite_fraction * count))
         for _ in range(cfg.refine_iterations):
@@ -344,6 +359,19 @@ def _perturbations(cfg: PlannerConfig, horizon: int, seed: int) -> Tensor | None
     entropy = [int(seed) % (1 << 64), horizon]  # SeedSequence takes no negative numbers; torch's seeds may be
     gen = torch.Generator().manual_seed(int(np.random.SeedSequence(entropy).generate_state(1)[0]))
     return cfg.perturbation_std * torch.randn(cfg.perturbations - 1, horizon, 2, generator=gen)
+
+
+def _previous(actions: np.ndarray | Tensor, horizon: int) -> Tensor | None:
+    """``actions[n, 2]`` as ``[horizon, 2]``: cut, or padded with holds (zero actions); None when ``n`` is 0;
+    ValueError unless finite ``[n, 2]``."""
+    rest = torch.as_tensor(np.asarray(actions, dtype=np.float32))
+    if rest.ndim != 2 or rest.shape[1] != 2 or not torch.isfinite(rest).all():
+        raise ValueError(f"previous must be [n, 2] finite actions, got shape {tuple(rest.shape)}")
+    if len(rest) == 0:
+        return None
+    out = torch.zeros(horizon, 2)
+    out[: min(horizon, len(rest))] = rest[:horizon]
+    return out
 
 
 def _vector(value: np.ndarray | Tensor, size: int, name: str) -> Tensor:
