@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -215,7 +216,11 @@ def test_an_unexpected_error_stops_every_node_process(tmp_path: Path, ros_domain
     started: list[str] = []
 
     def broken(executor: SingleThreadedExecutor, node: object) -> None:
-        started.extend(node_processes_of(tmp_path))
+        # the last node was just started: until its fork has exec'd, its command line is still this process's
+        deadline = time.monotonic() + 30.0
+        while len(found := node_processes_of(tmp_path)) < 4 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        started.extend(found)
         raise KeyError("a bug after the suite started")
 
     monkeypatch.setattr(SingleThreadedExecutor, "add_node", broken)  # the operator's executor

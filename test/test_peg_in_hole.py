@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from t42_transfer.cli import main as t42
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.peg_in_hole import (
+    Contender,
     Goal,
     PegInHoleConfig,
     Trial,
@@ -183,6 +185,26 @@ def test_closed_loop_contenders_replan_on_the_same_goals(goals: list[Goal], work
     closed = [t for t in trials if t.model == "trained+mpc5"]
     assert all(t.plans == 2 for t in closed if t.completed)  # 10 steps, a plan every 5
     assert all(t.plans == 1 for t in trials if t.model == "trained")
+
+
+def test_a_warm_closed_loop_of_one_sequence_executes_its_first_plan(goals: list[Goal], workspace: Workspace,
+                                                                    target_model: TransitionModel) -> None:
+    """Each warm replan of a one-sequence search can only return the rest it is handed, so the closed loop ends
+    where the open loop ends, goal by goal; cold replans draw afresh and end elsewhere."""
+    one = replace(TINY.planner, samples=1, refine_iterations=0)
+
+    def ends(planner: PlannerConfig) -> list[bool]:
+        """Per goal both loops ran (the planner refuses goals outside this workspace): the same end?"""
+        contenders = [Contender("open", (target_model,), planner=one),
+                      Contender("closed", (target_model,), planner=planner, replan_every=3)]
+        _, trials = evaluate(contenders, workspace, TINY, goals=goals, progress=False, baselines=())
+        open_, closed = trials[: len(goals)], trials[len(goals):]
+        ran = [(a, b) for a, b in zip(open_, closed, strict=True) if a.final_error_mm is not None]
+        assert len(ran) >= 2 and all(b.plans > 1 for _, b in ran)
+        return [a.final_error_mm == b.final_error_mm for a, b in ran]
+
+    assert all(ends(replace(one, warm_start=True)))
+    assert not any(ends(one))
 
 
 def test_peg_in_hole_runs_on_model_files(tmp_path: Path, target_model: TransitionModel) -> None:

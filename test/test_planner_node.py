@@ -528,6 +528,27 @@ def test_replan_every_k_sends_k_steps_at_a_time_each_planned_from_the_measured_s
     assert len(rig.trajectories) == 3 and len(rig.results) == 1  # one result per goal, replans or not
 
 
+@pytest.mark.parametrize("warm_start", [True, False])
+def test_a_warm_replan_of_one_sequence_sends_on_its_first_plan(ros, toy: Path, warm_start: bool) -> None:
+    """The node hands each replan the rest of its plan: a one-sequence warm search can only return that rest,
+    so every replanned path moves as the first plan's rest does (the toy moves by its actions); cold, it does
+    not.  (A wide tolerance: one random sequence must be accepted.)"""
+    rig = Rig(ros, toy, **{**SMALL, "samples": 1, "horizon": 15, "horizon_search": False, "replan_every": 5,
+                           "tolerance_mm": 50.0, "warm_start": warm_start})
+    assert rig.wait_graph(subscribers={names.OBJECT_POSE: 1}), "discovery"
+    rig.tick()
+    rig.publish_goal(START_XY + [6.0, -4.0])
+    assert ros.spin_until(lambda: rig.results, 20.0) and rig.results[0]["accepted"], rig.results
+    for piece in range(3):
+        assert ros.spin_until(lambda piece=piece: len(rig.trajectories) == len(rig.paths) == piece + 1, 10.0), piece
+        assert ros.spin_until(lambda: rig.driver.pending_actions == 5, 5.0)
+        rig.tick(6)
+    first, *replans = (np.diff(path_xy_mm(path), axis=0) for path in rig.paths)
+    assert [len(moves) for moves in replans] == [10, 5]
+    followed = [np.allclose(moves, first[5 * (i + 1):], atol=1e-3) for i, moves in enumerate(replans)]
+    assert followed == [warm_start] * 2
+
+
 def test_a_refused_replan_keeps_the_rest_of_the_previous_plan_as_execute_does(ros, toy: Path) -> None:
     """The node and :func:`execute` share one MPC rule: a replan without a safe sequence sends on the old plan."""
     k, horizon = 5, 15

@@ -127,10 +127,11 @@ def test_replanning_corrects_a_biased_model_that_open_loop_cannot() -> None:
 
 def test_a_refused_replan_keeps_the_rest_of_the_previous_plan() -> None:
     planner = Planner(Toy(), BOX, fixed())
-    calls = []
+    calls, handed = [], []
 
     def plan_at(state: np.ndarray, left: int, previous: np.ndarray):
         calls.append(left)
+        handed.append(previous.copy())
         plan = planner.plan(state, GOAL, seed=1, horizon=left)
         if len(calls) > 1:  # every replan refused: zero actions
             return type(plan)(False, "no_safe_sequence", "test", np.zeros((0, 2), np.float32), plan.predicted[:1],
@@ -139,6 +140,8 @@ def test_a_refused_replan_keeps_the_rest_of_the_previous_plan() -> None:
 
     run = execute(ToyHand(1.0, START.copy()), plan_at, 10, 3)
     assert calls == [10, 7, 4, 1] and run.completed
+    for sent, rest in zip((3, 6, 9), handed[1:], strict=True):  # each replan is handed the first plan's rest
+        np.testing.assert_array_equal(rest, run.plans[0].actions[sent:])
     assert np.linalg.norm(run.states[-1, :2] - GOAL) <= 0.2 + 1e-5
 
 
@@ -205,16 +208,22 @@ def test_a_malformed_rest_is_a_value_error(previous: np.ndarray) -> None:
         _warm(warm_start=True).plan(START, GOAL, seed=1, previous=previous)
 
 
-def test_warm_replans_on_a_biased_model_end_as_near_as_cold_ones() -> None:
-    """The MPC loop with warm starts keeps feedback's gain (here: a model whose gain is 25 % too high)."""
-    def run(warm_start: bool) -> float:
-        planner = Planner(Toy(gain=1.0), BOX, fixed(warm_start=warm_start))
-        hand = ToyHand(0.8, START.copy())
-        done = execute(hand, lambda state, left, previous: planner.plan(state, NEAR, seed=1, horizon=left,
-                                                                         previous=previous), 10, 2)
-        return float(np.linalg.norm(done.states[-1, :2] - NEAR))
+@pytest.mark.parametrize("warm_start", [True, False])
+def test_a_one_sequence_warm_search_replans_its_own_rest(warm_start: bool) -> None:
+    """With one sequence and no refinement a warm replan can only return the rest it was handed: the loop then
+    executes its first plan whole.  Cold, each replan is a fresh draw."""
+    planner = Planner(Toy(), BOX, fixed(samples=1, refine_iterations=0, warm_start=warm_start))
+    done = execute(ToyHand(1.0, START.copy()), lambda state, left, previous: planner.plan(
+        state, GOAL, seed=len(previous), horizon=left, previous=previous), 10, 3)
+    assert done.completed and len(done.plans) == 4
+    assert np.array_equal(done.actions, done.plans[0].actions) == warm_start
 
-    assert run(True) < 0.5 * _run(1.0, 0.8, 0) and run(True) <= run(False) + 0.1
+
+@pytest.mark.parametrize("config", [dict(samples=1, noise_beta=1.0), dict(samples=8, perturbations=8, noise_beta=2.0),
+                                    dict(samples=1, sampler="discrete")])
+def test_a_warm_start_of_one_sequence_plans_in_every_mode(config: dict) -> None:
+    plan = _warm(warm_start=True, **config).plan(START, GOAL, seed=1, previous=EXACT)
+    assert plan.evaluated == 1 and len(plan.actions) == 10 and np.abs(plan.actions).max() <= 1.0
 
 
 # --------------------------------------------------------------------- perturbed copies (the robust cost)

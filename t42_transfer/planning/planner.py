@@ -48,8 +48,11 @@ and predicted nearer.  A plain model of the contract, fixed-length plans only.
 
 Warm start.  With ``warm_start`` a replan starts from the rest of the plan it replaces (``plan(previous=...)``;
 iCEM's shifted mean): the first draw is that rest, cut or padded with holds (zero actions) to the horizon, and
-``count - 1`` sequences around it at ``init_std``, so the replan is never predicted worse than going on with the
-old plan.  Without ``previous`` (a goal's first plan) the draw is the cold one.
+``count - 1`` sequences around it (N(0, ``init_std``) per step, coloured by ``noise_beta``), each projected as the
+sampler projects (the discrete sampler has no hold: its padding becomes the nearest move).  Since the rest is
+among the sequences scored, the best one's cost is never above the rest's: with the default cost and answer
+(one model, final distance, ``answer="best"``) the replan is never predicted further from the goal than going
+on with the old plan.  Without ``previous`` (a goal's first plan) the draw is the cold one.
 
 Uncertainty.  A transferred model is trusted far outside its few target
 episodes.  With ``uncertainty="ensemble"`` (several models) or ``"dropout"``
@@ -260,8 +263,8 @@ class Planner:
     ) -> Plan:
         """The best sampled sequence from ``state`` towards ``goal``; ``seed`` and ``horizon`` override the config's.
         ``stop``, asked before each chunk of rollouts, ends the search with :class:`PlanStopped` when true.
-        ``previous`` (``[n, 2]``): the actions of an earlier plan for this goal still to come from ``state``, where
-        a warm start (``warm_start``) begins; else unused."""
+        ``previous`` (``[n, 2]`` finite, else ValueError): the actions of an earlier plan for this goal still to
+        come from ``state``, where a warm start (``warm_start``) begins; else only checked."""
         cfg = self.config
         x0 = _vector(state, STATE_DIM, "state")
         target = _vector(goal, 2, "goal")

@@ -38,7 +38,7 @@ def colored_noise(count: int, horizon: int, beta: float, generator: torch.Genera
 
     White noise filtered in the frequency domain (circularly), the filter scaled so each step's variance is
     exactly 1; the zero frequency gets the lowest nonzero frequency's gain, so the mean stays finite."""
-    if beta == 0 or horizon < 2:
+    if beta == 0 or horizon < 2 or count == 0:  # (the FFT takes no empty batch)
         return torch.randn(count, horizon, ACTION_DIM, generator=generator)
     white = torch.randn(count, ACTION_DIM, horizon, generator=generator)
     freqs = torch.fft.rfftfreq(horizon, dtype=torch.float64)
