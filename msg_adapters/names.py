@@ -151,3 +151,7 @@ depth of 10 left 40 of 50 simultaneous resets unanswered, and lost goals before 
 RESULTS = Qos(10_000, latched=True)
 """Plan results: volatile and latched subscribers both match, a late latched one gets the recent
 results, and none of a burst (each goal of 2000 superseded in turn) is overwritten before it is read."""
+OFFERED = {HAND_STATUS: EVENTS, MODEL_UPDATED: LATCHED, PLAN_RESULT: RESULTS}
+"""What the publishers of the latched topics a recorder records offer.  A bag offers each so, as ``ros2 bag
+record`` stores each publisher's offer, and a player then republishes it latched: a latched reader (the
+planner's of ``t42/model_updated``) matches no volatile writer."""

@@ -426,6 +426,17 @@ def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros
     np.testing.assert_allclose(r.applied()[-1], [0.5, 0.5], rtol=1e-6)
 
 
+def test_the_clock_source_on_sim_time_itself_still_ticks(ros):
+    """A params file that sets ``use_sim_time`` for every node, this one included: its ticks run on the machine's
+    clock, not on the /clock it publishes (on which it would wait for itself)."""
+    ros.add(MockDriver, {"rate_factor": 10.0, "sim_time": True, "use_sim_time": True})
+    clocks: list = []
+    ros.node("clock_listener").create_subscription(Clock, "/clock", clocks.append, 10)
+    assert ros.spin_until(lambda: len(clocks) >= 5, 10.0), len(clocks)
+    stamps = [stamp_to_ns(c.clock) for c in clocks]
+    assert np.all(np.diff(stamps) == CONTROL_PERIOD_NS)
+
+
 def test_works_under_a_namespace_with_remapped_names(ros):
     driver = ros.add(MockDriver, {"rate_factor": SLOW_TIMER}, namespace="/left",
                      cli_args=["--ros-args", "-r", "hand/object_pose:=pose_remapped"])

@@ -16,6 +16,7 @@ import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from t42_interfaces.msg import ModelUpdated, PlanResult
@@ -26,6 +27,7 @@ from msg_adapters import STRING, TYPESTORE, names, status_message
 from msg_adapters.events import SNAPSHOT
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS, CONTROL_PERIOD_S
 from t42_transfer.data.bag import bag_info, read_bag, verify_bag
+from t42_transfer.nodes.player import BagPlayer
 from t42_transfer.nodes.recorder_params import RecorderParams
 
 READER = Path(__file__).with_name("independent_reader.py")
@@ -118,6 +120,14 @@ def test_an_independent_reader_decodes_every_typed_message_of_a_recorded_bag(ros
     info = bag_info(bag)
     assert info["topics"]["/t42/plan_result"] == {"type": "t42_interfaces/msg/PlanResult", "count": 2}
     assert info["episodes"] == 1 and verify_bag(bag) == []
+
+    # the bag offers each topic as its publishers do, so a player republishes the latched ones latched: the
+    # planner's latched reader of t42/model_updated matches no volatile writer
+    player = ros.add(BagPlayer, params={"bag": str(bag), "start_paused": True})
+    offers = {topic: pub.qos_profile for topic, pub in player.topic_publishers.items()}
+    latched = {"/hand/status": 100, "/t42/model_updated": 1, "/t42/plan_result": 10_000}
+    assert {t: q.depth for t, q in offers.items() if q.durability == DurabilityPolicy.TRANSIENT_LOCAL} == latched
+    assert all(offers[t].durability == DurabilityPolicy.VOLATILE for t in hand_types)
 
 
 def test_snapshot_mode_writes_exactly_the_last_seconds_on_the_service_and_on_a_drop(ros: Any, tmp_path: Path) -> None:

@@ -191,7 +191,8 @@ class DynamixelDriver(LifecycleNode):
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10, **pub)
         self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10, **pub)
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10, **pub)
-        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS), **pub)
+        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.OFFERED[names.HAND_STATUS]),
+                                                 **pub)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10, **pub)
         # A motion-capture bridge may publish best effort (sensor data QoS), which a reliable reader never
         # matches: ``-p qos_overrides./tracker/object_pose.subscription.reliability:=best_effort`` (ROS's overrides).

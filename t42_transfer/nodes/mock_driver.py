@@ -69,6 +69,8 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from rclpy.clock import Clock as RclpyClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -176,7 +178,7 @@ class MockDriver(Node):
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
         self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
-        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
+        self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.OFFERED[names.HAND_STATUS]))
         self._sim_ns = self.get_clock().now().nanoseconds
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
         self.pose = NewestPose()
@@ -199,7 +201,9 @@ class MockDriver(Node):
         if not ok:
             self.log.warning(f"initial grasp failed: {why}; "
                              f"call {self.resolve_service_name(names.HAND_RESET)} to retry")
-        self._timer = self.create_timer(p.period_s, self._on_timer)
+        # The graph's clock ticks on the machine's: on ROS time (use_sim_time) it would wait for itself.
+        self._timer = self.create_timer(p.period_s, self._on_timer,
+                                       clock=RclpyClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
 
     # ------------------------------------------------------------------ state
     @property

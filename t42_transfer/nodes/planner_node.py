@@ -171,7 +171,8 @@ class PlannerNode(Node):
         self._trajectory_pub = self.create_publisher(JointTrajectory, names.HAND_TRAJECTORY, 10)
         self._path_pub = self.create_publisher(PathMsg, names.PLANNED_PATH, profile(names.LATCHED))
         self._candidates_pub = self.create_publisher(PlanCandidates, names.PLAN_CANDIDATES, profile(names.LATCHED))
-        self._result_pub = self.create_publisher(PlanResultMsg, names.PLAN_RESULT, profile(names.RESULTS))
+        self._result_pub = self.create_publisher(PlanResultMsg, names.PLAN_RESULT,
+                                                 profile(names.OFFERED[names.PLAN_RESULT]))
         model = str(file_in_namespace(self.params.model, self.get_namespace())) if self.params.model else ""
         if model and Path(model).exists():
             self.load(model)

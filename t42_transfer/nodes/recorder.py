@@ -130,6 +130,7 @@ from t42_transfer.nodes.recorder_params import (
     Announcer,
     Change,
     RecorderParams,
+    latched_offers,
     next_bag_path,
 )
 from t42_transfer.nodes.recorder_snapshot import Snapshots
@@ -202,7 +203,9 @@ class Recorder(LooseMessages, Node):
         self._types = self._subscribe(p)
         """Resolved topic -> type, of the topics grouped into steps."""
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
-        self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log)
+        self._offers = latched_offers(self.resolve_topic_name, p.topics)
+        self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log,
+                                   self._offers)
         """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p), required=self._state_topics)
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
@@ -418,7 +421,7 @@ class Recorder(LooseMessages, Node):
     def _open_bag(self) -> tuple[bool, str]:
         p = self.params
         try:
-            bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types)
+            bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types, offered=self._offers)
         except OSError as err:
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"

@@ -7,6 +7,7 @@ import math
 import queue
 import re
 import threading
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,12 @@ EVENT_TOPICS = {names.PLAN_RESULT: PLAN_RESULT_MSG, names.MODEL_UPDATED: MODEL_U
 """The suite's typed events (``t42_interfaces``), relative names: written as they come, as ``hand/status``."""
 RECORDABLE = {**STEP_TOPICS, **EVENT_TOPICS}
 """Relative names the recorder knows the types of: the default of ``topics``."""
+
+
+def latched_offers(resolve: Callable[[str], str], topics: Iterable[str]) -> dict[str, names.Qos]:
+    """Resolved name -> publisher QoS of the latched topics a recorder of ``topics`` writes (``hand/status``
+    always): what its bags offer for them (:data:`msg_adapters.names.OFFERED`)."""
+    return {resolve(name): names.OFFERED[name] for name in (names.HAND_STATUS, *topics) if name in names.OFFERED}
 SNAPSHOT_DIR = "snapshots"
 """Where snapshot bags go, under ``out_dir``: not among the continuous bags a transfer reads (their steps are
 there already)."""

@@ -22,6 +22,7 @@ from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
 
+from msg_adapters import names
 from msg_adapters.events import SNAPSHOT, BagClosedEvent
 from t42_transfer.data.bag.snapshot import SnapshotBuffer, wants_snapshot, write_snapshot
 from t42_transfer.data.bag.steps import Step
@@ -32,8 +33,9 @@ class Snapshots:
     """The snapshot buffer of a recorder and the bags written from it (see the module docstring)."""
 
     def __init__(self, params: RecorderParams, out_dir: Path, types: Mapping[str, str], state_topics: Collection[str],
-                 announcer: Announcer, log: Any) -> None:
+                 announcer: Announcer, log: Any, offered: Mapping[str, names.Qos] | None = None) -> None:
         self.dir = out_dir / SNAPSHOT_DIR
+        self._offered = dict(offered or {})
         self._types, self._state_topics = dict(types), set(state_topics)
         self._announcer, self._log = announcer, log
         self.buffer: SnapshotBuffer | None = None
@@ -88,7 +90,7 @@ class Snapshots:
         try:
             self.dir.mkdir(exist_ok=True)
             path = next_bag_path(self.dir, self.prefix)
-            count, first, last = write_snapshot(path, self._types, snap)
+            count, first, last = write_snapshot(path, self._types, snap, self._offered)
         except Exception as err:  # a full disk, a removed directory: say so, keep recording
             self._log.error(f"could not write the snapshot {path}: {err!r}")
             return False, f"could not write the snapshot {path}: {type(err).__name__}: {err}"

@@ -241,7 +241,8 @@ class TransferServer(Node):
         self._closed = False
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_periodic)
-        self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED, profile(names.LATCHED))
+        self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED,
+                                              profile(names.OFFERED[names.MODEL_UPDATED]))
         group = ReentrantCallbackGroup()
         self.create_service(Trigger, names.TRANSFER_NOW, self._on_transfer, qos_profile=profile(names.REQUESTS),
                             callback_group=group)
@@ -506,7 +507,7 @@ class TransferServer(Node):
             self.log.warning(f"skipped {len(result.skipped)} unreadable bag(s): {'; '.join(result.skipped)}")
         self.log.info(f"transfer done: {summary}")
         made_by = result.method if result.selection is None else result.selection.best
-        if not self._closed:
+        if not self._closed:  # stamped with the save's wall-clock time, as the restart announcement is (UTC)
             self._updates.publish(model_updated_msg(time.time_ns(), str(Path(result.model_path).absolute()), made_by,
                                                     result.episodes))
         picked = {} if result.selection is None else {

@@ -182,7 +182,9 @@ class View(Node):
             server_listener=_Listener(self), context=self._foxglove)
         self.port = self.server.port
         self._marker_pub = self.create_publisher(MarkerArray, names.VIEW_MARKERS, profile(names.LATCHED))
-        self.create_subscription(Clock, names.CLOCK, self._on_clock, 10)
+        # Best effort, as rclpy's own time source reads /clock: it matches a best-effort clock publisher too.
+        self.create_subscription(Clock, names.CLOCK, self._on_clock,
+                                 QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.create_subscription(JointState, names.JOINT_STATES, lambda m: self._input("joints", m), 10)
         self.create_subscription(PoseStamped, names.OBJECT_POSE, lambda m: self._input("pose", m), 10)
         self.create_subscription(PointStamped, names.GOAL, lambda m: self._input("goal", m), 10)

@@ -27,6 +27,7 @@ from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from msg_adapters import names
 from msg_adapters.events import SNAPSHOT
 from t42_transfer.data.bag.steps import Step
 from t42_transfer.data.bag.writer import BagWriter
@@ -169,13 +170,14 @@ def wants_snapshot(word: str, after: int | None, snapshot_on: Iterable[str], wai
     return after not in waiting and (covered is None or after > covered)
 
 
-def write_snapshot(path: Path, types: Mapping[str, str], snapshot: Snapshot) -> tuple[int, int, int]:
+def write_snapshot(path: Path, types: Mapping[str, str], snapshot: Snapshot,
+                   offered: Mapping[str, names.Qos] | None = None) -> tuple[int, int, int]:
     """Write ``snapshot`` as a new bag at ``path`` (steps in stamp order, each loose message before the first step
     logged after it), declaring the step topics ``types``; (messages, first log time, last log time).  A failure
     leaves what was written readable (aborted, as a killed recorder's bag) and raises."""
     loose = deque(snapshot.loose)
     first, last = math.inf, -math.inf
-    with BagWriter(path, types) as bag:
+    with BagWriter(path, types, offered=offered) as bag:
         def write(topic: str, log_ns: int, data: bytes, msgtype: str | None = None) -> None:
             nonlocal first, last
             bag.write(topic, log_ns, data, msgtype)

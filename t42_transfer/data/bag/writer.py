@@ -22,6 +22,7 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import Writer
 
 import msg_adapters as ma
+from msg_adapters import names
 from msg_adapters.names import LATE
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
@@ -43,6 +44,12 @@ RECORD_QOS = Qos(
     False,
 )
 """ROS default QoS, written as ``ros2 bag record`` writes a default publisher's offer."""
+
+
+def offered_qos(qos: names.Qos) -> Qos:
+    """The offer a bag records for a publisher of ``qos`` (reliable, KEEP_LAST; TRANSIENT_LOCAL when latched)."""
+    durability = QosDurability.TRANSIENT_LOCAL if qos.latched else QosDurability.VOLATILE
+    return RECORD_QOS._replace(depth=qos.depth, durability=durability)
 ROS_DISTRO = "jazzy"
 """What our bags' metadata says they were recorded with: Jazzy's CDR and type hashes (rosbags writes "rosbags")."""
 _DISTRO_LINE = re.compile(r"^( {0,2})ros_distro: rosbags$", re.MULTILINE)
@@ -72,7 +79,8 @@ class JazzyWriter(Writer):
 
 
 class BagWriter:
-    """A new bag written message by message: one connection per topic, offered :data:`RECORD_QOS`.
+    """A new bag written message by message: one connection per topic, offered :data:`RECORD_QOS`, or for a topic
+    of ``offered`` (resolved name -> its publishers' QoS) what they offer.
 
     What the recorder writes as messages arrive and :func:`write_bag` writes from trajectories, so both
     make the same bags.  ``flush`` closes the open MCAP chunk, so a writer killed later loses nothing
@@ -80,12 +88,13 @@ class BagWriter:
     """
 
     def __init__(self, path: Path, types: Mapping[str, str], storage: str = "mcap",
-                 custom: Mapping[str, str] | None = None) -> None:
+                 custom: Mapping[str, str] | None = None, offered: Mapping[str, names.Qos] | None = None) -> None:
         if storage not in STORAGES:
             raise ValueError(f"storage must be one of {sorted(STORAGES)}, got {storage!r}")
         self.path = path
         self.count = 0
         """Messages written."""
+        self._offered = {topic: [offered_qos(qos)] for topic, qos in (offered or {}).items()}
         self._writer = JazzyWriter(path, version=9, storage_plugin=STORAGES[storage])
         for key, value in (custom or {}).items():
             self._writer.set_custom_data(key, value)
@@ -93,7 +102,7 @@ class BagWriter:
         try:
             self._connections = {
                 topic: self._writer.add_connection(topic, msgtype, typestore=ma.TYPESTORE,
-                                                   offered_qos_profiles=[RECORD_QOS])
+                                                   offered_qos_profiles=self._offered.get(topic, [RECORD_QOS]))
                 for topic, msgtype in types.items()
             }
         except Exception:
@@ -104,8 +113,8 @@ class BagWriter:
         """One message; ``msgtype`` adds a topic not declared at the start (on its first message only, so a bag
         holds no empty connection for an optional topic such as ``hand/status``)."""
         if topic not in self._connections and msgtype is not None:
-            self._connections[topic] = self._writer.add_connection(topic, msgtype, typestore=ma.TYPESTORE,
-                                                                   offered_qos_profiles=[RECORD_QOS])
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=ma.TYPESTORE, offered_qos_profiles=self._offered.get(topic, [RECORD_QOS]))
         self._writer.write(self._connections[topic], log_ns, cdr)
         self.count += 1
 
