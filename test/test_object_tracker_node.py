@@ -14,6 +14,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.parameter import Parameter
+from rclpy.qos import ReliabilityPolicy
 from ros_rig import Rosout, Tester, assert_one_line_errors
 from sensor_msgs.msg import CameraInfo, Image
 from videos import grey_video, write_video
@@ -116,6 +117,18 @@ def test_rendered_frames_give_the_true_pose_with_the_images_stamp(ros, scene) ->
     assert values["images"] == str(len(PLACES_MM)) and values["no_object"] == "0" and values["status"] == "ok"
     assert 0 < float(values["reprojection_error_px"]) < 1.0 and 0 < float(values["base_error_px"]) < 1.0
     assert math.isfinite(float(values["jump_mm"])) and values["jumps"] == "0"
+
+
+def test_ros_qos_overrides_make_the_camera_readers_best_effort_and_nothing_else(ros, scene) -> None:
+    """A camera driver publishing sensor data QoS (best effort) matches no reliable reader; ROS's QoS overrides
+    make the tracker's readers best effort, which match it (and a reliable camera too).  The override stays
+    with this node: rclpy writes it into the profile object it is given, which is therefore never shared."""
+    overrides = {f"qos_overrides./{topic}.subscription.reliability": "best_effort"
+                 for topic in (names.CAMERA_IMAGE, names.CAMERA_INFO)}
+    tracker = ros.add(ObjectTracker, {"object_marker_height_m": scene["height_m"], **overrides})
+    readers = {s.topic_name: s.qos_profile.reliability for s in tracker.subscriptions}
+    assert readers["/" + names.CAMERA_IMAGE] == readers["/" + names.CAMERA_INFO] == ReliabilityPolicy.BEST_EFFORT
+    assert profile(names.IMAGES).reliability == ReliabilityPolicy.RELIABLE  # what the camera publishes with
 
 
 def test_bad_images_and_camera_infos_are_counted_and_the_node_goes_on(ros, scene) -> None:

@@ -39,6 +39,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import (
@@ -129,8 +130,13 @@ class ObjectTracker(Node):
         self._pose_pub = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.worker = LatestOnly(self._track, self._publish, self._failed, name="object_tracker")
-        self.create_subscription(CameraInfo, names.CAMERA_INFO, self._on_camera_info, profile(names.IMAGES))
-        self.create_subscription(Image, names.CAMERA_IMAGE, self._on_image, profile(names.IMAGES))
+        # A camera driver that publishes best effort (sensor data QoS) matches no reliable reader:
+        # ``-p qos_overrides./camera/image_raw.subscription.reliability:=best_effort`` (and camera_info alike).
+        overridable = QoSOverridingOptions.with_default_policies()
+        self.create_subscription(CameraInfo, names.CAMERA_INFO, self._on_camera_info, profile(names.IMAGES),
+                                 qos_overriding_options=overridable)
+        self.create_subscription(Image, names.CAMERA_IMAGE, self._on_image, profile(names.IMAGES),
+                                 qos_overriding_options=overridable)
         self._timer = self.create_timer(p.diagnostics_period_s, self.publish_diagnostics)
 
     @property
