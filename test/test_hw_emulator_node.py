@@ -121,10 +121,13 @@ def rig(shared_rig: Rig, request: pytest.FixtureRequest) -> Iterator[Rig]:
     r.grasped = r.grasped and passed and not any(e in names.END_EVENTS for e in r.events())
 
 
-def test_on_sim_time_the_driver_steps_in_lockstep_with_the_emulators_clock_faster_than_real_time(ros: RosRig,
-                                                                                     tmp_path: Path) -> None:
-    rig = Rig(ros, tmp_path / "ttyT42", emulator={"sim_time": True, "rate_factor": 4.0},
-              driver={"use_sim_time": True, "max_command_age_s": 2.0})
+@pytest.mark.parametrize("everyone_on_sim_time", [False, True])
+def test_on_sim_time_the_driver_steps_in_lockstep_with_the_emulators_clock_faster_than_real_time(
+        ros: RosRig, tmp_path: Path, everyone_on_sim_time: bool) -> None:
+    """With ``everyone_on_sim_time`` the emulator, the clock's source, also has ``use_sim_time`` (a params file
+    that sets it for every node): its ticks run on the machine's clock, not on the /clock it publishes."""
+    emulator = {"sim_time": True, "rate_factor": 4.0, **({"use_sim_time": True} if everyone_on_sim_time else {})}
+    rig = Rig(ros, tmp_path / "ttyT42", emulator=emulator, driver={"use_sim_time": True, "max_command_age_s": 2.0})
     try:
         assert rig.ros.spin_until(rig.active, 10.0) and rig.reset()
         start = len(rig.joints)
