@@ -173,7 +173,13 @@ def assert_one_line_errors(cases: Sequence[tuple[list[str], str]]) -> None:
                               stderr=subprocess.PIPE, text=True) for args, _ in cases]
     try:
         for proc, (args, match) in zip(procs, cases, strict=True):
-            stdout, stderr = proc.communicate(timeout=60)
+            try:
+                stdout, stderr = proc.communicate(timeout=60)
+            except subprocess.TimeoutExpired:  # name the case that hung, and what it had said
+                proc.kill()
+                stdout, stderr = proc.communicate()
+                raise AssertionError(f"{args} did not exit within 60 s; stdout {stdout[-2000:]!r}, "
+                                     f"stderr {stderr[-2000:]!r}") from None
             assert proc.returncode == 2, (args, stdout, stderr)
             errors = [line for line in stderr.splitlines() if line.startswith("t42: error:")]
             assert len(errors) == 1 and match in errors[0] and "Traceback" not in stderr, (args, stderr)
