@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from geometry_msgs.msg import PoseStamped
-from rclpy.clock import Clock as RclpyClock
+from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -110,7 +110,7 @@ class HwEmulator(Node):
         self._apply_faults(p)
         # The graph's clock ticks on the machine's: on ROS time (use_sim_time) it would wait for itself.
         self._timer = self.create_timer(CONTROL_PERIOD_S / p.rate_factor, self._on_timer,
-                                       clock=RclpyClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
+                                       clock=RosClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
         self.log.info(f"servo bus on {self.port} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
 
     @property

@@ -69,7 +69,7 @@ from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rclpy.clock import Clock as RclpyClock
+from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
@@ -203,7 +203,7 @@ class MockDriver(Node):
                              f"call {self.resolve_service_name(names.HAND_RESET)} to retry")
         # The graph's clock ticks on the machine's: on ROS time (use_sim_time) it would wait for itself.
         self._timer = self.create_timer(p.period_s, self._on_timer,
-                                       clock=RclpyClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
+                                       clock=RosClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
 
     # ------------------------------------------------------------------ state
     @property

@@ -44,16 +44,16 @@ RECORD_QOS = Qos(
     False,
 )
 """ROS default QoS, written as ``ros2 bag record`` writes a default publisher's offer."""
-
-
-def offered_qos(qos: names.Qos) -> Qos:
-    """The offer a bag records for a publisher of ``qos`` (reliable, KEEP_LAST; TRANSIENT_LOCAL when latched)."""
-    durability = QosDurability.TRANSIENT_LOCAL if qos.latched else QosDurability.VOLATILE
-    return RECORD_QOS._replace(depth=qos.depth, durability=durability)
 ROS_DISTRO = "jazzy"
 """What our bags' metadata says they were recorded with: Jazzy's CDR and type hashes (rosbags writes "rosbags")."""
 _DISTRO_LINE = re.compile(r"^( {0,2})ros_distro: rosbags$", re.MULTILINE)
 """rosbags' ros_distro line at the top level of the bag information (metadata.yaml nests it 2 deep)."""
+
+
+def recorded_offer(qos: names.Qos) -> Qos:
+    """The offer a bag records for a publisher of ``qos`` (reliable, KEEP_LAST; TRANSIENT_LOCAL when latched)."""
+    durability = QosDurability.TRANSIENT_LOCAL if qos.latched else QosDurability.VOLATILE
+    return RECORD_QOS._replace(depth=qos.depth, durability=durability)
 
 
 def _jazzy(text: str) -> str:
@@ -94,7 +94,7 @@ class BagWriter:
         self.path = path
         self.count = 0
         """Messages written."""
-        self._offered = {topic: [offered_qos(qos)] for topic, qos in (offered or {}).items()}
+        self._offered = {topic: [recorded_offer(qos)] for topic, qos in (offered or {}).items()}
         self._writer = JazzyWriter(path, version=9, storage_plugin=STORAGES[storage])
         for key, value in (custom or {}).items():
             self._writer.set_custom_data(key, value)
