@@ -67,6 +67,9 @@ GRASP_LOAD = 100.0
 OVERLOAD_LOAD = 280.0
 """|load| above this ends an episode (the real driver refused moves past it)."""
 
+MM_PER_M = 1000.0
+"""The science works in mm (the paper's unit); ROS messages and parameters are in metres (REP 103)."""
+
 DROP_JUMP_MM = 8.0
 """An object jump larger than this in one step counts as a drop (paper's data rule)."""
 

@@ -201,6 +201,8 @@ def test_t42_node_bad_arguments_are_one_line_errors(ros_domain) -> None:
         (["mock_driver", "extra"], "unexpected arguments extra"),
         (["mock_driver", "--ros-args", "--params-file", "/nonexistent.yaml"], "ros-args"),
         (["no_such_node"], "unknown node"),
+        # a parameter's former name (rclpy would drop it unread): the planner's tolerance is now in metres
+        (["planner", "--ros-args", "-p", "tolerance_mm:=5.0"], "'tolerance_mm' is now 'tolerance_m'"),
     )
     assert_one_line_errors(cases)
 

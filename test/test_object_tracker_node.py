@@ -167,15 +167,15 @@ def test_a_frame_without_the_object_counts_and_a_jump_is_flagged(ros, scene) -> 
     rig.info(stamp_ns=2)
     rig.image(blank, 2)
     rig.report_when(lambda v: v["no_object"] == "1" and v["status"] == "no_object")
-    assert rig.node.set_parameters([Parameter("max_jump_mm", value=1.0)])[0].successful
+    assert rig.node.set_parameters([Parameter("max_jump_m", value=0.001)])[0].successful
     rig.track(third, 3)  # 1.8 mm from the first place
     values = rig.report_when(lambda v: v["jumps"] == "1")
     assert values["status"] == "jump" and float(values["jump_mm"]) > 1.0
     assert not rig.node.set_parameters([Parameter("object_id", value=5)])[0].successful  # read-only
     for bad in (-1.0, 0.0, math.nan):  # out of range, or refused by the settings' own check, with a reason
-        result = rig.node.set_parameters([Parameter("max_jump_mm", value=bad)])[0]
+        result = rig.node.set_parameters([Parameter("max_jump_m", value=bad)])[0]
         assert not result.successful and result.reason, bad
-    assert rig.node.get_parameter("max_jump_mm").value == 1.0 and rig.node.tracker.config.jump_mm == 1.0
+    assert rig.node.get_parameter("max_jump_m").value == 0.001 and rig.node.tracker.config.jump_mm == 1.0
 
 
 def test_a_flood_is_dropped_and_counted_and_the_node_keeps_answering(ros, scene) -> None:
@@ -291,7 +291,7 @@ def test_an_occluded_object_gives_no_pose_and_tracking_resumes_without_a_jump(ro
 
 
 def test_an_object_that_moved_while_out_of_sight_is_flagged_when_seen_again(ros, scene) -> None:
-    """Seen again 9.9 mm from where it was hidden (over max_jump_mm): a drop and a move while hidden look the
+    """Seen again 9.9 mm from where it was hidden (over max_jump_m): a drop and a move while hidden look the
     same to the tracker, so the pose is published and flagged as a jump, once, the warning saying that the
     object was out of sight; the next frames at the new place are not jumps."""
     rig = Rig(ros, scene)
@@ -357,6 +357,7 @@ def test_bad_camera_and_tracker_settings_are_one_line_errors(ros_domain, video, 
          "bad.yaml"),
         (["camera", "--ros-args", "-p", f"device:={video}", "-p", "frame_id:=/cam"], "tf2 frame name"),
         (["object_tracker", "--ros-args", "-p", "base_ids:=[1]"], "as many sizes"),
+        (["object_tracker", "--ros-args", "-p", "max_jump_mm:=8.0"], "'max_jump_mm' is now 'max_jump_m'"),
     )
     assert_one_line_errors(cases)
 

@@ -56,7 +56,7 @@ GRASP.reset(0)
 START_XY = GRASP.state[:2].copy()
 """Where the mock driver (seed 0) holds the object after its first grasp."""
 BOX = Workspace.box(START_XY[0] - 40, START_XY[0] + 40, START_XY[1] - 40, START_XY[1] + 40)
-SMALL = dict(samples=200, refine_iterations=0, horizon=20, horizon_search=True, tolerance_mm=3.0,
+SMALL = dict(samples=200, refine_iterations=0, horizon=20, horizon_search=True, tolerance_m=0.003,
              max_state_age_s=5.0)
 """Fast unrefined plans that stop at the first predicted reach (the node's mechanics, not the plans' quality); a
 generous state age, since a loaded 2-core machine may take a while between tick and plan."""
@@ -409,8 +409,8 @@ def test_parameter_changes_apply_to_the_next_plan_and_bad_values_are_refused(rig
 
     before = rig.planner.params
     for name, value, why in (("samples", 0, "range"), ("samples", "many", "type"),
-                             ("tolerance_mm", 0.0, "tolerance_mm must be positive"),
-                             ("tolerance_mm", math.inf, "finite"), ("max_state_age_s", -1.0, "range"),
+                             ("tolerance_m", 0.0, "tolerance_mm must be positive"),
+                             ("tolerance_m", math.inf, "finite"), ("max_state_age_s", -1.0, "range"),
                              ("model", "other.safetensors", "read-only"), ("torch_threads", 2, "read-only")):
         (refused,) = rig.set(**{name: value})
         assert not refused.successful and why in refused.reason, (name, refused.reason)
@@ -456,20 +456,21 @@ def test_hand_state_joins_pose_and_loads_and_checks_freshness() -> None:
         assert err.value.status == "stale_state"
 
 
-@pytest.mark.parametrize("kwargs", [{"samples": 0}, {"horizon": 0}, {"tolerance_mm": -1.0},
-                                    {"tolerance_mm": math.inf}, {"max_state_age_s": math.inf},
+@pytest.mark.parametrize("kwargs", [{"samples": 0}, {"horizon": 0}, {"tolerance_m": -0.001},
+                                    {"tolerance_m": math.inf}, {"max_state_age_s": math.inf},
                                     {"max_state_age_s": 0.0}])
 def test_params_validate_planner_fields(kwargs: dict) -> None:
-    assert PlannerNodeParams(samples=5, horizon=3, tolerance_mm=1.0).planner_config.samples == 5
+    assert PlannerNodeParams(samples=5, horizon=3, tolerance_m=0.001).planner_config.samples == 5
     with pytest.raises(ValueError):
         PlannerNodeParams(**kwargs)
 
 
 def test_the_planner_parameters_reach_the_planners_config() -> None:
-    given = dict(samples=5, refine_iterations=2, horizon=3, horizon_search=True, tolerance_mm=1.5, seed=4,
-                 candidates=2, warm_start=True)
-    config = PlannerNodeParams(**given).planner_config  # type: ignore[arg-type]
+    given = dict(samples=5, refine_iterations=2, horizon=3, horizon_search=True, seed=4, candidates=2,
+                 warm_start=True)
+    config = PlannerNodeParams(**given, tolerance_m=0.0015).planner_config  # type: ignore[arg-type]
     assert {name: getattr(config, name) for name in given} == given
+    assert config.tolerance_mm == pytest.approx(1.5)  # the parameter in metres (REP 103), the planner in mm
 
 
 # --------------------------------------------------------------------------- closed loop
@@ -492,7 +493,7 @@ def test_closed_loop_with_a_model_trained_on_target_data_moves_the_object_toward
     goal = hand.state[:2].copy()
     assert not hand.done and workspace.contains_xy(torch.as_tensor(goal, dtype=torch.float32))
 
-    rig = Rig(ros, path, samples=300, horizon=30, horizon_search=True, tolerance_mm=5.0, max_state_age_s=5.0)
+    rig = Rig(ros, path, samples=300, horizon=30, horizon_search=True, tolerance_m=0.005, max_state_age_s=5.0)
     rig.tick()
     start = rig.driver.hand.state[:2].copy()
     result = rig.goal(goal)
@@ -534,7 +535,7 @@ def test_a_warm_replan_of_one_sequence_sends_on_its_first_plan(ros, toy: Path, w
     so every replanned path moves as the first plan's rest does (the toy moves by its actions); cold, it does
     not.  (A wide tolerance: one random sequence must be accepted.)"""
     rig = Rig(ros, toy, **{**SMALL, "samples": 1, "horizon": 15, "horizon_search": False, "replan_every": 5,
-                           "tolerance_mm": 50.0, "warm_start": warm_start})
+                           "tolerance_m": 0.05, "warm_start": warm_start})
     assert rig.wait_graph(subscribers={names.OBJECT_POSE: 1}), "discovery"
     rig.tick()
     rig.publish_goal(START_XY + [6.0, -4.0])

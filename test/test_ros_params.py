@@ -24,6 +24,7 @@ class Demo:
     names: tuple[str, ...] = param(("a",), "names")
     seed: int | None = param(None, "seed (unset: random)")
     extra: tuple[str, ...] = param((), "empty by default")
+    reach_m: float = param(0.5, "how far (m)", renamed_from="reach_mm")
 
     def __post_init__(self) -> None:
         if self.count > 2 * len(self.gains) + 10:
@@ -69,6 +70,7 @@ def test_params_file_then_overrides(ros, tmp_path: Path) -> None:
     ({"out": "x", "rate": 1000.0}, "rate"),
     ({"out": "x", "count": "many"}, "count"),
     ({"out": "x", "count": 99}, "more than the gains allow"),
+    ({"out": "x", "reach_mm": 500.0}, r"'reach_mm' is now 'reach_m': how far \(m\)"),
 ])
 def test_bad_start_values_are_value_errors_naming_the_parameter(ros, params, match) -> None:
     with pytest.raises(ValueError, match=match):

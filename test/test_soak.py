@@ -75,7 +75,7 @@ def soak_params(root: Path, source: Path) -> Path:
         "transfer_server": node(source_model=str(source), model_dir=str(root / "models"), bag_dir=str(root / "bags"),
                                 method="l2_finetune", config=str(methods), min_episodes=2, use_sim_time=True),
         "planner": node(model=str(root / "models" / "current.safetensors"), samples=128, horizon=30,
-                        tolerance_mm=4.0, max_state_age_s=0.5 * RATE_FACTOR * 2, use_sim_time=True),
+                        tolerance_m=0.004, max_state_age_s=0.5 * RATE_FACTOR * 2, use_sim_time=True),
         "explorer": node(episodes=EPISODES_PER_ROUND, steps=STEPS_PER_EPISODE, seed=1, rate_factor=RATE_FACTOR,
                          use_sim_time=True),
     }

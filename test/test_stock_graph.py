@@ -43,7 +43,7 @@ def suite_file(root: Path, source: Path, seed: int = 0) -> Path:
                                 bag_dir=str(root / "bags"), method="naive_finetune", config=str(methods),
                                 min_episodes=2, use_sim_time=True),
         "planner": node(model=str(root / "models" / "current.safetensors"), samples=128, horizon=10,
-                        tolerance_mm=10.0, max_state_age_s=5.0, use_sim_time=True),
+                        tolerance_m=0.01, max_state_age_s=5.0, use_sim_time=True),
         "explorer": node(episodes=3, steps=30, seed=seed + 1, rate_factor=5.0, use_sim_time=True,
                          record_start_service="recorder/start", record_stop_service="recorder/stop"),
     }
@@ -115,7 +115,7 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         assert {"/mock_driver", "/recorder", "/transfer_server", "/planner"} <= set(seen["nodes"])
         params = seen["parameters"]
         assert {"rate_factor", "hand", "seed", "use_sim_time"} <= set(params["mock_driver"])
-        assert {"samples", "refine_iterations", "replan_every", "piece_timeout_s", "tolerance_mm",
+        assert {"samples", "refine_iterations", "replan_every", "piece_timeout_s", "tolerance_m",
                 "use_sim_time"} <= set(params["planner"])
         assert "source_model" in params["transfer_server"] and "out_dir" in params["recorder"]
         ok, reason = seen["bad_set"]

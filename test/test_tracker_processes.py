@@ -62,17 +62,17 @@ def test_a_plain_rclpy_script_sets_parameters_and_receives_poses(ros_domain: int
 
     camera, tracker = seen["parameters"]["/camera"], seen["parameters"]["/object_tracker"]
     assert {"device", "fps", "loop", "frame_id", "calibration_file", "width", "height"} <= set(camera), camera
-    assert {"object_id", "max_jump_mm", "object_marker_height_m", "base_ids", "dictionary"} <= set(tracker), tracker
+    assert {"object_id", "max_jump_m", "object_marker_height_m", "base_ids", "dictionary"} <= set(tracker), tracker
     assert seen["camera_values"]["device"] == str(hand_video["video"]) and seen["camera_values"]["loop"] is True
     assert seen["camera_values"]["frame_id"] == "camera_optical"
-    assert seen["tracker_values"] == {"object_id": 0, "max_jump_mm": 8.0,
+    assert seen["tracker_values"] == {"object_id": 0, "max_jump_m": 0.008,
                                       "object_marker_height_m": hand_video["height_m"]}
 
     (jump_ok, jump_reason), (id_ok, id_reason) = seen["tracker_bad"]
-    assert not jump_ok and "max_jump_mm" in jump_reason, seen["tracker_bad"]
+    assert not jump_ok and "max_jump_m" in jump_reason, seen["tracker_bad"]
     assert not id_ok and "read-only" in id_reason, seen["tracker_bad"]
-    assert seen["tracker_after_bad"] == {"max_jump_mm": 8.0, "object_id": 0}
-    assert seen["tracker_good"] == [True, ""] and seen["tracker_after_good"] == {"max_jump_mm": 12.0}
+    assert seen["tracker_after_bad"] == {"max_jump_m": 0.008, "object_id": 0}
+    assert seen["tracker_good"] == [True, ""] and seen["tracker_after_good"] == {"max_jump_m": 0.012}
 
     empty, slash, fps = seen["camera_bad"]
     assert not empty[0] and "frame_id" in empty[1] and not slash[0] and "frame_id" in slash[1], seen["camera_bad"]

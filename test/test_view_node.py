@@ -196,18 +196,18 @@ def test_a_client_reads_and_sets_the_nodes_parameters(ros, view):
     other.declare_parameter("gain", 2.5)
     box: dict[str, Any] = {}
     requests = [{"op": "getParameters", "parameterNames": [], "id": "all"},
-                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_mm", "value": 4}], "id": "set"},
-                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_mm", "value": -1.0}], "id": "bad"},
+                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_m", "value": 1}], "id": "set"},
+                {"op": "setParameters", "parameters": [{"name": "/view.tolerance_m", "value": -1.0}], "id": "bad"},
                 {"op": "getParameters", "parameterNames": ["/left/hand_tool.gain"], "id": "one"}]
     thread = threading.Thread(target=lambda: box.update(answers=_ask(view.port, requests, 4)), daemon=True)
     thread.start()
     assert ros.spin_until(lambda: not thread.is_alive(), 30)
     every, set_ok, set_bad, one = box["answers"]
     values = {p["name"]: p["value"] for p in every["parameters"]}
-    assert values["/view.hand"] == "target" and values["/view.tolerance_mm"] == 2.0
+    assert values["/view.hand"] == "target" and values["/view.tolerance_m"] == 0.002
     assert values["/left/hand_tool.gain"] == 2.5
-    assert view.params.tolerance_mm == 4.0  # the whole number 4 taken as the double it is
-    assert {p["name"]: p["value"] for p in set_bad["parameters"]} == {"/view.tolerance_mm": 4.0}  # refused, kept
+    assert view.params.tolerance_m == 1.0  # the whole number 1 taken as the double it is
+    assert {p["name"]: p["value"] for p in set_bad["parameters"]} == {"/view.tolerance_m": 1.0}  # refused, kept
     assert one["id"] == "one"
     assert [(p["name"], p["value"]) for p in one["parameters"]] == [("/left/hand_tool.gain", 2.5)]
 

@@ -101,14 +101,14 @@ def main(argv: list[str]) -> int:
                   60.0, "camera and object_tracker nodes")
         seen["parameters"] = {node: user.list_params(node) for node in (CAMERA, TRACKER)}
         seen["camera_values"] = user.get_params(CAMERA, ["device", "fps", "loop", "frame_id", "calibration_file"])
-        seen["tracker_values"] = user.get_params(TRACKER, ["object_id", "max_jump_mm", "object_marker_height_m"])
+        seen["tracker_values"] = user.get_params(TRACKER, ["object_id", "max_jump_m", "object_marker_height_m"])
 
         # the object tracker: a jump limit out of range, a read-only marker id; then a good jump limit
-        seen["tracker_bad"] = [user.set_param(TRACKER, "max_jump_mm", -1.0),
+        seen["tracker_bad"] = [user.set_param(TRACKER, "max_jump_m", -1.0),
                                user.set_param(TRACKER, "object_id", 5)]
-        seen["tracker_after_bad"] = user.get_params(TRACKER, ["max_jump_mm", "object_id"])
-        seen["tracker_good"] = user.set_param(TRACKER, "max_jump_mm", 12.0)
-        seen["tracker_after_good"] = user.get_params(TRACKER, ["max_jump_mm"])
+        seen["tracker_after_bad"] = user.get_params(TRACKER, ["max_jump_m", "object_id"])
+        seen["tracker_good"] = user.set_param(TRACKER, "max_jump_m", 0.012)
+        seen["tracker_after_good"] = user.get_params(TRACKER, ["max_jump_m"])
 
         # the camera: frame ids tf2 refuses, a read-only rate; then a good frame id, which the next frames carry
         seen["camera_bad"] = [user.set_param(CAMERA, "frame_id", ""),

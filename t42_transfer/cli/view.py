@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from t42_transfer.cli.args import existing_file, float_arg, int_arg, new_output
+from t42_transfer.conventions import MM_PER_M
 
 
 def _path_file(path: Path) -> np.ndarray:
@@ -58,7 +59,7 @@ def _live(args: argparse.Namespace) -> int:
 
     keep_discovery_local()
     ros_args = ["--ros-args", "-p", f"host:={args.host}", "-p", f"port:={args.port}", "-p", f"hand:={args.hand}",
-                "-p", f"tolerance_mm:={args.tolerance}", *args.ros_args]
+                "-p", f"tolerance_m:={args.tolerance / MM_PER_M!r}", *args.ros_args]
     return run_node("view", ros_args)
 
 

@@ -16,9 +16,9 @@ worker replaces it; the replaced one is dropped and counted, so under a flood th
 the poses are about the newest images.
 
 Tracking quality: a frame without the object marker (or before any base marker was seen) publishes no pose and
-is counted; a jump above ``max_jump_mm`` (the authors' 8 mm drop rule) is published, counted and warned about;
+is counted; a jump above ``max_jump_m`` (the authors' 8 mm drop rule) is published, counted and warned about;
 the reprojection errors (object and base markers, px) are reported.  The jump is measured from the last tracked
-frame, also across frames without the object: an object seen again more than ``max_jump_mm`` from where it was
+frame, also across frames without the object: an object seen again more than ``max_jump_m`` from where it was
 hidden is flagged (a drop while out of sight and a move look the same here), and the warning says for how many
 frames and seconds it was out of sight; one seen again where it was hidden is not.
 
@@ -51,7 +51,7 @@ from msg_adapters import (
     object_pose_msg,
     stamp_to_ns,
 )
-from t42_transfer.conventions import DROP_JUMP_MM
+from t42_transfer.conventions import DROP_JUMP_MM, MM_PER_M
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
@@ -87,8 +87,8 @@ class ObjectTrackerParams:
         None, "height of the object marker's face above t42_base's z = 0 (m): the object moves in the hand's "
               "plane, so its position is where the camera ray meets that plane; unset: the marker's own depth",
         read_only=True)
-    max_jump_mm: float = param(DROP_JUMP_MM, "a move between two tracked frames larger than this is flagged (mm)",
-                               min=0.0)
+    max_jump_m: float = param(DROP_JUMP_MM / MM_PER_M, "a move between two tracked frames larger than this is "
+                                                        "flagged (m)", min=0.0, renamed_from="max_jump_mm")
     diagnostics_period_s: float = param(1.0, "diagnostics are published this often (s)", read_only=True,
                                         min=0.01, max=60.0)
 
@@ -100,7 +100,8 @@ class ObjectTrackerParams:
     def tracker_config(self) -> markers.TrackerConfig:
         height = math.nan if self.object_marker_height_m is None else self.object_marker_height_m
         return markers.config_from_parameters(self.object_id, self.object_size_m, self.base_ids, self.base_sizes_m,
-                                              self.base_poses, self.dictionary, self.max_jump_mm, height)
+                                              self.base_poses, self.dictionary, self.max_jump_m * MM_PER_M,
+                                              height)
 
 
 class _Frame(NamedTuple):
@@ -149,9 +150,9 @@ class ObjectTracker(Node):
 
     # ------------------------------------------------------------------ callbacks (executor)
     def _on_params(self, old: ObjectTrackerParams, new: ObjectTrackerParams) -> None:
-        if new.max_jump_mm != old.max_jump_mm:
+        if new.max_jump_m != old.max_jump_m:
             # the config is read once per frame by the worker; swapping the reference is atomic
-            self.tracker.config = dataclasses.replace(self.tracker.config, jump_mm=new.max_jump_mm)
+            self.tracker.config = dataclasses.replace(self.tracker.config, jump_mm=new.max_jump_m * MM_PER_M)
 
     def _count(self, key: str) -> None:
         with self._lock:

@@ -63,7 +63,7 @@ Decisions, and why:
   an unreadable one, keeping the previous model: the workspace is the planner's
   only guard against trusting extrapolations, and no default box can know where
   a given model was trained.
-* Only plans the planner calls ``ok`` (a safe prediction within ``tolerance_mm``)
+* Only plans the planner calls ``ok`` (a safe prediction within ``tolerance_m``)
   are executed; ``unreachable`` ones are refused with their predicted error.
 * Hand state further than ``max_state_age_s`` from now (driver stopped, episode
   ended) is refused: an open-loop plan from an old state is a plan for another hand.
@@ -531,7 +531,7 @@ class PlannerNode(Node):
     def _conclude(self, goal: Goal, first: Plan, final: HandState | None, ends_before: int) -> None:
         """End an action goal: its verdict from the measured state after its last step, or why it stopped."""
         run = goal.run
-        tolerance = goal.tolerance_mm or self.params.tolerance_mm
+        tolerance = goal.tolerance_mm or self.params.planner_config.tolerance_mm
         with self._cond:
             new_ends = min(self._ends - ends_before, len(self._episode_ends))
             ends = self._episode_ends[len(self._episode_ends) - new_ends:]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS
+from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS, MM_PER_M
 from t42_transfer.planning import PlannerConfig
 from t42_transfer.planning.planner import MAX_CANDIDATES
 from t42_transfer.ros.params import param, torch_threads_param
@@ -30,8 +30,9 @@ class PlannerNodeParams:
     horizon_search: bool = param(_DEFAULTS.horizon_search, "plan the shortest sequence predicted to reach the "
                                                           "goal, then hold (false: plan horizon steps, or a goal's "
                                                           "steps, to the final state)")
-    tolerance_mm: float = param(_DEFAULTS.tolerance_mm, "a prediction this close to the goal reaches it (mm)",
-                                min=0.0, constraints="positive, finite")
+    tolerance_m: float = param(_DEFAULTS.tolerance_mm / MM_PER_M, "a prediction this close to the goal reaches it "
+                                                                 "(m)", min=0.0, constraints="positive, finite",
+                               renamed_from="tolerance_mm")
     seed: int = param(_DEFAULTS.seed, "seed of the action sampler: same model, state, goal and seed, same plan")
     max_state_age_s: float = param(0.5, "plan only from a hand state at most this old (or this far in the future)",
                                    min=0.0, constraints="positive, finite")
@@ -50,8 +51,8 @@ class PlannerNodeParams:
 
     def __post_init__(self) -> None:
         _ = self.planner_config  # PlannerConfig validates the planner fields
-        if not math.isfinite(self.tolerance_mm):
-            raise ValueError(f"tolerance_mm must be finite, got {self.tolerance_mm!r}")
+        if not math.isfinite(self.tolerance_m):
+            raise ValueError(f"tolerance_m must be finite, got {self.tolerance_m!r}")
         for name in ("max_state_age_s", "max_goal_age_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -63,7 +64,7 @@ class PlannerNodeParams:
     def planner_config(self) -> PlannerConfig:
         return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
                              horizon_search=self.horizon_search,
-                             tolerance_mm=self.tolerance_mm, seed=self.seed, candidates=self.candidates,
+                             tolerance_mm=self.tolerance_m * MM_PER_M, seed=self.seed, candidates=self.candidates,
                              warm_start=self.warm_start)
 
     @property

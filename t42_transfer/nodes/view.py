@@ -16,7 +16,7 @@ What a Foxglove client (the app's "Foxglove WebSocket" connection, ``ws://127.0.
   ``t42/planned_path`` (the plan's predicted path, published with each accepted plan) and
   ``t42/plan_candidates`` (the planner's lowest-cost candidates, with its parameter ``candidates`` above 0),
   drawn with the links of
-  ``hand`` and a tolerance circle of ``tolerance_mm``, red with the planner's status word when ``t42/plan_result``
+  ``hand`` and a tolerance circle of ``tolerance_m``, red with the planner's status word when ``t42/plan_result``
   says it refused that goal; at most ``marker_rate_hz``, when something changed;
 * Parameters: every node's parameters, as ``/namespace/node.parameter``, read and set through the nodes'
   parameter services (:mod:`t42_transfer.nodes.view_params`); a node refuses a bad value as it would refuse
@@ -60,6 +60,7 @@ from msg_adapters.markers import scene_markers
 from msg_adapters.plan_result import plan_result
 from msg_adapters.planning import candidates_xy_mm
 from msg_adapters.schemas import message_definition
+from t42_transfer.conventions import MM_PER_M
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.view_params import GraphParameters
 from t42_transfer.ros.logs import ThrottledLog
@@ -85,8 +86,9 @@ class ViewParams:
                       min=0, max=65535)
     hand: str = param("target", "hand whose link lengths draw the fingers (source, target, family-<seed>...)",
                       read_only=True)
-    tolerance_mm: float = param(DEFAULT_TOLERANCE_MM, "radius of the goal's circle (mm): the planner's tolerance",
-                                min=1e-3, max=1000.0)
+    tolerance_m: float = param(DEFAULT_TOLERANCE_MM / MM_PER_M, "radius of the goal's circle (m): the planner's "
+                                                                "tolerance", min=1e-6, max=1.0,
+                               renamed_from="tolerance_mm")
     marker_rate_hz: float = param(10.0, "markers are drawn at most this often (Hz, steady time)", read_only=True,
                                   min=0.1, max=100.0)
     discovery_period_s: float = param(1.0, "how often the graph is looked at for new topics (s)", read_only=True,
@@ -96,8 +98,8 @@ class ViewParams:
 
     def __post_init__(self) -> None:
         variant(self.hand)  # ValueError naming the bad hand
-        if not (math.isfinite(self.tolerance_mm) and self.tolerance_mm > 0):
-            raise ValueError(f"tolerance_mm must be a positive number, got {self.tolerance_mm!r}")
+        if not (math.isfinite(self.tolerance_m) and self.tolerance_m > 0):
+            raise ValueError(f"tolerance_m must be a positive number, got {self.tolerance_m!r}")
 
 
 class _Listener(foxglove.websocket.ServerListener):
@@ -302,7 +304,7 @@ class View(Node):
         return build_scene(self.hand, actuator_angles=None if joints is None else ma.joint_state_arrays(joints)[1],
                            object_xy_mm=None if pose is None else ma.object_xy_mm(pose),
                            goal_xy_mm=None if goal is None else ma.goal_xy_mm(goal),
-                           tolerance_mm=self.params.tolerance_mm,
+                           tolerance_mm=self.params.tolerance_m * MM_PER_M,
                            path_xy_mm=None if path is None else ma.path_xy_mm(path), goal_refused=self._refused,
                            candidates=() if candidates is None else candidates_xy_mm(candidates))
 

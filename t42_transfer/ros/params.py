@@ -52,13 +52,15 @@ class ParamInfo:
     max: float | None = None
     constraints: str = ""
     """Free text shown by ``ros2 param describe`` for checks a range cannot express."""
+    renamed_from: str = ""
+    """The parameter's former name: a node given it refuses to start (rclpy would drop it unread)."""
 
 
 def param(default: Any = dataclasses.MISSING, description: str = "", *, read_only: bool = False,
           min: float | None = None, max: float | None = None, constraints: str = "",
-          default_factory: Any = dataclasses.MISSING) -> Any:
+          default_factory: Any = dataclasses.MISSING, renamed_from: str = "") -> Any:
     """A dataclass field that is also a documented ROS parameter."""
-    info = ParamInfo(description, read_only, min, max, constraints)
+    info = ParamInfo(description, read_only, min, max, constraints, renamed_from)
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata={_META: info})
     return dataclasses.field(default=default, metadata={_META: info})
@@ -186,11 +188,14 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
     """Declare ``params_cls``'s fields as ``node``'s parameters; the dataclass of their values.
 
     ValueError (one line naming the node and the parameter) for a missing required
-    parameter, a value of the wrong type or one ``__post_init__`` refuses.
+    parameter, a value of the wrong type, one ``__post_init__`` refuses, or a parameter's former name.
     """
     where = node.get_fully_qualified_name()
     values: dict[str, Any] = {}
     for field in _fields(params_cls):
+        if field.info.renamed_from and field.info.renamed_from in _overrides(node):
+            raise ValueError(f"{where}: parameter {field.info.renamed_from!r} is now {field.name!r}: "
+                             f"{field.info.description}")
         try:
             if field.default is dataclasses.MISSING or field.default == ():
                 # No default, or an empty one whose type rclpy cannot infer from [] (it would say BYTE_ARRAY):
@@ -232,8 +237,12 @@ def undeclared_overrides(node: Node) -> list[str]:
 
     rclpy drops them without a word, so ``-p rate_factr:=2.0`` (a typo) runs on the default: the runner warns.
     rclpy keeps the overrides in a private attribute only; without it the list is empty."""
-    given = getattr(node, "_parameter_overrides", None) or {}
-    return sorted(name for name in given if not node.has_parameter(name))
+    return sorted(name for name in _overrides(node) if not node.has_parameter(name))
+
+
+def _overrides(node: Node) -> dict[str, Any]:
+    """The parameter values the command line and params files gave ``node`` (rclpy keeps them private)."""
+    return getattr(node, "_parameter_overrides", None) or {}
 
 
 class LiveParams(Generic[P]):

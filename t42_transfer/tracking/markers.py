@@ -22,14 +22,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from t42_transfer.conventions import DROP_JUMP_MM
+from t42_transfer.conventions import DROP_JUMP_MM, MM_PER_M
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 ENCODINGS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 """Image encodings the tracker reads (sensor_msgs/Image names) and their channel counts."""
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 """Distortion vectors OpenCV accepts (plumb_bob has 5, rational_polynomial 8)."""
-MM_PER_M = 1000.0
 APRILTAG_CORNER_OFFSET_PX = 0.5
 """OpenCV's AprilTag corner refinement reports corners half a pixel right of and below where they are (pixel
 centres on integer coordinates, OpenCV's convention): measured on images warped from known corners

@@ -22,6 +22,7 @@ import cv2
 import mujoco
 import numpy as np
 
+from t42_transfer.conventions import MM_PER_M
 from t42_transfer.hand.mjcf import (
     MARKER_MARGIN_FRACTION,
     MarkerScene,
@@ -33,7 +34,6 @@ from t42_transfer.hand.params import HandParams, variant
 from t42_transfer.hand.sim import OBJECT_START_MM, SimulatedHand
 from t42_transfer.tracking.markers import (
     DEFAULT_DICTIONARY,
-    MM_PER_M,
     BaseMarker,
     Intrinsics,
     TrackerConfig,
