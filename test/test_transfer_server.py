@@ -256,6 +256,32 @@ def test_second_call_while_training_is_answered_busy_without_waiting(ros, tmp_pa
     assert ros.spin_until(lambda: rig.stages()[-1] == "done", 5.0)
 
 
+def test_closing_the_node_cancels_a_running_transfer_and_waits_for_it(ros, tmp_path, source_model, monkeypatch):
+    """A transfer left running when the node closes would be cut off wherever it was by the process's exit: closing
+    cancels it at its next epoch and returns once it stopped, with nothing saved."""
+    from t42_transfer.models.training import Progress
+
+    epochs: list[int] = []
+
+    def endless(source, target, cfg, seed, on_epoch=None):
+        while True:  # stops only when on_epoch raises (the transfer cancelled)
+            epochs.append(len(epochs) + 1)
+            on_epoch(Progress("endless", len(epochs), 10**6, 1.0, None))
+            time.sleep(0.005)
+
+    monkeypatch.setitem(METHODS, "endless", endless)
+    rig = Rig(ros, tmp_path, source_model, method="endless")
+    add_target_bag(rig.bag_dir)
+    assert rig.client.wait_for_service(timeout_sec=10.0)
+    rig.client.call_async(Trigger.Request())
+    assert ros.spin_until(lambda: len(epochs) >= 3, 60.0)
+    rig.server.close()
+    stopped_at = len(epochs)
+    time.sleep(0.2)
+    assert len(epochs) == stopped_at, "the transfer ran on after the node closed"
+    assert not rig.server.busy and rig.model_files() == []
+
+
 def _corrupt_bag(bag_dir: Path, name: str = "episode_000") -> Path:
     bag = bag_dir / name
     bag.mkdir()

@@ -102,6 +102,9 @@ if TYPE_CHECKING:  # the science is imported on first use (node start-up time)
 
 STATUS_NAME = "t42_transfer: transfer"
 """Name of the node's status in ``diagnostics``."""
+CLOSE_WAIT_S = 10.0
+"""How long closing the node waits for a cancelled transfer to stop (it stops at its next epoch, or finishes a
+save under way) before leaving it to end with the process."""
 FEEDBACK_LEAD_S = 0.2
 """Wall time between a goal's last feedback and its result (see ``_on_goal``): a transfer takes seconds."""
 
@@ -232,6 +235,9 @@ class TransferServer(Node):
         """Held while a transfer runs: a second call that cannot take it is answered busy."""
         self._running: Job | None = None
         """The job holding :attr:`_job`."""
+        self._worker: threading.Thread | None = None
+        """The thread of the newest transfer (closing the node waits for it)."""
+        self._auto_thread: threading.Thread | None = None
         self._publishing = threading.Lock()
         """Worker and callback threads publish the status one at a time."""
         self._status: dict[str, Any] = {"stage": "idle", "level": "OK", "message": "idle", "values": {}}
@@ -272,7 +278,8 @@ class TransferServer(Node):
         """(success, message) of each automatic transfer, as a call would have been answered."""
         self._auto_due = threading.Event()
         self.create_subscription(BagClosed, names.BAG_CLOSED, self._on_bag_closed, profile(names.EVENT_READER))
-        threading.Thread(target=self._auto_transfers, name="auto_transfer", daemon=True).start()
+        self._auto_thread = threading.Thread(target=self._auto_transfers, name="auto_transfer", daemon=True)
+        self._auto_thread.start()
 
     @property
     def params(self) -> TransferServerParams:
@@ -283,12 +290,23 @@ class TransferServer(Node):
         return self._job.locked()
 
     def close(self) -> None:
-        """Stop publishing; a running transfer finishes in its (daemon) thread, unannounced; its saves are atomic."""
+        """Stop publishing and cancel a running transfer (the previous model stays), waiting for its thread to end:
+        a transfer left running would be cut off by the process's exit wherever it was."""
         if self._closed:
             return
         self._closed = True
-        if self.busy:
-            self.log.warning("closing while a transfer runs; it finishes in the background, unannounced")
+        job = self._running
+        if job is not None:
+            job.cancel.set()
+            self.log.warning("closing while a transfer runs: it is cancelled at its next epoch (the previous model "
+                             "stays; a save under way completes)")
+        for thread in (self._worker, self._auto_thread):
+            if thread is None or thread is threading.current_thread():
+                continue
+            thread.join(CLOSE_WAIT_S)
+            if thread.is_alive():
+                self.log.warning(f"the {thread.name} thread still runs after {CLOSE_WAIT_S:g} s; it ends with the "
+                                 "process, unannounced (saves are atomic)")
 
     def destroy_node(self) -> None:
         self.close()
@@ -478,7 +496,8 @@ class TransferServer(Node):
             finally:
                 done.set()
 
-        threading.Thread(target=work, name="transfer", daemon=True).start()
+        self._worker = threading.Thread(target=work, name="transfer", daemon=True)
+        self._worker.start()
         try:
             while not done.wait(params.progress_period_s) and not self._closed:
                 if job.handle is not None and job.handle.is_cancel_requested:
@@ -489,7 +508,8 @@ class TransferServer(Node):
         result: TransferResult | None = outcome.get("result")
         if result is None:
             if not done.is_set():
-                return TransferOutcome(False, "the node is shutting down; the transfer finishes unannounced")
+                return TransferOutcome(False, "the node is shutting down; the transfer is cancelled, the previous "
+                                              "model stays")
             if "cancelled" in outcome:
                 job.cancelled = True
                 message = one_line(outcome["cancelled"])
