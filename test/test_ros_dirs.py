@@ -24,7 +24,7 @@ def test_a_relative_file_keeps_its_name_in_the_namespaces_folder() -> None:
 
 
 def test_the_transfer_server_reads_and_writes_its_namespaces_folders() -> None:
-    from t42_transfer.nodes.transfer_server import TransferServerParams
+    from t42_transfer.nodes.transfer_server_params import TransferServerParams
 
     params = TransferServerParams(source_model=Path("/m/source.safetensors"), model_dir=Path("models"),
                                   bag_dir="recordings")
@@ -65,7 +65,7 @@ def test_two_namespaces_recording_into_one_absolute_directory(ros, tmp_path: Pat
 
 
 def test_the_transfer_server_refuses_bags_another_namespace_holds(tmp_path: Path) -> None:
-    from t42_transfer.nodes.transfer_server import TransferServerParams
+    from t42_transfer.nodes.transfer_server_params import TransferServerParams
     from t42_transfer.ros.dirs import claim
 
     (tmp_path / "bags").mkdir()

@@ -233,7 +233,7 @@ def test_skipped_reasons_drop_the_bag_they_name_and_announcements_check_their_co
 def test_the_method_parameter_names_every_registered_method():
     import dataclasses
 
-    from t42_transfer.nodes.transfer_server import TransferServerParams
+    from t42_transfer.nodes.transfer_server_params import TransferServerParams
     from t42_transfer.transfer.methods import METHODS
 
     (method,) = [f for f in dataclasses.fields(TransferServerParams) if f.name == "method"]
