@@ -1,5 +1,9 @@
 """Monte Carlo open-loop planner: sample action sequences, roll them out in one batch, keep the nearest.
 
+By default the draw is refined (cross-entropy rounds around the best, ``refine_iterations``); the paper's planner,
+the best of many sampled sequences and nothing more, is ``refine_iterations=0`` (docs/evaluation.md, section 7,
+compares the two on the transfer methods).
+
 Shapes (K samples, horizon T; float32):
 
     state            [4]         x mm, y mm, load1, load2 (raw units): where the plan starts
