@@ -411,8 +411,8 @@ def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:
     try:
         assert rig.ros.spin_until(lambda: publisher.get_subscription_count() >= 1, 5.0)
         rig.ros.spin_for(0.3)
-        assert set_param("rad_per_action", ACTION_UNIT_RAD / 2).successful
-        assert np.allclose(command([0.0, -0.5]), [0.0, -0.25 * ACTION_UNIT_RAD], atol=1e-9)  # half as far
+        # the radians the command asks for are the radians the servos move (the wire's action unit)
+        assert np.allclose(command([0.0, -0.5]), [0.0, -0.5 * ACTION_UNIT_RAD], atol=1e-9)
         assert np.all(np.abs(driver.hand.loads) > 60)  # (the grasp holds the object)
         assert set_param("grasp_load", 30.0).successful and set_param("load_limit", 60.0).successful
         assert np.allclose(command([1.0, 1.0]), 0.0), "a finger closed with its load over the new limit"
@@ -427,8 +427,7 @@ def test_limits_set_at_run_time_take_effect_at_once(rig: Rig) -> None:
         refused = set_param("max_angle_rad", [3.1, 3.1])  # past the servos' EEPROM limits: needs a configure
         assert not refused.successful and "Position Limits" in refused.reason, refused
     finally:
-        for name, value in (("max_angle_rad", [3.0, 3.0]), ("load_limit", 280.0), ("grasp_load", 100.0),
-                            ("rad_per_action", ACTION_UNIT_RAD)):
+        for name, value in (("max_angle_rad", [3.0, 3.0]), ("load_limit", 280.0), ("grasp_load", 100.0)):
             assert set_param(name, value).successful
         rig.tester.destroy_publisher(publisher)
 

@@ -1,6 +1,7 @@
 """A T42 on two Dynamixel servos, in the hand's own terms: actuator angles, loads, actions, a grasp.
 
-:class:`ServoHand` turns an action into Goal Positions (``angle += a * rad_per_action`` per actuator), never
+:class:`ServoHand` turns an action into Goal Positions (``angle += a * ACTION_UNIT_RAD`` per actuator, the wire's
+action unit, so the radians a trajectory or command asks for are the radians the servos move), never
 outside the position limits and never closing a finger whose load is over the limit, and reads actuator
 angles and loads back (load from Present Current through the servo's torque constant, in the units of the
 simulated hand's loads).  :class:`Grasp` is the reset routine the authors' driver ran: open, then close
@@ -34,8 +35,6 @@ class HandGeometry:
     """Present Position of each servo with its finger open (tendon just slack)."""
     directions: tuple[int, int] = (1, 1)
     """+1: ticks above the open tick close the finger; -1: ticks below it do."""
-    rad_per_action: float = ACTION_UNIT_RAD
-    """Servo angle of one action unit per step (the authors: 0.065 of the normalised range per 100)."""
     max_angle_rad: tuple[float, float] = (3.0, 3.0)
     """Position limit of each servo, from open (the driver never writes a goal past it)."""
     load_limit: float = 280.0
@@ -53,7 +52,6 @@ class HandGeometry:
                 raise ValueError(f"{name} must list {ACTION_DIM} values, one per actuator, got {value!r}")
         check(self, {"servo_ids": between(0, 252), "open_ticks": between(0, xm.MAX_TICK),
                      "directions": ((lambda v: v in (-1, 1)), "+1 or -1"),
-                     "rad_per_action": between(0, 0.2, low_open=True),
                      "max_angle_rad": between(0, MAX_TRAVEL_RAD, low_open=True), "load_limit": POSITIVE,
                      "grasp_load": POSITIVE, "grasp_increment": between(0, 1.5, low_open=True),
                      "grasp_max_steps": between(1, 10_000)})
@@ -125,7 +123,7 @@ class ServoHand:
     def apply(self, action: np.ndarray) -> str:
         """Move by ``action`` (one sync write); why part of it was not applied ("" when all of it was)."""
         g = self.geometry
-        delta = np.asarray(action, float) * g.rad_per_action
+        delta = np.asarray(action, float) * ACTION_UNIT_RAD
         straining = (delta > 0) & (np.abs(self.loads) > g.load_limit)
         target = self.goal + np.where(straining, 0.0, delta)
         clamped = np.clip(target, 0.0, g.max_angle_rad)

@@ -24,7 +24,7 @@ command the hand holds where it is (the watchdog is the step convention itself).
 authors' grasp: open, then close each finger until its load passes ``grasp_load``; it answers once the grasp
 closed (the steps run meanwhile).
 
-Parameters at run time: ``load_limit``, ``grasp_load``, ``rad_per_action`` and ``max_angle_rad`` set while the
+Parameters at run time: ``load_limit``, ``grasp_load`` and ``max_angle_rad`` set while the
 driver is configured take effect from the next step (a goal past a lowered limit is brought back onto it).  The
 servos' own Min/Max Position Limit are EEPROM, written only with the torque off, at configure: so a limit lowered
 at run time is kept by the driver (the servos keep the wider one until the next configure), and a limit raised
@@ -127,7 +127,6 @@ class DynamixelDriverParams:
                                         read_only=True)
     directions: tuple[int, ...] = param(_T42.directions, "+1: ticks above open close the finger, -1: below",
                                         read_only=True)
-    rad_per_action: float = param(_T42.rad_per_action, "servo angle of one action unit (rad)", min=1e-4, max=0.2)
     max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad); "
                                              "at run time lowered at once, raised only unconfigured")
     load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this, in the servos' raw "
@@ -144,7 +143,7 @@ class DynamixelDriverParams:
 
     def geometry(self) -> HandGeometry:
         return HandGeometry(tuple(self.servo_ids), tuple(self.open_ticks), tuple(self.directions),  # type: ignore[arg-type]
-                            self.rad_per_action, tuple(self.max_angle_rad), self.load_limit,  # type: ignore[arg-type]
+                            tuple(self.max_angle_rad), self.load_limit,  # type: ignore[arg-type]
                             self.grasp_load)
 
     def __post_init__(self) -> None:
@@ -351,13 +350,13 @@ class DynamixelDriver(LifecycleNode):
                 "once, higher ones after cleanup, setting it, and configure")
 
     def _on_params(self, old: DynamixelDriverParams, new: DynamixelDriverParams) -> None:
-        """The hand's limits, grasp load and action scale follow the parameters from the next step on."""
+        """The hand's limits and grasp load follow the parameters from the next step on."""
         hand = self.hand
         if hand is None or new.geometry() == hand.geometry:
             return
         hand.geometry = new.geometry()
         self.log.info(f"now: max_angle_rad {list(new.max_angle_rad)}, load_limit {new.load_limit:g}, grasp_load "
-                      f"{new.grasp_load:g}, rad_per_action {new.rad_per_action:g} (from the next step)")
+                      f"{new.grasp_load:g} (from the next step)")
 
     def _need_hand(self) -> ServoHand:
         if self.hand is None:
