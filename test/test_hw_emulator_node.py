@@ -110,7 +110,7 @@ def rig(shared_rig: Rig, request: pytest.FixtureRequest) -> Iterator[Rig]:
     """The shared rig, active, the hand grasped (reset here unless the test before left it grasped) and holding;
     its message lists hold only what comes in from the test's start."""
     r = shared_rig
-    r.inject(**HEALTHY)  # every fault parameter: a count left set (drop_replies=4) is applied again by the next set
+    r.inject(**HEALTHY)  # every fault parameter: a test that failed may have left one injected
     assert r.ros.spin_until(r.active, 10.0)
     if not r.grasped:  # (the first test, or the one before failed or saw the episode end)
         assert r.reset()
@@ -136,10 +136,44 @@ def test_on_sim_time_the_driver_steps_in_lockstep_with_the_emulators_clock_faste
         assert len(stamps) >= 50, len(stamps)  # 2 s: 20 steps at 1x, 80 at 4x (slack for load)
         gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
         assert set(gaps) == {CONTROL_PERIOD_NS}, gaps  # a step each period: in lockstep, a busy machine skips none
+        assert stamps[0] > 1_600_000_000 * 10**9, stamps[0]  # the clock starts from the wall time, not from 0
         assert rig.reports("OK") and rig.reports("OK")[-1].values["skipped_ticks"] == "0"
     finally:
         rig.driver.close()
         rig.emulator.close()
+
+
+def test_a_fault_is_injected_once_per_change_and_a_spent_count_goes_back_to_zero(ros: RosRig) -> None:
+    """A count the bus used up is 0 in the parameters too, so the same count can be set again; a change of
+    another parameter injects nothing again (it once re-armed every fault)."""
+    from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
+
+    emulator = ros.add(HwEmulator, {})
+    port, packets = PortHandler(emulator.port), PacketHandler(2.0)
+    assert port.openPort() and port.setBaudRate(1_000_000)
+
+    def inject(**faults: object) -> None:
+        assert all(r.successful for r in emulator.set_parameters([Parameter(k, value=v) for k, v in faults.items()]))
+
+    def pings() -> list[int]:
+        return [packets.ping(port, 1)[1] for _ in range(3)]
+
+    try:
+        inject(drop_replies=2)
+        assert pings() == [COMM_RX_TIMEOUT, COMM_RX_TIMEOUT, COMM_SUCCESS]
+        assert ros.spin_until(lambda: emulator.get_parameter("drop_replies").value == 0, 5.0)  # (at the next tick)
+        inject(pose_dropout=0.5)
+        assert pings() == [COMM_SUCCESS] * 3
+        inject(drop_replies=2)
+        assert pings() == [COMM_RX_TIMEOUT, COMM_RX_TIMEOUT, COMM_SUCCESS]
+        inject(error_bits=[0, 32])
+        assert packets.read1ByteTxRx(port, 2, xm.HARDWARE_ERROR_STATUS.address)[0] == 32
+        assert packets.reboot(port, 2)[0] == COMM_SUCCESS  # clears it
+        inject(pose_dropout=0.0)
+        assert packets.read1ByteTxRx(port, 2, xm.HARDWARE_ERROR_STATUS.address)[0] == 0
+    finally:
+        port.closePort()
+        emulator.close()
 
 
 def test_autostart_waits_for_a_port_that_appears_later(ros: RosRig, tmp_path: Path) -> None:

@@ -35,6 +35,9 @@ MAX_AGE_NS = 500_000_000
 SLOW_TIMER = 1e-3
 """rate_factor that keeps the driver's own timer (100 s period) out of hand-stepped tests."""
 
+SOME_WALL_TIME_NS = 1_600_000_000 * 10**9
+"""September 2020: a clock that starts from the wall time is past it; one that starts from 0 is not."""
+
 
 class Rig(Tester):
     """A driver node and a tester node in one process; the driver is stepped by hand with :meth:`tick`."""
@@ -435,6 +438,7 @@ def test_the_clock_source_on_sim_time_itself_still_ticks(ros):
     assert ros.spin_until(lambda: len(clocks) >= 5, 10.0), len(clocks)
     stamps = [stamp_to_ns(c.clock) for c in clocks]
     assert np.all(np.diff(stamps) == CONTROL_PERIOD_NS)
+    assert stamps[0] > SOME_WALL_TIME_NS, stamps[0]  # from the wall time it started at, not from 0 (its ROS time)
 
 
 def test_works_under_a_namespace_with_remapped_names(ros):

@@ -19,9 +19,10 @@ What a driver meets where a real hand would be (``t42 hw emulate``):
 
 Faults are parameters, so they are injected at start (``-p drop_replies:=5``) or at run time
 (``ros2 param set``): ``drop_replies``, ``corrupt_replies`` and ``slow_replies`` (each answer
-``reply_delay_s`` late) count down as replies go, ``dead_servos``
-never answer, ``error_bits`` sets a Hardware Error Status on the servos in id order (e.g. ``[0, 32]``:
-overload on the second), ``port_closed`` takes the terminal away (and back when set false: a new pty at
+``reply_delay_s`` late) count down as replies go, and the parameter with them (at 0 again, the same count may
+be set again), ``dead_servos`` never answer, ``error_bits`` sets a Hardware Error Status on the servos in id
+order when it changes (e.g. ``[0, 32]``: overload on the second; a reboot clears it, and ``[0, 0]`` before the
+same bits again raises them again), ``port_closed`` takes the terminal away (and back when set false: a new pty at
 the same link).
 """
 
@@ -37,6 +38,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
 from msg_adapters import RCLPY, names, ns_to_stamp, object_pose_msg
@@ -47,6 +49,9 @@ from t42_transfer.hardware.emulator import PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
+
+SPENT_FAULTS = ("drop_replies", "corrupt_replies", "slow_replies")
+"""Faults given as a count of replies, which the bus counts down as it answers."""
 
 
 @dataclass(frozen=True)
@@ -98,7 +103,7 @@ class HwEmulator(Node):
         self.camera = SimCamera(self, self.plant.hand.params, p) if p.camera_rate_hz > 0 else None
         self.pty: PtyBus | None = PtyBus(self.bus, link=p.link or None)
         self._rng = random.Random(p.seed)
-        self._sim_ns = self.get_clock().now().nanoseconds
+        self._sim_ns = time.time_ns()  # the wall time: with use_sim_time on itself, ROS time is 0 until its /clock
         self._next_frame_ns = self._sim_ns
         self._writes_at_tick, self._tick_wall_s = 0, 0.0
         """Lockstep: the bus's goal writes and the wall time at the last tick."""
@@ -136,17 +141,25 @@ class HwEmulator(Node):
     def _on_params(self, old: HwEmulatorParams, new: HwEmulatorParams) -> None:
         if new.rate_factor != old.rate_factor:
             self._timer.timer_period_ns = round(CONTROL_PERIOD_S / new.rate_factor * 1e9)
-        self._apply_faults(new)
+        self._apply_faults(new, old)
 
-    def _apply_faults(self, p: HwEmulatorParams) -> None:
+    def _apply_faults(self, p: HwEmulatorParams, old: HwEmulatorParams | None = None) -> None:
+        """Inject the faults whose parameters changed (all at start): a change of another parameter must not
+        inject again a fault already spent or cleared."""
+        def changed(name: str) -> bool:
+            return old is None or getattr(p, name) != getattr(old, name)
+
         faults = self.bus.faults
         with self.bus.lock:
-            faults.drop_replies, faults.corrupt_replies = p.drop_replies, p.corrupt_replies
-            faults.slow_replies, faults.reply_delay_s = p.slow_replies, p.reply_delay_s
-            faults.dead = {i for i in p.dead_servos if i}
-            for servo, bits in zip(sorted(self.bus.servos), p.error_bits, strict=False):
-                if bits:
-                    self.bus.servos[servo].raise_error(bits)
+            for name in (*SPENT_FAULTS, "reply_delay_s"):
+                if changed(name):
+                    setattr(faults, name, getattr(p, name))
+            if changed("dead_servos"):
+                faults.dead = {i for i in p.dead_servos if i}
+            if changed("error_bits"):
+                for servo, bits in zip(sorted(self.bus.servos), p.error_bits, strict=False):
+                    if bits:
+                        self.bus.servos[servo].raise_error(bits)
         if p.port_closed and self.pty is not None:
             self.log.warning(f"port {self.pty.port} closed (the adapter unplugged)")
             self.pty.close_port()
@@ -175,6 +188,7 @@ class HwEmulator(Node):
                 self._sim_ns += CONTROL_PERIOD_NS
                 self._clock_pub.publish(Clock(clock=ns_to_stamp(self._sim_ns, RCLPY)))
             self.plant.tick()
+            self._count_spent_faults()
             now = self.now_ns()
             if self.camera is None:
                 self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
@@ -183,6 +197,14 @@ class HwEmulator(Node):
                 self._truth.publish(object_pose_msg(self.plant.hand.object_xy, now, RCLPY))
         except Exception as err:  # never raise from a callback
             self.log.error(f"emulator tick failed: {err!r}", throttle_duration_sec=1.0)
+
+    def _count_spent_faults(self) -> None:
+        """Fault counts the bus used up go back to 0 in the parameters too: ``ros2 param get`` says what is left,
+        and setting the same count again injects it again."""
+        with self.bus.lock:
+            spent = [name for name in SPENT_FAULTS if getattr(self.params, name) and not getattr(self.bus.faults, name)]
+        if spent:
+            self.set_parameters([Parameter(name, value=0) for name in spent])
 
     def _emulated_tracker(self, now: int) -> None:
         """Frames at the tracker's rate, with a little jitter: each captured now, sent after the latency."""

@@ -179,7 +179,7 @@ class MockDriver(Node):
         self._joints_pub = self.create_publisher(JointState, names.JOINT_STATES, 10)
         self._action_pub = self.create_publisher(JointState, names.APPLIED_ACTION, 10)
         self._status_pub = self.create_publisher(String, names.HAND_STATUS, profile(names.OFFERED[names.HAND_STATUS]))
-        self._sim_ns = self.get_clock().now().nanoseconds
+        self._sim_ns = time.time_ns()  # the wall time: with use_sim_time on itself, ROS time is 0 until its /clock
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
         self.pose = NewestPose()
         """The tracker's newest pose (``pose_source: topic``)."""
