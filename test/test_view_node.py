@@ -15,6 +15,7 @@ import pytest
 from foxglove_probe import finish_probe, running, start_probe
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
+from rclpy.parameter_client import AsyncParameterClient
 from rclpy.serialization import deserialize_message, serialize_message
 from ros_rig import REPO, RosRig, Tester, stop
 from rosgraph_msgs.msg import Clock
@@ -134,11 +135,13 @@ def test_a_client_publishes_a_goal_onto_the_graph_and_nothing_else(ros, view):
     assert commands == []
 
 
-def test_t42_view_runs_the_node_until_ctrl_c(ros_domain, tmp_path):
+def test_t42_view_runs_the_node_until_ctrl_c(ros, tmp_path):
+    """``--namespace`` as ``t42 up``'s: the view's names and its /clock are the namespace's (a suite per hand keeps
+    its own clock there); ``--tolerance`` in mm reaches the node's ``tolerance_m``."""
     log = tmp_path / "view.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-u", "-m", "t42_transfer.cli", "view", "--port", "0",
-                                 "--tolerance", "3", "--ros-args", "-r", "__ns:=/left"], cwd=REPO, stdout=out,
+                                 "--tolerance", "3", "--namespace", "/left"], cwd=REPO, stdout=out,
                                 stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 30
@@ -146,6 +149,14 @@ def test_t42_view_runs_the_node_until_ctrl_c(ros_domain, tmp_path):
             assert proc.poll() is None, log.read_text()
             time.sleep(0.2)
         assert "[left.view]: Foxglove WebSocket server on ws://127.0.0.1:" in log.read_text()  # its namespace
+        graph = ros.node("graph")
+        assert ros.spin_until(lambda: graph.count_subscribers("/left/clock") == 1, 10)
+        assert graph.count_subscribers("/clock") == 0
+        client = AsyncParameterClient(graph, "/left/view")
+        assert client.wait_for_services(10)
+        future = client.get_parameters(["tolerance_m"])
+        assert ros.spin_until(future.done, 10)
+        assert future.result().values[0].double_value == pytest.approx(0.003)
     finally:
         codes = stop([proc])
     assert codes == [0], log.read_text()
@@ -245,6 +256,29 @@ def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
     late = tester.listen(MarkerArray, names.VIEW_MARKERS, profile(names.LATCHED))  # RViz opened now
     assert ros.spin_until(lambda: late, 5), "a viewer that joins late gets the scene (latched)"
     assert late[0] == markers[-1]
+
+
+def test_a_goal_that_cannot_be_drawn_keeps_the_last_one_and_the_rest_of_the_scene(ros, view):
+    """A goal in another frame (the planner refuses it too) once blanked every marker until a good goal came."""
+    tester = Tester(ros)
+    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
+    goal_pub = tester.tester.create_publisher(PointStamped, names.GOAL, 10)
+    pose_pub = tester.tester.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
+    assert tester.wait_graph(subscribers={names.GOAL: 1, names.OBJECT_POSE: 1}, publishers={names.VIEW_MARKERS: 1})
+
+    def drawn(ns: str) -> Any:
+        return next((m.pose.position for m in markers[-1].markers if (m.ns, m.id) == (ns, 0)), None) \
+            if markers else None
+
+    goal_pub.publish(ma.goal_msg(GOAL_MM, T0_NS, ma.RCLPY))
+    assert ros.spin_until(lambda: drawn("goal") is not None, 5)
+    bad = ma.goal_msg(CLIENT_GOAL_MM, T0_NS, ma.RCLPY)
+    bad.header.frame_id = "camera"
+    goal_pub.publish(bad)
+    ros.spin_for(0.3)
+    pose_pub.publish(ma.object_pose_msg([5.0, 90.0], T0_NS, ma.RCLPY))
+    assert ros.spin_until(lambda: drawn("object") is not None and drawn("object").x == pytest.approx(0.005), 5)
+    assert drawn("goal").x == pytest.approx(GOAL_MM[0] / 1000)  # the last good goal
 
 
 def test_a_port_in_use_or_a_bad_hand_is_one_line_and_exit_2(ros_domain, tmp_path, small_set):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from t42_transfer.cli.args import existing_file, float_arg, int_arg, new_output
+from t42_transfer.cli.args import existing_file, float_arg, int_arg, namespace_arg, new_output
 from t42_transfer.conventions import MM_PER_M
 
 
@@ -55,11 +55,12 @@ def _serve_bag(args: argparse.Namespace) -> int:
 
 
 def _live(args: argparse.Namespace) -> int:
+    from t42_transfer.ros.launcher import namespace_args
     from t42_transfer.ros.runner import keep_discovery_local, run_node
 
     keep_discovery_local()
-    ros_args = ["--ros-args", "-p", f"host:={args.host}", "-p", f"port:={args.port}", "-p", f"hand:={args.hand}",
-                "-p", f"tolerance_m:={args.tolerance / MM_PER_M!r}", *args.ros_args]
+    ros_args = ["--ros-args", *namespace_args(args.namespace), "-p", f"host:={args.host}", "-p", f"port:={args.port}",
+                "-p", f"hand:={args.hand}", "-p", f"tolerance_m:={args.tolerance / MM_PER_M!r}", *args.ros_args]
     return run_node("view", ros_args)
 
 
@@ -103,6 +104,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     view.add_argument("--tolerance", type=float_arg(0.0, low_open=True), default=2.0, metavar="MM",
                       help="radius of the goal's circle (mm, default 2: the planner's)")
     view.add_argument("--path", type=Path, default=None, help="snapshot: planned path file, x,y (mm) a line")
+    view.add_argument("--namespace", type=namespace_arg, default="",
+                      help="live view of a suite run with `t42 up --namespace` (e.g. /left): the view's names and "
+                           "its /clock are that namespace's")
     view.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[], metavar="ARG",
                       help="live view: the rest are ROS arguments of the view node (-r __ns:=/left, -p name:=value)")
     view.set_defaults(func=_cmd_view, parser=view)

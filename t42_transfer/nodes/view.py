@@ -102,6 +102,13 @@ class ViewParams:
             raise ValueError(f"tolerance_m must be a positive number, got {self.tolerance_m!r}")
 
 
+_DECODERS: dict[str, Any] = {
+    "joints": ma.joint_state_arrays, "pose": ma.object_xy_mm, "goal": ma.goal_xy_mm, "path": ma.path_xy_mm,
+    "candidates": candidates_xy_mm,
+}
+"""How the scene reads each input (ValueError for one it cannot draw)."""
+
+
 class _Listener(foxglove.websocket.ServerListener):
     """The server's callbacks (its own threads) handed to the node."""
 
@@ -276,6 +283,13 @@ class View(Node):
 
     # ------------------------------------------------------------------ markers
     def _input(self, key: str, msg: Any) -> None:
+        """Keep ``msg`` as the newest ``key`` to draw, unless it cannot be drawn (another frame, NaN): then the last
+        good one stays, so one bad message does not blank the whole scene."""
+        try:
+            _DECODERS[key](msg)
+        except ValueError as err:
+            self.per_message.warning(f"{key} not drawn, the last one kept: {err}")
+            return
         self._inputs[key] = msg
         if key == "goal":
             self._refused = ""  # until the planner says otherwise
