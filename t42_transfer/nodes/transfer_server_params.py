@@ -33,7 +33,8 @@ class TransferServerParams:
                                         "file live; a relative one is taken under the node's namespace",
                             read_only=True)
     bag_dir: str = param("", "finished bags here not used by an earlier transfer are the target data "
-                             "(empty: use bags)", read_only=True)
+                             "(empty: use bags); a relative one is taken under the node's namespace, as the "
+                             "recorder's out_dir", read_only=True)
     bags: tuple[str, ...] = param((), "explicit target bags instead of bag_dir; those used by an earlier "
                                       "transfer are skipped too", read_only=True)
     share_dirs: bool = param(False, "use model_dir and bag_dir even when a suite under another namespace holds "
