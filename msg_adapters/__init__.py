@@ -42,6 +42,7 @@ from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, pat
 from msg_adapters.status import (
     HAND_STATUS_TOPIC,
     STRING,
+    event_stamps,
     grasp_detail,
     grasp_seed,
     last_step_stamp,
@@ -90,6 +91,7 @@ __all__ = [
     "rclpy_class",
     "rclpy_message",
     "last_step_stamp",
+    "event_stamps",
     "late_step_stamps",
     "HAND_STATUS_TOPIC",
     "STRING",

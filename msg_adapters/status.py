@@ -57,12 +57,17 @@ def grasp_seed(text: str) -> int | None:
     return None if match is None else int(match.group(1))
 
 
-def late_step_stamps(statuses: Iterable[str]) -> set[int]:
-    """Stamps of the steps the driver said were late (``late: ... [last step <ns> ns]``): each followed the step
-    before it with none missing in between, so a reader keeps it in its episode."""
-    late = set()
+def event_stamps(statuses: Iterable[str], event: str) -> set[int]:
+    """The last-step stamps the statuses of one event name (``event: ... [last step <ns> ns]``)."""
+    found = set()
     for text in statuses:
         stamp = last_step_stamp(text)
-        if status_event(text) == names.LATE and stamp is not None:
-            late.add(stamp)
-    return late
+        if status_event(text) == event and stamp is not None:
+            found.add(stamp)
+    return found
+
+
+def late_step_stamps(statuses: Iterable[str]) -> set[int]:
+    """Stamps of the steps the driver said were late: each followed the step before it with none missing in
+    between, so a reader keeps it in its episode."""
+    return event_stamps(statuses, names.LATE)

@@ -342,3 +342,20 @@ def test_short_episodes_are_dropped_with_a_warning(tmp_path, make_set):
     with pytest.warns(UserWarning, match=expected):
         got = read_bag(path)
     assert_same(got, TrajectorySet([data[1]], hand=data.hand))
+
+
+def test_a_reset_mid_episode_ends_the_episode_at_the_state_it_names(tmp_path, episode):
+    """A simulated hand is grasped anew between two steps 0.1 s apart: the driver's ``reset`` status names the
+    last state before it, whose action leads to no recorded state; no transition may join the two grasps."""
+    reset_after = 29
+    stamp = episode.start_ns + reset_after * CONTROL_PERIOD_NS
+    status = ma.ROSBAGS.make(ma.STRING, data=ma.status_message("reset", "episode 2 grasped", stamp))
+    messages = sorted([*step_messages(episode), (ma.HAND_STATUS_TOPIC, stamp + 1, status)], key=lambda m: m[1])
+    path = write_messages(tmp_path / "bag", messages, types={**ma.HAND_TOPICS, ma.HAND_STATUS_TOPIC: ma.STRING})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a border, not a loss: nothing is named as dropped
+        before, after = read_bag(path)
+    assert np.array_equal(before.states, episode.states[: reset_after + 1])
+    assert np.array_equal(before.actions, episode.actions[:reset_after])
+    assert after.start_ns == stamp + CONTROL_PERIOD_NS
+    assert np.array_equal(after.states, episode.states[reset_after + 1 :])

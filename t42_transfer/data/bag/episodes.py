@@ -2,11 +2,12 @@
 
 A bag holds, per control step ``k`` of an episode, an object pose, a joint state and (except after the
 last state) the applied action, all stamped ``start_ns + k * CONTROL_PERIOD_NS``.  Episodes lie at least
-``EPISODE_GAP_S`` apart, so their borders come from stamps alone.  A step the driver ran late is kept, with
-its real duration in the episode's ``step_ns``: the driver's ``late`` status in the bag says no step is
-missing before it.  Aligning by header stamp, not log time
-or order, also makes bags of a real ``ros2 bag record`` readable; the hand topics may lie under one
-namespace, found by suffix.  A step that lost a message is left out with a warning naming it.
+``EPISODE_GAP_S`` apart, or a recorded ``reset`` status names the last state before a new grasp (a simulated
+hand is grasped anew between two steps), so their borders come from stamps and statuses.  A step the driver
+ran late is kept, with its real duration in the episode's ``step_ns``: the driver's ``late`` status in the bag
+says no step is missing before it.  Aligning by header stamp, not log time or order, also makes bags of a real
+``ros2 bag record`` readable; the hand topics may lie under one namespace, found by suffix.  A step that lost
+a message is left out with a warning naming it.
 """
 
 from __future__ import annotations
@@ -22,7 +23,12 @@ import numpy as np
 
 import msg_adapters as ma
 from msg_adapters import names
-from t42_transfer.conventions import CONTROL_PERIOD_NS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
+from t42_transfer.conventions import (
+    CONTROL_PERIOD_NS,
+    LATE_STEP_NS,
+    MIN_EPISODE_STEPS,
+    MIN_STEP_NS,
+)
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
 from t42_transfer.data.errors import BagError
@@ -140,19 +146,19 @@ def _any_between(stamps: np.ndarray, after: int, before: int) -> bool:
     return bool(np.searchsorted(stamps, after, "right") < np.searchsorted(stamps, before, "left"))
 
 
-def late_stamps(bag: Path, raw: RawBag) -> set[int]:
-    """Stamps of the steps the bag's ``hand/status`` (if recorded) says were late: no step is missing before them."""
+def status_texts(bag: Path, raw: RawBag) -> list[str]:
+    """The bag's ``hand/status`` messages, if it recorded them (the driver's late steps and resets are there)."""
     topic = hand_namespace(bag, raw.topics) + ma.HAND_STATUS_TOPIC
     info = raw.topics.get(topic)
     if info is None or info.msgtype != ma.STRING:
-        return set()
+        return []
     texts = []
     for log_ns, data in raw.messages.get(topic, []):
         try:
             texts.append(str(ma.TYPESTORE.deserialize_cdr(data, ma.STRING).data))
         except Exception as err:  # corrupt CDR raises whatever the decoder trips over
             raise BagError(bag, f"{topic}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
-    return ma.late_step_stamps(texts)
+    return texts
 
 
 def _episode_bounds(bag: Path, streams: dict[str, _Stream], late: set[int]) -> list[tuple[int, int]]:
@@ -262,9 +268,15 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
         *_dropped(f"{_JOINTS} messages with no {_POSE} {_WITHIN}, with their actions", joints.stamps[~has_pose]),
     ]
     records = _episode_records(bag, raw.custom)
+    texts = status_texts(bag, raw)
+    # A reset names the last state of the grasp before it: the hand was grasped anew after it, so the action
+    # published from that state leads to no recorded state (a simulated hand's next step is the new grasp's first).
+    reset = _state_at(joints.stamps, ma.event_stamps(texts, names.RESET))
+    action_of[reset] = -1
     episodes = []
-    for first, last in _episode_bounds(bag, streams, late_stamps(bag, raw)):
+    for first, last in _episode_bounds(bag, streams, ma.late_step_stamps(texts)):
         inner = first + np.flatnonzero(has_pose[first:last] & (action_of[first:last] < 0))
+        inner = inner[~np.isin(inner, reset)]
         lacking = f"the transitions from {_JOINTS} messages with no {_ACTION} {_WITHIN}"
         dropped += _dropped(lacking, joints.stamps[inner])
         for a, b in _complete_runs(has_pose[first : last + 1], action_of[first : last + 1] >= 0):
@@ -282,6 +294,14 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     if raw.cut and not episodes:
         raise BagError(bag, "its readable prefix holds no complete episode")
     return TrajectorySet(episodes, hand=hand)
+
+
+def _state_at(stamps: np.ndarray, wanted: set[int]) -> np.ndarray:
+    """Indices of the states stamped (within half a control period) at the ``wanted`` stamps."""
+    if not wanted:
+        return np.zeros(0, np.int64)
+    pick, near = _nearest(stamps, np.array(sorted(wanted), np.int64))
+    return pick[near]
 
 
 def _episode(
