@@ -165,3 +165,21 @@ def test_unknown_handling_is_refused() -> None:
 def test_finding_is_typed_and_plain() -> None:
     finding = Finding(JUMP, 3, 4, 9.5)
     assert finding.as_dict() == {"kind": "jump", "start": 3, "end": 4, "size": 9.5} and finding.steps == 1
+
+
+def test_the_drop_rule_ends_an_episode_before_its_first_jump_and_leaves_out_a_short_rest() -> None:
+    """The paper's 8 mm rule on recorded episodes: what a driver of a real hand cannot tell, and a simulated hand's
+    bag holds as its falling step."""
+    from t42_transfer.data.quality import end_at_drops
+
+    states = path(60)
+    fallen = states.copy()
+    fallen[31:, 1] -= 20.0  # the object falls in step 30 and lies there
+    early = states.copy()
+    early[6:, 0] += 9.0  # a jump in step 5: too little is left before it
+    data = TrajectorySet([episode(states), episode(fallen, start_ns=10**10), episode(early, start_ns=2 * 10**10)])
+    kept, notes = end_at_drops(data)
+    assert len(kept) == 2 and kept[0] is data[0]  # a clean episode is left as it is
+    assert np.array_equal(kept[1].states, data[1].states[:31]) and np.array_equal(kept[1].actions, data[1].actions[:30])
+    assert kept[1].end_reason == "dropped" and kept[1].start_ns == 10**10
+    assert len(notes) == 2 and "step 30" in notes[0] and "kept its first 30" in notes[0] and "left out" in notes[1]

@@ -96,7 +96,9 @@ class Hand:
     def episode(self, start_ns: int, steps: int, seed: int = 0, last_state: bool = True) -> dict[str, np.ndarray]:
         """Publish ``steps`` transitions (and the final state if ``last_state``); the arrays read_bag should give."""
         rng = np.random.default_rng(seed)
-        xy = rng.uniform(-20, 20, size=(steps + 1, 2)).astype(np.float32)
+        # a random walk of a held object (steps of about 1 mm): a jump over 8 mm would be a drop
+        xy = (rng.uniform(-20, 20, size=2) + np.cumsum(rng.normal(0.0, 1.0, size=(steps + 1, 2)), axis=0)).astype(
+            np.float32)
         loads = rng.uniform(-200, 200, size=(steps + 1, 2)).astype(np.float32)
         angles = rng.uniform(0, 1, size=(steps + 1, 2)).astype(np.float32)
         actions = rng.uniform(-1, 1, size=(steps, 2)).astype(np.float32)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from t42_transfer.conventions import DROP_JUMP_MM, MIN_EPISODE_STEPS
+from t42_transfer.conventions import DROP_JUMP_MM, DROPPED, MIN_EPISODE_STEPS
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 FROZEN = "frozen"
@@ -191,3 +191,31 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
         kept.extend(parts)
         origins.extend([i] * len(parts))
     return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), findings)
+
+
+def end_at_drops(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[TrajectorySet, list[str]]:
+    """The paper's drop rule on recorded episodes: each ends before its first one-step x,y jump over ``jump_mm``
+    (the object falling), as a simulated collection ends them, and what is left is kept when it still has
+    MIN_EPISODE_STEPS transitions; with a line per episode cut.
+
+    A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
+    hand's bag holds the falling step.  Neither is a transition of a hand holding the object."""
+    kept, notes = [], []
+    for i, traj in enumerate(data):
+        moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
+        jumps = np.flatnonzero(moves > jump_mm)
+        if not len(jumps):
+            kept.append(traj)
+            continue
+        cut = int(jumps[0])
+        if cut >= MIN_EPISODE_STEPS:
+            angles = None if traj.actuator_angles is None else traj.actuator_angles[: cut + 1]
+            kept.append(dataclasses.replace(
+                traj, states=traj.states[: cut + 1], actions=traj.actions[:cut], actuator_angles=angles,
+                end_reason=DROPPED, step_ns=None if traj.step_ns is None else traj.step_ns[:cut]))
+        what = f"kept its first {cut} transitions" if cut >= MIN_EPISODE_STEPS else \
+            f"left out (fewer than {MIN_EPISODE_STEPS} transitions before it)"
+        notes.append(f"episode {i} (start {traj.start_ns} ns): the object moved {moves[cut]:.1f} mm in step {cut}, "
+                     f"over the {jump_mm:g} mm drop rule: {what}")
+    return TrajectorySet(kept, hand=data.hand), notes
+

@@ -56,6 +56,7 @@ import numpy as np
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
+from t42_transfer.data.quality import end_at_drops
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
@@ -314,9 +315,10 @@ def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
 
 
 def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[tuple[Path, str]], list[str]]:
-    """Every episode of the readable ``bags``, in order; the bags read; each other one with why it was skipped
-    (``(bag, why)``, ``why`` naming the bag); what the reader dropped or salvaged in the bags read (its warnings,
-    each naming its bag)."""
+    """Every episode of the readable ``bags``, in order, each ended at its first drop (the paper's 8 mm rule,
+    ``quality.end_at_drops``); the bags read; each other one with why it was skipped (``(bag, why)``, ``why``
+    naming the bag); what the reader dropped or salvaged in the bags read (its warnings, each naming its bag),
+    and the episodes the drop rule cut."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
@@ -328,7 +330,8 @@ def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[t
                 skipped.append((bag, str(err)))
         notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
-    return TrajectorySet(itertools.chain.from_iterable(sets), hand=hand), read, skipped, notes
+    data, cut = end_at_drops(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
+    return data, read, skipped, notes + cut
 
 
 def skipped_note(skipped: Sequence[str]) -> str:
