@@ -209,3 +209,38 @@ def test_the_papers_recurrent_residual_form_is_a_config_choice_and_trains(source
     assert torch.isfinite(rolled).all() and not torch.equal(rolled, ours.rollout(x0, actions))
     with pytest.raises(ValueError, match="residual_inputs must be one of"):
         dataclasses.replace(FAST.recurrent_residual, residual_inputs="diagonal")
+
+
+# --------------------------------------------------------------------------- does transfer help?
+@pytest.fixture(scope="module")
+def simulated_pair() -> tuple[TransitionModel, object, object]:
+    """A source model trained on the simulated source hand, and target-hand episodes to transfer on and to test
+    on (other grasps), all collected by the simulator (one worker: the same episodes every run)."""
+    from t42_transfer.hand.collect import collect
+
+    source_data, _ = collect("source", episodes=30, steps=120, seed=1, workers=1, progress=False)
+    target_train, _ = collect("target", episodes=8, steps=120, seed=3, workers=1, progress=False)
+    target_test, _ = collect("target", episodes=8, steps=120, seed=4, workers=1, progress=False)
+    source, _ = train_transition_model(source_data, TrainConfig(epochs=20))
+    return source, target_train, target_test
+
+
+def _one_step_error_mm2(model, data) -> float:
+    """Mean squared x,y error (mm²) of one-step predictions on every transition of ``data``."""
+    x, a, x_next = (torch.from_numpy(v) for v in data.transitions())
+    with torch.no_grad():
+        predicted = model.rollout(x, a[:, None, :])[:, 1]
+    return float(((predicted[:, :2] - x_next[:, :2]) ** 2).sum(dim=1).mean())
+
+
+@pytest.mark.parametrize("method", ["naive_finetune", "l2_finetune", "cumulative_residual", "recurrent_residual"])
+def test_transfer_predicts_the_target_hand_better_than_the_source_used_directly(method: str, simulated_pair) -> None:
+    """What transfer is for: on held-out target episodes, a transferred model's one-step error is clearly below the
+    source's (``direct``), which is itself below doing nothing's (holding still), with the methods' own settings."""
+    from t42_transfer.models.baselines import HoldStill
+
+    source, target_train, target_test = simulated_pair
+    direct = _one_step_error_mm2(source, target_test)
+    assert direct < 0.5 * _one_step_error_mm2(HoldStill(), target_test)  # the source model is no straw man
+    transferred = _one_step_error_mm2(transfer(method, source, target_train, TransferConfig(), seed=0), target_test)
+    assert transferred < 0.85 * direct, (transferred, direct)
