@@ -38,6 +38,15 @@ def test_step_buffer_releases_whole_steps_in_stamp_order() -> None:
     assert buf.oldest_pending == 40 - 2 * CLOCK_RESTART_NS
 
 
+def test_a_duplicate_in_a_waiting_step_is_refused_and_the_first_stands() -> None:
+    """Filed twice, a step would hold two joint states of one stamp, and the bag reader refuses the whole bag."""
+    buf = StepBuffer(["p", "j"], hold_s=1.0)
+    assert buf.add("p", 10, 0, b"p10", 0.0) == ([], False)
+    assert buf.add("p", 10, 1, b"p10 again", 0.1) == ([], True)  # (the recorder drops it with a warning)
+    (step,) = buf.add("j", 10, 0, b"j10", 0.2)[0]
+    assert step.messages == [("p", 0, b"p10"), ("j", 0, b"j10")]
+
+
 def test_a_message_just_older_than_the_released_step_is_late_not_a_clock_restart() -> None:
     buf = StepBuffer(["p"], hold_s=1.0)
     (step,) = buf.add("p", CLOCK_RESTART_NS, 0, b"p", 0.0)[0]

@@ -73,7 +73,8 @@ class StepBuffer:
         return min(self._pending, default=None)
 
     def add(self, topic: str, stamp: int, log_ns: int, data: bytes, now_s: float) -> tuple[list[Step], bool]:
-        """File one message; (the steps now released in stamp order, whether the message came too late)."""
+        """File one message; (the steps now released in stamp order, whether the message came too late or is a
+        duplicate: a second message on a topic for a step not yet released is not filed, the first one stands)."""
         released: list[Step] = []
         if self.released_stamp is not None and stamp <= self.released_stamp:
             if stamp > self.released_stamp - CLOCK_RESTART_NS:
@@ -82,6 +83,8 @@ class StepBuffer:
             self._latest.clear()
             self.released_stamp = None
         step = self._pending.get(stamp)
+        if step is not None and topic in step.topics:
+            return released, True
         if step is None:
             step = self._pending[stamp] = Step(stamp, now_s)
         step.messages.append((topic, log_ns, data))
