@@ -198,6 +198,13 @@ def test_timer_runs_at_rate_factor_and_rate_changes_at_run_time(ros):
     assert 5 <= driver.steps - before <= 12, driver.steps - before  # 10 Hz now
 
 
+def test_a_rate_factor_on_the_wall_clock_is_warned_about_at_start(ros):
+    """Steps 20 ms apart on the wall clock: a bag of them reads as no episode, which the user learns at start."""
+    ros.add(MockDriver, {"rate_factor": 5.0})
+    warned = Rosout(ros, "mock_driver").wait_warnings()
+    assert any("20 ms apart" in w and "sim_time" in w for w in warned), warned
+
+
 def test_on_wall_clock_stamps_a_run_time_rate_change_is_refused_with_the_reason(ros):
     """It put the steps of the bag being recorded 17 ms apart, and the bag reader refused all of it."""
     driver = ros.add(MockDriver, {"rate_factor": 1.0})
