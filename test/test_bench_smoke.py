@@ -64,10 +64,10 @@ def test_bench_collect(tmp_path: Path) -> None:
     assert (dataset["episodes"], dataset["steps"], dataset["workers"]) == (1, 20, 1)
     assert set(dataset["per_hand"]) == hands
     for run in dataset["per_hand"].values():
-        assert positive(run["wall_s"]) and 0 <= run["episodes_kept"] <= 1 and 0 <= run["transitions"] <= 20
+        assert positive(run["wall_s"]) and run["episodes_kept"] == 1 and run["transitions"] == 20  # (seeded grasps)
         assert sum(run["end_reasons"].values()) == run["episodes_kept"]
         assert {"too_short", "grasp_failed"} <= set(run)
-    assert positive(result["dataset_wall_s_both_hands"]) and result["dataset_control_steps_per_s"] >= 0
+    assert positive(result["dataset_wall_s_both_hands"]) and positive(result["dataset_control_steps_per_s"])
     assert result["target_wall_s"] == 600.0 and result["meets_target"] is True
     assert {"command", "machine", "load_average_at_end"} <= set(result)
 
@@ -326,5 +326,7 @@ def test_bench_tracker(tmp_path: Path) -> None:
         ratios = run["ratio_tracker_to_bare"]
         assert positive(ratios["ms_per_frame"]) and positive(ratios["cpu_ms_per_frame"])
         assert len(ratios["ms_per_frame_per_repeat"]) == 1 and {"load_before", "load_after"} <= set(run)
+    at_640 = result["resolutions"]["640x360"]["tracker"]  # 320x240 is too coarse for the markers; 640x360 is not
+    assert at_640["tracked"] == 3 and at_640["median_error_mm"] < 2.0, at_640  # a fast but wrong tracker fails
     assert result["target"]["ratio_tracker_to_bare_max"] == 1.3 and isinstance(result["target_met"], bool)
     assert {"command", "load_before", "load_after"} <= set(result) and "load_average" in result["machine"]
