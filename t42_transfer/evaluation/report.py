@@ -239,7 +239,7 @@ def findings(summary: Summary, config: dict[str, Any]) -> list[str]:
     lyap = {m: {a: summary[m][a]["lyapunov_mean"][0] for a in by} for m, by in summary.items()}
     if "direct" in lyap:
         source_lambda = next(iter(lyap["direct"].values()))
-        above = sorted({m for m in lyap for a in lyap[m] if lyap[m][a] > source_lambda + 1e-4})
+        above = sorted({m for m in lyap if m != BASELINE for a in lyap[m] if lyap[m][a] > source_lambda + 1e-4})
         lines.append(
             f"The source model's (direct) mean max Lyapunov exponent is {source_lambda:.4f} per step; "
             f"methods that exceed it at some amount: {', '.join(above) if above else 'none'}."
