@@ -223,17 +223,25 @@ def test_a_client_reads_and_sets_the_nodes_parameters(ros, view):
     assert [(p["name"], p["value"]) for p in one["parameters"]] == [("/left/hand_tool.gain", 2.5)]
 
 
+def _scene_inputs(ros: RosRig, **types: Any) -> tuple[Tester, list, dict[str, Any]]:
+    """The test's node, the view's markers as they come, and a publisher per topic (``names`` attribute: type),
+    once the view reads them all."""
+    tester = Tester(ros)
+    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
+    pubs = {name: tester.tester.create_publisher(kind, getattr(names, name), 10) for name, kind in types.items()}
+    assert tester.wait_graph(subscribers={getattr(names, name): 1 for name in types},
+                             publishers={names.VIEW_MARKERS: 1})
+    return tester, markers, pubs
+
+
 def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
     from t42_interfaces.msg import PlanResult as PlanResultMsg
 
     from msg_adapters.markers import COLORS
     from msg_adapters.plan_result import PlanResult, plan_result_msg
 
-    tester = Tester(ros)
-    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
-    goal_pub = tester.tester.create_publisher(PointStamped, names.GOAL, 10)
-    result_pub = tester.tester.create_publisher(PlanResultMsg, names.PLAN_RESULT, 10)
-    assert tester.wait_graph(subscribers={names.GOAL: 1, names.PLAN_RESULT: 1}, publishers={names.VIEW_MARKERS: 1})
+    tester, markers, pubs = _scene_inputs(ros, GOAL=PointStamped, PLAN_RESULT=PlanResultMsg)
+    goal_pub, result_pub = pubs["GOAL"], pubs["PLAN_RESULT"]
 
     def goal_markers() -> dict[int, Any]:
         return {m.id: m for m in markers[-1].markers if m.ns == "goal"} if markers else {}
@@ -260,11 +268,8 @@ def test_the_planners_refusal_of_the_goal_drawn_turns_it_red(ros, view):
 
 def test_a_goal_that_cannot_be_drawn_keeps_the_last_one_and_the_rest_of_the_scene(ros, view):
     """A goal in another frame (the planner refuses it too) once blanked every marker until a good goal came."""
-    tester = Tester(ros)
-    markers = tester.listen(MarkerArray, names.VIEW_MARKERS)
-    goal_pub = tester.tester.create_publisher(PointStamped, names.GOAL, 10)
-    pose_pub = tester.tester.create_publisher(PoseStamped, names.OBJECT_POSE, 10)
-    assert tester.wait_graph(subscribers={names.GOAL: 1, names.OBJECT_POSE: 1}, publishers={names.VIEW_MARKERS: 1})
+    _, markers, pubs = _scene_inputs(ros, GOAL=PointStamped, OBJECT_POSE=PoseStamped)
+    goal_pub, pose_pub = pubs["GOAL"], pubs["OBJECT_POSE"]
 
     def drawn(ns: str) -> Any:
         return next((m.pose.position for m in markers[-1].markers if (m.ns, m.id) == (ns, 0)), None) \
