@@ -23,12 +23,7 @@ import numpy as np
 
 import msg_adapters as ma
 from msg_adapters import names
-from t42_transfer.conventions import (
-    CONTROL_PERIOD_NS,
-    LATE_STEP_NS,
-    MIN_EPISODE_STEPS,
-    MIN_STEP_NS,
-)
+from t42_transfer.conventions import CONTROL_PERIOD_NS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
 from t42_transfer.data.errors import BagError
