@@ -37,6 +37,15 @@ def test_a_new_grasp_forgets_the_old_pose() -> None:
     assert pose.for_step(S, 0.3) == (None, "no pose received")
 
 
+def test_after_a_new_grasp_the_old_grasps_frames_are_left_out() -> None:
+    pose = NewestPose()
+    pose.forget(before_ns=2 * S)  # the new grasp's first frame is stamped 2 s
+    assert not pose.receive(S + 1, np.array([0.0, 80.0]))  # an old frame, tracked late
+    assert pose.stamp_ns is None
+    assert pose.receive(2 * S, np.array([5.0, 70.0]))
+    np.testing.assert_allclose(pose.for_step(2 * S, 0.3)[0], [5.0, 70.0])
+
+
 @pytest.mark.parametrize("frame, xy, stamp, reason", [
     ("world", (0.0, 80.0), S, "object pose is in frame 'world'"),
     ("t42_base", (float("nan"), 80.0), S, "non-finite"),

@@ -17,6 +17,7 @@ from ros_rig import Tester
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from msg_adapters import (
@@ -96,6 +97,52 @@ def test_each_step_gets_its_own_frames_tracked_pose_with_the_frames_stamp(ros) -
         assert sources, f"a published pose at {_stamp(pose)} is no tracked pose"  # the tracker's, not the sim's
         own_frame += _stamp(pose) in sources
     assert own_frame >= len(poses) - 1, (own_frame, len(poses))  # the step's own frame, with its stamp
+
+
+def test_an_episodes_first_step_waits_for_its_own_grasps_frame(ros) -> None:
+    """A busy tracker sends the old grasp's last pose after a reset: the new episode's first step must not go
+    out with it (it did, and the bag's first transition joined two grasps).  The test is the tracker here, so
+    it decides when each pose arrives: each frame's true pose, with the frame's stamp."""
+    tester = Tester(ros)
+    truths = tester.listen(PoseStamped, names.SIM_POSE)
+    poses = tester.listen(PoseStamped, names.OBJECT_POSE)
+    tracker = tester.tester.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
+    reset = tester.tester.create_client(Trigger, names.HAND_RESET)
+    ros.add(MockDriver, {"sim_time": True, "camera_rate_hz": 10.0, "camera_width": 320, "camera_height": 240,
+                         "pose_source": "topic", "tracker_wait_s": 5.0, "seed": 3})
+    assert tester.wait_graph(publishers={names.SIM_POSE: 1}, subscribers={names.TRACKER_POSE: 1})
+
+    def grasp() -> PoseStamped:
+        """Reset; the new grasp's frame."""
+        frames = len(truths)
+        assert ros.call(reset, Trigger.Request()).success
+        assert ros.spin_until(lambda: len(truths) > frames, 5.0)
+        return truths[-1]
+
+    def step_on(frame: PoseStamped) -> PoseStamped:
+        """Track ``frame``; the step that follows."""
+        steps = len(poses)
+        tracker.publish(frame)
+        assert ros.spin_until(lambda: len(poses) > steps, 5.0), "no step after the frame's pose"
+        return poses[-1]
+
+    frame = grasp()
+    for _ in range(3):
+        stamp = _stamp(step_on(frame))
+        assert stamp == _stamp(frame)
+        assert ros.spin_until(lambda s=stamp: _stamp(truths[-1]) > s, 5.0)  # the next step's frame
+        frame = truths[-1]
+    old = frame  # the old grasp's last frame, not tracked yet
+    new = grasp()
+    assert _stamp(new) > _stamp(old)  # the re-grasp took time: its frame is stamped after the old one's
+    steps = len(poses)
+    tracker.publish(old)  # late
+    ros.spin_for(0.5)
+    assert len(poses) == steps, "the first step went out with the old grasp's pose"
+    first = step_on(new)
+    assert _stamp(first) == _stamp(new)
+    np.testing.assert_allclose(object_xy_mm(first), object_xy_mm(new), atol=1e-6)
+    assert np.linalg.norm(object_xy_mm(old) - object_xy_mm(new)) > 0.5  # the two grasps can be told apart
 
 
 def test_without_a_tracker_no_pose_goes_out_and_the_driver_says_stale(ros) -> None:

@@ -25,17 +25,23 @@ class NewestPose:
 
     def __init__(self) -> None:
         self._pose: tuple[int, np.ndarray] | None = None
+        self._not_before_ns = 0
         self.stale = False
         """Whether the last step asked went out without a pose."""
 
-    def receive(self, stamp_ns: int, xy_mm: np.ndarray) -> None:
-        """A pose from the tracker (its stamp is the image's, or the arrival time when it had none)."""
+    def receive(self, stamp_ns: int, xy_mm: np.ndarray) -> bool:
+        """Keep a pose from the tracker (its stamp is the image's, or the arrival time when it had none); False
+        when it is of a frame before the last :meth:`forget` (the old grasp's, tracked late): not kept."""
+        if stamp_ns < self._not_before_ns:
+            return False
         self._pose = (stamp_ns, np.asarray(xy_mm, dtype=np.float64))
+        return True
 
     def receive_msg(self, msg: Any) -> str | None:
-        """Keep a ``PoseStamped`` from the tracker; the reason it was refused (None: kept).  A pose in another
+        """Take a ``PoseStamped`` from the tracker; the reason it was refused (None: taken).  A pose in another
         frame, with a non-finite value, farther from the palm than any held object, or with an unset stamp is
-        refused: none of them can be a step's pose."""
+        refused: none of them can be a step's pose.  One of a frame before the new grasp is taken and left out
+        (:meth:`receive`): the tracker was late, not wrong."""
         try:
             xy = object_xy_mm(msg)
         except ValueError as err:
@@ -47,7 +53,7 @@ class NewestPose:
         stamp = stamp_to_ns(msg.header.stamp)
         if stamp <= 0:
             return "its header stamp is unset (0)"
-        self.receive(stamp, xy)
+        self.receive(stamp, xy)  # one of the old grasp's frames is no fault of the tracker's: left out quietly
         return None
 
     @property
@@ -55,9 +61,12 @@ class NewestPose:
         """The stamp of the pose held (None: none)."""
         return None if self._pose is None else self._pose[0]
 
-    def forget(self) -> None:
-        """Drop the pose held: the object was moved where the tracker has not seen it yet (a new grasp)."""
+    def forget(self, before_ns: int = 0) -> None:
+        """Drop the pose held: the object was moved where the tracker has not seen it yet (a new grasp).  Poses
+        stamped before ``before_ns`` (the new grasp's first frame) are refused from now on: a tracker still
+        working through the old grasp's frames sends them after the grasp."""
         self._pose = None
+        self._not_before_ns = before_ns
 
     def for_step(self, stamp_ns: int, max_age_s: float) -> tuple[np.ndarray | None, str | None]:
         """The position to publish with the step stamped ``stamp_ns`` (None: stale), and the reason when this

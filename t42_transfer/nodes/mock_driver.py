@@ -23,7 +23,10 @@ as ``hand/object_pose``, the newest ``tracker/object_pose`` instead of the simul
 rule (:mod:`t42_transfer.driver.pose`: never one older than ``max_pose_age_s``; ``stale`` on ``hand/status``).
 On sim time the driver runs in lockstep with the tracker: a tick waits (``tracker_wait_s`` of wall time at
 most) until the tracker's pose of the last frame came, so a slow tracker slows the graph's clock instead of
-leaving steps without a pose, and each step's pose is its own frame's, with the frame's stamp.  ``seed`` and
+leaving steps without a pose, and each step's pose is its own frame's, with the frame's stamp.  A reset renders
+the new grasp at once (on sim time the re-grasp takes one period of the graph's clock, so its frame is stamped
+after every frame of the old grasp), and a pose of a frame before it, which a busy tracker sends late, is left
+out: the first step of an episode never goes out with the old grasp's pose.  ``seed`` and
 ``pose_source`` may change at run time: a seed set applies from the next reset (a grasp made again).
 
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
@@ -189,11 +192,11 @@ class MockDriver(Node):
         self._tracker_sub: Any = None
         self._listen_to_the_tracker(p)
         self._seeded_from = 0
+        """The episode that grasps with ``params.seed`` itself (the first after the seed was last set)."""
         self._frame_ns: int | None = None
         """The stamp of the last frame rendered, which the next step publishes."""
         self._waiting_since: float | None = None
         """Wall time the tick began to wait for the tracker's pose of the last frame."""
-        """The episode that grasps with ``params.seed`` itself (the first after the seed was last set)."""
         self.add_post_set_parameters_callback(self._on_seed_set)
         self.camera = SimCamera(self, self.hand.params, p) if p.camera_rate_hz > 0 else None
         # Raw: a message's size is checked before it is deserialized (a huge one would stall the steps).
@@ -232,8 +235,11 @@ class MockDriver(Node):
         self.running, self.steps = True, 0
         self.pose.forget()  # the object was placed anew: no pose of the old grasp is current
         if self.camera is not None:
+            if self._clock_pub is not None:  # the re-grasp takes a period: its frame is stamped after the old ones
+                self._sim_ns += CONTROL_PERIOD_NS
             self.camera.restart()
             self._capture()
+            self.pose.forget(before_ns=self._frame_ns or 0)  # the old grasp's frames, tracked late, are left out
         message = grasp_detail(self.episode, seed)
         self._publish_status(status_message(names.RESET, message, self._last_stamp))
         return True, message
