@@ -67,3 +67,13 @@ def test_a_good_pose_message_is_kept_in_millimetres() -> None:
     pose = NewestPose()
     assert pose.receive_msg(object_pose_msg(np.array([3.0, 81.0]), 5 * S, RCLPY)) is None
     np.testing.assert_allclose(pose.for_step(5 * S, 0.3)[0], [3.0, 81.0], atol=1e-4)
+
+
+def test_a_pose_older_than_the_one_held_is_not_kept_and_a_new_grasp_says_stale_again() -> None:
+    pose = NewestPose()
+    assert pose.receive(2 * S, np.array([5.0, 70.0]))
+    assert not pose.receive(S, np.array([0.0, 80.0]))  # a second publisher, behind
+    np.testing.assert_allclose(pose.for_step(2 * S, 0.3)[0], [5.0, 70.0])
+    assert pose.for_step(4 * S, 0.3)[1] is not None and pose.for_step(5 * S, 0.3) == (None, None)  # said once
+    pose.forget(before_ns=6 * S)
+    assert pose.for_step(6 * S, 0.3) == (None, "no pose received")  # the new grasp's stretch is said again

@@ -30,9 +30,10 @@ class NewestPose:
         """Whether the last step asked went out without a pose."""
 
     def receive(self, stamp_ns: int, xy_mm: np.ndarray) -> bool:
-        """Keep a pose from the tracker (its stamp is the image's, or the arrival time when it had none); False
-        when it is of a frame before the last :meth:`forget` (the old grasp's, tracked late): not kept."""
-        if stamp_ns < self._not_before_ns:
+        """Keep a pose from the tracker (its stamp is the image's, or the arrival time when it had none); False,
+        not kept, when it is of a frame before the last :meth:`forget` (the old grasp's, tracked late) or before
+        the pose held (a second publisher on the topic, behind)."""
+        if stamp_ns < self._not_before_ns or (self._pose is not None and stamp_ns < self._pose[0]):
             return False
         self._pose = (stamp_ns, np.asarray(xy_mm, dtype=np.float64))
         return True
@@ -67,6 +68,7 @@ class NewestPose:
         working through the old grasp's frames sends them after the grasp."""
         self._pose = None
         self._not_before_ns = before_ns
+        self.stale = False  # a stale stretch of the old grasp is over: the new one's is said again
 
     def for_step(self, stamp_ns: int, max_age_s: float) -> tuple[np.ndarray | None, str | None]:
         """The position to publish with the step stamped ``stamp_ns`` (None: stale), and the reason when this

@@ -33,7 +33,8 @@ beyond what the servos were configured with is refused with the reason (cleanup,
 Object pose: the newest ``tracker/object_pose`` (remappable) is published each step, stamped with the step,
 unless it is older than ``max_pose_age_s``: then no pose goes out for the step, and ``hand/status`` says
 ``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves it out and
-splits the episode there, saying so).
+splits the episode there, saying so).  A reset forgets the pose held and every pose of a frame taken before it:
+the object is placed anew, so a new episode's first state is never the old grasp's, whatever ``max_pose_age_s``.
 
 Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
@@ -394,6 +395,7 @@ class DynamixelDriver(LifecycleNode):
             response.success, response.message = False, f"the hand has a fault: {self.fault}"
             return response
         self._stop_episode("a new reset")
+        self.pose.forget(before_ns=self.now_ns())  # the object is placed anew: no frame from before counts
         self._grasp, self._grasp_answer = Grasp(self.hand), self._reset.later()
         return self._grasp_answer
 
