@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
 from t42_transfer.data.quality import (
     FROZEN,
     JUMP,
+    LATE,
     THRESHOLDS,
     Finding,
     find_problems,
@@ -96,6 +99,19 @@ def test_jumps_are_found_with_their_size() -> None:
     assert [(f.kind, f.start, f.end) for f in found] == [(JUMP, 399, 400), (JUMP, 499, 500)]
     assert 11 < found[0].size < 13 and 25 < found[1].size < 27
     assert found[1].describe().startswith("jump of 2") and "at step 499" in found[1].describe()
+
+
+def test_late_steps_are_found_with_their_duration_and_split_at() -> None:
+    steps = np.full(100, CONTROL_PERIOD_NS, np.int64)
+    steps[[40, 41]] = [450_000_000, 160_000_000]
+    late = dataclasses.replace(episode(path(100, seed=2)), step_ns=steps)
+    found = find_problems(late)
+    assert [(f.kind, f.start, f.end, round(f.size)) for f in found] == [(LATE, 40, 41, 450), (LATE, 41, 42, 160)]
+    assert found[0].describe() == "late step 40 (450 ms)"
+    first, second = handle_flagged(TrajectorySet([late]), "split").data
+    assert np.array_equal(first.states, late.states[:41]) and np.array_equal(second.states, late.states[42:])
+    assert second.step_ns.tolist() == [CONTROL_PERIOD_NS] * 58
+    assert second.start_ns == 40 * CONTROL_PERIOD_NS + 450_000_000 + 160_000_000
 
 
 def test_frozen_then_jump_as_on_the_real_hand() -> None:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
+from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.transfer.online import read_target
@@ -17,7 +20,26 @@ def test_recorded_episodes_end_at_their_first_drop(tmp_path, make_set) -> None:
     states[21:, 1] -= 12.0  # the object falls in step 20 and lies there
     episodes = assign_start_times([clean, dataclasses.replace(held, states=states)])
     bag = write_bag(tmp_path / "b0", TrajectorySet(episodes, hand="target"))
-    data, read, skipped, notes = read_target([bag])
-    assert read == [bag] and skipped == []
-    assert [len(e) for e in data] == [30, 20] and data[1].end_reason == "dropped"
-    assert len(notes) == 1 and "step 20" in notes[0] and "drop rule" in notes[0]
+    target = read_target([bag])
+    assert target.read == [bag] and target.skipped == [] and target.late_steps == 0
+    assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
+    assert len(target.notes) == 1 and "step 20" in target.notes[0] and "drop rule" in target.notes[0]
+
+
+def test_late_steps_are_left_out_and_their_episode_split_there(tmp_path, make_set) -> None:
+    """A late step is kept by the reader with its duration, but it is no 0.1 s transition: the object moved on
+    while the hand waited, by more than the drop rule in a long stall.  A transfer trains on the stretches
+    around it, each kept when it has 15 transitions; a stall is not taken for a drop."""
+    (episode,) = make_set([60], seed=4)
+    steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
+    steps[[20, 50]] = [900_000_000, 200_000_000]  # 40 steps on from a stall, 9 after the second
+    states = episode.states.copy()
+    states[21:, 0] += 9.0  # the object moved on 9 mm during the stall: over the drop rule if taken as one step
+    stalled = dataclasses.replace(episode, states=states, step_ns=steps)
+    bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times([stalled]), hand="target"))
+    target = read_target([bag])
+    assert target.late_steps == 2
+    assert [len(e) for e in target.data] == [20, 29]  # steps 0-19, 21-49; the last 9 are too few
+    np.testing.assert_array_equal(target.data[1].states, states[21:51])
+    assert all(e.late_steps.size == 0 and e.end_reason != "dropped" for e in target.data)
+    assert len(target.notes) == 1 and "2 late step(s) (the longest 900 ms) left out: 49 of its 60" in target.notes[0]

@@ -97,7 +97,8 @@ def test_a_bad_parameter_ends_the_process_with_one_line(ros_domain: int, tmp_pat
 def test_a_driver_frozen_three_times_mid_episode_costs_no_bag(ros, tmp_path: Path,
                                                               source_model: Path) -> None:  # noqa: F811
     """SIGSTOP/SIGCONT of the mock driver for 0.35 s, three times mid-episode: each step after a stall is late, not
-    lost; the driver says so, the recorder keeps its word in the bag, and the transfer uses every bag."""
+    lost; the driver says so, the recorder keeps its word in the bag, and the transfer reads every bag and trains on
+    the 0.1 s steps around the late ones."""
     rig = Rig(ros, tmp_path, source_model)
     recorder = ros.add(Recorder, {"out_dir": str(rig.bag_dir), "mode": "episode"})
     log = tmp_path / "driver.log"
@@ -130,5 +131,6 @@ def test_a_driver_frozen_three_times_mid_episode_costs_no_bag(ros, tmp_path: Pat
     answer = rig.call()
     assert answer.success, answer.message
     assert "from 3 bag(s)" in answer.message and "skipped" not in answer.message, answer.message
-    kept = re.search(r"\((\d+) late steps kept\)", answer.message)
-    assert kept and int(kept.group(1)) >= len(stalled.late_steps), answer.message
+    left_out = re.search(r"\((\d+) late steps left out\)", answer.message)  # no 0.1 s transitions: not trained on
+    assert left_out and int(left_out.group(1)) >= len(stalled.late_steps), answer.message
+    assert re.search(r"episode 0 \(start \d+ ns\): \d+ late step\(s\) \(the longest \d+ ms\) left out", answer.message)

@@ -1,4 +1,4 @@
-"""Broken stretches in recorded paths: frozen object tracking and one-step jumps.
+"""Broken stretches in recorded paths: frozen object tracking, one-step jumps and late steps.
 
 The real hands' object pose came from a camera tracker.  When it lost the marker
 the pose stayed exactly where it was for hundreds of steps while the hand went
@@ -9,6 +9,12 @@ along them is scored against positions nobody measured.  This module finds them
 (:func:`find_problems`), summarises them for people (:func:`summarise`) and, on
 request, drops the episodes that hold them or splits the episodes there
 (:func:`handle_flagged`).  Nothing is changed unless asked: ``keep`` is the default.
+
+A late step (a recording's driver stepped more than ``LATE_STEP_NS`` after the step before: a stall, a busy
+machine; :attr:`Trajectory.late_steps`) is no step of the 0.1 s model either: the object goes on moving while the
+hand waits.  On the simulated hands (random actions, each held on) a 0.2 s step moves it 0.6 mm further than a
+0.1 s one on average, a 0.5 s step 1.9-2.4 mm (up to 6 mm).  A transfer leaves such transitions out
+(:func:`split_at_late_steps`), as it ends episodes at a drop (:func:`end_at_drops`).
 """
 
 from __future__ import annotations
@@ -24,7 +30,8 @@ from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 FROZEN = "frozen"
 JUMP = "jump"
-KINDS = (FROZEN, JUMP)
+LATE = "late_step"
+KINDS = (FROZEN, JUMP, LATE)
 
 HANDLING = ("keep", "drop", "split")
 """What an experiment does with a flagged episode: keep it as it is, drop it, or split it at each flagged stretch."""
@@ -59,7 +66,8 @@ class Finding:
 
     For a jump that is the one transition that jumps (``end = start + 1``); for frozen tracking it
     is every transition out of a stale pose, the last one included (it holds all the motion the
-    tracker missed).  ``size``: the jump in mm, or for frozen tracking how far the loads ranged.
+    tracker missed).  A late step is the one transition that took too long.  ``size``: the jump in mm, for frozen
+    tracking how far the loads ranged, for a late step its duration in ms.
     """
 
     kind: str
@@ -74,6 +82,8 @@ class Finding:
     def describe(self) -> str:
         if self.kind == JUMP:
             return f"jump of {self.size:.1f} mm at step {self.start}"
+        if self.kind == LATE:
+            return f"late step {self.start} ({self.size:.0f} ms)"
         last = self.end - 1
         return f"frozen tracking at steps {self.start}-{last} ({self.steps} steps, loads ranged {self.size:.0f})"
 
@@ -92,6 +102,7 @@ def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tupl
     xy = traj.states[:, :2].astype(np.float64)
     moves = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     found = [Finding(JUMP, k, k + 1, float(moves[k])) for k in np.flatnonzero(moves > thresholds.jump_mm).tolist()]
+    found += _late(traj)
     for first, last in _runs(moves <= thresholds.frozen_eps_mm):  # states first..last share one pose
         if last - first < thresholds.frozen_min_steps:
             continue
@@ -102,6 +113,10 @@ def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tupl
         if loads >= thresholds.frozen_min_load_range or turned:
             found.append(Finding(FROZEN, first, min(last + 1, len(traj)), loads))
     return tuple(sorted(found, key=lambda f: (f.start, f.kind)))
+
+
+def _late(traj: Trajectory) -> list[Finding]:
+    return [Finding(LATE, k, k + 1, traj.durations_ns[k] / 1e6) for k in traj.late_steps.tolist()]
 
 
 def scan(data: TrajectorySet, thresholds: Thresholds = THRESHOLDS) -> dict[int, tuple[Finding, ...]]:
@@ -219,3 +234,24 @@ def end_at_drops(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Tr
                      f"over the {jump_mm:g} mm drop rule: {what}")
     return TrajectorySet(kept, hand=data.hand), notes
 
+
+def split_at_late_steps(data: TrajectorySet) -> tuple[TrajectorySet, list[str], int]:
+    """Each episode without its late steps: the stretches between them, kept when at least MIN_EPISODE_STEPS
+    long (the paper's rule for short episodes); a line per episode split, and how many late steps were left out.
+
+    A late step stays in its episode as the reader gives it (its duration in ``step_ns``): the recording is
+    whole.  A model of 0.1 s transitions is trained and scored on 0.1 s transitions only."""
+    kept, notes, late = [], [], 0
+    for i, traj in enumerate(data):
+        found = _late(traj)
+        if not found:
+            kept.append(traj)
+            continue
+        pieces = _pieces(traj, tuple(found))
+        kept.extend(pieces)
+        late += len(found)
+        longest = max(f.size for f in found)
+        notes.append(f"episode {i} (start {traj.start_ns} ns): {len(found)} late step(s) (the longest {longest:.0f} "
+                     f"ms) left out: {sum(len(t) for t in pieces)} of its {len(traj)} transitions kept, in "
+                     f"{len(pieces)} stretch(es) of at least {MIN_EPISODE_STEPS}")
+    return TrajectorySet(kept, hand=data.hand), notes, late

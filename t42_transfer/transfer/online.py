@@ -7,7 +7,8 @@ the rest of the science.  One :func:`run_transfer`:
    ``bag_dir``: a non-hidden directory with a ``metadata.yaml``) minus those a
    previous successful transfer used, as recorded in ``model_dir/transfer_state.json``;
 2. loads the source model (a plain transition model) and reads the new bags,
-   skipping (and naming, with why) any it cannot read;
+   skipping (and naming, with why) any it cannot read; it trains and scores on 0.1 s transitions of a hand
+   holding the object only: late steps are left out and each episode ends at its first drop (:func:`read_target`);
 3. holds out whole target episodes (``holdout_fraction`` of each kind,
    exploration and executed plans, at least one, never all) and transfers with
    the rest; method ``auto`` trains every
@@ -56,7 +57,7 @@ import numpy as np
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
-from t42_transfer.data.quality import end_at_drops
+from t42_transfer.data.quality import end_at_drops, split_at_late_steps
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
@@ -154,7 +155,7 @@ class TransferResult:
     notes: tuple[str, ...] = ()
     """What the reader dropped or salvaged in the bags read (each names its bag)."""
     late_steps: int = 0
-    """Steps the driver ran late, kept as data in the training and held-out episodes."""
+    """Steps the driver ran late, left out of the training and held-out episodes."""
     selection: Selection | None = None
     """What ``auto`` picked and every candidate's score (None for a named method)."""
     held_out_by_kind: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
@@ -170,7 +171,7 @@ class TransferResult:
         picked = "" if self.selection is None else f" ({self.selection.describe()})"
         return (
             f"{self.method}{picked}: trained on {self.episodes} episodes / {self.transitions} transitions from "
-            f"{len(self.bags)} bag(s){f' ({self.late_steps} late steps kept)' if self.late_steps else ''}; on "
+            f"{len(self.bags)} bag(s){f' ({self.late_steps} late steps left out)' if self.late_steps else ''}; on "
             f"{self.held_out_episodes} held-out episode(s): divergence "
             f"{self.divergence_steps:.1f} steps, MSE {self.position_mse_mm2:.2f} mm^2 (source alone "
             f"{self.source_divergence_steps:.1f} steps, {self.source_position_mse_mm2:.2f} mm^2; hold-still "
@@ -314,11 +315,24 @@ def load_source(path: Path) -> tuple[TransitionModel, dict[str, Any]]:
     return model, meta
 
 
-def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[tuple[Path, str]], list[str]]:
-    """Every episode of the readable ``bags``, in order, each ended at its first drop (the paper's 8 mm rule,
-    ``quality.end_at_drops``); the bags read; each other one with why it was skipped (``(bag, why)``, ``why``
-    naming the bag); what the reader dropped or salvaged in the bags read (its warnings, each naming its bag),
-    and the episodes the drop rule cut."""
+@dataclass(frozen=True)
+class TargetData:
+    """What :func:`read_target` made of the new bags."""
+
+    data: TrajectorySet
+    read: list[Path]
+    skipped: list[tuple[Path, str]]
+    """Each unreadable bag, with why (``why`` names the bag)."""
+    notes: list[str]
+    """What the reader dropped or salvaged in the bags read (each names its bag), the episodes split at late
+    steps and those the drop rule cut."""
+    late_steps: int
+
+
+def read_target(bags: Sequence[Path]) -> TargetData:
+    """Every episode of the readable ``bags``, in order, without its late steps (``quality.split_at_late_steps``)
+    and ended at its first drop (the paper's 8 mm rule, ``quality.end_at_drops``).  Late steps go first: the
+    object moves on during one, which a drop must not be taken for."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
@@ -330,8 +344,9 @@ def read_target(bags: Sequence[Path]) -> tuple[TrajectorySet, list[Path], list[t
                 skipped.append((bag, str(err)))
         notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
-    data, cut = end_at_drops(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
-    return data, read, skipped, notes + cut
+    data, split, late = split_at_late_steps(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
+    data, cut = end_at_drops(data)
+    return TargetData(data, read, skipped, notes + split + cut, late)
 
 
 def skipped_note(skipped: Sequence[str]) -> str:
@@ -453,7 +468,8 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     state = read_state(spec.model_dir)
     new = bags_to_read(spec, state)
     source, source_meta = load_source(spec.source_model)
-    data, readable, skipped_pairs, notes = read_target(new)
+    target = read_target(new)
+    data, readable, skipped_pairs, notes = target.data, target.read, target.skipped, target.notes
     skipped = [why for _, why in skipped_pairs]
     if len(data) < spec.min_episodes:
         raise TransferRefused(
@@ -501,7 +517,7 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
         source_position_mse_mm2=baseline["position_mse_mean"], model_path=path, seconds=time.monotonic() - start,
         skipped_bags=tuple(skipped_pairs),
         hold_still_divergence_steps=still["divergence_mean"], hold_still_position_mse_mm2=still["position_mse_mean"],
-        notes=tuple(notes), late_steps=sum(len(t.late_steps) for t in data), selection=selection,
+        notes=tuple(notes), late_steps=target.late_steps, selection=selection,
         held_out_by_kind=by_kind,
     )
 
