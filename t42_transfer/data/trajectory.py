@@ -37,7 +37,8 @@ class Trajectory:
 
     ``step_ns[T]`` (int64, optional) is each transition's real duration when it was not exactly one control
     period: a recording whose driver ran late (a stall, a busy machine, a jittery servo bus) keeps those steps
-    as data and says how long each took; ``None`` means every step took one period.
+    and says how long each took (a transfer leaves them out: ``quality.split_at_late_steps``); ``None`` means every
+    step took one period.
     """
 
     states: np.ndarray
@@ -83,7 +84,7 @@ class Trajectory:
 
     @property
     def late_steps(self) -> np.ndarray:
-        """Indices of the transitions that took longer than ``LATE_STEP_NS`` (kept as data, marked)."""
+        """Indices of the transitions that took longer than ``LATE_STEP_NS`` (kept, marked)."""
         return np.flatnonzero(self.durations_ns > LATE_STEP_NS)
 
     def __eq__(self, other: object) -> bool:
