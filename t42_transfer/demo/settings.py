@@ -81,4 +81,6 @@ HELDOUT_SEED = 99
 HOLD_STEPS = (5, 40)
 SETTLE_STEPS = 80
 """Steps of holding still after a grasp: the simulated object has stopped sinking by then."""
+TRIES_PER_GRASP = 10
+"""Action sequences tried from one settled grasp of a hand copy for a goal, before it grasps anew."""
 GRASP_MATCH_MM = 1.0
