@@ -103,7 +103,7 @@ class DataSpec:
     negate_actions: bool = False
     """Negate every action: the authors' B -> A runs gave hand A its actions negated (the hands are mirrored)."""
     flagged: str = "keep"
-    """Episodes with frozen tracking or jumps (:mod:`t42_transfer.data.quality`): ``keep`` them as they are,
+    """Episodes with frozen tracking, jumps or late steps (:mod:`t42_transfer.data.quality`): ``keep`` them as they are,
     ``drop`` them, or ``split`` them at each flagged stretch.  Found stretches are recorded in any case."""
     exclude_test_sequences: bool = False
     """Source only: leave out of the source model's training every episode that ran the action sequence of one
