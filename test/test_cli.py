@@ -101,7 +101,7 @@ def test_bag_info_reports_frozen_tracking_and_jumps(
     bag = write_bag(tmp_path / "bag", type(data)([data[0], dataclasses.replace(data[1], states=states)], hand="h"))
     assert main(["bag", "info", str(bag)]) == 0
     out = capsys.readouterr().out
-    assert "quality: 1 of 2 episodes with frozen tracking or jumps" in out
+    assert "quality: 1 of 2 episodes with frozen tracking, jumps or late steps" in out
     assert "  episode 1: jump of " in out and "mm at step 29" in out
     assert main(["bag", "info", str(bag), "--json"]) == 0
     quality = json.loads(capsys.readouterr().out)["quality"]

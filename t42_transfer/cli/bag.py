@@ -39,7 +39,7 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
                 print(f"  {k}: {v}")
         else:
             print(f"{key}: {value}")
-    print(f"quality: {len(findings)} of {len(data)} episodes with frozen tracking or jumps")
+    print(f"quality: {len(findings)} of {len(data)} episodes with frozen tracking, jumps or late steps")
     for line in summary_lines(findings) if findings else ():
         print(f"  {line}")
     if args.verify:
