@@ -69,11 +69,13 @@ def test_a_good_pose_message_is_kept_in_millimetres() -> None:
     np.testing.assert_allclose(pose.for_step(5 * S, 0.3)[0], [3.0, 81.0], atol=1e-4)
 
 
-def test_a_pose_older_than_the_one_held_is_not_kept_and_a_new_grasp_says_stale_again() -> None:
+def test_a_new_grasp_says_stale_again_and_a_plain_forget_keeps_the_grasps_bound() -> None:
     pose = NewestPose()
     assert pose.receive(2 * S, np.array([5.0, 70.0]))
-    assert not pose.receive(S, np.array([0.0, 80.0]))  # a second publisher, behind
-    np.testing.assert_allclose(pose.for_step(2 * S, 0.3)[0], [5.0, 70.0])
     assert pose.for_step(4 * S, 0.3)[1] is not None and pose.for_step(5 * S, 0.3) == (None, None)  # said once
     pose.forget(before_ns=6 * S)
     assert pose.for_step(6 * S, 0.3) == (None, "no pose received")  # the new grasp's stretch is said again
+    pose.forget()  # (a pose source switched): the old grasp's frames stay out
+    assert not pose.receive(5 * S, np.array([0.0, 80.0]))
+    assert pose.receive(90 * S, np.array([0.0, 80.0])) and pose.receive(7 * S, np.array([1.0, 80.0]))  # the newest
+    np.testing.assert_allclose(pose.for_step(7 * S, 0.3)[0], [1.0, 80.0])  # a future stamp does not block the rest

@@ -99,17 +99,20 @@ def test_each_step_gets_its_own_frames_tracked_pose_with_the_frames_stamp(ros) -
     assert own_frame >= len(poses) - 1, (own_frame, len(poses))  # the step's own frame, with its stamp
 
 
-def test_an_episodes_first_step_waits_for_its_own_grasps_frame(ros) -> None:
+@pytest.mark.parametrize("wait_s", [5.0, 0.2])
+def test_an_episodes_first_step_never_goes_out_with_the_old_grasps_pose(ros, wait_s: float) -> None:
     """A busy tracker sends the old grasp's last pose after a reset: the new episode's first step must not go
-    out with it (it did, and the bag's first transition joined two grasps).  The test is the tracker here, so
-    it decides when each pose arrives: each frame's true pose, with the frame's stamp."""
+    out with it (it did, and the bag's first transition joined two grasps).  It waits for its own frame's pose
+    (5 s); if that does not come within ``tracker_wait_s`` (0.2 s) it goes out without a pose.  The test is the
+    tracker here, so it decides when each pose arrives: each frame's true pose, with the frame's stamp."""
     tester = Tester(ros)
     truths = tester.listen(PoseStamped, names.SIM_POSE)
     poses = tester.listen(PoseStamped, names.OBJECT_POSE)
+    joints = tester.listen(JointState, names.JOINT_STATES)
     tracker = tester.tester.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
     reset = tester.tester.create_client(Trigger, names.HAND_RESET)
     ros.add(MockDriver, {"sim_time": True, "camera_rate_hz": 10.0, "camera_width": 320, "camera_height": 240,
-                         "pose_source": "topic", "tracker_wait_s": 5.0, "seed": 3})
+                         "pose_source": "topic", "tracker_wait_s": wait_s, "seed": 3})
     assert tester.wait_graph(publishers={names.SIM_POSE: 1}, subscribers={names.TRACKER_POSE: 1})
 
     def grasp() -> PoseStamped:
@@ -128,17 +131,21 @@ def test_an_episodes_first_step_waits_for_its_own_grasps_frame(ros) -> None:
 
     frame = grasp()
     for _ in range(3):
-        stamp = _stamp(step_on(frame))
+        stamp = _stamp(step_on(frame))  # (tracked at once: no wait runs out)
         assert stamp == _stamp(frame)
         assert ros.spin_until(lambda s=stamp: _stamp(truths[-1]) > s, 5.0)  # the next step's frame
         frame = truths[-1]
     old = frame  # the old grasp's last frame, not tracked yet
     new = grasp()
     assert _stamp(new) > _stamp(old)  # the re-grasp took time: its frame is stamped after the old one's
-    steps = len(poses)
+    steps, states = len(poses), len(joints)
     tracker.publish(old)  # late
     ros.spin_for(0.5)
-    assert len(poses) == steps, "the first step went out with the old grasp's pose"
+    assert len(poses) == steps, "a step went out with the old grasp's pose"
+    if wait_s < 0.5:  # the wait ran out: the first step went out without a pose
+        assert ros.spin_until(lambda: len(joints) > states, 5.0) and _stamp(joints[states]) == _stamp(new)
+        assert len(poses) == steps
+        return
     first = step_on(new)
     assert _stamp(first) == _stamp(new)
     np.testing.assert_allclose(object_xy_mm(first), object_xy_mm(new), atol=1e-6)

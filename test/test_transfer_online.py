@@ -43,3 +43,19 @@ def test_late_steps_are_left_out_and_their_episode_split_there(tmp_path, make_se
     np.testing.assert_array_equal(target.data[1].states, states[21:51])
     assert all(e.late_steps.size == 0 and e.end_reason != "dropped" for e in target.data)
     assert len(target.notes) == 1 and "2 late step(s) (the longest 900 ms) left out: 49 of its 60" in target.notes[0]
+
+
+def test_after_a_drop_nothing_is_kept_even_past_a_later_late_step(tmp_path, make_set) -> None:
+    """The drop rule runs on the episode as recorded: what follows the fall stays out, however the late steps
+    split it, and the notes name the episode as the reader gave it."""
+    clean, held = make_set([30, 60], seed=5)
+    states = held.states.copy()
+    states[21:, 1] -= 12.0  # the object falls in step 20 and lies there
+    steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
+    steps[40] = 300_000_000
+    fallen = dataclasses.replace(held, states=states, step_ns=steps)
+    bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times([clean, fallen]), hand="target"))
+    target = read_target([bag])
+    assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
+    assert target.late_steps == 0  # cut off with the rest of the fall
+    assert len(target.notes) == 1 and target.notes[0].startswith("episode 1 ") and "step 20" in target.notes[0]

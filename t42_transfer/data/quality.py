@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from t42_transfer.conventions import DROP_JUMP_MM, DROPPED, MIN_EPISODE_STEPS
+from t42_transfer.conventions import DROP_JUMP_MM, DROPPED, LATE_STEP_NS, MIN_EPISODE_STEPS
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 FROZEN = "frozen"
@@ -98,7 +98,7 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 
 
 def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tuple[Finding, ...]:
-    """Every frozen stretch and jump of ``traj``, in order of their start."""
+    """Every frozen stretch, jump and late step of ``traj``, in order of their start."""
     xy = traj.states[:, :2].astype(np.float64)
     moves = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     found = [Finding(JUMP, k, k + 1, float(moves[k])) for k in np.flatnonzero(moves > thresholds.jump_mm).tolist()]
@@ -214,11 +214,13 @@ def end_at_drops(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Tr
     MIN_EPISODE_STEPS transitions; with a line per episode cut.
 
     A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
-    hand's bag holds the falling step.  Neither is a transition of a hand holding the object."""
+    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step is no
+    0.1 s step, so its move is not judged (:func:`split_at_late_steps` leaves it out): a drop during one is not
+    seen here."""
     kept, notes = [], []
     for i, traj in enumerate(data):
         moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
-        jumps = np.flatnonzero(moves > jump_mm)
+        jumps = np.flatnonzero((moves > jump_mm) & (traj.durations_ns <= LATE_STEP_NS))
         if not len(jumps):
             kept.append(traj)
             continue

@@ -191,10 +191,10 @@ def _goal_from_the_settled_hand(op: Any, suite: Suite, steps: int, index: int, w
     tolerance from where the object rests, which is where holding still leaves it.  ``(goal, start, where doing
     nothing starts)``, the goal's ``still`` being that rest.
 
-    The copy grasps once (the next seed) and tries action sequences from its settled grasp, a few per grasp:
-    a grasp settled once for every try costs a fifth of a grasp made anew for each (the quick demo's first goal
-    took 9 s of 47 that way)."""
-    from t42_transfer.evaluation.peg_in_hole import reachable_goal
+    The copy grasps once (the next seed) and tries up to ``TRIES_PER_GRASP`` action sequences from its settled
+    grasp; a goal too near the object's rest takes the next grasp.  A grasp settled once for every try costs a
+    fifth of a grasp made anew for each (the quick emulated demo's goals took 17 of its 47 s that way)."""
+    from t42_transfer.evaluation.peg_in_hole import NoGoal, reachable_goal
     from t42_transfer.hand.sim import SimulatedHand
 
     op.wait_until(lambda: op.latest_pose()[0] > settled, 30.0, "the object to settle in the new grasp",
@@ -206,7 +206,7 @@ def _goal_from_the_settled_hand(op: Any, suite: Suite, steps: int, index: int, w
         try:
             goal = reachable_goal(hand, steps, HOLD_STEPS, tries, workspace, grasp_seed=grasp, trial=index,
                                   settle_steps=SETTLE_STEPS, min_distance_mm=MIN_GOAL_DISTANCE_MM)
-        except RuntimeError:  # no goal from this grasp: the next seed grasps anew
+        except NoGoal:  # none from this grasp: the next seed grasps anew
             continue
         if np.linalg.norm(goal.position - start) >= MIN_GOAL_DISTANCE_MM:
             return replace(goal, grasp=np.concatenate([start, goal.grasp[2:]]), still=start), start, start

@@ -31,9 +31,8 @@ class NewestPose:
 
     def receive(self, stamp_ns: int, xy_mm: np.ndarray) -> bool:
         """Keep a pose from the tracker (its stamp is the image's, or the arrival time when it had none); False,
-        not kept, when it is of a frame before the last :meth:`forget` (the old grasp's, tracked late) or before
-        the pose held (a second publisher on the topic, behind)."""
-        if stamp_ns < self._not_before_ns or (self._pose is not None and stamp_ns < self._pose[0]):
+        not kept, when it is of a frame before a :meth:`forget`'s bound (the old grasp's, tracked late)."""
+        if stamp_ns < self._not_before_ns:
             return False
         self._pose = (stamp_ns, np.asarray(xy_mm, dtype=np.float64))
         return True
@@ -67,7 +66,7 @@ class NewestPose:
         stamped before ``before_ns`` (the new grasp's first frame) are refused from now on: a tracker still
         working through the old grasp's frames sends them after the grasp."""
         self._pose = None
-        self._not_before_ns = before_ns
+        self._not_before_ns = max(self._not_before_ns, before_ns)  # (a forget without a bound keeps the grasp's)
         self.stale = False  # a stale stretch of the old grasp is over: the new one's is said again
 
     def for_step(self, stamp_ns: int, max_age_s: float) -> tuple[np.ndarray | None, str | None]:

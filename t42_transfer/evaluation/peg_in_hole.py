@@ -243,6 +243,10 @@ def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list
     return goals
 
 
+class NoGoal(RuntimeError):
+    """No attempt of :func:`reachable_goal` made a goal (its action seeds ran out)."""
+
+
 def reachable_goal(
     hand: SimulatedHand, steps: int, hold_steps: tuple[int, int], action_seeds: Iterable[int],
     workspace: Workspace | None = None, grasp_seed: int | None = None, trial: int = 0, settle_steps: int = 0,
@@ -282,7 +286,7 @@ def reachable_goal(
         far = goal.distance_mm >= min_distance_mm and (still is None or goal.still_distance_mm >= min_distance_mm)
         if inside and far:
             return goal
-    raise RuntimeError(
+    raise NoGoal(
         f"no goal {steps} steps away without a drop (inside the workspace, at least {min_distance_mm:g} mm from the "
         f"start and from where holding still ends) in {tried} attempts (trial {trial})"
     )

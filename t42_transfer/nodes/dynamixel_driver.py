@@ -395,7 +395,7 @@ class DynamixelDriver(LifecycleNode):
             response.success, response.message = False, f"the hand has a fault: {self.fault}"
             return response
         self._stop_episode("a new reset")
-        self.pose.forget(before_ns=self.now_ns())  # the object is placed anew: no frame from before counts
+        self.pose.forget(before_ns=self.now_ns() + 1)  # the object is placed anew: no frame until now counts
         self._grasp, self._grasp_answer = Grasp(self.hand), self._reset.later()
         return self._grasp_answer
 

@@ -39,10 +39,11 @@ publishes the final state without an action, publishes ``hand/status`` and stops
 stepping until ``hand/reset``.  With ``rate_factor != 1`` and wall-clock stamps
 they would be ``0.1 / rate_factor`` s apart, which is not a T42 recording; so
 ``sim_time`` makes the driver the clock of the graph, as a simulator is in ROS: it
-publishes ``/clock`` (rosgraph_msgs/msg/Clock) every tick, advancing exactly one
-control period per tick from the wall time it started at, and stamps everything
-with it.  Nodes run with ``use_sim_time:=true`` then read ROS time from ``/clock``,
-so stamps, staleness checks and recorded times agree at any rate.
+publishes ``/clock`` (rosgraph_msgs/msg/Clock) every tick, advancing one
+control period per tick from the wall time it started at (a reset with the camera
+on adds one: see "Camera"), and stamps everything with it.  Nodes run with
+``use_sim_time:=true`` then read ROS time from ``/clock``, so stamps, staleness
+checks and recorded times agree at any rate.
 
 Which action a step applies:
 
@@ -234,12 +235,15 @@ class MockDriver(Node):
             return False, f"grasp failed: {err}"
         self.running, self.steps = True, 0
         self.pose.forget()  # the object was placed anew: no pose of the old grasp is current
+        self._waiting_since = None  # a new episode's first step waits its whole tracker_wait_s
         if self.camera is not None:
             if self._clock_pub is not None:  # the re-grasp takes a period: its frame is stamped after the old ones
                 self._sim_ns += CONTROL_PERIOD_NS
+            self._frame_ns = None  # (a failed capture leaves no old frame to wait for)
             self.camera.restart()
             self._capture()
-            self.pose.forget(before_ns=self._frame_ns or 0)  # the old grasp's frames, tracked late, are left out
+            # the old grasp's frames, tracked late, are left out (all of them, should the capture have failed)
+            self.pose.forget(before_ns=self._frame_ns or self.now_ns() + 1)
         message = grasp_detail(self.episode, seed)
         self._publish_status(status_message(names.RESET, message, self._last_stamp))
         return True, message

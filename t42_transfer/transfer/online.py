@@ -330,9 +330,9 @@ class TargetData:
 
 
 def read_target(bags: Sequence[Path]) -> TargetData:
-    """Every episode of the readable ``bags``, in order, without its late steps (``quality.split_at_late_steps``)
-    and ended at its first drop (the paper's 8 mm rule, ``quality.end_at_drops``).  Late steps go first: the
-    object moves on during one, which a drop must not be taken for."""
+    """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule,
+    ``quality.end_at_drops``, which does not judge a late step's move: the object moves on during one) and then
+    split at its late steps (``quality.split_at_late_steps``).  The notes count episodes as the reader gave them."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
@@ -344,9 +344,9 @@ def read_target(bags: Sequence[Path]) -> TargetData:
                 skipped.append((bag, str(err)))
         notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
-    data, split, late = split_at_late_steps(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
-    data, cut = end_at_drops(data)
-    return TargetData(data, read, skipped, notes + split + cut, late)
+    data, cut = end_at_drops(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
+    data, split, late = split_at_late_steps(data)
+    return TargetData(data, read, skipped, notes + cut + split, late)
 
 
 def skipped_note(skipped: Sequence[str]) -> str:
@@ -379,7 +379,8 @@ def hold_out(data: TrajectorySet, fraction: float, seed: int) -> tuple[Trajector
     """``(train, held_out)``: ``fraction`` of the episodes (rounded down, at least one, never all) held out, of
     each kind apart (:func:`~t42_transfer.evaluation.online_loop.episode_kind`).
 
-    Counted in episodes, not transitions: the score is one open-loop rollout per
+    A recorded episode split at a late step (:func:`read_target`) counts as its stretches, which may fall on
+    both sides.  Counted in episodes, not transitions: the score is one open-loop rollout per
     held-out episode, and with the few episodes of one session a transition
     count would hold out more than asked.  Per kind: once the loop has recorded
     executed plans beside exploration, a share of each is held out (a kind with

@@ -42,7 +42,7 @@ def main() -> int:
     run_dir, source_path = Path(sys.argv[1]), Path(sys.argv[2])
     explored = int(sys.argv[3]) if len(sys.argv) > 3 else 12
     bags = sorted((run_dir / "bags").glob("episode_*"))
-    exploration, goals = read_target(bags[:explored])[0], read_target(bags[explored:])[0]
+    exploration, goals = read_target(bags[:explored]).data, read_target(bags[explored:]).data
     heldout, _ = collect("target", 30, 150, seed=99, workers=1)
     source = load_model(source_path)[0]
     print(f"idle steps: exploration {idle_share(exploration):.2f} of {exploration.num_transitions}, "
