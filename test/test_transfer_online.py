@@ -9,7 +9,7 @@ import numpy as np
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
-from t42_transfer.transfer.online import read_target
+from t42_transfer.transfer.online import hold_out, read_target
 
 
 def test_recorded_episodes_end_at_their_first_drop(tmp_path, make_set) -> None:
@@ -59,3 +59,24 @@ def test_after_a_drop_nothing_is_kept_even_past_a_later_late_step(tmp_path, make
     assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
     assert target.late_steps == 0  # cut off with the rest of the fall
     assert len(target.notes) == 1 and target.notes[0].startswith("episode 1 ") and "step 20" in target.notes[0]
+
+
+def test_a_split_episodes_stretches_are_held_out_or_trained_on_together(tmp_path, make_set) -> None:
+    """Neighbouring stretches of one recording on both sides would score a model on the episode it trained on."""
+    episodes = list(make_set([40, 60, 40, 40, 40], seed=6))
+    steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
+    steps[30] = 300_000_000
+    episodes[1] = dataclasses.replace(episodes[1], step_ns=steps)
+    bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times(episodes), hand="target"))
+    target = read_target([bag])
+    assert target.episodes == (0, 1, 1, 2, 3, 4) and target.recorded_episodes == 5
+    stretches = (target.data[1].start_ns, target.data[2].start_ns)
+    separated = 0
+    for seed in range(12):
+        train, held = hold_out(target.data, 0.4, seed, target.episodes)
+        assert len(held) in (2, 3) and len(train) + len(held) == 6
+        sides = [any(t.start_ns == start for t in held) for start in stretches]
+        assert sides[0] == sides[1], seed  # together
+        loose = hold_out(target.data, 0.4, seed)[1]  # as pieces: apart for some draw
+        separated += any(t.start_ns == stretches[0] for t in loose) != any(t.start_ns == stretches[1] for t in loose)
+    assert separated > 0

@@ -14,7 +14,7 @@ A late step (a recording's driver stepped more than ``LATE_STEP_NS`` after the s
 machine; :attr:`Trajectory.late_steps`) is no step of the 0.1 s model either: the object goes on moving while the
 hand waits.  On the simulated hands (random actions, each held on) a 0.2 s step moves it 0.6 mm further than a
 0.1 s one on average, a 0.5 s step 1.9-2.4 mm (up to 6 mm).  A transfer leaves such transitions out
-(:func:`split_at_late_steps`), as it ends episodes at a drop (:func:`end_at_drops`).
+(:func:`usable_stretches`), as it ends episodes at a drop (:func:`end_at_drops`).
 """
 
 from __future__ import annotations
@@ -215,45 +215,59 @@ def end_at_drops(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Tr
 
     A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
     hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step is no
-    0.1 s step, so its move is not judged (:func:`split_at_late_steps` leaves it out): a drop during one is not
+    0.1 s step, so its move is not judged (:func:`usable_stretches` leaves it out): a drop during one is not
     seen here."""
     kept, notes = [], []
     for i, traj in enumerate(data):
-        moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
-        jumps = np.flatnonzero((moves > jump_mm) & (traj.durations_ns <= LATE_STEP_NS))
-        if not len(jumps):
-            kept.append(traj)
-            continue
-        cut = int(jumps[0])
-        if cut >= MIN_EPISODE_STEPS:
-            angles = None if traj.actuator_angles is None else traj.actuator_angles[: cut + 1]
-            kept.append(dataclasses.replace(
-                traj, states=traj.states[: cut + 1], actions=traj.actions[:cut], actuator_angles=angles,
-                end_reason=DROPPED, step_ns=None if traj.step_ns is None else traj.step_ns[:cut]))
-        what = f"kept its first {cut} transitions" if cut >= MIN_EPISODE_STEPS else \
-            f"left out (fewer than {MIN_EPISODE_STEPS} transitions before it)"
-        notes.append(f"episode {i} (start {traj.start_ns} ns): the object moved {moves[cut]:.1f} mm in step {cut}, "
-                     f"over the {jump_mm:g} mm drop rule: {what}")
+        ended, note = _end_at_drop(traj, i, jump_mm)
+        kept += [] if ended is None else [ended]
+        notes += note
     return TrajectorySet(kept, hand=data.hand), notes
 
 
-def split_at_late_steps(data: TrajectorySet) -> tuple[TrajectorySet, list[str], int]:
-    """Each episode without its late steps: the stretches between them, kept when at least MIN_EPISODE_STEPS
-    long (the paper's rule for short episodes); a line per episode split, and how many late steps were left out.
+def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajectory | None, list[str]]:
+    """``traj`` ended at its first drop (None: too little before it), and a line when it was cut."""
+    moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
+    jumps = np.flatnonzero((moves > jump_mm) & (traj.durations_ns <= LATE_STEP_NS))
+    if not len(jumps):
+        return traj, []
+    cut = int(jumps[0])
+    ended = None
+    if cut >= MIN_EPISODE_STEPS:
+        angles = None if traj.actuator_angles is None else traj.actuator_angles[: cut + 1]
+        ended = dataclasses.replace(
+            traj, states=traj.states[: cut + 1], actions=traj.actions[:cut], actuator_angles=angles,
+            end_reason=DROPPED, step_ns=None if traj.step_ns is None else traj.step_ns[:cut])
+    what = f"kept its first {cut} transitions" if ended is not None else \
+        f"left out (fewer than {MIN_EPISODE_STEPS} transitions before it)"
+    return ended, [f"episode {index} (start {traj.start_ns} ns): the object moved {moves[cut]:.1f} mm in step {cut}, "
+                   f"over the {jump_mm:g} mm drop rule: {what}"]
+
+
+def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Handled, list[str]]:
+    """What a transfer trains and scores on of recorded episodes: each ended at its first drop
+    (:func:`end_at_drops`), then without its late steps, the stretches between them kept when at least
+    MIN_EPISODE_STEPS long (the paper's rule for short episodes).  The stretches with the episode each came from
+    and the late steps found (by episode), and a line per episode cut or split, naming it as ``data`` counts.
 
     A late step stays in its episode as the reader gives it (its duration in ``step_ns``): the recording is
     whole.  A model of 0.1 s transitions is trained and scored on 0.1 s transitions only."""
-    kept, notes, late = [], [], 0
+    kept: list[Trajectory] = []
+    origins: list[int] = []
+    notes: list[str] = []
+    late: dict[int, tuple[Finding, ...]] = {}
     for i, traj in enumerate(data):
-        found = _late(traj)
-        if not found:
-            kept.append(traj)
+        ended, note = _end_at_drop(traj, i, jump_mm)
+        notes += note
+        if ended is None:
             continue
-        pieces = _pieces(traj, tuple(found))
-        kept.extend(pieces)
-        late += len(found)
-        longest = max(f.size for f in found)
-        notes.append(f"episode {i} (start {traj.start_ns} ns): {len(found)} late step(s) (the longest {longest:.0f} "
-                     f"ms) left out: {sum(len(t) for t in pieces)} of its {len(traj)} transitions kept, in "
-                     f"{len(pieces)} stretch(es) of at least {MIN_EPISODE_STEPS}")
-    return TrajectorySet(kept, hand=data.hand), notes, late
+        found = tuple(_late(ended))
+        pieces = _pieces(ended, found) if found else [ended]
+        if found:
+            late[i] = found
+            notes.append(f"episode {i} (start {traj.start_ns} ns): {len(found)} late step(s) (the longest "
+                         f"{max(f.size for f in found):.0f} ms) left out: {sum(len(t) for t in pieces)} of its "
+                         f"{len(ended)} transitions kept, in {len(pieces)} stretch(es) of at least {MIN_EPISODE_STEPS}")
+        kept += pieces
+        origins += [i] * len(pieces)
+    return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), late), notes

@@ -37,7 +37,7 @@ class Trajectory:
 
     ``step_ns[T]`` (int64, optional) is each transition's real duration when it was not exactly one control
     period: a recording whose driver ran late (a stall, a busy machine, a jittery servo bus) keeps those steps
-    and says how long each took (a transfer leaves them out: ``quality.split_at_late_steps``); ``None`` means every
+    and says how long each took (a transfer leaves them out: ``quality.usable_stretches``); ``None`` means every
     step took one period.
     """
 

@@ -57,7 +57,7 @@ import numpy as np
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.errors import DataFileError
-from t42_transfer.data.quality import end_at_drops, split_at_late_steps
+from t42_transfer.data.quality import usable_stretches
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
@@ -324,15 +324,22 @@ class TargetData:
     skipped: list[tuple[Path, str]]
     """Each unreadable bag, with why (``why`` names the bag)."""
     notes: list[str]
-    """What the reader dropped or salvaged in the bags read (each names its bag), the episodes split at late
-    steps and those the drop rule cut."""
+    """What the reader dropped or salvaged in the bags read (each names its bag), the episodes the drop rule cut
+    and those split at late steps."""
     late_steps: int
+    episodes: tuple[int, ...] = ()
+    """The recorded episode (counted over the bags read) each of ``data`` comes from: a split one gives several."""
+
+    @property
+    def recorded_episodes(self) -> int:
+        """Recorded episodes with a stretch in ``data``."""
+        return len(set(self.episodes))
 
 
 def read_target(bags: Sequence[Path]) -> TargetData:
-    """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule,
-    ``quality.end_at_drops``, which does not judge a late step's move: the object moves on during one) and then
-    split at its late steps (``quality.split_at_late_steps``).  The notes count episodes as the reader gave them."""
+    """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule, which
+    does not judge a late step's move: the object moves on during one) and then split at its late steps
+    (``quality.usable_stretches``).  The notes count episodes as the reader gave them."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
@@ -344,9 +351,9 @@ def read_target(bags: Sequence[Path]) -> TargetData:
                 skipped.append((bag, str(err)))
         notes += [str(w.message) for w in caught]
     hand = next((s.hand for s in sets if s.hand), "")
-    data, cut = end_at_drops(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
-    data, split, late = split_at_late_steps(data)
-    return TargetData(data, read, skipped, notes + cut + split, late)
+    usable, cut = usable_stretches(TrajectorySet(itertools.chain.from_iterable(sets), hand=hand))
+    late = sum(len(found) for found in usable.findings.values())
+    return TargetData(usable.data, read, skipped, notes + cut, late, usable.origins)
 
 
 def skipped_note(skipped: Sequence[str]) -> str:
@@ -375,28 +382,35 @@ def merged_workspace(source_meta: Mapping[str, Any], target: TrajectorySet) -> W
     return Workspace(np.minimum(source.lower, own.lower), np.maximum(source.upper, own.upper), source.load_limit)
 
 
-def hold_out(data: TrajectorySet, fraction: float, seed: int) -> tuple[TrajectorySet, TrajectorySet]:
+def hold_out(data: TrajectorySet, fraction: float, seed: int,
+             episodes: Sequence[int] = ()) -> tuple[TrajectorySet, TrajectorySet]:
     """``(train, held_out)``: ``fraction`` of the episodes (rounded down, at least one, never all) held out, of
     each kind apart (:func:`~t42_transfer.evaluation.online_loop.episode_kind`).
 
-    A recorded episode split at a late step (:func:`read_target`) counts as its stretches, which may fall on
-    both sides.  Counted in episodes, not transitions: the score is one open-loop rollout per
+    ``episodes``: the recorded episode each of ``data`` comes from (:attr:`TargetData.episodes`): the stretches
+    of an episode split at its late steps are held out or trained on together, as one episode (its kind is its
+    first stretch's).  Counted in episodes, not transitions: the score is one open-loop rollout per
     held-out episode, and with the few episodes of one session a transition
     count would hold out more than asked.  Per kind: once the loop has recorded
     executed plans beside exploration, a share of each is held out (a kind with
     one episode trains), so the score covers the regime the planner uses as well
     as random actions, which predict it badly (docs/evaluation.md, section 9).
     """
-    if len(data) < 2:
-        raise ValueError(f"need at least 2 episodes to hold one out, got {len(data)}")
-    kinds = [episode_kind(t) for t in data]
-    groups = [[i for i, k in enumerate(kinds) if k == kind] for kind in EPISODE_KINDS]
-    groups = [g for g in groups if len(g) >= 2] or [list(range(len(data)))]
-    rng, held = np.random.default_rng(seed), []
+    origin = list(episodes) or list(range(len(data)))
+    if len(origin) != len(data):
+        raise ValueError(f"episodes names {len(origin)} origins for {len(data)} episodes")
+    recorded = list(dict.fromkeys(origin))  # each recorded episode once, in order
+    if len(recorded) < 2:
+        raise ValueError(f"need at least 2 episodes to hold one out, got {len(recorded)}")
+    kinds = [episode_kind(data[origin.index(r)]) for r in recorded]
+    groups = [[r for r, k in zip(recorded, kinds, strict=True) if k == kind] for kind in EPISODE_KINDS]
+    groups = [g for g in groups if len(g) >= 2] or [recorded]
+    rng, held = np.random.default_rng(seed), set()
     for group in groups:
         order = np.asarray(group)[rng.permutation(len(group))]
-        held.extend(order[: min(max(1, int(fraction * len(group))), len(group) - 1)].tolist())
-    return data.subset(sorted(set(range(len(data))) - set(held))), data.subset(sorted(held))
+        held.update(order[: min(max(1, int(fraction * len(group))), len(group) - 1)].tolist())
+    out = [i for i, r in enumerate(origin) if r in held]
+    return data.subset([i for i, r in enumerate(origin) if r not in held]), data.subset(out)
 
 
 def scores_by_kind(model: Any, source: Any, held_out: TrajectorySet) -> dict[str, dict[str, float]]:
@@ -472,15 +486,15 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     target = read_target(new)
     data, readable, skipped_pairs, notes = target.data, target.read, target.skipped, target.notes
     skipped = [why for _, why in skipped_pairs]
-    if len(data) < spec.min_episodes:
+    if target.recorded_episodes < spec.min_episodes:  # (a split episode is held out whole)
         raise TransferRefused(
-            f"too little data: {len(data)} episode(s) ({data.num_transitions} transitions) in {len(readable)} "
-            f"readable {'named' if spec.exact_bags else 'new'} bag(s); need at least {spec.min_episodes} (some to "
-            f"train on, one held out){skipped_note(skipped)}{reading_note(notes)}",
+            f"too little data: {target.recorded_episodes} episode(s) ({data.num_transitions} transitions) in "
+            f"{len(readable)} readable {'named' if spec.exact_bags else 'new'} bag(s); need at least "
+            f"{spec.min_episodes} (some to train on, one held out){skipped_note(skipped)}{reading_note(notes)}",
             skipped_pairs,
         )
     check_cancel("reading the bags")
-    train, held_out = hold_out(data, spec.holdout_fraction, spec.seed)
+    train, held_out = hold_out(data, spec.holdout_fraction, spec.seed, target.episodes)
     workspace = merged_workspace(source_meta, train)
     report("training", {
         "bags": ",".join(b.name for b in readable), "skipped_bags": len(skipped), "episodes": len(train),
