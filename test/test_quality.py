@@ -186,7 +186,7 @@ def test_finding_is_typed_and_plain() -> None:
 def test_the_drop_rule_ends_an_episode_before_its_first_jump_and_leaves_out_a_short_rest() -> None:
     """The paper's 8 mm rule on recorded episodes: what a driver of a real hand cannot tell, and a simulated hand's
     bag holds as its falling step."""
-    from t42_transfer.data.quality import end_at_drops
+    from t42_transfer.data.quality import usable_stretches
 
     states = path(60)
     fallen = states.copy()
@@ -194,7 +194,9 @@ def test_the_drop_rule_ends_an_episode_before_its_first_jump_and_leaves_out_a_sh
     early = states.copy()
     early[6:, 0] += 9.0  # a jump in step 5: too little is left before it
     data = TrajectorySet([episode(states), episode(fallen, start_ns=10**10), episode(early, start_ns=2 * 10**10)])
-    kept, notes = end_at_drops(data)
+    usable, notes = usable_stretches(data)
+    kept = usable.data
+    assert usable.origins == (0, 1) and usable.findings == {}
     assert len(kept) == 2 and kept[0] is data[0]  # a clean episode is left as it is
     assert np.array_equal(kept[1].states, data[1].states[:31]) and np.array_equal(kept[1].actions, data[1].actions[:30])
     assert kept[1].end_reason == "dropped" and kept[1].start_ns == 10**10

@@ -14,7 +14,7 @@ A late step (a recording's driver stepped more than ``LATE_STEP_NS`` after the s
 machine; :attr:`Trajectory.late_steps`) is no step of the 0.1 s model either: the object goes on moving while the
 hand waits.  On the simulated hands (random actions, each held on) a 0.2 s step moves it 0.6 mm further than a
 0.1 s one on average, a 0.5 s step 1.9-2.4 mm (up to 6 mm).  A transfer leaves such transitions out
-(:func:`usable_stretches`), as it ends episodes at a drop (:func:`end_at_drops`).
+(:func:`usable_stretches`), where it also ends episodes at a drop.
 """
 
 from __future__ import annotations
@@ -208,23 +208,6 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
     return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), findings)
 
 
-def end_at_drops(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[TrajectorySet, list[str]]:
-    """The paper's drop rule on recorded episodes: each ends before its first one-step x,y jump over ``jump_mm``
-    (the object falling), as a simulated collection ends them, and what is left is kept when it still has
-    MIN_EPISODE_STEPS transitions; with a line per episode cut.
-
-    A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
-    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step is no
-    0.1 s step, so its move is not judged (:func:`usable_stretches` leaves it out): a drop during one is not
-    seen here."""
-    kept, notes = [], []
-    for i, traj in enumerate(data):
-        ended, note = _end_at_drop(traj, i, jump_mm)
-        kept += [] if ended is None else [ended]
-        notes += note
-    return TrajectorySet(kept, hand=data.hand), notes
-
-
 def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajectory | None, list[str]]:
     """``traj`` ended at its first drop (None: too little before it), and a line when it was cut."""
     moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
@@ -245,10 +228,15 @@ def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajecto
 
 
 def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Handled, list[str]]:
-    """What a transfer trains and scores on of recorded episodes: each ended at its first drop
-    (:func:`end_at_drops`), then without its late steps, the stretches between them kept when at least
-    MIN_EPISODE_STEPS long (the paper's rule for short episodes).  The stretches with the episode each came from
-    and the late steps found (by episode), and a line per episode cut or split, naming it as ``data`` counts.
+    """What a transfer trains and scores on of recorded episodes: each ended before its first one-step x,y jump over
+    ``jump_mm`` (the paper's drop rule: the object falling), then without its late steps, the stretches between
+    them kept when at least MIN_EPISODE_STEPS long (the paper's rule for short episodes).  The stretches with the
+    episode each came from and the late steps found (by episode), and a line per episode cut or split, naming it
+    as ``data`` counts.
+
+    A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
+    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step's move
+    is not judged (the object moves on during one): a drop during one is not seen.
 
     A late step stays in its episode as the reader gives it (its duration in ``step_ns``): the recording is
     whole.  A model of 0.1 s transitions is trained and scored on 0.1 s transitions only."""
