@@ -48,6 +48,8 @@ class Bench:
         self.plant = HandPlant(SimulatedHand("target"))
         self.bus = PtyBus(t42_bus(plant=self.plant))
         self.tracking = True
+        self.offset_mm = np.zeros(2)
+        """Added to the tracked pose: what the camera sees of an object that fell (the plant holds it on)."""
         self._pose_pub = tester.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._clock = tester.get_clock()
         self._stop = threading.Event()
@@ -59,7 +61,7 @@ class Bench:
             self.plant.tick()
             if self.tracking:
                 stamp = self._clock.now().nanoseconds
-                self._pose_pub.publish(object_pose_msg(self.plant.hand.object_xy, stamp, RCLPY))
+                self._pose_pub.publish(object_pose_msg(self.plant.hand.object_xy + self.offset_mm, stamp, RCLPY))
 
     def torque(self) -> list[bool]:
         return [s.torque for s in self.bus.bus.servos.values()]
@@ -264,6 +266,32 @@ def test_reset_grasps_then_steps_publish_the_hand_at_the_control_rate(active_rig
     by_stamp = {p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in poses}
     assert sum(s in by_stamp for s in stamps) >= len(stamps) - 1  # state k's pose shares its stamp
     assert all(np.all(np.abs(j.effort) > 50 * LOAD_UNIT_NM) for j in joints[-3:])  # effort in N m
+
+
+def test_an_object_that_jumps_ends_the_episode_as_dropped_and_a_reset_starts_the_next(rig: Rig) -> None:
+    """The tracker sees the object 12 mm away from one step to the next (over the paper's 8 mm): that step's state
+    goes out without an action, ``dropped`` names it, and the hand holds; the next grasp's first pose, 12 mm from
+    the dropped one, is no drop."""
+    rig.ros.spin_for(0.3)  # (on a grasped hand: see the rig fixture)
+    assert names.DROPPED not in rig.events()
+    rig.bench.offset_mm = np.array([12.0, 0.0])
+    try:
+        assert rig.ros.spin_until(lambda: names.DROPPED in rig.events(), 2.0), rig.events()
+        dropped = next(s.data for s in rig.statuses if status_event(s.data) == names.DROPPED)
+        assert "the object moved 12." in dropped and "over 8 mm" in dropped, dropped
+        goals = rig.bench.goals()
+        rig.ros.spin_for(0.5)
+        final = stamp_to_ns(rig.joints[-1].header.stamp)
+        assert last_step_stamp(dropped) == final  # the last state published is the drop's ...
+        assert stamp_to_ns(rig.actions[-1].header.stamp) < final  # ... and no action went out from it
+        assert not rig.driver.running and rig.bench.goals() == goals  # the hand holds
+    finally:
+        rig.bench.offset_mm = np.zeros(2)  # the object placed anew, 12 mm from where it was last seen
+    answer = rig.reset()
+    assert answer.success, answer.message
+    actions = len(rig.actions)
+    rig.ros.spin_for(0.6)
+    assert len(rig.actions) >= actions + 4 and rig.events().count(names.DROPPED) == 1, rig.events()
 
 
 def test_a_stalled_step_is_taken_late_and_said_so_with_its_stamp(rig: Rig) -> None:

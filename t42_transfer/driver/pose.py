@@ -85,3 +85,26 @@ class NewestPose:
                                                                               f"{-age_s:.2f} s after the step"
         self.stale = False
         return pose[1], None
+
+
+class DropWatch:
+    """The paper's drop rule on the poses a driver publishes: an object that moved more than ``jump_mm`` in one
+    step fell out of the grasp (the episode ends there).  A late step may move further in proportion to its
+    periods; a step without a pose (stale) leaves nothing to compare the next one with, so a drop hidden from
+    the tracker ends the episode only if seen (the bag reader splits at the stale steps anyway)."""
+
+    def __init__(self) -> None:
+        self._last: np.ndarray | None = None
+
+    def start(self) -> None:
+        """A new episode: its first pose is compared with nothing."""
+        self._last = None
+
+    def moved_mm(self, xy_mm: np.ndarray | None, periods: float, jump_mm: float) -> float | None:
+        """The step's move (mm) when it is a drop: over ``jump_mm`` times ``periods`` (at least 1) since the step
+        before; None otherwise, and always with ``jump_mm`` 0 (no rule) or no pose now or at the step before."""
+        last, self._last = self._last, None if xy_mm is None else np.asarray(xy_mm, dtype=np.float64)
+        if last is None or self._last is None or jump_mm <= 0:
+            return None
+        moved = float(np.hypot(*(self._last - last)))
+        return moved if moved > jump_mm * max(periods, 1.0) else None

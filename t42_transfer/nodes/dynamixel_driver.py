@@ -35,6 +35,9 @@ unless it is older than ``max_pose_age_s``: then no pose goes out for the step, 
 ``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves it out and
 splits the episode there, saying so).  A reset forgets the pose held and every pose of a frame taken before it:
 the object is placed anew, so a new episode's first state is never the old grasp's, whatever ``max_pose_age_s``.
+Drops: a published pose more than ``drop_jump_m`` from the step before's (the paper's 8 mm) ends the episode as
+the mock driver ends one: that step's state goes out without an action, ``hand/status`` says ``dropped`` and the
+hand holds until the next reset.
 
 Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
@@ -60,6 +63,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
@@ -81,9 +85,9 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_S
+from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S, DROP_JUMP_MM, MM_PER_M
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
-from t42_transfer.driver.pose import NewestPose
+from t42_transfer.driver.pose import DropWatch, NewestPose
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
 from t42_transfer.driver.timing import StepTiming, step_timing
 from t42_transfer.hardware import xm430 as xm
@@ -137,6 +141,9 @@ class DynamixelDriverParams:
                               "units as load_limit (100 is 0.41 N m)", min=1.0, max=2000.0)
     max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
                                   min=0.01, max=10.0)
+    drop_jump_m: float = param(DROP_JUMP_MM / MM_PER_M, "an object pose this far from the step before's ends the "
+                               "episode (dropped), the paper's drop rule; a late step may move as far per period; "
+                               "0: never", min=0.0, max=1.0)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
                                      min=1e-3, max=3600.0)
     autostart: bool = param(False, "configure and activate at start (a suite without a lifecycle manager)",
@@ -185,6 +192,7 @@ class DynamixelDriver(LifecycleNode):
         self._stepping = False
         self._last_stamp = 0
         self.pose = NewestPose()
+        self.drops = DropWatch()
         self._next_retry_s = 0.0
         self._ticks = 0
         pub, sub = {"event_callbacks": _NO_PUB_EVENTS}, {"event_callbacks": _NO_SUB_EVENTS}
@@ -435,11 +443,22 @@ class DynamixelDriver(LifecycleNode):
             self.skipped_ticks += 1  # the goals stay until the next tick
             return
         self._last_stamp = stamp
-        self._publish_pose(stamp)
+        xy = self._publish_pose(stamp)
         self._joints_pub.publish(joint_state_msg(loads, angles, stamp, RCLPY))
         if timing is StepTiming.LATE and since is not None:  # a recording keeps the step: none is missing
             self.late_steps += 1
             self._status(names.LATE, f"{since / 1e6:.1f} ms after the step before")
+        jump_mm = self.params.drop_jump_m * MM_PER_M
+        moved = self.drops.moved_mm(xy, (since or CONTROL_PERIOD_NS) / CONTROL_PERIOD_NS, jump_mm)
+        if moved is not None:  # the final state goes out without an action, as the mock driver ends an episode
+            self.running = False
+            self.queue.clear()
+            hand.hold()
+            detail = f"episode {self.episode} ended after {self.steps} steps: the object moved {moved:.1f} mm " \
+                     f"in one step (over {jump_mm:g} mm)"
+            self.log.warning(detail)
+            self._status(names.DROPPED, detail)
+            return
         action, last = self.queue.next()
         if last:
             self._status(names.TRAJECTORY_DONE, f"episode {self.episode} step {self.steps + 1}")
@@ -449,13 +468,15 @@ class DynamixelDriver(LifecycleNode):
         if refused:
             self.refusals.warning(f"step {self.steps}: {refused}")
 
-    def _publish_pose(self, stamp: int) -> None:
+    def _publish_pose(self, stamp: int) -> np.ndarray | None:
+        """The step's object pose, published unless stale (None then)."""
         xy, why = self.pose.for_step(stamp, self.params.max_pose_age_s)
         if why is not None:
             self._status(names.STALE, f"no fresh object pose on {names.TRACKER_POSE} ({why}): "
                                       "steps go out without one")
         if xy is not None:
             self._pose_pub.publish(object_pose_msg(xy, stamp, RCLPY))
+        return xy
 
     def _grasp_step(self) -> None:
         grasp = self._grasp
@@ -468,6 +489,7 @@ class DynamixelDriver(LifecycleNode):
             self.episode += 1
             self.running, self.steps = True, 0
             self.queue.clear()
+            self.drops.start()
             message = grasp_detail(self.episode, None)
             self._status(names.RESET, message)
             self._answer(True, message)
