@@ -95,10 +95,12 @@ VIEW_MARKERS = "view/markers"
 """visualization_msgs/MarkerArray: the scene the view node draws (hand, object, goal and tolerance, planned path)."""
 
 # ------------------------------------------------------------------ status words
-# The first word of a hand/status text (msg_adapters.status): a grasp closed and a new episode starts
-# (reset) or could not (reset_failed); the episode ended (dropped, lost_contact, overload); the last
-# point of a trajectory has been applied (trajectory_done).
-RESET, RESET_FAILED = "reset", "reset_failed"
+# The first word of a hand/status text (msg_adapters.status): a reset began, the object is placed anew while
+# the hand opens and closes (grasping); the grasp closed and a new episode starts (reset) or could not
+# (reset_failed); the episode ended (dropped, lost_contact, overload); the last point of a trajectory has been
+# applied (trajectory_done).  A tracker takes the object's move from grasping to the first frame after the
+# grasp closed for a new placement, not a drop.
+GRASPING, RESET, RESET_FAILED = "grasping", "reset", "reset_failed"
 DROPPED, LOST_CONTACT, OVERLOAD = "dropped", "lost_contact", "overload"
 TRAJECTORY_DONE = "trajectory_done"
 # The real driver's: a servo fault stopped the hand (fault) or cleared (recovered); no fresh object pose
@@ -112,6 +114,8 @@ END_EVENTS = (DROPPED, LOST_CONTACT, OVERLOAD)
 """Events that end an episode (the hand stops until the next reset)."""
 SPLIT_EVENTS = (RESET, *END_EVENTS, FAULT)
 """Events at which an episode-mode recorder closes one bag and opens the next."""
+GRASP_EVENTS = (GRASPING, RESET, RESET_FAILED)
+"""Events that begin or end a grasp (a reset)."""
 
 SUPERSEDED = "superseded"
 """A goal's result when a newer goal replaced it before its plan ran."""

@@ -51,6 +51,11 @@ def grasp_detail(episode: int, seed: int | None) -> str:
     return f"episode {episode} grasped" + ("" if seed is None else f" (seed {seed})")
 
 
+def grasping_detail(episode: int) -> str:
+    """A ``grasping`` status's detail: the episode a reset begins (the hand opens, the object is placed anew)."""
+    return f"episode {episode}: the hand opens, then closes on the object"
+
+
 def grasp_seed(text: str) -> int | None:
     """The grasp seed a reset's answer or status names (:func:`grasp_detail`); None when it names none."""
     match = GRASP_SEED.search(text)

@@ -17,6 +17,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from ros_rig import Rosout, Tester, assert_one_line_errors
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 from videos import grey_video, write_video
 
 from msg_adapters import (
@@ -28,6 +29,7 @@ from msg_adapters import (
     names,
     object_xy_mm,
     stamp_to_ns,
+    status_message,
     status_report,
 )
 from t42_transfer.nodes.camera import Camera
@@ -313,6 +315,36 @@ def test_an_object_that_moved_while_out_of_sight_is_flagged_when_seen_again(ros,
     moved_mm = float(re.search(r"moved ([0-9.]+) mm", warnings[0]).group(1))
     assert abs(moved_mm - np.linalg.norm(moved_truth - truth)) < 1.0, warnings
     assert f"{stream.values['no_object']} frames without it, {gap_s:.1f} s since" in warnings[0], (gap_s, warnings)
+
+
+def test_a_jump_across_a_grasp_is_the_object_placed_anew_and_not_warned_about(ros, scene) -> None:
+    """From the driver's ``grasping`` to the first frame tracked after its ``reset``, a jump is a new placement:
+    counted as ``placed``, said at info level; the next jump is a drop again, warned about."""
+    rig = Rig(ros, scene)
+    rosout = Rosout(ros, "object_tracker")
+    statuses = rig.tester.tester.create_publisher(String, names.HAND_STATUS, profile(names.EVENTS))
+    assert rig.tester.wait_graph(subscribers={names.HAND_STATUS: 1})
+    (first, truth), moved = scene["frames"][0], scene["moved"][0]
+    assert np.linalg.norm(scene["moved"][1] - truth) > 8.0
+
+    def said(event: str) -> None:
+        statuses.publish(String(data=status_message(event, "test")))
+        ros.spin_for(0.2)
+
+    rig.track(first, 1)
+    said(names.GRASPING)
+    rig.track(moved, 2)  # placed while the hand opens
+    said(names.RESET)
+    rig.track(first, 3)  # the first frame after the grasp closed: still the placement
+    values = rig.report_when(lambda v: v["tracked"] == "3")
+    assert (values["placed"], values["jumps"], values["status"]) == ("2", "0", "placed"), values
+    assert rosout.wait_warnings(1, 1.0) == []
+    assert [m.msg for m in rosout.lines if "placed anew" in m.msg]  # said, at info level
+    rig.track(moved, 4)  # in the episode: a drop
+    values = rig.report_when(lambda v: v["tracked"] == "4")
+    assert (values["placed"], values["jumps"], values["status"]) == ("2", "1", "jump"), values
+    warnings = rosout.wait_warnings(1)
+    assert len(warnings) == 1 and "in one frame" in warnings[0], warnings
 
 
 # --------------------------------------------------------------------------- the camera node

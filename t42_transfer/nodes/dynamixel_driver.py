@@ -21,8 +21,9 @@ loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/t
 applied from it with one stamp, one sync write), and the same command rules
 (:mod:`t42_transfer.driver.commands`): a single-step command moves the hand for one step only, so with no
 command the hand holds where it is (the watchdog is the step convention itself).  ``hand/reset`` runs the
-authors' grasp: open, then close each finger until its load passes ``grasp_load``; it answers once the grasp
-closed (the steps run meanwhile).
+authors' grasp: open, then close each finger until its load passes ``grasp_load``; ``hand/status`` says
+``grasping`` as it begins (a tracker then takes the object's jump for a new placement), and the service answers
+once the grasp closed (the steps run meanwhile).
 
 Parameters at run time: ``load_limit``, ``grasp_load`` and ``max_angle_rad`` set while the
 driver is configured take effect from the next step (a goal past a lowered limit is brought back onto it).  The
@@ -80,6 +81,7 @@ from msg_adapters import (
     applied_action_msg,
     diagnostic_array,
     grasp_detail,
+    grasping_detail,
     joint_state_msg,
     names,
     object_pose_msg,
@@ -405,6 +407,7 @@ class DynamixelDriver(LifecycleNode):
         self._stop_episode("a new reset")
         self.pose.forget(before_ns=self.now_ns() + 1)  # the object is placed anew: no frame until now counts
         self._grasp, self._grasp_answer = Grasp(self.hand), self._reset.later()
+        self._status(names.GRASPING, grasping_detail(self.episode + 1))
         return self._grasp_answer
 
     # ------------------------------------------------------------------ steps

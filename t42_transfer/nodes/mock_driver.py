@@ -26,7 +26,9 @@ most) until the tracker's pose of the last frame came, so a slow tracker slows t
 leaving steps without a pose, and each step's pose is its own frame's, with the frame's stamp.  A reset renders
 the new grasp at once (on sim time the re-grasp takes one period of the graph's clock, so its frame is stamped
 after every frame of the old grasp), and a pose of a frame before it, which a busy tracker sends late, is left
-out: the first step of an episode never goes out with the old grasp's pose.  ``seed`` and
+out: the first step of an episode never goes out with the old grasp's pose.  Every reset says ``grasping`` on
+``hand/status`` before it re-grasps, as the Dynamixel driver does (the tracker's cue that the object moves on
+purpose).  ``seed`` and
 ``pose_source`` may change at run time: a seed set applies from the next reset (a grasp made again).
 
 Timing.  A timer every ``CONTROL_PERIOD_S / rate_factor`` seconds runs one step.
@@ -86,6 +88,7 @@ from msg_adapters import (
     RCLPY,
     applied_action_msg,
     grasp_detail,
+    grasping_detail,
     joint_state_msg,
     names,
     ns_to_stamp,
@@ -226,6 +229,7 @@ class MockDriver(Node):
         """Re-open the hand, re-grasp (seed ``params.seed + episode``) and start stepping; (success, message)."""
         self.queue.clear()
         self.episode += 1
+        self._publish_status(status_message(names.GRASPING, grasping_detail(self.episode), self._last_stamp))
         seed = None if self.params.seed is None else self.params.seed + self.episode - self._seeded_from
         try:
             self.hand.reset(seed)

@@ -7,7 +7,8 @@ Wiring (relative names):
 * ``tracker/object_pose`` (geometry_msgs/PoseStamped): published for each frame in which the object marker and
   the base frame are seen; metres in ``t42_base``, stamped with the image's stamp (REP 103);
 * ``diagnostics`` (diagnostic_msgs/DiagnosticArray): counts and the last frame's quality, every
-  ``diagnostics_period_s``.
+  ``diagnostics_period_s``;
+* ``hand/status`` (std_msgs/String): subscribed, for the driver's grasps (below).
 
 The work per frame (:class:`~t42_transfer.tracking.markers.ObjectTracker`: ArUco detection, solvePnP) runs on
 one worker thread (:class:`~t42_transfer.tracking.worker.LatestOnly`), never on the executor: the image
@@ -20,7 +21,10 @@ is counted; a jump above ``max_jump_m`` (the authors' 8 mm drop rule) is publish
 the reprojection errors (object and base markers, px) are reported.  The jump is measured from the last tracked
 frame, also across frames without the object: an object seen again more than ``max_jump_m`` from where it was
 hidden is flagged (a drop while out of sight and a move look the same here), and the warning says for how many
-frames and seconds it was out of sight; one seen again where it was hidden is not.
+frames and seconds it was out of sight; one seen again where it was hidden is not.  A re-grasp moves the object
+on purpose: from a driver's ``grasping`` to the first tracked frame that arrived after its ``reset`` (or
+``reset_failed``), a jump is the object placed anew, counted as ``placed`` and said at info level, not warned
+about as a drop.
 
 Bad input (an image of another encoding or size than the camera's, a CameraInfo with zero or NaN intrinsics,
 images before any CameraInfo) is a warning (at most one a second per kind, with a count) and a count on
@@ -41,6 +45,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
 
 from msg_adapters import (
     RCLPY,
@@ -50,6 +55,7 @@ from msg_adapters import (
     names,
     object_pose_msg,
     stamp_to_ns,
+    status_event,
 )
 from t42_transfer.conventions import DROP_JUMP_MM, MM_PER_M
 from t42_transfer.ros.logs import ThrottledLog
@@ -59,11 +65,12 @@ from t42_transfer.tracking import markers
 from t42_transfer.tracking.worker import LatestOnly
 
 STATUS_NAME = "t42_transfer: object_tracker"
-COUNTS = ("images", "tracked", "no_object", "no_base", "jumps", "bad_images", "bad_camera_info", "no_camera_info",
-          "failed")
+COUNTS = ("images", "tracked", "no_object", "no_base", "jumps", "placed", "bad_images", "bad_camera_info",
+          "no_camera_info", "failed")
 """What diagnostics count beside the frames dropped while the worker was busy (the worker counts those): frames
 received, poses published, frames without the object marker or without any base pose yet, jumps above the
-limit, images refused, CameraInfos refused, images before a usable CameraInfo, frames the tracker failed on."""
+limit, jumps of an object placed anew (a re-grasp), images refused, CameraInfos refused, images before a usable
+CameraInfo, frames the tracker failed on."""
 
 
 @dataclass(frozen=True)
@@ -109,6 +116,10 @@ class _Frame(NamedTuple):
     encoding: str
     stamp_ns: int
     intrinsics: markers.Intrinsics
+    grasps: int
+    """Grasp events heard when the frame arrived."""
+    grasping: bool
+    """Whether it arrived during a grasp (between ``grasping`` and the grasp's end)."""
 
 
 class ObjectTracker(Node):
@@ -128,6 +139,10 @@ class ObjectTracker(Node):
         self._intrinsics: markers.Intrinsics | None = None
         self._seen: tuple[int, int] | None = None
         """The stamp of the last tracked frame and the frames without the object since (the worker's)."""
+        self._grasps, self._grasping = 0, False
+        """Grasp events heard, and whether a grasp is under way (the executor's)."""
+        self._tracked_grasps = 0
+        """Grasp events heard when the last tracked frame arrived (the worker's)."""
         self._pose_pub = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.worker = LatestOnly(self._track, self._publish, self._failed, name="object_tracker")
@@ -138,6 +153,7 @@ class ObjectTracker(Node):
                                  qos_overriding_options=overridable)
         self.create_subscription(Image, names.CAMERA_IMAGE, self._on_image, profile(names.IMAGES),
                                  qos_overriding_options=overridable)
+        self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._timer = self.create_timer(p.diagnostics_period_s, self.publish_diagnostics)
 
     @property
@@ -170,6 +186,12 @@ class ObjectTracker(Node):
             return
         self._intrinsics = intrinsics
 
+    def _on_status(self, msg: String) -> None:
+        event = status_event(msg.data)
+        if event in names.GRASP_EVENTS:
+            self._grasps += 1
+            self._grasping = event == names.GRASPING
+
     def _on_image(self, msg: Image) -> None:
         self._count("images")
         intrinsics = self._intrinsics
@@ -186,7 +208,8 @@ class ObjectTracker(Node):
             self._set_last(status="bad_image")
             self.per_message.warning(f"{names.CAMERA_IMAGE} refused: {err}")
             return
-        self.worker.submit(_Frame(image, msg.encoding, stamp_to_ns(msg.header.stamp), intrinsics))
+        self.worker.submit(_Frame(image, msg.encoding, stamp_to_ns(msg.header.stamp), intrinsics, self._grasps,
+                                  self._grasping))
 
     # ------------------------------------------------------------------ the worker thread
     def _track(self, frame: _Frame) -> tuple[_Frame, markers.Track]:
@@ -194,20 +217,25 @@ class ObjectTracker(Node):
 
     def _publish(self, result: tuple[_Frame, markers.Track]) -> None:
         frame, track = result
+        placed = track.jumped and (frame.grasping or frame.grasps != self._tracked_grasps)
         with self._lock:
             self.counts["tracked"] += track.xy_mm is not None
-            self.counts["jumps"] += track.jumped
+            self.counts["placed" if placed else "jumps"] += track.jumped
             if track.status in ("no_object", "no_base"):
                 self.counts[track.status] += 1
-            self._last.update(status=track.status, reprojection_error_px=track.reprojection_error_px,
-                              base_error_px=track.base_error_px, jump_mm=track.jump_mm)
+            self._last.update(status="placed" if placed else track.status, base_error_px=track.base_error_px,
+                              reprojection_error_px=track.reprojection_error_px, jump_mm=track.jump_mm)
         seen = self._seen
         if track.xy_mm is None:
             if seen is not None and track.status == "no_object":
                 self._seen = (seen[0], seen[1] + 1)
             return
-        self._seen = (frame.stamp_ns, 0)
+        self._seen, self._tracked_grasps = (frame.stamp_ns, 0), frame.grasps
         self._pose_pub.publish(object_pose_msg(track.xy_mm, frame.stamp_ns, RCLPY))
+        if placed:
+            self.per_message.info(f"the object was placed anew (a grasp): {track.jump_mm:.1f} mm from where it "
+                                  "was last seen")
+            return
         if not track.jumped:
             return
         limit = f"over {self.tracker.config.jump_mm} mm"
@@ -234,8 +262,9 @@ class ObjectTracker(Node):
             values: dict[str, object] = {**self.counts, **self._last}
         values.update(dropped=self.worker.counts["dropped"])
         status = str(values["status"])
-        level = "OK" if status in ("ok", "jump") else "WARN"
-        message = {"ok": "tracking", "jump": "tracking (the last frame jumped)"}.get(status, status.replace("_", " "))
+        level = "OK" if status in ("ok", "jump", "placed") else "WARN"
+        message = {"ok": "tracking", "jump": "tracking (the last frame jumped)",
+                   "placed": "tracking (the object was placed anew)"}.get(status, status.replace("_", " "))
         self._diagnostics.publish(diagnostic_array(STATUS_NAME, level, message, values,
                                                    self.get_clock().now().nanoseconds, kit=RCLPY))
 
