@@ -61,6 +61,20 @@ def test_after_a_drop_nothing_is_kept_even_past_a_later_late_step(tmp_path, make
     assert len(target.notes) == 1 and target.notes[0].startswith("episode 1 ") and "step 20" in target.notes[0]
 
 
+def test_a_fall_during_a_late_step_is_a_drop_still(tmp_path, make_set) -> None:
+    """A late step may move the drop rule's 8 mm per period it lasted: 25 mm in a 0.3 s step is a fall."""
+    clean, held = make_set([30, 60], seed=5)
+    states = held.states.copy()
+    states[21:, 1] -= 25.0  # the object falls in step 20, a late one, and lies there
+    steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
+    steps[20] = 300_000_000
+    fallen = dataclasses.replace(held, states=states, step_ns=steps)
+    bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times([clean, fallen]), hand="target"))
+    target = read_target([bag])
+    assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
+    assert target.late_steps == 0 and len(target.notes) == 1 and "step 20" in target.notes[0], target.notes
+
+
 def test_a_split_episodes_stretches_are_held_out_or_trained_on_together(tmp_path, make_set) -> None:
     """Neighbouring stretches of one recording on both sides would score a model on the episode it trained on."""
     episodes = list(make_set([40, 60, 40, 40, 40], seed=6))

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from t42_transfer.conventions import DROP_JUMP_MM, DROPPED, LATE_STEP_NS, MIN_EPISODE_STEPS
+from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_JUMP_MM, DROPPED, MIN_EPISODE_STEPS
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
 FROZEN = "frozen"
@@ -211,7 +211,8 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
 def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajectory | None, list[str]]:
     """``traj`` ended at its first drop (None: too little before it), and a line when it was cut."""
     moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
-    jumps = np.flatnonzero((moves > jump_mm) & (traj.durations_ns <= LATE_STEP_NS))
+    periods = np.maximum(traj.durations_ns / CONTROL_PERIOD_NS, 1.0)  # a late step may move as far per period
+    jumps = np.flatnonzero(moves > jump_mm * periods)
     if not len(jumps):
         return traj, []
     cut = int(jumps[0])
@@ -235,8 +236,9 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     as ``data`` counts.
 
     A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
-    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step's move
-    is not judged (the object moves on during one): a drop during one is not seen.
+    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step may
+    move ``jump_mm`` per period it lasted (the object moves on during one), as a real hand's driver judges it
+    (:class:`~t42_transfer.driver.pose.DropWatch`): a stall is no drop, a fall during one still is.
 
     A late step stays in its episode as the reader gives it (its duration in ``step_ns``): the recording is
     whole.  A model of 0.1 s transitions is trained and scored on 0.1 s transitions only."""
