@@ -81,22 +81,23 @@ def test_a_new_grasp_says_stale_again_and_a_plain_forget_keeps_the_grasps_bound(
     np.testing.assert_allclose(pose.for_step(7 * S, 0.3)[0], [1.0, 80.0])  # a future stamp does not block the rest
 
 
-def test_a_move_over_the_jump_is_a_drop_a_late_step_may_move_further_per_period() -> None:
-    watch = DropWatch()
-    assert watch.moved_mm(np.array([0.0, 80.0]), 1.0, 8.0) is None  # the episode's first pose: nothing before
-    assert watch.moved_mm(np.array([7.0, 80.0]), 1.0, 8.0) is None
-    assert watch.moved_mm(np.array([16.0, 80.0]), 1.0, 8.0) == pytest.approx(9.0)
-    assert watch.moved_mm(np.array([31.0, 80.0]), 2.0, 8.0) is None  # 15 mm in a step two periods long
-    assert watch.moved_mm(np.array([31.0, 63.0]), 2.0, 8.0) == pytest.approx(17.0)
-    assert watch.moved_mm(np.array([31.0, 73.0]), 0.5, 8.0) == pytest.approx(10.0)  # a short step: one period's
-    assert watch.moved_mm(np.array([31.0, 93.0]), 1.0, 0.0) is None  # the rule off
+def test_a_move_over_the_jump_a_period_between_the_frames_is_a_drop() -> None:
+    watch, period = DropWatch(), S // 10
+    assert watch.moved_mm(np.array([0.0, 80.0]), S, 8.0) is None  # the episode's first pose: nothing before
+    assert watch.moved_mm(np.array([7.0, 80.0]), S + period, 8.0) is None
+    assert watch.moved_mm(np.array([16.0, 80.0]), S + 2 * period, 8.0) == (pytest.approx(9.0), pytest.approx(0.1))
+    assert watch.moved_mm(np.array([16.0, 80.0]), S + 2 * period, 8.0) is None  # the same frame again: no move
+    assert watch.moved_mm(np.array([31.0, 80.0]), S + 4 * period, 8.0) is None  # 15 mm between frames 0.2 s apart
+    assert watch.moved_mm(np.array([31.0, 63.0]), S + 6 * period, 8.0) == (pytest.approx(17.0), pytest.approx(0.2))
+    assert watch.moved_mm(np.array([31.0, 73.0]), S + 6 * period + period // 2, 8.0)[0] == pytest.approx(10.0)
+    assert watch.moved_mm(np.array([31.0, 93.0]), S + 7 * period, 0.0) is None  # the rule off
 
 
 def test_a_stale_step_or_a_new_episode_leaves_the_next_pose_nothing_to_compare_with() -> None:
     watch = DropWatch()
-    watch.moved_mm(np.array([0.0, 80.0]), 1.0, 8.0)
-    assert watch.moved_mm(None, 1.0, 8.0) is None
-    assert watch.moved_mm(np.array([20.0, 80.0]), 1.0, 8.0) is None  # after a stale step
-    assert watch.moved_mm(np.array([40.0, 80.0]), 1.0, 8.0) == pytest.approx(20.0)
+    watch.moved_mm(np.array([0.0, 80.0]), S, 8.0)
+    assert watch.moved_mm(None, 0, 8.0) is None
+    assert watch.moved_mm(np.array([20.0, 80.0]), S + S // 10, 8.0) is None  # after a stale step
+    assert watch.moved_mm(np.array([40.0, 80.0]), S + S // 5, 8.0)[0] == pytest.approx(20.0)
     watch.start()
-    assert watch.moved_mm(np.array([0.0, 80.0]), 1.0, 8.0) is None  # a new episode
+    assert watch.moved_mm(np.array([0.0, 80.0]), S + 3 * S // 10, 8.0) is None  # a new episode

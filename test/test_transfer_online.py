@@ -13,8 +13,8 @@ from t42_transfer.transfer.online import hold_out, read_target
 
 
 def test_recorded_episodes_end_at_their_first_drop(tmp_path, make_set) -> None:
-    """A real hand's driver cannot tell a drop: its bag holds the fall (a jump over 8 mm) and what followed, which
-    a transfer must not train on, as a simulated collection never holds them."""
+    """A bag may hold a fall (a jump over 8 mm) and what followed (a drop the driver did not see, another driver's
+    recording), which a transfer must not train on, as a simulated collection never holds them."""
     clean, held = make_set([30, 40], seed=3)
     states = held.states.copy()
     states[21:, 1] -= 12.0  # the object falls in step 20 and lies there

@@ -235,10 +235,12 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     episode each came from and the late steps found (by episode), and a line per episode cut or split, naming it
     as ``data`` counts.
 
-    A driver of a real hand cannot tell a drop, so its bags hold the fall and what followed it; a simulated
-    hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A late step may
-    move ``jump_mm`` per period it lasted (the object moves on during one), as a real hand's driver judges it
-    (:class:`~t42_transfer.driver.pose.DropWatch`): a stall is no drop, a fall during one still is.
+    A real hand's driver ends an episode at a drop it saw (:class:`~t42_transfer.driver.pose.DropWatch`), but not
+    at one hidden from the tracker or one recorded by another driver: such a bag holds the fall and what followed
+    it; a simulated hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A
+    late step may move ``jump_mm`` per period it lasted (the object moves on during one): a stall is no drop, a
+    fall during one still is.  (The driver judges a move over its frames' stamps, which a bag does not keep: here
+    a pose repeated from a slow frame then moved on is judged over the steps, as the paper's rule is.)
 
     A late step stays in its episode as the reader gives it (its duration in ``step_ns``): the recording is
     whole.  A model of 0.1 s transitions is trained and scored on 0.1 s transitions only."""

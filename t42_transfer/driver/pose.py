@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from msg_adapters import object_xy_mm, stamp_to_ns
-from t42_transfer.conventions import MAX_OBJECT_DISTANCE_MM
+from t42_transfer.conventions import CONTROL_PERIOD_NS, MAX_OBJECT_DISTANCE_MM
 
 
 class NewestPose:
@@ -88,23 +88,28 @@ class NewestPose:
 
 
 class DropWatch:
-    """The paper's drop rule on the poses a driver publishes: an object that moved more than ``jump_mm`` in one
-    step fell out of the grasp (the episode ends there).  A late step may move further in proportion to its
-    periods; a step without a pose (stale) leaves nothing to compare the next one with, so a drop hidden from
-    the tracker ends the episode only if seen (the bag reader splits at the stale steps anyway)."""
+    """The paper's drop rule on the poses a driver publishes: an object that moved more than ``jump_mm`` a control
+    period fell out of the grasp (the episode ends there).  The move is judged over the time between the two poses'
+    own stamps (their frames'), not between the steps that carried them: a tracker slower than the steps, or a frame
+    lost, gives one step the move of several periods.  A step without a pose (stale) leaves nothing to compare the
+    next one with, so a drop hidden from the tracker ends the episode only if seen (the bag reader splits at the
+    stale steps anyway)."""
 
     def __init__(self) -> None:
-        self._last: np.ndarray | None = None
+        self._last: tuple[int, np.ndarray] | None = None
 
     def start(self) -> None:
         """A new episode: its first pose is compared with nothing."""
         self._last = None
 
-    def moved_mm(self, xy_mm: np.ndarray | None, periods: float, jump_mm: float) -> float | None:
-        """The step's move (mm) when it is a drop: over ``jump_mm`` times ``periods`` (at least 1) since the step
-        before; None otherwise, and always with ``jump_mm`` 0 (no rule) or no pose now or at the step before."""
-        last, self._last = self._last, None if xy_mm is None else np.asarray(xy_mm, dtype=np.float64)
+    def moved_mm(self, xy_mm: np.ndarray | None, stamp_ns: int, jump_mm: float) -> tuple[float, float] | None:
+        """(the move in mm, over how many seconds) when the pose ``xy_mm`` stamped ``stamp_ns`` is a drop: farther
+        from the step before's than ``jump_mm`` times the control periods between their stamps (at least one);
+        None otherwise, and always with ``jump_mm`` 0 (no rule) or no pose now or at the step before."""
+        last = self._last
+        self._last = None if xy_mm is None else (stamp_ns, np.asarray(xy_mm, dtype=np.float64))
         if last is None or self._last is None or jump_mm <= 0:
             return None
-        moved = float(np.hypot(*(self._last - last)))
-        return moved if moved > jump_mm * max(periods, 1.0) else None
+        moved = float(np.hypot(*(self._last[1] - last[1])))
+        periods = max((stamp_ns - last[0]) / CONTROL_PERIOD_NS, 1.0)
+        return (moved, (stamp_ns - last[0]) / 1e9) if moved > jump_mm * periods else None

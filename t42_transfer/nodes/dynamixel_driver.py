@@ -36,9 +36,9 @@ unless it is older than ``max_pose_age_s``: then no pose goes out for the step, 
 ``stale`` once per stale stretch (a recorder's step then lacks its pose, so the bag reader leaves it out and
 splits the episode there, saying so).  A reset forgets the pose held and every pose of a frame taken before it:
 the object is placed anew, so a new episode's first state is never the old grasp's, whatever ``max_pose_age_s``.
-Drops: a published pose more than ``drop_jump_m`` from the step before's (the paper's 8 mm) ends the episode as
-the mock driver ends one: that step's state goes out without an action, ``hand/status`` says ``dropped`` and the
-hand holds until the next reset.
+Drops: a published pose more than ``drop_jump_m`` (the paper's 8 mm) a control period, over the time between its
+frame's stamp and the step before's, from the step before's ends the episode as the mock driver ends one: that
+step's state goes out without an action, ``hand/status`` says ``dropped`` and the hand holds until the next reset.
 
 Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
@@ -87,7 +87,7 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_NS, CONTROL_PERIOD_S, DROP_JUMP_MM, MM_PER_M
+from t42_transfer.conventions import CONTROL_PERIOD_S, DROP_JUMP_MM, MM_PER_M
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.pose import DropWatch, NewestPose
 from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
@@ -143,9 +143,9 @@ class DynamixelDriverParams:
                               "units as load_limit (100 is 0.41 N m)", min=1.0, max=2000.0)
     max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
                                   min=0.01, max=10.0)
-    drop_jump_m: float = param(DROP_JUMP_MM / MM_PER_M, "an object pose this far from the step before's ends the "
-                               "episode (dropped), the paper's drop rule; a late step may move as far per period; "
-                               "0: never", min=0.0, max=1.0)
+    drop_jump_m: float = param(DROP_JUMP_MM / MM_PER_M, "an object pose farther than this a control period "
+                               "(between the two frames' stamps) from the step before's ends the episode (dropped), "
+                               "the paper's drop rule; 0: never", min=0.0, max=1.0)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
                                      min=1e-3, max=3600.0)
     autostart: bool = param(False, "configure and activate at start (a suite without a lifecycle manager)",
@@ -452,15 +452,15 @@ class DynamixelDriver(LifecycleNode):
             self.late_steps += 1
             self._status(names.LATE, f"{since / 1e6:.1f} ms after the step before")
         jump_mm = self.params.drop_jump_m * MM_PER_M
-        moved = self.drops.moved_mm(xy, (since or CONTROL_PERIOD_NS) / CONTROL_PERIOD_NS, jump_mm)
-        if moved is not None:  # the final state goes out without an action, as the mock driver ends an episode
+        drop = self.drops.moved_mm(xy, self.pose.stamp_ns or stamp, jump_mm)
+        if drop is not None:  # the final state goes out without an action, as the mock driver ends an episode
             self.running = False
             self.queue.clear()
-            hand.hold()
-            detail = f"episode {self.episode} ended after {self.steps} steps: the object moved {moved:.1f} mm " \
-                     f"in one step (over {jump_mm:g} mm)"
+            detail = f"episode {self.episode} ended after {self.steps} steps: the object moved {drop[0]:.1f} mm " \
+                     f"between frames {drop[1]:.2f} s apart (over {jump_mm:g} mm a period)"
             self.log.warning(detail)
             self._status(names.DROPPED, detail)
+            hand.hold()
             return
         action, last = self.queue.next()
         if last:
@@ -511,6 +511,10 @@ class DynamixelDriver(LifecycleNode):
         if self._grasp is not None:
             self._grasp = None
             self._answer(False, f"reset interrupted: {why}")
+            try:  # (a grasp cut short is a failed one: a tracker waiting for the grasp's end hears it)
+                self._status(names.RESET_FAILED, f"interrupted: {why}")
+            except Exception:  # the process exits: the context may be gone
+                pass
 
     # ------------------------------------------------------------------ faults
     def _on_fault(self, fault: ServoFault) -> None:

@@ -322,6 +322,7 @@ class MockDriver(Node):
             self.log.error(f"reset failed: {err!r}")
             self.running = False
             ok, message = False, f"reset failed: {err}"
+            self._publish_status(status_message(names.RESET_FAILED, repr(err), self._last_stamp))
         response.success, response.message = ok, message
         return response
 

@@ -149,11 +149,13 @@ class ObjectTracker(Node):
         # A camera driver that publishes best effort (sensor data QoS) matches no reliable reader:
         # ``-p qos_overrides./camera/image_raw.subscription.reliability:=best_effort`` (and camera_info alike).
         overridable = QoSOverridingOptions.with_default_policies()
+        # Created first: an executor takes ready subscriptions in the order they were made, so a grasp's status
+        # that came with its first frame is heard before that frame is handed to the worker.
+        self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self.create_subscription(CameraInfo, names.CAMERA_INFO, self._on_camera_info, profile(names.IMAGES),
                                  qos_overriding_options=overridable)
         self.create_subscription(Image, names.CAMERA_IMAGE, self._on_image, profile(names.IMAGES),
                                  qos_overriding_options=overridable)
-        self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER))
         self._timer = self.create_timer(p.diagnostics_period_s, self.publish_diagnostics)
 
     @property
@@ -217,7 +219,9 @@ class ObjectTracker(Node):
 
     def _publish(self, result: tuple[_Frame, markers.Track]) -> None:
         frame, track = result
-        placed = track.jumped and (frame.grasping or frame.grasps != self._tracked_grasps)
+        # a grasp began or ended since the last tracked frame, or while this one was tracked (its status may
+        # have been heard after the frame: topics are not ordered against each other)
+        placed = track.jumped and (frame.grasping or self._grasps != self._tracked_grasps)
         with self._lock:
             self.counts["tracked"] += track.xy_mm is not None
             self.counts["placed" if placed else "jumps"] += track.jumped

@@ -337,8 +337,8 @@ class TargetData:
 
 
 def read_target(bags: Sequence[Path]) -> TargetData:
-    """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule, which
-    does not judge a late step's move: the object moves on during one) and then split at its late steps
+    """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule; a late step
+    may move 8 mm a period it lasted: the object moves on during one) and then split at its late steps
     (``quality.usable_stretches``).  The notes count episodes as the reader gave them."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
