@@ -114,6 +114,18 @@ def test_late_steps_are_found_with_their_duration_and_split_at() -> None:
     assert second.start_ns == 40 * CONTROL_PERIOD_NS + 450_000_000 + 160_000_000
 
 
+def test_a_late_step_may_move_the_jump_a_period_it_lasted() -> None:
+    """A 0.3 s step moving 15 mm is late, not a jump (three periods' 24 mm); moving 30 mm it is both."""
+    steps = np.full(100, CONTROL_PERIOD_NS, np.int64)
+    steps[[30, 60]] = 300_000_000
+    states = path(100, seed=3)
+    states[31:, 0] += 15.0
+    states[61:, 0] += 30.0
+    found = find_problems(dataclasses.replace(episode(states), step_ns=steps))
+    assert [(f.kind, f.start) for f in found] == [(LATE, 30), (JUMP, 60), (LATE, 60)]
+    assert [(f.kind, f.start) for f in find_problems(episode(states))] == [(JUMP, 30), (JUMP, 60)]  # 0.1 s steps
+
+
 def test_frozen_then_jump_as_on_the_real_hand() -> None:
     states = freeze(path(seed=9), 0, 198)  # tracking lost from the start, found again 26 mm away
     states[199:, 0] += 26.0

@@ -42,8 +42,9 @@ class Thresholds:
     """When a stretch counts as broken; the defaults are set from the public real-hand files and the simulated hands."""
 
     jump_mm: float = DROP_JUMP_MM
-    """A one-step x,y move above this is a jump: the paper's drop rule (8 mm).  The clean real paths move at
-    most 4.1 mm in a step, the simulated hands 4.7 mm; the tracker's re-acquisitions move 8-26 mm."""
+    """A one-step x,y move above this is a jump: the paper's drop rule (8 mm); a late step may move this far a
+    period it lasted (:func:`jumps`).  The clean real paths move at most 4.1 mm in a step, the simulated hands
+    4.7 mm; the tracker's re-acquisitions move 8-26 mm."""
     frozen_eps_mm: float = 1e-3
     """Steps that move x,y by at most this count as standing still.  The tracker reports either exactly the same
     pose or a move of at least 0.05 mm; 1 micrometre is far below any real move and far above float32 rounding."""
@@ -97,11 +98,18 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
 
 
+def jumps(traj: Trajectory, jump_mm: float = DROP_JUMP_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Every transition's x,y move (mm) and the transitions that jump: over ``jump_mm`` a control period the
+    step lasted (at least one: a late step may move on as far a period, the object moving while the hand waits)."""
+    moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
+    periods = np.maximum(traj.durations_ns / CONTROL_PERIOD_NS, 1.0)
+    return moves, np.flatnonzero(moves > jump_mm * periods)
+
+
 def find_problems(traj: Trajectory, thresholds: Thresholds = THRESHOLDS) -> tuple[Finding, ...]:
     """Every frozen stretch, jump and late step of ``traj``, in order of their start."""
-    xy = traj.states[:, :2].astype(np.float64)
-    moves = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    found = [Finding(JUMP, k, k + 1, float(moves[k])) for k in np.flatnonzero(moves > thresholds.jump_mm).tolist()]
+    moves, jumped = jumps(traj, thresholds.jump_mm)
+    found = [Finding(JUMP, k, k + 1, float(moves[k])) for k in jumped.tolist()]
     found += _late(traj)
     for first, last in _runs(moves <= thresholds.frozen_eps_mm):  # states first..last share one pose
         if last - first < thresholds.frozen_min_steps:
@@ -210,12 +218,10 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
 
 def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajectory | None, list[str]]:
     """``traj`` ended at its first drop (None: too little before it), and a line when it was cut."""
-    moves = np.linalg.norm(np.diff(traj.states[:, :2].astype(np.float64), axis=0), axis=1)
-    periods = np.maximum(traj.durations_ns / CONTROL_PERIOD_NS, 1.0)  # a late step may move as far per period
-    jumps = np.flatnonzero(moves > jump_mm * periods)
-    if not len(jumps):
+    moves, jumped = jumps(traj, jump_mm)
+    if not len(jumped):
         return traj, []
-    cut = int(jumps[0])
+    cut = int(jumped[0])
     ended = None
     if cut >= MIN_EPISODE_STEPS:
         angles = None if traj.actuator_angles is None else traj.actuator_angles[: cut + 1]
