@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import assign_start_times, write_bag
@@ -45,34 +46,22 @@ def test_late_steps_are_left_out_and_their_episode_split_there(tmp_path, make_se
     assert len(target.notes) == 1 and "2 late step(s) (the longest 900 ms) left out: 49 of its 60" in target.notes[0]
 
 
-def test_after_a_drop_nothing_is_kept_even_past_a_later_late_step(tmp_path, make_set) -> None:
-    """The drop rule runs on the episode as recorded: what follows the fall stays out, however the late steps
-    split it, and the notes name the episode as the reader gave it."""
+@pytest.mark.parametrize("fall_mm, late_step", [(12.0, 40), (25.0, 20)], ids=["then a late step", "in a late step"])
+def test_after_a_drop_nothing_is_kept(tmp_path, make_set, fall_mm: float, late_step: int) -> None:
+    """The drop rule runs on the episode as recorded: what follows the fall stays out, however a later late step
+    splits it, and the notes name the episode as the reader gave it.  A late step may move the rule's 8 mm a period
+    it lasted: 25 mm in a 0.3 s step is still a fall."""
     clean, held = make_set([30, 60], seed=5)
     states = held.states.copy()
-    states[21:, 1] -= 12.0  # the object falls in step 20 and lies there
+    states[21:, 1] -= fall_mm  # the object falls in step 20 and lies there
     steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
-    steps[40] = 300_000_000
+    steps[late_step] = 300_000_000
     fallen = dataclasses.replace(held, states=states, step_ns=steps)
     bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times([clean, fallen]), hand="target"))
     target = read_target([bag])
     assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
     assert target.late_steps == 0  # cut off with the rest of the fall
     assert len(target.notes) == 1 and target.notes[0].startswith("episode 1 ") and "step 20" in target.notes[0]
-
-
-def test_a_fall_during_a_late_step_is_a_drop_still(tmp_path, make_set) -> None:
-    """A late step may move the drop rule's 8 mm per period it lasted: 25 mm in a 0.3 s step is a fall."""
-    clean, held = make_set([30, 60], seed=5)
-    states = held.states.copy()
-    states[21:, 1] -= 25.0  # the object falls in step 20, a late one, and lies there
-    steps = np.full(60, CONTROL_PERIOD_NS, np.int64)
-    steps[20] = 300_000_000
-    fallen = dataclasses.replace(held, states=states, step_ns=steps)
-    bag = write_bag(tmp_path / "b0", TrajectorySet(assign_start_times([clean, fallen]), hand="target"))
-    target = read_target([bag])
-    assert [len(e) for e in target.data] == [30, 20] and target.data[1].end_reason == "dropped"
-    assert target.late_steps == 0 and len(target.notes) == 1 and "step 20" in target.notes[0], target.notes
 
 
 def test_a_split_episodes_stretches_are_held_out_or_trained_on_together(tmp_path, make_set) -> None:
