@@ -107,26 +107,34 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
 
     # the target data came through topics: one bag per explored episode, then one per goal's episode, readable
     bags = sorted((run_dir / "bags").glob("episode_*"))
-    assert summary["exploration"]["bags"] == summary["exploration"]["episodes"] == size["target_episodes"]
     # the demo knew its bags from the recorder's recorder/bag_closed events, not from the files: each recording's
     # announced bags end with the one its stop closed, every bag on disk was announced, each with its episodes
     announced = [summary["exploration"]["bags_closed"], *(r["bags_closed"] for r in rounds)]
     assert all(events and events[-1]["reason"] == "stop" for events in announced), announced
-    # one bag per explored episode, closed at the next reset, or at the driver's end of it (a drop) just before
-    reasons = [e["reason"] for e in announced[0][:-1]]
-    assert len(reasons) == size["target_episodes"] - 1 and set(reasons) <= {names.RESET, *names.END_EVENTS}, reasons
+    # One bag per explored episode, closed at the next reset, or at the driver's end of it (a drop) just before.
+    # The grasps through the emulated servos are unseeded: when the last episode ends so, the bag the recorder
+    # opened for the next one stays empty until the stop; an episode that ends within 15 steps reads as none.
+    explored = announced[0]
+    reasons = [e["reason"] for e in explored[:-1]]
+    assert set(reasons) <= {names.RESET, *names.END_EVENTS}, reasons
+    empty_last = explored[-1]["messages"] == 0 and reasons[-1:] != [] and reasons[-1] in names.END_EVENTS
+    assert len(explored) == size["target_episodes"] + empty_last == summary["exploration"]["bags"], explored
+    assert summary["exploration"]["episodes"] == size["target_episodes"]
     by_path = {e["path"]: e for events in announced for e in events}
     assert sorted(by_path) == [str(bag) for bag in bags]
-    assert all(e["episodes"] == len(read_bag(e["path"])) and e["messages"] > 0 for e in announced[0])
+    assert all(e["episodes"] == len(read_bag(e["path"])) for e in explored)
+    assert all(e["messages"] > 0 for e in explored[: size["target_episodes"]])
     # a round records from its first goal's reset on, so its first bag holds that goal's episode; a drop after a
     # plan splits its episode once more (up to one more bag per goal, which may be empty)
     assert all(events[0]["episodes"] == 1 for events in announced[1:]), announced
-    goal_bags = len(bags) - size["target_episodes"]
+    goal_bags = len(bags) - len(explored)
     assert size["rounds"] * len(size["goal_steps"]) <= goal_bags <= size["rounds"] * 2 * len(size["goal_steps"])
     episodes = [len(read_bag(bag)) for bag in bags]
-    assert episodes[: size["target_episodes"]] == [1] * size["target_episodes"] and max(episodes) == 1
+    assert set(episodes[: len(explored)]) <= {0, 1} and max(episodes) == 1
+    if summary["hardware"] != "emulated":  # seeded grasps: every explored episode is read whole, as before
+        assert episodes[: len(explored)] == [1] * size["target_episodes"]
     # (that bag may be empty)
-    assert sum(episodes[size["target_episodes"]:]) >= size["rounds"] * len(size["goal_steps"])
+    assert sum(episodes[len(explored):]) >= size["rounds"] * len(size["goal_steps"])
 
     # each round's service call answered with a model that exists and loads; the second also learned
     # from the episodes of the first round's executed plans

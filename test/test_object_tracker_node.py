@@ -345,14 +345,19 @@ def test_a_jump_across_a_grasp_is_the_object_placed_anew_and_not_warned_about(ro
     assert (values["placed"], values["jumps"], values["status"]) == ("2", "1", "jump"), values
     warnings = rosout.wait_warnings(1)
     assert len(warnings) == 1 and "in one frame" in warnings[0], warnings
-    # a simulated hand's re-grasp: its statuses and the new grasp's frame come at once, in any order
+    # a simulated hand's re-grasp: its statuses and the new grasp's frame come at once, in any order; a grasp
+    # that failed ends the placement as one that closed does
     rig.info(stamp_ns=5)
     statuses.publish(String(data=status_message(names.GRASPING, "test")))
     rig.image(first, 5)
-    statuses.publish(String(data=status_message(names.RESET, "test")))
+    statuses.publish(String(data=status_message(names.RESET_FAILED, "test")))
     values = rig.report_when(lambda v: v["tracked"] == "5")
     assert (values["placed"], values["jumps"]) == ("3", "1"), values
     assert len(rosout.wait_warnings(2, 1.0)) == 1
+    rig.track(moved, 6)  # the first frame after the grasp ended: still the placement
+    rig.track(first, 7)  # in the episode: a jump
+    values = rig.report_when(lambda v: v["tracked"] == "7")
+    assert (values["placed"], values["jumps"]) == ("4", "2"), values
 
 
 # --------------------------------------------------------------------------- the camera node

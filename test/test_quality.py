@@ -196,8 +196,8 @@ def test_finding_is_typed_and_plain() -> None:
 
 
 def test_the_drop_rule_ends_an_episode_before_its_first_jump_and_leaves_out_a_short_rest() -> None:
-    """The paper's 8 mm rule on recorded episodes: what a driver of a real hand cannot tell, and a simulated hand's
-    bag holds as its falling step."""
+    """The paper's 8 mm rule on recorded episodes: a fall a real hand's driver may not have seen (hidden from its
+    tracker), and a simulated hand's bag holds as its falling step."""
     from t42_transfer.data.quality import usable_stretches
 
     states = path(60)
