@@ -113,11 +113,11 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     assert all(events and events[-1]["reason"] == "stop" for events in announced), announced
     # One bag per explored episode, closed at the next reset, or at the driver's end of it (a drop) just before.
     # The grasps through the emulated servos are unseeded: when the last episode ends so, the bag the recorder
-    # opened for the next one stays empty until the stop; an episode that ends within 15 steps reads as none.
+    # opened for the next one holds no step until the stop; an episode that ends within 15 steps reads as none.
     explored = announced[0]
     reasons = [e["reason"] for e in explored[:-1]]
     assert set(reasons) <= {names.RESET, *names.END_EVENTS}, reasons
-    empty_last = explored[-1]["messages"] == 0 and reasons[-1:] != [] and reasons[-1] in names.END_EVENTS
+    empty_last = explored[-1]["episodes"] == 0 and reasons[-1:] != [] and reasons[-1] in names.END_EVENTS
     assert len(explored) == size["target_episodes"] + empty_last == summary["exploration"]["bags"], explored
     assert summary["exploration"]["episodes"] == size["target_episodes"]
     by_path = {e["path"]: e for events in announced for e in events}
