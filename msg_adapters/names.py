@@ -149,6 +149,10 @@ EVENTS = Qos(100, latched=True)
 EVENT_READER = Qos(100)
 """Reading events as they happen: deep, so none is lost in a burst; VOLATILE, so it matches any
 reliable writer (a TRANSIENT_LOCAL reader would not match a real driver that publishes VOLATILE)."""
+EVERY_STEP = Qos(1000)
+"""Reading a per-step topic where every message counts (the explorer's applied actions): at 10x the control rate a
+reader stalled 0.1 s overflowed a depth of 10 under the parallel test suite, and the one action lost made the rest of
+its trajectory a mismatch."""
 REQUESTS = Qos(10_000)
 """A service's request queue and a goal subscription: a burst of callers each gets an answer (rclpy's default
 depth of 10 left 40 of 50 simultaneous resets unanswered, and lost goals before any result was made)."""

@@ -207,7 +207,8 @@ class Explorer(Node):
         self._record_start = self.create_client(Trigger, p.record_start_service) if p.record_start_service else None
         self._record_stop = self.create_client(Trigger, p.record_stop_service) if p.record_stop_service else None
         self.create_subscription(JointState, names.JOINT_STATES, self._on_joint_state, 10)
-        self._applied_sub = self.create_subscription(JointState, names.APPLIED_ACTION, self._on_applied, 10)
+        self._applied_sub = self.create_subscription(JointState, names.APPLIED_ACTION, self._on_applied,
+                                                     profile(names.EVERY_STEP))
         self._status_sub = self.create_subscription(String, names.HAND_STATUS, self._on_status,
                                                     profile(names.EVENT_READER))
         self._timer = self.create_timer(self.POLL_S, self._on_timer)
