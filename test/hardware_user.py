@@ -170,6 +170,7 @@ def main() -> int:
             raise RuntimeError(f"reset failed: {reset.message}")
         counts = len(user.joints), len(user.poses), len(user.actions)
         user.spin_for(2.0)
+        seen["grasp_statuses"] = [s.split(":")[0] for s in user.statuses if s.startswith(("grasping", "reset"))]
         heard = (user.joints[counts[0]:], user.poses[counts[1]:], user.actions[counts[2]:])
         seen["rates_hz"] = [len(msgs) / 2.0 for msgs in heard]  # on arrival (wall time)
         seen["stamp_rates_hz"] = [stamp_rate(msgs) for msgs in heard]  # the graph's clock

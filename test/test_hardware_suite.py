@@ -39,10 +39,11 @@ def test_a_plain_rclpy_script_drives_the_emulated_hand(ros_domain: int, tmp_path
     assert (lifecycle["initial"], lifecycle["configured"], lifecycle["activate"], lifecycle["activated"]) == \
         ("unconfigured", "inactive", True, "active"), lifecycle
     assert seen["state"] == "active"
-    assert {"port", "servo_ids", "load_limit", "grasp_load", "max_pose_age_s"} <= set(seen["parameters"])
+    assert {"port", "servo_ids", "load_limit", "grasp_load", "max_pose_age_s", "drop_jump_m"} <= set(seen["parameters"])
     (ok, _), (refused, reason) = seen["set"]
     assert ok and not refused and "grasp_load must be below load_limit" in reason
     assert seen["reset"][0], seen["reset"]
+    assert seen["grasp_statuses"][-2:] == ["grasping", "reset"], seen["grasp_statuses"]  # begun, then closed
     assert all(8.0 <= r <= 12.0 for r in seen["rates_hz"]), seen["rates_hz"]  # on arrival
     assert all(9.0 <= r <= 11.0 for r in seen["stamp_rates_hz"]), seen  # the stamps: 10 Hz of the graph's clock
     assert all(95.0 <= g <= 105.0 for g in seen["stamp_median_gap_ms"]), seen["stamp_median_gap_ms"]

@@ -63,6 +63,8 @@ def test_a_plain_rclpy_script_sets_parameters_and_receives_poses(ros_domain: int
     camera, tracker = seen["parameters"]["/camera"], seen["parameters"]["/object_tracker"]
     assert {"device", "fps", "loop", "frame_id", "calibration_file", "width", "height"} <= set(camera), camera
     assert {"object_id", "max_jump_m", "object_marker_height_m", "base_ids", "dictionary"} <= set(tracker), tracker
+    # the camera's topics, and the driver's events (a re-grasp's jump is no drop)
+    assert {"/camera/image_raw", "/camera/camera_info", "/hand/status"} <= set(seen["tracker_subscribes"]), seen
     assert seen["camera_values"]["device"] == str(hand_video["video"]) and seen["camera_values"]["loop"] is True
     assert seen["camera_values"]["frame_id"] == "camera_optical"
     assert seen["tracker_values"] == {"object_id": 0, "max_jump_m": 0.008,

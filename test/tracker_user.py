@@ -100,6 +100,8 @@ def main(argv: list[str]) -> int:
                                                for n, ns in user.get_node_names_and_namespaces()},
                   60.0, "camera and object_tracker nodes")
         seen["parameters"] = {node: user.list_params(node) for node in (CAMERA, TRACKER)}
+        seen["tracker_subscribes"] = sorted(topic for topic, _ in  # as `ros2 node info` lists them
+                                            user.get_subscriber_names_and_types_by_node("object_tracker", "/"))
         seen["camera_values"] = user.get_params(CAMERA, ["device", "fps", "loop", "frame_id", "calibration_file"])
         seen["tracker_values"] = user.get_params(TRACKER, ["object_id", "max_jump_m", "object_marker_height_m"])
 
