@@ -15,6 +15,7 @@ from mcap.writer import Writer as McapWriter
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 import msg_adapters as ma
+from msg_adapters import names
 from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
 from t42_transfer.data.bag import (
     EPISODES_KEY,
@@ -359,3 +360,64 @@ def test_a_reset_mid_episode_ends_the_episode_at_the_state_it_names(tmp_path, ep
     assert np.array_equal(before.actions, episode.actions[:reset_after])
     assert after.start_ns == stamp + CONTROL_PERIOD_NS
     assert np.array_equal(after.states, episode.states[reset_after + 1 :])
+
+
+def with_statuses(episode: Trajectory, statuses: list[tuple[str, int]], drop: set[int] = frozenset()) -> list:
+    """``episode``'s messages, less those stamped in ``drop``, with ``(word, state index)`` statuses naming states."""
+    messages = [m for m in step_messages(episode) if m[1] not in drop]
+    for word, k in statuses:
+        stamp = episode.start_ns + k * CONTROL_PERIOD_NS
+        text = ma.status_message(word, f"episode 1 ended after {k} steps", stamp)
+        messages.append((ma.HAND_STATUS_TOPIC, stamp + 1, ma.ROSBAGS.make(ma.STRING, data=text)))
+    return sorted(messages, key=lambda m: m[1])
+
+
+STATUS_TYPES = {**ma.HAND_TOPICS, ma.HAND_STATUS_TOPIC: ma.STRING}
+
+
+@pytest.mark.parametrize("word", [names.DROPPED, names.LOST_CONTACT])
+def test_the_state_a_driver_said_the_object_fell_into_is_left_out_and_ends_the_episode(tmp_path, episode, word):
+    """As a simulated collection ends an episode at a drop: the states before it, the end reason the driver gave.
+    The driver published no action from that state; the bag's other episode, with no status, is untouched."""
+    fell = len(episode)  # the episode's last state
+    head = dataclasses.replace(episode, actions=episode.actions[:-1], states=episode.states[:-1],
+                               actuator_angles=episode.actuator_angles[:-1])
+    other = dataclasses.replace(episode, start_ns=episode.start_ns + 10**10)
+    messages = [*with_statuses(episode, [(word, fell)]), *step_messages(other)]
+    path = write_messages(tmp_path / "bag", messages, types=STATUS_TYPES)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an end the driver named: nothing lost, nothing to warn about
+        got, untouched = read_bag(path)
+    assert got.end_reason == word and len(got) == len(episode) - 1
+    assert np.array_equal(got.states, head.states) and np.array_equal(got.actions, head.actions)
+    assert untouched.end_reason == "" and np.array_equal(untouched.states, episode.states)
+    assert bag_info(path)["end_reasons"] == {word: 1, "unknown": 1}
+
+
+def test_an_overload_ends_the_episode_at_the_state_it_names_and_keeps_it(tmp_path, episode):
+    """An overload is no fall: the hand still holds the object in the state the driver stopped at."""
+    path = write_messages(tmp_path / "bag", with_statuses(episode, [(names.OVERLOAD, len(episode))]),
+                          types=STATUS_TYPES)
+    (got,) = read_bag(path)
+    assert got.end_reason == names.OVERLOAD and np.array_equal(got.states, episode.states)
+    assert bag_info(path)["end_reasons"] == {names.OVERLOAD: 1}
+
+
+def test_a_drop_named_mid_episode_ends_it_there_and_a_fall_into_a_stale_step_keeps_what_came_before(
+        tmp_path, episode):
+    """A driver that went on after its own drop (not ours: it holds) still ends the episode at the state it named:
+    no transition leaves it.  A drop named on a step that went out without a pose (the tracker lost the object as
+    it fell) ends the episode at the state before, which is kept."""
+    fell = 30
+    path = write_messages(tmp_path / "bag", with_statuses(episode, [(names.DROPPED, fell)]), types=STATUS_TYPES)
+    before, after = read_bag(path)
+    assert before.end_reason == names.DROPPED and np.array_equal(before.states, episode.states[:fell])
+    assert after.start_ns == episode.start_ns + (fell + 1) * CONTROL_PERIOD_NS and after.end_reason == ""
+    assert np.array_equal(after.states, episode.states[fell + 1 :])
+
+    last = len(episode)
+    stale = episode.start_ns + last * CONTROL_PERIOD_NS
+    messages = [m for m in with_statuses(episode, [(names.DROPPED, last)]) if not (m[0] == POSE and m[1] == stale)]
+    with pytest.warns(UserWarning, match="messages with no /hand/object_pose"):
+        (got,) = read_bag(write_messages(tmp_path / "stale", messages, types=STATUS_TYPES))
+    assert got.end_reason == names.DROPPED and np.array_equal(got.states, episode.states[:last])

@@ -21,13 +21,17 @@ from msg_adapters import (
     applied_action,
     applied_action_msg,
     joint_state_arrays,
+    last_step_stamp,
     names,
     stamp_to_ns,
+    status_event,
 )
-from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS
+from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS, DROP_REASONS
+from t42_transfer.data.bag import bag_info, read_bag
 from t42_transfer.driver.commands import CommandRejected, check_stamp, validate_command, validate_trajectory
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.nodes.mock_driver import MockDriver, MockDriverParams
+from t42_transfer.nodes.recorder import Recorder
 from t42_transfer.ros.qos import profile
 
 START_NS = 1_000_000_000
@@ -68,11 +72,11 @@ class Rig(Tester):
     def _count(self) -> int:
         return sum(len(v) for k, v in self.got.items() if k != names.HAND_STATUS)
 
-    def tick(self, n: int = 1) -> None:
-        """``n`` control steps, each delivered to the tester before the next."""
+    def tick(self, n: int = 1, stamp_ns: int | None = None) -> None:
+        """``n`` control steps, each delivered to the tester before the next (one stamped ``stamp_ns`` if given)."""
         for _ in range(n):
             before, running = self._count(), self.driver.running
-            self.driver.tick()
+            self.driver.tick(stamp_ns=stamp_ns)
             if running:
                 assert self.ros.spin_until(lambda before=before: self._count() > before + 1, 5.0), "step not delivered"
                 self.ros.spin_for(0.02)
@@ -416,6 +420,33 @@ def test_drop_publishes_status_and_stops_until_reset(rig):
     assert rig.reset().success
     rig.tick()
     assert len(rig.got[names.JOINT_STATES]) == n_states + 1 and rig.driver.running
+
+
+def test_a_recorded_drop_reads_as_the_simulated_collection_ends_the_episode(ros, tmp_path):
+    """The recorder keeps what the driver published, the state the object fell into too; the reader leaves that
+    state out and gives the episode the driver's end reason, as ``hand.collect`` ends a simulated episode."""
+    recorder = ros.add(Recorder, params={"out_dir": str(tmp_path), "mode": "episode", "step_hold_s": 1.0})
+    rig = Rig(ros)
+    start = rig.clock()  # steps stamped a control period apart, as the driver's timer stamps them
+    rig.tick(stamp_ns=start)
+    assert ros.spin_until(lambda: recorder.current_count >= 3, 5.0), recorder.current_count  # it hears the hand
+    for k in range(1, 20):  # held long enough to make an episode before it opens
+        rig.tick(stamp_ns=start + k * CONTROL_PERIOD_NS)
+    for k in range(20, 80):
+        rig.command([-1.0, -1.0])
+        rig.tick(stamp_ns=start + k * CONTROL_PERIOD_NS)
+        if not rig.driver.running:
+            break
+    assert not rig.driver.running
+    end = rig.statuses()[-1]
+    assert status_event(end) in DROP_REASONS, rig.statuses()
+    assert ros.spin_until(lambda: len(recorder.bags) == 1, 10.0), recorder.bags  # closed at the end status
+    states = [joint_state_arrays(m)[0] for m in rig.got[names.JOINT_STATES]]
+    recorded = bag_info(recorder.bags[0])["topics"][f"/{names.JOINT_STATES}"]["count"]
+    (episode,) = read_bag(recorder.bags[0])
+    assert episode.end_reason == status_event(end) and len(episode.states) == recorded - 1
+    np.testing.assert_allclose(episode.states[-1, 2:], states[-2], rtol=1e-6)  # the last state before the fall
+    assert last_step_stamp(end) == stamp_to_ns(rig.got[names.JOINT_STATES][-1].header.stamp)
 
 
 def test_sim_time_publishes_clock_and_stamps_one_period_per_tick_at_any_rate(ros):

@@ -241,9 +241,10 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     episode each came from and the late steps found (by episode), and a line per episode cut or split, naming it
     as ``data`` counts.
 
-    A real hand's driver ends an episode at a drop it saw (:class:`~t42_transfer.driver.pose.DropWatch`), but not
-    at one hidden from the tracker or one recorded by another driver: such a bag holds the fall and what followed
-    it; a simulated hand's bag holds the falling step.  Neither is a transition of a hand holding the object.  A
+    A driver ends an episode at a drop it saw (the real hand's :class:`~t42_transfer.driver.pose.DropWatch`, the
+    simulated hand's own), and the bag reader leaves out the state its ``dropped`` status names.  A drop hidden
+    from the tracker, or a bag of another driver or without ``hand/status``, still holds the fall and what
+    followed it: no transition of a hand holding the object.  A
     late step may move ``jump_mm`` per period it lasted (the object moves on during one): a stall is no drop, a
     fall during one still is.  (The driver judges a move over its frames' stamps, which a bag does not keep: here
     a pose repeated from a slow frame then moved on is judged over the steps, as the paper's rule is.)

@@ -5,7 +5,10 @@ last state) the applied action, all stamped ``start_ns + k * CONTROL_PERIOD_NS``
 ``EPISODE_GAP_S`` apart, or a recorded ``reset`` status names the last state before a new grasp (a simulated
 hand is grasped anew between two steps), so their borders come from stamps and statuses.  A step the driver
 ran late is kept, with its real duration in the episode's ``step_ns``: the driver's ``late`` status in the bag
-says no step is missing before it.  Aligning by header stamp, not log time or order, also makes bags of a real
+says no step is missing before it.  A driver's end status (``dropped``, ``lost_contact``, ``overload``) names an
+episode's last state and gives the episode its end reason; a state it says the object fell into or slipped out of
+is left out, as a simulated collection leaves it out (the fall is no transition of a hand holding the object).
+Aligning by header stamp, not log time or order, also makes bags of a real
 ``ros2 bag record`` readable; the hand topics may lie under one namespace, found by suffix.  A step that lost
 a message is left out with a warning naming it.
 """
@@ -23,7 +26,7 @@ import numpy as np
 
 import msg_adapters as ma
 from msg_adapters import names
-from t42_transfer.conventions import CONTROL_PERIOD_NS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
+from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_REASONS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
 from t42_transfer.data.errors import BagError
@@ -268,13 +271,21 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     # published from that state leads to no recorded state (a simulated hand's next step is the new grasp's first).
     reset = _state_at(joints.stamps, ma.event_stamps(texts, names.RESET))
     action_of[reset] = -1
+    ended = _ended_states(joints.stamps, texts)
+    action_of[list(ended)] = -1  # the driver stopped there: no transition leaves an episode's end
+    borders = np.union1d(reset, list(ended))
     episodes = []
     for first, last in _episode_bounds(bag, streams, ma.late_step_stamps(texts)):
         inner = first + np.flatnonzero(has_pose[first:last] & (action_of[first:last] < 0))
-        inner = inner[~np.isin(inner, reset)]
+        inner = inner[~np.isin(inner, borders)]
         lacking = f"the transitions from {_JOINTS} messages with no {_ACTION} {_WITHIN}"
         dropped += _dropped(lacking, joints.stamps[inner])
         for a, b in _complete_runs(has_pose[first : last + 1], action_of[first : last + 1] >= 0):
+            end_reason = ended.get(first + b, "")
+            if end_reason in DROP_REASONS:
+                b = max(b - 1, a)  # the state the driver saw the object fall into: no state of a hand holding it
+            elif not end_reason and first + b < last and not has_pose[first + b + 1]:
+                end_reason = ended.get(first + b + 1, "")  # it ended in a state with no pose: the run stops before
             start, steps = int(joints.stamps[first + a]), b - a
             if steps < MIN_EPISODE_STEPS:
                 warnings.warn(
@@ -283,12 +294,19 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
                     stacklevel=3,
                 )
                 continue
-            episodes.append(_episode(bag, streams, first + a, first + b, pose_of, action_of, records.get(start), hand))
+            episodes.append(_episode(bag, streams, first + a, first + b, pose_of, action_of, records.get(start), hand,
+                                     end_reason))
     if dropped:
         warnings.warn(f"{bag}: kept the whole steps only; dropped {'; '.join(dropped)}", stacklevel=3)
     if raw.cut and not episodes:
         raise BagError(bag, "its readable prefix holds no complete episode")
     return TrajectorySet(episodes, hand=hand)
+
+
+def _ended_states(stamps: np.ndarray, texts: list[str]) -> dict[int, str]:
+    """The states the driver's end statuses name (``dropped``, ``lost_contact``, ``overload``), with the word."""
+    return {int(k): event for event in names.END_EVENTS
+            for k in _state_at(stamps, ma.event_stamps(texts, event))}
 
 
 def _state_at(stamps: np.ndarray, wanted: set[int]) -> np.ndarray:
@@ -301,9 +319,10 @@ def _state_at(stamps: np.ndarray, wanted: set[int]) -> np.ndarray:
 
 def _episode(
     bag: Path, streams: dict[str, _Stream], first: int, last: int, pose_of: np.ndarray, action_of: np.ndarray,
-    record: dict[str, Any] | None, hand: str,
+    record: dict[str, Any] | None, hand: str, end_reason: str,
 ) -> Trajectory:
-    """States ``first..last`` of the joint states with their poses and actions; the writer's record if it has one."""
+    """States ``first..last`` of the joint states with their poses and actions; the writer's record if it has one,
+    else ``end_reason`` (from the driver's status)."""
     poses, joints, actions = streams[_POSE], streams[_JOINTS], streams[_ACTION]
     complete = record is not None and record["transitions"] == last - first
     steps = np.diff(joints.stamps[first : last + 1])
@@ -317,7 +336,7 @@ def _episode(
         actions=np.stack([actions.values[action_of[k]] for k in range(first, last)]),
         actuator_angles=_angles(bag, joints, first, last),
         start_ns=int(joints.stamps[first]),
-        end_reason=record["end_reason"] if complete else "",
+        end_reason=record["end_reason"] if complete else end_reason,
         hand=record["hand"] if record is not None else hand,
         step_ns=None if (steps == CONTROL_PERIOD_NS).all() else steps,
     )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -31,8 +32,10 @@ def read_bag(path: str | Path) -> TrajectorySet:
     a late step when the bag's ``hand/status`` says so (kept, its duration in
     ``step_ns``), else missing steps (the episode splits there, with a warning).
     An action on an episode's last state has no next state and is not a
-    transition.  Episodes shorter than ``MIN_EPISODE_STEPS`` are dropped with a
-    warning.
+    transition.  A driver's end status (``dropped``, ``lost_contact``,
+    ``overload``) gives the episode it names its ``end_reason``; the state the
+    object fell or slipped into is left out.  Episodes shorter than
+    ``MIN_EPISODE_STEPS`` are dropped with a warning.
     """
     bag = Path(path)
     with refusals(bag):
@@ -51,9 +54,10 @@ def bag_info(path: str | Path) -> dict[str, Any]:
             data = assemble_episodes(bag, decode_streams(bag, raw), raw)
             episodes, transitions, hand = len(data), data.num_transitions, data.hand
             late = sum(len(t.late_steps) for t in data)
+            ends = dict(sorted(Counter(t.end_reason or "unknown" for t in data).items()))
             namespace = hand_namespace(bag, raw.topics)
         else:  # an empty bag (its recorder stopped before the first message): nothing to count
-            episodes, transitions, late, hand, namespace = 0, 0, 0, None, ""
+            episodes, transitions, late, ends, hand, namespace = 0, 0, 0, {}, None, ""
     return {
         "path": str(bag),
         "storage": raw.storage,
@@ -65,6 +69,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "episodes": episodes,
         "transitions": transitions,
         "late_steps": late,
+        "end_reasons": ends,
         "hand": hand,
         "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
         "recovered_prefix": raw.cut,
