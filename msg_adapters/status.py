@@ -35,9 +35,12 @@ def status_message(event: str, detail: str = "", last_step_ns: int | None = None
 
 
 def last_step_stamp(status: str) -> int | None:
-    """The last-step stamp a status names, if any."""
+    """The last-step stamp a status names, if any (one no header stamp can hold names none: a damaged text)."""
     match = LAST_STEP.search(status)
-    return None if match is None else int(match.group(1))
+    if match is None or len(match.group(1)) > 19:  # (int() of thousands of digits is refused, and slow)
+        return None
+    stamp = int(match.group(1))
+    return stamp if stamp < 2**63 else None
 
 
 def status_event(status: str) -> str:

@@ -421,3 +421,33 @@ def test_a_drop_named_mid_episode_ends_it_there_and_a_fall_into_a_stale_step_kee
     with pytest.warns(UserWarning, match="messages with no /hand/object_pose"):
         (got,) = read_bag(write_messages(tmp_path / "stale", messages, types=STATUS_TYPES))
     assert got.end_reason == names.DROPPED and np.array_equal(got.states, episode.states[:last])
+
+
+@pytest.mark.parametrize("lost", [JOINTS, POSE])
+def test_a_fall_whose_step_lost_a_message_still_gives_the_episode_its_end(tmp_path, episode, lost):
+    """The state the driver named never reached the bag whole: the episode is the states before it all the same."""
+    fall = episode.start_ns + len(episode) * CONTROL_PERIOD_NS
+    messages = [m for m in with_statuses(episode, [(names.DROPPED, len(episode))])
+                if not (m[0] == lost and m[1] == fall)]
+    with pytest.warns(UserWarning, match="kept the whole steps only"):
+        (got,) = read_bag(write_messages(tmp_path / "bag", messages, types=STATUS_TYPES))
+    assert got.end_reason == names.DROPPED and np.array_equal(got.states, episode.states[:-1])
+
+
+def test_an_end_named_twice_is_a_fall_and_a_reset_border_takes_no_end_of_the_next_grasp(tmp_path, episode):
+    """``dropped`` and ``overload`` on one state: the fall wins (however the bag orders them).  The first state
+    of the grasp after a reset, named dropped and out of sight, ends nothing before the reset."""
+    last = len(episode)
+    for order in ([(names.OVERLOAD, last), (names.DROPPED, last)], [(names.DROPPED, last), (names.OVERLOAD, last)]):
+        (got,) = read_bag(write_messages(tmp_path / f"twice_{order[0][0]}", with_statuses(episode, order),
+                                         types=STATUS_TYPES))
+        assert got.end_reason == names.DROPPED and len(got) == len(episode) - 1
+
+    border = 30
+    unseen = episode.start_ns + (border + 1) * CONTROL_PERIOD_NS
+    messages = [m for m in with_statuses(episode, [(names.RESET, border), (names.DROPPED, border + 1)])
+                if not (m[0] == POSE and m[1] == unseen)]
+    with pytest.warns(UserWarning, match="kept the whole steps only"):
+        before, after = read_bag(write_messages(tmp_path / "border", messages, types=STATUS_TYPES))
+    assert before.end_reason == "" and np.array_equal(before.states, episode.states[: border + 1])
+    assert after.end_reason == "" and np.array_equal(after.states, episode.states[border + 2 :])

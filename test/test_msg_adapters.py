@@ -201,3 +201,11 @@ def test_a_reset_names_its_grasp_seed_in_one_format() -> None:
     assert grasp_seed(grasp_detail(3, 17)) == 17
     assert grasp_seed(status_message("reset", grasp_detail(3, 0), 100)) == 0
     assert grasp_seed(grasp_detail(3, None)) is None and grasp_seed("episode 3 grasped") is None
+
+
+def test_a_status_names_its_last_step_stamp_only_where_a_header_stamp_could_hold_it() -> None:
+    """A damaged text (a stamp past int64, thousands of digits) names no step instead of breaking a reader."""
+    assert ma.last_step_stamp(ma.status_message("dropped", "x", 2**63 - 1)) == 2**63 - 1
+    for stamp in ("9223372036854775808", "99999999999999999999", "9" * 5000):
+        assert ma.last_step_stamp(f"dropped: x [last step {stamp} ns]") is None
+    assert ma.event_stamps([f"reset: x [last step {'9' * 30} ns]", ma.status_message("reset", "y", 5)], "reset") == {5}

@@ -242,9 +242,9 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     as ``data`` counts.
 
     A driver ends an episode at a drop it saw (the real hand's :class:`~t42_transfer.driver.pose.DropWatch`, the
-    simulated hand's own), and the bag reader leaves out the state its ``dropped`` status names.  A drop hidden
-    from the tracker, or a bag of another driver or without ``hand/status``, still holds the fall and what
-    followed it: no transition of a hand holding the object.  A
+    simulated hand's own), and the bag reader leaves out the state its ``dropped`` or ``lost_contact`` status
+    names.  A real hand's drop its tracker did not see, or a bag of another driver or without ``hand/status``,
+    still holds the fall and what followed it: no transition of a hand holding the object.  A
     late step may move ``jump_mm`` per period it lasted (the object moves on during one): a stall is no drop, a
     fall during one still is.  (The driver judges a move over its frames' stamps, which a bag does not keep: here
     a pose repeated from a slow frame then moved on is judged over the steps, as the paper's rule is.)

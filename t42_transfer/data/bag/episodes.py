@@ -271,7 +271,8 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     # published from that state leads to no recorded state (a simulated hand's next step is the new grasp's first).
     reset = _state_at(joints.stamps, ma.event_stamps(texts, names.RESET))
     action_of[reset] = -1
-    ended = _ended_states(joints.stamps, texts)
+    end_stamps = _end_stamps(texts)
+    ended = _ended_states(joints.stamps, end_stamps)
     action_of[list(ended)] = -1  # the driver stopped there: no transition leaves an episode's end
     borders = np.union1d(reset, list(ended))
     episodes = []
@@ -283,9 +284,11 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
         for a, b in _complete_runs(has_pose[first : last + 1], action_of[first : last + 1] >= 0):
             end_reason = ended.get(first + b, "")
             if end_reason in DROP_REASONS:
-                b = max(b - 1, a)  # the state the driver saw the object fall into: no state of a hand holding it
-            elif not end_reason and first + b < last and not has_pose[first + b + 1]:
-                end_reason = ended.get(first + b + 1, "")  # it ended in a state with no pose: the run stops before
+                if a == b:
+                    continue  # the fall alone: nothing of the episode was in this run
+                b -= 1  # the state the driver saw the object fall into: no state of a hand holding it
+            elif not end_reason and first + b not in reset:  # the step after ended it, but lost a message or its pose
+                end_reason = _next_end(joints.stamps[first + b], end_stamps)
             start, steps = int(joints.stamps[first + a]), b - a
             if steps < MIN_EPISODE_STEPS:
                 warnings.warn(
@@ -303,10 +306,32 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     return TrajectorySet(episodes, hand=hand)
 
 
-def _ended_states(stamps: np.ndarray, texts: list[str]) -> dict[int, str]:
-    """The states the driver's end statuses name (``dropped``, ``lost_contact``, ``overload``), with the word."""
-    return {int(k): event for event in names.END_EVENTS
-            for k in _state_at(stamps, ma.event_stamps(texts, event))}
+_END_PRECEDENCE = (names.DROPPED, names.LOST_CONTACT, names.OVERLOAD)
+"""Which end word a state named by several gets: a fall first (its state is left out), then an overload."""
+
+
+def _end_stamps(texts: list[str]) -> dict[int, str]:
+    """The stamps the driver's end statuses name (``dropped``, ``lost_contact``, ``overload``), with the word."""
+    found: dict[int, str] = {}
+    for event in _END_PRECEDENCE:
+        for stamp in sorted(ma.event_stamps(texts, event)):
+            found.setdefault(stamp, event)
+    return found
+
+
+def _ended_states(stamps: np.ndarray, end_stamps: dict[int, str]) -> dict[int, str]:
+    """The states the end statuses name, with the word (:data:`_END_PRECEDENCE` for a state named twice)."""
+    found: dict[int, str] = {}
+    for stamp, event in sorted(end_stamps.items(), key=lambda item: _END_PRECEDENCE.index(item[1])):
+        for k in _state_at(stamps, {stamp}):
+            found.setdefault(int(k), event)
+    return found
+
+
+def _next_end(stamp: int, end_stamps: dict[int, str]) -> str:
+    """The end word of a status naming the step right after ``stamp`` (within a late step's time), or ""."""
+    after = [s for s in end_stamps if stamp + _HALF_PERIOD_NS < s <= stamp + LATE_STEP_NS]
+    return end_stamps[min(after)] if after else ""
 
 
 def _state_at(stamps: np.ndarray, wanted: set[int]) -> np.ndarray:
