@@ -21,6 +21,7 @@ class Demo:
     count: int = param(3, "how many", min=1)
     flag: bool = param(False, "a switch")
     gains: tuple[float, ...] = param((1.0, 2.0), "per-joint gains")
+    ids: tuple[int, ...] = param((1, 2), "per-joint ids")
     names: tuple[str, ...] = param(("a",), "names")
     seed: int | None = param(None, "seed (unset: random)")
     extra: tuple[str, ...] = param((), "empty by default")
@@ -91,10 +92,15 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     assert node.live.value == Demo(out=Path("x")) and node.changes == []
     assert set_(rate=4.0, seed=3) == [(True, ""), (True, "")]
     assert set_(extra=["a", "b"]) == [(True, "")]  # an empty default still has its type
-    assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3, extra=("a", "b"))
-    assert [new.rate for _, new in node.changes] == [4.0, 4.0, 4.0]
+    # numeric arrays come out of a set_parameters request as array.array, as `ros2 param set` sends them
+    assert set_(gains=[3.0, 4.5], ids=[7, 8]) == [(True, ""), (True, "")]
+    assert node.live.value == Demo(out=Path("x"), rate=4.0, seed=3, extra=("a", "b"), gains=(3.0, 4.5), ids=(7, 8))
+    assert type(node.live.value.ids[0]) is int and type(node.live.value.gains[0]) is float
+    assert set_(ids=[1.5, 2.5])[0][0] is False  # the wrong element type is still refused
+    assert node.live.value.ids == (7, 8)
+    assert [new.rate for _, new in node.changes] == [4.0] * 5  # (one change per parameter set)
     assert node.changes[-1][1].seed == 3
-    assert set_(rate=4.0) == [(True, "")] and len(node.changes) == 3  # set again to its value: no change to act on
+    assert set_(rate=4.0) == [(True, "")] and len(node.changes) == 5  # set again to its value: no change to act on
     assert set_(use_sim_time=True) == [(True, "")]  # rclpy's own parameters pass through
     (unset,) = set_(seed=None)  # PARAMETER_NOT_SET: rclpy would undeclare the parameter
     assert unset[0] is False and "cannot be unset at run time" in unset[1]

@@ -18,6 +18,7 @@ typing so that "unset" is a value.
 
 from __future__ import annotations
 
+import array
 import copy
 import dataclasses
 import math
@@ -172,6 +173,8 @@ def _from_ros(field: _Field, value: Any) -> Any:
     hint = field.hint
     if typing.get_origin(hint) is tuple:
         elem = typing.get_args(hint)[0]
+        if isinstance(value, array.array):  # how rclpy hands over a set numeric array (ros2 param set)
+            value = value.tolist()
         if not isinstance(value, (list, tuple)):
             raise ValueError(f"parameter {field.name!r} expects a list, got {value!r}")
         return tuple(float(v) if elem is float else v for v in value)
