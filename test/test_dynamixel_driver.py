@@ -24,7 +24,7 @@ from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.parameter import Parameter
-from ros_rig import RosRig, Tester, start_node, stop
+from ros_rig import Rosout, RosRig, Tester, start_node, stop
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -184,7 +184,9 @@ def rig(active_rig: Rig) -> Rig:
 
 
 def test_the_lifecycle_drives_the_torque(fresh_rig: Rig) -> None:
+    """Each transition says on /rosout what it left the hand in."""
     rig = fresh_rig
+    log = Rosout(rig.ros, "dynamixel_driver")
     assert rig.state() == "unconfigured"
     assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.state() == "inactive"
     assert rig.bench.torque() == [False, False]
@@ -193,6 +195,9 @@ def test_the_lifecycle_drives_the_torque(fresh_rig: Rig) -> None:
     assert rig.transition(Transition.TRANSITION_DEACTIVATE) and rig.bench.torque() == [True, True]  # holds
     assert rig.transition(Transition.TRANSITION_CLEANUP) and rig.state() == "unconfigured"
     assert rig.bench.torque() == [False, False]
+    said = ("configured", "active: torque on", "inactive: torque on", "unconfigured: torque off")
+    assert rig.ros.spin_until(lambda: all(any(m.msg.startswith(w) for m in log.lines) for w in said), 5.0), \
+        [m.msg for m in log.lines]
 
 
 @pytest.mark.parametrize("port, kind", [("file", "port"), ("silent pty", "timeout")],

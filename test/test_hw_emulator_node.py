@@ -13,7 +13,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.srv import GetState
 from rclpy.parameter import Parameter
-from ros_rig import RosRig, Tester
+from ros_rig import Rosout, RosRig, Tester
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -177,18 +177,26 @@ def test_a_fault_is_injected_once_per_change_and_a_spent_count_goes_back_to_zero
 
 
 def test_autostart_waits_for_a_port_that_appears_later(ros: RosRig, tmp_path: Path) -> None:
-    """``t42 up`` starts emulator and driver at once: a driver that looks first keeps trying."""
+    """``t42 up`` starts emulator and driver at once: a driver that looks first keeps trying, and says so once at
+    info level (no fault on ``hand/status``, no error on /rosout, for a port not there yet)."""
     link = tmp_path / "ttyT42"
     tester = Tester(ros)
+    log = Rosout(ros, "dynamixel_driver")
+    statuses = tester.listen(String, names.HAND_STATUS, profile(names.EVENTS))
     get = tester.tester.create_client(GetState, "dynamixel_driver/get_state")
     driver = ros.add(DynamixelDriver, {"port": str(link), "autostart": True,
                                        "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
     emulator = None
     try:
-        ros.spin_for(1.5)
+        ros.spin_for(2.5)
         assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
         emulator = ros.add(HwEmulator, {"link": str(link)})
         assert ros.spin_until(lambda: ros.call(get, GetState.Request()).current_state.label == "active", 10.0)
+        lines = [(m.level, m.msg) for m in log.lines if m.name.endswith("dynamixel_driver")]
+        assert [msg for _, msg in lines if msg.startswith("autostart: waiting for")] == [
+            f"autostart: waiting for {link} to appear (up to 10 s before it is a fault)"], lines
+        assert not [msg for level, msg in lines if level >= Rosout.WARN], lines
+        assert not [s.data for s in statuses if s.data.startswith(names.FAULT)], [s.data for s in statuses]
     finally:
         driver.close()
         if emulator is not None:

@@ -167,3 +167,17 @@ def test_configure_turns_the_torque_off_on_every_servo_before_it_fails(hand, inj
         assert fault.value.servo_id == failed and "servo 2" not in str(fault.value), fault.value
     assert bus.bus.servos[2].torque is False  # Torque Enable of the emulated servo itself
     assert bus.bus.servos[1].torque is (failed == 1)
+
+
+def test_after_the_port_failed_mid_packet_the_next_packets_still_reach_it(hand) -> None:
+    """dynamixel-sdk marks its port busy for a packet and leaves the mark when the port raises mid-packet: every
+    packet after, the torque off at shutdown too, was refused unsent ("Port is in use!") as a timeout."""
+    bus, servos = hand
+    servos.torque(True)
+    bus.close_port()  # the adapter pulled: the terminal's writes fail with an I/O error
+    with pytest.raises(s.ServoFault) as fault:
+        servos.write_goals({1: 2100, 2: 2100})
+    assert fault.value.kind == s.PORT and str(fault.value).startswith("port: sync write:"), fault.value
+    failed = servos.set_torque(False)
+    assert sorted(failed) == [1, 2]
+    assert all(f.kind == s.PORT and "in use" not in str(f) for f in failed.values()), failed  # tried on the port

@@ -11,8 +11,9 @@ which burns the CPU for the whole round trip of every exchange.
 
 from __future__ import annotations
 
+import contextlib
 import termios
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import serial
@@ -40,8 +41,9 @@ class ServoFault(RuntimeError):
     port); one line."""
 
     def __init__(self, kind: str, servo_id: int | None, detail: str) -> None:
-        where = "the port" if servo_id is None else f"servo {servo_id}"
-        super().__init__(f"{kind} on {where}: {detail}")
+        where = "" if servo_id is None and kind == PORT else " on the port" if servo_id is None else \
+            f" on servo {servo_id}"
+        super().__init__(f"{kind}{where}: {detail}")
         self.kind, self.servo_id, self.detail = kind, servo_id, detail
 
 
@@ -143,9 +145,20 @@ class HandServos:
             raise ServoFault(REFUSED, servo_id, f"{what} refused ({self._packets.getRxPacketError(error)})")
 
     def _call(self, servo_id: int, what: str, fn: Callable[..., tuple], *args: object) -> tuple:
+        port = self._need_port()
+        with self._port_errors(what):
+            return fn(port, servo_id, *args)
+
+    @contextlib.contextmanager
+    def _port_errors(self, what: str) -> Iterator[None]:
+        """The port's errors in one exchange as a ServoFault, and dynamixel-sdk's busy flag cleared: the SDK sets it
+        for a packet and leaves it set when the port raises mid-packet, so every later packet, torque off included,
+        would be refused without reaching the bus ("Port is in use!")."""
         try:
-            return fn(self._need_port(), servo_id, *args)
+            yield
         except _PORT_ERRORS as err:
+            if self._port is not None:
+                self._port.is_using = False
             raise ServoFault(PORT, None, f"{what}: {err}") from None
 
     def ping(self, servo_id: int) -> int:
@@ -245,13 +258,11 @@ class HandServos:
         port = self._need_port()
         address, length = xm.STATE_BLOCK
         positions, currents = {}, {}
-        try:
+        with self._port_errors("sync read"):
             result = self._packets.syncReadTx(port, address, length, list(self.ids), len(self.ids), False)
             if result != COMM_SUCCESS:
                 raise ServoFault(PORT, None, f"sync read: {self._packets.getTxRxResult(result)}")
             answers = {i: self._packets.readRx(port, i, length) for i in self.ids}  # all, before any other exchange
-        except _PORT_ERRORS as err:
-            raise ServoFault(PORT, None, f"sync read: {err}") from None
         for i, (data, result, error) in answers.items():
             self._check(i, result, error, "sync read")
             block = bytes(data)
@@ -264,9 +275,7 @@ class HandServos:
         group = GroupSyncWrite(self._need_port(), self._packets, xm.GOAL_POSITION.address, xm.GOAL_POSITION.size)
         for i, goal in goals.items():
             group.addParam(i, xm.GOAL_POSITION.encode(goal))
-        try:
+        with self._port_errors("sync write"):
             result = group.txPacket()
-        except _PORT_ERRORS as err:
-            raise ServoFault(PORT, None, f"sync write: {err}") from None
         if result != COMM_SUCCESS:
             raise ServoFault(PORT, None, f"sync write: {self._packets.getTxRxResult(result)}")

@@ -13,7 +13,8 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
   were).  The process's exit (Ctrl-C, SIGTERM, an exception out of a
   callback) turns the torque off too, whatever the state, on each servo that answers.  ``autostart`` configures
   and activates at start, for a suite run without a lifecycle manager (``t42 up``), trying configure again
-  every second until the port is there.
+  every second until the port is there (a port that does not exist yet is waited for quietly for
+  :data:`PORT_GRACE_S`, then it is a fault).
 
 Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
@@ -59,6 +60,7 @@ does.  ``t42 node`` spins the driver on rclpy's EventsExecutor (its CPU per step
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -108,6 +110,9 @@ second per kind, as on /rosout.  It neither ends nor splits an episode."""
 _T42 = HandGeometry()
 """The parameters' defaults: the hand's geometry as it ships (its ranges are checked there, once)."""
 RETRY_PERIOD_S = 1.0
+PORT_GRACE_S = 10.0
+"""How long ``autostart`` waits quietly for a port that does not exist yet (``t42 up`` starts an emulator beside the
+driver; an adapter is plugged in) before a missing port is a fault."""
 DIAGNOSTICS_EVERY = 10
 """Steps between two diagnostics while all is well (faults are reported at once)."""
 _NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
@@ -217,12 +222,20 @@ class DynamixelDriver(LifecycleNode):
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
         if self.params.autostart:  # on the wall clock: a port is retried in seconds, whatever the graph's time
             self._autostart = self.create_timer(0.0, self._start, clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._port_wait_until = time.monotonic() + PORT_GRACE_S
 
     def _start(self) -> None:
         """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
         there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
         if self._state_machine.current_state[1] != "unconfigured":  # a lifecycle client got there first
             self.destroy_timer(self._autostart)
+            return
+        port = self.params.port
+        if not os.path.exists(port) and time.monotonic() < self._port_wait_until:  # not yet a fault: say it once
+            if self._autostart.timer_period_ns == 0:
+                self.log.info(f"autostart: waiting for {port} to appear (up to {PORT_GRACE_S:g} s before it is a "
+                              "fault)")
+            self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
             return
         if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
             self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
@@ -322,10 +335,14 @@ class DynamixelDriver(LifecycleNode):
             self._need_hand().hold()
         except ServoFault as err:
             self.log.warning(f"could not hold on deactivate: {err}")
+        else:
+            self.log.info("inactive: torque on, holding where the fingers stand; activate to step again, cleanup "
+                          "to turn the torque off")
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
-        self._release()
+        if self._release():
+            self.log.info("unconfigured: torque off, port closed")
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
@@ -336,18 +353,20 @@ class DynamixelDriver(LifecycleNode):
         """Torque off and the port closed, whatever state the node is in (the process exits)."""
         self._release()
 
-    def _release(self) -> None:
+    def _release(self) -> bool:
+        """Torque off and the port closed; whether every servo confirmed the torque off (False: no hand held)."""
         self._stepping = False
         self._stop_episode("the driver stopped")
         hand, self.hand = self.hand, None
         self._servo_limits_rad = None
         if hand is None:
-            return
+            return False
         failed = hand.servos.set_torque(False)  # each servo tried on its own: one silent servo leaves no other on
         if failed:
             self.log.error(f"could not turn the torque off on servo(s) {sorted(failed)}: "
                            + "; ".join(str(err) for err in failed.values()))
         hand.servos.close()
+        return not failed
 
     # ------------------------------------------------------------------ parameters at run time
     def _veto_params(self, old: DynamixelDriverParams, new: DynamixelDriverParams) -> str | None:
@@ -555,7 +574,7 @@ class DynamixelDriver(LifecycleNode):
         hand.hold()
         self.fault = None
         self.log.info(f"recovered from: {fault}")
-        self._status(names.RECOVERED, f"{fault}; the hand holds (call hand/reset for a new episode)")
+        self._status(names.RECOVERED, f"after {fault}; the hand holds (call hand/reset for a new episode)")
         self._publish_diagnostics("OK", f"back from: {fault}")
 
     # ------------------------------------------------------------------ reports
