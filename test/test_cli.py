@@ -120,3 +120,18 @@ def test_import_names_the_flagged_stretches(
     assert main(["bag", "info", str(bag)]) == 0
     assert "  episode 0: frozen tracking at steps 0-198 (199 steps, loads ranged 102); jump of 26.3 mm at step 198" \
         in capsys.readouterr().out
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
+    """``t42 bag info BAG --json | head``: the pipe closes before the output is written; no error line, as with
+    any Unix tool (it said ``t42: error: [Errno 32] Broken pipe``)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "bag", "info", str(FIXTURES / "source_small"),
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # long before the interpreter has started and read the bag
+    with proc.stderr:
+        err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and err == "", err

@@ -9,6 +9,7 @@ input ends with ``t42: error: <file>: <problem>`` and exit code 2, never a trace
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from collections.abc import Sequence
@@ -72,6 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.argv = argv
     try:
         return func(args)
+    except BrokenPipeError:  # the reader went away (`t42 bag info BAG --json | head`): as any Unix tool, say nothing
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (no second error when Python flushes)
+        return 141
     except OSError as err:  # a path the user gave: missing, unreadable, a directory where a file belongs, ...
         message = os_error(err)
     except ValueError as err:  # DataFileError and CheckpointError included

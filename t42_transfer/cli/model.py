@@ -1,11 +1,13 @@
-"""``t42 model``: model files (import the paper authors' own saved models)."""
+"""``t42 model``: model files (train a source model on recorded bags; import the paper authors' own saved models)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import sys
 from pathlib import Path
 
-from t42_transfer.cli.args import existing_file, float_arg, new_output
+from t42_transfer.cli.args import existing_dir, existing_file, float_arg, int_arg, new_output
 
 
 def _cmd_import_authors(args: argparse.Namespace) -> int:
@@ -22,8 +24,68 @@ def _cmd_import_authors(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bags(paths: list[Path]) -> list[Path]:
+    """Each path a bag directory (it holds ``metadata.yaml``) or a directory of finished bags, in order."""
+    from t42_transfer.transfer.online import list_bags
+
+    bags: list[Path] = []
+    for path in paths:
+        existing_dir(path)
+        found = [path] if (path / "metadata.yaml").is_file() else list_bags(path)
+        if not found:
+            raise ValueError(f"{path}: holds no finished bag (a directory with a metadata.yaml)")
+        bags += found
+    return bags
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from t42_transfer.models.checkpoint import save_model
+    from t42_transfer.models.training import ProgressBar, TrainConfig, train_transition_model
+    from t42_transfer.planning.workspace import Workspace
+    from t42_transfer.transfer.online import read_target
+
+    bags = _bags(args.bags)
+    new_output(args.out)
+    cfg = TrainConfig(seed=args.seed, **({} if args.epochs is None else {"epochs": args.epochs}))
+    target = read_target(bags)
+    for bag, why in target.skipped:
+        print(f"t42: warning: skipped {bag}: {why}", file=sys.stderr)
+    for note in target.notes:
+        print(f"t42: warning: {note}", file=sys.stderr)
+    data = target.data
+    if not len(data):
+        raise ValueError(f"no usable episode in {len(bags)} bag(s): nothing to train on")
+    torch.set_num_threads(1)  # the MLP and its batches are small: one thread is the fastest here
+    model, report = train_transition_model(data, cfg, on_epoch=ProgressBar(), phase="source model")
+    save_model(model, args.out, method="source", hyperparameters=dataclasses.asdict(cfg),
+               data={"bags": [str(b.resolve()) for b in target.read], "source": data.fingerprint()},
+               extra={"workspace": Workspace.from_trajectories(data).to_dict()})
+    print(f"{len(data)} episodes ({data.num_transitions} transitions) of {len(target.read)} bag(s), hand "
+          f"{data.hand or 'unnamed'}: {report.epochs_run} epochs (best {report.best_epoch + 1}; {report.validation}) "
+          f"-> {args.out}")
+    return 0
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     model = commands.add_parser("model", help="model files").add_subparsers(dest="model_command", metavar="ACTION")
+    train = model.add_parser(
+        "train", help="train a source model on a hand's recorded bags (the transfer server's source_model)",
+        description="Fit the paper's transition model to the episodes of recorded bags (as the transfer server reads "
+                    "them: each ended at its first drop, split at late steps) and write a model file that a transfer "
+                    "server can start from: record the source hand, train on it here, then record the target hand "
+                    "and transfer.",
+    )
+    train.add_argument("bags", type=Path, nargs="+", metavar="BAG",
+                       help="a bag directory, or a directory of bags (a recorder's out_dir)")
+    train.add_argument("--out", type=Path, required=True, metavar="OUT.safetensors",
+                       help="model file to create (never overwritten)")
+    train.add_argument("--epochs", type=int_arg(1), default=None,
+                       help="most epochs (default: the training default, as experiments train); early stopping on "
+                            "a held-out tenth of the episodes ends sooner")
+    train.add_argument("--seed", type=int_arg(0), default=0, help="seed of the split and the initial weights")
+    train.set_defaults(func=_cmd_train)
     imp = model.add_parser(
         "import-authors", help="convert one of the paper authors' saved models (legacy torch pickle) to a model file",
         description="Read an authors' legacy torch file without running its code and write a project model file "
