@@ -103,3 +103,20 @@ def test_emulate_refuses_a_link_path_it_did_not_make_in_one_line(form: str, tmp_
                               capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and done.stderr == f"t42: error: {tmp_path / link}: {problem}\n", done.stderr
     assert (tmp_path / "L").is_symlink() and (tmp_path / "L").read_text() == "keep me\n"
+
+
+def test_hw_reboot_clears_an_error_bit_and_says_what_each_servo_reads_after(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A servo with a Hardware Error Status keeps the driver from configuring (the README's first-run checklist)."""
+    with PtyBus(t42_bus()) as bus:
+        bus.bus.servos[2].raise_error(1 << 5)
+        argv = ["hw", "reboot", "--port", bus.port, "--ids", "2", "--latency-timer", str(EMULATED_LATENCY_TIMER_MS)]
+        assert main(argv) == 0
+        out = capsys.readouterr().out.splitlines()
+        assert out == ["servo 2: rebooted (torque off): model 1020 (XM430-W350), Present Position 2048 ticks, "
+                       "Present Current 0 (0.0 mA), Hardware Error Status 0 (none)"], out
+        assert bus.bus.servos[2].get(xm.HARDWARE_ERROR_STATUS) == 0 and not bus.bus.servos[2].torque
+        bus.bus.faults.dead.add(1)  # one that does not answer is named, and the exit says so
+        assert main([*argv[:4], "--ids", "1,2", *argv[6:]]) == 1
+        out = capsys.readouterr().out.splitlines()
+        assert out[0] == "servo 1: timeout on servo 1: no answer to reboot" and out[1].startswith("servo 2: rebooted")

@@ -202,8 +202,10 @@ def test_the_lifecycle_drives_the_torque(fresh_rig: Rig) -> None:
 
 @pytest.mark.parametrize("port, kind", [("file", "port"), ("silent pty", "timeout")],
                          ids=["not a serial port", "a serial port that is no Dynamixel bus"])
-def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_path, port: str, kind: str) -> None:
-    """The failure goes to hand/status and diagnostics, not only to /rosout."""
+def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_path, port: str, kind: str,
+                                                             capfd: pytest.CaptureFixture[str]) -> None:
+    """The failure goes to hand/status and diagnostics, not only to the log; a configure asked for twice is told
+    twice in the log (autostart's retries are not: a new failure only)."""
     if port == "file":
         bogus = tmp_path / "no_bus"
         bogus.write_text("")
@@ -222,6 +224,7 @@ def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_p
         assert not ros.call(change, request).success
         assert driver.hand is None
         assert ros.spin_until(lambda: statuses and diagnostics, 2.0)
+
         assert status_event(statuses[-1].data) == names.FAULT and "configure failed" in statuses[-1].data
         report = status_report(diagnostics[-1], STATUS_NAME)
         assert report.level == "ERROR" and report.values["fault_kind"] == kind, report
@@ -230,6 +233,8 @@ def test_configure_fails_on_a_port_without_servos_and_says_so(ros: RosRig, tmp_p
         assert ros.spin_until(lambda: len(diagnostics) >= 2, 2.0)
         ros.spin_for(0.2)
         assert len(statuses) == 1
+        errors = [line for line in capfd.readouterr().err.splitlines() if "[dynamixel_driver]" in line]
+        assert len(errors) == 2 and all("[ERROR]" in e and "configure failed" in e for e in errors), errors  # asked
     finally:
         if port != "file":
             os.close(master)

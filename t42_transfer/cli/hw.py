@@ -1,14 +1,21 @@
 """``t42 hw emulate``: emulated T42 hardware (a servo bus on a pty, the simulated hand, a tracker) as a node;
-``t42 hw read``: what the servos on a port say (model, position, current, error bits), the torque untouched."""
+``t42 hw read``: what the servos on a port say (model, position, current, error bits), the torque untouched;
+``t42 hw reboot``: each servo rebooted (a Hardware Error Status cleared), then what it says."""
 
 from __future__ import annotations
 
 import argparse
 import re
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from t42_transfer.cli.args import SEED_MAX, float_arg, int_arg
+
+if TYPE_CHECKING:
+    from t42_transfer.hardware.servos import HandServos
 
 FAULTS = ("drop_replies", "corrupt_replies", "slow_replies", "reply_delay_s", "dead_servos", "error_bits",
           "port_closed")
@@ -49,14 +56,26 @@ def ids_arg(text: str) -> tuple[int, ...]:
     return ids
 
 
-def _cmd_read(args: argparse.Namespace) -> int:
-    """One line per servo; exit 1 when a servo (or the port) did not answer."""
-    from t42_transfer.hardware.servos import SDK_LATENCY_TIMER_MS, HandServos, ServoFault
+REBOOT_WAIT_S = 2.0
+"""How long ``t42 hw reboot`` waits for a rebooted servo to answer again (an XM430 restarts in well under that)."""
+
+
+def _open_servos(args: argparse.Namespace) -> HandServos:
+    """The bus of ``--port``/``--baud``/``--ids``/``--latency-timer``, opened; ServoFault when it cannot be."""
+    from t42_transfer.hardware.servos import SDK_LATENCY_TIMER_MS, HandServos
 
     latency = SDK_LATENCY_TIMER_MS if args.latency_timer is None else args.latency_timer
     servos = HandServos(args.port, args.baud, args.ids, latency_timer_ms=latency)
+    servos.open()
+    return servos
+
+
+def _each_servo(args: argparse.Namespace, line: Callable[[HandServos, int], str]) -> int:
+    """``servo <id>: line(servos, id)`` for each servo, a fault in its place; exit 1 when one (or the port) failed."""
+    from t42_transfer.hardware.servos import ServoFault
+
     try:
-        servos.open()
+        servos = _open_servos(args)
     except ServoFault as err:
         print(f"t42: error: {err}", file=sys.stderr)
         return 1
@@ -64,13 +83,46 @@ def _cmd_read(args: argparse.Namespace) -> int:
     try:
         for i in args.ids:
             try:
-                print(f"servo {i}: {servos.info(i).describe()}")
+                print(f"servo {i}: {line(servos, i)}")
             except ServoFault as err:
                 failed += 1
                 print(f"servo {i}: {err}")
     finally:
         servos.close()
     return 1 if failed else 0
+
+
+def _cmd_read(args: argparse.Namespace) -> int:
+    """One line per servo; exit 1 when a servo (or the port) did not answer."""
+    return _each_servo(args, lambda servos, i: servos.info(i).describe())
+
+
+def _rebooted(servos: HandServos, servo_id: int) -> str:
+    """Reboot one servo, then what it reads once it answers again."""
+    from t42_transfer.hardware.servos import ServoFault
+
+    servos.reboot(servo_id)
+    deadline = time.monotonic() + REBOOT_WAIT_S
+    while True:
+        try:
+            return f"rebooted (torque off): {servos.info(servo_id).describe()}"
+        except ServoFault:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def _cmd_reboot(args: argparse.Namespace) -> int:
+    """Reboot each servo (its Hardware Error Status cleared, its torque off); exit 1 when one did not come back."""
+    return _each_servo(args, _rebooted)
+
+
+def _bus_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, help="the servo bus, e.g. /dev/ttyUSB0")
+    parser.add_argument("--ids", type=ids_arg, default=(1, 2), help="servo ids, comma-separated (default 1,2)")
+    parser.add_argument("--baud", type=int_arg(9600, 4_500_000), default=1_000_000, help="baud rate (1000000)")
+    parser.add_argument("--latency-timer", type=float_arg(0, 1000), default=None, metavar="MS",
+                        help="the adapter's latency timer in ms (16; an emulated bus: 100)")
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -94,9 +146,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     emu.set_defaults(func=_cmd_emulate)
     read = hw.add_parser("read", help="each servo's model, Present Position (raw ticks), Present Current and "
                                       "Hardware Error Status, reading only: the torque stays as it is")
-    read.add_argument("--port", required=True, help="the servo bus, e.g. /dev/ttyUSB0")
-    read.add_argument("--ids", type=ids_arg, default=(1, 2), help="servo ids, comma-separated (default 1,2)")
-    read.add_argument("--baud", type=int_arg(9600, 4_500_000), default=1_000_000, help="baud rate (1000000)")
-    read.add_argument("--latency-timer", type=float_arg(0, 1000), default=None, metavar="MS",
-                      help="the adapter's latency timer in ms (16; an emulated bus: 100)")
+    _bus_arguments(read)
     read.set_defaults(func=_cmd_read)
+    reboot = hw.add_parser("reboot", help="reboot each servo: a Hardware Error Status (overload, overheating...) "
+                                          "cleared, the torque off; then what it reads (stop the driver first)")
+    _bus_arguments(reboot)
+    reboot.set_defaults(func=_cmd_reboot)

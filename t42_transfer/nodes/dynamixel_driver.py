@@ -183,6 +183,8 @@ class DynamixelDriver(LifecycleNode):
         """Commands refused or cut short, on /rosout and ``hand/status`` alike, throttled as :attr:`per_message`."""
         self._configure_error = ""
         """The last configure failure reported on ``hand/status`` (autostart retries say a new one only)."""
+        self._autostarting = False
+        """Whether the configure under way is an autostart retry."""
         self._transition_error = ""
         """Why the transition in progress raised, for :meth:`on_error` ("" when none did)."""
         self.hand: ServoHand | None = None
@@ -237,7 +239,12 @@ class DynamixelDriver(LifecycleNode):
                               "fault)")
             self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
             return
-        if self.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+        self._autostarting = True
+        try:
+            configured = self.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        finally:
+            self._autostarting = False
+        if not configured:
             self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
             return
         # Destroyed, not cancelled: a cancelled timer stays in the executor's wait set, built at every wake.
@@ -299,14 +306,17 @@ class DynamixelDriver(LifecycleNode):
         return TransitionCallbackReturn.SUCCESS
 
     def _configure_failed(self, err: Exception) -> None:
-        """On /rosout, ``diagnostics`` (each time) and ``hand/status`` (when it differs from the last): no port, a
-        port that is no Dynamixel bus (nothing answers the pings), servos of another model."""
+        """On ``diagnostics`` each time, on ``hand/status`` when it differs from the last, on /rosout both then and
+        at each configure a client asked for (autostart's retries say a new failure only): no port, a port that is
+        no Dynamixel bus (nothing answers the pings), servos of another model, an error bit."""
         message = f"configure failed: {err}"
         fault = err if isinstance(err, ServoFault) else ServoFault(REFUSED_KIND, None, str(err))
         self._publish_diagnostics("ERROR", message, fault)
-        if message != self._configure_error:
+        new = message != self._configure_error
+        if new or not self._autostarting:
+            self.log.error(message + ("" if fault.kind != HARDWARE else "; t42 hw reboot clears an error bit"))
+        if new:
             self._configure_error = message
-            self.log.error(message)
             self._status(names.FAULT, message)
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
