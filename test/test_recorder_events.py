@@ -160,3 +160,27 @@ def test_bag_closed_messages_carry_the_event_both_ways_and_refuse_bad_values() -
         bag_closed_msg(event._replace(messages=-1))
     with pytest.raises(ValueError, match="range"):
         bag_closed_msg(event._replace(end_ns=-5))
+
+
+def test_what_the_reader_says_of_a_closed_bag_goes_to_rosout(ros: Any, tmp_path: Path,
+                                                             recwarn: pytest.WarningsRecorder) -> None:
+    """A bag of one short episode is announced with 0 episodes; why is on /rosout (info), not a warning printed
+    by the recorder's process outside its log."""
+    from ros_rig import Rosout
+
+    log = Rosout(ros, "recorder")
+    rec = add_recorder(ros, tmp_path, start_immediately=False, step_hold_s=1.0)
+    hand = Hand(ros, rec)
+    events = Events(hand)
+    assert hand.call("start").success
+    hand.episode(now_ns(), 5)  # fewer transitions than MIN_EPISODE_STEPS
+    assert hand.call("stop").success
+    assert events.wait(1, ros)[0].episodes == 0
+
+    def said() -> list[str]:
+        return [m.msg for m in log.lines if m.name.endswith("recorder") and m.msg.startswith("read back: ")]
+
+    assert ros.spin_until(lambda: said(), 3.0), [m.msg for m in log.lines]
+    assert "fewer than MIN_EPISODE_STEPS" in said()[0]
+    # (the test's own listener reads the bag too, and warns here: only the recorder's reading must not)
+    assert not [w for w in recwarn if w.filename.endswith("recorder_params.py")], [str(w) for w in recwarn]
