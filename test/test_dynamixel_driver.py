@@ -654,7 +654,7 @@ def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> 
     import yaml
     from ros_rig import REPO
 
-    from t42_transfer.nodes.dynamixel_driver import DynamixelDriverParams
+    from t42_transfer.nodes.dynamixel_params import DynamixelDriverParams
 
     section = yaml.safe_load((REPO / "configs" / config).read_text())["/**/dynamixel_driver"]["ros__parameters"]
     params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})

@@ -63,7 +63,6 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -89,17 +88,18 @@ from msg_adapters import (
     object_pose_msg,
     status_message,
 )
-from t42_transfer.conventions import CONTROL_PERIOD_S, DROP_JUMP_MM, MM_PER_M
+from t42_transfer.conventions import CONTROL_PERIOD_S, MM_PER_M
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
 from t42_transfer.driver.pose import DropWatch, NewestPose
-from t42_transfer.driver.servo_hand import Grasp, HandGeometry, ServoHand
+from t42_transfer.driver.servo_hand import Grasp, ServoHand
 from t42_transfer.driver.timing import StepTiming, step_timing
 from t42_transfer.hardware import xm430 as xm
-from t42_transfer.hardware.servos import HARDWARE, PORT, SDK_LATENCY_TIMER_MS, HandServos, ServoFault
+from t42_transfer.hardware.servos import HARDWARE, PORT, HandServos, ServoFault
 from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
+from t42_transfer.nodes.dynamixel_params import DynamixelDriverParams
 from t42_transfer.ros.deferred_service import DeferredService, Pending
 from t42_transfer.ros.logs import ThrottledLog
-from t42_transfer.ros.params import LiveParams, param
+from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
 STATUS_NAME = "t42_transfer: dynamixel_driver"
@@ -107,8 +107,6 @@ REFUSED = "refused"
 """``hand/status`` word of a command refused or cut short: a goal clamped at the position limits, a finger not
 closed for its load over the limit, a command or trajectory rejected (NaN, wrong names, stale); at most a line a
 second per kind, as on /rosout.  It neither ends nor splits an episode."""
-_T42 = HandGeometry()
-"""The parameters' defaults: the hand's geometry as it ships (its ranges are checked there, once)."""
 RETRY_PERIOD_S = 1.0
 PORT_GRACE_S = 10.0
 """How long ``autostart`` waits quietly for a port that does not exist yet (``t42 up`` starts an emulator beside the
@@ -122,47 +120,6 @@ incompatible QoS or type, which the peer's own handlers log as well): each handl
 SingleThreadedExecutor builds into its wait set again at every wake (about 6 a step: the timer, the command, the
 tracker's pose, each followed by the wake its guard condition causes).  Measured: a spin_once of the unconfigured
 driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idle node with one timer: 94-105)."""
-
-
-@dataclass(frozen=True)
-class DynamixelDriverParams:
-    """The driver's ROS parameters (the hand's geometry is checked by :class:`HandGeometry`)."""
-
-    port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", read_only=True)
-    baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, read_only=True)
-    latency_timer_ms: float = param(SDK_LATENCY_TIMER_MS, "the USB adapter's latency timer: an answer is awaited "
-                                    "2x this + 2 ms + its bytes' time (an emulated bus: more)", min=0.0, max=1000.0,
-                                    read_only=True)
-    servo_ids: tuple[int, ...] = param(_T42.servo_ids, "servo ids in action order (hands A and B are mirrored)",
-                                       read_only=True)
-    open_ticks: tuple[int, ...] = param(_T42.open_ticks, "Present Position of each servo with its finger open",
-                                        read_only=True)
-    directions: tuple[int, ...] = param(_T42.directions, "+1: ticks above open close the finger, -1: below",
-                                        read_only=True)
-    max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad); "
-                                             "at run time lowered at once, raised only unconfigured")
-    load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this, in the servos' raw "
-                              "load units (0.1 % of stall torque, 0.0041 N m: 280 is 1.15 N m of effort on "
-                              "hand/joint_states)", min=1.0, max=2000.0)
-    grasp_load: float = param(_T42.grasp_load, "a reset closes each finger until its load passes this, in raw load "
-                              "units as load_limit (100 is 0.41 N m)", min=1.0, max=2000.0)
-    max_pose_age_s: float = param(0.3, "a tracker pose older than this is never published as current",
-                                  min=0.01, max=10.0)
-    drop_jump_m: float = param(DROP_JUMP_MM / MM_PER_M, "an object pose farther than this a control period "
-                               "(between the two frames' stamps) from the step before's ends the episode (dropped), "
-                               "the paper's drop rule; 0: never", min=0.0, max=1.0)
-    max_command_age_s: float = param(0.5, "commands stamped further than this from now are refused",
-                                     min=1e-3, max=3600.0)
-    autostart: bool = param(False, "configure and activate at start (a suite without a lifecycle manager)",
-                            read_only=True)
-
-    def geometry(self) -> HandGeometry:
-        return HandGeometry(tuple(self.servo_ids), tuple(self.open_ticks), tuple(self.directions),  # type: ignore[arg-type]
-                            tuple(self.max_angle_rad), self.load_limit,  # type: ignore[arg-type]
-                            self.grasp_load)
-
-    def __post_init__(self) -> None:
-        self.geometry()  # ValueError naming the setting, as ros2 param set reports it
 
 
 class DynamixelDriver(LifecycleNode):
