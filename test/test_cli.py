@@ -125,11 +125,13 @@ def test_import_names_the_flagged_stretches(
 def test_a_reader_that_goes_away_ends_the_command_quietly() -> None:
     """``t42 bag info BAG --json | head``: the pipe closes before the output is written; no error line, as with
     any Unix tool (it said ``t42: error: [Errno 32] Broken pipe``)."""
+    import os
     import subprocess
     import sys
 
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # stdout to a pipe buffered, as in a shell
     proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "bag", "info", str(FIXTURES / "source_small"),
-                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
     assert proc.stdout is not None and proc.stderr is not None
     proc.stdout.close()  # long before the interpreter has started and read the bag
     with proc.stderr:

@@ -120,3 +120,16 @@ def test_hw_reboot_clears_an_error_bit_and_says_what_each_servo_reads_after(
         assert main([*argv[:4], "--ids", "1,2", *argv[6:]]) == 1
         out = capsys.readouterr().out.splitlines()
         assert out[0] == "servo 1: timeout on servo 1: no answer to reboot" and out[1].startswith("servo 2: rebooted")
+
+
+def test_hw_reboot_exits_1_when_the_error_comes_back(capsys: pytest.CaptureFixture[str]) -> None:
+    """A servo still overheating raises its error bit again at once: the reboot did not clear it, and says so."""
+    with PtyBus(t42_bus()) as bus:
+        servo = bus.bus.servos[1]
+        servo.raise_error(1 << 2)  # overheating
+        servo.reboot = lambda: None  # the cause is still there: the bit stands after the restart
+        argv = ["hw", "reboot", "--port", bus.port, "--ids", "1", "--latency-timer", str(EMULATED_LATENCY_TIMER_MS)]
+        assert main(argv) == 1
+        (line,) = capsys.readouterr().out.splitlines()
+        assert line.startswith("servo 1: hardware on servo 1: rebooted, but the error is back:"), line
+        assert "Hardware Error Status 4 (overheating error)" in line, line

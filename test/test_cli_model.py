@@ -62,8 +62,17 @@ def test_bad_inputs_are_one_line_errors_and_nothing_is_written(source_bags, tmp_
     empty.mkdir()
     taken = tmp_path / "taken.safetensors"
     taken.write_bytes(b"")
+    nested = tmp_path / "recordings"  # a suite under the namespace /left records into recordings/left
+    nested.mkdir()
+    (nested / "left").symlink_to(out_dir)
+    other_hand, _ = collect("target", 3, 30, seed=1, workers=1, progress=False)
+    other = write_bag(tmp_path / "target_bag", TrajectorySet(assign_start_times(other_hand), hand="target"))
     cases = [
         ([str(empty), "--out", str(tmp_path / "m.safetensors")], f"{empty}: holds no finished bag"),
+        ([str(nested), "--out", str(tmp_path / "m.safetensors")], f"these folders in it do (a suite under a "
+                                                                  f"namespace records there): {nested / 'left'}"),
+        ([str(out_dir), str(other), "--out", str(tmp_path / "m.safetensors")],
+         "the bags hold episodes of 2 hands (source, target): a source model is one hand's"),
         ([str(tmp_path / "missing"), "--out", str(tmp_path / "m.safetensors")], "does not exist"),
         ([str(out_dir), "--out", str(taken)], f"{taken}: exists already"),
     ]

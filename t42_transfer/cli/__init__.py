@@ -72,7 +72,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     args.argv = argv
     try:
-        return func(args)
+        code = func(args)
+        sys.stdout.flush()  # here, not at exit: a reader gone by then would cost a traceback line
+        return code
     except BrokenPipeError:  # the reader went away (`t42 bag info BAG --json | head`): as any Unix tool, say nothing
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (no second error when Python flushes)
         return 141

@@ -98,18 +98,23 @@ def _cmd_read(args: argparse.Namespace) -> int:
 
 
 def _rebooted(servos: HandServos, servo_id: int) -> str:
-    """Reboot one servo, then what it reads once it answers again."""
-    from t42_transfer.hardware.servos import ServoFault
+    """Reboot one servo, then what it reads once it answers again; ServoFault when it did not come back clear."""
+    from t42_transfer.hardware.servos import HARDWARE, TIMEOUT, ServoFault
 
     servos.reboot(servo_id)
     deadline = time.monotonic() + REBOOT_WAIT_S
     while True:
         try:
-            return f"rebooted (torque off): {servos.info(servo_id).describe()}"
-        except ServoFault:
+            info = servos.info(servo_id)
+            break
+        except ServoFault as err:
             if time.monotonic() > deadline:
-                raise
+                raise ServoFault(TIMEOUT, servo_id, f"rebooted, but no answer within {REBOOT_WAIT_S:g} s ({err}); "
+                                                    "read it again in a moment with t42 hw read") from None
             time.sleep(0.1)
+    if info.hardware_error:  # the cause is still there (a servo still too hot, a supply still too low)
+        raise ServoFault(HARDWARE, servo_id, f"rebooted, but the error is back: {info.describe()}")
+    return f"rebooted (torque off): {info.describe()}"
 
 
 def _cmd_reboot(args: argparse.Namespace) -> int:

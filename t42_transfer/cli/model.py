@@ -28,14 +28,17 @@ def _bags(paths: list[Path]) -> list[Path]:
     """Each path a bag directory (it holds ``metadata.yaml``) or a directory of finished bags, in order."""
     from t42_transfer.transfer.online import list_bags
 
-    bags: list[Path] = []
+    bags: dict[Path, Path] = {}  # by resolved path: a bag named twice is read once
     for path in paths:
         existing_dir(path)
         found = [path] if (path / "metadata.yaml").is_file() else list_bags(path)
         if not found:
-            raise ValueError(f"{path}: holds no finished bag (a directory with a metadata.yaml)")
-        bags += found
-    return bags
+            nested = sorted(str(d) for d in path.iterdir() if d.is_dir() and list_bags(d))
+            hint = f"; these folders in it do (a suite under a namespace records there): {', '.join(nested)}" \
+                if nested else ""
+            raise ValueError(f"{path}: holds no finished bag (a directory with a metadata.yaml){hint}")
+        bags.update((bag.resolve(), bag) for bag in found)
+    return list(bags.values())
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -57,6 +60,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     data = target.data
     if not len(data):
         raise ValueError(f"no usable episode in {len(bags)} bag(s): nothing to train on")
+    hands = sorted({t.hand for t in data if t.hand})
+    if len(hands) > 1:
+        raise ValueError(f"the bags hold episodes of {len(hands)} hands ({', '.join(hands)}): a source model is "
+                         "one hand's; name that hand's bags only")
     torch.set_num_threads(1)  # the MLP and its batches are small: one thread is the fastest here
     model, report = train_transition_model(data, cfg, on_epoch=ProgressBar(), phase="source model")
     save_model(model, args.out, method="source", hyperparameters=dataclasses.asdict(cfg),

@@ -271,7 +271,8 @@ class DynamixelDriver(LifecycleNode):
         self._publish_diagnostics("ERROR", message, fault)
         new = message != self._configure_error
         if new or not self._autostarting:
-            self.log.error(message + ("" if fault.kind != HARDWARE else "; t42 hw reboot clears an error bit"))
+            self.log.error(message + ("" if fault.kind != HARDWARE else
+                                      "; stop the driver, find the cause, then t42 hw reboot clears the error bit"))
         if new:
             self._configure_error = message
             self._status(names.FAULT, message)

@@ -151,15 +151,17 @@ class Announcer:
 
     def _run(self) -> None:
         while (event := self._queue.get()) is not None:
+            said: list[warnings.WarningMessage] = []
             try:
                 with warnings.catch_warnings(record=True) as said:  # on /rosout, not as a warning of the process
                     warnings.simplefilter("always")
                     episodes = len(read_bag(event.path)) if event.messages else 0
-                for warning in said:  # (a short last episode, a step that lost a message: the reader's view)
-                    self._log.info(f"read back: {warning.message}")
             except Exception as err:  # a bag of no whole episode: announced with 0
                 self._log.warning(f"{event.path} holds no episode read_bag reads ({type(err).__name__}: {err})")
                 episodes = 0
+            finally:
+                for warning in said:  # (a short last episode, a step that lost a message: the reader's view)
+                    self._log.info(f"read back: {warning.message}")
             try:
                 self._publisher.publish(bag_closed_msg(event._replace(episodes=episodes)))
             except Exception as err:  # the node is being destroyed
