@@ -656,9 +656,22 @@ def test_the_shipped_hardware_configs_are_valid_driver_settings(config: str) -> 
 
     from t42_transfer.nodes.dynamixel_params import DynamixelDriverParams
 
-    section = yaml.safe_load((REPO / "configs" / config).read_text())["/**/dynamixel_driver"]["ros__parameters"]
-    params = DynamixelDriverParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in section.items()})
+    sections = yaml.safe_load((REPO / "configs" / config).read_text())
+
+    def values(node: str) -> dict:
+        section = sections[f"/**/{node}"]["ros__parameters"]
+        return {k: tuple(v) if isinstance(v, list) else v for k, v in section.items()}
+
+    params = DynamixelDriverParams(**values("dynamixel_driver"))
     assert params.geometry().limits()  # the geometry checks itself: servo range, grasp below the load limit
+    if config == "hardware_real.yaml":  # the pose source a real hand has: a camera and the marker tracker
+        from t42_transfer.nodes.camera import CameraParams
+        from t42_transfer.nodes.object_tracker import ObjectTrackerParams
+
+        camera = CameraParams(**values("camera"))
+        assert camera.fps >= 10.0 and str(camera.calibration_file).endswith(".yaml")
+        tracker = ObjectTrackerParams(**values("object_tracker"))
+        assert len(tracker.base_poses) == 6 * len(tracker.base_ids) == 6 * len(tracker.base_sizes_m)
 
 
 @pytest.mark.parametrize("override", [False, True], ids=["reliable reader", "best effort by qos_overrides"])
