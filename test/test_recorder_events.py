@@ -184,3 +184,24 @@ def test_what_the_reader_says_of_a_closed_bag_goes_to_rosout(ros: Any, tmp_path:
     assert "fewer than MIN_EPISODE_STEPS" in said()[0]
     # (the test's own listener reads the bag too, and warns here: only the recorder's reading must not)
     assert not [w for w in recwarn if w.filename.endswith("recorder_params.py")], [str(w) for w in recwarn]
+
+
+def test_a_status_split_is_one_line_on_rosout(ros: Any, tmp_path: Path) -> None:
+    """The bag closed and the next opened, with the status that caused it, once (each half was said again)."""
+    from ros_rig import Rosout
+
+    log = Rosout(ros, "recorder")
+    rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=1.0)
+    hand = Hand(ros, rec)
+    t0 = now_ns()
+    hand.episode(t0, 15, seed=1)
+    hand.status(status_message(names.RESET, "episode 1 grasped", t0 + 15 * CONTROL_PERIOD_NS))
+    hand.settle()
+
+    def closing() -> list[str]:
+        return [m.msg for m in log.lines if m.name.endswith("recorder") and "closed " in m.msg]
+
+    assert ros.spin_until(lambda: closing(), 3.0), [m.msg for m in log.lines]
+    ros.spin_for(0.3)
+    (line,) = closing()
+    assert line.startswith("status 'reset': closed ") and "; recording to " in line, line

@@ -411,14 +411,15 @@ class Recorder(LooseMessages, Node):
             return (False, f"not writing: {self.write_failure}") if self.write_failure else (True, "not recording")
         if change.kind == "episode" and self._bag.count == 0:
             return True, f"{self._bag.path} is empty: not split"
-        closed_ok, closed = self._close_bag(change.word or change.kind)
-        opened_ok, opened = self._open_bag()
+        said = not change.why  # a change with a cause says both halves in one line, with the cause
+        closed_ok, closed = self._close_bag(change.word or change.kind, say=said)
+        opened_ok, opened = self._open_bag(say=said)
         message = f"{closed}; {opened}"
         if change.why:
             self.log.info(f"{change.why}: {message}")
         return closed_ok and opened_ok, message
 
-    def _open_bag(self) -> tuple[bool, str]:
+    def _open_bag(self, say: bool = True) -> tuple[bool, str]:
         p = self.params
         try:
             bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types, offered=self._offers)
@@ -426,11 +427,13 @@ class Recorder(LooseMessages, Node):
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"
         self._bag, self._span = bag, []
-        self.log.info(f"recording to {bag.path}")
+        if say:
+            self.log.info(f"recording to {bag.path}")
         return True, f"recording to {bag.path}"
 
-    def _close_bag(self, reason: str) -> tuple[bool, str]:
-        """Close the open bag and announce it (``reason``); (whether it closed, what happened)."""
+    def _close_bag(self, reason: str, say: bool = True) -> tuple[bool, str]:
+        """Close the open bag and announce it (``reason``); (whether it closed, what happened), on /rosout too
+        unless ``say`` is False (the caller says it)."""
         bag, self._bag = self._bag, None
         assert bag is not None
         try:
@@ -440,7 +443,8 @@ class Recorder(LooseMessages, Node):
             return False, f"closing {bag.path} failed: {type(err).__name__}: {err}"
         self.bags.append(bag.path)
         self._announce(bag, reason)
-        self.log.info(f"closed {bag.path} ({bag.count} messages)")
+        if say:
+            self.log.info(f"closed {bag.path} ({bag.count} messages)")
         return True, f"closed {bag.path} ({bag.count} messages)"
 
     # ------------------------------------------------------------------ write failures
