@@ -16,10 +16,10 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from t42_transfer import __version__
-from t42_transfer.cli import bag, camera, demo, evaluate, experiment, hw, model, node, plan, sim, view
+from t42_transfer.cli import bag, camera, demo, evaluate, experiment, graph, hw, model, node, plan, sim, view
 from t42_transfer.cli.args import OneLineParser, os_error
 
-GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, hw, camera, view)
+GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, graph, hw, camera, view)
 """Command modules, in the order ``t42 --help`` lists them."""
 
 

@@ -1,0 +1,142 @@
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``: the ``ros2 lifecycle``, ``ros2 service call`` and ``ros2 param``
+a pip-installed ROS lacks (no ros2cli wheel), for the suite's lifecycle nodes, Trigger services and parameters."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
+
+import yaml
+
+from t42_transfer.cli.args import float_arg
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
+"""The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
+
+
+@contextlib.contextmanager
+def _graph_node() -> Iterator[Node]:
+    """A node of its own on the graph (local discovery unless chosen otherwise, as ``t42 up`` starts the suite)."""
+    from t42_transfer.ros.runner import keep_discovery_local
+
+    keep_discovery_local()
+    import rclpy
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node(f"t42_cli_{os.getpid()}", context=context)
+    try:
+        yield node
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+
+
+def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> Any:
+    """``request`` to the service ``name``, once it is on the graph (ValueError after ``wait_s``); its answer."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    client = node.create_client(srv_type, name)
+    if not client.wait_for_service(timeout_sec=wait_s):
+        raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (ROS_DOMAIN_ID "
+                         f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+    future = client.call_async(request)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    executor.spin_until_future_complete(future)  # a transfer takes minutes: Ctrl-C stops the wait
+    return future.result()
+
+
+def _absolute(node_name: str) -> str:
+    return node_name if node_name.startswith("/") else "/" + node_name
+
+
+def _cmd_lifecycle(args: argparse.Namespace) -> int:
+    from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
+
+    target = _absolute(args.node)
+    with _graph_node() as node:
+        if args.transition is None:
+            state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait)
+            print(f"{target}: {state.current_state.label}")
+            return 0
+        available = _call(node, GetAvailableTransitions, f"{target}/get_available_transitions",
+                          GetAvailableTransitions.Request(), args.wait).available_transitions
+        labels = {t.transition.label: t.transition.id for t in available}
+        wanted = [label for label in labels if label == args.transition
+                  or (args.transition == "shutdown" and label.endswith("shutdown"))]
+        if not wanted:
+            raise ValueError(f"{target}: cannot {args.transition} from its state now; it can: "
+                             f"{', '.join(sorted(labels)) or 'nothing'}")
+        request = ChangeState.Request()
+        request.transition.id = labels[wanted[0]]
+        done = _call(node, ChangeState, f"{target}/change_state", request, args.wait).success
+        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait).current_state.label
+    print(f"{target}: {args.transition} {'done' if done else 'failed (the node logs why)'}; now {state}")
+    return 0 if done else 1
+
+
+def _cmd_call(args: argparse.Namespace) -> int:
+    from std_srvs.srv import Trigger
+
+    with _graph_node() as node:
+        answer = _call(node, Trigger, args.service, Trigger.Request(), args.wait)
+    print(f"{args.service}: {'success' if answer.success else 'failure'}: {answer.message}")
+    return 0 if answer.success else 1
+
+
+def _cmd_param(args: argparse.Namespace) -> int:
+    from rcl_interfaces.msg import ParameterType
+    from rcl_interfaces.srv import GetParameters, SetParameters
+    from rclpy.parameter import Parameter, parameter_value_to_python
+
+    target = _absolute(args.node)
+    with _graph_node() as node:
+        if args.value is None:
+            values = _call(node, GetParameters, f"{target}/get_parameters", GetParameters.Request(names=[args.name]),
+                           args.wait).values
+            if not values or values[0].type == ParameterType.PARAMETER_NOT_SET:
+                raise ValueError(f"{target}: has no parameter {args.name!r} (or it is not set)")
+            print(f"{target} {args.name}: {parameter_value_to_python(values[0])}")
+            return 0
+        try:
+            value = yaml.safe_load(args.value)  # as ros2 param set reads it: 2.5, true, [2.5, 2.5], text
+            message = Parameter(args.name, value=value).to_parameter_msg()
+        except (yaml.YAMLError, TypeError) as err:
+            raise ValueError(f"{args.value!r}: not a parameter value ({err})") from None
+        result = _call(node, SetParameters, f"{target}/set_parameters",
+                       SetParameters.Request(parameters=[message]), args.wait).results[0]
+    print(f"{target} {args.name}: " + ("set" if result.successful else f"refused: {result.reason}"))
+    return 0 if result.successful else 1
+
+
+def _wait_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
+                        help="how long to wait for the service to appear on the graph (default 10 s)")
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    lifecycle = commands.add_parser("lifecycle", help="a lifecycle node's state, or a transition (as ros2 lifecycle)")
+    lifecycle.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
+    lifecycle.add_argument("transition", nargs="?", choices=TRANSITIONS, metavar="TRANSITION",
+                           help=f"one of {', '.join(TRANSITIONS)}; none: print the state")
+    _wait_argument(lifecycle)
+    lifecycle.set_defaults(func=_cmd_lifecycle)
+    call = commands.add_parser("call", help="call a std_srvs/Trigger service, e.g. /hand/reset, /t42/transfer_now "
+                                            "(as ros2 service call)")
+    call.add_argument("service", metavar="SERVICE")
+    _wait_argument(call)
+    call.set_defaults(func=_cmd_call)
+    param = commands.add_parser("param", help="get or set a node's parameter (as ros2 param get / set)")
+    param.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
+    param.add_argument("name", metavar="NAME")
+    param.add_argument("value", nargs="?", metavar="VALUE",
+                       help="a YAML value (2.5, true, '[2.5, 2.5]', text); none: print the parameter")
+    _wait_argument(param)
+    param.set_defaults(func=_cmd_param)
