@@ -54,3 +54,26 @@ def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any)
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
     assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
     assert driver.params.grasp_load == 100.0
+
+
+def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -> None:
+    """A transfer answers after minutes: a user who stops waiting gets no traceback."""
+    import signal
+
+    from t42_transfer.ros.deferred_service import DeferredService
+
+    called: list[Any] = []
+
+    def later(_: Any, response: Any) -> Any:  # the answer held back, as a long transfer holds it
+        called.append(service.later())
+        return called[-1]
+
+    service = DeferredService(ros.node("slow_server"), Trigger, "/t42/transfer_now", later)
+    proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "call", "/t42/transfer_now"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert ros.spin_until(lambda: called, 30.0)
+    proc.send_signal(signal.SIGINT)
+    assert ros.spin_until(lambda: proc.poll() is not None, 10.0)
+    out, err = proc.communicate()
+    assert proc.returncode == 130 and out == "", (out, err)
+    assert err == "t42: interrupted: stopped waiting for the answer (the node still carries the request out)\n", err

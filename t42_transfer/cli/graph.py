@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import sys
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -33,7 +34,13 @@ def _graph_node() -> Iterator[Node]:
     node = rclpy.create_node(f"t42_cli_{os.getpid()}", context=context)
     try:
         yield node
+    except KeyboardInterrupt:  # Ctrl-C while waiting: the node goes on with what it was asked (a transfer, say)
+        print("t42: interrupted: stopped waiting for the answer (the node still carries the request out)",
+              file=sys.stderr)
+        raise SystemExit(130) from None
     finally:
+        if node.executor is not None:
+            node.executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
 
@@ -47,9 +54,12 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
         raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (ROS_DOMAIN_ID "
                          f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
     future = client.call_async(request)
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
+    executor = node.executor
+    if executor is None:  # one for the node's calls
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
     executor.spin_until_future_complete(future)  # a transfer takes minutes: Ctrl-C stops the wait
+    node.destroy_client(client)
     return future.result()
 
 
