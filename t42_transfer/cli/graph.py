@@ -51,8 +51,9 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
 
     client = node.create_client(srv_type, name)
     if not client.wait_for_service(timeout_sec=wait_s):
-        raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (ROS_DOMAIN_ID "
-                         f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+        kind = srv_type.__name__
+        raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (a {kind} service; "
+                         f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
     future = client.call_async(request)
     executor = node.executor
     if executor is None:  # one for the node's calls
