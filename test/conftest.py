@@ -195,24 +195,6 @@ def module_ros_domain() -> Iterator[int]:
         yield domain
 
 
-LONGEST_FILES = (
-    "test_hw_emulator_node.py", "test_dynamixel_driver.py", "test_stock_graph.py", "test_recorder.py",
-    "test_experiment.py", "test_node_runner.py", "test_object_tracker_node.py", "test_hardware_suite.py",
-    "test_mock_driver.py", "test_cli_graph.py", "test_transfer.py", "test_peg_in_hole.py", "test_planner_node.py",
-    "test_demo.py", "test_bag_player.py", "test_recorder_processes.py", "test_transfer_server_auto.py",
-)
-"""The fast suite's files of 12 s or more in all (2026-12-06, 3 workers on 2 cores), longest first.  pytest-xdist
-hands whole files to its workers in collection order (scripts/test.sh turns off its own reordering, which puts the
-files of fewest tests last: a 30 s file of two tests started in the last seconds and ran alone), so these go first
-and the short files fill the end."""
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """:data:`LONGEST_FILES` first, longest first; the rest after them, in their order (the sort is stable)."""
-    rank = {name: k for k, name in enumerate(LONGEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
-
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[pytest.TestReport]:
     """Each phase's report on its item (``item.report_call``...): a fixture shared by tests learns whether the
