@@ -28,9 +28,10 @@ def _graph_node() -> Iterator[Node]:
 
     keep_discovery_local()
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
     context = rclpy.Context()
-    rclpy.init(context=context)
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt, below
     node = rclpy.create_node(f"t42_cli_{os.getpid()}", context=context)
     try:
         yield node
@@ -40,7 +41,7 @@ def _graph_node() -> Iterator[Node]:
         raise SystemExit(130) from None
     finally:
         if node.executor is not None:
-            node.executor.shutdown()
+            node.executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
         rclpy.shutdown(context=context)
 
@@ -59,7 +60,8 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     if executor is None:  # one for the node's calls
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
-    executor.spin_until_future_complete(future)  # a transfer takes minutes: Ctrl-C stops the wait
+    while not future.done():  # a transfer takes minutes: Ctrl-C stops the wait (between short waits)
+        executor.spin_once(timeout_sec=0.2)
     node.destroy_client(client)
     return future.result()
 
