@@ -306,8 +306,9 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     return TrajectorySet(episodes, hand=hand)
 
 
-_END_PRECEDENCE = (names.DROPPED, names.LOST_CONTACT, names.OVERLOAD)
-"""Which end word a state named by several gets: a fall first (its state is left out), then an overload."""
+_END_PRECEDENCE = names.END_EVENTS
+"""Which end word a state named by several gets, in ``END_EVENTS``' order: a fall first (its state is left out),
+then an overload."""
 
 
 def _end_stamps(texts: list[str]) -> dict[int, str]:
