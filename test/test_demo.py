@@ -162,8 +162,13 @@ def story_told(out_dir: Path, capsys: pytest.CaptureFixture[str], *options: str,
     plans = summary["executed_plans"]
     assert plans["round"] == size["rounds"] and 1 <= plans["episodes"] <= len(size["goal_steps"]) + 1, plans
     assert set(plans["scores"]) == {"source", "hold_still", "round 1", "round 2"}
-    scores = plans["scores"]  # the loop's newest model follows the plans longer than holding still does
-    assert scores["round 2"]["divergence_steps"] > scores["hold_still"]["divergence_steps"], scores
+    # The loop's newest model follows the executed plans closer than holding still does, over each whole plan
+    # (position MSE). Not by its 4 mm divergence: these are one or two fast plans (2-3 mm a step), where any model's
+    # divergence ends in the first 4-30 steps, and holding still's at 8.5-9 from the slow first steps. Six emulated
+    # quick demos: round 2 diverged first in one (4 against 8.5 steps), with an MSE of 12.6 mm² against holding
+    # still's 202.7; over the six its MSE was 6.2-12.6 mm², holding still's 200-236.
+    scores = plans["scores"]
+    assert scores["round 2"]["position_mse_mm2"] < scores["hold_still"]["position_mse_mm2"], scores
 
     # every goal lay at least twice the tolerance away; it was planned and executed; doing nothing never hits
     goals = summary["goals"]
