@@ -10,7 +10,7 @@ status words, are defined there, in the layer below, and re-exported here.
 
 from __future__ import annotations
 
-from msg_adapters.names import DROPPED, LOST_CONTACT, OVERLOAD
+from msg_adapters.names import DROPPED, LOST_CONTACT, OVERLOAD, RESET
 from msg_adapters.wire import (
     ACTION_DIM,
     ACTION_UNIT_RAD,
@@ -76,7 +76,8 @@ DROP_JUMP_MM = 8.0
 MIN_EPISODE_STEPS = 15
 """Episodes shorter than this are discarded (paper's data rule)."""
 
-END_REASONS = ("", "length", DROPPED, OVERLOAD, LOST_CONTACT)
-"""Why an episode ended: not recorded, its planned length, or one of the hand's end events."""
+END_REASONS = ("", "length", RESET, DROPPED, OVERLOAD, LOST_CONTACT)
+"""Why an episode ended: not recorded, its planned length, the hand grasped anew after it (a bag's ``reset``
+status), or one of the hand's end events."""
 DROP_REASONS = (DROPPED, LOST_CONTACT)
 """End reasons that mean the object left the grasp."""

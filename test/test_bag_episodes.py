@@ -360,6 +360,8 @@ def test_a_reset_mid_episode_ends_the_episode_at_the_state_it_names(tmp_path, ep
     assert np.array_equal(before.actions, episode.actions[:reset_after])
     assert after.start_ns == stamp + CONTROL_PERIOD_NS
     assert np.array_equal(after.states, episode.states[reset_after + 1 :])
+    assert (before.end_reason, after.end_reason) == (names.RESET, "")  # the second ran to the end of the bag
+    assert bag_info(path)["end_reasons"] == {names.RESET: 1, "unknown": 1}
 
 
 def with_statuses(episode: Trajectory, statuses: list[tuple[str, int]], drop: set[int] = frozenset()) -> list:
@@ -449,5 +451,6 @@ def test_an_end_named_twice_is_a_fall_and_a_reset_border_takes_no_end_of_the_nex
                 if not (m[0] == POSE and m[1] == unseen)]
     with pytest.warns(UserWarning, match="kept the whole steps only"):
         before, after = read_bag(write_messages(tmp_path / "border", messages, types=STATUS_TYPES))
-    assert before.end_reason == "" and np.array_equal(before.states, episode.states[: border + 1])
+    assert before.end_reason == names.RESET and np.array_equal(before.states, episode.states[: border + 1])
     assert after.end_reason == "" and np.array_equal(after.states, episode.states[border + 2 :])
+    assert bag_info(tmp_path / "border")["end_reasons"] == {names.RESET: 1, "unknown": 1}

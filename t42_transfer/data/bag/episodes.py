@@ -287,7 +287,9 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
                 if a == b:
                     continue  # the fall alone: nothing of the episode was in this run
                 b -= 1  # the state the driver saw the object fall into: no state of a hand holding it
-            elif not end_reason and first + b not in reset:  # the step after ended it, but lost a message or its pose
+            elif not end_reason and first + b in reset:
+                end_reason = names.RESET
+            elif not end_reason:  # the step after ended it, but lost a message or its pose
                 end_reason = _next_end(joints.stamps[first + b], end_stamps)
             start, steps = int(joints.stamps[first + a]), b - a
             if steps < MIN_EPISODE_STEPS:
