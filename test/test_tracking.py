@@ -262,6 +262,7 @@ def test_image_buffers_are_checked() -> None:
     (dict(base_markers=()), "at least one base marker"),
     (dict(jump_mm=-1.0), "jump_mm must be positive"),
     (dict(dictionary="DICT_NOPE"), "unknown ArUco dictionary"),
+    (dict(object_id=50), r"marker id\(s\) \[50\] are not in DICT_4X4_50 \(ids 0 to 49\)"),
     (dict(object_height_m=math.inf), "object_height_m must be finite"),
 ])
 def test_bad_tracker_settings_are_refused(camera: HandCamera, change: dict, message: str) -> None:

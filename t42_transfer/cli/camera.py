@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from t42_transfer.cli.args import existing_dir, float_arg, new_output
+from t42_transfer.cli.args import existing_dir, existing_file, float_arg, new_output
 
 if TYPE_CHECKING:
+    from t42_transfer.nodes.object_tracker import ObjectTrackerParams
     from t42_transfer.tracking.calibrate import Board
 
 BOARDS = ("checkerboard", "charuco")
 CHARUCO_ONLY = ("squares", "marker", "dictionary")
+MARKER_PARAMETERS = ("object_id", "object_size_m", "base_ids", "base_sizes_m", "dictionary")
+"""The object tracker's parameters that say which markers to print."""
 
 
 def _board(args: argparse.Namespace) -> Board:
@@ -54,6 +58,68 @@ def _cmd_camera_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _board_arguments(parser: argparse.ArgumentParser) -> None:
+    """The board options ``calibrate`` and ``board`` share (checked together by :func:`_board`)."""
+    parser.add_argument("--board", choices=BOARDS, default="checkerboard",
+                        help="checkerboard (the whole board in each image) or charuco (ArUco markers in the white "
+                             "squares: part of the board is enough) (default checkerboard)")
+    parser.add_argument("--pattern", help="checkerboard: inner corners per row x per column (default 9x6)")
+    parser.add_argument("--squares",
+                        help="charuco: squares per row x per column, e.g. 7x5 (as cv2.aruco.CharucoBoard)")
+    parser.add_argument("--square", type=float_arg(0.0, 10.0, low_open=True), default=0.025,
+                        help="side of a board square in metres (default 0.025)")
+    parser.add_argument("--marker", type=float_arg(0.0, 10.0, low_open=True),
+                        help="charuco: side of a marker in metres (smaller than --square)")
+    parser.add_argument("--dictionary", help="charuco: the markers' ArUco dictionary (default DICT_4X4_50)")
+
+
+def _cmd_camera_markers(args: argparse.Namespace) -> int:
+    from t42_transfer.tracking.printing import marker_sheet, save_sheet, tracker_markers
+
+    params = _tracker_params(args.config, args.node)
+    new_output(args.out)
+    config = params.tracker_config()
+    markers = tracker_markers(config)
+    source = f"{args.node} in {args.config}" if args.config else f"the {args.node} node's defaults"
+    fig = marker_sheet(markers, config.dictionary, args.paper,
+                       title=f"ArUco markers ({config.dictionary}) for the object tracker: {source}")
+    save_sheet(fig, args.out)
+    print(f"{len(markers)} markers ({config.dictionary}): "
+          + ", ".join(f"id {m.marker_id} {m.role} {m.size_m * 1000:g} mm" for m in markers)
+          + f" -> {args.out}; print at 100 % (actual size) and check the 50 mm bar")
+    return 0
+
+
+def _tracker_params(config: Path | None, node: str) -> ObjectTrackerParams:
+    """The tracker's parameters from a params file's ``node`` section (their own checks), or its defaults."""
+    from t42_transfer.nodes.object_tracker import ObjectTrackerParams
+    from t42_transfer.ros.launcher import node_parameters
+
+    if config is None:
+        return ObjectTrackerParams()
+    values = node_parameters(existing_file(config), node)
+    known = {f.name for f in dataclasses.fields(ObjectTrackerParams)}
+    given = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
+    if not given.keys() & MARKER_PARAMETERS:
+        raise ValueError(f"{config}: {node}: sets none of the tracker's marker parameters "
+                         f"({', '.join(MARKER_PARAMETERS)}): not the tracker's section? (--node names it)")
+    try:
+        return ObjectTrackerParams(**given)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{config}: {node}: {err}") from None
+
+
+def _cmd_camera_board(args: argparse.Namespace) -> int:
+    from t42_transfer.tracking.printing import board_sheet, save_sheet
+
+    board = _board(args)
+    new_output(args.out)
+    save_sheet(board_sheet(board, args.paper), args.out)
+    print(f"{board.describe()}, {board.square_m * 1000:g} mm squares -> {args.out}; print at 100 % (actual size), "
+          "check the 50 mm bar, then measure a square and give t42 camera calibrate what you measure")
+    return 0
+
+
 def add_commands(commands: argparse._SubParsersAction) -> None:
     camera = commands.add_parser("camera", help="cameras for the object tracker").add_subparsers(
         dest="camera_command", metavar="ACTION")
@@ -61,15 +127,23 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                             "camera_info YAML")
     cal.add_argument("folder", type=Path, metavar="FOLDER", help="folder of images of one camera (png, jpg, ...)")
     cal.add_argument("out", type=Path, metavar="OUT.yaml", help="camera_info YAML to create")
-    cal.add_argument("--board", choices=BOARDS, default="checkerboard",
-                     help="checkerboard (the whole board in each image) or charuco (ArUco markers in the white "
-                          "squares: part of the board is enough) (default checkerboard)")
-    cal.add_argument("--pattern", help="checkerboard: inner corners per row x per column (default 9x6)")
-    cal.add_argument("--squares", help="charuco: squares per row x per column, e.g. 7x5 (as cv2.aruco.CharucoBoard)")
-    cal.add_argument("--square", type=float_arg(0.0, 10.0, low_open=True), default=0.025,
-                     help="side of a board square in metres (default 0.025)")
-    cal.add_argument("--marker", type=float_arg(0.0, 10.0, low_open=True),
-                     help="charuco: side of a marker in metres (smaller than --square)")
-    cal.add_argument("--dictionary", help="charuco: the markers' ArUco dictionary (default DICT_4X4_50)")
+    _board_arguments(cal)
     cal.add_argument("--camera-name", default="camera", help="camera_name in the YAML (default camera)")
     cal.set_defaults(func=_cmd_camera_calibrate)
+
+    outputs = "(.pdf, .svg, .eps, .ps: vector, or .png at 300 dpi)"
+    paper = "page size: a4, a3 or letter (default a4)"
+    markers = camera.add_parser("markers", help="print the object tracker's ArUco markers at their sizes")
+    markers.add_argument("out", type=Path, metavar="OUT", help=f"sheet to create {outputs}")
+    markers.add_argument("--config", type=Path, metavar="PARAMS.yaml",
+                         help="a params file (configs/hardware_real.yaml): the markers its tracker section names "
+                              "(default: the tracker's defaults)")
+    markers.add_argument("--node", default="object_tracker", help="the tracker's node name (default object_tracker)")
+    markers.add_argument("--paper", default="a4", help=paper)
+    markers.set_defaults(func=_cmd_camera_markers)
+
+    board = camera.add_parser("board", help="print a calibration board at its size, as calibrate takes it")
+    board.add_argument("out", type=Path, metavar="OUT", help=f"sheet to create {outputs}")
+    _board_arguments(board)
+    board.add_argument("--paper", default="a4", help=paper)
+    board.set_defaults(func=_cmd_camera_board)

@@ -213,8 +213,10 @@ class TrackerConfig:
                 raise ValueError(f"base marker {m.marker_id}: rotation is not a rotation matrix")
             if len(m.position_m) != 3 or not all(math.isfinite(v) for v in m.position_m):
                 raise ValueError(f"base marker {m.marker_id}: position must be 3 finite numbers")
-        if not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f"unknown ArUco dictionary {self.dictionary!r}")
+        count = aruco_dictionary(self.dictionary).bytesList.shape[0]
+        outside = [i for i in ids if not 0 <= i < count]
+        if outside:  # never detected: the tracker would wait for it for ever
+            raise ValueError(f"marker id(s) {outside} are not in {self.dictionary} (ids 0 to {count - 1})")
 
 
 def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
