@@ -4,6 +4,7 @@ by hand (the rig of test_planner_node).  The client side uses only rclpy, t42_in
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import numpy as np
@@ -206,3 +207,55 @@ def test_goals_end_right_after_many_trajectories_and_episode_ends_have_been_hear
     status.publish(String(data=status_message(names.DROPPED, "the object fell", rig.now_ns())))
     got = rig.run_until(handle.get_result_async(), 5)
     assert got.status == GoalStatus.STATUS_ABORTED and "the episode ended (dropped)" in got.result.reason
+
+
+def t42_reach(rig: ReachRig, *argv: str, interrupt_after_ticks: int | None = None) -> tuple[int, str, str]:
+    """Run ``t42 reach *argv`` as a process while the rig's driver steps (``interrupt_after_ticks``: SIGINT once
+    the plan reached the driver and the hand took so many steps of it); (exit code, stdout, stderr)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "reach", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline, moving = time.monotonic() + 90.0, 0
+    while proc.poll() is None and time.monotonic() < deadline:
+        rig.tick()
+        moving += rig.driver.pending_actions > 0
+        if moving == interrupt_after_ticks:
+            proc.send_signal(signal.SIGINT)
+            interrupt_after_ticks = None  # once
+        rig.ros.spin_until(lambda: proc.poll() is not None, 0.05)
+    if proc.poll() is None:
+        proc.kill()
+    out, err = proc.communicate()
+    return proc.returncode, out, err
+
+
+def test_t42_reach_follows_a_goal_to_its_verdict_as_ros2_action_send_goal_does(ros, rig: ReachRig) -> None:
+    """The command a pip-only install has for the action: feedback lines, the verdict, exit 0 only on a hit."""
+    rig.tick()
+    x, y = (START_XY + [6.0, -4.0]) / 1000
+    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "12")
+    lines = out.splitlines()
+    assert lines and all(line.startswith("step ") for line in lines[:-1]) and len(lines) >= 3, (out, err)
+    assert re.fullmatch(r"/t42/reach: (hit|miss|no_progress|incomplete)(: .+)?; final error \d+\.\d mm after "
+                        r"1[3-9] measured positions", lines[-1]), lines[-1]
+    assert code == (0 if lines[-1].startswith("/t42/reach: hit") else 1), (code, err)
+    assert rig.results[-1]["accepted"] and rig.results[-1]["horizon"] == 12  # the goal's steps, as sent
+    assert [len(t.points) for t in rig.trajectories] == [12]
+
+
+def test_ctrl_c_on_t42_reach_cancels_the_goal_and_the_hand_holds(ros, rig: ReachRig) -> None:
+    rig.tick()
+    x, y = (START_XY + [8.0, 0.0]) / 1000
+    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "40", interrupt_after_ticks=3)
+    assert code == 130 and err == "t42: interrupted: goal cancelled (the hand holds from its next step)\n", (out, err)
+    assert ros.spin_until(lambda: rig.driver.pending_actions == 0, 2.0), "the driver still runs the plan"
+
+
+def test_t42_reach_without_a_planner_is_one_line(ros, rig: ReachRig) -> None:
+    code, out, err = t42_reach(rig, "0.0", "0.05", "--action", "/left/t42/reach", "--wait", "1")
+    assert code == 2 and out == "" and err.count("\n") == 1, (out, err)
+    assert "/left/t42/reach: no such action server on the graph after 1 s" in err, err

@@ -1,5 +1,6 @@
-"""``t42 lifecycle``, ``t42 call``, ``t42 param``: the ``ros2 lifecycle``, ``ros2 service call`` and ``ros2 param``
-a pip-installed ROS lacks (no ros2cli wheel), for the suite's lifecycle nodes, Trigger services and parameters."""
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``: the ``ros2 lifecycle``, ``ros2 service call``,
+``ros2 param`` and ``ros2 action send_goal`` a pip-installed ROS lacks (no ros2cli wheel), for the suite's
+lifecycle nodes, Trigger services, parameters and the planner's ``t42/reach`` action."""
 
 from __future__ import annotations
 
@@ -12,7 +13,9 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from t42_transfer.cli.args import float_arg
+from msg_adapters import names
+from t42_transfer.cli.args import float_arg, int_arg
+from t42_transfer.conventions import MM_PER_M
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -129,6 +132,58 @@ def _cmd_param(args: argparse.Namespace) -> int:
     return 0 if result.successful else 1
 
 
+def _cmd_reach(args: argparse.Namespace) -> int:
+    from rclpy.action import ActionClient
+    from rclpy.executors import SingleThreadedExecutor
+
+    from msg_adapters.reach import reach_goal, reach_outcome, reach_progress, reach_type
+
+    goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
+                      args.replan_every)  # stamp 0: now, for the planner
+    with _graph_node() as node:
+        client = ActionClient(node, reach_type(), args.action)
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+
+        def until(future: Any) -> Any:
+            while not future.done():
+                executor.spin_once(timeout_sec=0.2)
+            return future.result()
+
+        if not client.wait_for_server(timeout_sec=args.wait):
+            raise ValueError(f"{args.action}: no such action server on the graph after {args.wait:g} s (the "
+                             f"planner's; ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)")
+
+        def said(message: Any) -> None:
+            p = reach_progress(message.feedback)
+            print(f"step {p.step}: {p.error_mm:.1f} mm from the target (the plan ends {p.predicted_final_error_mm:.1f}"
+                  " mm from it)", flush=True)
+
+        handle = until(client.send_goal_async(goal, feedback_callback=said))
+        if not handle.accepted:
+            print(f"{args.action}: goal rejected (the planner logs why)")
+            return 1
+        try:
+            outcome = reach_outcome(until(handle.get_result_async()).result)
+        except KeyboardInterrupt:  # as ros2 action send_goal: Ctrl-C cancels the goal, the hand holds
+            cancel = handle.cancel_goal_async()
+            deadline = node.get_clock().now().nanoseconds + 5e9
+            while not cancel.done() and node.get_clock().now().nanoseconds < deadline:
+                executor.spin_once(timeout_sec=0.2)
+            print("t42: interrupted: goal " + ("cancelled (the hand holds from its next step)" if cancel.done()
+                                               and cancel.result().goals_canceling else "cancel not confirmed"),
+                  file=sys.stderr)
+            raise SystemExit(130) from None
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+            client.destroy()
+    error = "unknown" if outcome.final_error_mm is None else f"{outcome.final_error_mm:.1f} mm"
+    why = f": {outcome.reason}" if outcome.reason else ""
+    print(f"{args.action}: {outcome.verdict}{why}; final error {error} after {len(outcome.executed_mm)} measured "
+          f"positions")
+    return 0 if outcome.success else 1
+
+
 def _wait_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
                         help="how long to wait for the service to appear on the graph (default 10 s)")
@@ -153,3 +208,19 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help="a YAML value (2.5, true, '[2.5, 2.5]', text); none: print the parameter")
     _wait_argument(param)
     param.set_defaults(func=_cmd_param)
+    reach = commands.add_parser("reach", help="send the planner a t42/reach goal and follow it to its result (as ros2 "
+                                              "action send_goal --feedback); Ctrl-C cancels it")
+    for axis in ("x", "y"):
+        reach.add_argument(axis, type=float_arg(-1.0, 1.0), metavar=axis.upper(),
+                           help=f"the object's target {axis} in t42_base, metres (REP 103), as the action takes it")
+    reach.add_argument("--tolerance", type=float_arg(0.0, 1.0), default=0.0, metavar="M",
+                       help="success radius, metres (default 0: the planner's tolerance_m)")
+    reach.add_argument("--steps", type=int_arg(0, 100_000), default=0, metavar="N",
+                       help="plan horizon in control steps (default 0: the planner's choice)")
+    reach.add_argument("--replan-every", type=int_arg(0, 100_000), default=0, metavar="K",
+                       help="replan every K executed steps (default 0: the planner's replan_every)")
+    reach.add_argument("--action", default=f"/{names.REACH}", metavar="NAME",
+                       help=f"the action's name (default /{names.REACH}; under a namespace e.g. /left/{names.REACH})")
+    reach.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
+                       help="how long to wait for the action server to appear on the graph (default 10 s)")
+    reach.set_defaults(func=_cmd_reach)
