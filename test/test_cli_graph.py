@@ -1,5 +1,5 @@
-"""``t42 lifecycle``, ``t42 call``, ``t42 param`` as processes against nodes on the test's own graph: what a user of
-the pip-installed ROS (no ``ros2`` command) drives the suite with."""
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach`` as processes against stock nodes and servers on
+the test's own graph: what a user of the pip-installed ROS (no ``ros2`` command) drives the suite with."""
 
 from __future__ import annotations
 
@@ -78,3 +78,67 @@ def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -
     out, err = proc.communicate()
     assert proc.returncode == 130 and out == "", (out, err)
     assert err == "t42: interrupted: stopped waiting for the answer (the node still carries the request out)\n", err
+
+
+def reach_server(ros: Any, name: str, **callbacks: Any) -> Any:
+    """A stock t42/reach ActionServer on its own node (a planner's stand-in for what a planner may do)."""
+    from rclpy.action import ActionServer
+    from t42_interfaces.action import Reach
+
+    node = ros.node(name)
+    return node, ActionServer(node, Reach, "/t42/reach", **callbacks)
+
+
+def t42_started(*argv: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", *argv], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_ctrl_c_while_the_planner_has_not_answered_the_goal_still_cancels_it(ros: Any) -> None:
+    """The goal's answer comes after the Ctrl-C: the command waits for it, then cancels the goal."""
+    import signal
+    import time
+
+    from rclpy.action import CancelResponse, GoalResponse
+
+    proc: list[subprocess.Popen] = []
+    held: list[Any] = []
+    cancelled: list[Any] = []
+
+    def slow_answer(_: Any) -> GoalResponse:  # the user presses Ctrl-C while the planner decides
+        proc[0].send_signal(signal.SIGINT)
+        time.sleep(1.0)
+        return GoalResponse.ACCEPT
+
+    reach_server(ros, "slow_planner", execute_callback=lambda handle: None, goal_callback=slow_answer,
+                 handle_accepted_callback=held.append,  # accepted, never run: it runs until cancelled
+                 cancel_callback=lambda handle: cancelled.append(handle) or CancelResponse.ACCEPT)
+    proc.append(t42_started("reach", "0.0", "0.07"))
+    assert ros.spin_until(lambda: proc[0].poll() is not None, 60.0)
+    out, err = proc[0].communicate()
+    assert proc[0].returncode == 130 and out == "", (out, err)
+    assert err == "t42: interrupted: goal cancelled (the hand holds from its next step)\n", err
+    assert len(held) == 1 and len(cancelled) == 1
+
+
+def test_a_planner_that_leaves_mid_goal_or_fails_without_a_result_ends_the_wait_with_one_line(ros: Any) -> None:
+    held: list[Any] = []
+    node, server = reach_server(ros, "leaving_planner", execute_callback=lambda handle: None,
+                                handle_accepted_callback=held.append)
+    proc = t42_started("reach", "0.0", "0.07")
+    assert ros.spin_until(lambda: held, 60.0)
+    server.destroy()  # the planner's process ends with the goal under way
+    ros.executor.remove_node(node)
+    node.destroy_node()
+    assert ros.spin_until(lambda: proc.poll() is not None, 30.0), "still waiting on a planner that is gone"
+    out, err = proc.communicate()
+    assert proc.returncode == 2 and err.count("\n") == 1, (out, err)
+    assert "/t42/reach: the action server left the graph before the goal's result" in err, err
+
+    def fails(handle: Any) -> Any:
+        raise RuntimeError("the model file vanished")  # rclpy aborts it and sends an empty result
+
+    reach_server(ros, "failing_planner", execute_callback=fails)
+    code, out, err = t42(ros, "reach", "0.0", "0.07")
+    assert code == 1 and out == "/t42/reach: the goal ended aborted without a result (the planner's log says why)\n", \
+        (out, err)

@@ -6,8 +6,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
+import signal
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -132,7 +136,12 @@ def _cmd_param(args: argparse.Namespace) -> int:
     return 0 if result.successful else 1
 
 
+SERVER_GONE_S = 3.0
+"""How long ``t42 reach`` waits on an action server that left the graph before it stops waiting."""
+
+
 def _cmd_reach(args: argparse.Namespace) -> int:
+    from action_msgs.msg import GoalStatus
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
 
@@ -140,48 +149,100 @@ def _cmd_reach(args: argparse.Namespace) -> int:
 
     goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
                       args.replan_every)  # stamp 0: now, for the planner
-    with _graph_node() as node:
+    interrupted = threading.Event()  # Ctrl-C sets it; the loops below stop at their next turn (an interrupt
+    # raised inside rclpy's C++ calls would come out as some other error, or leave the action client half-way)
+    with _graph_node() as node, _sigint_sets(interrupted):
         client = ActionClient(node, reach_type(), args.action)
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
 
-        def until(future: Any) -> Any:
-            while not future.done():
-                executor.spin_once(timeout_sec=0.2)
-            return future.result()
-
-        if not client.wait_for_server(timeout_sec=args.wait):
-            raise ValueError(f"{args.action}: no such action server on the graph after {args.wait:g} s (the "
-                             f"planner's; ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)")
+        def until(done: Any, what: str, wait_s: float = math.inf) -> None:
+            """Spin until ``done()``; KeyboardInterrupt on Ctrl-C; ValueError after ``wait_s`` or once the server
+            has been off the graph for SERVER_GONE_S."""
+            start, gone_since = time.monotonic(), None
+            while not done():
+                if interrupted.is_set():
+                    raise KeyboardInterrupt
+                executor.spin_once(timeout_sec=0.1)
+                now = time.monotonic()
+                if now - start > wait_s:
+                    raise ValueError(what)
+                if wait_s < math.inf or client.server_is_ready():
+                    gone_since = None
+                elif gone_since is None:
+                    gone_since = now
+                elif now - gone_since > SERVER_GONE_S:
+                    raise ValueError(f"{args.action}: the action server left the graph {what}")
 
         def said(message: Any) -> None:
             p = reach_progress(message.feedback)
             print(f"step {p.step}: {p.error_mm:.1f} mm from the target (the plan ends {p.predicted_final_error_mm:.1f}"
                   " mm from it)", flush=True)
 
-        handle = until(client.send_goal_async(goal, feedback_callback=said))
-        if not handle.accepted:
-            print(f"{args.action}: goal rejected (the planner logs why)")
-            return 1
+        sent = None
         try:
-            outcome = reach_outcome(until(handle.get_result_async()).result)
+            until(client.server_is_ready,
+                  f"{args.action}: no such action server on the graph after {args.wait:g} s (the planner's; "
+                  f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)", args.wait)
+            sent = client.send_goal_async(goal, feedback_callback=said)
+            until(sent.done, "before it answered the goal")
+            handle = sent.result()
+            if not handle.accepted:
+                print(f"{args.action}: goal rejected (the planner logs why)")
+                return 1
+            result = handle.get_result_async()
+            until(result.done, "before the goal's result (the hand may still run the plan)")
+            got = result.result()
         except KeyboardInterrupt:  # as ros2 action send_goal: Ctrl-C cancels the goal, the hand holds
-            cancel = handle.cancel_goal_async()
-            deadline = node.get_clock().now().nanoseconds + 5e9
-            while not cancel.done() and node.get_clock().now().nanoseconds < deadline:
-                executor.spin_once(timeout_sec=0.2)
-            print("t42: interrupted: goal " + ("cancelled (the hand holds from its next step)" if cancel.done()
-                                               and cancel.result().goals_canceling else "cancel not confirmed"),
-                  file=sys.stderr)
+            print(f"t42: interrupted: {_cancelled(executor, sent)}", file=sys.stderr)
             raise SystemExit(130) from None
         finally:
             executor.shutdown(timeout_sec=1.0)
             client.destroy()
+    if not got.result.verdict:  # a server that failed builds no result (rclpy sends the empty default)
+        status = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "canceled"}.get(got.status,
+                                                                                                   str(got.status))
+        print(f"{args.action}: the goal ended {status} without a result (the planner's log says why)")
+        return 1
+    outcome = reach_outcome(got.result)
     error = "unknown" if outcome.final_error_mm is None else f"{outcome.final_error_mm:.1f} mm"
     why = f": {outcome.reason}" if outcome.reason else ""
     print(f"{args.action}: {outcome.verdict}{why}; final error {error} after {len(outcome.executed_mm)} measured "
           f"positions")
     return 0 if outcome.success else 1
+
+
+@contextlib.contextmanager
+def _sigint_sets(flag: threading.Event) -> Iterator[None]:
+    """Within: SIGINT sets ``flag`` instead of raising KeyboardInterrupt wherever the program happens to be."""
+    before = signal.signal(signal.SIGINT, lambda *_: flag.set())
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def _cancelled(executor: Any, sent: Any) -> str:
+    """Cancel the goal ``sent`` (a goal future, or None: none sent), waiting for its answer up to 5 s a request;
+    what became of it, for the user."""
+    if sent is None:
+        return "no goal sent"
+
+    def wait(future: Any) -> bool:
+        deadline = time.monotonic() + 5.0
+        while not future.done() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+        return future.done()
+
+    if not wait(sent):
+        return "the goal was sent but never answered; it may still run (stop it with a new goal or hand/reset)"
+    handle = sent.result()
+    if not handle.accepted:
+        return "the goal was rejected"
+    cancel = handle.cancel_goal_async()
+    if wait(cancel) and cancel.result().goals_canceling:
+        return "goal cancelled (the hand holds from its next step)"
+    return "cancel not confirmed (the goal may have ended already)"
 
 
 def _wait_argument(parser: argparse.ArgumentParser) -> None:
