@@ -454,3 +454,14 @@ def test_an_end_named_twice_is_a_fall_and_a_reset_border_takes_no_end_of_the_nex
     assert before.end_reason == names.RESET and np.array_equal(before.states, episode.states[: border + 1])
     assert after.end_reason == "" and np.array_equal(after.states, episode.states[border + 2 :])
     assert bag_info(tmp_path / "border")["end_reasons"] == {names.RESET: 1, "unknown": 1}
+
+
+@pytest.mark.parametrize("lost", [JOINTS, POSE])
+def test_a_reset_whose_named_state_lost_a_message_still_ends_the_episode_as_reset(tmp_path, episode, lost):
+    named = 29
+    stamp = episode.start_ns + named * CONTROL_PERIOD_NS
+    messages = [m for m in with_statuses(episode, [(names.RESET, named)]) if not (m[0] == lost and m[1] == stamp)]
+    with pytest.warns(UserWarning, match="kept the whole steps only"):
+        before, after = read_bag(write_messages(tmp_path / "bag", messages, types=STATUS_TYPES))
+    assert before.end_reason == names.RESET and np.array_equal(before.states, episode.states[:named])
+    assert after.end_reason == "" and np.array_equal(after.states, episode.states[named + 1:])

@@ -269,7 +269,8 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
     texts = status_texts(bag, raw)
     # A reset names the last state of the grasp before it: the hand was grasped anew after it, so the action
     # published from that state leads to no recorded state (a simulated hand's next step is the new grasp's first).
-    reset = _state_at(joints.stamps, ma.event_stamps(texts, names.RESET))
+    reset_stamps = dict.fromkeys(ma.event_stamps(texts, names.RESET), names.RESET)
+    reset = _state_at(joints.stamps, set(reset_stamps))
     action_of[reset] = -1
     end_stamps = _end_stamps(texts)
     ended = _ended_states(joints.stamps, end_stamps)
@@ -289,8 +290,9 @@ def assemble_episodes(bag: Path, streams: dict[str, _Stream], raw: RawBag) -> Tr
                 b -= 1  # the state the driver saw the object fall into: no state of a hand holding it
             elif not end_reason and first + b in reset:
                 end_reason = names.RESET
-            elif not end_reason:  # the step after ended it, but lost a message or its pose
-                end_reason = _next_end(joints.stamps[first + b], end_stamps)
+            elif not end_reason:  # the step after ended it, or was the grasp's last, but lost a message or its pose
+                end_reason = _next_end(joints.stamps[first + b], end_stamps) or _next_end(
+                    joints.stamps[first + b], reset_stamps)
             start, steps = int(joints.stamps[first + a]), b - a
             if steps < MIN_EPISODE_STEPS:
                 warnings.warn(
@@ -332,7 +334,8 @@ def _ended_states(stamps: np.ndarray, end_stamps: dict[int, str]) -> dict[int, s
 
 
 def _next_end(stamp: int, end_stamps: dict[int, str]) -> str:
-    """The end word of a status naming the step right after ``stamp`` (within a late step's time), or ""."""
+    """The word of a status in ``end_stamps`` naming the step right after ``stamp`` (within a late step's time),
+    or ""."""
     after = [s for s in end_stamps if stamp + _HALF_PERIOD_NS < s <= stamp + LATE_STEP_NS]
     return end_stamps[min(after)] if after else ""
 

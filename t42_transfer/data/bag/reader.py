@@ -33,8 +33,8 @@ def read_bag(path: str | Path) -> TrajectorySet:
     ``step_ns``), else missing steps (the episode splits there, with a warning).
     An action on an episode's last state has no next state and is not a
     transition.  A driver's end status (``dropped``, ``lost_contact``,
-    ``overload``) gives the episode it names its ``end_reason``; the state the
-    object fell or slipped into is left out.  Episodes shorter than
+    ``overload``) or ``reset`` gives the episode it names its ``end_reason``; the
+    state the object fell or slipped into is left out.  Episodes shorter than
     ``MIN_EPISODE_STEPS`` are dropped with a warning.
     """
     bag = Path(path)
