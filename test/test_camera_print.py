@@ -43,6 +43,24 @@ def test_the_markers_of_the_real_hand_config_are_found_at_their_sizes(tmp_path: 
         assert sides_mm[marker_id] == pytest.approx(side, rel=0.01), sides_mm
 
 
+def test_the_markers_of_one_hand_of_two_are_those_its_namespaced_node_would_take(tmp_path: Path) -> None:
+    """A file for two hands, in rcl's nested form: each tracker's markers by its node's full name."""
+    config = tmp_path / "two_hands.yaml"
+    config.write_text("""
+left:
+  object_tracker:
+    ros__parameters: {object_id: 4, base_ids: [5], base_sizes_m: [0.03], base_poses: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]}
+right:
+  object_tracker:
+    ros__parameters: {object_id: 8, base_ids: [9], base_sizes_m: [0.03], base_poses: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]}
+""")
+    for node, ids in (("/left/object_tracker", [4, 5]), ("right/object_tracker", [8, 9])):
+        out = tmp_path / node.strip("/").replace("/", "_") / "markers.png"  # a folder not there yet
+        assert main(["camera", "markers", str(out), "--config", str(config), "--node", node]) == 0
+        assert sorted(detect(make_detector("DICT_4X4_50"), sheet(out))) == ids
+    assert main(["camera", "markers", str(tmp_path / "root.png"), "--config", str(config)]) == 2  # no root tracker
+
+
 def test_a_pdf_sheet_is_one_page_of_the_papers_size(tmp_path: Path) -> None:
     for paper, points in (("a4", (595.28, 841.89)), ("letter", (612.0, 792.0))):
         out = tmp_path / f"{paper}.pdf"
@@ -53,11 +71,10 @@ def test_a_pdf_sheet_is_one_page_of_the_papers_size(tmp_path: Path) -> None:
         assert box[:2] == [0.0, 0.0] and box[2:] == pytest.approx(points, abs=0.5)
 
 
-def test_a_charuco_board_is_found_whole_with_its_square_size(tmp_path: Path, capsys) -> None:
+def test_a_charuco_board_is_found_whole_with_its_square_size(tmp_path: Path) -> None:
     out = tmp_path / "board.png"
     args = ["--board", "charuco", "--squares", "7x5", "--square", "0.024", "--marker", "0.017"]
     assert main(["camera", "board", str(out), *args]) == 0
-    assert "--squares 7x5" not in capsys.readouterr().err
     board = Charuco((7, 5), 0.024, 0.017)
     points, pixels = board.find(sheet(out))
     assert len(points) == 6 * 4  # every inner corner, each known by its markers
@@ -86,9 +103,13 @@ def _spacing(board_m: np.ndarray, image_px: np.ndarray) -> float:
 @pytest.mark.parametrize("args, message", [
     (["markers", "{out}", "--paper", "a5"], "paper must be one of a4, letter, a3, got 'a5'"),
     (["markers", "{out}", "--config", "{missing}"], "missing.yaml"),
-    (["markers", "{out}", "--config", "{config}", "--node", "recorder"], "object_id"),
+    (["markers", "{out}", "--config", "{config}", "--node", "recorder"],
+     "recorder: mode, out_dir: not a parameter of the object tracker"),
+    (["markers", "{out}", "--config", "{typo}"], "object_size: not a parameter of the object tracker"),
+    (["markers", "{out}", "--config", "{text_id}"], "object_id"),
+    (["markers", "{out}", "--config", "{not_yaml}"], "not_yaml.yaml"),
     (["markers", "{out}", "--config", "{bad_id}"], r"marker id\(s\) \[60\] are not in DICT_4X4_50"),
-    (["markers", "{out}", "--config", "{no_tracker}"], "no section for object_tracker"),
+    (["markers", "{out}", "--config", "{no_tracker}"], "no parameters for /object_tracker"),
     (["markers", "{out}", "--config", "{huge}"], "does not fit across a4 paper"),
     (["markers", "{exists}"], "exists already"),
     (["markers", "{tmp}/sheet.jpg"], "write a sheet as .pdf, .svg, .eps, .ps, .png"),
@@ -102,6 +123,10 @@ def test_bad_requests_are_one_line_errors_and_write_nothing(tmp_path: Path, caps
              "bad_id": tmp_path / "bad_id.yaml", "no_tracker": tmp_path / "no_tracker.yaml",
              "huge": tmp_path / "huge.yaml", "exists": tmp_path / "exists.pdf", "out": tmp_path / "out.pdf",
              "tmp": tmp_path}
+    files.update({k: tmp_path / f"{k}.yaml" for k in ("typo", "text_id", "not_yaml")})
+    files["typo"].write_text(shipped.replace("object_size_m: 0.02 ", "object_size: 0.025"))  # the default: 20 mm
+    files["text_id"].write_text(shipped.replace("object_id: 0", "object_id: '3'"))
+    files["not_yaml"].write_text("/**/object_tracker: {ros__parameters: [")
     files["bad_id"].write_text(shipped.replace("object_id: 0", "object_id: 60"))
     files["no_tracker"].write_text(shipped.replace("/**/object_tracker:", "/**/tracker_elsewhere:"))
     files["huge"].write_text(shipped.replace("base_sizes_m: [0.03, 0.03]", "base_sizes_m: [0.03, 0.3]"))

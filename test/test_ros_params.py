@@ -115,3 +115,35 @@ def test_declare_params_rejects_types_ros_cannot_carry(ros) -> None:
     node = ros.node("plain")
     with pytest.raises(TypeError, match="cannot be a ROS parameter"):
         declare_params(node, Bad)
+
+
+def test_params_from_file_gives_what_the_named_node_would_declare(tmp_path: Path) -> None:
+    """rcl's matching (a wildcard for every node, then the node's own section, by its full name), the node's
+    checks (the range, ``__post_init__``), and the names the node has no parameter for."""
+    from t42_transfer.ros.params import params_from_file
+
+    path = tmp_path / "params.yaml"
+    path.write_text("""
+/**:
+  ros__parameters: {rate: 2.0, count: 4}
+/**/demo:
+  ros__parameters: {out: /tmp/a, count: 5, gians: [1.0]}
+left:
+  demo:
+    ros__parameters: {out: /tmp/left, rate: 3.0}
+""")
+    demo, unknown = params_from_file(Demo, path, "demo")
+    assert (demo.out, demo.rate, demo.count, unknown) == (Path("/tmp/a"), 2.0, 5, ["gians"])
+    left, unknown = params_from_file(Demo, path, "/left/demo")
+    assert (left.out, left.rate, left.count) == (Path("/tmp/left"), 3.0, 5)
+    with pytest.raises(ValueError, match="no parameters for /other"):
+        params_from_file(Demo, _only_for(tmp_path, "demo"), "other")  # a section for another node only
+    path.write_text("/**/demo:\n  ros__parameters: {out: /tmp/a, rate: 500.0}\n")
+    with pytest.raises(ValueError, match="/demo: parameter 'rate'"):
+        params_from_file(Demo, path, "demo")
+
+
+def _only_for(tmp_path: Path, node: str) -> Path:
+    path = tmp_path / f"only_{node}.yaml"
+    path.write_text(f"/**/{node}:\n  ros__parameters: {{out: /tmp/x}}\n")
+    return path

@@ -15,8 +15,8 @@ if TYPE_CHECKING:
 
 BOARDS = ("checkerboard", "charuco")
 CHARUCO_ONLY = ("squares", "marker", "dictionary")
-MARKER_PARAMETERS = ("object_id", "object_size_m", "base_ids", "base_sizes_m", "dictionary")
-"""The object tracker's parameters that say which markers to print."""
+ROS_OWN = ("use_sim_time", "start_type_description_service")
+"""Parameters every rclpy node has (besides ``qos_overrides.*``)."""
 
 
 def _board(args: argparse.Namespace) -> Board:
@@ -91,22 +91,18 @@ def _cmd_camera_markers(args: argparse.Namespace) -> int:
 
 
 def _tracker_params(config: Path | None, node: str) -> ObjectTrackerParams:
-    """The tracker's parameters from a params file's ``node`` section (their own checks), or its defaults."""
+    """The tracker's parameters as the node named ``node`` would take them from ``config``, or its defaults."""
     from t42_transfer.nodes.object_tracker import ObjectTrackerParams
-    from t42_transfer.ros.launcher import node_parameters
+    from t42_transfer.ros.params import params_from_file
 
     if config is None:
         return ObjectTrackerParams()
-    values = node_parameters(existing_file(config), node)
-    known = {f.name for f in dataclasses.fields(ObjectTrackerParams)}
-    given = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
-    if not given.keys() & MARKER_PARAMETERS:
-        raise ValueError(f"{config}: {node}: sets none of the tracker's marker parameters "
-                         f"({', '.join(MARKER_PARAMETERS)}): not the tracker's section? (--node names it)")
-    try:
-        return ObjectTrackerParams(**given)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{config}: {node}: {err}") from None
+    params, unknown = params_from_file(ObjectTrackerParams, existing_file(config), node)
+    unknown = [n for n in unknown if n not in ROS_OWN and not n.startswith("qos_overrides.")]
+    if unknown:  # a misspelt size would print a marker of the default size: refused, not warned about
+        raise ValueError(f"{config}: {node}: {', '.join(unknown)}: not a parameter of the object tracker (it has "
+                         f"{', '.join(f.name for f in dataclasses.fields(ObjectTrackerParams))})")
+    return params
 
 
 def _cmd_camera_board(args: argparse.Namespace) -> int:
@@ -138,7 +134,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     markers.add_argument("--config", type=Path, metavar="PARAMS.yaml",
                          help="a params file (configs/hardware_real.yaml): the markers its tracker section names "
                               "(default: the tracker's defaults)")
-    markers.add_argument("--node", default="object_tracker", help="the tracker's node name (default object_tracker)")
+    markers.add_argument("--node", default="object_tracker",
+                         help="the tracker's node name, with its namespace if it runs in one (/left/object_tracker; "
+                              "default object_tracker): the parameters the file gives that node")
     markers.add_argument("--paper", default="a4", help=paper)
     markers.set_defaults(func=_cmd_camera_markers)
 

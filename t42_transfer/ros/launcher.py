@@ -158,21 +158,6 @@ def node_sections(path: str | Path) -> list[str]:
     return names
 
 
-def node_parameters(path: str | Path, node: str) -> dict[str, Any]:
-    """The parameters a ROS params file gives the node named ``node``: its wildcard sections' (``/**``), then its
-    own sections' (``/**/node``, ``node``...), a later value winning, in file order; ValueError when it has no
-    section of its own."""
-    params: dict[str, Any] = {}
-    own = False
-    for key, section in read_params_file(path).items():
-        if (key in WILDCARDS or key.rsplit("/", 1)[-1] == node) and PARAMS_KEY in section:
-            params.update(section[PARAMS_KEY])
-            own = own or key not in WILDCARDS
-    if not own:
-        raise ValueError(f"{path}: no section for {node} (it has {', '.join(node_sections(path)) or 'none'})")
-    return params
-
-
 def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:
     """The registered nodes ``config`` has sections for (filtered by ``only``); ValueError for unknown names."""
     sections = node_sections(config)

@@ -10,6 +10,7 @@ Every sheet has a 50 mm scale bar to check the print with a ruler before the mar
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,8 +34,8 @@ MARGIN_MM = 12.0
 """White border of the page (printers do not print to the edge)."""
 GAP_MM = 10.0
 """Space between two markers: more than the one module of white quiet zone a marker needs, room to cut."""
-LABEL_MM = 6.0
-"""Height of the line of text under each marker."""
+LABEL_MM = 8.0
+"""Height of the two lines of text under each marker."""
 SCALE_BAR_MM = 50.0
 TOP_MM = MARGIN_MM + 14.0
 """Where the markers or the board begin, below the title lines."""
@@ -137,15 +138,21 @@ def _rect(x: float, y: float, w: float, h: float) -> Rectangle:
     return Rectangle((x, y), w, h, facecolor="black", edgecolor="none", linewidth=0)
 
 
+LABEL_WIDTH_MM = 24.0
+"""Room a marker's label takes across (its text at 7 pt): a slot is at least this wide."""
+
+
 def _shelves(sizes_mm: Sequence[float], width_mm: float) -> list[tuple[float, float]]:
     """Top-left corners (mm, from the printable area's corner) of squares of ``sizes_mm`` placed left to right
-    in rows (each row as tall as its largest square plus its label)."""
+    in rows, each in a slot as wide as the square or its label; each row as tall as its largest square plus its
+    label."""
     corners, x, y, row = [], 0.0, 0.0, 0.0
     for size in sizes_mm:
-        if x > 0 and x + size > width_mm:
+        slot = max(size, LABEL_WIDTH_MM)
+        if x > 0 and x + slot > width_mm:
             x, y, row = 0.0, y + row + LABEL_MM + GAP_MM, 0.0
         corners.append((x, y))
-        x, row = x + size + GAP_MM, max(row, size)
+        x, row = x + slot + GAP_MM, max(row, size)
     return corners
 
 
@@ -179,8 +186,8 @@ def marker_sheet(markers: Sequence[PrintedMarker], dictionary: str, paper: str =
     for marker, cells, size, (x, y) in zip(markers, bits, sizes, corners, strict=True):
         x0, y0 = MARGIN_MM + x, top + y
         _fill(ax, _cells_path(cells, x0, y0, size / len(cells)))
-        ax.text(x0, y0 + size + LABEL_MM / 2, f"id {marker.marker_id}, {marker.role}, {size:g} mm", fontsize=7,
-                va="center")
+        ax.text(x0, y0 + size + 1.0, f"id {marker.marker_id}, {size:g} mm\n{marker.role}", fontsize=7, va="top",
+                linespacing=1.2)
     _scale_bar(ax, MARGIN_MM, height - MARGIN_MM - 2.0)
     return fig
 
@@ -231,8 +238,15 @@ def board_sheet(board: Checkerboard | Charuco, paper: str = "a4") -> Figure:
 
 
 def save_sheet(fig: Figure, path: Path) -> None:
-    """Write the sheet as PDF, SVG, EPS or PS (vector, the page's size) or PNG (:data:`RASTER_DPI`)."""
+    """Write the sheet as PDF, SVG, EPS or PS (vector, the page's size) or PNG (:data:`RASTER_DPI`), its folder
+    made if need be; whole or not at all (written beside it, then renamed)."""
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ValueError(f"{path}: write a sheet as {', '.join(SUFFIXES)}")
-    fig.savefig(path, facecolor="white", **({"dpi": RASTER_DPI} if suffix == ".png" else {}))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        fig.savefig(partial, format=suffix[1:], facecolor="white", **({"dpi": RASTER_DPI} if suffix == ".png" else {}))
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
