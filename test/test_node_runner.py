@@ -142,6 +142,25 @@ def test_node_list_and_errors(capsys: pytest.CaptureFixture[str]) -> None:
     assert f"available: {', '.join(NODES)}" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_node_help_lists_every_parameter_the_node_declares(name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """What ``ros2 param describe`` says of the running node, before it runs: each declared parameter, its type,
+    default and description (the class the node declares is the one listed)."""
+    import dataclasses
+
+    assert main(["node", name, "--help"]) == 0
+    out = capsys.readouterr().out
+    node_cls = NODES[name].node_class()
+    fields = [f for f in dataclasses.fields(node_cls.params_class) if f.init]
+    listed = re.findall(r"^  (\w+) \((\w+)", out, flags=re.M)
+    assert [n for n, _ in listed] == [f.name for f in fields] and fields, out
+    for field in fields:
+        description = field.metadata["t42_param"].description
+        assert f"  {field.name} (" in out and description[:40] in out, field.name
+    assert all(kind in ("bool", "integer", "double", "string", "bool_array", "integer_array", "double_array",
+                        "string_array") for _, kind in listed), listed
+
+
 def test_t42_node_and_t42_up_import_neither_torch_nor_mujoco() -> None:
     """Every node process starts as ``t42 node``: what only other commands need stays out of it."""
     code = ("import sys\nfrom t42_transfer.cli import main\nassert main(['node', '--list']) == 0\n"

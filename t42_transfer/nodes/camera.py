@@ -106,9 +106,12 @@ def _size(p: CameraParams, calibration: Intrinsics | None) -> tuple[int, int]:
 class Camera(LifecycleNode):
     """An OpenCV capture on the camera topics, as a lifecycle node; see the module docstring."""
 
+    params_class = CameraParams
+    """Its parameters (``t42 node camera --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("camera", **node_kwargs)
-        self._params = LiveParams(self, CameraParams)
+        self._params = LiveParams(self, self.params_class)
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         self.calibration: Intrinsics | None = None

@@ -125,6 +125,9 @@ driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idl
 class DynamixelDriver(LifecycleNode):
     """A real (or emulated) T42 on the driver topics; see the module docstring."""
 
+    params_class = DynamixelDriverParams
+    """Its parameters (``t42 node dynamixel_driver --help`` lists them)."""
+
     events_executor = True
     """``t42 node`` spins it on rclpy's EventsExecutor (:func:`~t42_transfer.ros.runner.make_executor`)."""
 
@@ -132,7 +135,7 @@ class DynamixelDriver(LifecycleNode):
         super().__init__("dynamixel_driver", **node_kwargs)
         self._servo_limits_rad: tuple[float, ...] | None = None
         """``max_angle_rad`` as written to the servos' Position Limits at configure (None: not configured)."""
-        self._params = LiveParams(self, DynamixelDriverParams, on_change=self._on_params, veto=self._veto_params)
+        self._params = LiveParams(self, self.params_class, on_change=self._on_params, veto=self._veto_params)
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""

@@ -168,6 +168,9 @@ class _Call:
 class Explorer(Node):
     """Runs the episodes; see the module docstring."""
 
+    params_class = ExplorerParams
+    """Its parameters (``t42 node explorer --help`` lists them)."""
+
     POLL_S = 0.02
     """Period of the timer that advances the episodes."""
     SETTLE_PERIODS = 3
@@ -178,7 +181,7 @@ class Explorer(Node):
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("explorer", **node_kwargs)
-        self._params = LiveParams(self, ExplorerParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)

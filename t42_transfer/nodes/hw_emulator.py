@@ -92,9 +92,12 @@ class HwEmulatorParams(SimCameraParams):
 class HwEmulator(Node):
     """The emulated hand on its bus, and its tracker; see the module docstring."""
 
+    params_class = HwEmulatorParams
+    """Its parameters (``t42 node hw_emulator --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("hw_emulator", **node_kwargs)
-        self._params = LiveParams(self, HwEmulatorParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         p = self.params
         self.log = self.get_logger()
         self.plant = HandPlant(SimulatedHand(p.hand), seed=p.seed)

@@ -159,9 +159,12 @@ class MockDriverParams(SimCameraParams):
 class MockDriver(Node):
     """The simulated hand on the driver's topics; see the module docstring for behaviour."""
 
+    params_class = MockDriverParams
+    """Its parameters (``t42 node mock_driver --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("mock_driver", **node_kwargs)
-        self._params = LiveParams(self, MockDriverParams, self._on_params, self._veto)
+        self._params = LiveParams(self, self.params_class, self._on_params, self._veto)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)

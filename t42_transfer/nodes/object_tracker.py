@@ -125,9 +125,12 @@ class _Frame(NamedTuple):
 class ObjectTracker(Node):
     """Images in, the object's pose out; see the module docstring."""
 
+    params_class = ObjectTrackerParams
+    """Its parameters (``t42 node object_tracker --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("object_tracker", **node_kwargs)
-        self._params = LiveParams(self, ObjectTrackerParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)

@@ -141,9 +141,12 @@ JOIN_TIMEOUT_S = 5.0
 class PlannerNode(Node):
     """Plans for goals with the latest model and hand state; see the module docstring for behaviour."""
 
+    params_class = PlannerNodeParams
+    """Its parameters (``t42 node planner --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("planner", **node_kwargs)
-        self._params = LiveParams(self, PlannerNodeParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         self.log = self.get_logger()
         torch.set_num_threads(self.params.torch_threads)
         self.per_message = ThrottledLog(self.log)

@@ -96,9 +96,12 @@ def offered_qos(profiles: list[Any]) -> QoSProfile:
 class BagPlayer(Node):
     """Plays one bag; see the module docstring."""
 
+    params_class = PlayerParams
+    """Its parameters."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("bag_player", **node_kwargs)
-        self._params = LiveParams(self, PlayerParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         p = self.params
         self.log = self.get_logger()
         self.published = 0

@@ -151,9 +151,12 @@ STATUS_NAME = "t42_transfer: recorder"
 class Recorder(LooseMessages, Node):
     """Records the hand topics into bags at step boundaries; see the module docstring."""
 
+    params_class = RecorderParams
+    """Its parameters (``t42 node recorder --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("recorder", **node_kwargs)
-        self._params = LiveParams(self, RecorderParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)

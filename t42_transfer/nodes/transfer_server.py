@@ -135,12 +135,15 @@ class Job:
 class TransferServer(Node):
     """Serves transfers; see the module docstring for behaviour."""
 
+    params_class = TransferServerParams
+    """Its parameters (``t42 node transfer_server --help`` lists them)."""
+
     executor_threads = 4
     """A MultiThreadedExecutor (``t42 node`` reads this): a second call is answered while one trains."""
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("transfer_server", **node_kwargs)
-        self._params = LiveParams(self, TransferServerParams, self._on_params)
+        self._params = LiveParams(self, self.params_class, self._on_params)
         self.log = self.get_logger()
         self.last_result: TransferResult | None = None
         self._job = threading.Lock()
@@ -184,6 +187,10 @@ class TransferServer(Node):
             if directory:
                 claim(in_namespace(directory, self.get_namespace()), self.get_namespace(), self.params.share_dirs)
         self._announce_latest(model_dir)
+        if not self.params.source_model.is_file():  # said now, not first at the transfer a user waits for
+            self.log.warning(f"source_model {self.params.source_model} does not exist (yet): every transfer fails "
+                             "until it does; make it from the source hand's bags with t42 model train BAGS --out "
+                             f"{self.params.source_model} (t42 demo makes one for the simulated hands)")
         self.new_bags = 0
         """New closed bags (holding an episode) counted towards the next automatic transfer."""
         self.auto_results: list[tuple[bool, str]] = []

@@ -164,9 +164,12 @@ class _Offered:
 class View(Node):
     """The Foxglove live view of the graph; see the module docstring."""
 
+    params_class = ViewParams
+    """Its parameters (``t42 node view --help`` lists them)."""
+
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("view", **node_kwargs)
-        self._params = LiveParams(self, ViewParams)
+        self._params = LiveParams(self, self.params_class)
         p = self.params
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)

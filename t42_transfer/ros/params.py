@@ -187,6 +187,33 @@ def _from_ros(field: _Field, value: Any) -> Any:
     return value
 
 
+def describe_params(params_cls: type) -> str:
+    """One line per parameter, as ``ros2 param describe`` would say it of the running node: name, type, default,
+    range, read-only, description (offline: a user reads them before starting a node)."""
+    lines = []
+    for field in _fields(params_cls):
+        kind = Parameter.Type(field.ros_type).name.lower()
+        default = ("required" if field.default is dataclasses.MISSING
+                   else f"default {'unset' if field.default is None else _shown(field.default)}")
+        info = field.info
+        bounds = ((">=", info.min), ("<=", info.max))
+        limits = [f"{sign} {_shown(bound)}" for sign, bound in bounds if bound is not None]
+        notes = [default, *limits, *(["read-only"] if info.read_only else [])]
+        more = f" ({info.constraints})" if info.constraints else ""
+        lines.append(f"  {field.name} ({kind}{', optional' if field.optional else ''}; {', '.join(notes)}): "
+                     f"{info.description}{more}")
+    return "\n".join(lines)
+
+
+def _shown(value: Any) -> str:
+    """A value as a params file writes it (whole bounds without an exponent)."""
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_shown(v) for v in value) + "]"
+    if isinstance(value, float) and value.is_integer() and 1e5 <= abs(value) < 1e15:
+        return str(int(value))
+    return repr(value) if isinstance(value, str) else str(value)
+
+
 def declare_params(node: Node, params_cls: type[P]) -> P:
     """Declare ``params_cls``'s fields as ``node``'s parameters; the dataclass of their values.
 

@@ -154,8 +154,15 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         rest = remove_ros_args(["t42"] + argv)[1:]
     except Exception as err:  # rcl's parse error
         return _error(f"bad --ros-args: {err}")
+    if rest in (["-h"], ["--help"]):  # what ros2 param describe tells of a running node, before it runs
+        from t42_transfer.ros.params import describe_params
+
+        print(f"{name}: {spec.description}\nparameters (--ros-args -p NAME:=VALUE, or a --params-file):")
+        print(describe_params(spec.node_class().params_class))
+        return 0
     if rest:
-        return _error(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args)")
+        return _error(f"unexpected arguments {' '.join(rest)} (node options go after --ros-args; --help lists "
+                      "the node's parameters)")
     context = rclpy.Context()
     try:
         rclpy.init(args=["t42"] + argv, context=context, signal_handler_options=SignalHandlerOptions.NO)
