@@ -274,6 +274,9 @@ def test_goal_outside_the_workspace_is_refused(rig: Rig) -> None:
     rig.tick()
     result = rig.goal(START_XY + [100.0, 0.0])
     assert result["status"] == "goal_outside_workspace" and "outside the trained workspace" in result["reason"]
+    x, y = START_XY + [100.0, 0.0]  # the goal and the workspace's extent (BOX: 40 mm each way), in mm
+    extent = f"x {START_XY[0] - 40:.1f} to {START_XY[0] + 40:.1f} mm, y {START_XY[1] - 40:.1f} to"
+    assert f"goal (x {x:.1f} mm, y {y:.1f} mm)" in result["reason"] and extent in result["reason"], result["reason"]
     assert result["horizon"] == 0 and result["predicted_error_mm"] is None
     assert rig.trajectories == [] and rig.paths == []
 

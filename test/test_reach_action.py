@@ -240,8 +240,9 @@ def test_t42_reach_follows_a_goal_to_its_verdict_as_ros2_action_send_goal_does(r
     code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "12")
     lines = out.splitlines()
     assert lines and all(line.startswith("step ") for line in lines[:-1]) and len(lines) >= 3, (out, err)
-    assert re.fullmatch(r"/t42/reach: (hit|miss|no_progress|incomplete)(: .+)?; final error \d+\.\d mm after "
-                        r"1[3-9] measured positions", lines[-1]), lines[-1]
+    verdict = re.fullmatch(r"/t42/reach: (hit|miss|no_progress|incomplete)(: .+)?; final error \d+\.\d mm after "
+                           r"1[3-9] measured positions", lines[-1])
+    assert verdict and not (verdict[2] or "").startswith(f": {verdict[1]}"), lines[-1]  # the word said once
     assert code == (0 if lines[-1].startswith("/t42/reach: hit") else 1), (code, err)
     assert rig.results[-1]["accepted"] and rig.results[-1]["horizon"] == 12  # the goal's steps, as sent
     assert [len(t.points) for t in rig.trajectories] == [12]
@@ -253,6 +254,14 @@ def test_ctrl_c_on_t42_reach_cancels_the_goal_and_the_hand_holds(ros, rig: Reach
     code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "40", interrupt_after_ticks=3)
     assert code == 130 and err == "t42: interrupted: goal cancelled (the hand holds from its next step)\n", (out, err)
     assert ros.spin_until(lambda: rig.driver.pending_actions == 0, 2.0), "the driver still runs the plan"
+
+
+def test_t42_reach_says_a_refusal_in_one_line_with_its_reason(ros, rig: ReachRig) -> None:
+    rig.tick()
+    x, y = (START_XY + [100.0, 0.0]) / 1000  # outside the model's workspace
+    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}")
+    assert code == 1 and out.startswith("/t42/reach: refused: goal_outside_workspace: goal (x ") and out.count("\n") == 1, (out, err)
+    assert "is outside the trained workspace (x " in out and "final error" not in out, out
 
 
 def test_t42_reach_without_a_planner_is_one_line(ros, rig: ReachRig) -> None:

@@ -205,10 +205,13 @@ def _cmd_reach(args: argparse.Namespace) -> int:
         print(f"{args.action}: the goal ended {status} without a result (the planner's log says why)")
         return 1
     outcome = reach_outcome(got.result)
+    reason = outcome.reason.removeprefix(f"{outcome.verdict}: ")  # (a verdict's reason may begin with its word)
+    if outcome.verdict == "refused":  # never executed
+        print(f"{args.action}: refused: {reason}")
+        return 1
     error = "unknown" if outcome.final_error_mm is None else f"{outcome.final_error_mm:.1f} mm"
-    why = f": {outcome.reason}" if outcome.reason else ""
-    print(f"{args.action}: {outcome.verdict}{why}; final error {error} after {len(outcome.executed_mm)} measured "
-          f"positions")
+    print(f"{args.action}: {outcome.verdict}{f': {reason}' if reason else ''}; final error {error} after "
+          f"{len(outcome.executed_mm)} measured positions")
     return 0 if outcome.success else 1
 
 

@@ -318,12 +318,14 @@ class Planner:
     def _check_ends(self, x0: Tensor, goal: Tensor) -> Plan | None:
         ws = self.workspace
         if not ws.allows(x0):
-            reason = f"start state {x0.tolist()} is outside the trained workspace or over the load limit"
+            x, y, load_1, load_2 = x0.tolist()
+            reason = (f"start state (x {x:.1f} mm, y {y:.1f} mm, loads {load_1:.0f} {load_2:.0f}) is outside the "
+                      f"trained workspace ({ws.describe_xy()}) or over the load limit ({ws.load_limit:g})")
             return _refusal("start_outside_workspace", reason, x0, goal)
         if not ws.contains_xy(goal):
-            return _refusal(
-                "goal_outside_workspace", f"goal {goal.tolist()} is outside the trained workspace", x0, goal
-            )
+            x, y = goal.tolist()
+            reason = f"goal (x {x:.1f} mm, y {y:.1f} mm) is outside the trained workspace ({ws.describe_xy()})"
+            return _refusal("goal_outside_workspace", reason, x0, goal)
         return None
 
 

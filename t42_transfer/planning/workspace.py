@@ -178,6 +178,12 @@ class Workspace:
         scaled = torch.mm(rows, states.reshape(-1, 4).T).sub_(offset).abs_()
         return (scaled.amax(0) <= 1.0).reshape(states.shape[:-1])
 
+    def describe_xy(self) -> str:
+        """The x and y extent (mm), for a message: the polygon lies within it (its other sides cut corners)."""
+        half = len(self.lower) // 2
+        return (f"x {self.lower[0]:.1f} to {self.upper[0]:.1f} mm, y {self.lower[half]:.1f} to "
+                f"{self.upper[half]:.1f} mm at most")
+
     def contains_xy(self, xy: Tensor) -> Tensor:
         """Whether each point ``xy[..., 2]`` lies inside, loads aside (False for NaN/inf)."""
         return self.allows(torch.cat([xy, torch.zeros_like(xy)], dim=-1))
