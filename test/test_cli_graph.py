@@ -51,10 +51,16 @@ def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any)
         (0, "/dynamixel_driver max_angle_rad: set\n")
     assert driver.params.max_angle_rad == (2.5, 2.0)
     assert t42(ros, "param", "dynamixel_driver", "load_limit", "250.0")[0] == 0 and driver.params.load_limit == 250.0
+    # whole numbers for doubles, as a user types them (rclpy itself would refuse an integer for a double)
+    assert t42(ros, "param", "/dynamixel_driver", "grasp_load", "90")[0] == 0 and driver.params.grasp_load == 90.0
+    assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]")[0] == 0
+    assert driver.params.max_angle_rad == (2.0, 2.5)
+    code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "true")  # no number: refused as before
+    assert code == 1 and "refused" in out and driver.params.grasp_load == 90.0, out
     assert t42(ros, "param", "/dynamixel_driver", "load_limit")[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
     assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
-    assert driver.params.grasp_load == 100.0
+    assert driver.params.grasp_load == 90.0
 
 
 def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -> None:

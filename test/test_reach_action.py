@@ -260,7 +260,8 @@ def test_t42_reach_says_a_refusal_in_one_line_with_its_reason(ros, rig: ReachRig
     rig.tick()
     x, y = (START_XY + [100.0, 0.0]) / 1000  # outside the model's workspace
     code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}")
-    assert code == 1 and out.startswith("/t42/reach: refused: goal_outside_workspace: goal (x ") and out.count("\n") == 1, (out, err)
+    assert code == 1 and out.count("\n") == 1, (out, err)
+    assert out.startswith("/t42/reach: refused: goal_outside_workspace: goal (x "), out
     assert "is outside the trained workspace (x " in out and "final error" not in out, out
 
 

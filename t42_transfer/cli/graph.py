@@ -113,7 +113,7 @@ def _cmd_call(args: argparse.Namespace) -> int:
 
 def _cmd_param(args: argparse.Namespace) -> int:
     from rcl_interfaces.msg import ParameterType
-    from rcl_interfaces.srv import GetParameters, SetParameters
+    from rcl_interfaces.srv import DescribeParameters, GetParameters, SetParameters
     from rclpy.parameter import Parameter, parameter_value_to_python
 
     target = _absolute(args.node)
@@ -127,6 +127,9 @@ def _cmd_param(args: argparse.Namespace) -> int:
             return 0
         try:
             value = yaml.safe_load(args.value)  # as ros2 param set reads it: 2.5, true, [2.5, 2.5], text
+            declared = _call(node, DescribeParameters, f"{target}/describe_parameters",
+                             DescribeParameters.Request(names=[args.name]), args.wait).descriptors
+            value = _as_declared(value, declared[0].type if declared else ParameterType.PARAMETER_NOT_SET)
             message = Parameter(args.name, value=value).to_parameter_msg()
         except (yaml.YAMLError, TypeError) as err:
             raise ValueError(f"{args.value!r}: not a parameter value ({err})") from None
@@ -246,6 +249,22 @@ def _cancelled(executor: Any, sent: Any) -> str:
     if wait(cancel) and cancel.result().goals_canceling:
         return "goal cancelled (the hand holds from its next step)"
     return "cancel not confirmed (the goal may have ended already)"
+
+
+def _as_declared(value: Any, declared: int) -> Any:
+    """A whole number given for a double parameter (``1`` for ``1.0``, in a list too) as a double: what the user
+    meant, which rclpy would refuse as an integer."""
+    from rcl_interfaces.msg import ParameterType
+
+    def whole(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool)
+
+    if declared == ParameterType.PARAMETER_DOUBLE and whole(value):
+        return float(value)
+    if declared == ParameterType.PARAMETER_DOUBLE_ARRAY and isinstance(value, list) and value and all(
+            whole(v) or isinstance(v, float) for v in value):
+        return [float(v) for v in value]
+    return value
 
 
 def _wait_argument(parser: argparse.ArgumentParser) -> None:
