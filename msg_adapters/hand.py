@@ -159,11 +159,12 @@ def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int, kit:
     return _actuator_state(stamp_ns, kit, velocity=velocity)
 
 
-def applied_action(msg: Any) -> np.ndarray:
-    """Normalised action (float32) of an applied-action ``JointState``."""
-    cols = _actuator_columns(msg.name, "applied action")
-    velocity = _per_joint(msg.velocity, msg.name, "applied action velocity")
-    return _to_f32("applied action velocity", velocity[cols] * wire.CONTROL_PERIOD_S / wire.ACTION_UNIT_RAD)
+def applied_action(msg: Any, what: str = "applied action") -> np.ndarray:
+    """Normalised action (float32) of an applied-action ``JointState`` (or a command, ``what`` in messages: both
+    carry the action as velocity over one control period)."""
+    cols = _actuator_columns(msg.name, what)
+    velocity = _per_joint(msg.velocity, msg.name, f"{what} velocity")
+    return _to_f32(f"{what} velocity", velocity[cols] * wire.CONTROL_PERIOD_S / wire.ACTION_UNIT_RAD)
 
 
 def actions_to_joint_trajectory(

@@ -129,7 +129,7 @@ def test_validate_command_decodes_velocity():
     ([0.0, np.inf], ("actuator_1", "actuator_2"), START_NS, "non-finite"),
     ([1.6, 0.0], ("actuator_1", "actuator_2"), START_NS, "outside"),
     ([0.1, 0.2, 0.3], ("actuator_1", "actuator_2"), START_NS, "3 values for 2"),
-    ([0.1], ("actuator_1",), START_NS, "lacks actuator"),
+    ([0.1], ("actuator_1",), START_NS, r"^command lacks actuator\(s\) \[.actuator_2.\]"),
     ([0.1, 0.1], ("actuator_1", "actuator_2"), START_NS - 600_000_000, "stale"),
     ([0.1, 0.1], ("actuator_1", "actuator_2"), START_NS + 600_000_000, "future"),
     ([0.1, 0.1], ("actuator_1", "actuator_2"), 0, "unset"),
@@ -347,6 +347,7 @@ def test_bad_inputs_are_rejected_on_rosout_and_the_last_safe_command_kept(ros):
         rig.deliver()  # no exception escapes the callback
         warnings = log.wait_warnings()
         assert len(warnings) == 1 and why in warnings[0] and "rejected" in warnings[0], (name, warnings)
+        assert warnings[0].endswith("ignored (the hand goes on as before: holding, or the trajectory it runs)")
     rig.tick(2)
     np.testing.assert_allclose(rig.applied(), [[0, 0], [0.1, 0.1], [0, 0]], atol=1e-6)
     assert rig.driver.running

@@ -102,7 +102,8 @@ def test_early_stopping_validates_on_three_episodes_or_says_it_cannot(make_set) 
     from t42_transfer.models.training import MIN_VAL_EPISODES, ValidationWarning, validation_split
 
     six = make_set([1000] * 6, seed=5)  # the real hands' case: a share of 0.1 is one path
-    with pytest.warns(ValidationWarning, match="would hold 1 of 6 episodes .* source model runs its full epoch"):
+    with pytest.warns(ValidationWarning, match="^no validation set: a validation share of 0.1 would hold 1 of 6 "
+                      "episodes .* source model runs its full epoch"):
         train, val = validation_split(six, 0.1, seed=0, phase="source model")
     assert val is None and train is six
     _, report = train_transition_model(make_set([30] * 4, seed=5), TrainConfig(epochs=2))

@@ -73,9 +73,9 @@ def validate_command(msg: Any, now_ns: int, max_age_ns: int) -> np.ndarray:
     msg = _read(msg, JOINT_STATE, MAX_COMMAND_BYTES, "command")
     check_stamp(stamp_to_ns(msg.header.stamp), now_ns, max_age_ns, "command")
     try:
-        action = applied_action(msg)
+        action = applied_action(msg, "command")
     except ValueError as err:
-        raise CommandRejected(f"command: {err}") from None
+        raise CommandRejected(str(err)) from None
     return check_actions(action, "command action")
 
 
@@ -126,7 +126,8 @@ def accept(log: Any, topic: str, check: Callable[[], T]) -> T | None:
     try:
         return check()
     except CommandRejected as err:
-        log.warning(f"rejected {topic}: {err}; keeping the last safe command")
+        log.warning(f"rejected {topic}: {err}; ignored (the hand goes on as before: holding, or the trajectory it "
+                    "runs)")
     except Exception as err:  # a message no check foresaw
         log.error(f"rejected {topic}: could not read the message ({err!r})")
     return None

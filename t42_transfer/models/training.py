@@ -273,10 +273,10 @@ def _validation(
         held = f"would hold {len(val)} of {len(data)} episodes ({val.num_transitions} transitions)"
     else:
         held = f"cannot be taken from {len(data)} episode{'' if len(data) == 1 else 's'}"
-    note = (f"none: a validation share of {fraction:g} {held}; early stopping needs at least {MIN_VAL_EPISODES} "
-            f"episodes and {MIN_VAL_TRANSITIONS} transitions, so {phase} runs its full epoch budget")
-    warnings.warn(note, ValidationWarning, stacklevel=3)
-    return data, None, note
+    why = (f"a validation share of {fraction:g} {held}; early stopping needs at least {MIN_VAL_EPISODES} "
+           f"episodes and {MIN_VAL_TRANSITIONS} transitions, so {phase} runs its full epoch budget")
+    warnings.warn(f"no validation set: {why}", ValidationWarning, stacklevel=3)
+    return data, None, f"none: {why}"
 
 
 def train_transition_model(
