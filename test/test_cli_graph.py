@@ -30,6 +30,10 @@ def test_lifecycle_gets_the_state_and_makes_transitions_by_name(ros: Any) -> Non
     code, _, err = t42(ros, "lifecycle", "/hand_like", "configure")  # not from active
     assert code == 2 and "cannot configure from its state now; it can: deactivate, shutdown" in err, err
     assert t42(ros, "lifecycle", "/hand_like", "shutdown")[:2] == (0, "/hand_like: shutdown done; now finalized\n")
+    ros.node("plain")  # a running node that is no lifecycle node: said so, without waiting out --wait
+    code, out, err = t42(ros, "lifecycle", "/plain", "--wait", "60")
+    assert code == 2 and out == "" and err == ("t42: error: /plain/get_state: /plain runs but has no such service "
+                                               "(a GetState service)\n"), err
 
 
 def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> None:
@@ -133,6 +137,7 @@ def test_a_planner_that_leaves_mid_goal_or_fails_without_a_result_ends_the_wait_
                                 handle_accepted_callback=held.append)
     proc = t42_started("reach", "0.0", "0.07")
     assert ros.spin_until(lambda: held, 60.0)
+    ros.spin_for(1.0)  # the goal's answer on its way to the command
     server.destroy()  # the planner's process ends with the goal under way
     ros.executor.remove_node(node)
     node.destroy_node()

@@ -24,6 +24,8 @@ from t42_transfer.conventions import MM_PER_M
 if TYPE_CHECKING:
     from rclpy.node import Node
 
+OWNER_GRACE_S = 3.0
+"""How long a node seen on the graph may take to show a service of its own before it is said to lack it."""
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 """The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
 
@@ -58,10 +60,17 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     from rclpy.executors import SingleThreadedExecutor
 
     client = node.create_client(srv_type, name)
-    if not client.wait_for_service(timeout_sec=wait_s):
-        kind = srv_type.__name__
-        raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (a {kind} service; "
-                         f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+    owner = name.rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
+    start, seen = time.monotonic(), None
+    while not client.wait_for_service(timeout_sec=0.2):
+        now = time.monotonic()
+        if seen is None and owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}:
+            seen = now
+        if seen is not None and now - seen > OWNER_GRACE_S:  # the node is there, the service is not
+            raise ValueError(f"{name}: {owner} runs but has no such service (a {srv_type.__name__} service)")
+        if now - start > wait_s:
+            raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (a {srv_type.__name__} "
+                             f"service; ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
     future = client.call_async(request)
     executor = node.executor
     if executor is None:  # one for the node's calls
@@ -82,8 +91,8 @@ def _cmd_lifecycle(args: argparse.Namespace) -> int:
 
     target = _absolute(args.node)
     with _graph_node() as node:
+        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait)
         if args.transition is None:
-            state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait)
             print(f"{target}: {state.current_state.label}")
             return 0
         available = _call(node, GetAvailableTransitions, f"{target}/get_available_transitions",
