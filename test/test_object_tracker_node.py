@@ -428,6 +428,7 @@ def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, 
     from t42_transfer.nodes.camera import STATUS_NAME as CAMERA_STATUS
 
     tester = Tester(ros)
+    log = Rosout(ros, "camera")
     images = tester.listen(Image, names.CAMERA_IMAGE)
     diagnostics = tester.listen(DiagnosticArray, names.DIAGNOSTICS)
     change = tester.tester.create_client(ChangeState, "camera/change_state")
@@ -467,6 +468,9 @@ def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, 
     assert go(Transition.TRANSITION_ACTIVATE) and ros.spin_until(lambda: len(images) >= stopped + 5, 5.0)
     assert go(Transition.TRANSITION_DEACTIVATE) and go(Transition.TRANSITION_CLEANUP)
     assert state() == "unconfigured" and node.capture is None
+    said = ("opened", "active: publishing", "inactive: no frames", "unconfigured: ")  # each transition on /rosout
+    assert ros.spin_until(lambda: all(any(m.msg.startswith(w) for m in log.lines) for w in said), 5.0), \
+        [m.msg for m in log.lines]
 
 
 def test_camera_and_tracker_nodes_together_track_a_video_of_rendered_frames(ros, scene, tmp_path) -> None:

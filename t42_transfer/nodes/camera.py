@@ -182,14 +182,17 @@ class Camera(LifecycleNode):
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:
         """No frame goes out; the source stays open (activate again resumes it)."""
         self._halt()
+        self.log.info("inactive: no frames published; the source stays open")
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: State) -> TransitionCallbackReturn:
         self._release()
+        self.log.info(f"unconfigured: {self.params.device!r} released")
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: State) -> TransitionCallbackReturn:
         self.close()
+        self.log.info("finalized: the source released; the process runs until it is stopped (Ctrl-C)")
         return TransitionCallbackReturn.SUCCESS
 
     def on_error(self, state: State) -> TransitionCallbackReturn:
