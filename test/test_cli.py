@@ -58,6 +58,32 @@ def test_bag_info_on_the_fixture_bags(fixture: str, capsys: pytest.CaptureFixtur
     assert info["hand"] == fixture.split("_")[0] == data.hand
 
 
+def test_bag_info_on_a_folder_of_bags_gives_a_line_each_and_names_a_bad_one(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A recorder's out_dir: one line per finished bag, the sums, and an unreadable bag named (exit 1)."""
+    import shutil
+
+    folder = tmp_path / "recordings"
+    for fixture in ("source_small", "target_small"):
+        shutil.copytree(FIXTURES / fixture, folder / fixture)
+    (folder / "open_bag").mkdir()  # a bag being written: no metadata.yaml yet, not listed
+    assert main(["bag", "info", str(folder)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    bags = ("source_small", "target_small")
+    counts = [(len(d), d.num_transitions) for d in (read_bag(folder / f) for f in bags)]
+    assert lines[:2] == [f"{name}: {e} episodes, {t} transitions, " + line.split(" transitions, ", 1)[1]
+                         for name, (e, t), line in zip(bags, counts, lines[:2], strict=True)]
+    assert lines[2] == (f"2 bags: {sum(e for e, _ in counts)} episodes, {sum(t for _, t in counts)} transitions "
+                        "(t42 bag info BAG for one)")
+    assert main(["bag", "info", str(folder), "--json"]) == 0
+    assert [i["episodes"] for i in json.loads(capsys.readouterr().out)] == [e for e, _ in counts]
+    for data_file in (folder / "target_small").glob("*.mcap"):
+        data_file.write_bytes(b"not an mcap file")
+    assert main(["bag", "info", str(folder)]) == 1
+    out = capsys.readouterr().out
+    assert "target_small: unreadable: " in out and out.splitlines()[-1].startswith("2 bags: ")
+
+
 def test_bad_bag_is_a_clear_error_not_a_traceback(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     junk = tmp_path / "junk"
     junk.mkdir()

@@ -19,6 +19,8 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
     from t42_transfer.data.quality import scan, summarise, summary_lines
     from t42_transfer.data.trajectory import TrajectorySet
 
+    if _holds_bags(args.bag):
+        return _folder_info(args.bag, args.json)
     info = bag_info(args.bag)
     if info["topics"]:
         with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
@@ -48,6 +50,44 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
         for mismatch in mismatches:
             print(f"  {mismatch}")
     return 1 if mismatches else 0
+
+
+def _holds_bags(path: Path) -> bool:
+    """A folder of bags (a recorder's ``out_dir``), not a bag: no metadata.yaml or storage file of its own."""
+    return (path.is_dir() and not (path / "metadata.yaml").exists()
+            and not any(path.glob("*.mcap")) and not any(path.glob("*.db3")))
+
+
+def _folder_info(folder: Path, as_json: bool) -> int:
+    """One line per finished bag in ``folder`` (its episodes, transitions, end reasons), or their JSON list."""
+    from t42_transfer.data.bag import BagError, bag_info
+    from t42_transfer.transfer.online import list_bags
+
+    bags = list_bags(folder)
+    if not bags:
+        raise ValueError(f"{folder}: neither a bag nor a folder of finished bags (none has a metadata.yaml)")
+    infos, totals = [], [0, 0]
+    for bag in bags:
+        try:
+            info = bag_info(bag)
+        except BagError as err:  # one bad bag is named, the others still summed up
+            info = {"path": str(bag), "error": str(err)}
+        infos.append(info)
+        if as_json:
+            continue
+        if "error" in info:
+            print(f"{bag.name}: unreadable: {info['error']}")
+            continue
+        totals[0] += info["episodes"]
+        totals[1] += info["transitions"]
+        ends = ", ".join(f"{k} {v}" for k, v in info["end_reasons"].items()) or "-"
+        print(f"{bag.name}: {info['episodes']} episodes, {info['transitions']} transitions, "
+              f"{info['duration_s']:.1f} s, ends: {ends}")
+    if as_json:
+        print(json.dumps(infos, indent=2, default=str))
+    else:
+        print(f"{len(bags)} bags: {totals[0]} episodes, {totals[1]} transitions (t42 bag info BAG for one)")
+    return 1 if any("error" in i for i in infos) else 0
 
 
 def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
@@ -120,8 +160,10 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
         executor.add_node(player)
         try:
             if not player.wait_for_subscribers(args.wait_subscribers, settle_s=0.5):
-                print(f"not every topic had a subscriber within {args.wait_subscribers} s; playing anyway",
-                      file=sys.stderr)
+                unheard = sorted(pub.topic_name for pub in player.topic_publishers.values()
+                                 if not pub.get_subscription_count())
+                print(f"not every topic had a subscriber within {args.wait_subscribers} s (none on "
+                      f"{', '.join(unheard)}); playing anyway", file=sys.stderr)
             player.resume()
             while not player.finished:
                 executor.spin_once(timeout_sec=0.1)
@@ -142,8 +184,9 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
     bag = commands.add_parser("bag", help="rosbag2 bags").add_subparsers(dest="bag_command", metavar="ACTION")
-    info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata")
-    info.add_argument("bag", type=Path)
+    info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata (a folder of bags: "
+                                       "a line each)")
+    info.add_argument("bag", type=Path, help="a bag, or a folder of bags (a recorder's out_dir)")
     info.add_argument("--json", action="store_true")
     info.add_argument("--verify", action="store_true",
                       help="check metadata.yaml's message counts, start time and duration against the data; "
@@ -164,7 +207,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     play.add_argument("--loop", action="store_true", help="play again from the start, until Ctrl-C")
     play.add_argument("--clock", type=float, nargs="?", const=40.0, default=0.0, metavar="HZ",
                       help="publish /clock from the bag's time at HZ (40 when HZ is not given), "
-                           "as ros2 bag play --clock")
+                           "as ros2 bag play --clock; for a suite under a namespace (t42 up --namespace /left) "
+                           "add --remap /clock:=/left/clock")
     play.add_argument("--remap", "-m", nargs="+", type=_remap_rule, default=[], metavar="OLD:=NEW",
                       help="publish topic OLD (as named in the bag) on NEW, as ros2 bag play --remap; e.g. "
                            "/hand/object_pose:=/left/hand/object_pose")
