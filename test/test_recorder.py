@@ -571,7 +571,9 @@ def test_two_recorders_in_two_namespaces_with_one_relative_out_dir_keep_apart(ro
     monkeypatch.chdir(tmp_path)
     left = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/left")
     right = ros.add(Recorder, {"out_dir": "recordings", "mode": "recording"}, namespace="/right")
-    assert (left.out_dir, right.out_dir) == (Path("recordings/left"), Path("recordings/right"))
+    assert (left.out_dir, right.out_dir) == (tmp_path / "recordings/left", tmp_path / "recordings/right")
+    ok, said = left.stop()  # a bag announced by its absolute path: a listener elsewhere finds it
+    assert ok and str(tmp_path / "recordings/left/recording_000") in said, said
     assert sorted(p.name for p in (tmp_path / "recordings").iterdir()) == [  # each folder claimed by its suite
         ".left.t42_namespace", ".right.t42_namespace", "left", "right"]
     left.close()

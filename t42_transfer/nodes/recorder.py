@@ -161,8 +161,10 @@ class Recorder(LooseMessages, Node):
         self.log = self.get_logger()
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
-        self.out_dir = in_namespace(p.out_dir, self.get_namespace())
-        """Where the bags go: a relative ``out_dir`` under the namespace's own folder (``recordings/left``)."""
+        self.out_dir = in_namespace(p.out_dir, self.get_namespace()).absolute()
+        """Where the bags go: a relative ``out_dir`` under the namespace's own folder (``recordings/left``), from
+        the working directory; absolute, so the paths announced on ``recorder/bag_closed`` mean the same to a
+        listener that runs elsewhere (as ``t42/model_updated``'s do)."""
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
