@@ -120,7 +120,7 @@ def test_declare_params_rejects_types_ros_cannot_carry(ros) -> None:
 def test_params_from_file_gives_what_the_named_node_would_declare(tmp_path: Path) -> None:
     """rcl's matching (a wildcard for every node, then the node's own section, by its full name), the node's
     checks (the range, ``__post_init__``), and the names the node has no parameter for."""
-    from t42_transfer.ros.params import params_from_file
+    from t42_transfer.ros.launcher import params_from_file
 
     path = tmp_path / "params.yaml"
     path.write_text("""

@@ -93,7 +93,7 @@ def _cmd_camera_markers(args: argparse.Namespace) -> int:
 def _tracker_params(config: Path | None, node: str) -> ObjectTrackerParams:
     """The tracker's parameters as the node named ``node`` would take them from ``config``, or its defaults."""
     from t42_transfer.nodes.object_tracker import ObjectTrackerParams
-    from t42_transfer.ros.params import params_from_file
+    from t42_transfer.ros.launcher import params_from_file
 
     if config is None:
         return ObjectTrackerParams()

@@ -106,8 +106,7 @@ def _size(p: CameraParams, calibration: Intrinsics | None) -> tuple[int, int]:
 class Camera(LifecycleNode):
     """An OpenCV capture on the camera topics, as a lifecycle node; see the module docstring."""
 
-    params_class = CameraParams
-    """Its parameters (``t42 node camera --help`` lists them)."""
+    params_class = CameraParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("camera", **node_kwargs)

@@ -125,8 +125,7 @@ driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idl
 class DynamixelDriver(LifecycleNode):
     """A real (or emulated) T42 on the driver topics; see the module docstring."""
 
-    params_class = DynamixelDriverParams
-    """Its parameters (``t42 node dynamixel_driver --help`` lists them)."""
+    params_class = DynamixelDriverParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     events_executor = True
     """``t42 node`` spins it on rclpy's EventsExecutor (:func:`~t42_transfer.ros.runner.make_executor`)."""

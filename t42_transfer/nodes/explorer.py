@@ -168,8 +168,7 @@ class _Call:
 class Explorer(Node):
     """Runs the episodes; see the module docstring."""
 
-    params_class = ExplorerParams
-    """Its parameters (``t42 node explorer --help`` lists them)."""
+    params_class = ExplorerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     POLL_S = 0.02
     """Period of the timer that advances the episodes."""

@@ -92,8 +92,7 @@ class HwEmulatorParams(SimCameraParams):
 class HwEmulator(Node):
     """The emulated hand on its bus, and its tracker; see the module docstring."""
 
-    params_class = HwEmulatorParams
-    """Its parameters (``t42 node hw_emulator --help`` lists them)."""
+    params_class = HwEmulatorParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("hw_emulator", **node_kwargs)

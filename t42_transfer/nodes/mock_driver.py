@@ -159,8 +159,7 @@ class MockDriverParams(SimCameraParams):
 class MockDriver(Node):
     """The simulated hand on the driver's topics; see the module docstring for behaviour."""
 
-    params_class = MockDriverParams
-    """Its parameters (``t42 node mock_driver --help`` lists them)."""
+    params_class = MockDriverParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("mock_driver", **node_kwargs)

@@ -125,8 +125,7 @@ class _Frame(NamedTuple):
 class ObjectTracker(Node):
     """Images in, the object's pose out; see the module docstring."""
 
-    params_class = ObjectTrackerParams
-    """Its parameters (``t42 node object_tracker --help`` lists them)."""
+    params_class = ObjectTrackerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("object_tracker", **node_kwargs)

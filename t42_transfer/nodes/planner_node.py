@@ -9,9 +9,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   checks in every checkpoint) and the actuator angles;
 * ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): subscribed TRANSIENT_LOCAL;
   the model file (``path``) to plan with from now on (the transfer server announces there);
-* ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an
-  accepted plan; actuator-angle targets one per control period, starting from the
-  angles of the state planned from, stamped when published (the driver refuses it stale);
+* ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an accepted plan; actuator-angle
+  targets one per control period from the angles of the state planned from, stamped when published;
 * ``t42/planned_path`` (nav_msgs/msg/Path, latched): published with each trajectory; the
   predicted object positions (plan length + 1 poses, the start included), metres in
   ``t42_base``, stamped from the trajectory's stamp one control period apart;
@@ -141,8 +140,7 @@ JOIN_TIMEOUT_S = 5.0
 class PlannerNode(Node):
     """Plans for goals with the latest model and hand state; see the module docstring for behaviour."""
 
-    params_class = PlannerNodeParams
-    """Its parameters (``t42 node planner --help`` lists them)."""
+    params_class = PlannerNodeParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("planner", **node_kwargs)

@@ -96,8 +96,7 @@ def offered_qos(profiles: list[Any]) -> QoSProfile:
 class BagPlayer(Node):
     """Plays one bag; see the module docstring."""
 
-    params_class = PlayerParams
-    """Its parameters."""
+    params_class = PlayerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("bag_player", **node_kwargs)

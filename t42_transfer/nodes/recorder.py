@@ -151,8 +151,7 @@ STATUS_NAME = "t42_transfer: recorder"
 class Recorder(LooseMessages, Node):
     """Records the hand topics into bags at step boundaries; see the module docstring."""
 
-    params_class = RecorderParams
-    """Its parameters (``t42 node recorder --help`` lists them)."""
+    params_class = RecorderParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("recorder", **node_kwargs)
@@ -162,9 +161,7 @@ class Recorder(LooseMessages, Node):
         self.per_message = ThrottledLog(self.log)
         """Warnings about single messages: a flood gives a line a second, with a count."""
         self.out_dir = in_namespace(p.out_dir, self.get_namespace()).absolute()
-        """Where the bags go: a relative ``out_dir`` under the namespace's own folder (``recordings/left``), from
-        the working directory; absolute, so the paths announced on ``recorder/bag_closed`` mean the same to a
-        listener that runs elsewhere (as ``t42/model_updated``'s do)."""
+        """Where the bags go, absolute (a listener elsewhere reads the announced paths): ``recordings/left``."""
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:

@@ -135,8 +135,7 @@ class Job:
 class TransferServer(Node):
     """Serves transfers; see the module docstring for behaviour."""
 
-    params_class = TransferServerParams
-    """Its parameters (``t42 node transfer_server --help`` lists them)."""
+    params_class = TransferServerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     executor_threads = 4
     """A MultiThreadedExecutor (``t42 node`` reads this): a second call is answered while one trains."""

@@ -164,8 +164,7 @@ class _Offered:
 class View(Node):
     """The Foxglove live view of the graph; see the module docstring."""
 
-    params_class = ViewParams
-    """Its parameters (``t42 node view --help`` lists them)."""
+    params_class = ViewParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("view", **node_kwargs)

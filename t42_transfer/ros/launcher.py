@@ -29,7 +29,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any, TextIO
+from typing import IO, Any, TextIO, TypeVar
 
 from msg_adapters import names
 from t42_transfer.config import show
@@ -156,6 +156,40 @@ def node_sections(path: str | Path) -> list[str]:
         if name not in names:
             names.append(name)
     return names
+
+
+P = TypeVar("P")
+
+
+def params_from_file(params_cls: type[P], params_file: str | Path, node_name: str) -> tuple[P, list[str]]:
+    """The ``params_cls`` a node named ``node_name`` (``/left/object_tracker``; no namespace: the root) would
+    declare from ``params_file``, and the names the file gives it that it has none of (a typo): without running
+    it, for a tool that must use exactly what the node would (rcl resolves the file's sections, wildcards and
+    namespaces for the name; :func:`declare_params` checks the values).  ValueError, one line, when the values
+    are refused or the file gives that node no parameter at all."""
+    import rclpy
+
+    from t42_transfer.ros.params import declare_params, parameter_overrides, undeclared_overrides
+
+    read_params_file(params_file)  # a file rcl would refuse: one line here, not rcl's error
+    namespace, _, name = ("/" + node_name.strip("/")).rpartition("/")
+    keep_discovery_local()
+    context = rclpy.Context()
+    rclpy.init(context=context, args=["--ros-args", "--params-file", str(params_file)])
+    try:
+        node = rclpy.create_node(name, namespace=namespace or "/", context=context, enable_rosout=False,
+                                 start_parameter_services=False)
+    except Exception as err:  # a bad node name
+        rclpy.shutdown(context=context)
+        raise ValueError(f"{node_name}: not a node name ({err})") from None
+    try:
+        if not parameter_overrides(node):
+            raise ValueError(f"{params_file}: no parameters for {node.get_fully_qualified_name()} (a section "
+                             f"/**/{name}, or {node.get_fully_qualified_name()})")
+        return declare_params(node, params_cls), undeclared_overrides(node)
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=context)
 
 
 def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:

@@ -223,7 +223,7 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
     where = node.get_fully_qualified_name()
     values: dict[str, Any] = {}
     for field in _fields(params_cls):
-        if field.info.renamed_from and field.info.renamed_from in _overrides(node):
+        if field.info.renamed_from and field.info.renamed_from in parameter_overrides(node):
             raise ValueError(f"{where}: parameter {field.info.renamed_from!r} is now {field.name!r}: "
                              f"{field.info.description}")
         try:
@@ -262,47 +262,15 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
         raise ValueError(f"{where}: {err}") from None
 
 
-def params_from_file(params_cls: type[P], params_file: str | Path, node_name: str) -> tuple[P, list[str]]:
-    """The ``params_cls`` a node named ``node_name`` (``/left/object_tracker``; no namespace: the root) would
-    declare from ``params_file``, and the names the file gives it that it has none of (a typo): without running
-    it, for a tool that must use exactly what the node would (rcl resolves the file's sections, wildcards and
-    namespaces for the name; :func:`declare_params` checks the values).  ValueError, one line, when the values
-    are refused or the file gives that node no parameter at all."""
-    import rclpy
-
-    from t42_transfer.ros.launcher import read_params_file
-    from t42_transfer.ros.runner import keep_discovery_local
-
-    read_params_file(params_file)  # a file rcl would refuse: one line here, not rcl's error
-    namespace, _, name = ("/" + node_name.strip("/")).rpartition("/")
-    keep_discovery_local()
-    context = rclpy.Context()
-    rclpy.init(context=context, args=["--ros-args", "--params-file", str(params_file)])
-    try:
-        node = rclpy.create_node(name, namespace=namespace or "/", context=context, enable_rosout=False,
-                                 start_parameter_services=False)
-    except Exception as err:  # a bad node name
-        rclpy.shutdown(context=context)
-        raise ValueError(f"{node_name}: not a node name ({err})") from None
-    try:
-        if not _overrides(node):
-            raise ValueError(f"{params_file}: no parameters for {node.get_fully_qualified_name()} (a section "
-                             f"/**/{name}, or {node.get_fully_qualified_name()})")
-        return declare_params(node, params_cls), undeclared_overrides(node)
-    finally:
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-
-
 def undeclared_overrides(node: Node) -> list[str]:
     """Parameters the command line or a params file gave ``node`` that it has not declared, sorted.
 
     rclpy drops them without a word, so ``-p rate_factr:=2.0`` (a typo) runs on the default: the runner warns.
     rclpy keeps the overrides in a private attribute only; without it the list is empty."""
-    return sorted(name for name in _overrides(node) if not node.has_parameter(name))
+    return sorted(name for name in parameter_overrides(node) if not node.has_parameter(name))
 
 
-def _overrides(node: Node) -> dict[str, Any]:
+def parameter_overrides(node: Node) -> dict[str, Any]:
     """The parameter values the command line and params files gave ``node`` (rclpy keeps them private)."""
     return getattr(node, "_parameter_overrides", None) or {}
 
