@@ -37,7 +37,16 @@ from msg_adapters.hand import (
     object_xy_mm,
     stamp_to_ns,
 )
-from msg_adapters.kit import RCLPY, ROSBAGS, TYPESTORE, MessageKit, byte_value, rclpy_class, rclpy_message
+from msg_adapters.kit import (
+    RCLPY,
+    ROSBAGS,
+    TYPESTORE,
+    MessageKit,
+    byte_value,
+    message_fields,
+    rclpy_class,
+    rclpy_message,
+)
 from msg_adapters.planning import PATH, POINT_STAMPED, goal_msg, goal_xy_mm, path_msg, path_xy_mm
 from msg_adapters.status import (
     HAND_STATUS_TOPIC,
@@ -89,6 +98,7 @@ __all__ = [
     "ROSBAGS",
     "MessageKit",
     "byte_value",
+    "message_fields",
     "rclpy_class",
     "rclpy_message",
     "last_step_stamp",

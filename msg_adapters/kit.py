@@ -94,6 +94,20 @@ def rclpy_message(data: bytes, typename: str, max_bytes: int) -> Any:
         raise ValueError(f"not a {typename} ({type(err).__name__}: {err})") from None
 
 
+def message_fields(msg: Any) -> Any:
+    """An rclpy message as plain data (dicts by field, lists, numbers, strings): what ``ros2 topic echo`` prints,
+    for YAML or JSON."""
+    if hasattr(msg, "get_fields_and_field_types"):
+        return {name: message_fields(getattr(msg, name)) for name in msg.get_fields_and_field_types()}
+    if isinstance(msg, (bytes, bytearray)):
+        return list(msg)
+    if isinstance(msg, (list, tuple, array.array, np.ndarray)):
+        return [message_fields(v) for v in (msg.tolist() if isinstance(msg, (array.array, np.ndarray)) else msg)]
+    if isinstance(msg, np.generic):
+        return msg.item()
+    return msg
+
+
 def byte_value(value: Any) -> int:
     """A ``byte`` field as an int, from either family."""
     return value[0] if isinstance(value, (bytes, bytearray)) else int(value)

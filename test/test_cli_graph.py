@@ -3,6 +3,7 @@ the test's own graph: what a user of the pip-installed ROS (no ``ros2`` command)
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 from typing import Any
@@ -62,6 +63,10 @@ def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any)
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "true")  # no number: refused as before
     assert code == 1 and "refused" in out and driver.params.grasp_load == 90.0, out
     assert t42(ros, "param", "/dynamixel_driver", "load_limit")[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
+    code, out, _ = t42(ros, "param", "/dynamixel_driver")  # every parameter, sorted, with its value
+    listed = dict(line.split(": ", 1) for line in out.splitlines())
+    assert code == 0 and list(listed) == sorted(listed) and listed["load_limit"] == "250.0", out
+    assert {f.name for f in dataclasses.fields(driver.params)} <= set(listed) and "use_sim_time" in listed
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
     assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
     assert driver.params.grasp_load == 90.0
@@ -153,3 +158,34 @@ def test_a_planner_that_leaves_mid_goal_or_fails_without_a_result_ends_the_wait_
     code, out, err = t42(ros, "reach", "0.0", "0.07")
     assert code == 1 and out == "/t42/reach: the goal ended aborted without a result (the planner's log says why)\n", \
         (out, err)
+
+
+def test_topic_list_and_echo_print_the_graphs_topics_and_messages_as_ros2_topic_does(ros: Any) -> None:
+    """A latched status gives its last message to a late echo; a best-effort stream is read best effort (a
+    reliable reader would never match it); each message a YAML document."""
+    import yaml
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import String
+
+    node = ros.node("talker")
+    latched = node.create_publisher(String, "/hand/status", QoSProfile(
+        depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+    latched.publish(String(data="reset: episode 1 grasped"))
+    stream = node.create_publisher(JointState, "/hand/joint_states", qos_profile_sensor_data)
+    node.create_timer(0.05, lambda: stream.publish(JointState(name=["actuator_1", "actuator_2"],
+                                                              position=[0.5, 1.25], effort=[-3.0, 4.0])))
+    code, out, err = t42(ros, "topic", "list")
+    assert code == 0 and "/hand/status [std_msgs/msg/String]" in out.splitlines(), (out, err)
+    assert "/hand/joint_states [sensor_msgs/msg/JointState]" in out.splitlines(), out
+
+    code, out, err = t42(ros, "topic", "echo", "hand/status", "-n", "1")
+    assert code == 0 and list(yaml.safe_load_all(out)) == [{"data": "reset: episode 1 grasped"}, None], (out, err)
+    code, out, err = t42(ros, "topic", "echo", "/hand/joint_states", "--count", "2")
+    docs = [d for d in yaml.safe_load_all(out) if d is not None]
+    assert code == 0 and len(docs) == 2, (out, err)
+    assert docs[0]["name"] == ["actuator_1", "actuator_2"] and docs[0]["position"] == [0.5, 1.25]
+    assert docs[0]["effort"] == [-3.0, 4.0] and set(docs[0]["header"]) == {"stamp", "frame_id"}
+
+    code, out, err = t42(ros, "topic", "echo", "/nobody/talks", "--wait", "1")
+    assert code == 2 and out == "" and "/nobody/talks: no publisher on the graph after 1 s" in err, err

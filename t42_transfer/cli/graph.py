@@ -1,6 +1,7 @@
-"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``: the ``ros2 lifecycle``, ``ros2 service call``,
-``ros2 param`` and ``ros2 action send_goal`` a pip-installed ROS lacks (no ros2cli wheel), for the suite's
-lifecycle nodes, Trigger services, parameters and the planner's ``t42/reach`` action."""
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``, ``t42 topic``: the ``ros2 lifecycle``,
+``ros2 service call``, ``ros2 param``, ``ros2 action send_goal`` and ``ros2 topic list/echo`` a pip-installed ROS
+lacks (no ros2cli wheel), for the suite's lifecycle nodes, Trigger services, parameters, the planner's
+``t42/reach`` action and any topic."""
 
 from __future__ import annotations
 
@@ -122,11 +123,19 @@ def _cmd_call(args: argparse.Namespace) -> int:
 
 def _cmd_param(args: argparse.Namespace) -> int:
     from rcl_interfaces.msg import ParameterType
-    from rcl_interfaces.srv import DescribeParameters, GetParameters, SetParameters
+    from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
     from rclpy.parameter import Parameter, parameter_value_to_python
 
     target = _absolute(args.node)
     with _graph_node() as node:
+        if args.name is None:  # as ros2 param dump: every parameter with its value
+            listed = sorted(_call(node, ListParameters, f"{target}/list_parameters", ListParameters.Request(),
+                                  args.wait).result.names)
+            values = _call(node, GetParameters, f"{target}/get_parameters", GetParameters.Request(names=listed),
+                           args.wait).values
+            for name, value in zip(listed, values, strict=True):
+                print(f"{name}: {parameter_value_to_python(value)}")
+            return 0
         if args.value is None:
             values = _call(node, GetParameters, f"{target}/get_parameters", GetParameters.Request(names=[args.name]),
                            args.wait).values
@@ -260,6 +269,55 @@ def _cancelled(executor: Any, sent: Any) -> str:
     return "cancel not confirmed (the goal may have ended already)"
 
 
+def _cmd_topic_list(args: argparse.Namespace) -> int:
+    with _graph_node() as node:
+        deadline = time.monotonic() + args.wait  # discovery: the graph fills in over the first moments
+        while time.monotonic() < deadline:
+            time.sleep(0.1)
+        for topic, types in sorted(node.get_topic_names_and_types()):
+            print(f"{topic} [{', '.join(types)}]")
+    return 0
+
+
+def _cmd_topic_echo(args: argparse.Namespace) -> int:
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from msg_adapters import message_fields, rclpy_class
+
+    topic = args.topic if args.topic.startswith("/") else "/" + args.topic
+    interrupted = threading.Event()
+    with _graph_node() as node, _sigint_sets(interrupted):
+        deadline = time.monotonic() + args.wait
+        while not (writers := node.get_publishers_info_by_topic(topic)):
+            if time.monotonic() > deadline:
+                raise ValueError(f"{topic}: no publisher on the graph after {args.wait:g} s (ROS_DOMAIN_ID "
+                                 f"{os.environ.get('ROS_DOMAIN_ID', '0')}; t42 topic list shows what there is)")
+            if interrupted.is_set():
+                return 130
+            time.sleep(0.1)
+        qos = QoSProfile(depth=10)  # as ros2 topic echo adapts: what every publisher offers, latched ones' history
+        if all(w.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for w in writers):
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        if any(w.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for w in writers):
+            qos.reliability = ReliabilityPolicy.BEST_EFFORT
+        seen: list[Any] = []
+        node.create_subscription(rclpy_class(writers[0].topic_type), topic, seen.append, qos)
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        shown = 0
+        try:
+            while not interrupted.is_set() and (args.count == 0 or shown < args.count):
+                executor.spin_once(timeout_sec=0.1)
+                while seen and (args.count == 0 or shown < args.count):
+                    print(yaml.safe_dump(message_fields(seen.pop(0)), sort_keys=False, width=120) + "---",
+                          flush=True)
+                    shown += 1
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+    return 130 if interrupted.is_set() else 0
+
+
 def _as_declared(value: Any, declared: int) -> Any:
     """A whole number given for a double parameter (``1`` for ``1.0``, in a list too) as a double: what the user
     meant, which rclpy would refuse as an integer."""
@@ -282,6 +340,20 @@ def _wait_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
+    topic = commands.add_parser("topic", help="the graph's topics, or one topic's messages (as ros2 topic list / "
+                                              "echo)").add_subparsers(dest="topic_command", metavar="VERB")
+    listing = topic.add_parser("list", help="every topic on the graph with its type")
+    listing.add_argument("--wait", type=float_arg(0, 60), default=1.0, metavar="S",
+                         help="how long to let discovery fill the graph in first (default 1 s)")
+    listing.set_defaults(func=_cmd_topic_list)
+    echo = topic.add_parser("echo", help="print a topic's messages as YAML until Ctrl-C (its type and QoS taken "
+                                         "from its publishers; latched topics give their last message)")
+    echo.add_argument("topic", metavar="TOPIC", help="e.g. /hand/status (a relative name is taken from /)")
+    echo.add_argument("-n", "--count", type=int_arg(0), default=0, metavar="N",
+                      help="stop after N messages (default 0: until Ctrl-C)")
+    echo.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
+                      help="how long to wait for a publisher to appear on the graph (default 10 s)")
+    echo.set_defaults(func=_cmd_topic_echo)
     lifecycle = commands.add_parser("lifecycle", help="a lifecycle node's state, or a transition (as ros2 lifecycle)")
     lifecycle.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
     lifecycle.add_argument("transition", nargs="?", choices=TRANSITIONS, metavar="TRANSITION",
@@ -293,9 +365,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     call.add_argument("service", metavar="SERVICE")
     _wait_argument(call)
     call.set_defaults(func=_cmd_call)
-    param = commands.add_parser("param", help="get or set a node's parameter (as ros2 param get / set)")
+    param = commands.add_parser("param", help="get or set a node's parameter, or list them all (as ros2 param "
+                                              "get / set / dump)")
     param.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
-    param.add_argument("name", metavar="NAME")
+    param.add_argument("name", nargs="?", metavar="NAME", help="none: every parameter with its value")
     param.add_argument("value", nargs="?", metavar="VALUE",
                        help="a YAML value (2.5, true, '[2.5, 2.5]', text); none: print the parameter")
     _wait_argument(param)
