@@ -209,3 +209,20 @@ def test_a_status_names_its_last_step_stamp_only_where_a_header_stamp_could_hold
     for stamp in ("9223372036854775808", "99999999999999999999", "9" * 5000):
         assert ma.last_step_stamp(f"dropped: x [last step {stamp} ns]") is None
     assert ma.event_stamps([f"reset: x [last step {'9' * 30} ns]", ma.status_message("reset", "y", 5)], "reset") == {5}
+
+
+def test_message_fields_gives_plain_data_of_nested_messages_arrays_and_bytes() -> None:
+    import json
+
+    from sensor_msgs.msg import Image, JointState
+
+    from msg_adapters import message_fields
+
+    state = JointState(name=["a", "b"], position=[0.5, -1.0])
+    state.header.stamp.sec, state.header.frame_id = 7, "t42_base"
+    got = message_fields(state)
+    assert got == {"header": {"stamp": {"sec": 7, "nanosec": 0}, "frame_id": "t42_base"}, "name": ["a", "b"],
+                   "position": [0.5, -1.0], "velocity": [], "effort": []}
+    image = message_fields(Image(height=1, width=2, encoding="mono8", step=2, data=bytes([0, 255])))
+    assert image["data"] == [0, 255] and image["encoding"] == "mono8"
+    json.dumps([got, image])  # plain data all through
