@@ -75,8 +75,12 @@ def test_bag_info_on_a_folder_of_bags_gives_a_line_each_and_names_a_bad_one(
                          for name, (e, t), line in zip(bags, counts, lines[:2], strict=True)]
     assert lines[2] == (f"2 bags: {sum(e for e, _ in counts)} episodes, {sum(t for _, t in counts)} transitions "
                         "(t42 bag info BAG for one)")
-    assert main(["bag", "info", str(folder), "--json"]) == 0
-    assert [i["episodes"] for i in json.loads(capsys.readouterr().out)] == [e for e, _ in counts]
+    assert main(["bag", "info", str(folder), "--json", "--verify"]) == 0
+    infos = json.loads(capsys.readouterr().out)
+    assert [i["episodes"] for i in infos] == [e for e, _ in counts] and all(i["verify"] == [] for i in infos)
+    assert main(["bag", "info", str(tmp_path)]) == 2  # a suite under a namespace records in a sub-folder: named
+    assert f"holds no finished bag (a directory with a metadata.yaml); these folders in it do (a suite under a " \
+           f"namespace records there): {folder}" in capsys.readouterr().err
     for data_file in (folder / "target_small").glob("*.mcap"):
         data_file.write_bytes(b"not an mcap file")
     assert main(["bag", "info", str(folder)]) == 1

@@ -129,3 +129,22 @@ def namespace_arg(text: str) -> str:
         raise argparse.ArgumentTypeError(f"expected a ROS namespace such as /left (letters, digits, _ and /; "
                                          f"no token starting with a digit), got {text[:40]!r}")
     return text
+
+
+def bags_in(paths: list[Path]) -> list[Path]:
+    """Each path a bag (a directory holding ``metadata.yaml``) or a directory of finished bags (a recorder's
+    ``out_dir``), in order, a bag named twice once; ValueError naming the sub-folders that hold bags when a
+    directory holds none itself (a suite under a namespace records into one)."""
+    from t42_transfer.data.bag import list_bags
+
+    bags: dict[Path, Path] = {}  # by resolved path
+    for path in paths:
+        existing_dir(path)
+        found = [path] if (path / "metadata.yaml").is_file() else list_bags(path)
+        if not found:
+            nested = sorted(str(d) for d in path.iterdir() if d.is_dir() and list_bags(d))
+            hint = f"; these folders in it do (a suite under a namespace records there): {', '.join(nested)}" \
+                if nested else ""
+            raise ValueError(f"{path}: holds no finished bag (a directory with a metadata.yaml){hint}")
+        bags.update((bag.resolve(), bag) for bag in found)
+    return list(bags.values())

@@ -9,18 +9,18 @@ import sys
 import threading
 from pathlib import Path
 
-from t42_transfer.cli.args import existing_dir, existing_file, float_arg, new_output
+from t42_transfer.cli.args import bags_in, existing_dir, existing_file, float_arg, new_output
 
 
 def _cmd_bag_info(args: argparse.Namespace) -> int:
     import warnings
 
-    from t42_transfer.data.bag import bag_info, read_bag, verify_bag
+    from t42_transfer.data.bag import bag_info, is_bag, read_bag, verify_bag
     from t42_transfer.data.quality import scan, summarise, summary_lines
     from t42_transfer.data.trajectory import TrajectorySet
 
-    if _holds_bags(args.bag):
-        return _folder_info(args.bag, args.json)
+    if args.bag.is_dir() and not is_bag(args.bag):  # a recorder's out_dir
+        return _folder_info(args.bag, args.json, args.verify)
     info = bag_info(args.bag)
     if info["topics"]:
         with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
@@ -52,27 +52,23 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
     return 1 if mismatches else 0
 
 
-def _holds_bags(path: Path) -> bool:
-    """A folder of bags (a recorder's ``out_dir``), not a bag: no metadata.yaml or storage file of its own."""
-    return (path.is_dir() and not (path / "metadata.yaml").exists()
-            and not any(path.glob("*.mcap")) and not any(path.glob("*.db3")))
+def _folder_info(folder: Path, as_json: bool, verify: bool) -> int:
+    """One line per finished bag in ``folder`` (its episodes, transitions, end reasons; with ``verify``, its
+    mismatches), then the sums; or a JSON list of each bag's info (``error`` for an unreadable one).  Exit 1 when a
+    bag is unreadable or disagrees with its metadata."""
+    from t42_transfer.data.bag import BagError, bag_info, verify_bag
 
-
-def _folder_info(folder: Path, as_json: bool) -> int:
-    """One line per finished bag in ``folder`` (its episodes, transitions, end reasons), or their JSON list."""
-    from t42_transfer.data.bag import BagError, bag_info
-    from t42_transfer.transfer.online import list_bags
-
-    bags = list_bags(folder)
-    if not bags:
-        raise ValueError(f"{folder}: neither a bag nor a folder of finished bags (none has a metadata.yaml)")
-    infos, totals = [], [0, 0]
+    bags = bags_in([folder])
+    infos, totals, failed = [], [0, 0], False
     for bag in bags:
         try:
             info = bag_info(bag)
+            if verify:
+                info["verify"] = verify_bag(bag)
         except BagError as err:  # one bad bag is named, the others still summed up
             info = {"path": str(bag), "error": str(err)}
         infos.append(info)
+        failed = failed or "error" in info or bool(info.get("verify"))
         if as_json:
             continue
         if "error" in info:
@@ -81,13 +77,14 @@ def _folder_info(folder: Path, as_json: bool) -> int:
         totals[0] += info["episodes"]
         totals[1] += info["transitions"]
         ends = ", ".join(f"{k} {v}" for k, v in info["end_reasons"].items()) or "-"
+        checked = f", verify: {len(info['verify'])} mismatches" if verify else ""
         print(f"{bag.name}: {info['episodes']} episodes, {info['transitions']} transitions, "
-              f"{info['duration_s']:.1f} s, ends: {ends}")
+              f"{info['duration_s']:.1f} s, ends: {ends}{checked}")
     if as_json:
         print(json.dumps(infos, indent=2, default=str))
     else:
         print(f"{len(bags)} bags: {totals[0]} episodes, {totals[1]} transitions (t42 bag info BAG for one)")
-    return 1 if any("error" in i for i in infos) else 0
+    return 1 if failed else 0
 
 
 def _cmd_bag_import_t42(args: argparse.Namespace) -> int:
@@ -162,8 +159,9 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
             if not player.wait_for_subscribers(args.wait_subscribers, settle_s=0.5):
                 unheard = sorted(pub.topic_name for pub in player.topic_publishers.values()
                                  if not pub.get_subscription_count())
-                print(f"not every topic had a subscriber within {args.wait_subscribers} s (none on "
-                      f"{', '.join(unheard)}); playing anyway", file=sys.stderr)
+                none_on = f" (none on {', '.join(unheard)})" if unheard else ""
+                print(f"not every topic had a subscriber within {args.wait_subscribers} s{none_on}; playing anyway",
+                      file=sys.stderr)
             player.resume()
             while not player.finished:
                 executor.spin_once(timeout_sec=0.1)
@@ -186,7 +184,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     bag = commands.add_parser("bag", help="rosbag2 bags").add_subparsers(dest="bag_command", metavar="ACTION")
     info = bag.add_parser("info", help="summarise a bag: topics, counts, episodes, metadata (a folder of bags: "
                                        "a line each)")
-    info.add_argument("bag", type=Path, help="a bag, or a folder of bags (a recorder's out_dir)")
+    info.add_argument("bag", type=Path, help="a bag, or a folder of bags (a recorder's out_dir): a line each and "
+                                             "the sums; with --json a list of the bags' infos")
     info.add_argument("--json", action="store_true")
     info.add_argument("--verify", action="store_true",
                       help="check metadata.yaml's message counts, start time and duration against the data; "

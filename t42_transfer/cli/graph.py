@@ -61,12 +61,12 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     from rclpy.executors import SingleThreadedExecutor
 
     client = node.create_client(srv_type, name)
-    owner = name.rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
+    owner = _absolute(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
     start, seen = time.monotonic(), None
     while not client.wait_for_service(timeout_sec=0.2):
         now = time.monotonic()
-        if seen is None and owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}:
-            seen = now
+        running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
+        seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
         if seen is not None and now - seen > OWNER_GRACE_S:  # the node is there, the service is not
             raise ValueError(f"{name}: {owner} runs but has no such service (a {srv_type.__name__} service)")
         if now - start > wait_s:
@@ -227,7 +227,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
         return 1
     outcome = reach_outcome(got.result)
     reason = outcome.reason.removeprefix(f"{outcome.verdict}: ")  # (a verdict's reason may begin with its word)
-    if outcome.verdict == "refused":  # never executed
+    if outcome.verdict == reach_type().Result.VERDICT_REFUSED:  # never executed
         print(f"{args.action}: refused: {reason}")
         return 1
     error = "unknown" if outcome.final_error_mm is None else f"{outcome.final_error_mm:.1f} mm"

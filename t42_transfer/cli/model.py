@@ -7,7 +7,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from t42_transfer.cli.args import existing_dir, existing_file, float_arg, int_arg, new_output
+from t42_transfer.cli.args import bags_in, existing_file, float_arg, int_arg, new_output
 
 
 def _cmd_import_authors(args: argparse.Namespace) -> int:
@@ -24,23 +24,6 @@ def _cmd_import_authors(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bags(paths: list[Path]) -> list[Path]:
-    """Each path a bag directory (it holds ``metadata.yaml``) or a directory of finished bags, in order."""
-    from t42_transfer.transfer.online import list_bags
-
-    bags: dict[Path, Path] = {}  # by resolved path: a bag named twice is read once
-    for path in paths:
-        existing_dir(path)
-        found = [path] if (path / "metadata.yaml").is_file() else list_bags(path)
-        if not found:
-            nested = sorted(str(d) for d in path.iterdir() if d.is_dir() and list_bags(d))
-            hint = f"; these folders in it do (a suite under a namespace records there): {', '.join(nested)}" \
-                if nested else ""
-            raise ValueError(f"{path}: holds no finished bag (a directory with a metadata.yaml){hint}")
-        bags.update((bag.resolve(), bag) for bag in found)
-    return list(bags.values())
-
-
 def _cmd_train(args: argparse.Namespace) -> int:
     import torch
 
@@ -49,7 +32,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from t42_transfer.planning.workspace import Workspace
     from t42_transfer.transfer.online import read_target
 
-    bags = _bags(args.bags)
+    bags = bags_in(args.bags)
     new_output(args.out)
     cfg = TrainConfig(seed=args.seed, **({} if args.epochs is None else {"epochs": args.epochs}))
     target = read_target(bags)

@@ -187,9 +187,10 @@ class TransferServer(Node):
                 claim(in_namespace(directory, self.get_namespace()), self.get_namespace(), self.params.share_dirs)
         self._announce_latest(model_dir)
         if not self.params.source_model.is_file():  # said now, not first at the transfer a user waits for
-            self.log.warning(f"source_model {self.params.source_model} does not exist (yet): every transfer fails "
-                             "until it does; make it from the source hand's bags with t42 model train BAGS --out "
-                             f"{self.params.source_model} (t42 demo makes one for the simulated hands)")
+            where = self.params.source_model.absolute()  # (the node's working directory may not be the user's)
+            self.log.warning(f"source_model {where} does not exist (yet) or is no file: every transfer fails until "
+                             f"it is there; make it from the source hand's bags with t42 model train BAGS --out "
+                             f"{where} (t42 demo makes one for the simulated hands)")
         self.new_bags = 0
         """New closed bags (holding an episode) counted towards the next automatic transfer."""
         self.auto_results: list[tuple[bool, str]] = []

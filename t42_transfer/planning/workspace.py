@@ -180,9 +180,8 @@ class Workspace:
 
     def describe_xy(self) -> str:
         """The x and y extent (mm), for a message: the polygon lies within it (its other sides cut corners)."""
-        half = len(self.lower) // 2
-        return (f"x {self.lower[0]:.1f} to {self.upper[0]:.1f} mm, y {self.lower[half]:.1f} to "
-                f"{self.upper[half]:.1f} mm at most")
+        x_min, x_max, y_min, y_max = self.bounds()
+        return f"x {x_min:.1f} to {x_max:.1f} mm, y {y_min:.1f} to {y_max:.1f} mm at most"
 
     def contains_xy(self, xy: Tensor) -> Tensor:
         """Whether each point ``xy[..., 2]`` lies inside, loads aside (False for NaN/inf)."""

@@ -188,8 +188,9 @@ def _from_ros(field: _Field, value: Any) -> Any:
 
 
 def describe_params(params_cls: type) -> str:
-    """One line per parameter, as ``ros2 param describe`` would say it of the running node: name, type, default,
-    range, read-only, description (offline: a user reads them before starting a node)."""
+    """One line per parameter, what ``ros2 param describe`` says of the running node (name, type, default, range,
+    read-only, description; an optional one, dynamically typed there, with the type of its set values): offline,
+    so a user reads them before starting a node."""
     lines = []
     for field in _fields(params_cls):
         kind = Parameter.Type(field.ros_type).name.lower()
@@ -206,7 +207,7 @@ def describe_params(params_cls: type) -> str:
 
 
 def _shown(value: Any) -> str:
-    """A value as a params file writes it (whole bounds without an exponent)."""
+    """A value for the description: a list in brackets, a large whole bound without an exponent."""
     if isinstance(value, tuple):
         return "[" + ", ".join(_shown(v) for v in value) + "]"
     if isinstance(value, float) and value.is_integer() and 1e5 <= abs(value) < 1e15:

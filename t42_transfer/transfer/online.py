@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
-from t42_transfer.data.bag import read_bag
+from t42_transfer.data.bag import list_bags, read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.quality import usable_stretches
 from t42_transfer.data.trajectory import TrajectorySet
@@ -233,18 +233,6 @@ def epoch_info(progress: Progress) -> dict[str, object]:
 
 
 # ---------------------------------------------------------------- bags and state
-def list_bags(bag_dir: Path) -> list[Path]:
-    """Finished bags in ``bag_dir``, by name: non-hidden directories with a ``metadata.yaml``.
-
-    A recorder writes ``metadata.yaml`` when it closes a bag, so the bag being
-    recorded is not taken; hidden directories are ``write_bag``'s staging.
-    """
-    if not bag_dir.is_dir():
-        raise TransferRefused(f"bag_dir {bag_dir} is not a directory")
-    return sorted(p for p in bag_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
-                  and (p / "metadata.yaml").is_file())
-
-
 def bag_key(bag: Path) -> str:
     """How the state file names a bag: its resolved path."""
     return str(Path(bag).resolve())
@@ -448,6 +436,8 @@ def bags_to_read(spec: OnlineTransferSpec, state: Mapping[str, Any]) -> list[Pat
     if spec.bags:
         candidates, where = list(spec.bags), "the configured bags"
     elif spec.bag_dir is not None:
+        if not spec.bag_dir.is_dir():
+            raise TransferRefused(f"bag_dir {spec.bag_dir} is not a directory")
         candidates, where = list_bags(spec.bag_dir), str(spec.bag_dir)
     else:
         raise TransferRefused("no bags configured: set bag_dir or bags")

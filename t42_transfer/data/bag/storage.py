@@ -102,6 +102,24 @@ def bag_files(bag: Path) -> tuple[str, list[Path], BagMetadata | None, str]:
     raise BagError(bag, "is not a rosbag2 bag (expected a bag directory, an .mcap or a .db3 file)")
 
 
+def is_bag(path: Path) -> bool:
+    """Whether ``path`` is a bag directory: a ``metadata.yaml`` or a storage file of its own (a folder of bags
+    is not)."""
+    return path.is_dir() and ((path / "metadata.yaml").exists() or any(any(path.glob(f"*{s}")) for s in SUFFIXES))
+
+
+def list_bags(bag_dir: Path) -> list[Path]:
+    """Finished bags in ``bag_dir``, by name: non-hidden directories with a ``metadata.yaml``.
+
+    A recorder writes ``metadata.yaml`` when it closes a bag, so the bag being
+    recorded is not taken; hidden directories are ``write_bag``'s staging.
+    """
+    if not bag_dir.is_dir():
+        raise ValueError(f"{bag_dir} is not a directory")
+    return sorted(p for p in bag_dir.iterdir() if p.is_dir() and not p.name.startswith(".")
+                  and (p / "metadata.yaml").is_file())
+
+
 def load_raw(bag: Path) -> RawBag:
     """The bag's storage files (MCAP scanned record by record, sqlite3 through rosbags) and its metadata.yaml."""
     storage, files, meta, problem = bag_files(bag)
