@@ -44,6 +44,7 @@ from msg_adapters.kit import (
     MessageKit,
     byte_value,
     message_fields,
+    message_from_fields,
     rclpy_class,
     rclpy_message,
 )
@@ -99,6 +100,7 @@ __all__ = [
     "MessageKit",
     "byte_value",
     "message_fields",
+    "message_from_fields",
     "rclpy_class",
     "rclpy_message",
     "last_step_stamp",

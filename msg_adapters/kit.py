@@ -108,6 +108,67 @@ def message_fields(msg: Any) -> Any:
     return msg
 
 
+def message_from_fields(cls: type, data: Any, where: str = "") -> Any:
+    """An rclpy message of ``cls`` from plain data (as :func:`message_fields` gives it, or YAML): unset fields keep
+    their defaults; ValueError naming the field for an unknown field or a value of the wrong type."""
+    msg = cls()
+    if data is None:
+        return msg
+    fields = cls.get_fields_and_field_types()
+    if not isinstance(data, dict):
+        raise ValueError(f"{where or cls.__name__}: expected a mapping of {', '.join(fields)}, got {data!r}")
+    for name, value in data.items():
+        at = f"{where}.{name}" if where else str(name)
+        if name not in fields:
+            raise ValueError(f"{at}: no such field (it has {', '.join(fields) or 'none'})")
+        kind = fields[name]
+        element, many = _message_type(kind), kind.startswith("sequence<") or kind.endswith("]")
+        try:
+            if element is None:
+                inner = kind.removeprefix("sequence<").split(">")[0].split(",")[0].split("[")[0]
+                if many and not isinstance(value, list):
+                    raise ValueError(f"{at}: expected a list, got {value!r}")
+                setattr(msg, name, [_primitive(inner, v, f"{at}[{k}]") for k, v in enumerate(value)] if many
+                        else _primitive(inner, value, at))
+            elif many:
+                if not isinstance(value, list):
+                    raise ValueError(f"{at}: expected a list, got {value!r}")
+                setattr(msg, name, [message_from_fields(element, v, f"{at}[{k}]") for k, v in enumerate(value)])
+            else:
+                setattr(msg, name, message_from_fields(element, value, at))
+        except (AssertionError, TypeError) as err:  # rclpy's setters check types with asserts
+            raise ValueError(f"{at}: {value!r} is no {fields[name]} ({err or 'wrong type'})") from None
+    return msg
+
+
+def _primitive(kind: str, value: Any, at: str) -> Any:
+    """``value`` checked against a primitive field type (rclpy's own checks are off by default in Jazzy, and
+    serialization says only "bad argument type"); a whole number for a float or double as a float."""
+    base = kind.split("<=")[0]
+    whole = isinstance(value, int) and not isinstance(value, bool)
+    if base in ("string", "wstring"):
+        ok = isinstance(value, str)
+    elif base == "boolean":
+        ok = isinstance(value, bool)
+    elif base in ("float", "double"):
+        ok, value = whole or isinstance(value, float), float(value) if whole else value
+    else:  # the integer types, byte, char, octet
+        ok = whole
+    if not ok:
+        raise ValueError(f"{at}: {value!r} is no {kind}")
+    return value
+
+
+def _message_type(field_type: str) -> type | None:
+    """The message class of a field's (element) type, ``sequence<pkg/Name, 5>`` or ``pkg/Name[3]`` included;
+    None for a primitive."""
+    inner = field_type.removeprefix("sequence<").split(">")[0].split(",")[0].split("[")[0]
+    if "/" not in inner:
+        return None
+    package, name = inner.split("/")
+    return rclpy_class(f"{package}/msg/{name}")
+
+
 def byte_value(value: Any) -> int:
     """A ``byte`` field as an int, from either family."""
     return value[0] if isinstance(value, (bytes, bytearray)) else int(value)

@@ -189,3 +189,38 @@ def test_topic_list_and_echo_print_the_graphs_topics_and_messages_as_ros2_topic_
 
     code, out, err = t42(ros, "topic", "echo", "/nobody/talks", "--wait", "1")
     assert code == 2 and out == "" and "/nobody/talks: no publisher on the graph after 1 s" in err, err
+
+
+def test_topic_pub_sends_a_message_from_yaml_stamped_now_and_refuses_bad_fields_in_one_line(ros: Any) -> None:
+    import time
+
+    from nav_msgs.msg import Path as PathMsg
+    from sensor_msgs.msg import JointState
+
+    node = ros.node("listener")
+    commands: list[Any] = []
+    paths: list[Any] = []
+    node.create_subscription(JointState, "/hand/command", commands.append, 10)
+    node.create_subscription(PathMsg, "/planned", paths.append, 10)
+    before_ns = time.time_ns()
+    code, out, err = t42(ros, "topic", "pub", "/hand/command", "sensor_msgs/msg/JointState",
+                         "{name: [actuator_1, actuator_2], velocity: [0.5, -1]}", "--stamp")
+    assert code == 0 and out == "published 1 on /hand/command\n", (out, err)
+    assert ros.spin_until(lambda: commands, 5.0)
+    got = commands[0]
+    assert list(got.name) == ["actuator_1", "actuator_2"] and list(got.velocity) == [0.5, -1.0]
+    stamp_ns = got.header.stamp.sec * 10**9 + got.header.stamp.nanosec
+    assert before_ns <= stamp_ns <= time.time_ns()  # stamped at publication, as a driver wants a command
+    code, out, err = t42(ros, "topic", "pub", "planned", "nav_msgs/msg/Path",
+                         "{header: {frame_id: t42_base}, poses: [{pose: {position: {x: 0.01, y: 0.07}}}]}",
+                         "-n", "2", "-r", "20")
+    assert code == 0 and ros.spin_until(lambda: len(paths) == 2, 5.0), (out, err)
+    assert paths[0].header.frame_id == "t42_base" and paths[0].poses[0].pose.position.y == 0.07
+
+    for argv, problem in ((["/x", "sensor_msgs/msg/JointState", "{velocty: [1]}"], "velocty: no such field"),
+                          (["/x", "sensor_msgs/msg/JointState", "{name: [1]}"], "name[0]: 1 is no string"),
+                          (["/x", "std_msgs/msg/Nope", "{}"], "std_msgs/msg/Nope: no such message type"),
+                          (["/x", "std_msgs/msg/String", "{data: x}", "--stamp"], "has no header"),
+                          (["/x", "std_msgs/msg/String", "{data: [oops"], "not YAML")):
+        code, out, err = t42(ros, "topic", "pub", *argv)
+        assert code == 2 and out == "" and problem in err and err.count("\n") == 1, (argv, err)

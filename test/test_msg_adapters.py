@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -226,3 +228,23 @@ def test_message_fields_gives_plain_data_of_nested_messages_arrays_and_bytes() -
     image = message_fields(Image(height=1, width=2, encoding="mono8", step=2, data=bytes([0, 255])))
     assert image["data"] == [0, 255] and image["encoding"] == "mono8"
     json.dumps([got, image])  # plain data all through
+
+
+def test_message_from_fields_is_message_fields_backwards_and_names_a_bad_field() -> None:
+    from nav_msgs.msg import Path as PathMsg
+    from sensor_msgs.msg import CameraInfo
+
+    from msg_adapters import message_fields, message_from_fields
+
+    data = {"header": {"stamp": {"sec": 3, "nanosec": 5}, "frame_id": "t42_base"},
+            "poses": [{"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": ""},
+                       "pose": {"position": {"x": 0.01, "y": 0.07, "z": 0.0},
+                                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]}
+    assert message_fields(message_from_fields(PathMsg, data)) == data
+    info = message_fields(message_from_fields(CameraInfo, {"k": [1, 0, 2, 0, 1, 2, 0, 0, 1], "height": 480}))
+    assert info["k"] == [1.0, 0.0, 2.0, 0.0, 1.0, 2.0, 0.0, 0.0, 1.0] and info["height"] == 480  # ints as doubles
+    for bad, problem in (({"poses": [{"pose": {"position": {"x": "a"}}}]}, "poses[0].pose.position.x: 'a' is no "),
+                         ({"header": {"frame": "x"}}, "header.frame: no such field"),
+                         ({"poses": {"pose": {}}}, "poses: expected a list")):
+        with pytest.raises(ValueError, match=re.escape(problem)):
+            message_from_fields(PathMsg, bad)

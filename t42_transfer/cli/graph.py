@@ -1,5 +1,5 @@
 """``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``, ``t42 topic``: the ``ros2 lifecycle``,
-``ros2 service call``, ``ros2 param``, ``ros2 action send_goal`` and ``ros2 topic list/echo`` a pip-installed ROS
+``ros2 service call``, ``ros2 param``, ``ros2 action send_goal`` and ``ros2 topic list/echo/pub`` a pip-installed ROS
 lacks (no ros2cli wheel), for the suite's lifecycle nodes, Trigger services, parameters, the planner's
 ``t42/reach`` action and any topic."""
 
@@ -318,6 +318,51 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
     return 130 if interrupted.is_set() else 0
 
 
+def _cmd_topic_pub(args: argparse.Namespace) -> int:
+    from rclpy.duration import Duration
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from rclpy.serialization import serialize_message
+
+    from msg_adapters import RCLPY, message_from_fields, ns_to_stamp, rclpy_class
+
+    try:
+        cls = rclpy_class(args.type)
+    except (ImportError, AttributeError, ValueError):
+        raise ValueError(f"{args.type}: no such message type (pkg/msg/Name, e.g. std_msgs/msg/String)") from None
+    try:
+        fields = yaml.safe_load(args.values)
+    except yaml.YAMLError as err:
+        raise ValueError(f"{args.values!r}: not YAML ({err})") from None
+    message = message_from_fields(cls, fields)
+    if args.stamp and not hasattr(message, "header"):
+        raise ValueError(f"--stamp: a {args.type} has no header")
+    try:
+        serialize_message(message)  # a value no field can hold (an out-of-range integer): said before anything is sent
+    except Exception as err:
+        raise ValueError(f"{args.values!r}: not a {args.type} ({err})") from None
+    topic = args.topic if args.topic.startswith("/") else "/" + args.topic
+    qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else
+                     DurabilityPolicy.VOLATILE)
+    interrupted = threading.Event()
+    with _graph_node() as node, _sigint_sets(interrupted):
+        publisher = node.create_publisher(cls, topic, qos)
+        deadline = time.monotonic() + args.wait  # as ros2 topic pub: the first message for a reader that is there
+        while not publisher.get_subscription_count() and time.monotonic() < deadline and not interrupted.is_set():
+            time.sleep(0.05)
+        sent = 0
+        while not interrupted.is_set() and (args.count == 0 or sent < args.count):
+            if args.stamp:
+                message.header.stamp = ns_to_stamp(node.get_clock().now().nanoseconds, RCLPY)
+            publisher.publish(message)
+            sent += 1
+            print(f"published {sent} on {topic}", flush=True)
+            if args.count and sent >= args.count:
+                break
+            interrupted.wait(1.0 / args.rate)
+        publisher.wait_for_all_acked(Duration(seconds=2))  # a reliable reader has what was sent before we leave
+    return 130 if interrupted.is_set() else 0
+
+
 def _as_declared(value: Any, declared: int) -> Any:
     """A whole number given for a double parameter (``1`` for ``1.0``, in a list too) as a double: what the user
     meant, which rclpy would refuse as an integer."""
@@ -354,6 +399,22 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     echo.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
                       help="how long to wait for a publisher to appear on the graph (default 10 s)")
     echo.set_defaults(func=_cmd_topic_echo)
+    pub = topic.add_parser("pub", help="publish a message given as YAML (as ros2 topic pub), by default once")
+    pub.add_argument("topic", metavar="TOPIC", help="e.g. /hand/command (a relative name is taken from /)")
+    pub.add_argument("type", metavar="TYPE", help="e.g. sensor_msgs/msg/JointState")
+    pub.add_argument("values", nargs="?", default="{}", metavar="VALUES",
+                     help="the fields as YAML, e.g. \"{name: [actuator_1, actuator_2], velocity: [0.5, 0.5]}\" "
+                          "(unset fields keep their defaults)")
+    pub.add_argument("-n", "--count", type=int_arg(0), default=1, metavar="N",
+                     help="publish N times (default 1; 0: until Ctrl-C)")
+    pub.add_argument("-r", "--rate", type=float_arg(0.001, 1000.0), default=1.0, metavar="HZ",
+                     help="publications a second when N > 1 (default 1)")
+    pub.add_argument("--stamp", action="store_true",
+                     help="set header.stamp to now at each publication (a driver refuses stale commands)")
+    pub.add_argument("--latched", action="store_true", help="transient-local durability (a late reader gets it)")
+    pub.add_argument("--wait", type=float_arg(0, 3600), default=2.0, metavar="S",
+                     help="wait up to S s for a subscriber before the first message (default 2)")
+    pub.set_defaults(func=_cmd_topic_pub)
     lifecycle = commands.add_parser("lifecycle", help="a lifecycle node's state, or a transition (as ros2 lifecycle)")
     lifecycle.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
     lifecycle.add_argument("transition", nargs="?", choices=TRANSITIONS, metavar="TRANSITION",
