@@ -31,9 +31,22 @@ TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 """The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
 
 
+_INTERRUPTED = threading.Event()
+"""Set by Ctrl-C while a command is on the graph: its loops stop at their next turn (:func:`_stop_if_asked`).  A
+KeyboardInterrupt raised wherever the program happens to be, inside rclpy's C++ calls too, came out as another
+error there, or left an action client half-way."""
+
+
+def _stop_if_asked() -> None:
+    """KeyboardInterrupt, at a point where stopping is safe, once Ctrl-C was pressed."""
+    if _INTERRUPTED.is_set():
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def _graph_node() -> Iterator[Node]:
-    """A node of its own on the graph (local discovery unless chosen otherwise, as ``t42 up`` starts the suite)."""
+    """A node of its own on the graph (local discovery unless chosen otherwise, as ``t42 up`` starts the suite);
+    Ctrl-C sets :data:`_INTERRUPTED` meanwhile."""
     from t42_transfer.ros.runner import keep_discovery_local
 
     keep_discovery_local()
@@ -41,8 +54,10 @@ def _graph_node() -> Iterator[Node]:
     from rclpy.signals import SignalHandlerOptions
 
     context = rclpy.Context()
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)  # Ctrl-C: KeyboardInterrupt, below
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f"t42_cli_{os.getpid()}", context=context)
+    _INTERRUPTED.clear()
+    before = signal.signal(signal.SIGINT, lambda *_: _INTERRUPTED.set())
     try:
         yield node
     except KeyboardInterrupt:  # Ctrl-C while waiting: the node goes on with what it was asked (a transfer, say)
@@ -50,6 +65,7 @@ def _graph_node() -> Iterator[Node]:
               file=sys.stderr)
         raise SystemExit(130) from None
     finally:
+        signal.signal(signal.SIGINT, before)
         if node.executor is not None:
             node.executor.shutdown(timeout_sec=1.0)
         node.destroy_node()
@@ -64,6 +80,7 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     owner = _absolute(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
     start, seen = time.monotonic(), None
     while not client.wait_for_service(timeout_sec=0.2):
+        _stop_if_asked()
         now = time.monotonic()
         running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
         seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
@@ -78,13 +95,15 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
     while not future.done():  # a transfer takes minutes: Ctrl-C stops the wait (between short waits)
+        _stop_if_asked()
         executor.spin_once(timeout_sec=0.2)
     node.destroy_client(client)
     return future.result()
 
 
-def _absolute(node_name: str) -> str:
-    return node_name if node_name.startswith("/") else "/" + node_name
+def _absolute(name: str) -> str:
+    """A node, service or topic name from the root namespace, where the command's own node is."""
+    return name if name.startswith("/") else "/" + name
 
 
 def _cmd_lifecycle(args: argparse.Namespace) -> int:
@@ -170,9 +189,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
 
     goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
                       args.replan_every)  # stamp 0: now, for the planner
-    interrupted = threading.Event()  # Ctrl-C sets it; the loops below stop at their next turn (an interrupt
-    # raised inside rclpy's C++ calls would come out as some other error, or leave the action client half-way)
-    with _graph_node() as node, _sigint_sets(interrupted):
+    with _graph_node() as node:
         client = ActionClient(node, reach_type(), args.action)
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
@@ -182,8 +199,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             has been off the graph for SERVER_GONE_S."""
             start, gone_since = time.monotonic(), None
             while not done():
-                if interrupted.is_set():
-                    raise KeyboardInterrupt
+                _stop_if_asked()
                 executor.spin_once(timeout_sec=0.1)
                 now = time.monotonic()
                 if now - start > wait_s:
@@ -236,16 +252,6 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     return 0 if outcome.success else 1
 
 
-@contextlib.contextmanager
-def _sigint_sets(flag: threading.Event) -> Iterator[None]:
-    """Within: SIGINT sets ``flag`` instead of raising KeyboardInterrupt wherever the program happens to be."""
-    before = signal.signal(signal.SIGINT, lambda *_: flag.set())
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, before)
-
-
 def _cancelled(executor: Any, sent: Any) -> str:
     """Cancel the goal ``sent`` (a goal future, or None: none sent), waiting for its answer up to 5 s a request;
     what became of it, for the user."""
@@ -285,15 +291,14 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
 
     from msg_adapters import message_fields, rclpy_class
 
-    topic = args.topic if args.topic.startswith("/") else "/" + args.topic
-    interrupted = threading.Event()
-    with _graph_node() as node, _sigint_sets(interrupted):
+    topic = _absolute(args.topic)
+    with _graph_node() as node:
         deadline = time.monotonic() + args.wait
         while not (writers := node.get_publishers_info_by_topic(topic)):
             if time.monotonic() > deadline:
                 raise ValueError(f"{topic}: no publisher on the graph after {args.wait:g} s (ROS_DOMAIN_ID "
                                  f"{os.environ.get('ROS_DOMAIN_ID', '0')}; t42 topic list shows what there is)")
-            if interrupted.is_set():
+            if _INTERRUPTED.is_set():
                 return 130
             time.sleep(0.1)
         qos = QoSProfile(depth=10)  # as ros2 topic echo adapts: what every publisher offers, latched ones' history
@@ -307,7 +312,7 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
         executor.add_node(node)
         shown = 0
         try:
-            while not interrupted.is_set() and (args.count == 0 or shown < args.count):
+            while not _INTERRUPTED.is_set() and (args.count == 0 or shown < args.count):
                 executor.spin_once(timeout_sec=0.1)
                 while seen and (args.count == 0 or shown < args.count):
                     print(yaml.safe_dump(message_fields(seen.pop(0)), sort_keys=False, width=120) + "---",
@@ -315,7 +320,7 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
                     shown += 1
         finally:
             executor.shutdown(timeout_sec=1.0)
-    return 130 if interrupted.is_set() else 0
+    return 130 if _INTERRUPTED.is_set() else 0
 
 
 def _cmd_topic_pub(args: argparse.Namespace) -> int:
@@ -340,17 +345,16 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
         serialize_message(message)  # a value no field can hold (an out-of-range integer): said before anything is sent
     except Exception as err:
         raise ValueError(f"{args.values!r}: not a {args.type} ({err})") from None
-    topic = args.topic if args.topic.startswith("/") else "/" + args.topic
+    topic = _absolute(args.topic)
     qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else
                      DurabilityPolicy.VOLATILE)
-    interrupted = threading.Event()
-    with _graph_node() as node, _sigint_sets(interrupted):
+    with _graph_node() as node:
         publisher = node.create_publisher(cls, topic, qos)
         deadline = time.monotonic() + args.wait  # as ros2 topic pub: the first message for a reader that is there
-        while not publisher.get_subscription_count() and time.monotonic() < deadline and not interrupted.is_set():
+        while not publisher.get_subscription_count() and time.monotonic() < deadline and not _INTERRUPTED.is_set():
             time.sleep(0.05)
         sent = 0
-        while not interrupted.is_set() and (args.count == 0 or sent < args.count):
+        while not _INTERRUPTED.is_set() and (args.count == 0 or sent < args.count):
             if args.stamp:
                 message.header.stamp = ns_to_stamp(node.get_clock().now().nanoseconds, RCLPY)
             publisher.publish(message)
@@ -358,9 +362,9 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
             print(f"published {sent} on {topic}", flush=True)
             if args.count and sent >= args.count:
                 break
-            interrupted.wait(1.0 / args.rate)
+            _INTERRUPTED.wait(1.0 / args.rate)
         publisher.wait_for_all_acked(Duration(seconds=2))  # a reliable reader has what was sent before we leave
-    return 130 if interrupted.is_set() else 0
+    return 130 if _INTERRUPTED.is_set() else 0
 
 
 def _as_declared(value: Any, declared: int) -> Any:
