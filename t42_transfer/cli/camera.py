@@ -15,8 +15,6 @@ if TYPE_CHECKING:
 
 BOARDS = ("checkerboard", "charuco")
 CHARUCO_ONLY = ("squares", "marker", "dictionary")
-ROS_OWN = ("use_sim_time", "start_type_description_service")
-"""Parameters every rclpy node has (besides ``qos_overrides.*``)."""
 
 
 def _board(args: argparse.Namespace) -> Board:
@@ -98,7 +96,7 @@ def _tracker_params(config: Path | None, node: str) -> ObjectTrackerParams:
     if config is None:
         return ObjectTrackerParams()
     params, unknown = params_from_file(ObjectTrackerParams, existing_file(config), node)
-    unknown = [n for n in unknown if n not in ROS_OWN and not n.startswith("qos_overrides.")]
+    unknown = [n for n in unknown if not n.startswith("qos_overrides.")]  # (declared with the node's readers)
     if unknown:  # a misspelt size would print a marker of the default size: refused, not warned about
         raise ValueError(f"{config}: {node}: {', '.join(unknown)}: not a parameter of the object tracker (it has "
                          f"{', '.join(f.name for f in dataclasses.fields(ObjectTrackerParams))})")
