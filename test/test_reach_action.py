@@ -237,7 +237,9 @@ def test_t42_reach_follows_a_goal_to_its_verdict_as_ros2_action_send_goal_does(r
     """The command a pip-only install has for the action: feedback lines, the verdict, exit 0 only on a hit."""
     rig.tick()
     x, y = (START_XY + [6.0, -4.0]) / 1000
-    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "20")
+    # a 10 mm tolerance: the rig's small unrefined search, under load, once predicted 4.3 mm for a 3 mm one and
+    # refused the goal; this test is about the command, not the plan
+    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "20", "--tolerance", "0.01")
     lines = out.splitlines()
     assert lines and all(line.startswith("step ") for line in lines[:-1]) and len(lines) >= 3, (out, err)
     verdict = re.fullmatch(r"/t42/reach: (hit|miss|no_progress|incomplete)(: .+)?; final error \d+\.\d mm after "
@@ -251,7 +253,8 @@ def test_t42_reach_follows_a_goal_to_its_verdict_as_ros2_action_send_goal_does(r
 def test_ctrl_c_on_t42_reach_cancels_the_goal_and_the_hand_holds(ros, rig: ReachRig) -> None:
     rig.tick()
     x, y = (START_XY + [8.0, 0.0]) / 1000
-    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "40", interrupt_after_ticks=3)
+    code, out, err = t42_reach(rig, f"{x:.6f}", f"{y:.6f}", "--steps", "40", "--tolerance", "0.01",
+                               interrupt_after_ticks=3)  # (the tolerance: as above)
     assert code == 130 and err == "t42: interrupted: goal cancelled (the hand holds from its next step)\n", (out, err)
     assert ros.spin_until(lambda: rig.driver.pending_actions == 0, 2.0), "the driver still runs the plan"
 
