@@ -176,14 +176,14 @@ def evaluate_models(
 
     ``indices``: the episodes' numbers in their data set (reported per path).  ``progress``: a tqdm bar.
     """
-    from tqdm.auto import tqdm
+    from t42_transfer.progress import progress_bar
 
     if not len(episodes):
         raise ValueError("no paths to evaluate")
     modes = [dropout_draws] if dropout_draws is None else [dropout_draws, None]
     total = sum(chunks_per_model(episodes, mode) for mode in modes) * len(models) + 1
     options = {"seed": seed, "definition": definition, "indices": indices}
-    with tqdm(total=total, desc="evaluate", unit="batch", disable=not progress, leave=False) as bar:
+    with progress_bar(total=total, desc="evaluate", unit="batch", disable=not progress, leave=False) as bar:
         scored = {mode: [score_model(model, episodes, name, dropout_draws=mode, on_chunk=bar.update, **options)
                          for name, model in models] for mode in modes}
         hold = score_model(HoldStill(), episodes, None, on_chunk=bar.update, **options)

@@ -523,7 +523,7 @@ def _run_lock(run_dir: Path) -> Iterator[None]:
 
 
 def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | None) -> list[dict[str, Any]]:
-    from tqdm.auto import tqdm
+    from t42_transfer.progress import progress_bar
 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(config_dict(cfg), sort_keys=False))
     cache = data_cache(run_dir)
@@ -549,7 +549,8 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
     for left_out in sorted({excluded[c] for c in todo}):
         train_source(cfg, run_dir, progress, left_out)
     workers = cfg.workers or os.cpu_count() or 1
-    bar = tqdm(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell", disable=not progress)
+    bar = progress_bar(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell",
+                       disable=not progress)
     # The planner keeps predictions inside the states these models were trained on.
     workspace = _workspace(cfg, source.data, target.data, sources[todo[0]]).to_dict() if todo else {}
     tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]

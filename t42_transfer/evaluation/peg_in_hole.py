@@ -388,7 +388,7 @@ def evaluate(
     ``contenders`` may be a mapping of name to model (one open-loop contender each); the ``baselines``
     are added first.
     """
-    from tqdm.auto import tqdm
+    from t42_transfer.progress import progress_bar
 
     if isinstance(contenders, Mapping):
         contenders = [Contender(name, (model,)) for name, model in contenders.items()]
@@ -396,7 +396,7 @@ def evaluate(
     goals = list(goals) if goals is not None else make_goals(cfg, workspace)
     hand, oracle_hand = SimulatedHand(cfg.hand), SimulatedHand(cfg.hand)
     trials = []
-    with tqdm(total=len(everyone) * len(goals), desc="peg-in-hole", unit="goal", disable=not progress) as bar:
+    with progress_bar(total=len(everyone) * len(goals), desc="peg-in-hole", unit="goal", disable=not progress) as bar:
         for contender in everyone:
             bar.set_postfix_str(contender.name)
             for goal in goals:

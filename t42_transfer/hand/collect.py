@@ -225,12 +225,12 @@ def collect(
     Episodes shorter than ``MIN_EPISODE_STEPS`` are discarded (the paper's rule) and
     counted in the returned stats.
     """
-    from tqdm.auto import tqdm
+    from t42_transfer.progress import progress_bar
 
     check_collection(hand, episodes, steps, workers, policy.hold_max)
     workers = workers or os.cpu_count() or 1
     tasks = [(hand, seed, e, steps, policy) for e in range(episodes)]
-    bar = tqdm(total=episodes, desc=f"collect {hand}", unit="ep", disable=not progress)
+    bar = progress_bar(total=episodes, desc=f"collect {hand}", unit="ep", disable=not progress)
     if workers == 1:
         results = []
         for task in tasks:

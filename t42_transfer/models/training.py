@@ -111,11 +111,11 @@ class ProgressBar:
         self._bar: tqdm | None = None
 
     def __call__(self, progress: Progress) -> None:
-        from tqdm.auto import tqdm
+        from t42_transfer.progress import progress_bar
 
         if self._bar is None or progress.epoch == 1:
             self._close()
-            self._bar = tqdm(total=progress.epochs, desc=progress.phase, unit="ep", leave=False)
+            self._bar = progress_bar(total=progress.epochs, desc=progress.phase, unit="ep", leave=False)
         val = "-" if progress.val_loss is None else f"{progress.val_loss:.4f}"
         self._bar.set_postfix(train=f"{progress.train_loss:.4f}", val=val)
         self._bar.update()
