@@ -9,8 +9,9 @@ import sys
 from typing import Any
 
 import pytest
+import yaml
 from rclpy.lifecycle import LifecycleNode
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 
 from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 
@@ -43,11 +44,32 @@ def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> Non
         response.success, response.message = True, "grasped"
         return response
 
-    ros.node("server").create_service(Trigger, "/hand/reset", answer)
+    asked: list[bool] = []
+
+    def switch(request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        asked.append(request.data)
+        response.success, response.message = request.data, f"torque {'on' if request.data else 'off'}"
+        return response
+
+    server = ros.node("server")
+    server.create_service(Trigger, "/hand/reset", answer)
+    server.create_service(SetBool, "/hand/torque", switch)
     assert t42(ros, "call", "/hand/reset")[:2] == (0, "/hand/reset: success: grasped\n")
     code, out, err = t42(ros, "call", "/t42/transfer_now", "--wait", "1")
     assert code == 2 and out == "", (out, err)
-    assert "/t42/transfer_now: no such service on the graph after 1 s (a Trigger service" in err, err
+    assert "/t42/transfer_now: no such service on the graph after 1 s (ROS_DOMAIN_ID" in err, err
+    # any service type, as ros2 service call: the request's fields as YAML, the type given or the graph's
+    assert t42(ros, "call", "/hand/torque", "{data: true}")[:2] == (0, "/hand/torque: success: torque on\n")
+    assert t42(ros, "call", "hand/torque", "std_srvs/srv/SetBool")[:2] == (1, "hand/torque: failure: torque off\n")
+    assert asked == [True, False]
+    code, out, _ = t42(ros, "call", "/server/list_parameters", "{depth: 0}")  # no success field: the answer as YAML
+    assert code == 0 and "use_sim_time" in yaml.safe_load(out)["result"]["names"], out
+    code, out, err = t42(ros, "call", "/hand/reset", "std_srvs/SetBool", "{data: true}")
+    assert (code, out, err) == (2, "", "t42: error: /hand/reset: a std_srvs/srv/Trigger service, not a "
+                                       "std_srvs/srv/SetBool\n")
+    code, _, err = t42(ros, "call", "/hand/torque", "std_srvs/srv/SetBool", "{data: 1}")  # refused before the graph
+    assert code == 2 and err == "t42: error: request.data: 1 is no boolean\n", err
+    assert asked == [True, False]
 
 
 def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any) -> None:

@@ -1,6 +1,6 @@
 """``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``, ``t42 topic``: the ``ros2 lifecycle``,
 ``ros2 service call``, ``ros2 param``, ``ros2 action send_goal`` and ``ros2 topic list/echo/pub`` a pip-installed ROS
-lacks (no ros2cli wheel), for the suite's lifecycle nodes, Trigger services, parameters, the planner's
+lacks (no ros2cli wheel), for the suite's lifecycle nodes, services, parameters, the planner's
 ``t42/reach`` action and any topic."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ import argparse
 import contextlib
 import math
 import os
+import re
 import signal
 import sys
 import threading
@@ -82,6 +83,9 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     while not client.wait_for_service(timeout_sec=0.2):
         _stop_if_asked()
         now = time.monotonic()
+        shown = _served_types(node, _absolute(name))
+        if shown and _type_name(srv_type) not in shown:  # no client of this type ever matches it
+            raise ValueError(f"{name}: a {', '.join(shown)} service, not a {_type_name(srv_type)}")
         running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
         seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
         if seen is not None and now - seen > OWNER_GRACE_S:  # the node is there, the service is not
@@ -99,6 +103,11 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
         executor.spin_once(timeout_sec=0.2)
     node.destroy_client(client)
     return future.result()
+
+
+def _type_name(cls: Any) -> str:
+    """``pkg/srv/Name`` of an rclpy service class, as the graph names it."""
+    return f"{cls.__module__.split('.')[0]}/srv/{cls.__name__}"
 
 
 def _absolute(name: str) -> str:
@@ -132,12 +141,72 @@ def _cmd_lifecycle(args: argparse.Namespace) -> int:
 
 
 def _cmd_call(args: argparse.Namespace) -> int:
-    from std_srvs.srv import Trigger
+    from msg_adapters import message_fields, message_from_fields
 
+    service = _absolute(args.service)
+    typename, values = args.type, args.values
+    if typename is not None and values is None and not _SERVICE_TYPE.fullmatch(typename):
+        typename, values = None, typename  # ``t42 call /srv '{data: true}'``: the type is the graph's
+    fields = _yaml(values or "{}")
+    srv = None if typename is None else _service_class(typename)  # a bad field is said before the graph
+    request = None if srv is None else message_from_fields(srv.Request, fields, "request")
     with _graph_node() as node:
-        answer = _call(node, Trigger, args.service, Trigger.Request(), args.wait)
-    print(f"{args.service}: {'success' if answer.success else 'failure'}: {answer.message}")
-    return 0 if answer.success else 1
+        if srv is None:
+            srv = _service_class(_graph_service_type(node, service, args.wait))
+            request = message_from_fields(srv.Request, fields, "request")
+        answer = message_fields(_call(node, srv, service, request, args.wait))
+    if set(answer) == {"success", "message"}:  # std_srvs' Trigger and SetBool: one line
+        print(f"{args.service}: {'success' if answer['success'] else 'failure'}: {answer['message']}")
+    else:
+        print(yaml.safe_dump(answer, sort_keys=False, width=120), end="")
+    return 1 if answer.get("success") is False else 0
+
+
+_SERVICE_TYPE = re.compile(r"\w+/(srv/)?\w+")
+
+
+def _service_class(typename: str) -> Any:
+    """rclpy's class of a service type, ``pkg/srv/Name`` or ``pkg/Name``."""
+    from msg_adapters import rclpy_class
+
+    package, _, name = typename.partition("/")
+    full = typename if "/srv/" in typename else f"{package}/srv/{name}"
+    try:
+        srv = rclpy_class(full)
+    except (ImportError, AttributeError, ValueError):
+        srv = None
+    if not hasattr(srv, "Request"):
+        raise ValueError(f"{typename}: no such service type (pkg/srv/Name, e.g. std_srvs/srv/SetBool)")
+    return srv
+
+
+def _graph_service_type(node: Node, service: str, wait_s: float) -> str:
+    """The type ``service`` shows on the graph, once it does (ValueError after ``wait_s``)."""
+    deadline = time.monotonic() + wait_s
+    while not (types := _served_types(node, service)):
+        _stop_if_asked()
+        if time.monotonic() > deadline:
+            raise ValueError(f"{service}: no such service on the graph after {wait_s:g} s (ROS_DOMAIN_ID "
+                             f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+        time.sleep(0.1)
+    return types[0]
+
+
+def _served_types(node: Node, service: str) -> list[str]:
+    """The types some node serves ``service`` as (the graph-wide list holds its clients' types too)."""
+    types: set[str] = set()
+    for name, namespace in node.get_node_names_and_namespaces():
+        with contextlib.suppress(Exception):  # a node that left meanwhile
+            types.update(t for s, ts in node.get_service_names_and_types_by_node(name, namespace) if s == service
+                         for t in ts)
+    return sorted(types)
+
+
+def _yaml(values: str) -> Any:
+    try:
+        return yaml.safe_load(values)
+    except yaml.YAMLError as err:
+        raise ValueError(f"{values!r}: not YAML ({err})") from None
 
 
 def _cmd_param(args: argparse.Namespace) -> int:
@@ -334,11 +403,7 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
         cls = rclpy_class(args.type)
     except (ImportError, AttributeError, ValueError):
         raise ValueError(f"{args.type}: no such message type (pkg/msg/Name, e.g. std_msgs/msg/String)") from None
-    try:
-        fields = yaml.safe_load(args.values)
-    except yaml.YAMLError as err:
-        raise ValueError(f"{args.values!r}: not YAML ({err})") from None
-    message = message_from_fields(cls, fields)
+    message = message_from_fields(cls, _yaml(args.values))
     if args.stamp and not hasattr(message, "header"):
         raise ValueError(f"--stamp: a {args.type} has no header")
     try:
@@ -425,9 +490,13 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                            help=f"one of {', '.join(TRANSITIONS)}; none: print the state")
     _wait_argument(lifecycle)
     lifecycle.set_defaults(func=_cmd_lifecycle)
-    call = commands.add_parser("call", help="call a std_srvs/Trigger service, e.g. /hand/reset, /t42/transfer_now "
-                                            "(as ros2 service call)")
+    call = commands.add_parser("call", help="call a service, e.g. /hand/reset, /t42/transfer_now (as ros2 "
+                                            "service call)")
     call.add_argument("service", metavar="SERVICE")
+    call.add_argument("type", nargs="?", metavar="TYPE",
+                      help="e.g. std_srvs/srv/SetBool; left out: the type the service shows on the graph")
+    call.add_argument("values", nargs="?", metavar="VALUES",
+                      help="the request's fields as YAML, e.g. '{data: true}' (default: all defaults)")
     _wait_argument(call)
     call.set_defaults(func=_cmd_call)
     param = commands.add_parser("param", help="get or set a node's parameter, or list them all (as ros2 param "
