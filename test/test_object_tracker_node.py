@@ -418,7 +418,7 @@ def test_the_camera_node_loops_a_video_file_when_asked(ros, video) -> None:
     assert not calibration.k.any()  # without a calibration file K is zero: ROS's "uncalibrated"
 
 
-def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, tmp_path, capfd) -> None:
+def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, tmp_path) -> None:
     """``autostart: false``: nothing opens or goes out until configure and activate (as ``ros2 lifecycle set``
     asks them); deactivate stops the frames, activate resumes them, cleanup releases the source; a configure
     that fails leaves the node unconfigured, saying why, and may be tried again."""
@@ -428,6 +428,7 @@ def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, 
     from t42_transfer.nodes.camera import STATUS_NAME as CAMERA_STATUS
 
     tester = Tester(ros)
+    log = Rosout(ros, "camera")
     images = tester.listen(Image, names.CAMERA_IMAGE)
     diagnostics = tester.listen(DiagnosticArray, names.DIAGNOSTICS)
     change = tester.tester.create_client(ChangeState, "camera/change_state")
@@ -467,11 +468,9 @@ def test_the_camera_is_a_lifecycle_node_driven_through_its_services(ros, video, 
     assert go(Transition.TRANSITION_ACTIVATE) and ros.spin_until(lambda: len(images) >= stopped + 5, 5.0)
     assert go(Transition.TRANSITION_DEACTIVATE) and go(Transition.TRANSITION_CLEANUP)
     assert state() == "unconfigured" and node.capture is None
-    # each transition said in the node's log (read from the process's stderr: an in-process /rosout reader lost
-    # these lines in one loaded run, as it lost a driver's in another test; not understood)
-    lines = [line.split("]: ", 1)[-1] for line in capfd.readouterr().err.splitlines() if "[camera]" in line]
-    for said in ("opened", "active: publishing", "inactive: no frames", "unconfigured: "):
-        assert any(line.startswith(said) for line in lines), (said, lines)
+    said = ("opened", "active: publishing", "inactive: no frames", "unconfigured: ")  # each transition on /rosout
+    assert ros.spin_until(lambda: all(any(m.msg.startswith(w) for m in log.lines) for w in said), 5.0), \
+        [m.msg for m in log.lines]
 
 
 def test_camera_and_tracker_nodes_together_track_a_video_of_rendered_frames(ros, scene, tmp_path) -> None:

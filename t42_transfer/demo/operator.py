@@ -31,6 +31,7 @@ from msg_adapters.plan_result import plan_result
 from msg_adapters.reach import reach_type
 from msg_adapters.transfer import ModelAnnouncement, model_announcement, transfer_type
 from t42_transfer.demo.settings import SERVICES, TRANSFER_STATUS
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.qos import profile
 
 MAX_POSES = 2000
@@ -54,6 +55,7 @@ def wait_until(cond: Callable[[], Any], timeout_s: float, what: str, alive: Call
 class Operator(Node):
     """What a user at the keyboard does: watch, call, send goals; every topic and service from :mod:`names`."""
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("t42_demo", parameter_overrides=[Parameter("use_sim_time", value=True)], **node_kwargs)
         self.spin_lock = threading.Lock()

@@ -37,11 +37,12 @@ from typing import Any
 import cv2
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from rclpy.lifecycle import State, TransitionCallbackReturn
 from sensor_msgs.msg import CameraInfo, Image
 
 from msg_adapters import RCLPY, camera_info_msg, diagnostic_array, image_msg, names
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import DestroyableLifecycleNode, destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.tracking.capture import MAX_FPS, MAX_SIDE, Capture, CaptureError, Frame, load_camera_info
@@ -103,11 +104,12 @@ def _size(p: CameraParams, calibration: Intrinsics | None) -> tuple[int, int]:
     return calibration.width, calibration.height
 
 
-class Camera(LifecycleNode):
+class Camera(DestroyableLifecycleNode):
     """An OpenCV capture on the camera topics, as a lifecycle node; see the module docstring."""
 
     params_class = CameraParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("camera", **node_kwargs)
         self._params = LiveParams(self, self.params_class)

@@ -70,7 +70,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from rclpy.lifecycle import State, TransitionCallbackReturn
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -99,6 +99,7 @@ from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
 from t42_transfer.nodes.dynamixel_params import DynamixelDriverParams
 from t42_transfer.ros.deferred_service import DeferredService, Pending
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import DestroyableLifecycleNode, destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
@@ -122,7 +123,7 @@ tracker's pose, each followed by the wake its guard condition causes).  Measured
 driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idle node with one timer: 94-105)."""
 
 
-class DynamixelDriver(LifecycleNode):
+class DynamixelDriver(DestroyableLifecycleNode):
     """A real (or emulated) T42 on the driver topics; see the module docstring."""
 
     params_class = DynamixelDriverParams  # the one its LiveParams declares; t42 node NAME --help lists it
@@ -130,6 +131,7 @@ class DynamixelDriver(LifecycleNode):
     events_executor = True
     """``t42 node`` spins it on rclpy's EventsExecutor (:func:`~t42_transfer.ros.runner.make_executor`)."""
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("dynamixel_driver", **node_kwargs)
         self._servo_limits_rad: tuple[float, ...] | None = None

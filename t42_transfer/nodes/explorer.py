@@ -71,6 +71,7 @@ from t42_transfer.conventions import (
 )
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 
@@ -178,6 +179,7 @@ class Explorer(Node):
     DONE_GRACE_S = 1.0
     """After ``trajectory_done``, how long (wall) the last applied actions may take to arrive."""
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("explorer", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

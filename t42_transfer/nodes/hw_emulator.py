@@ -47,6 +47,7 @@ from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import SimulatedHand
 from t42_transfer.hardware.emulator import PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
 
@@ -94,6 +95,7 @@ class HwEmulator(Node):
 
     params_class = HwEmulatorParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("hw_emulator", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

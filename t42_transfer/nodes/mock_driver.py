@@ -102,6 +102,7 @@ from t42_transfer.driver.timing import StepTiming, step_timing
 from t42_transfer.hand.params import NAMED_VARIANTS
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.ros.sim_camera import SimCamera, SimCameraParams
@@ -161,6 +162,7 @@ class MockDriver(Node):
 
     params_class = MockDriverParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("mock_driver", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params, self._veto)

@@ -59,6 +59,7 @@ from msg_adapters import (
 )
 from t42_transfer.conventions import DROP_JUMP_MM, MM_PER_M
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.tracking import markers
@@ -127,6 +128,7 @@ class ObjectTracker(Node):
 
     params_class = ObjectTrackerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("object_tracker", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

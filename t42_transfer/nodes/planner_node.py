@@ -29,18 +29,14 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   predicted paths).  Cancel sends the driver an empty trajectory (its "stop") at once; a newer goal (action or
   topic) pre-empts it, stopping the hand too.  ``t42/goal`` stays as a thin mirror (Foxglove's publish panel).
 
-Open or closed loop.  By default (``replan_every: 0``, the paper's setting) the
-whole plan is sent at once, open loop.  With ``replan_every: k`` the node sends
-the first k steps of an accepted plan, waits for the driver's
-``trajectory_done`` and the state after the piece's last step, plans the rest
-from that measured state (the remaining steps of a fixed-length plan, or a new
-horizon search within what is left of ``horizon``), sends its first k steps,
-and so on (model-predictive control).  The goal's one result describes the
-first plan; each replan is logged and its predicted path published.  A replan
-that finds no safe sequence keeps the rest of the previous plan (the rule of
-:func:`~t42_transfer.planning.execution.receding_horizon`, which the peg-in-hole
-evaluation runs too); a newer goal, or a piece that does not finish in
-``piece_timeout_s``, ends the loop with the hand holding still.
+Open or closed loop. By default (``replan_every: 0``, the paper's setting) the whole plan is sent at once, open
+loop. With ``replan_every: k`` the node sends the first k steps of an accepted plan, waits for the driver's
+``trajectory_done`` and the state after the piece's last step, plans the rest from that measured state (the
+remaining steps of a fixed-length plan, or a new horizon search within what is left of ``horizon``), sends its first
+k steps, and so on (model-predictive control). The goal's one result describes the first plan; each replan is logged
+and its predicted path published. A replan that finds no safe sequence keeps the rest of the previous plan (the rule
+of :func:`~t42_transfer.planning.execution.receding_horizon`, which the peg-in-hole evaluation runs too); a newer
+goal, or a piece that does not finish in ``piece_timeout_s``, ends the loop with the hand holding still.
 
 Parameters are :class:`PlannerNodeParams`.  ``model`` is read once at start (later
 models come by announcement); the planner settings and ``max_state_age_s`` may be
@@ -129,6 +125,7 @@ from t42_transfer.planning import Plan, Planner, PlannerConfig, PlanStopped
 from t42_transfer.planning.execution import receding_horizon
 from t42_transfer.ros.dirs import file_in_namespace
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
@@ -142,6 +139,7 @@ class PlannerNode(Node):
 
     params_class = PlannerNodeParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("planner", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

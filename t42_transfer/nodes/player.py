@@ -43,6 +43,7 @@ from rosgraph_msgs.msg import Clock
 from msg_adapters import RCLPY, names, ns_to_stamp, rclpy_class
 from t42_transfer.data.bag.playback import Timeline, open_bag
 from t42_transfer.data.errors import BagError
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 
 DEFAULT_QOS = QoSProfile(depth=10)
@@ -98,6 +99,7 @@ class BagPlayer(Node):
 
     params_class = PlayerParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("bag_player", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

@@ -13,12 +13,10 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   happen), written as ``hand/status`` is, their bytes unchanged, with their full ``ros2msg`` definitions in the
   MCAP schema (:mod:`msg_adapters.interfaces`), so rosbags, mcap-ros2-support and Foxglove decode them without
   this package; ``read_bag`` ignores them (they are no steps).  Leave them out of ``topics`` to record none;
-* ``~/start``, ``~/stop``, ``~/split`` (std_srvs/srv/Trigger): private names, as
-  ``ros2 bag record``'s own services (``~/split_bagfile``...), so they are
-  ``/recorder/start`` for the default node name and follow a renamed node
-  (``__node:=rec_left`` -> ``/rec_left/start``) or a namespace (``/left/recorder/start``).
-  Start opens a bag, stop closes it, split closes it and opens the next; each
-  answers ``success`` and a message naming the bag;
+* ``~/start``, ``~/stop``, ``~/split`` (std_srvs/srv/Trigger): private names, as ``ros2 bag record``'s own services
+  (``~/split_bagfile``...), so they are ``/recorder/start`` for the default node name and follow a renamed node
+  (``__node:=rec_left`` -> ``/rec_left/start``) or a namespace (``/left/recorder/start``). Start opens a bag, stop
+  closes it, split closes it and opens the next; each answers ``success`` and a message naming the bag;
 * ``~/pause``, ``~/resume`` (std_srvs/srv/Trigger): pause drops the messages of the steps after the one in
   progress (counted in ``paused_dropped``; statuses too, so none splits), the bag stays open; resume records
   again into the same bag from the first step after the newest stamp received (a whole step).  Pausing when
@@ -136,6 +134,7 @@ from t42_transfer.nodes.recorder_params import (
 from t42_transfer.nodes.recorder_snapshot import Snapshots
 from t42_transfer.ros.dirs import claim, in_namespace
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile, recording
 
@@ -153,6 +152,7 @@ class Recorder(LooseMessages, Node):
 
     params_class = RecorderParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("recorder", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

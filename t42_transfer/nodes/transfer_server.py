@@ -94,6 +94,7 @@ from msg_adapters.transfer import (
 )
 from t42_transfer.nodes.transfer_server_params import TransferServerParams, method_names
 from t42_transfer.ros.dirs import claim, in_namespace
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
 
@@ -140,6 +141,7 @@ class TransferServer(Node):
     executor_threads = 4
     """A MultiThreadedExecutor (``t42 node`` reads this): a second call is answered while one trains."""
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("transfer_server", **node_kwargs)
         self._params = LiveParams(self, self.params_class, self._on_params)

@@ -64,6 +64,7 @@ from t42_transfer.conventions import MM_PER_M
 from t42_transfer.hand.params import variant
 from t42_transfer.nodes.view_params import GraphParameters
 from t42_transfer.ros.logs import ThrottledLog
+from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams, param
 from t42_transfer.ros.qos import profile
 from t42_transfer.view.scene import DEFAULT_TOLERANCE_MM, build_scene
@@ -166,6 +167,7 @@ class View(Node):
 
     params_class = ViewParams  # the one its LiveParams declares; t42 node NAME --help lists it
 
+    @destroyed_if_init_fails
     def __init__(self, **node_kwargs: Any) -> None:
         super().__init__("view", **node_kwargs)
         self._params = LiveParams(self, self.params_class)

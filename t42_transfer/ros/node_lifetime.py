@@ -1,0 +1,54 @@
+"""Nodes that leave the graph when they are done with, not when the garbage collector finds them.
+
+rcl keeps one /rosout publisher per logger name, and finalizing any node of a name unregisters it.  A node
+of the suite's that outlived its use (a refused one, a destroyed lifecycle node) was finalized by the garbage
+collector at a moment of its own: until then it stayed on the graph as a second node of its name, and then it
+took the /rosout publisher of a later node of that name, whose log lines silently stopped reaching /rosout.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from rclpy.lifecycle import LifecycleNode
+from rclpy.node import Node
+
+F = TypeVar("F", bound=Callable[..., None])
+
+
+def _finalize(node: Any) -> None:
+    """rclpy's own ``destroy_node``, then the lifecycle state machine, which holds the rcl node until it goes."""
+    Node.destroy_node(node)
+    state_machine = getattr(node, "_state_machine", None)
+    if state_machine is not None:
+        state_machine.destroy_when_not_in_use()
+
+
+def destroyed_if_init_fails(init: F) -> F:
+    """Decorate a node class's ``__init__``: if it raises once rclpy made the node (a bad parameter, a missing
+    bag), the node is destroyed before the error goes on (with rclpy's own ``destroy_node``: a subclass's may
+    need what was never built)."""
+
+    @functools.wraps(init)
+    def wrapper(self: Any, *args: Any, **kwargs: Any) -> None:
+        try:
+            init(self, *args, **kwargs)
+        except BaseException:
+            if getattr(self, "handle", None) is not None:  # the rcl node exists
+                with contextlib.suppress(Exception):
+                    _finalize(self)
+            raise
+
+    return wrapper  # type: ignore[return-value]
+
+
+class DestroyableLifecycleNode(LifecycleNode):
+    """rclpy's LifecycleNode, whose ``destroy_node`` leaves the graph at once: rclpy 7.1's leaves the rcl node
+    to its state machine, which refers back to the node and so lives until the garbage collector runs."""
+
+    def destroy_node(self) -> None:
+        super().destroy_node()
+        self._state_machine.destroy_when_not_in_use()

@@ -1,0 +1,61 @@
+"""A node whose construction failed leaves the graph at once, and takes nothing from a later node of its name."""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+from typing import Any
+
+import pytest
+from rclpy.parameter import Parameter
+from ros_rig import Rosout
+
+from t42_transfer.nodes.registry import NODES
+
+
+def first_parameter(node_cls: type) -> str:
+    return dataclasses.fields(node_cls.params_class)[0].name
+
+
+@pytest.mark.parametrize("name", sorted(NODES))
+def test_a_node_refused_at_construction_is_gone_from_the_graph_at_once(ros: Any, name: str) -> None:
+    node_cls = NODES[name].node_class()
+    tester = ros.node("tester")
+    with pytest.raises(Exception):  # noqa: B017,PT011 (each node refuses in its own words)
+        ros.add(node_cls, {first_parameter(node_cls): ["not", "a", "setting"]})
+    assert name not in tester.get_node_names(), tester.get_node_names()
+
+
+def test_a_node_of_the_same_name_keeps_its_rosout_lines_after_the_refused_one_is_collected(ros: Any) -> None:
+    """The camera is a lifecycle node: its state machine refers back to it, so only the garbage collector
+    finalizes a refused one, at a moment of its own (here: at once, when asked)."""
+    from t42_transfer.nodes.camera import Camera
+
+    with pytest.raises(ValueError, match="fps"):
+        ros.add(Camera, {"fps": -1.0, "autostart": False})
+    camera = ros.add(Camera, {"autostart": False})
+    log = Rosout(ros, "camera")
+    ros.spin_for(0.5)
+    gc.collect()
+    camera.get_logger().warning("said after the collection")
+    assert log.wait_warnings(1) == ["said after the collection"]
+
+
+@pytest.mark.parametrize("node_name", ["camera", "dynamixel_driver"])
+def test_a_destroyed_lifecycle_node_leaves_the_graph_and_a_later_one_keeps_its_rosout_lines(ros: Any,
+                                                                                         node_name: str) -> None:
+    """rclpy's own LifecycleNode stayed on the graph after ``destroy_node`` until the garbage collector ran, and
+    then silenced the next node of its name on /rosout: two tests lost a driver's and a camera's lines so."""
+    node_cls = NODES[node_name].node_class()
+    params = {"autostart": False} if node_name == "camera" else {"port": "/dev/null/no_bus"}
+    tester = ros.node("tester")
+    first = node_cls(context=ros.context, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+    first.destroy_node()
+    assert node_name not in tester.get_node_names()
+    second = ros.add(node_cls, params)
+    log = Rosout(ros, node_name)
+    ros.spin_for(0.5)
+    del first
+    gc.collect()
+    second.get_logger().warning("said after the collection")
+    assert log.wait_warnings(1) == ["said after the collection"]
