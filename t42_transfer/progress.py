@@ -70,4 +70,5 @@ def progress_bar(*, file: TextIO | None = None, **kwargs: Any) -> Any:
     lines = _LogLines(out, kwargs.pop("mininterval", LOG_INTERVAL_S))
     if kwargs.get("total") is not None:
         kwargs.setdefault("bar_format", _LOG_FORMAT)
-    return tqdm(file=lines, **{**kwargs, "leave": True})
+    # position 0: a bar opened inside another would move the cursor a line down and back at every redraw
+    return tqdm(file=lines, **{**kwargs, "leave": True, "position": 0})

@@ -50,3 +50,14 @@ def test_the_training_hook_writes_each_phase_to_a_log_as_lines(capsys) -> None:
     finals = [line for line in err.splitlines() if " 100% " in line]
     assert [line.split(":")[0] for line in finals] == ["source", "finetune"], err
     assert "3/3" in finals[0] and "2/2" in finals[1] and "val=-" in finals[1]
+
+
+def test_in_a_log_file_a_bar_inside_another_keeps_to_the_interval() -> None:
+    out = io.StringIO()
+    with progress_bar(file=out, total=3, desc="outer") as outer:
+        for _ in range(3):
+            run_bar(out, steps=200)  # an inner bar redrawn at every step
+            outer.update()
+    lines = out.getvalue().splitlines()
+    assert len(lines) <= 2 + 3 * 2, lines  # each bar's first and final lines
+    assert lines[-1].startswith("outer: 100% 3/3") and "\r" not in out.getvalue()

@@ -230,22 +230,21 @@ def collect(
     check_collection(hand, episodes, steps, workers, policy.hold_max)
     workers = workers or os.cpu_count() or 1
     tasks = [(hand, seed, e, steps, policy) for e in range(episodes)]
-    bar = progress_bar(total=episodes, desc=f"collect {hand}", unit="ep", disable=not progress)
-    if workers == 1:
-        results = []
-        for task in tasks:
-            results.append(_episode_task(task))
-            bar.update()
-    else:
-        # fork: workers need nothing but this module, and scripts need no __main__ guard.
-        methods = multiprocessing.get_all_start_methods()
-        ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+    with progress_bar(total=episodes, desc=f"collect {hand}", unit="ep", disable=not progress) as bar:
+        if workers == 1:
             results = []
-            for result in pool.map(_episode_task, tasks, chunksize=max(1, episodes // (8 * workers))):
-                results.append(result)
+            for task in tasks:
+                results.append(_episode_task(task))
                 bar.update()
-    bar.close()
+        else:
+            # fork: workers need nothing but this module, and scripts need no __main__ guard.
+            methods = multiprocessing.get_all_start_methods()
+            ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                results = []
+                for result in pool.map(_episode_task, tasks, chunksize=max(1, episodes // (8 * workers))):
+                    results.append(result)
+                    bar.update()
     kept = [t for t in results if t is not None and len(t) >= MIN_EPISODE_STEPS]
     reasons: dict[str, int] = {}
     for t in results:
