@@ -95,9 +95,9 @@ def test_the_choice_is_the_lowest_mean_plus_risk_std_and_never_one_a_member_take
     states = rollout(x0.expand(12, 4), candidates)
     reach = states[1:, :, favourite, 0].max()
     others = states[1:, :, torch.arange(12) != favourite, 0].amax((0, 1))
-    if bool((others < reach).any()):  # some sequence stays short of the favourite's furthest x
-        narrow = Workspace.box(-200.0, float(reach) - 1e-3, -100.0, 300.0, load_limit=1e6)
-        assert robust_choice(rollout, narrow, x0, goal, candidates, 1.0) not in (favourite, None)
+    assert bool((others < reach).any())  # some sequence stays short of the favourite's furthest x
+    narrow = Workspace.box(-200.0, float(reach) - 1e-3, -100.0, 300.0, load_limit=1e6)
+    assert robust_choice(rollout, narrow, x0, goal, candidates, 1.0) not in (favourite, None)
     nowhere = Workspace.box(-200.0, float(states[1:, :, :, 0].min()) - 1.0, -100.0, 300.0, load_limit=1e6)
     assert robust_choice(rollout, nowhere, x0, goal, candidates, 1.0) is None
 
@@ -108,19 +108,33 @@ def rerank_plan(model: TransitionModel, goal: tuple[float, float], seed: int, to
     return Planner(model, WIDE, cfg).plan(START, np.array(goal), seed=seed)
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_reranked_plan_keeps_the_contract_is_seeded_and_never_loses_a_reach(seed: int) -> None:
+def reachable_goal(model: TransitionModel, seed: int) -> tuple[float, float]:
+    """Where the model puts the object after a random sequence of half-size actions: a goal some plan reaches."""
+    gen = torch.Generator().manual_seed(seed)
+    x0 = torch.tensor(START, dtype=torch.float32)[None]
+    end = model.rollout(x0, (torch.rand(1, 25, 2, generator=gen) * 2 - 1) * 0.5)[0, -1, :2]
+    return float(end[0]), float(end[1])
+
+
+def test_a_reranked_plan_keeps_the_contract_is_seeded_and_lists_each_candidate_once() -> None:
     torch.manual_seed(6)
     model = TransitionModel(hand_norm(), dropout=0.2)
-    goal = (4.0, 84.0)
-    plain = rerank_plan(model, goal, seed)
-    ranked, again = (rerank_plan(model, goal, seed, rerank=30, rerank_members=8) for _ in range(2))
-    assert np.array_equal(ranked.actions, again.actions)
-    assert ranked.actions.shape == (25, 2) and np.abs(ranked.actions).max() <= 1.0
-    assert np.isfinite(ranked.predicted).all()
-    assert ranked.evaluated == plain.evaluated + 30 * 8 + (not np.array_equal(ranked.actions, plain.actions))
-    if plain.ok:
-        assert ranked.ok
+    changed = 0
+    for seed in range(4):
+        goal = reachable_goal(model, seed)
+        plain = rerank_plan(model, goal, seed, tolerance_mm=3.0, refine_iterations=1)
+        ranked, again = (rerank_plan(model, goal, seed, tolerance_mm=3.0, rerank=30, candidates=50, refine_iterations=1)
+                         for _ in range(2))
+        assert np.array_equal(ranked.actions, again.actions)
+        assert ranked.actions.shape == (25, 2) and np.abs(ranked.actions).max() <= 1.0
+        assert np.isfinite(ranked.predicted).all() and ranked.ok
+        moved = not np.array_equal(ranked.actions, plain.actions)
+        assert ranked.evaluated == plain.evaluated + 30 * 8 + moved
+        paths = np.stack(ranked.candidates)  # the answer's rollout adds no second copy of a path (to rounding)
+        gaps = np.abs(paths[:, None] - paths[None]).max((2, 3)) + np.eye(len(paths))
+        assert len(paths) == 50 and gaps.min() > 1e-4  # (57 sequences evaluated: nearly all are candidates)
+        changed += moved
+    assert changed  # the members did choose
 
 
 def test_rerank_changes_nothing_where_there_are_no_members() -> None:
@@ -129,6 +143,15 @@ def test_rerank_changes_nothing_where_there_are_no_members() -> None:
     plain = rerank_plan(model, (4.0, 84.0), 0)
     ranked = rerank_plan(model, (4.0, 84.0), 0, rerank=30)
     assert np.array_equal(plain.actions, ranked.actions) and ranked.evaluated == plain.evaluated
+
+
+@pytest.mark.parametrize("other", [{"answer": "elite_mean"}, {"polish_steps": 3}, {"horizon_search": True},
+                                   {"perturbations": 3}, {"uncertainty": "dropout", "members": 2},
+                                   {"rerank_members": 1000}])
+def test_rerank_is_refused_where_something_else_chooses_the_answer_or_the_batch_is_too_big(other: dict) -> None:
+    with pytest.raises(ValueError, match="rerank chooses the answer"):
+        PlannerConfig(rerank=30, **other)  # type: ignore[arg-type]
+    PlannerConfig(rerank=0, **other)  # type: ignore[arg-type]
 
 
 def test_rerank_settings_are_checked() -> None:
@@ -143,13 +166,11 @@ def test_a_plan_predicted_to_reach_is_never_traded_for_one_that_is_not() -> None
     members would often prefer one that ends a little further off."""
     torch.manual_seed(6)
     model = TransitionModel(hand_norm(), dropout=0.2)
-    gen = torch.Generator().manual_seed(0)
-    x0 = torch.tensor(START, dtype=torch.float32)[None]
     changed = 0
     for seed in range(6):
-        goal = model.rollout(x0, (torch.rand(1, 25, 2, generator=gen) * 2 - 1) * 0.5)[0, -1, :2].numpy()
-        plain = rerank_plan(model, tuple(goal), seed, tolerance_mm=0.05)
-        ranked = rerank_plan(model, tuple(goal), seed, tolerance_mm=0.05, rerank=30)
+        goal = reachable_goal(model, seed)
+        plain = rerank_plan(model, goal, seed, tolerance_mm=0.05)
+        ranked = rerank_plan(model, goal, seed, tolerance_mm=0.05, rerank=30)
         assert plain.ok and ranked.ok and ranked.error_mm <= 0.05, (seed, plain.error_mm, ranked.error_mm)
         changed += not np.array_equal(plain.actions, ranked.actions)
     assert changed  # the members chose among the reaching ones

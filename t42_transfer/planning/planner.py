@@ -47,8 +47,8 @@ iCEM's shifted mean): the first draw is that rest, cut or padded with holds (zer
 ``count - 1`` sequences around it (N(0, ``init_std``) per step, coloured by ``noise_beta``), each projected as the
 sampler projects (the discrete sampler has no hold: its padding becomes the nearest move). Since the rest is among
 the sequences scored, the best one's cost is never above the rest's: with the default cost and answer (one model,
-final distance, ``answer="best"``) the replan is never predicted further from the goal than going on with the old
-plan. Without ``previous`` (a goal's first plan) the draw is the cold one.
+final distance, ``answer="best"``, no ``rerank``) the replan is never predicted further from the goal than going on
+with the old plan. Without ``previous`` (a goal's first plan) the draw is the cold one.
 
 Uncertainty. A transferred model is trusted far outside its few target episodes. With ``uncertainty="ensemble"``
 (several models) or ``"dropout"`` (``members`` dropout samples of one model) every sequence is predicted by each
@@ -100,8 +100,8 @@ MAX_NOISE_BETA = 4.0
 """Most colour of the sampling noise: beyond brown (2) a draw is nearly one slow drift per sequence."""
 MAX_POLISH_STEPS = 1000
 """Most gradient steps of a polish: each costs a whole differentiable rollout of the plan."""
-MAX_RERANK = 1000
-"""Most sequences re-scored, and members scoring them: the members' rollouts are one batch."""
+MAX_RERANK = 10_000
+"""Most member rollouts of a rerank (sequences x members): they are one batch."""
 REJECTIONS = {"nan": "predicted NaN/inf", "load": "over the load limit", "workspace": "left the workspace"}
 """Why a sample was rejected (key: description), in order of precedence at its first bad step."""
 
@@ -159,9 +159,10 @@ class PlannerConfig:
     rerank: int = 0
     """Last step: of this many of the final population's best sequences (never trading one predicted within the
     tolerance for one that is not), the one ``rerank_members`` dropout members agree on most (the lowest ``mean + risk
-    * std`` of their final distances; planning/members.py).  Fixed-length plans of the paper's MLP with dropout, one
-    model, no perturbations; else, or with 0 (the default), the search's best.  On 200 held-out goals 30 of 30 gained
-    5 at 10 mm and lost 4 at 4 mm, at 1.45 times the plan time: docs/experiments/planner_tuning."""
+    * std`` of their final distances; planning/members.py); a model without dropout members keeps the search's
+    best.  Fixed-length plans of one model, the best as the answer, no perturbations or polish.  0 (the default):
+    none.  On 200 held-out goals ``rerank: 30`` hit 5 more at 10 mm and 4 fewer at 4 mm, at 1.45 times the plan
+    time: docs/experiments/planner_tuning."""
     rerank_members: int = 8
     seed: int = 0
     candidates: int = 0
@@ -181,6 +182,12 @@ class PlannerConfig:
         if self.perturbations > 1 and (self.horizon_search or self.uncertainty != "none"):
             raise ValueError("perturbations score fixed-length plans of one deterministic model: set horizon_search "
                              "false and uncertainty 'none'")
+        if self.rerank and (self.horizon_search or self.uncertainty != "none" or self.perturbations > 1
+                            or self.answer != "best" or self.polish_steps or
+                            self.rerank * self.rerank_members > MAX_RERANK):
+            raise ValueError("rerank chooses the answer of a fixed-length plan of one deterministic model: set "
+                             "horizon_search false, uncertainty 'none', perturbations 1, answer 'best', polish_steps 0,"
+                             f" and rerank x rerank_members at most {MAX_RERANK}")
 
 
 _AT_LEAST_ONE = between(1, math.inf)
@@ -303,7 +310,7 @@ class Planner:
             noise = colored_noise(max(1, count - len(order)), horizon, cfg.noise_beta, gen)
             fresh = project(cfg.sampler, mean + std * noise)
             actions, cost = torch.cat([elites, fresh]), torch.cat([elite_cost, search.evaluate(fresh)])
-        if cfg.rerank and self._reranks():
+        if cfg.rerank and can_rerank(self.model):
             self._rerank(search, x0, target, actions, cost, seed)
         if cfg.answer == "elite_mean":
             order = _elites(cost, elite_count)
@@ -312,11 +319,6 @@ class Planner:
         if cfg.polish_steps and len(search.best_actions) == horizon:
             search.evaluate(_polish(self.model, x0, target, search.best_actions, cfg)[None])  # kept when nearer
         return search.result()
-
-    def _reranks(self) -> bool:
-        cfg = self.config
-        return (not cfg.horizon_search and cfg.uncertainty == "none" and cfg.perturbations == 1
-                and can_rerank(self.model))
 
     def _rerank(self, search: _Search, x0: Tensor, goal: Tensor, actions: Tensor, cost: Tensor, seed: int) -> None:
         """Make the members' choice among the best sequences the answer (module docstring, Rerank)."""
@@ -456,8 +458,9 @@ class _Search:
         self.top: list[tuple[float, Tensor]] = []
         """(cost, predicted xy path) of the ``cfg.candidates`` lowest-cost sequences so far."""
 
-    def evaluate(self, actions: Tensor) -> Tensor:
-        """Cost of each sequence ``actions[N, T, 2]`` (inf when no usable prefix); updates the best."""
+    def evaluate(self, actions: Tensor, candidates: bool = True) -> Tensor:
+        """Cost of each sequence ``actions[N, T, 2]`` (inf when no usable prefix); updates the best, and with
+        ``candidates`` the candidates."""
         costs = []
         copies = 1 if self.shifts is None else 1 + len(self.shifts)
         step = max(1, self.cfg.chunk // copies)
@@ -475,7 +478,7 @@ class _Search:
                 cost, length, states = cost.view(copies, n).mean(0), length[:n], states[:, :n]
             if len(members) > 1:
                 cost = self._risk_averse(torch.stack(members), cost)
-            if self.cfg.candidates:
+            if self.cfg.candidates and candidates:
                 self._keep_top(cost, length, states)
             i = int(torch.argmin(cost))
             if cost[i] < self.best_cost:
@@ -492,7 +495,7 @@ class _Search:
         usable prefix (else the best stays)."""
         best = (self.best_cost, self.best_actions, self.best_states)
         self.best_cost = math.inf
-        cost = float(self.evaluate(actions)[0])
+        cost = float(self.evaluate(actions, candidates=False)[0])  # already among them, if good enough
         if math.isinf(cost):
             self.best_cost, self.best_actions, self.best_states = best
 
