@@ -118,6 +118,40 @@ def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -
     assert err == "t42: interrupted: stopped waiting for the answer (the node still carries the request out)\n", err
 
 
+def test_call_says_a_missing_service_and_a_server_that_leaves_mid_call_in_one_line(ros: Any) -> None:
+    from t42_transfer.ros.deferred_service import DeferredService
+
+    called: list[Any] = []
+
+    def later(_: Any, response: Any) -> Any:  # never answered: the server leaves first
+        called.append(service.later())
+        return called[-1]
+
+    node = ros.node("leaving_server")
+    service = DeferredService(node, Trigger, "/leaving_server/work", later)
+    code, _, err = t42(ros, "call", "/leaving_server/nope", "--wait", "60")  # said after a few seconds, not 60
+    assert (code, err) == (2, "t42: error: /leaving_server/nope: /leaving_server runs but has no such service\n")
+    proc = t42_started("call", "/leaving_server/work")
+    assert ros.spin_until(lambda: called, 30.0)
+    node.destroy_service(service.service)
+    assert ros.spin_until(lambda: proc.poll() is not None, 30.0)
+    out, err = proc.communicate()
+    assert (proc.returncode, out) == (2, "") and err == ("t42: error: /leaving_server/work: the service left the "
+                                                         "graph before it answered\n"), err
+
+
+@pytest.mark.parametrize(("typed", "said"), [
+    (["std_srvs/srv/Trig-ger"], "std_srvs/srv/Trig-ger: no such service type"),  # a type, misspelt: no YAML
+    (["t42_interfaces/action/Reach_SendGoal", "{}"], "an action's own service; t42 call takes services"),
+])
+def test_call_refuses_a_type_it_cannot_call_before_joining_the_graph(typed: list[str], said: str,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    from t42_transfer.cli import main
+
+    assert main(["call", "/some/service", *typed, "--wait", "1"]) == 2
+    assert said in capsys.readouterr().err
+
+
 def reach_server(ros: Any, name: str, **callbacks: Any) -> Any:
     """A stock t42/reach ActionServer on its own node (a planner's stand-in for what a planner may do)."""
     from rclpy.action import ActionServer

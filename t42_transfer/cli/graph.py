@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -78,31 +78,48 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
     from rclpy.executors import SingleThreadedExecutor
 
     client = node.create_client(srv_type, name)
-    owner = _absolute(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
-    start, seen = time.monotonic(), None
+    still_waiting = _waiting_for(node, name, wait_s, f"a {srv_type.__name__} service; ")
     while not client.wait_for_service(timeout_sec=0.2):
-        _stop_if_asked()
-        now = time.monotonic()
         shown = _served_types(node, _absolute(name))
         if shown and _type_name(srv_type) not in shown:  # no client of this type ever matches it
             raise ValueError(f"{name}: a {', '.join(shown)} service, not a {_type_name(srv_type)}")
-        running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
-        seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
-        if seen is not None and now - seen > OWNER_GRACE_S:  # the node is there, the service is not
-            raise ValueError(f"{name}: {owner} runs but has no such service (a {srv_type.__name__} service)")
-        if now - start > wait_s:
-            raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s (a {srv_type.__name__} "
-                             f"service; ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+        still_waiting()
     future = client.call_async(request)
     executor = node.executor
     if executor is None:  # one for the node's calls
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
+    gone = None
     while not future.done():  # a transfer takes minutes: Ctrl-C stops the wait (between short waits)
         _stop_if_asked()
         executor.spin_once(timeout_sec=0.2)
+        now = time.monotonic()
+        gone = None if client.service_is_ready() else (gone or now)
+        if gone is not None and now - gone > OWNER_GRACE_S and not future.done():
+            raise ValueError(f"{name}: the service left the graph before it answered")
     node.destroy_client(client)
     return future.result()
+
+
+def _waiting_for(node: Node, name: str, wait_s: float, kind: str = "") -> Callable[[], None]:
+    """A check to call while waiting for the service ``name``: KeyboardInterrupt on Ctrl-C; ValueError when its
+    node runs without it for :data:`OWNER_GRACE_S`, or after ``wait_s``.  ``kind`` goes into the message."""
+    owner = _absolute(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
+    start, seen = time.monotonic(), None
+
+    def check() -> None:
+        nonlocal seen
+        _stop_if_asked()
+        now = time.monotonic()
+        running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
+        seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
+        if seen is not None and now - seen > OWNER_GRACE_S:  # the node is there, the service is not
+            raise ValueError(f"{name}: {owner} runs but has no such service" + (f" ({kind[:-2]})" if kind else ""))
+        if now - start > wait_s:
+            raise ValueError(f"{name}: no such service on the graph after {wait_s:g} s ({kind}ROS_DOMAIN_ID "
+                             f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+
+    return check
 
 
 def _type_name(cls: Any) -> str:
@@ -162,13 +179,17 @@ def _cmd_call(args: argparse.Namespace) -> int:
     return 1 if answer.get("success") is False else 0
 
 
-_SERVICE_TYPE = re.compile(r"\w+/(srv/)?\w+")
+_SERVICE_TYPE = re.compile(r"[^\s{}\[\]:,]+/[^\s{}\[\]:,]+")
+"""A TYPE as the user may have meant it (``pkg/srv/Name``, ``pkg/Name``, misspelt too), not YAML values."""
 
 
 def _service_class(typename: str) -> Any:
     """rclpy's class of a service type, ``pkg/srv/Name`` or ``pkg/Name``."""
     from msg_adapters import rclpy_class
 
+    if "/action/" in typename:
+        raise ValueError(f"{typename}: an action's own service; t42 call takes services (the planner's action: "
+                         "t42 reach)")
     package, _, name = typename.partition("/")
     full = typename if "/srv/" in typename else f"{package}/srv/{name}"
     try:
@@ -182,12 +203,9 @@ def _service_class(typename: str) -> Any:
 
 def _graph_service_type(node: Node, service: str, wait_s: float) -> str:
     """The type ``service`` shows on the graph, once it does (ValueError after ``wait_s``)."""
-    deadline = time.monotonic() + wait_s
+    still_waiting = _waiting_for(node, service, wait_s)
     while not (types := _served_types(node, service)):
-        _stop_if_asked()
-        if time.monotonic() > deadline:
-            raise ValueError(f"{service}: no such service on the graph after {wait_s:g} s (ROS_DOMAIN_ID "
-                             f"{os.environ.get('ROS_DOMAIN_ID', '0')}; is the node running?)")
+        still_waiting()
         time.sleep(0.1)
     return types[0]
 
