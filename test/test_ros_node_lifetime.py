@@ -26,6 +26,15 @@ def test_a_node_refused_at_construction_is_gone_from_the_graph_at_once(ros: Any,
     assert name not in tester.get_node_names(), tester.get_node_names()
 
 
+def test_a_bag_player_refused_for_a_missing_bag_is_gone_from_the_graph_at_once(ros: Any, tmp_path: Any) -> None:
+    from t42_transfer.nodes.player import BagPlayer
+
+    tester = ros.node("tester")
+    with pytest.raises(Exception, match="does not exist"):  # noqa: PT011 (the bag reader's own error)
+        ros.add(BagPlayer, {"bag": str(tmp_path / "missing")})
+    assert "bag_player" not in tester.get_node_names() and len(tester.get_node_names()) == 1
+
+
 def test_a_node_of_the_same_name_keeps_its_rosout_lines_after_the_refused_one_is_collected(ros: Any) -> None:
     """The camera is a lifecycle node: its state machine refers back to it, so only the garbage collector
     finalizes a refused one, at a moment of its own (here: at once, when asked)."""
