@@ -25,6 +25,19 @@ def t42(ros: Any, *argv: str, timeout_s: float = 60.0) -> tuple[int, str, str]:
     return proc.returncode, out, err
 
 
+def t42_all(ros: Any, *argvs: list[str], timeout_s: float = 60.0) -> list[tuple[int, str, str]]:
+    """Run every ``t42 *argv`` at once (their starts overlap on two cores) while this process's nodes spin."""
+    procs = [subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", *argv], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for argv in argvs]
+    try:
+        assert ros.spin_until(lambda: all(p.poll() is not None for p in procs), timeout_s), argvs
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+    return [(proc.returncode, *proc.communicate()) for proc in procs]
+
+
 def test_lifecycle_gets_the_state_and_makes_transitions_by_name(ros: Any) -> None:
     ros.add(LifecycleNode, node_name="hand_like")
     assert t42(ros, "lifecycle", "hand_like")[:2] == (0, "/hand_like: unconfigured\n")
@@ -54,22 +67,26 @@ def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> Non
     server = ros.node("server")
     server.create_service(Trigger, "/hand/reset", answer)
     server.create_service(SetBool, "/hand/torque", switch)
-    assert t42(ros, "call", "/hand/reset")[:2] == (0, "/hand/reset: success: grasped\n")
-    code, out, err = t42(ros, "call", "/t42/transfer_now", "--wait", "1")
-    assert code == 2 and out == "", (out, err)
-    assert "/t42/transfer_now: no such service on the graph after 1 s (ROS_DOMAIN_ID" in err, err
-    # any service type, as ros2 service call: the request's fields as YAML, the type given or the graph's
-    assert t42(ros, "call", "/hand/torque", "{data: true}")[:2] == (0, "/hand/torque: success: torque on\n")
-    assert t42(ros, "call", "hand/torque", "std_srvs/srv/SetBool")[:2] == (1, "hand/torque: failure: torque off\n")
-    assert asked == [True, False]
-    code, out, _ = t42(ros, "call", "/server/list_parameters", "{depth: 0}")  # no success field: the answer as YAML
-    assert code == 0 and "use_sim_time" in yaml.safe_load(out)["result"]["names"], out
-    code, out, err = t42(ros, "call", "/hand/reset", "std_srvs/SetBool", "{data: true}")
-    assert (code, out, err) == (2, "", "t42: error: /hand/reset: a std_srvs/srv/Trigger service, not a "
-                                       "std_srvs/srv/SetBool\n")
-    code, _, err = t42(ros, "call", "/hand/torque", "std_srvs/srv/SetBool", "{data: 1}")  # refused before the graph
-    assert code == 2 and err == "t42: error: request.data: 1 is no boolean\n", err
-    assert asked == [True, False]
+    (reset, missing, on, off, listed, mistyped, bad_field) = t42_all(
+        ros,
+        ["call", "/hand/reset"],
+        ["call", "/t42/transfer_now", "--wait", "1"],
+        # any service type, as ros2 service call: the request's fields as YAML, the type given or the graph's
+        ["call", "/hand/torque", "{data: true}"],
+        ["call", "hand/torque", "std_srvs/srv/SetBool"],
+        ["call", "/server/list_parameters", "{depth: 0}"],  # no success field: the answer as YAML
+        ["call", "/hand/reset", "std_srvs/SetBool", "{data: true}"],
+        ["call", "/hand/torque", "std_srvs/srv/SetBool", "{data: 1}"],  # refused before the graph
+    )
+    assert reset[:2] == (0, "/hand/reset: success: grasped\n")
+    assert missing[:2] == (2, "") and "/t42/transfer_now: no such service on the graph after 1 s (ROS_DOMAIN_ID" \
+        in missing[2], missing
+    assert on[:2] == (0, "/hand/torque: success: torque on\n")
+    assert off[:2] == (1, "hand/torque: failure: torque off\n")
+    assert listed[0] == 0 and "use_sim_time" in yaml.safe_load(listed[1])["result"]["names"], listed
+    assert mistyped == (2, "", "t42: error: /hand/reset: a std_srvs/srv/Trigger service, not a std_srvs/srv/SetBool\n")
+    assert bad_field[0] == 2 and bad_field[2] == "t42: error: request.data: 1 is no boolean\n", bad_field
+    assert sorted(asked) == [False, True]
 
 
 def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any) -> None:
@@ -129,15 +146,16 @@ def test_call_says_a_missing_service_and_a_server_that_leaves_mid_call_in_one_li
 
     node = ros.node("leaving_server")
     service = DeferredService(node, Trigger, "/leaving_server/work", later)
-    code, _, err = t42(ros, "call", "/leaving_server/nope", "--wait", "60")  # said after a few seconds, not 60
-    assert (code, err) == (2, "t42: error: /leaving_server/nope: /leaving_server runs but has no such service\n")
+    missing = t42_started("call", "/leaving_server/nope", "--wait", "60")  # said after a few seconds, not 60
     proc = t42_started("call", "/leaving_server/work")
     assert ros.spin_until(lambda: called, 30.0)
     node.destroy_service(service.service)
-    assert ros.spin_until(lambda: proc.poll() is not None, 30.0)
+    assert ros.spin_until(lambda: proc.poll() is not None and missing.poll() is not None, 30.0)
     out, err = proc.communicate()
     assert (proc.returncode, out) == (2, "") and err == ("t42: error: /leaving_server/work: the service left the "
                                                          "graph before it answered\n"), err
+    assert (missing.returncode, missing.communicate()[1]) == (
+        2, "t42: error: /leaving_server/nope: /leaving_server runs but has no such service\n")
 
 
 @pytest.mark.parametrize(("typed", "said"), [
