@@ -5,8 +5,8 @@
 # per worker at a time: most of its time is spent waiting on node processes and
 # the ROS graph (one core busy of two when serial), so 3 workers on 2 cores
 # overlap the waits.  Tests marked `serial` (real-time checks a loaded
-# machine can break: driver stalls, the quick demos) run before them, in one
-# process on their own.  Give -n yourself to run everything in one batch (-n 0: one
+# machine can break: driver stalls, the quick demos) then run in one process
+# on their own.  Give -n yourself to run everything in one batch (-n 0: one
 # process).
 # `scripts/test.sh -m slow` runs the long checks in one process: soak and
 # timing checks there want the machine to themselves.
@@ -33,12 +33,10 @@ elif [[ $has_workers -eq 1 ]]; then
     exec "$ROOT/.venv/bin/python" -m pytest -m "not slow" "$@"
 else
     # pytest exits 5 when a batch collects nothing (e.g. named files hold no serial test): not a failure.
-    # The serial batch first: its collection writes the assertion-rewritten test modules (and the package's
-    # bytecode) once, which on a fresh clone the three workers would otherwise each write at the same time.
-    rc_serial=0
-    "$ROOT/.venv/bin/python" -m pytest -m "not slow and serial" "$@" || rc_serial=$?
     rc=0
     "$ROOT/.venv/bin/python" -m pytest -m "not slow and not serial" -n 3 --dist loadfile "$@" || rc=$?
+    rc_serial=0
+    "$ROOT/.venv/bin/python" -m pytest -m "not slow and serial" "$@" || rc_serial=$?
     if [[ $rc -eq 5 && $rc_serial -eq 5 ]]; then exit 5; fi
     for code in "$rc" "$rc_serial"; do
         if [[ $code -ne 0 && $code -ne 5 ]]; then exit "$code"; fi
