@@ -414,7 +414,8 @@ def test_parameter_changes_apply_to_the_next_plan_and_bad_values_are_refused(rig
     for name, value, why in (("samples", 0, "range"), ("samples", "many", "type"),
                              ("tolerance_m", 0.0, "tolerance_mm must be positive"),
                              ("tolerance_m", math.inf, "finite"), ("max_state_age_s", -1.0, "range"),
-                             ("model", "other.safetensors", "read-only"), ("torch_threads", 2, "read-only")):
+                             ("model", "other.safetensors", "read-only"), ("torch_threads", 2, "read-only"),
+                             ("rerank", -1, "range")):
         (refused,) = rig.set(**{name: value})
         assert not refused.successful and why in refused.reason, (name, refused.reason)
     assert rig.planner.params == before
@@ -474,6 +475,9 @@ def test_the_planner_parameters_reach_the_planners_config() -> None:
     config = PlannerNodeParams(**given, tolerance_m=0.0015).planner_config  # type: ignore[arg-type]
     assert {name: getattr(config, name) for name in given} == given
     assert config.tolerance_mm == pytest.approx(1.5)  # the parameter in metres (REP 103), the planner in mm
+    assert PlannerNodeParams(rerank=30).planner_config.rerank == 30
+    with pytest.raises(ValueError, match="rerank chooses the answer of a fixed-length plan"):
+        PlannerNodeParams(rerank=30, horizon_search=True)
 
 
 # --------------------------------------------------------------------------- closed loop

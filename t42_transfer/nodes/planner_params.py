@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 from t42_transfer.conventions import MAX_PLAN_HORIZON, MAX_PLAN_SAMPLES, MAX_REFINE, MAX_SAMPLED_STEPS, MM_PER_M
 from t42_transfer.planning import PlannerConfig
-from t42_transfer.planning.planner import MAX_CANDIDATES
+from t42_transfer.planning.planner import MAX_CANDIDATES, MAX_RERANK
 from t42_transfer.ros.params import param, torch_threads_param
 
 _DEFAULTS = PlannerConfig()
@@ -47,6 +47,9 @@ class PlannerNodeParams:
     candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
                                                   "lowest-cost sequences on t42/plan_candidates (0: off)",
                             min=0, max=MAX_CANDIDATES)
+    rerank: int = param(_DEFAULTS.rerank, "re-score this many of a plan's best sequences with dropout members of "
+                                          "the model and plan the one they agree on most (0: off; a plan predicted "
+                                          "to reach is kept one; fixed-length plans only)", min=0, max=MAX_RERANK)
     torch_threads: int = torch_threads_param()
 
     def __post_init__(self) -> None:
@@ -65,7 +68,7 @@ class PlannerNodeParams:
         return PlannerConfig(samples=self.samples, refine_iterations=self.refine_iterations, horizon=self.horizon,
                              horizon_search=self.horizon_search,
                              tolerance_mm=self.tolerance_m * MM_PER_M, seed=self.seed, candidates=self.candidates,
-                             warm_start=self.warm_start)
+                             warm_start=self.warm_start, rerank=self.rerank)
 
     @property
     def max_state_age_ns(self) -> int:
