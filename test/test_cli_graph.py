@@ -40,16 +40,18 @@ def t42_all(ros: Any, *argvs: list[str], timeout_s: float = 60.0) -> list[tuple[
 
 def test_lifecycle_gets_the_state_and_makes_transitions_by_name(ros: Any) -> None:
     ros.add(LifecycleNode, node_name="hand_like")
+    ros.node("plain")  # a running node that is no lifecycle node: said so, without waiting out --wait
+    plain = t42_started("lifecycle", "/plain", "--wait", "60")  # beside the transitions below
     assert t42(ros, "lifecycle", "hand_like")[:2] == (0, "/hand_like: unconfigured\n")
     assert t42(ros, "lifecycle", "/hand_like", "configure")[:2] == (0, "/hand_like: configure done; now inactive\n")
     assert t42(ros, "lifecycle", "/hand_like", "activate")[:2] == (0, "/hand_like: activate done; now active\n")
     code, _, err = t42(ros, "lifecycle", "/hand_like", "configure")  # not from active
     assert code == 2 and "cannot configure from its state now; it can: deactivate, shutdown" in err, err
     assert t42(ros, "lifecycle", "/hand_like", "shutdown")[:2] == (0, "/hand_like: shutdown done; now finalized\n")
-    ros.node("plain")  # a running node that is no lifecycle node: said so, without waiting out --wait
-    code, out, err = t42(ros, "lifecycle", "/plain", "--wait", "60")
-    assert code == 2 and out == "" and err == ("t42: error: /plain/get_state: /plain runs but has no such service "
-                                               "(a GetState service)\n"), err
+    assert ros.spin_until(lambda: plain.poll() is not None, 60.0)
+    out, err = plain.communicate()
+    assert plain.returncode == 2 and out == "" and err == ("t42: error: /plain/get_state: /plain runs but has no "
+                                                           "such service (a GetState service)\n"), err
 
 
 def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> None:
@@ -92,23 +94,31 @@ def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> Non
 def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any) -> None:
     """A list of floats (as the README's max_angle_rad), a scalar, a refusal with the node's reason."""
     driver = ros.add(DynamixelDriver, {"port": "/dev/null/no_bus"})  # unconfigured: parameters only
-    assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2.5, 2.0]")[:2] == \
-        (0, "/dynamixel_driver max_angle_rad: set\n")
-    assert driver.params.max_angle_rad == (2.5, 2.0)
-    assert t42(ros, "param", "dynamixel_driver", "load_limit", "250.0")[0] == 0 and driver.params.load_limit == 250.0
-    # whole numbers for doubles, as a user types them (rclpy itself would refuse an integer for a double)
-    assert t42(ros, "param", "/dynamixel_driver", "grasp_load", "90")[0] == 0 and driver.params.grasp_load == 90.0
-    assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]")[0] == 0
-    assert driver.params.max_angle_rad == (2.0, 2.5)
-    code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "true")  # no number: refused as before
-    assert code == 1 and "refused" in out and driver.params.grasp_load == 90.0, out
-    assert t42(ros, "param", "/dynamixel_driver", "load_limit")[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
-    code, out, _ = t42(ros, "param", "/dynamixel_driver")  # every parameter, sorted, with its value
-    listed = dict(line.split(": ", 1) for line in out.splitlines())
-    assert code == 0 and list(listed) == sorted(listed) and listed["load_limit"] == "250.0", out
+    # Two rounds of commands at once (their interpreter starts overlap); within a round none depends on another.
+    angles, limit, grasp = t42_all(
+        ros,
+        ["param", "/dynamixel_driver", "max_angle_rad", "[2.5, 2.0]"],
+        ["param", "dynamixel_driver", "load_limit", "250.0"],
+        ["param", "/dynamixel_driver", "grasp_load", "90"],  # whole numbers for doubles, as a user types them
+    )
+    assert angles[:2] == (0, "/dynamixel_driver max_angle_rad: set\n") and limit[0] == 0 and grasp[0] == 0
+    assert (driver.params.max_angle_rad, driver.params.load_limit, driver.params.grasp_load) == ((2.5, 2.0), 250.0,
+                                                                                                 90.0)
+    whole, no_number, got, listing, too_high = t42_all(
+        ros,
+        ["param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]"],  # (rclpy itself refuses an int for a double)
+        ["param", "/dynamixel_driver", "grasp_load", "true"],  # no number: refused as before
+        ["param", "/dynamixel_driver", "load_limit"],
+        ["param", "/dynamixel_driver"],  # every parameter, sorted, with its value
+        ["param", "/dynamixel_driver", "grasp_load", "400.0"],
+    )
+    assert whole[0] == 0 and driver.params.max_angle_rad == (2.0, 2.5)
+    assert no_number[0] == 1 and "refused" in no_number[1], no_number
+    assert got[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
+    listed = dict(line.split(": ", 1) for line in listing[1].splitlines())
+    assert listing[0] == 0 and list(listed) == sorted(listed) and listed["load_limit"] == "250.0", listing
     assert {f.name for f in dataclasses.fields(driver.params)} <= set(listed) and "use_sim_time" in listed
-    code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
-    assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
+    assert too_high[0] == 1 and "refused: grasp_load must be below load_limit" in too_high[1], too_high
     assert driver.params.grasp_load == 90.0
 
 
