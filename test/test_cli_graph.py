@@ -18,11 +18,7 @@ from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 
 def t42(ros: Any, *argv: str, timeout_s: float = 60.0) -> tuple[int, str, str]:
     """Run ``t42 *argv`` while this process's nodes spin; (exit code, stdout, stderr)."""
-    proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    assert ros.spin_until(lambda: proc.poll() is not None, timeout_s), argv
-    out, err = proc.communicate()
-    return proc.returncode, out, err
+    return t42_all(ros, list(argv), timeout_s=timeout_s)[0]
 
 
 def t42_all(ros: Any, *argvs: list[str], timeout_s: float = 60.0) -> list[tuple[int, str, str]]:

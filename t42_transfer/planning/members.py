@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -27,6 +26,7 @@ from t42_transfer.conventions import ACTION_DIM, STATE_DIM
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.network import TransitionModel
 from t42_transfer.planning.fused import LN2, NEGATIVE_BRANCH, SELU_SCALE, fuse, is_paper_mlp
+from t42_transfer.planning.sampling import stream_generator
 from t42_transfer.planning.workspace import Workspace
 
 ALPHA_DROPOUT_ALPHA = 1.7580993408473766
@@ -61,8 +61,7 @@ class DropoutRollout:
 def dropout_masks(model: TransitionModel, count: int, seed: int) -> tuple[Tensor, Tensor]:
     """``count`` draws of the kept units ``[M, H]`` (1 kept, 0 dropped) of the AlphaDropout and of the Dropout,
     from a generator of their own seeded by ``seed``."""
-    entropy = np.random.SeedSequence([int(seed) % (1 << 64), 7]).generate_state(1)[0]
-    generator = torch.Generator().manual_seed(int(entropy))
+    generator = stream_generator(seed, 7)
     hidden = model.net[3].weight.shape[1]
     kept = torch.rand(2, count, hidden, generator=generator) >= model.dropout
     return kept[0].float(), kept[1].float()

@@ -83,7 +83,7 @@ from t42_transfer.conventions import (
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning.fused import TimeMajorRollout, make_rollout
 from t42_transfer.planning.members import DropoutRollout, MembersRollout, can_rerank, robust_choice
-from t42_transfer.planning.sampling import SAMPLERS, colored_noise, project, sample_actions
+from t42_transfer.planning.sampling import SAMPLERS, colored_noise, project, sample_actions, stream_generator
 from t42_transfer.planning.workspace import Workspace
 
 CHUNK = 1000
@@ -391,8 +391,7 @@ def _perturbations(cfg: PlannerConfig, horizon: int, seed: int) -> Tensor | None
     perturbations stay as they were); None when P is 1."""
     if cfg.perturbations <= 1:
         return None
-    entropy = [int(seed) % (1 << 64), horizon]  # SeedSequence takes no negative numbers; torch's seeds may be
-    gen = torch.Generator().manual_seed(int(np.random.SeedSequence(entropy).generate_state(1)[0]))
+    gen = stream_generator(seed, horizon)
     return cfg.perturbation_std * torch.randn(cfg.perturbations - 1, horizon, 2, generator=gen)
 
 

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -29,6 +30,14 @@ DISCRETE_ACTIONS = torch.tensor(REAL_HAND_ACTIONS) / ACTION_LIMIT
 SAMPLE_BLOCK = 4096
 """Sequences drawn per block: bounds the sampler's temporaries at any K; fixed, so the samples
 depend only on the generator, not on how the planner chunks its rollouts."""
+
+
+def stream_generator(seed: int, stream: int) -> torch.Generator:
+    """A torch generator of its own for one use of a plan's ``seed`` (``stream`` tells the uses apart), so that
+    drawing for that use leaves the plan's other draws as they were.  SeedSequence takes no negative numbers;
+    torch's seeds may be."""
+    entropy = np.random.SeedSequence([int(seed) % (1 << 64), stream]).generate_state(1)[0]
+    return torch.Generator().manual_seed(int(entropy))
 
 
 def colored_noise(count: int, horizon: int, beta: float, generator: torch.Generator) -> Tensor:
