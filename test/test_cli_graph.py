@@ -65,56 +65,44 @@ def test_call_a_trigger_service_and_a_service_that_is_not_there(ros: Any) -> Non
     server = ros.node("server")
     server.create_service(Trigger, "/hand/reset", answer)
     server.create_service(SetBool, "/hand/torque", switch)
-    (reset, missing, on, off, listed, mistyped, bad_field) = t42_all(
-        ros,
-        ["call", "/hand/reset"],
-        ["call", "/t42/transfer_now", "--wait", "1"],
-        # any service type, as ros2 service call: the request's fields as YAML, the type given or the graph's
-        ["call", "/hand/torque", "{data: true}"],
-        ["call", "hand/torque", "std_srvs/srv/SetBool"],
-        ["call", "/server/list_parameters", "{depth: 0}"],  # no success field: the answer as YAML
-        ["call", "/hand/reset", "std_srvs/SetBool", "{data: true}"],
-        ["call", "/hand/torque", "std_srvs/srv/SetBool", "{data: 1}"],  # refused before the graph
-    )
-    assert reset[:2] == (0, "/hand/reset: success: grasped\n")
-    assert missing[:2] == (2, "") and "/t42/transfer_now: no such service on the graph after 1 s (ROS_DOMAIN_ID" \
-        in missing[2], missing
-    assert on[:2] == (0, "/hand/torque: success: torque on\n")
-    assert off[:2] == (1, "hand/torque: failure: torque off\n")
-    assert listed[0] == 0 and "use_sim_time" in yaml.safe_load(listed[1])["result"]["names"], listed
-    assert mistyped == (2, "", "t42: error: /hand/reset: a std_srvs/srv/Trigger service, not a std_srvs/srv/SetBool\n")
-    assert bad_field[0] == 2 and bad_field[2] == "t42: error: request.data: 1 is no boolean\n", bad_field
-    assert sorted(asked) == [False, True]
+    assert t42(ros, "call", "/hand/reset")[:2] == (0, "/hand/reset: success: grasped\n")
+    code, out, err = t42(ros, "call", "/t42/transfer_now", "--wait", "1")
+    assert code == 2 and out == "", (out, err)
+    assert "/t42/transfer_now: no such service on the graph after 1 s (ROS_DOMAIN_ID" in err, err
+    # any service type, as ros2 service call: the request's fields as YAML, the type given or the graph's
+    assert t42(ros, "call", "/hand/torque", "{data: true}")[:2] == (0, "/hand/torque: success: torque on\n")
+    assert t42(ros, "call", "hand/torque", "std_srvs/srv/SetBool")[:2] == (1, "hand/torque: failure: torque off\n")
+    assert asked == [True, False]
+    code, out, _ = t42(ros, "call", "/server/list_parameters", "{depth: 0}")  # no success field: the answer as YAML
+    assert code == 0 and "use_sim_time" in yaml.safe_load(out)["result"]["names"], out
+    code, out, err = t42(ros, "call", "/hand/reset", "std_srvs/SetBool", "{data: true}")
+    assert (code, out, err) == (2, "", "t42: error: /hand/reset: a std_srvs/srv/Trigger service, not a "
+                                       "std_srvs/srv/SetBool\n")
+    code, _, err = t42(ros, "call", "/hand/torque", "std_srvs/srv/SetBool", "{data: 1}")  # refused before the graph
+    assert code == 2 and err == "t42: error: request.data: 1 is no boolean\n", err
+    assert asked == [True, False]
 
 
 def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any) -> None:
     """A list of floats (as the README's max_angle_rad), a scalar, a refusal with the node's reason."""
     driver = ros.add(DynamixelDriver, {"port": "/dev/null/no_bus"})  # unconfigured: parameters only
-    # Two rounds of commands at once (their interpreter starts overlap); within a round none depends on another.
-    angles, limit, grasp = t42_all(
-        ros,
-        ["param", "/dynamixel_driver", "max_angle_rad", "[2.5, 2.0]"],
-        ["param", "dynamixel_driver", "load_limit", "250.0"],
-        ["param", "/dynamixel_driver", "grasp_load", "90"],  # whole numbers for doubles, as a user types them
-    )
-    assert angles[:2] == (0, "/dynamixel_driver max_angle_rad: set\n") and limit[0] == 0 and grasp[0] == 0
-    assert (driver.params.max_angle_rad, driver.params.load_limit, driver.params.grasp_load) == ((2.5, 2.0), 250.0,
-                                                                                                 90.0)
-    whole, no_number, got, listing, too_high = t42_all(
-        ros,
-        ["param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]"],  # (rclpy itself refuses an int for a double)
-        ["param", "/dynamixel_driver", "grasp_load", "true"],  # no number: refused as before
-        ["param", "/dynamixel_driver", "load_limit"],
-        ["param", "/dynamixel_driver"],  # every parameter, sorted, with its value
-        ["param", "/dynamixel_driver", "grasp_load", "400.0"],
-    )
-    assert whole[0] == 0 and driver.params.max_angle_rad == (2.0, 2.5)
-    assert no_number[0] == 1 and "refused" in no_number[1], no_number
-    assert got[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
-    listed = dict(line.split(": ", 1) for line in listing[1].splitlines())
-    assert listing[0] == 0 and list(listed) == sorted(listed) and listed["load_limit"] == "250.0", listing
+    assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2.5, 2.0]")[:2] == \
+        (0, "/dynamixel_driver max_angle_rad: set\n")
+    assert driver.params.max_angle_rad == (2.5, 2.0)
+    assert t42(ros, "param", "dynamixel_driver", "load_limit", "250.0")[0] == 0 and driver.params.load_limit == 250.0
+    # whole numbers for doubles, as a user types them (rclpy itself would refuse an integer for a double)
+    assert t42(ros, "param", "/dynamixel_driver", "grasp_load", "90")[0] == 0 and driver.params.grasp_load == 90.0
+    assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]")[0] == 0
+    assert driver.params.max_angle_rad == (2.0, 2.5)
+    code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "true")  # no number: refused as before
+    assert code == 1 and "refused" in out and driver.params.grasp_load == 90.0, out
+    assert t42(ros, "param", "/dynamixel_driver", "load_limit")[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")
+    code, out, _ = t42(ros, "param", "/dynamixel_driver")  # every parameter, sorted, with its value
+    listed = dict(line.split(": ", 1) for line in out.splitlines())
+    assert code == 0 and list(listed) == sorted(listed) and listed["load_limit"] == "250.0", out
     assert {f.name for f in dataclasses.fields(driver.params)} <= set(listed) and "use_sim_time" in listed
-    assert too_high[0] == 1 and "refused: grasp_load must be below load_limit" in too_high[1], too_high
+    code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
+    assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
     assert driver.params.grasp_load == 90.0
 
 
