@@ -26,6 +26,7 @@ from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -41,6 +42,7 @@ class User(Node):
         super().__init__("stock_user")
         self.ns = ns.rstrip("/")
         self.logs: list[Log] = []
+        self.action_clients: dict[str, ActionClient] = {}
         self.create_subscription(Log, "/rosout", self.logs.append,
                                  QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL))
 
@@ -62,9 +64,17 @@ class User(Node):
         self.wait(future.done, timeout_s, f"answer from {name}")
         return future.result()
 
+    def action_client(self, action, name: str) -> ActionClient:
+        """The node's client of action ``name``, made on first use: made well before its first goal, as a node
+        makes its clients when it starts. The server matches a new client's feedback subscription a moment after
+        the client sees the server: on a loaded machine, a goal sent at once lost its first feedback messages."""
+        if name not in self.action_clients:
+            self.action_clients[name] = ActionClient(self, action, name)
+        return self.action_clients[name]
+
     def send_goal(self, action, name: str, goal, feedback: list, timeout_s: float = 30.0):
         """Send an action goal, collecting its feedback; the accepted goal handle."""
-        client = ActionClient(self, action, name)
+        client = self.action_client(action, name)
         if not client.wait_for_server(timeout_sec=timeout_s):
             raise TimeoutError(f"action {name} not available")
         sent = client.send_goal_async(goal, feedback_callback=lambda m: feedback.append(m.feedback))
@@ -148,6 +158,10 @@ def graph(user: User) -> dict:
 
 def transfer(user: User) -> dict:
     out: dict = {}
+    # The action clients first: the transfer server's answer to get_parameters below, asked through a client made
+    # after them, comes once its process has seen the later endpoint, so as a rule their feedback subscriptions too.
+    user.action_client(Transfer, user.name("t42/transfer"))
+    user.action_client(Reach, user.name("t42/reach"))
     # The bags the recorder closed (its events are latched: a late joiner gets the recent ones), each with episodes.
     closed: list[BagClosed] = []
     user.create_subscription(BagClosed, user.name("recorder/bag_closed"), closed.append,
@@ -218,6 +232,11 @@ def transfer(user: User) -> dict:
     reset = user.call(Trigger, user.name("hand/reset"), Trigger.Request())
     if not reset.success:
         raise TimeoutError(f"hand/reset failed before the cancel: {reset.message}")
+    # the next goal is placed from the new grasp: a pose stamped after the answer (the driver stamps on wall time
+    # here), not one of the poses still queued from before the reset
+    answered_ns = user.get_clock().now().nanoseconds
+    user.wait(lambda: Time.from_msg(poses[-1].header.stamp).nanoseconds > answered_ns, 10.0,
+              "a pose of the new grasp")
     out["cancel"] = cancel_one(user, target, applied)
     return out
 
