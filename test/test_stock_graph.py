@@ -159,8 +159,13 @@ def test_a_stock_rclpy_script_uses_the_suite(tmp_path: Path, source_model: Path,
         # a Reach goal cancelled while the hand moved: CANCELED, and the hand holds still from the next step on
         cancel = seen["cancel"]
         assert cancel["canceled"] and cancel["verdict"] == "incomplete" and "cancelled" in cancel["reason"], cancel
-        assert cancel["moving_before"] >= 1 and 1 <= cancel["steps_at_cancel"] < 10, cancel
-        assert len(cancel["moving_after"]) >= 4 and not any(cancel["moving_after"][1:]), cancel
+        # in the order the driver applied them: the goal's moving steps, no more than it had executed when the
+        # cancel took effect and one step in flight, then the hand held still
+        moving = cancel["moving"]
+        first = moving.index(True)
+        run = moving[first:].index(False) if False in moving[first:] else len(moving) - first
+        assert 1 <= cancel["steps_at_cancel"] < 10 and 1 <= run <= cancel["executed"], cancel
+        assert not any(moving[first + run:]) and len(moving) - first - run >= 4, cancel
     finally:
         code = suite.stop()
     assert code == 0, suite.output()[-4000:]
