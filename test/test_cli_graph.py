@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -13,6 +15,7 @@ import yaml
 from rclpy.lifecycle import LifecycleNode
 from std_srvs.srv import SetBool, Trigger
 
+from t42_transfer.cli.graph import ASK_AGAIN_S
 from t42_transfer.nodes.dynamixel_driver import DynamixelDriver
 
 
@@ -104,6 +107,53 @@ def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any)
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "400.0")
     assert code == 1 and "refused: grasp_load must be below load_limit" in out, out
     assert driver.params.grasp_load == 90.0
+
+
+def test_a_read_whose_answer_is_lost_is_asked_again_and_a_call_is_not(ros: Any) -> None:
+    """A server that never answers a first request, as rmw_fastrtps drops its reply to a client whose reply
+    subscription it has not matched yet: ``t42 param`` and ``t42 lifecycle`` ask again and take the next answer;
+    ``t42 call`` (a request that may act) sends it once."""
+    from lifecycle_msgs.msg import State
+    from lifecycle_msgs.srv import GetState
+    from rcl_interfaces.msg import ParameterType, ParameterValue
+    from rcl_interfaces.srv import GetParameters
+
+    from t42_transfer.ros.deferred_service import DeferredService
+
+    asked: dict[str, int] = {}
+
+    def first_lost(kind: str, answer: Callable[[Any], Any]) -> Callable[[Any, Any], Any]:
+        def callback(_: Any, response: Any) -> Any:
+            asked[kind] = asked.get(kind, 0) + 1
+            return services[kind].later() if asked[kind] == 1 else answer(response)  # the first: never answered
+        return callback
+
+    def values(response: Any) -> Any:
+        response.values = [ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=2.5)]
+        return response
+
+    def state(response: Any) -> Any:
+        response.current_state = State(id=State.PRIMARY_STATE_INACTIVE, label="inactive")
+        return response
+
+    def done(response: Any) -> Any:
+        response.success, response.message = True, "done"
+        return response
+
+    node = ros.node("quiet", start_parameter_services=False)
+    services = {kind: DeferredService(node, srv, f"/quiet/{kind}", first_lost(kind, answer))
+                for kind, srv, answer in (("get_parameters", GetParameters, values), ("get_state", GetState, state),
+                                          ("work", Trigger, done))}
+    call = t42_started("call", "/quiet/work")  # beside the reads
+    assert ros.spin_until(lambda: "work" in asked, 30.0)
+    first_asked = time.monotonic()
+    assert t42(ros, "param", "/quiet", "rate_factor")[:2] == (0, "/quiet rate_factor: 2.5\n")
+    assert t42(ros, "lifecycle", "/quiet")[:2] == (0, "/quiet: inactive\n")
+    ros.spin_until(lambda: call.poll() is not None, 3 * ASK_AGAIN_S - (time.monotonic() - first_asked))
+    assert call.poll() is None, call.communicate()  # still waiting for its one request's answer
+    call.kill()
+    call.communicate()
+    assert asked == {"get_parameters": 2, "get_state": 2, "work": 1}
 
 
 def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -> None:

@@ -73,8 +73,17 @@ def _graph_node() -> Iterator[Node]:
         rclpy.shutdown(context=context)
 
 
-def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> Any:
-    """``request`` to the service ``name``, once it is on the graph (ValueError after ``wait_s``); its answer."""
+ASK_AGAIN_S = 2.0
+"""How long a read (a state, a parameter) waits for its answer before the same request goes out again: a server
+drops its reply to a client whose reply subscription it has not yet matched (rmw_fastrtps waits 100 ms for it),
+which a busy machine makes likely for a command's fresh client."""
+
+
+def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float, again: bool = False) -> Any:
+    """``request`` to the service ``name``, once it is on the graph (ValueError after ``wait_s``); its answer.
+
+    ``again``: the request only reads (a state, parameters), so it may be carried out twice: it is sent again each
+    :data:`ASK_AGAIN_S` without an answer, and the first answer to any of them is taken."""
     from rclpy.executors import SingleThreadedExecutor
 
     client = node.create_client(srv_type, name)
@@ -84,21 +93,25 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float) -> 
         if shown and _type_name(srv_type) not in shown:  # no client of this type ever matches it
             raise ValueError(f"{name}: a {', '.join(shown)} service, not a {_type_name(srv_type)}")
         still_waiting()
-    future = client.call_async(request)
+    futures = [client.call_async(request)]
+    asked = time.monotonic()
     executor = node.executor
     if executor is None:  # one for the node's calls
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)
     gone = None
-    while not future.done():  # a transfer takes minutes: Ctrl-C stops the wait (between short waits)
+    while not (answered := [f for f in futures if f.done()]):  # a transfer takes minutes: Ctrl-C stops the wait
         _stop_if_asked()
         executor.spin_once(timeout_sec=0.2)
         now = time.monotonic()
         gone = None if client.service_is_ready() else (gone or now)
-        if gone is not None and now - gone > OWNER_GRACE_S and not future.done():
+        if gone is not None and now - gone > OWNER_GRACE_S and not any(f.done() for f in futures):
             raise ValueError(f"{name}: the service left the graph before it answered")
+        if again and gone is None and now - asked > ASK_AGAIN_S:
+            futures.append(client.call_async(request))
+            asked = now
     node.destroy_client(client)
-    return future.result()
+    return answered[0].result()
 
 
 def _waiting_for(node: Node, name: str, wait_s: float, kind: str = "") -> Callable[[], None]:
@@ -137,12 +150,12 @@ def _cmd_lifecycle(args: argparse.Namespace) -> int:
 
     target = _absolute(args.node)
     with _graph_node() as node:
-        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait)
+        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait, again=True)
         if args.transition is None:
             print(f"{target}: {state.current_state.label}")
             return 0
         available = _call(node, GetAvailableTransitions, f"{target}/get_available_transitions",
-                          GetAvailableTransitions.Request(), args.wait).available_transitions
+                          GetAvailableTransitions.Request(), args.wait, again=True).available_transitions
         labels = {t.transition.label: t.transition.id for t in available}
         wanted = [label for label in labels if label == args.transition
                   or (args.transition == "shutdown" and label.endswith("shutdown"))]
@@ -152,7 +165,8 @@ def _cmd_lifecycle(args: argparse.Namespace) -> int:
         request = ChangeState.Request()
         request.transition.id = labels[wanted[0]]
         done = _call(node, ChangeState, f"{target}/change_state", request, args.wait).success
-        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait).current_state.label
+        state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait,
+                      again=True).current_state.label
     print(f"{target}: {args.transition} {'done' if done else 'failed (the node logs why)'}; now {state}")
     return 0 if done else 1
 
@@ -236,15 +250,15 @@ def _cmd_param(args: argparse.Namespace) -> int:
     with _graph_node() as node:
         if args.name is None:  # as ros2 param dump: every parameter with its value
             listed = sorted(_call(node, ListParameters, f"{target}/list_parameters", ListParameters.Request(),
-                                  args.wait).result.names)
+                                  args.wait, again=True).result.names)
             values = _call(node, GetParameters, f"{target}/get_parameters", GetParameters.Request(names=listed),
-                           args.wait).values
+                           args.wait, again=True).values
             for name, value in zip(listed, values, strict=True):
                 print(f"{name}: {parameter_value_to_python(value)}")
             return 0
         if args.value is None:
             values = _call(node, GetParameters, f"{target}/get_parameters", GetParameters.Request(names=[args.name]),
-                           args.wait).values
+                           args.wait, again=True).values
             if not values or values[0].type == ParameterType.PARAMETER_NOT_SET:
                 raise ValueError(f"{target}: has no parameter {args.name!r} (or it is not set)")
             print(f"{target} {args.name}: {parameter_value_to_python(values[0])}")
@@ -252,7 +266,7 @@ def _cmd_param(args: argparse.Namespace) -> int:
         try:
             value = yaml.safe_load(args.value)  # as ros2 param set reads it: 2.5, true, [2.5, 2.5], text
             declared = _call(node, DescribeParameters, f"{target}/describe_parameters",
-                             DescribeParameters.Request(names=[args.name]), args.wait).descriptors
+                             DescribeParameters.Request(names=[args.name]), args.wait, again=True).descriptors
             value = _as_declared(value, declared[0].type if declared else ParameterType.PARAMETER_NOT_SET)
             message = Parameter(args.name, value=value).to_parameter_msg()
         except (yaml.YAMLError, TypeError) as err:
