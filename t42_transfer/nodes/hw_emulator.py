@@ -105,7 +105,9 @@ class HwEmulator(Node):
         self.bus = t42_bus(plant=self.plant)
         # The camera first: a renderer that cannot start fails the node before a pty is opened.
         self.camera = SimCamera(self, self.plant.hand.params, p) if p.camera_rate_hz > 0 else None
-        self.pty: PtyBus | None = PtyBus(self.bus, link=p.link or None)
+        self.pty: PtyBus | None = None
+        """The servo bus's port: opened last (by the faults' first application), so that a driver that finds it
+        at once finds the servos with their faults, and none with ``port_closed``."""
         self._rng = random.Random(p.seed)
         self._sim_ns = time.time_ns()  # the wall time: with use_sim_time on itself, ROS time is 0 until its /clock
         self._next_frame_ns = self._sim_ns
@@ -116,11 +118,12 @@ class HwEmulator(Node):
         self._tracker = self.create_publisher(PoseStamped, names.TRACKER_POSE, 10)
         self._truth = self.create_publisher(PoseStamped, names.SIM_POSE, 10)
         self._clock_pub = self.create_publisher(Clock, names.CLOCK, 10) if p.sim_time else None
-        self._apply_faults(p)
         # The graph's clock ticks on the machine's: on ROS time (use_sim_time) it would wait for itself.
         self._timer = self.create_timer(CONTROL_PERIOD_S / p.rate_factor, self._on_timer,
                                        clock=RosClock(clock_type=ClockType.STEADY_TIME) if p.sim_time else None)
-        self.log.info(f"servo bus on {self.port} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
+        self._apply_faults(p)
+        where = "closed (port_closed)" if self.pty is None else f"on {self.port}"
+        self.log.info(f"servo bus {where} (servos 1 and 2, XM430-W350), hand {p.hand!r}")
 
     @property
     def params(self) -> HwEmulatorParams:
@@ -170,7 +173,8 @@ class HwEmulator(Node):
             self.pty = None
         elif not p.port_closed and self.pty is None:
             self.pty = PtyBus(self.bus, link=p.link or None)
-            self.log.info(f"port back on {self.pty.port}")
+            if old is not None:
+                self.log.info(f"port back on {self.pty.port}")
 
     # ------------------------------------------------------------------ one tick
     def _waits_for_the_driver(self) -> bool:
