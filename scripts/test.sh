@@ -4,10 +4,10 @@
 # suite runs (-m "not slow") in 4 pytest-xdist worker processes, one test file
 # per worker at a time: most of its time is spent waiting on node processes and
 # the ROS graph (one core busy of two when serial), so 4 workers on 2 cores
-# overlap the waits (measured: 1.6 cores busy with 4 workers, 1.4 with 3).  Tests marked `serial` (real-time checks a loaded
-# machine can break: driver stalls, the quick demos) then run in one process
-# on their own.  Give -n yourself to run everything in one batch (-n 0: one
-# process).
+# overlap the waits (1.6 cores busy with 4 workers, 1.4 with 3).  Tests marked
+# `serial` (real-time checks a loaded machine can break: driver stalls, the
+# quick demos) then run in one process on their own.  Give -n yourself to run
+# everything in one batch (-n 0: one process).
 # `scripts/test.sh -m slow` runs the long checks in one process: soak and
 # timing checks there want the machine to themselves.
 set -euo pipefail

@@ -57,13 +57,24 @@ class User(Node):
                 raise TimeoutError(f"no {what} within {timeout_s} s")
             rclpy.spin_once(self, timeout_sec=0.05)
 
-    def call(self, srv_type, name: str, request, timeout_s: float = 30.0):
+    def call(self, srv_type, name: str, request, timeout_s: float = 30.0, again: bool = False):
+        """The answer to ``request``. ``again``: a request that may be carried out twice (a parameter's get or
+        set) goes out again each 2 s without an answer: a server drops its reply to a client whose reply
+        subscription it has not matched yet, as a new client on a busy machine can be."""
         client = self.create_client(srv_type, name)
         if not client.wait_for_service(timeout_sec=timeout_s):
             raise TimeoutError(f"service {name} not available")
-        future = client.call_async(request)
-        self.wait(future.done, timeout_s, f"answer from {name}")
-        return future.result()
+        futures, deadline = [client.call_async(request)], time.monotonic() + timeout_s
+        while not (answered := [f for f in futures if f.done()]):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TimeoutError(f"no answer from {name} within {timeout_s} s")
+            try:
+                self.wait(lambda: any(f.done() for f in futures), min(2.0, left) if again else left, "")
+            except TimeoutError:
+                if again:
+                    futures.append(client.call_async(request))
+        return answered[0].result()
 
     def action_client(self, action, name: str) -> ActionClient:
         """The node's client of action ``name``, made on first use: made well before its first goal, as a node
@@ -96,12 +107,12 @@ class User(Node):
         else:
             pv = ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=value)
         result = self.call(SetParameters, f"{self.ns}/{node}/set_parameters",
-                           SetParameters.Request(parameters=[Parameter(name=name, value=pv)])).results[0]
+                           SetParameters.Request(parameters=[Parameter(name=name, value=pv)]), again=True).results[0]
         return result.successful, result.reason
 
     def get_param(self, node: str, name: str):
         value = self.call(GetParameters, f"{self.ns}/{node}/get_parameters",
-                          GetParameters.Request(names=[name])).values[0]
+                          GetParameters.Request(names=[name]), again=True).values[0]
         return {ParameterType.PARAMETER_DOUBLE: value.double_value,
                 ParameterType.PARAMETER_INTEGER: value.integer_value,
                 ParameterType.PARAMETER_STRING: value.string_value}.get(value.type)
@@ -159,8 +170,9 @@ def graph(user: User) -> dict:
 
 def transfer(user: User) -> dict:
     out: dict = {}
-    # The action clients first: the transfer server's answer to get_parameters below, asked through a client made
-    # after them, comes once its process has seen the later endpoint, so as a rule their feedback subscriptions too.
+    # The action clients first, well before their goals: the servers' processes have then seen their feedback
+    # subscriptions (the transfer server's answer to get_parameters below, asked through a client made after them,
+    # comes once its process has seen that later endpoint).
     user.action_client(Transfer, user.name("t42/transfer"))
     user.action_client(Reach, user.name("t42/reach"))
     # The bags the recorder closed (its events are latched: a late joiner gets the recent ones), each with episodes.
@@ -229,15 +241,17 @@ def transfer(user: User) -> dict:
     user.wait(lambda: any(s.data.startswith("trajectory_done") for s in statuses), 60.0, "trajectory_done")
     out["driver_status"] = [s.data for s in statuses]
     # a fresh grasp for the next goal, as a user does between goals (the first plan may have dropped the object)
-    resets = sum(s.data.startswith("reset") for s in statuses)
+    resets = sum(s.data.startswith("reset:") for s in statuses)
     reset = user.call(Trigger, user.name("hand/reset"), Trigger.Request())
     if not reset.success:
         raise TimeoutError(f"hand/reset failed before the cancel: {reset.message}")
     # The next goal is placed from the new grasp: a pose stamped after the last step that the reset's status names
     # ("reset: ... [last step N ns]"), not one of the old grasp's poses still queued here.
-    user.wait(lambda: sum(s.data.startswith("reset") for s in statuses) > resets, 10.0, "the reset's status")
-    status = [s.data for s in statuses if s.data.startswith("reset")][-1]
-    last_step_ns = int(re.search(r"\[last step (\d+) ns\]", status)[1])
+    user.wait(lambda: sum(s.data.startswith("reset:") for s in statuses) > resets, 10.0, "the reset's status")
+    status = [s.data for s in statuses if s.data.startswith("reset:")][-1]
+    if not (named := re.search(r"\[last step (\d+) ns\]", status)):
+        raise TimeoutError(f"the reset's status names no last step: {status!r}")
+    last_step_ns = int(named[1])
     user.wait(lambda: Time.from_msg(poses[-1].header.stamp).nanoseconds > last_step_ns, 10.0,
               "a pose of the new grasp")
     out["cancel"] = cancel_one(user, target, applied)

@@ -153,7 +153,8 @@ def test_a_read_whose_answer_is_lost_is_asked_again_and_a_call_is_not(ros: Any) 
     assert call.poll() is None, call.communicate()  # still waiting for its one request's answer
     call.kill()
     call.communicate()
-    assert asked == {"get_parameters": 2, "get_state": 2, "work": 1}
+    # (a busy machine may lose a second reply as well: each read is asked again until it is answered)
+    assert asked["get_parameters"] >= 2 and asked["get_state"] >= 2 and asked["work"] == 1, asked
 
 
 def test_ctrl_c_while_waiting_for_an_answer_is_one_line_and_exit_130(ros: Any) -> None:

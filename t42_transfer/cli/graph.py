@@ -110,6 +110,9 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float, aga
         if again and gone is None and now - asked > ASK_AGAIN_S:
             futures.append(client.call_async(request))
             asked = now
+    for future in futures:
+        if not future.done():  # a request asked again: its answer, should it still come, is not waited for
+            client.remove_pending_request(future)
     node.destroy_client(client)
     return answered[0].result()
 
