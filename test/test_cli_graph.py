@@ -280,6 +280,47 @@ def test_a_planner_that_leaves_mid_goal_or_fails_without_a_result_ends_the_wait_
         (out, err)
 
 
+class _FirstGoalAnswerLost:
+    """rclpy's action server handle that does not send its first goal answer, as Fast DDS drops an answer to a
+    client whose reply subscription the server has not matched yet; everything else goes through."""
+
+    def __init__(self, handle: Any) -> None:
+        self._handle, self.lost = handle, 0
+
+    def send_goal_response(self, header: Any, response: Any) -> None:
+        if not self.lost:
+            self.lost += 1
+            return
+        self._handle.send_goal_response(header, response)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._handle, name)
+
+    def __enter__(self) -> Any:
+        return self._handle.__enter__()
+
+    def __exit__(self, *exc: Any) -> Any:
+        return self._handle.__exit__(*exc)
+
+
+def test_a_goal_whose_answer_is_lost_is_followed_by_its_status_to_its_result(ros: Any) -> None:
+    import numpy as np
+
+    from msg_adapters.reach import reach_feedback, reach_result
+
+    def execute(handle: Any) -> Any:
+        handle.publish_feedback(reach_feedback(1, 3.0, 1.0))
+        handle.succeed()
+        path = np.array([[0.0, 70.0], [0.5, 70.5]])
+        return reach_result("hit", "hit", 1.0, path, 0, path, 0)
+
+    _, server = reach_server(ros, "quiet_planner", execute_callback=execute)
+    server._handle = _FirstGoalAnswerLost(server._handle)
+    code, out, err = t42(ros, "reach", "0.0", "0.07")
+    assert server._handle.lost == 1 and code == 0, (out, err)
+    assert out.splitlines()[0].startswith("step 1: 3.0 mm from the target") and "hit" in out.splitlines()[-1], out
+
+
 def test_topic_list_and_echo_print_the_graphs_topics_and_messages_as_ros2_topic_does(ros: Any) -> None:
     """A latched status gives its last message to a late echo; a best-effort stream is read best effort (a
     reliable reader would never match it); each message a YAML document."""

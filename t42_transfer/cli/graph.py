@@ -285,9 +285,12 @@ SERVER_GONE_S = 3.0
 
 
 def _cmd_reach(args: argparse.Namespace) -> int:
+    import uuid
+
     from action_msgs.msg import GoalStatus
     from rclpy.action import ActionClient
     from rclpy.executors import SingleThreadedExecutor
+    from unique_identifier_msgs.msg import UUID
 
     from msg_adapters.reach import reach_goal, reach_outcome, reach_progress, reach_type
 
@@ -325,15 +328,12 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             until(client.server_is_ready,
                   f"{args.action}: no such action server on the graph after {args.wait:g} s (the planner's; "
                   f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)", args.wait)
-            sent = client.send_goal_async(goal, feedback_callback=said)
-            until(sent.done, "before it answered the goal")
-            handle = sent.result()
-            if not handle.accepted:
+            goal_id = UUID(uuid=list(uuid.uuid4().bytes))
+            sent = client.send_goal_async(goal, feedback_callback=said, goal_uuid=goal_id)
+            got = _reach_result(node, client, args.action, sent, goal_id, until)
+            if got is None:
                 print(f"{args.action}: goal rejected (the planner logs why)")
                 return 1
-            result = handle.get_result_async()
-            until(result.done, "before the goal's result (the hand may still run the plan)")
-            got = result.result()
         except KeyboardInterrupt:  # as ros2 action send_goal: Ctrl-C cancels the goal, the hand holds
             print(f"t42: interrupted: {_cancelled(executor, sent)}", file=sys.stderr)
             raise SystemExit(130) from None
@@ -354,6 +354,46 @@ def _cmd_reach(args: argparse.Namespace) -> int:
     print(f"{args.action}: {outcome.verdict}{f': {reason}' if reason else ''}; final error {error} after "
           f"{len(outcome.executed_mm)} measured positions")
     return 0 if outcome.success else 1
+
+
+GOAL_ANSWER_S = 3.0
+"""How long ``t42 reach`` waits for the goal's answer before the goal's status stands for it (an answer can be
+lost as :data:`ASK_AGAIN_S` says, while the goal itself is delivered and runs)."""
+
+
+def _reach_result(node: Node, client: Any, action: str, sent: Any, goal_id: Any,
+                  until: Callable[..., None]) -> Any:
+    """The result of the goal ``sent`` with the id ``goal_id`` (None: rejected); without its answer after
+    :data:`GOAL_ANSWER_S`, the id on the action's status (goals accepted) stands for it, the result asked by id."""
+    from action_msgs.msg import GoalStatusArray
+    from rclpy.action.client import ClientGoalHandle
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    from msg_adapters.reach import reach_type
+
+    accepted = threading.Event()
+
+    def on_status(message: Any) -> None:
+        if any(list(s.goal_info.goal_id.uuid) == list(goal_id.uuid) for s in message.status_list):
+            accepted.set()
+
+    status = node.create_subscription(GoalStatusArray, f"{action}/_action/status", on_status,
+                                      QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    try:
+        asked = time.monotonic()
+        until(lambda: sent.done() or (accepted.is_set() and time.monotonic() - asked > GOAL_ANSWER_S),
+              "before it answered the goal")
+    finally:
+        node.destroy_subscription(status)
+    if sent.done():
+        handle = sent.result()
+        if not handle.accepted:
+            return None
+    else:  # accepted, its answer lost: the result is asked for by the goal's own id
+        handle = ClientGoalHandle(client, goal_id, reach_type().Impl.SendGoalService.Response(accepted=True))
+    result = handle.get_result_async()
+    until(result.done, "before the goal's result (the hand may still run the plan)")
+    return result.result()
 
 
 def _cancelled(executor: Any, sent: Any) -> str:
