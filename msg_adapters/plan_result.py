@@ -32,7 +32,8 @@ class PlanResult:
     accepted: bool
     status: str
     """``ok`` when accepted; else a planner status (``unreachable``, ``goal_outside_workspace``, ...) or
-    ``bad_goal``, ``no_model``, ``no_state``, ``stale_state``, ``superseded``, ``error``."""
+    ``bad_goal``, ``no_model``, ``no_state``, ``stale_state``, ``superseded``, ``episode_ended`` (planned, and the
+    episode ended before the plan went out), ``error``."""
     reason: str
     goal_mm: list[float] | None
     """None when the goal message could not be read."""

@@ -36,7 +36,7 @@ from msg_adapters import (
     stamp_to_ns,
     status_message,
 )
-from msg_adapters.plan_result import plan_result
+from msg_adapters.plan_result import PlanResult, plan_result
 from msg_adapters.transfer import model_updated_msg
 from t42_transfer.conventions import CONTROL_PERIOD_NS, FRAME_ID
 from t42_transfer.hand.sim import SimulatedHand
@@ -44,7 +44,7 @@ from t42_transfer.models.checkpoint import save_model
 from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.planner_node import PlannerNode
 from t42_transfer.nodes.planner_params import PlannerNodeParams
-from t42_transfer.nodes.planner_parts import Refused, hand_state
+from t42_transfer.nodes.planner_parts import Goal, Refused, hand_state, unsent
 from t42_transfer.planning import Plan, Planner, Workspace
 from t42_transfer.planning.execution import execute
 from t42_transfer.ros.qos import profile
@@ -617,8 +617,21 @@ def test_run_time_sizes_are_bounded_as_the_cli_bounds_them(rig: Rig) -> None:
     assert rig.goal(START_XY + [2.0, 0.0])["accepted"]
 
 
+def test_a_plan_stopped_before_its_first_piece_went_out_gets_a_result_saying_why() -> None:
+    goal, planned = Goal(np.array([1.0, 2.0]), 7), PlanResult(True, "ok", "", [1.0, 2.0], 7, horizon=10)
+    cancelled = unsent(goal, planned, cancelled=True, episode_ended=True)
+    ended = unsent(goal, planned, cancelled=False, episode_ended=True)
+    newer = unsent(goal, planned, cancelled=False, episode_ended=False)
+    assert [(r.status, r.reason) for r in (cancelled, ended, newer)] == [
+        (names.SUPERSEDED, "cancelled while it was planned"),
+        ("episode_ended", "the episode ended before the plan was sent (reset the hand)"),
+        (names.SUPERSEDED, "a newer goal arrived while it was planned; the plan was discarded")]
+    assert all(not r.accepted and r.goal_stamp_ns == 7 and r.horizon == 10 for r in (cancelled, ended, newer))
+
+
 def test_a_burst_of_2000_goals_gets_2000_results(ros, toy: Path) -> None:
-    """Each goal is planned, superseded by a newer one, or refused, and says so (1645 of 2000 got nothing)."""
+    """Each goal is planned, superseded by a newer one, or refused, and says so (1645 of 2000 got nothing; then,
+    on a busy machine, 1-3: a goal planned and superseded before its first piece went out)."""
     rig = Rig(ros, toy, **SMALL)
     results: list[dict] = []
     rig.tester.create_subscription(PlanResultMsg, names.PLAN_RESULT,
@@ -632,7 +645,8 @@ def test_a_burst_of_2000_goals_gets_2000_results(ros, toy: Path) -> None:
     for k in range(2000):
         goals.publish(goal_msg(START_XY + [2.0, 0.0], start + k, RCLPY))  # the stamp names the goal
         ros.executor.spin_once(timeout_sec=0.0)
-    assert ros.spin_until(lambda: len(results) >= 2000, 60.0), len(results)
+    assert ros.spin_until(lambda: len(results) >= 2000, 60.0), \
+        sorted(set(range(2000)) - {r["goal_stamp_ns"] - start for r in results})  # the goals without a result
     ros.spin_for(0.5)
     assert sorted(r["goal_stamp_ns"] for r in results) == [start + k for k in range(2000)]  # one each, no more
     assert all(r["accepted"] or (r["status"] and r["reason"]) for r in results)  # planned, or refused saying why

@@ -2,25 +2,25 @@
 
 Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* ``t42/goal`` (geometry_msgs/msg/PointStamped): subscribed; the goal of the
-  object centre, metres in ``t42_base`` (other frames and non-finite values are refused);
-* ``hand/object_pose``, ``hand/joint_states``: subscribed; the latest hand state
-  ``(x mm, y mm, load1, load2)`` (the ``STATE_NAMES`` layout :func:`load_model`
-  checks in every checkpoint) and the actuator angles;
-* ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): subscribed TRANSIENT_LOCAL;
-  the model file (``path``) to plan with from now on (the transfer server announces there);
+* ``t42/goal`` (geometry_msgs/msg/PointStamped): subscribed; the goal of the object centre, metres in
+  ``t42_base`` (other frames and non-finite values are refused);
+* ``hand/object_pose``, ``hand/joint_states``: subscribed; the latest hand state ``(x mm, y mm, load1, load2)``
+  (the ``STATE_NAMES`` layout :func:`load_model` checks in every checkpoint) and the actuator angles;
+* ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): subscribed TRANSIENT_LOCAL; the model file
+  (``path``) to plan with from now on (the transfer server announces there);
 * ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an accepted plan; actuator-angle
   targets one per control period from the angles of the state planned from, stamped when published;
-* ``t42/planned_path`` (nav_msgs/msg/Path, latched): published with each trajectory; the
-  predicted object positions (plan length + 1 poses, the start included), metres in
-  ``t42_base``, stamped from the trajectory's stamp one control period apart;
+* ``t42/planned_path`` (nav_msgs/msg/Path, latched): published with each trajectory; the predicted object
+  positions (plan length + 1 poses, the start included), metres in ``t42_base``, stamped from the trajectory's
+  stamp one control period apart;
 * ``t42/plan_candidates`` (t42_interfaces/msg/PlanCandidates, latched): with the parameter ``candidates`` K > 0 (0, off,
   by default), the predicted paths of each new plan's K lowest-cost sequences, the plan's own first, published
   with its first piece (the view draws them);
 * ``t42/plan_result`` (t42_interfaces/msg/PlanResult): exactly one per goal (``t42/goal`` and ``t42/reach``
-  alike), :class:`PlanResult` (:mod:`msg_adapters.plan_result`: metres in ``t42_base``): accepted, or refused
-  with a status code and a reason, with the goal and its stamp, the start, the predicted error, the plan's
-  steps, samples, planning time, model and method;
+  alike; also for a plan a newer goal, a cancel or the episode's end stopped before it was sent),
+  :class:`PlanResult` (:mod:`msg_adapters.plan_result`: metres in ``t42_base``): accepted, or refused with a
+  status code and a reason, with the goal and its stamp, the start, the predicted error, the plan's steps,
+  samples, planning time, model and method;
 * ``hand/status`` (std_msgs/msg/String): subscribed; the driver's ``trajectory_done`` says when a
   piece has run, its episode ends (``dropped``...) end an action goal;
 * ``t42/reach`` (t42_interfaces/action/Reach): served (:mod:`t42_transfer.nodes.reach`); a goal as on
@@ -44,20 +44,18 @@ changed at run time (``ros2 param set``) and apply from the next goal served.
 
 Decisions, and why:
 
-* Plans run in one worker thread, not in an executor callback: K samples x T steps
-  take 0.1-1 s, and the node must keep tracking the hand state meanwhile (the plan
-  for the next goal starts from it).  An announced model is read in a loader thread
-  of its own (the newest announcement wins), so reading a large file stalls
-  neither the executor's callbacks (state, goals, the reach action) nor a plan or
-  run in progress; a goal waiting meanwhile is planned once it is read, with it.
-  State and model are swapped under a lock.
+* Plans run in one worker thread, not in an executor callback: K samples x T steps take 0.1-1 s, and the node
+  must keep tracking the hand state meanwhile (the plan for the next goal starts from it).  An announced model
+  is read in a loader thread of its own (the newest announcement wins), so reading a large file stalls neither
+  the executor's callbacks (state, goals, the reach action) nor a plan or run in progress; a goal waiting
+  meanwhile is planned once it is read, with it.  State and model are swapped under a lock.
 * The latest goal wins.  A goal arriving while another waits replaces it; one arriving while a plan runs lets
   that plan finish and then discards it unpublished (only stopping the node ends a plan early, at its next
-  chunk).  Either way the older goal gets the result ``superseded``: a stale plan must not move the hand.
-* A model file without a stored workspace (``extra.workspace``) is refused like
-  an unreadable one, keeping the previous model: the workspace is the planner's
-  only guard against trusting extrapolations, and no default box can know where
-  a given model was trained.
+  chunk), as it does one arriving before the plan's first piece went out.  Either way the older goal gets the
+  result ``superseded``: a stale plan must not move the hand.
+* A model file without a stored workspace (``extra.workspace``) is refused like an unreadable one, keeping the
+  previous model: the workspace is the planner's only guard against trusting extrapolations, and no default box
+  can know where a given model was trained.
 * Only plans the planner calls ``ok`` (a safe prediction within ``tolerance_m``)
   are executed; ``unreachable`` ones are refused with their predicted error.
 * Hand state further than ``max_state_age_s`` from now (driver stopped, episode
@@ -119,6 +117,7 @@ from t42_transfer.nodes.planner_parts import (
     hand_state,
     load_planner_model,
     superseded,
+    unsent,
 )
 from t42_transfer.nodes.reach import ABORT, CANCELED, ReachRun, judge, reach_server, refused_verdict
 from t42_transfer.planning import Plan, Planner, PlannerConfig, PlanStopped
@@ -499,6 +498,9 @@ class PlannerNode(Node):
             nonlocal offset, executed, done_before
             with self._cond:
                 if self._interrupted(run, ends_before):
+                    if executed == 0 and not self._stopping:  # planned, never sent: its result says why
+                        self._publish_result(unsent(goal, result, run is not None and run.cancelled,
+                                                    self._pending is None and self._ends > ends_before))
                     return "interrupted"
                 done_before = self._dones
                 stamp = self._now_ns()

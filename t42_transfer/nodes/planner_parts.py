@@ -4,7 +4,7 @@ and the hand state planned from (no rclpy here; :mod:`t42_transfer.nodes.planner
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -97,3 +97,14 @@ def superseded(goal: Goal, planned: PlanResult | None = None, reason: str = "") 
     if not reason:
         reason = "a newer goal arrived" + (" while it was planned; the plan was discarded" if planned else "")
     return PlanResult(**{**asdict(base), "accepted": False, "status": names.SUPERSEDED, "reason": reason})
+
+
+def unsent(goal: Goal, planned: PlanResult, cancelled: bool, episode_ended: bool) -> PlanResult:
+    """The result of a goal planned but stopped before its first piece went out: cancelled, its episode ended
+    meanwhile, or a newer goal arrived."""
+    if cancelled:
+        return superseded(goal, planned, "cancelled while it was planned")
+    if episode_ended:
+        return replace(superseded(goal, planned), status="episode_ended",
+                       reason="the episode ended before the plan was sent (reset the hand)")
+    return superseded(goal, planned)
