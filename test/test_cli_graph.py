@@ -321,6 +321,20 @@ def test_a_goal_whose_answer_is_lost_is_followed_by_its_status_to_its_result(ros
     assert out.splitlines()[0].startswith("step 1: 3.0 mm from the target") and "hit" in out.splitlines()[-1], out
 
 
+def test_a_goal_whose_rejection_is_lost_ends_after_the_wait_and_is_not_taken_for_accepted(ros: Any) -> None:
+    from rclpy.action import GoalResponse
+
+    _, server = reach_server(ros, "refusing_planner", goal_callback=lambda request: GoalResponse.REJECT,
+                             execute_callback=lambda handle: None)
+    server._handle = _FirstGoalAnswerLost(server._handle)
+    code, out, err = t42(ros, "reach", "0.0", "0.07", "--wait", "1")
+    assert server._handle.lost == 1 and code == 2 and out == "", (out, err)
+    assert "/t42/reach: no answer to the goal after 4 s, nor the goal among the server's" in err, err
+
+    code, out, err = t42(ros, "reach", "0.0", "0.07", "--wait", "1")  # the next answer is sent: a plain no
+    assert code == 1 and out.strip() == "/t42/reach: goal rejected (the planner logs why)", (out, err)
+
+
 def test_topic_list_and_echo_print_the_graphs_topics_and_messages_as_ros2_topic_does(ros: Any) -> None:
     """A latched status gives its last message to a late echo; a best-effort stream is read best effort (a
     reliable reader would never match it); each message a YAML document."""

@@ -31,7 +31,6 @@ OWNER_GRACE_S = 3.0
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 """The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
 
-
 _INTERRUPTED = threading.Event()
 """Set by Ctrl-C while a command is on the graph: its loops stop at their next turn (:func:`_stop_if_asked`).  A
 KeyboardInterrupt raised wherever the program happens to be, inside rclpy's C++ calls too, came out as another
@@ -330,7 +329,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
                   f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)", args.wait)
             goal_id = UUID(uuid=list(uuid.uuid4().bytes))
             sent = client.send_goal_async(goal, feedback_callback=said, goal_uuid=goal_id)
-            got = _reach_result(node, client, args.action, sent, goal_id, until)
+            got = _reach_result(node, client, args.action, sent, goal_id, until, args.wait + GOAL_ANSWER_S)
             if got is None:
                 print(f"{args.action}: goal rejected (the planner logs why)")
                 return 1
@@ -341,8 +340,8 @@ def _cmd_reach(args: argparse.Namespace) -> int:
             executor.shutdown(timeout_sec=1.0)
             client.destroy()
     if not got.result.verdict:  # a server that failed builds no result (rclpy sends the empty default)
-        status = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "canceled"}.get(got.status,
-                                                                                                   str(got.status))
+        ended = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "canceled"}
+        status = ended.get(got.status, str(got.status))
         print(f"{args.action}: the goal ended {status} without a result (the planner's log says why)")
         return 1
     outcome = reach_outcome(got.result)
@@ -362,9 +361,9 @@ lost as :data:`ASK_AGAIN_S` says, while the goal itself is delivered and runs)."
 
 
 def _reach_result(node: Node, client: Any, action: str, sent: Any, goal_id: Any,
-                  until: Callable[..., None]) -> Any:
-    """The result of the goal ``sent`` with the id ``goal_id`` (None: rejected); without its answer after
-    :data:`GOAL_ANSWER_S`, the id on the action's status (goals accepted) stands for it, the result asked by id."""
+                  until: Callable[..., None], answer_s: float) -> Any:
+    """The result of the goal ``sent``, id ``goal_id`` (None: rejected). Without its answer after :data:`GOAL_ANSWER_S`
+    the id on the status (goals accepted) stands for it; with neither after ``answer_s``, ValueError (a lost no)."""
     from action_msgs.msg import GoalStatusArray
     from rclpy.action.client import ClientGoalHandle
     from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -382,7 +381,8 @@ def _reach_result(node: Node, client: Any, action: str, sent: Any, goal_id: Any,
     try:
         asked = time.monotonic()
         until(lambda: sent.done() or (accepted.is_set() and time.monotonic() - asked > GOAL_ANSWER_S),
-              "before it answered the goal")
+              f"{action}: no answer to the goal after {answer_s:g} s, nor the goal among the server's (rejected, "
+              "its answer lost?)", answer_s)
     finally:
         node.destroy_subscription(status)
     if sent.done():
@@ -596,5 +596,5 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     reach.add_argument("--action", default=f"/{names.REACH}", metavar="NAME",
                        help=f"the action's name (default /{names.REACH}; under a namespace e.g. /left/{names.REACH})")
     reach.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
-                       help="how long to wait for the action server to appear on the graph (default 10 s)")
+                       help="how long to wait for the action server, then 3 s more for its goal's answer")
     reach.set_defaults(func=_cmd_reach)
