@@ -252,6 +252,19 @@ def test_a_configure_that_failed_then_passes_says_recovered(fresh_rig: Rig) -> N
     assert rig.ros.spin_until(lambda: rig.events()[-1:] == [names.RECOVERED], 2.0), rig.events()
 
 
+def test_a_wrong_port_is_fixed_by_setting_it_while_unconfigured_not_by_a_restart(fresh_rig: Rig, tmp_path) -> None:
+    rig, bus = fresh_rig, fresh_rig.bench.bus.port
+    (tmp_path / "no_bus").write_text("")
+    assert rig.driver.set_parameters([Parameter("port", value=str(tmp_path / "no_bus"))])[0].successful
+    assert not rig.transition(Transition.TRANSITION_CONFIGURE) and rig.state() == "unconfigured"
+    assert rig.driver.set_parameters([Parameter("port", value=bus)])[0].successful
+    assert rig.transition(Transition.TRANSITION_CONFIGURE) and rig.driver.hand is not None
+    refused = rig.driver.set_parameters([Parameter("baud", value=57_600)])[0]  # the bus is open at 1 Mbaud
+    assert not refused.successful and "baud is read at configure" in refused.reason, refused.reason
+    assert rig.transition(Transition.TRANSITION_CLEANUP) and rig.driver.hand is None
+    assert rig.driver.set_parameters([Parameter("baud", value=57_600)])[0].successful
+
+
 # The tests on the shared rig run one after the other (its driver steps only while a test spins it); the one that
 # may open the hand comes last.
 

@@ -11,6 +11,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from t42_transfer.ros.node_lifetime import DestroyableLifecycleNode
 from t42_transfer.ros.params import LiveParams, declare_params, param
 
 
@@ -105,6 +106,52 @@ def test_run_time_changes_validated_refused_with_reason_and_applied(ros) -> None
     (unset,) = set_(seed=None)  # PARAMETER_NOT_SET: rclpy would undeclare the parameter
     assert unset[0] is False and "cannot be unset at run time" in unset[1]
     assert node.has_parameter("seed") and set_(seed=4) == [(True, "")] and node.live.value.seed == 4
+
+
+@dataclass(frozen=True)
+class Bus:
+    port: str = param("/dev/ttyUSB0", "the bus", configure=True)
+    rate: float = param(1.0, "steps per tick", min=0.01)
+
+
+class BusNode(DestroyableLifecycleNode):
+    def __init__(self, **kwargs) -> None:
+        super().__init__("bus", **kwargs)
+        self.live = LiveParams(self, Bus)
+
+
+def test_a_configure_parameter_is_set_while_unconfigured_only(ros) -> None:
+    """What configure reads: a wrong port is fixed by cleanup, a set and configure, without a restart."""
+    node = ros.add(BusNode)
+    assert "set while unconfigured" in node.describe_parameter("port").additional_constraints
+    assert not node.describe_parameter("port").read_only
+
+    def set_(name, value):
+        (result,) = node.set_parameters([Parameter(name, value=value)])
+        return result.successful, result.reason
+
+    assert set_("port", "/dev/ttyUSB1") == (True, "") and node.live.value.port == "/dev/ttyUSB1"
+    node.trigger_configure()
+    ok, reason = set_("port", "/dev/ttyUSB2")
+    assert not ok and reason == "port is read at configure: set it while the node is unconfigured (it is inactive: " \
+        "cleanup first)", reason
+    assert node.live.value.port == "/dev/ttyUSB1"
+    assert set_("port", "/dev/ttyUSB1") == (True, "") and set_("rate", 2.0) == (True, "")  # no change; live
+    node.trigger_cleanup()
+    assert node.state == "unconfigured" and set_("port", "/dev/ttyUSB2") == (True, "")
+    assert node.live.value == Bus(port="/dev/ttyUSB2", rate=2.0)
+
+
+def test_a_configure_parameter_needs_a_lifecycle_node_and_is_not_also_read_only(ros) -> None:
+    class PlainBus(Node):
+        def __init__(self, **kwargs) -> None:
+            super().__init__("plain_bus", **kwargs)
+            self.live = LiveParams(self, Bus)
+
+    with pytest.raises(TypeError, match="need a lifecycle node"):
+        ros.add(PlainBus)
+    with pytest.raises(TypeError, match="not both"):
+        param("x", "both", read_only=True, configure=True)
 
 
 def test_declare_params_rejects_types_ros_cannot_carry(ros) -> None:

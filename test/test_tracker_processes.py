@@ -78,7 +78,7 @@ def test_a_plain_rclpy_script_sets_parameters_and_receives_poses(ros_domain: int
 
     empty, slash, fps = seen["camera_bad"]
     assert not empty[0] and "frame_id" in empty[1] and not slash[0] and "frame_id" in slash[1], seen["camera_bad"]
-    assert not fps[0] and "read-only" in fps[1], seen["camera_bad"]
+    assert not fps[0] and "read at configure" in fps[1] and "it is active" in fps[1], seen["camera_bad"]
     assert seen["camera_after_bad"] == {"frame_id": "camera_optical", "fps": 0.0}
     assert seen["camera_good"] == [True, ""] and seen["camera_after_good"] == {"frame_id": "hand_camera_optical"}
 

@@ -60,17 +60,17 @@ class CameraParams:
     """The camera node's ROS parameters."""
 
     device: str = param("0", "the source: a device index (0), a device path (/dev/video0) or a video file",
-                        read_only=True)
+                        configure=True)
     width: int = param(0, "frame width the source must give (px; 0: as it gives, or the calibration's)",
-                       read_only=True, min=0, max=MAX_SIDE)
+                       configure=True, min=0, max=MAX_SIDE)
     height: int = param(0, "frame height the source must give (px; 0: as it gives, or the calibration's)",
-                        read_only=True, min=0, max=MAX_SIDE)
+                        configure=True, min=0, max=MAX_SIDE)
     fps: float = param(0.0, "frames per second asked of the source and published at most (0: the source's own)",
-                       read_only=True, min=0.0, max=MAX_FPS)
+                       configure=True, min=0.0, max=MAX_FPS)
     frame_id: str = param("camera_optical", "frame id of the images and camera infos: the camera's optical frame "
                           "(z forward, x right, y down; REP 103's _optical suffix)")
     calibration_file: Path | None = param(None, "ROS camera_info YAML of the camera (unset: uncalibrated, K = 0)",
-                                          read_only=True)
+                                          configure=True)
     loop: bool = param(False, "at a video file's end, start it again (else the node is finished)", read_only=True)
     autostart: bool = param(True, "configure and activate at start, a source that fails ending the node (false: "
                             "drive the lifecycle yourself: ros2 lifecycle set /camera configure)", read_only=True)
@@ -144,11 +144,6 @@ class Camera(DestroyableLifecycleNode):
     def finished(self) -> bool:
         """True once a video file ended (without ``loop``): the runner then ends the process."""
         return self._finished.is_set()
-
-    @property
-    def state(self) -> str:
-        """The lifecycle state's label (``unconfigured``, ``inactive``, ``active``, ``finalized``)."""
-        return self._state_machine.current_state[1]
 
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:

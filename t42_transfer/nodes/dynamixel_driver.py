@@ -190,7 +190,7 @@ class DynamixelDriver(DestroyableLifecycleNode):
     def _start(self) -> None:
         """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
         there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
-        if self._state_machine.current_state[1] != "unconfigured":  # a lifecycle client got there first
+        if self.state != "unconfigured":  # a lifecycle client got there first
             self.destroy_timer(self._autostart)
             return
         port = self.params.port

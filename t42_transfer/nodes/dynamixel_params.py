@@ -17,17 +17,17 @@ _T42 = HandGeometry()
 class DynamixelDriverParams:
     """The driver's ROS parameters (the hand's geometry is checked by :class:`HandGeometry`)."""
 
-    port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", read_only=True)
-    baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, read_only=True)
+    port: str = param("/dev/ttyUSB0", "the servo bus (a U2D2 or similar USB adapter)", configure=True)
+    baud: int = param(1_000_000, "the servos' baud rate", min=9600, max=4_500_000, configure=True)
     latency_timer_ms: float = param(SDK_LATENCY_TIMER_MS, "the USB adapter's latency timer: an answer is awaited "
                                     "2x this + 2 ms + its bytes' time (an emulated bus: more)", min=0.0, max=1000.0,
-                                    read_only=True)
+                                    configure=True)
     servo_ids: tuple[int, ...] = param(_T42.servo_ids, "servo ids in action order (hands A and B are mirrored)",
-                                       read_only=True)
+                                       configure=True)
     open_ticks: tuple[int, ...] = param(_T42.open_ticks, "Present Position of each servo with its finger open",
-                                        read_only=True)
+                                        configure=True)
     directions: tuple[int, ...] = param(_T42.directions, "+1: ticks above open close the finger, -1: below",
-                                        read_only=True)
+                                        configure=True)
     max_angle_rad: tuple[float, ...] = param(_T42.max_angle_rad, "position limit of each servo from open (rad); "
                                              "at run time lowered at once, raised only unconfigured")
     load_limit: float = param(_T42.load_limit, "no finger closes further with a load over this, in the servos' raw "

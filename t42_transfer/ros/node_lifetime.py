@@ -45,9 +45,20 @@ def destroyed_if_init_fails(init: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def lifecycle_state(node: LifecycleNode) -> str:
+    """The lifecycle state's label (``unconfigured``, ``inactive``, ``active``, ``finalized``, a transition's):
+    rclpy 7.1 keeps it in its state machine only."""
+    return node._state_machine.current_state[1]
+
+
 class DestroyableLifecycleNode(LifecycleNode):
     """rclpy's LifecycleNode, whose ``destroy_node`` leaves the graph at once: rclpy 7.1's leaves the rcl node
     to its state machine, which refers back to the node and so lives until the garbage collector runs."""
+
+    @property
+    def state(self) -> str:
+        """The lifecycle state's label (:func:`lifecycle_state`)."""
+        return lifecycle_state(self)
 
     def destroy_node(self) -> None:
         super().destroy_node()

@@ -6,7 +6,9 @@ one ROS parameter per field, with a descriptor built from the field's
 :func:`param` metadata (description, range, read-only), reads the values rclpy
 resolved from params files and ``-p`` overrides, and returns the dataclass.
 
-Parameters that are not read-only may change at run time (``ros2 param set``).
+Parameters that are not read-only may change at run time (``ros2 param set``); those a lifecycle node reads
+at configure (``configure=True``) only while it is unconfigured, so that a wrong port is fixed by cleanup, a set
+and configure, without a restart.
 :class:`LiveParams` validates a change by building the would-be dataclass, so a bad
 value is refused with the reason ``__post_init__`` gives and the node keeps its old
 value; an accepted change reaches the node through a callback.
@@ -36,12 +38,16 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.exceptions import ParameterException, ParameterUninitializedException
+from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from t42_transfer.ros.node_lifetime import lifecycle_state
 
 P = TypeVar("P")
 
 _META = "t42_param"
+UNCONFIGURED_ONLY = "set while unconfigured"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,13 +61,17 @@ class ParamInfo:
     """Free text shown by ``ros2 param describe`` for checks a range cannot express."""
     renamed_from: str = ""
     """The parameter's former name: a node given it refuses to start (rclpy would drop it unread)."""
+    configure: bool = False
+    """Read at a lifecycle node's configure: set only while the node is unconfigured."""
 
 
 def param(default: Any = dataclasses.MISSING, description: str = "", *, read_only: bool = False,
           min: float | None = None, max: float | None = None, constraints: str = "",
-          default_factory: Any = dataclasses.MISSING, renamed_from: str = "") -> Any:
+          default_factory: Any = dataclasses.MISSING, renamed_from: str = "", configure: bool = False) -> Any:
     """A dataclass field that is also a documented ROS parameter."""
-    info = ParamInfo(description, read_only, min, max, constraints, renamed_from)
+    if read_only and configure:
+        raise TypeError("a parameter is read-only or set while unconfigured, not both")
+    info = ParamInfo(description, read_only, min, max, constraints, renamed_from, configure)
     if default_factory is not dataclasses.MISSING:
         return dataclasses.field(default_factory=default_factory, metadata={_META: info})
     return dataclasses.field(default=default, metadata={_META: info})
@@ -143,7 +153,8 @@ def _descriptor(field: _Field) -> ParameterDescriptor:
         description=info.description,
         read_only=info.read_only,
         dynamic_typing=field.optional,
-        additional_constraints=info.constraints + (" (unset: none)" if field.optional else ""),
+        additional_constraints=info.constraints + (" (unset: none)" if field.optional else "")
+        + (f" ({UNCONFIGURED_ONLY})" if info.configure else ""),
     )
     if info.min is not None or info.max is not None:
         lo = -math.inf if info.min is None else info.min
@@ -199,7 +210,8 @@ def describe_params(params_cls: type) -> str:
         info = field.info
         bounds = ((">=", info.min), ("<=", info.max))
         limits = [f"{sign} {_shown(bound)}" for sign, bound in bounds if bound is not None]
-        notes = [default, *limits, *(["read-only"] if info.read_only else [])]
+        notes = [default, *limits, *(["read-only"] if info.read_only else []),
+                 *([UNCONFIGURED_ONLY] if info.configure else [])]
         more = f" ({info.constraints})" if info.constraints else ""
         lines.append(f"  {field.name} ({kind}{', optional' if field.optional else ''}; {', '.join(notes)}): "
                      f"{info.description}{more}")
@@ -280,12 +292,16 @@ class LiveParams(Generic[P]):
     """A node's params dataclass kept in step with ``ros2 param set``: bad values refused with the reason.
 
     ``on_change(old, new)`` runs after a change was accepted (in the executor's thread).  ``veto(old, new)``
-    refuses a change that is fine as settings but not as a change at run time (the reason, or None).
+    refuses a change that is fine as settings but not as a change at run time (the reason, or None).  A
+    ``configure`` parameter changes only while the (lifecycle) node is unconfigured.
     """
 
     def __init__(self, node: Node, params_cls: type[P], on_change: Callable[[P, P], None] | None = None,
                  veto: Callable[[P, P], str | None] | None = None) -> None:
         self._fields = {f.name: f for f in _fields(params_cls)}
+        if not isinstance(node, LifecycleNode) and any(f.info.configure for f in self._fields.values()):
+            raise TypeError(f"{params_cls.__name__}: parameters set while unconfigured need a lifecycle node")
+        self._node = node
         self.value: P = declare_params(node, params_cls)
         self._pending: P | None = None
         self._on_change, self._veto = on_change, veto
@@ -305,6 +321,10 @@ class LiveParams(Generic[P]):
                 changes[p.name] = _from_ros(field, p.value)
             except ValueError as err:
                 return SetParametersResult(successful=False, reason=str(err))
+            state = lifecycle_state(self._node) if field.info.configure else "unconfigured"
+            if state != "unconfigured" and changes[p.name] != getattr(self.value, p.name):
+                return SetParametersResult(successful=False, reason=f"{p.name} is read at configure: set it while "
+                                           f"the node is unconfigured (it is {state}: cleanup first)")
         if not changes:
             return SetParametersResult(successful=True)
         try:
