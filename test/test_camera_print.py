@@ -82,6 +82,11 @@ def test_a_charuco_board_is_found_whole_with_its_square_size(tmp_path: Path) -> 
     assert spacing_mm == pytest.approx(24.0, rel=0.01)
 
 
+def test_the_default_board_as_the_readme_prints_it_fits_a4(tmp_path: Path, capsys) -> None:
+    assert main(["camera", "board", str(tmp_path / "board.pdf")]) == 0
+    assert capsys.readouterr().out.startswith("9x6 board, 20 mm squares") and (tmp_path / "board.pdf").stat().st_size
+
+
 def test_a_checkerboard_too_wide_for_a_portrait_page_is_turned_landscape(tmp_path: Path) -> None:
     out = tmp_path / "board.png"
     assert main(["camera", "board", str(out), "--pattern", "9x6", "--square", "0.02"]) == 0
@@ -113,7 +118,7 @@ def _spacing(board_m: np.ndarray, image_px: np.ndarray) -> float:
     (["markers", "{out}", "--config", "{huge}"], "does not fit across a4 paper"),
     (["markers", "{exists}"], "exists already"),
     (["markers", "{tmp}/sheet.jpg"], "write a sheet as .pdf, .svg, .eps, .ps, .png"),
-    (["board", "{out}", "--pattern", "9x6"], "does not fit a4 paper"),
+    (["board", "{out}", "--pattern", "9x6", "--square", "0.025"], "does not fit a4 paper"),
     (["board", "{out}", "--board", "charuco", "--squares", "7x5", "--marker", "0.03"], "smaller than the square"),
 ])
 def test_bad_requests_are_one_line_errors_and_write_nothing(tmp_path: Path, capsys, args: list[str],

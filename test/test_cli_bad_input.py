@@ -93,6 +93,7 @@ def other_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 def paths(tmp_path: Path, model_file: Path, other_models: dict[str, Path]) -> dict[str, str]:
     """Names the cases use: real inputs, wrong kinds of path, and ``out`` (which must never appear)."""
     (tmp_path / "file").write_text("not a directory, not a model, not a bag\n")
+    (tmp_path / "binary").write_bytes(b"\xff\xfe1,2\n")
     (tmp_path / "dir").mkdir()
     os.mkfifo(tmp_path / "fifo")
     run = tmp_path / "run"
@@ -103,6 +104,7 @@ def paths(tmp_path: Path, model_file: Path, other_models: dict[str, Path]) -> di
         "model": str(model_file), "bag": str(BAG), "file": str(tmp_path / "file"), "dir": str(tmp_path / "dir"),
         "fifo": str(tmp_path / "fifo"), "missing": str(tmp_path / "missing"), "under": str(tmp_path / "file" / "sub"),
         "out": str(tmp_path / "out"), "run": str(run), "tmp": str(tmp_path),
+        "binary": str(tmp_path / "binary"),
     }
 
 
@@ -150,6 +152,10 @@ CASES = {
     "plan --out is a file": ("plan {model} --start 0 80 120 -120 --goal 1 85 --out {file}", "{file}"),
     "plan --out under a file": ("plan {model} --start 0 80 120 -120 --goal 1 85 --out {under}", "{under}"),
     # t42 peg-in-hole
+    "peg goals too near for the hand": (PEG, "no goal 5 steps away without a drop"),
+    "peg a model name twice": (PEG.replace("{model}", "{model} {model}"), "model name(s) ['m'] given twice"),
+    "peg a model named as a baseline": (PEG.replace("{model}", "oracle={model}"), "['oracle'] given twice or a "
+                                        "baseline's"),
     "peg --trials -1": (PEG + " --trials -1", "--trials"),
     "peg --trials 0": (PEG + " --trials 0", "--trials"),
     "peg --trials 1e9": (PEG + " --trials 1000000000", "--trials"),
@@ -247,6 +253,9 @@ CASES = {
     "demo --workers 0": ("demo --quick --workers 0 --out {out}", "--workers"),
     "demo --workers -1": ("demo --quick --workers -1 --out {out}", "--workers"),
     "node unknown": ("node bogus", "bogus"),
+    # t42 view --snapshot
+    "snapshot not a .png": ("view --snapshot {out} --object 0 80", "{out}: --snapshot writes a PNG"),
+    "snapshot path file not text": ("view --snapshot {out}.png --path {binary}", "{binary}: not a text file"),
 }
 
 
@@ -469,6 +478,35 @@ def test_unreadable_and_unwritable_paths(paths: dict[str, str], capsys: pytest.C
         assert "Permission denied" in refused(shlex.split(plan), capsys)
     finally:
         locked.chmod(0o700)
+
+
+@pytest.mark.parametrize("argv", [
+    ["model", "train", str(BAG), "--out", "{ro}/m.safetensors"],  # before an hour's training, not after it
+    ["view", "--snapshot", "{ro}/new/s.png", "--object", "0", "80"],
+], ids=["model train", "view --snapshot under a new folder"])
+def test_an_output_that_cannot_be_written_is_refused_before_any_work(argv: list[str], tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """As root, the command runs without the capabilities that let root write anywhere (setpriv)."""
+    import shutil
+    import subprocess
+    import sys
+
+    ro = tmp_path / "ro"
+    ro.mkdir(mode=0o555)
+    argv = [a.format(ro=ro) for a in argv]
+    if os.geteuid() != 0:
+        line = refused(argv, capsys)
+    elif shutil.which("setpriv") is None:
+        pytest.skip("running as root, and no setpriv to drop root's right to write anywhere")
+    else:
+        done = subprocess.run(["setpriv", "--bounding-set", "-dac_override,-dac_read_search", "--",
+                               sys.executable, "-m", "t42_transfer.cli", *argv],
+                              capture_output=True, text=True, timeout=TIMEOUT_S)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 2 and len(lines) == 1, done.stderr
+        line = lines[0]
+    assert line.startswith("t42: error: ") and f"{ro} cannot be written (permission denied)" in line, line
+    assert list(ro.iterdir()) == []
 
 
 _TRIAL = {"model": "a", "steps": 20, "trial": 0, "status": "ok", "end_reason": "length", "goal_distance_mm": 20.0,

@@ -95,6 +95,15 @@ def test_known_divergence_and_mse_per_path_and_overall(made, tmp_path, capsys):
     assert "hold still" in table and "constant.safetensors" in table and "dropout on" in table  # the paper's note
 
 
+def test_two_files_of_one_name_are_told_apart_by_their_paths(made, tmp_path, capsys):
+    other = tmp_path / "b" / "constant.safetensors"
+    other.parent.mkdir()
+    other.write_bytes(made["constant"].read_bytes())
+    assert main(["evaluate", str(made["constant"]), str(other), "--on", f"{{bag: {made['bag']}}}", "--quiet"]) == 0
+    rows = [line.split()[0] for line in capsys.readouterr().out.splitlines() if "dropout" in line]
+    assert rows[:2] == [str(made["constant"]), str(other)], rows
+
+
 def test_the_json_has_exactly_the_documented_shape(made, tmp_path):
     out = tmp_path / "e.json"
     assert _run(made, "--json", str(out), "--paths", "2,0", models=("constant", "noisy")) == 0

@@ -102,12 +102,15 @@ def existing_dir(path: Path) -> Path:
 
 
 def output_dir(path: Path) -> Path:
-    """``path`` when it is a directory, or can be made one (its nearest existing ancestor is a directory)."""
+    """``path`` when it is a directory, or can be made one (its nearest existing ancestor is a directory), and
+    can be written: said before the work, not when its result is saved (a model trained for an hour)."""
     for at in (path, *path.absolute().parents):
         info = _stat(at)
         if info is not None:
             if not stat.S_ISDIR(info.st_mode):
                 raise ValueError(f"{path}: {'' if at == path else f'{at} '}is not a directory")
+            if not os.access(at, os.W_OK | os.X_OK):  # (a read-only file system included)
+                raise ValueError(f"{path}: {'' if at == path else f'{at} '}cannot be written (permission denied)")
             break
     return path
 

@@ -64,8 +64,8 @@ def _board_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pattern", help="checkerboard: inner corners per row x per column (default 9x6)")
     parser.add_argument("--squares",
                         help="charuco: squares per row x per column, e.g. 7x5 (as cv2.aruco.CharucoBoard)")
-    parser.add_argument("--square", type=float_arg(0.0, 10.0, low_open=True), default=0.025,
-                        help="side of a board square in metres (default 0.025)")
+    parser.add_argument("--square", type=float_arg(0.0, 10.0, low_open=True), default=0.02,
+                        help="side of a board square in metres (default 0.02: the default board fits on a4)")
     parser.add_argument("--marker", type=float_arg(0.0, 10.0, low_open=True),
                         help="charuco: side of a marker in metres (smaller than --square)")
     parser.add_argument("--dictionary", help="charuco: the markers' ArUco dictionary (default DICT_4X4_50)")

@@ -44,7 +44,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate_models(models, episodes, indices=chosen, dropout_draws=args.dropout_draws, seed=args.seed,
                              definition=args.definition, progress=not args.quiet)
     print(f"on {args.on}: paths {','.join(map(str, chosen))} ({result.steps} steps), {args.definition} definition")
-    print(table(result, [path.name for path in args.models]))
+    short = [path.name for path in args.models]  # the file's name, its path where two names are alike
+    print(table(result, [str(path) if short.count(path.name) > 1 else path.name for path in args.models]))
     print(PAPER_NOTE)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -73,6 +73,7 @@ def _run_peg_in_hole(args: argparse.Namespace) -> int:
     import torch
 
     from t42_transfer.evaluation.peg_in_hole import (
+        BASELINES,
         PegInHoleConfig,
         contenders_for,
         evaluate,
@@ -95,6 +96,9 @@ def _run_peg_in_hole(args: argparse.Namespace) -> int:
     PlannerConfig(samples=args.samples, horizon=max(args.horizon, *args.distances))
     variant(args.hand)
     names = [model_spec(spec)[0] for spec in args.models]
+    if twice := sorted({n for n in [*names, *BASELINES] if [*names, *BASELINES].count(n) > 1}):
+        args.parser.error(f"model name(s) {twice} given twice or a baseline's (the baselines are {list(BASELINES)});"
+                          " name each model file NAME=PATH")
     for spec in args.models:
         existing_file(model_spec(spec)[1])
     for name in [*args.ensemble, *(args.variants_of or [])]:

@@ -14,7 +14,10 @@ from t42_transfer.conventions import MM_PER_M
 def _path_file(path: Path) -> np.ndarray:
     """Object positions ``[N, 2]`` (mm) of a text file, one ``x,y`` (or ``x y``) a line."""
     existing_file(path)
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a text file (UTF-8) of x,y positions in mm, one a line") from None
     try:
         rows = [[float(v) for v in line.replace(",", " ").split()] for line in text.splitlines() if line.strip()]
         xy = np.array(rows, dtype=float)
@@ -30,6 +33,8 @@ def _snapshot(args: argparse.Namespace) -> int:
     from t42_transfer.view.scene import build_scene
     from t42_transfer.view.snapshot import render
 
+    if args.snapshot.suffix.lower() != ".png":  # (matplotlib would add .png and write past the check below)
+        raise ValueError(f"{args.snapshot}: --snapshot writes a PNG; give a path ending in .png")
     new_output(args.snapshot)
     inputs = bag_scene_inputs(args.bag, args.at) if args.bag is not None else SceneInputs()
     given = {"actuator_angles": args.angles, "object_xy_mm": args.object, "goal_xy_mm": args.goal,

@@ -243,8 +243,8 @@ def make_goals(cfg: PegInHoleConfig, workspace: Workspace | None = None) -> list
     return goals
 
 
-class NoGoal(RuntimeError):
-    """No attempt of :func:`reachable_goal` made a goal (its action seeds ran out)."""
+class NoGoal(ValueError):
+    """No attempt of :func:`reachable_goal` made a goal (its action seeds ran out): the settings admit none."""
 
 
 def reachable_goal(
@@ -393,6 +393,10 @@ def evaluate(
     if isinstance(contenders, Mapping):
         contenders = [Contender(name, (model,)) for name, model in contenders.items()]
     everyone = [Contender(b, baseline=b) for b in baselines] + list(contenders)
+    named = [c.name for c in everyone]
+    if twice := sorted({n for n in named if named.count(n) > 1}):  # rows and trials are keyed by name
+        raise ValueError(f"contender name(s) {twice} given twice (the baselines are {list(baselines)}); name each "
+                         "model file NAME=PATH")
     goals = list(goals) if goals is not None else make_goals(cfg, workspace)
     hand, oracle_hand = SimulatedHand(cfg.hand), SimulatedHand(cfg.hand)
     trials = []
