@@ -234,11 +234,15 @@ def test_bad_parameter_values_are_refused_and_the_old_kept(ros):
                   SetParameters.Request(parameters=[Parameter("max_command_age_s", value=2.0).to_parameter_msg()]))
     assert ok.results[0].successful and driver.params.max_command_age_s == 2.0
     log = Rosout(ros, "mock_driver")
-    for seed in (5, 7):
+    for seed in (5, 7, -1):  # (-1: unseeded; ROS has no null for a parameter)
         ros.call(setter, SetParameters.Request(parameters=[Parameter("seed", value=seed).to_parameter_msg()]))
-    assert ros.spin_until(lambda: any("seed 7" in m.msg for m in log.lines), 3.0)
-    said = [m.msg for m in log.lines if "next reset grasps" in m.msg]
-    assert said[-2:] == ["the next reset grasps with seed 5", "the next reset grasps with seed 7"], said
+    assert ros.spin_until(lambda: any("unseeded" in m.msg for m in log.lines), 3.0)
+    said = [m.msg for m in log.lines if "next reset" in m.msg]
+    assert said[-3:] == ["the next reset grasps with seed 5", "the next reset grasps with seed 7",
+                         "the next resets grasp unseeded"], said
+    assert driver.params.seed == -1
+    ok, said_reset = driver.reset()
+    assert ok and said_reset.endswith("grasped") and "seed" not in said_reset, said_reset  # no seed to tell
     described = driver.describe_parameter("rate_factor")
     assert described.type == ParameterType.PARAMETER_DOUBLE and described.description
     assert described.floating_point_range[0].from_value > 0 and driver.describe_parameter("hand").read_only

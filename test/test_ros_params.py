@@ -72,6 +72,7 @@ def test_params_file_then_overrides(ros, tmp_path: Path) -> None:
     ({"out": "x", "rate": 1000.0}, "rate"),
     ({"out": "x", "count": "many"}, "count"),
     ({"out": "x", "count": 99}, "more than the gains allow"),
+    ({"out": "x", "seed": "~"}, r"^/demo: parameter 'seed' expects int, got '~'"),  # dynamically typed: no ROS check
     ({"out": "x", "reach_mm": 500.0}, r"'reach_mm' is now 'reach_m': how far \(m\)"),
 ])
 def test_bad_start_values_are_value_errors_naming_the_parameter(ros, params, match) -> None:

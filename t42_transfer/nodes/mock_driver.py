@@ -117,8 +117,8 @@ class MockDriverParams(SimCameraParams):
     hand: str = param("target", f"simulated hand variant: {', '.join(NAMED_VARIANTS)} or family-<seed>", read_only=True)
     rate_factor: float = param(1.0, "steps run this many times faster than real time (timer 0.1 s / rate_factor)",
                                min=1e-3, max=1000.0)
-    seed: int | None = param(0, "seed of the first grasp; each reset after uses the next (unset: unseeded); a "
-                                "change applies from the next reset, which grasps with the new seed")
+    seed: int = param(0, "seed of the first grasp; each reset after uses the next (-1: unseeded, a new grasp each "
+                         "reset); a change applies from the next reset, which grasps with the new seed", min=-1)
     max_command_age_s: float = param(0.5, "commands stamped further than this from now (past or future) are refused",
                                      min=1e-3, max=3600.0)
     sim_time: bool = param(False, "be the graph's clock: publish /clock, one control period per tick, and stamp "
@@ -144,8 +144,8 @@ class MockDriverParams(SimCameraParams):
             raise ValueError(f"rate_factor must be a positive finite number, got {self.rate_factor!r}")
         if not (math.isfinite(self.max_command_age_s) and self.max_command_age_s > 0):
             raise ValueError(f"max_command_age_s must be positive and finite, got {self.max_command_age_s!r}")
-        if self.seed is not None and (not isinstance(self.seed, int) or self.seed < 0):
-            raise ValueError(f"seed must be a non-negative int or unset, got {self.seed!r}")
+        if not isinstance(self.seed, int) or self.seed < -1:
+            raise ValueError(f"seed must be a non-negative int or -1 (unseeded), got {self.seed!r}")
 
     @property
     def period_s(self) -> float:
@@ -234,7 +234,7 @@ class MockDriver(Node):
         self.queue.clear()
         self.episode += 1
         self._publish_status(status_message(names.GRASPING, grasping_detail(self.episode), self._last_stamp))
-        seed = None if self.params.seed is None else self.params.seed + self.episode - self._seeded_from
+        seed = None if self.params.seed < 0 else self.params.seed + self.episode - self._seeded_from
         try:
             self.hand.reset(seed)
         except GraspFailed as err:
@@ -286,7 +286,8 @@ class MockDriver(Node):
         seed = next((p for p in parameters if p.name == "seed"), None)
         if seed is not None:  # (its value from the set itself: this may run before the params dataclass is updated)
             self._seeded_from = self.episode + 1
-            self.log.info(f"the next reset grasps with seed {seed.value}")
+            self.log.info(f"the next reset grasps with seed {seed.value}" if seed.value >= 0
+                          else "the next resets grasp unseeded")
 
     def _on_params(self, old: MockDriverParams, new: MockDriverParams) -> None:
         if new.pose_source != old.pose_source:

@@ -268,7 +268,10 @@ def declare_params(node: Node, params_cls: type[P]) -> P:
         if value is None and field.default is dataclasses.MISSING:
             raise ValueError(f"{where}: missing required parameter {field.name!r} "
                              f"(set it in a params file or with -p {field.name}:=...)")
-        values[field.name] = _from_ros(field, value)
+        try:
+            values[field.name] = _from_ros(field, value)
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
     try:
         return params_cls(**values)
     except (TypeError, ValueError) as err:
