@@ -182,6 +182,20 @@ def test_without_a_tracker_no_pose_goes_out_and_the_driver_says_stale(ros) -> No
     assert _stamp(poses[0]) == _stamp(joints[-1])
 
 
+def test_a_best_effort_tracker_is_heard_once_the_driver_reader_is_overridden_to_best_effort(ros) -> None:
+    """As the Dynamixel driver's: ROS's QoS override makes the reader match a sensor-data (best effort) bridge."""
+    from rclpy.qos import qos_profile_sensor_data
+
+    tester = Tester(ros)
+    driver = ros.add(MockDriver, {"rate_factor": 1e-3, "pose_source": "topic",
+                                  f"qos_overrides./{names.TRACKER_POSE}.subscription.reliability": "best_effort"})
+    bridge = tester.tester.create_publisher(PoseStamped, names.TRACKER_POSE, qos_profile_sensor_data)
+    assert ros.spin_until(lambda: bridge.get_subscription_count() == 1, 5.0)
+    assert driver.describe_parameter(f"qos_overrides./{names.TRACKER_POSE}.subscription.reliability").read_only
+    assert ros.spin_until(lambda: bridge.publish(object_pose_msg(np.array([1.0, 80.0]), driver.now_ns(), RCLPY))
+                          or driver.pose._pose is not None, 5.0)
+
+
 def test_the_emulated_hardware_renders_instead_of_its_emulated_tracker(ros) -> None:
     tester = Tester(ros)
     images = tester.listen(Image, names.CAMERA_IMAGE, profile(names.IMAGES))

@@ -78,6 +78,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.qos_overriding_options import QoSOverridingOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
@@ -279,7 +280,9 @@ class MockDriver(Node):
 
     def _listen_to_the_tracker(self, p: MockDriverParams) -> None:
         if p.pose_source == "topic" and self._tracker_sub is None:
-            self._tracker_sub = self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10)
+            # best effort by ROS's QoS override, as the Dynamixel driver's reader (a motion-capture bridge)
+            self._tracker_sub = self.create_subscription(PoseStamped, names.TRACKER_POSE, self._on_tracker_pose, 10,
+                                                         qos_overriding_options=QoSOverridingOptions.with_default_policies())
 
     def _on_seed_set(self, parameters: list[Any]) -> None:
         """A seed set, even to the value it had, applies from the next reset (a grasp made again)."""
