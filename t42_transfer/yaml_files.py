@@ -21,7 +21,23 @@ MAX_BYTES = 1 << 20
 """Largest config read (1 MiB); the shipped ones are under 2 kB."""
 
 
-class _NoAliases(yaml.SafeLoader):
+class _UniqueKeys(yaml.SafeLoader):
+    """SafeLoader refusing a key given twice in one mapping (PyYAML keeps the last without a word: a setting
+    written twice, its first value silently dropped); a ``<<`` merge's keys may still be overridden."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value if isinstance(node, yaml.MappingNode) else ():
+            if key_node.tag == "tag:yaml.org,2002:merge" or not isinstance(key_node, yaml.ScalarNode):
+                continue
+            key = self.construct_object(key_node)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"key {key!r} given twice", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+class _NoAliases(_UniqueKeys):
     """SafeLoader refusing ``*alias`` nodes (for files rcl parses too: it does not support them)."""
 
     def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node | None:
@@ -35,7 +51,7 @@ def read_yaml(path: str | os.PathLike[str], what: str, aliases: bool = True) -> 
     file = Path(path)
     data = read_whole(file, what, MAX_BYTES)
     try:
-        return yaml.load(data.decode("utf-8"), yaml.SafeLoader if aliases else _NoAliases)
+        return yaml.load(data.decode("utf-8"), _UniqueKeys if aliases else _NoAliases)
     except UnicodeDecodeError as err:
         raise ValueError(f"{file}: the {what} is not UTF-8 text (byte {err.start})") from None
     except yaml.MarkedYAMLError as err:

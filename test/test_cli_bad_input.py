@@ -377,8 +377,11 @@ def test_a_bad_experiment_config_is_refused_before_anything_is_written(
     ("- a list\n- of things\n", "needs name, source and target"),
     ("", "needs name, source and target"),
     ("name: 2001-13-45\n", "not valid YAML"),
+    ("name: a\nsource: {bag: x}\nname: b\n", "not valid YAML: key 'name' given twice at line 3, column 1"),
+    ("base: &b {epochs: 1}\nsource_training: {<<: *b, epochs: 2, epochs: 3}\n", "key 'epochs' given twice"),
     (f"name: {'9' * 5000}\n", "not valid YAML"),
-], ids=["unclosed", "indentation", "python tag", "a list", "empty", "bad date", "5000 digits"])
+], ids=["unclosed", "indentation", "python tag", "a list", "empty", "bad date", "a key twice",
+        "a key twice beside a merge", "5000 digits"])
 def test_yaml_that_cannot_be_read_is_one_line(text: str, expected: str, tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     assert expected in _experiment(text, tmp_path, capsys)
