@@ -212,6 +212,8 @@ CASES = {
                                     "{fifo}: the experiment config is a FIFO, not a regular file"),
     "experiment --workers 0": ("experiment {file} --workers 0 --out {out}", "--workers"),
     "experiment --workers -2": ("experiment {file} --workers -2 --out {out}", "--workers"),
+    "experiment --workers and --scheduler": ("experiment {file} --workers 2 --scheduler local:2 --out {out}",
+                                             "--workers or --scheduler, not both"),
     # t42 report
     "report run dir missing": ("report {missing}", "{missing}: does not exist"),
     "report run dir is a file": ("report {file}", "{file}: not a directory"),

@@ -25,6 +25,8 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     from t42_transfer.evaluation.experiment_config import load_config
     from t42_transfer.evaluation.report import write_report
 
+    if args.workers is not None and args.scheduler is not None:
+        args.parser.error("--workers or --scheduler, not both: on Dask the cluster's workers run the cells")
     cfg = load_config(args.config)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
@@ -58,7 +60,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                           "(tcp://host:8786; the workers need this project and the run directory at the same path)")
     exp.add_argument("--no-report", action="store_true", help="skip the figures and report.md")
     exp.add_argument("--quiet", action="store_true", help="no progress bars")
-    exp.set_defaults(func=_cmd_experiment)
+    exp.set_defaults(func=_cmd_experiment, parser=exp)
 
     rep = commands.add_parser("report", help="figures and a Markdown report from an experiment run directory")
     rep.add_argument("run_dir", type=Path)
