@@ -141,9 +141,18 @@ def message_from_fields(cls: type, data: Any, where: str = "") -> Any:
     return msg
 
 
+INTEGER_RANGES = {
+    **{f"int{bits}": (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) for bits in (8, 16, 32, 64)},
+    **{f"uint{bits}": (0, 2 ** bits - 1) for bits in (8, 16, 32, 64)},
+    "octet": (0, 255), "char": (0, 255),
+}
+"""[low, high] of each integer field type, as ``get_fields_and_field_types`` names it."""
+
+
 def _primitive(kind: str, value: Any, at: str) -> Any:
     """``value`` checked against a primitive field type (rclpy's own checks are off by default in Jazzy, and
-    serialization says only "bad argument type"); a whole number for a float or double as a float."""
+    serialization says only "bad argument type"; an integer out of its type's range was sent wrapped, 300 as a
+    uint8's 44, or failed unnamed); a whole number for a float or double as a float."""
     base = kind.split("<=")[0]
     whole = isinstance(value, int) and not isinstance(value, bool)
     if base in ("string", "wstring"):
@@ -156,6 +165,9 @@ def _primitive(kind: str, value: Any, at: str) -> Any:
         ok = whole
     if not ok:
         raise ValueError(f"{at}: {value!r} is no {kind}")
+    low, high = INTEGER_RANGES.get(base, (None, None))
+    if low is not None and not low <= value <= high:
+        raise ValueError(f"{at}: {value} is out of range for {base} [{low}, {high}]")
     return value
 
 

@@ -235,6 +235,14 @@ def test_cli_remaps_a_topic_as_ros2_bag_play_does(ros: Any, capsys: pytest.Captu
         assert exit_.value.code == 2 and "a remapping is OLD:=NEW" in capsys.readouterr().err
 
 
+def test_cli_a_remapping_to_a_name_ros_refuses_is_one_line_naming_the_rule(
+        ros_domain: int, capsys: pytest.CaptureFixture[str]) -> None:
+    """OLD:=NEW in form, but rcl cannot parse it (a token starting with a digit): an RCLError traceback before."""
+    assert main(["bag", "play", str(BAG), "--remap", f"{POSE}:=/1bad", "--wait-subscribers", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("t42: error: bad --remap: ") and f"-r {POSE}:=/1bad" in err and err.count("\n") == 1, err
+
+
 def test_cli_play_stops_on_sigterm_as_on_ctrl_c(ros: Any) -> None:
     """A launch file or supervisor stops a player with SIGTERM: it closes cleanly and says what it published."""
     import signal

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -245,6 +246,12 @@ def test_message_from_fields_is_message_fields_backwards_and_names_a_bad_field()
     assert info["k"] == [1.0, 0.0, 2.0, 0.0, 1.0, 2.0, 0.0, 0.0, 1.0] and info["height"] == 480  # ints as doubles
     for bad, problem in (({"poses": [{"pose": {"position": {"x": "a"}}}]}, "poses[0].pose.position.x: 'a' is no "),
                          ({"header": {"frame": "x"}}, "header.frame: no such field"),
-                         ({"poses": {"pose": {}}}, "poses: expected a list")):
+                         ({"poses": {"pose": {}}}, "poses: expected a list"),
+                         ({"header": {"stamp": {"sec": 2 ** 31}}}, "header.stamp.sec: 2147483648 is out of range "
+                                                                      "for int32 [-2147483648, 2147483647]"),
+                         ({"header": {"stamp": {"nanosec": -1}}}, "header.stamp.nanosec: -1 is out of range for "
+                                                                  "uint32")):
         with pytest.raises(ValueError, match=re.escape(problem)):
             message_from_fields(PathMsg, bad)
+    edges = message_from_fields(CameraInfo, {"height": 2 ** 32 - 1, "d": [float("nan")]})  # a double has no range
+    assert edges.height == 2 ** 32 - 1 and math.isnan(edges.d[0])

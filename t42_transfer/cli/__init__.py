@@ -1,8 +1,8 @@
 """The ``t42`` command: one entry point whose subcommands reach every layer.
 
 Each subcommand lives in the module of its group (``demo``, ``experiment``, ``evaluate``, ``plan``,
-``sim``, ``bag``, ``model``, ``node``, ``hw``, ``camera``, ``view``), parses its arguments with the shared checks of
-:mod:`t42_transfer.cli.args`, calls one library function and prints a summary; bad
+``sim``, ``bag``, ``model``, ``node``, ``topic``, ``graph``, ``hw``, ``camera``, ``view``), parses its arguments
+with the shared checks of :mod:`t42_transfer.cli.args`, calls one library function and prints a summary; bad
 input ends with ``t42: error: <file>: <problem>`` and exit code 2, never a traceback.
 """
 
@@ -16,10 +16,10 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from t42_transfer import __version__
-from t42_transfer.cli import bag, camera, demo, evaluate, experiment, graph, hw, model, node, plan, sim, view
+from t42_transfer.cli import bag, camera, demo, evaluate, experiment, graph, hw, model, node, plan, sim, topic, view
 from t42_transfer.cli.args import OneLineParser, os_error
 
-GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, graph, hw, camera, view)
+GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, topic, graph, hw, camera, view)
 """Command modules, in the order ``t42 --help`` lists them."""
 
 

@@ -126,11 +126,13 @@ def _remap_rule(text: str) -> str:
 
 def _cmd_bag_play(args: argparse.Namespace) -> int:
     from t42_transfer.nodes.player import PlayerParams
-    from t42_transfer.ros.runner import keep_discovery_local
+    from t42_transfer.ros.runner import keep_discovery_local, non_ros_args
 
     topics = tuple(args.topics) if args.topics else None
     # bad input: exit 2, before rclpy starts
     PlayerParams(existing_dir(args.bag), rate=args.rate, loop=args.loop, topics=topics, clock_hz=args.clock)
+    ros_args = ["--ros-args", *(arg for rule in args.remap for arg in ("-r", rule))] if args.remap else []
+    non_ros_args(ros_args, "--remap")  # a rule rcl cannot parse, named here (rclpy.init would raise an RCLError)
     keep_discovery_local()
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -145,8 +147,7 @@ def _cmd_bag_play(args: argparse.Namespace) -> int:
     if topics:
         overrides.append(Parameter("topics", value=list(topics)))
     context = rclpy.Context()
-    ros_args = [arg for rule in args.remap for arg in ("-r", rule)]
-    rclpy.init(args=["--ros-args", *ros_args] if ros_args else [], context=context,
+    rclpy.init(args=ros_args, context=context,
                signal_handler_options=SignalHandlerOptions.NO)
     # SIGTERM (a launch file, a supervisor) ends the play as Ctrl-C does: closed cleanly, DDS's shared memory freed
     main_thread = threading.current_thread() is threading.main_thread()  # (signals are the main thread's only)

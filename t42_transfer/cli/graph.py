@@ -1,7 +1,7 @@
-"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``, ``t42 topic``: the ``ros2 lifecycle``,
-``ros2 service call``, ``ros2 param``, ``ros2 action send_goal`` and ``ros2 topic list/echo/pub`` a pip-installed ROS
-lacks (no ros2cli wheel), for the suite's lifecycle nodes, services, parameters, the planner's
-``t42/reach`` action and any topic."""
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``: the ``ros2 lifecycle``, ``ros2 service call``,
+``ros2 param`` and ``ros2 action send_goal`` a pip-installed ROS lacks (no ros2cli wheel), for the suite's lifecycle
+nodes, services, parameters and the planner's ``t42/reach`` action; and the graph node, Ctrl-C and name handling
+``t42 topic`` (:mod:`t42_transfer.cli.topic`) shares."""
 
 from __future__ import annotations
 
@@ -142,15 +142,33 @@ def _type_name(cls: Any) -> str:
     return f"{cls.__module__.split('.')[0]}/srv/{cls.__name__}"
 
 
-def _absolute(name: str) -> str:
-    """A node, service or topic name from the root namespace, where the command's own node is."""
-    return name if name.startswith("/") else "/" + name
+def _absolute(name: str, node: bool = False) -> str:
+    """A node (``node``), service or topic name from the root namespace, where the command's own node is;
+    ValueError for a name ROS refuses, which rclpy would raise as its own exception (a traceback) at the first
+    client or publisher."""
+    from rclpy.exceptions import NameValidationException
+    from rclpy.validate_full_topic_name import validate_full_topic_name
+    from rclpy.validate_namespace import validate_namespace
+    from rclpy.validate_node_name import validate_node_name
+
+    full = name if name.startswith("/") else "/" + name
+    try:
+        if node:
+            namespace, _, base = full.rpartition("/")
+            validate_namespace(namespace or "/")
+            validate_node_name(base)
+        else:
+            validate_full_topic_name(full)
+    except NameValidationException as err:  # "Invalid topic name: <why>:", the name, a caret under the fault
+        why = str(err).splitlines()[0].split(": ", 1)[-1].removesuffix(":")
+        raise ValueError(f"{name!r}: not a valid ROS name ({why})") from None
+    return full
 
 
 def _cmd_lifecycle(args: argparse.Namespace) -> int:
     from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
-    target = _absolute(args.node)
+    target = _absolute(args.node, node=True)
     with _graph_node() as node:
         state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait, again=True)
         if args.transition is None:
@@ -248,7 +266,7 @@ def _cmd_param(args: argparse.Namespace) -> int:
     from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
     from rclpy.parameter import Parameter, parameter_value_to_python
 
-    target = _absolute(args.node)
+    target = _absolute(args.node, node=True)
     with _graph_node() as node:
         if args.name is None:  # as ros2 param dump: every parameter with its value
             listed = sorted(_call(node, ListParameters, f"{target}/list_parameters", ListParameters.Request(),
@@ -293,6 +311,7 @@ def _cmd_reach(args: argparse.Namespace) -> int:
 
     from msg_adapters.reach import reach_goal, reach_outcome, reach_progress, reach_type
 
+    _absolute(args.action)  # a name ROS refuses: one line, before the graph
     goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
                       args.replan_every)  # stamp 0: now, for the planner
     with _graph_node() as node:
@@ -419,94 +438,6 @@ def _cancelled(executor: Any, sent: Any) -> str:
     return "cancel not confirmed (the goal may have ended already)"
 
 
-def _cmd_topic_list(args: argparse.Namespace) -> int:
-    with _graph_node() as node:
-        deadline = time.monotonic() + args.wait  # discovery: the graph fills in over the first moments
-        while time.monotonic() < deadline:
-            time.sleep(0.1)
-        for topic, types in sorted(node.get_topic_names_and_types()):
-            print(f"{topic} [{', '.join(types)}]")
-    return 0
-
-
-def _cmd_topic_echo(args: argparse.Namespace) -> int:
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-
-    from msg_adapters import message_fields, rclpy_class
-
-    topic = _absolute(args.topic)
-    with _graph_node() as node:
-        deadline = time.monotonic() + args.wait
-        while not (writers := node.get_publishers_info_by_topic(topic)):
-            if time.monotonic() > deadline:
-                raise ValueError(f"{topic}: no publisher on the graph after {args.wait:g} s (ROS_DOMAIN_ID "
-                                 f"{os.environ.get('ROS_DOMAIN_ID', '0')}; t42 topic list shows what there is)")
-            if _INTERRUPTED.is_set():
-                return 130
-            time.sleep(0.1)
-        qos = QoSProfile(depth=10)  # as ros2 topic echo adapts: what every publisher offers, latched ones' history
-        if all(w.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for w in writers):
-            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
-        if any(w.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for w in writers):
-            qos.reliability = ReliabilityPolicy.BEST_EFFORT
-        seen: list[Any] = []
-        node.create_subscription(rclpy_class(writers[0].topic_type), topic, seen.append, qos)
-        executor = SingleThreadedExecutor(context=node.context)
-        executor.add_node(node)
-        shown = 0
-        try:
-            while not _INTERRUPTED.is_set() and (args.count == 0 or shown < args.count):
-                executor.spin_once(timeout_sec=0.1)
-                while seen and (args.count == 0 or shown < args.count):
-                    print(yaml.safe_dump(message_fields(seen.pop(0)), sort_keys=False, width=120) + "---",
-                          flush=True)
-                    shown += 1
-        finally:
-            executor.shutdown(timeout_sec=1.0)
-    return 130 if _INTERRUPTED.is_set() else 0
-
-
-def _cmd_topic_pub(args: argparse.Namespace) -> int:
-    from rclpy.duration import Duration
-    from rclpy.qos import DurabilityPolicy, QoSProfile
-    from rclpy.serialization import serialize_message
-
-    from msg_adapters import RCLPY, message_from_fields, ns_to_stamp, rclpy_class
-
-    try:
-        cls = rclpy_class(args.type)
-    except (ImportError, AttributeError, ValueError):
-        raise ValueError(f"{args.type}: no such message type (pkg/msg/Name, e.g. std_msgs/msg/String)") from None
-    message = message_from_fields(cls, _yaml(args.values))
-    if args.stamp and not hasattr(message, "header"):
-        raise ValueError(f"--stamp: a {args.type} has no header")
-    try:
-        serialize_message(message)  # a value no field can hold (an out-of-range integer): said before anything is sent
-    except Exception as err:
-        raise ValueError(f"{args.values!r}: not a {args.type} ({err})") from None
-    topic = _absolute(args.topic)
-    qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else
-                     DurabilityPolicy.VOLATILE)
-    with _graph_node() as node:
-        publisher = node.create_publisher(cls, topic, qos)
-        deadline = time.monotonic() + args.wait  # as ros2 topic pub: the first message for a reader that is there
-        while not publisher.get_subscription_count() and time.monotonic() < deadline and not _INTERRUPTED.is_set():
-            time.sleep(0.05)
-        sent = 0
-        while not _INTERRUPTED.is_set() and (args.count == 0 or sent < args.count):
-            if args.stamp:
-                message.header.stamp = ns_to_stamp(node.get_clock().now().nanoseconds, RCLPY)
-            publisher.publish(message)
-            sent += 1
-            print(f"published {sent} on {topic}", flush=True)
-            if args.count and sent >= args.count:
-                break
-            _INTERRUPTED.wait(1.0 / args.rate)
-        publisher.wait_for_all_acked(Duration(seconds=2))  # a reliable reader has what was sent before we leave
-    return 130 if _INTERRUPTED.is_set() else 0
-
-
 def _as_declared(value: Any, declared: int) -> Any:
     """A whole number given for a double parameter (``1`` for ``1.0``, in a list too) as a double: what the user
     meant, which rclpy would refuse as an integer."""
@@ -529,36 +460,6 @@ def _wait_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
-    topic = commands.add_parser("topic", help="the graph's topics, or one topic's messages (as ros2 topic list / "
-                                              "echo)").add_subparsers(dest="topic_command", metavar="VERB")
-    listing = topic.add_parser("list", help="every topic on the graph with its type")
-    listing.add_argument("--wait", type=float_arg(0, 60), default=1.0, metavar="S",
-                         help="how long to let discovery fill the graph in first (default 1 s)")
-    listing.set_defaults(func=_cmd_topic_list)
-    echo = topic.add_parser("echo", help="print a topic's messages as YAML until Ctrl-C (its type and QoS taken "
-                                         "from its publishers; latched topics give their last message)")
-    echo.add_argument("topic", metavar="TOPIC", help="e.g. /hand/status (a relative name is taken from /)")
-    echo.add_argument("-n", "--count", type=int_arg(0), default=0, metavar="N",
-                      help="stop after N messages (default 0: until Ctrl-C)")
-    echo.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
-                      help="how long to wait for a publisher to appear on the graph (default 10 s)")
-    echo.set_defaults(func=_cmd_topic_echo)
-    pub = topic.add_parser("pub", help="publish a message given as YAML (as ros2 topic pub), by default once")
-    pub.add_argument("topic", metavar="TOPIC", help="e.g. /hand/command (a relative name is taken from /)")
-    pub.add_argument("type", metavar="TYPE", help="e.g. sensor_msgs/msg/JointState")
-    pub.add_argument("values", nargs="?", default="{}", metavar="VALUES",
-                     help="the fields as YAML, e.g. \"{name: [actuator_1, actuator_2], velocity: [0.5, 0.5]}\" "
-                          "(unset fields keep their defaults)")
-    pub.add_argument("-n", "--count", type=int_arg(0), default=1, metavar="N",
-                     help="publish N times (default 1; 0: until Ctrl-C)")
-    pub.add_argument("-r", "--rate", type=float_arg(0.001, 1000.0), default=1.0, metavar="HZ",
-                     help="publications a second when N > 1 (default 1)")
-    pub.add_argument("--stamp", action="store_true",
-                     help="set header.stamp to now at each publication (a driver refuses stale commands)")
-    pub.add_argument("--latched", action="store_true", help="transient-local durability (a late reader gets it)")
-    pub.add_argument("--wait", type=float_arg(0, 3600), default=2.0, metavar="S",
-                     help="wait up to S s for a subscriber before the first message (default 2)")
-    pub.set_defaults(func=_cmd_topic_pub)
     lifecycle = commands.add_parser("lifecycle", help="a lifecycle node's state, or a transition (as ros2 lifecycle)")
     lifecycle.add_argument("node", metavar="NODE", help="e.g. /dynamixel_driver")
     lifecycle.add_argument("transition", nargs="?", choices=TRANSITIONS, metavar="TRANSITION",

@@ -121,6 +121,18 @@ def _error(message: str) -> int:
     return 2
 
 
+def non_ros_args(argv: Sequence[str], what: str = "--ros-args") -> list[str]:
+    """The arguments of ``argv`` outside its ``--ros-args`` part; ValueError ``bad <what>: ...`` for ROS arguments
+    rcl cannot parse (a remapping to an invalid name, say), said before ``rclpy.init`` would raise an RCLError."""
+    from rclpy.utilities import remove_ros_args
+
+    try:
+        return remove_ros_args(["t42", *argv])[1:]
+    except Exception as err:  # rcl's parse error
+        why = str(err).split(", at /")[0].removesuffix(" Error: error not set")  # (rcl's source line, no news)
+        raise ValueError(f"bad {what}: {why}") from None
+
+
 def run_node(name: str, argv: Sequence[str]) -> int:
     """Run node ``name`` of :data:`~t42_transfer.nodes.registry.NODES` with command line ``argv``; the exit code."""
     stop = threading.Event()
@@ -148,12 +160,11 @@ def _run(name: str, argv: list[str], stop: threading.Event) -> int:
         return _error(f"unknown node {name!r}; available: {', '.join(NODES)}")
     import rclpy
     from rclpy.signals import SignalHandlerOptions
-    from rclpy.utilities import remove_ros_args
 
     try:
-        rest = remove_ros_args(["t42"] + argv)[1:]
-    except Exception as err:  # rcl's parse error
-        return _error(f"bad --ros-args: {err}")
+        rest = non_ros_args(argv)
+    except ValueError as err:
+        return _error(str(err))
     if rest in (["-h"], ["--help"]):  # what ros2 param describe tells of a running node, before it runs
         from t42_transfer.ros.params import describe_params
 
