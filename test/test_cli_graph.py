@@ -97,6 +97,8 @@ def test_param_sets_and_gets_the_drivers_parameters_as_ros2_param_does(ros: Any)
     assert t42(ros, "param", "/dynamixel_driver", "grasp_load", "90")[0] == 0 and driver.params.grasp_load == 90.0
     assert t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[2, 2.5]")[0] == 0
     assert driver.params.max_angle_rad == (2.0, 2.5)
+    code, out, _ = t42(ros, "param", "/dynamixel_driver", "max_angle_rad", "[]")  # typed as declared, not bytes
+    assert code == 1 and "refused" in out and "one per actuator" in out and "BYTE_ARRAY" not in out, out
     code, out, _ = t42(ros, "param", "/dynamixel_driver", "grasp_load", "true")  # no number: refused as before
     assert code == 1 and "refused" in out and driver.params.grasp_load == 90.0, out
     assert t42(ros, "param", "/dynamixel_driver", "load_limit")[:2] == (0, "/dynamixel_driver load_limit: 250.0\n")

@@ -287,8 +287,14 @@ def _cmd_param(args: argparse.Namespace) -> int:
             value = yaml.safe_load(args.value)  # as ros2 param set reads it: 2.5, true, [2.5, 2.5], text
             declared = _call(node, DescribeParameters, f"{target}/describe_parameters",
                              DescribeParameters.Request(names=[args.name]), args.wait, again=True).descriptors
-            value = _as_declared(value, declared[0].type if declared else ParameterType.PARAMETER_NOT_SET)
-            message = Parameter(args.name, value=value).to_parameter_msg()
+            kind = declared[0].type if declared else ParameterType.PARAMETER_NOT_SET
+            value = _as_declared(value, kind)
+            arrays = (ParameterType.PARAMETER_BOOL_ARRAY, ParameterType.PARAMETER_INTEGER_ARRAY,
+                      ParameterType.PARAMETER_DOUBLE_ARRAY, ParameterType.PARAMETER_STRING_ARRAY)
+            if value == [] and kind in arrays:  # rclpy would type [] a byte array, which the node refuses
+                message = Parameter(args.name, Parameter.Type(kind), []).to_parameter_msg()
+            else:
+                message = Parameter(args.name, value=value).to_parameter_msg()
         except (yaml.YAMLError, TypeError) as err:
             raise ValueError(f"{args.value!r}: not a parameter value ({err})") from None
         result = _call(node, SetParameters, f"{target}/set_parameters",
