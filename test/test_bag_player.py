@@ -12,6 +12,7 @@ from bag_builders import fixture_message_count
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from ros_rig import Rosout
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Writer
@@ -153,6 +154,24 @@ def test_publishers_offer_the_recorded_qos(ros: Any, tmp_path: Path) -> None:
     assert pose_qos.durability == DurabilityPolicy.TRANSIENT_LOCAL and pose_qos.depth == 1
     other = player.topic_publishers["/other"].qos_profile
     assert other.reliability == ReliabilityPolicy.RELIABLE and other.depth == 10  # ROS's default
+
+
+def test_a_topic_whose_message_package_is_missing_is_left_out_with_a_warning(ros: Any, tmp_path: Path) -> None:
+    """As ros2 bag play: a ``ros2 bag record -a`` bag holds /tf, and a pip-installed ROS has no tf2_msgs."""
+    tf_type = "tf2_msgs/msg/TFMessage"
+    bag = tmp_path / "with_tf"
+    with Writer(bag, version=9) as writer:
+        tf = writer.add_connection("/tf", tf_type, typestore=TYPESTORE)
+        writer.write(tf, 1, bytes(TYPESTORE.serialize_cdr(TYPESTORE.types[tf_type](transforms=[]), tf_type)))
+        pose = writer.add_connection(POSE, HAND_TOPICS[POSE], typestore=TYPESTORE)
+        writer.write(pose, 2, bytes(TYPESTORE.serialize_cdr(object_pose_msg((1.0, 2.0), 2), HAND_TOPICS[POSE])))
+    log = Rosout(ros, "bag_player")
+    player = ros.add(BagPlayer, params={"bag": str(bag)})
+    assert set(player.topic_publishers) == {POSE}
+    assert ros.spin_until(lambda: player.finished and any("not playing /tf" in m.msg for m in log.lines), 10.0)
+    assert player.published == 1
+    with pytest.raises(BagError, match="/tf has type tf2_msgs/msg/TFMessage, whose message package is not"):
+        ros.add(BagPlayer, params={"bag": str(bag), "topics": ["/tf"]})
 
 
 def test_bad_input_is_refused(ros: Any, tmp_path: Path, small_set: Any) -> None:

@@ -114,15 +114,20 @@ class BagPlayer(Node):
             self._connections = self._select(Path(p.bag))
             self.topic_publishers = {}
             """Publisher by bag topic."""
+            unplayable: dict[str, str] = {}
             for conn in self._connections:
-                if conn.topic not in self.topic_publishers:
+                if conn.topic not in self.topic_publishers and conn.topic not in unplayable:
                     try:
                         msg_class = rclpy_class(conn.msgtype)
                     except (ImportError, AttributeError, ValueError):
-                        raise BagError(p.bag, f"topic {conn.topic} has type {conn.msgtype}, "
-                                              "whose message package is not installed here") from None
+                        if p.topics is not None:  # asked for by name: refused
+                            raise BagError(p.bag, f"topic {conn.topic} has type {conn.msgtype}, "
+                                                  "whose message package is not installed here") from None
+                        unplayable[conn.topic] = conn.msgtype
+                        continue
                     self.topic_publishers[conn.topic] = self.create_publisher(
                         msg_class, conn.topic, offered_qos(conn.ext.offered_qos_profiles))
+            self._connections = self._playable(Path(p.bag), unplayable)
         except Exception:
             self._reader.close()
             raise
@@ -151,6 +156,18 @@ class BagPlayer(Node):
         if missing:
             raise BagError(path, f"has no topic {', '.join(missing)}; it has {', '.join(sorted(present))}")
         return [c for c in connections if c.topic in wanted]
+
+    def _playable(self, path: Path, unplayable: dict[str, str]) -> list[Any]:
+        """The connections left once topics of types not installed here are set aside with a warning, as
+        ``ros2 bag play`` ignores them (a ``ros2 bag record -a`` bag holds /tf, and pip's ROS has no tf2_msgs)."""
+        if not unplayable:
+            return self._connections
+        said = ", ".join(f"{topic} ({kind})" for topic, kind in sorted(unplayable.items()))
+        left = [c for c in self._connections if c.topic not in unplayable]
+        if not left:
+            raise BagError(path, f"no topic can be played: the message packages of {said} are not installed here")
+        self.log.warning(f"not playing {said}: the message package is not installed here")
+        return left
 
     # ------------------------------------------------------------------ control
     @property
