@@ -111,7 +111,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                          help="how long to let discovery fill the graph in first (default 1 s)")
     listing.set_defaults(func=_cmd_topic_list)
     echo = topic.add_parser("echo", help="print a topic's messages as YAML until Ctrl-C (its type and QoS taken "
-                                         "from its publishers; latched topics give their last message)")
+                                         "from its publishers; a latched topic gives first the last 10 messages it keeps)")
     echo.add_argument("topic", metavar="TOPIC", help="e.g. /hand/status (a relative name is taken from /)")
     echo.add_argument("-n", "--count", type=int_arg(0), default=0, metavar="N",
                       help="stop after N messages (default 0: until Ctrl-C)")
@@ -122,7 +122,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     pub.add_argument("topic", metavar="TOPIC", help="e.g. /hand/command (a relative name is taken from /)")
     pub.add_argument("type", metavar="TYPE", help="e.g. sensor_msgs/msg/JointState")
     pub.add_argument("values", nargs="?", default="{}", metavar="VALUES",
-                     help="the fields as YAML, e.g. \"{name: [actuator_1, actuator_2], velocity: [0.5, 0.5]}\" "
+                     help="the fields as YAML, e.g. \"{name: [actuator_1, actuator_2], velocity: [0.125, 0.125]}\" "
                           "(unset fields keep their defaults)")
     pub.add_argument("-n", "--count", type=int_arg(0), default=1, metavar="N",
                      help="publish N times (default 1; 0: until Ctrl-C)")
