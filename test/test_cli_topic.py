@@ -132,3 +132,22 @@ def test_topic_pub_and_echo_say_a_name_ros_refuses_in_one_line(verb: list[str], 
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err == ("t42: error: 'bad topic': not a valid ROS name (topic name must "
                                                    "not contain characters other than alphanumerics, '_', or '/')\n")
+
+
+def test_the_readmes_first_hand_command_is_one_the_drivers_accept() -> None:
+    """The README's one hands-on command for a first move on a real hand (it once asked for action 2: refused)."""
+    import re
+    from pathlib import Path
+
+    import yaml
+    from sensor_msgs.msg import JointState
+
+    from msg_adapters import RCLPY, message_from_fields, ns_to_stamp
+    from t42_transfer.driver.commands import validate_command
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    (fields,) = re.findall(r'`t42 topic pub\s+/hand/command sensor_msgs/msg/JointState "([^"]+)" --stamp`', readme)
+    command = message_from_fields(JointState, yaml.safe_load(fields))
+    command.header.stamp = ns_to_stamp(10**18, RCLPY)
+    action = validate_command(command, 10**18, 500_000_000)
+    assert 0 < abs(action).max() <= 1.0, action  # a small move, inside the planner's own range
