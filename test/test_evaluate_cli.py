@@ -213,3 +213,12 @@ def test_bs_model_reproduces_the_readmes_reference_figures(t42_real_dir, tmp_pat
         "divergence_mean_4mm"]) == 61
     assert authors["models"][0]["divergence_mean_4mm"] == 702.75
     assert [p["steps"] for p in paper["hold_still"]["per_path"]] == [798, 1248, 1198, 898]
+
+
+def test_quiet_silences_the_collection_of_a_simulated_data_set_too(made, tmp_path, capsys):
+    """--quiet says "no progress bar": the bar of collecting a ``hand`` data set came out regardless."""
+    on = "{hand: target, episodes: 2, steps: 30}"
+    assert main(["evaluate", str(made["constant"]), "--on", on, "--cache", str(tmp_path / "cache"), "--quiet"]) == 0
+    assert "collect" not in capsys.readouterr().err
+    assert main(["evaluate", str(made["constant"]), "--on", on, "--cache", str(tmp_path / "other")]) == 0
+    assert "collect" in capsys.readouterr().err  # (the bar the first run left out)

@@ -35,7 +35,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json is not None:
         new_output(args.json)
     models = [(str(path), load_model_file(path, args.negate_actions)[0]) for path in args.models]
-    data = load_spec(spec, output_dir(args.cache)).data
+    data = load_spec(spec, output_dir(args.cache), progress=not args.quiet).data
     chosen = args.paths if args.paths is not None else tuple(range(len(data)))
     missing = [i for i in chosen if i >= len(data)]
     if missing:

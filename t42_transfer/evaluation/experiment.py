@@ -81,7 +81,7 @@ def data_cache(run_dir: Path) -> Path:
     return Path(run_dir).parent / "data"
 
 
-def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
+def load_data(spec: DataSpec, cache: Path, progress: bool = True) -> TrajectorySet:
     """The trajectories ``spec`` names, as stored; simulated sets are collected once and kept as bags in ``cache``.
 
     The spec's moves (mirror, negated actions) and its handling of flagged episodes are :func:`load_spec`'s.
@@ -99,7 +99,8 @@ def load_data(spec: DataSpec, cache: Path) -> TrajectorySet:
             return read_bag(bag)
         from t42_transfer.hand.collect import collect
 
-        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed, policy=POLICIES[spec.policy]())
+        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed, policy=POLICIES[spec.policy](),
+                               progress=progress)
         data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
         write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
         return data
@@ -120,13 +121,13 @@ class SideData:
     """What the quality scan found in ``raw`` and what was kept: the run records it."""
 
 
-def load_side(cfg: ExperimentConfig, side: str, cache: Path) -> SideData:
+def load_side(cfg: ExperimentConfig, side: str, cache: Path, progress: bool = True) -> SideData:
     """The ``source``, ``target`` or ``test`` data of ``cfg``; a mirror about the grasp also reads the other side
     (the source's other side is the target; the target's and the test set's is the source)."""
-    return load_spec(getattr(cfg, side), cache, getattr(cfg, "target" if side == "source" else "source"))
+    return load_spec(getattr(cfg, side), cache, getattr(cfg, "target" if side == "source" else "source"), progress)
 
 
-def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None) -> SideData:
+def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None, progress: bool = True) -> SideData:
     """The data ``spec`` names, moved as it says (negated actions, mirror) and with flagged episodes handled.
 
     ``other``: the data set a mirror about the grasp mirrors onto (required for ``mirror_about: grasp``).
@@ -136,7 +137,7 @@ def load_spec(spec: DataSpec, cache: Path, other: DataSpec | None = None) -> Sid
         empty = TrajectorySet()
         return SideData(empty, empty, (), {"model": spec.model, "model_sha256": file_sha256(spec.model),
                                            "negate_actions": spec.negate_actions, "episodes": 0, "transitions": 0})
-    raw = load_data(spec, cache)
+    raw = load_data(spec, cache, progress)
     if spec.paths is not None:
         beyond = [i for i in spec.paths if i >= len(raw)]
         if beyond:
@@ -319,9 +320,9 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     return row
 
 
-def load_test(cfg: ExperimentConfig, cache: Path) -> SideData | None:
+def load_test(cfg: ExperimentConfig, cache: Path, progress: bool = True) -> SideData | None:
     """The config's own test set, if it names one."""
-    return None if cfg.test is None else load_side(cfg, "test", cache)
+    return None if cfg.test is None else load_side(cfg, "test", cache, progress)
 
 
 def cell_excluded(
@@ -449,8 +450,8 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
     if cfg.source.model is not None:
         load_source_model(cfg.source)  # a file that is no model is refused before anything is written
     run_dir = Path(out) / cfg.name
-    target = load_side(cfg, "target", data_cache(run_dir))
-    test = load_test(cfg, data_cache(run_dir))
+    target = load_side(cfg, "target", data_cache(run_dir), progress)  # collected here when simulated
+    test = load_test(cfg, data_cache(run_dir), progress)
     if len(target.data) < 2:
         raise ValueError(f"the target set has {len(target.data)} episodes; need at least 2")
     if test is not None and not len(test.data):
@@ -460,7 +461,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
                          f"{len(target.data)}" + ("" if test is not None else ": some must stay for testing"))
     _check_methods_fit(cfg, target.data, None if test is None else test.data)
     if cfg.source.exclude_test_sequences or cfg.source.paths is not None:  # (a path the file lacks: refused here)
-        source = load_side(cfg, "source", data_cache(run_dir))
+        source = load_side(cfg, "source", data_cache(run_dir), progress)
     if cfg.source.exclude_test_sequences:
         for cell in _cells(cfg):
             if not set(source.origins) - set(cell_excluded(cfg, cell, source, target, test)):
@@ -527,7 +528,8 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
 
     (run_dir / "config.yaml").write_text(yaml.safe_dump(config_dict(cfg), sort_keys=False))
     cache = data_cache(run_dir)
-    source, target, test = load_side(cfg, "source", cache), load_side(cfg, "target", cache), load_test(cfg, cache)
+    source, target = load_side(cfg, "source", cache, progress), load_side(cfg, "target", cache, progress)
+    test = load_test(cfg, cache, progress)
     quality = {"source": source.quality, "target": target.quality}
     if test is not None:
         quality["test"] = test.quality
