@@ -3,7 +3,9 @@ copies of the fixture bag."""
 
 from __future__ import annotations
 
+import contextlib
 import shutil
+import sqlite3
 import warnings
 from pathlib import Path
 
@@ -49,14 +51,35 @@ def step_messages(traj: Trajectory) -> list[tuple[str, int, object]]:
     return out
 
 
-def write_messages(path: Path, messages, types=ma.HAND_TOPICS, custom=None) -> Path:
+def write_messages(path: Path, messages, types=ma.HAND_TOPICS, custom=None, storage=StoragePlugin.MCAP) -> Path:
     """A bag of arbitrary messages, written with rosbags directly (log time = the given stamp)."""
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Writer(path, version=9, storage_plugin=storage) as writer:
         for key, value in (custom or {}).items():
             writer.set_custom_data(key, value)
         conns = {t: writer.add_connection(t, types[t], typestore=ma.TYPESTORE) for t in types}
         for topic, stamp, msg in messages:
             writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    return path
+
+
+LOG = "rcl_interfaces/msg/Log"
+
+
+def log_message(stamp: int) -> object:
+    """A /rosout message, as every ROS node publishes."""
+    time = ma.TYPESTORE.types["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9)
+    return ma.TYPESTORE.types[LOG](stamp=time, level=20, name="node", msg="hi", file="f", function="g", line=1)
+
+
+def sqlite3_without_a_definition(path: Path, data: TrajectorySet) -> Path:
+    """A Jazzy sqlite3 bag of ``data``'s hand messages and /rosout, whose definition ``ros2 bag record`` did not
+    find: stored as rosbag2 stores such a type (encoding "" and no text)."""
+    messages = [m for traj in data for m in step_messages(traj)]
+    messages.append(("/rosout", data[0].start_ns, log_message(data[0].start_ns)))
+    write_messages(path, messages, {**ma.HAND_TOPICS, "/rosout": LOG}, storage=StoragePlugin.SQLITE3)
+    with contextlib.closing(sqlite3.connect(path / f"{path.name}.db3")) as db, db:
+        db.execute("UPDATE message_definitions SET encoding = '', encoded_message_definition = '' "
+                    "WHERE topic_type = ?", (LOG,))
     return path
 
 

@@ -7,8 +7,9 @@ import shutil
 from pathlib import Path
 
 import pytest
-from bag_builders import fixture_copy
+from bag_builders import fixture_copy, sqlite3_without_a_definition
 from fuzz_harness import DecoderWorker
+from rosbags.interfaces import MessageDefinitionFormat
 
 from t42_transfer.data.bag import write_bag
 from t42_transfer.data.bag.playback import Timeline, open_bag
@@ -22,6 +23,25 @@ def test_a_sound_bag_opens_with_its_topics() -> None:
     try:
         assert {c.topic for c in reader.connections} >= {"/hand/object_pose", "/hand/applied_action"}
         assert reader.end_time > reader.start_time
+    finally:
+        reader.close()
+
+
+def test_a_sqlite3_bag_with_a_topic_stored_without_a_definition_plays(tmp_path: Path, small_set: object) -> None:
+    """``t42 bag play`` of a bag whose /rosout definition ``ros2 bag record`` did not find (rosbags refused it whole):
+    every message plays, the hand's decode; the definition-less topic is just not decodable from the bag."""
+    reader = open_bag(sqlite3_without_a_definition(tmp_path / "bag", small_set))
+    try:
+        formats = {c.topic: c.msgdef.format for c in reader.connections}
+        assert formats["/rosout"] == MessageDefinitionFormat.NONE
+        assert {f for topic, f in formats.items() if topic != "/rosout"} == {MessageDefinitionFormat.MSG}
+        played = [(conn.topic, log_ns, raw) for conn, log_ns, raw in reader.messages()]
+        assert len(played) == reader.message_count == sum(c.msgcount for c in reader.connections)
+        assert [log_ns for _, log_ns, _ in played] == sorted(log_ns for _, log_ns, _ in played)
+        assert sum(topic == "/rosout" for topic, _, _ in played) == 1
+        pose = next(raw for topic, _, raw in played if topic == "/hand/object_pose")
+        assert reader.deserialize(pose, "geometry_msgs/msg/PoseStamped").header.stamp.sec >= 0
+        assert reader.start_time == small_set[0].start_ns
     finally:
         reader.close()
 

@@ -6,7 +6,7 @@ import json
 import shutil
 
 import pytest
-from bag_builders import ACTION, JOINTS, TARGET, damaged_copy, fixture_copy, refusal
+from bag_builders import ACTION, JOINTS, LOG, TARGET, damaged_copy, fixture_copy, log_message, refusal, write_messages
 
 import msg_adapters as ma
 from t42_transfer.cli import main
@@ -95,3 +95,24 @@ def test_verify_a_killed_or_cut_bag(tmp_path, big_bag, capsys):
     assert "is a storage file, not a bag directory" in refusal(copy / "bag.mcap", verify_bag)
     assert main(["bag", "info", "--verify", str(copy / "bag.mcap")]) == 2
     assert capsys.readouterr().err.startswith(f"t42: error: {copy / 'bag.mcap'}: is a storage file")
+
+
+def test_a_bag_without_the_hands_topics_is_listed_not_read(tmp_path, capsys):
+    """``ros2 bag record /hand/status /rosout``: ``bag info`` lists it as ``ros2 bag info`` does, saying it holds no
+    hand episodes (it failed: "required topic ... missing"); read_bag, and so the transfer server, refuses it."""
+    status = ma.TYPESTORE.types[ma.STRING](data="reset: episode 1 grasped")
+    types = {ma.HAND_STATUS_TOPIC: ma.STRING, "/rosout": LOG}
+    bag = write_messages(tmp_path / "bag", [(ma.HAND_STATUS_TOPIC, 10**9, status),
+                                            ("/rosout", 2 * 10**9, log_message(2 * 10**9))], types)
+    info = bag_info(bag)
+    assert info["topics"] == {topic: {"type": msgtype, "count": 1} for topic, msgtype in types.items()}
+    assert (info["episodes"], info["transitions"], info["hand"]) == (0, 0, None)
+    assert info["no_hand_episodes"].startswith(f"it has no {ma.OBJECT_POSE_TOPIC} ({ma.POSE_STAMPED}), {JOINTS}")
+    assert bag_info(TARGET)["no_hand_episodes"] is None
+    assert main(["bag", "info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "/rosout: {'type': 'rcl_interfaces/msg/Log', 'count': 1}" in out and "episodes: 0" in out
+    assert f"no hand episodes: {info['no_hand_episodes']}" in out
+    assert main(["bag", "info", "--json", str(bag)]) == 0
+    assert json.loads(capsys.readouterr().out)["no_hand_episodes"] == info["no_hand_episodes"]
+    assert f"required topic {ma.OBJECT_POSE_TOPIC} ({ma.POSE_STAMPED}) is missing" in refusal(bag)

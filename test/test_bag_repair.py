@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import struct
 import warnings
 from pathlib import Path
 from typing import Any
@@ -11,11 +12,13 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from bag_builders import fixture_message_count
+from bag_builders import assert_same, fixture_message_count
 from fuzz_harness import DecoderWorker
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 from rosbags.highlevel import AnyReader
 from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
 
@@ -25,6 +28,7 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import EPISODES_KEY, REPAIRED_KEY, bag_info, read_bag, verify_bag, write_bag
 from t42_transfer.data.bag.repair import repair_bag
 from t42_transfer.data.bag.storage import scan_mcap
+from t42_transfer.data.bag.writer import JazzyWriter
 from t42_transfer.data.errors import BagError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -319,3 +323,103 @@ def test_a_recorders_closed_bag_verifies(ros: Any, tmp_path: Path, capsys: pytes
     assert verify_bag(bag) == []
     assert main(["bag", "info", "--verify", str(bag)]) == 0
     assert "verify: metadata.yaml agrees with the data" in capsys.readouterr().out
+
+
+FOO = "my_msgs/msg/Foo"
+"""A type Jazzy's store lacks (a lab's own message package)."""
+
+
+def humble_killed_copy(tmp_path: Path, foo_schema: tuple[str, bytes], hand: bool = True) -> Path:
+    """The target fixture bag as Humble's MCAP plugin records it (no topic_type_hash on any channel), plus /foo of
+    type FOO with schema ``foo_schema`` (encoding, definition) every 10th message, killed: cut at 90 %, no
+    metadata.yaml.  Without ``hand`` the hand's channels hold no message."""
+    bag = tmp_path / "killed"
+    bag.mkdir(parents=True)
+    mcap = bag / "killed.mcap"
+    with (REPO / "bags" / "target_small" / "target_small.mcap").open("rb") as source, mcap.open("wb") as stream:
+        reader = make_reader(source)
+        summary = reader.get_summary()
+        assert summary is not None
+        writer = McapWriter(stream, compression=CompressionType.ZSTD, chunk_size=4096)
+        writer.start(profile="ros2", library="libmcap 0.8.0")
+        foo = writer.register_channel("/foo", "cdr", writer.register_schema(FOO, *foo_schema), {})
+        schemas = {k: writer.register_schema(s.name, s.encoding, s.data) for k, s in summary.schemas.items()}
+        channels = {k: writer.register_channel(c.topic, c.message_encoding, schemas[c.schema_id],
+                                               {"offered_qos_profiles": c.metadata["offered_qos_profiles"]})
+                    for k, c in summary.channels.items()}
+        for index, (_, channel, message) in enumerate(reader.iter_messages(log_time_order=False)):
+            if index % 10 == 0:
+                writer.add_message(foo, message.log_time, b"\x00\x01\x00\x00" + struct.pack("<i", index),
+                                   message.log_time, index)
+            if hand:
+                writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
+                                   message.sequence)
+        writer.finish()
+    mcap.write_bytes(mcap.read_bytes()[: int(mcap.stat().st_size * 0.9)])
+    return bag
+
+
+def read_anyway(bag: Path) -> Any:
+    with warnings.catch_warnings():  # a killed or repaired bag: its recovered prefix is warned of
+        warnings.simplefilter("ignore")
+        return read_bag(bag)
+
+
+def test_a_custom_type_without_a_type_hash_is_carried_over(tmp_path: Path) -> None:
+    """rosbags' writer needs a type hash, and a Humble recording's channels carry none: the repair hashes the
+    file's definition (the writer's assertion was taken for damage, and the repaired bag was empty)."""
+    bag = humble_killed_copy(tmp_path, ("ros2msg", b"int32 a\n"))
+    read = {topic: t.count for topic, t in scan_mcap([bag / "killed.mcap"], None).topics.items()}
+    before = read_anyway(bag)
+    assert len(before) >= 3 and read["/foo"] > 0
+    report = repair_bag(bag)
+    assert report.repaired and report.counts == read and report.left_out == () and report.left_out_messages == 0
+    assert_same(read_anyway(bag), before)
+    with AnyReader([bag]) as reader:  # which checks each definition against its hash
+        (conn,) = [c for c in reader.connections if c.topic == "/foo"]
+        values = [reader.deserialize(raw, FOO).a for c, _, raw in reader.messages(connections=[conn])]
+    assert conn.digest.startswith("RIHS01_") and conn.msgdef.data == "int32 a\n"
+    assert values == list(range(0, 10 * read["/foo"], 10))
+
+
+def test_a_topic_whose_type_cannot_be_written_is_left_out_and_named(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A type rosbag2 found no definition of (an empty schema): rosbags cannot write it, so it is left out, named,
+    and the command fails; every other topic is carried over."""
+    bag = humble_killed_copy(tmp_path, ("", b""))
+    read = {topic: t.count for topic, t in scan_mcap([bag / "killed.mcap"], None).topics.items()}
+    before = read_anyway(bag)
+    assert main(["bag", "repair", str(bag)]) == 1
+    out, err = capsys.readouterr()
+    assert (f"left out /foo ({FOO}, {read['/foo']} messages): the file holds no definition of {FOO} (schema "
+            "encoding '') and ROS 2 Jazzy's types do not include it") in out
+    assert "now an empty bag" not in out and f"{read['/foo']} messages read could not be carried over" in err
+    assert_same(read_anyway(bag), before)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        info = bag_info(bag)
+    assert {topic: t["count"] for topic, t in info["topics"].items()} == {k: v for k, v in read.items() if k != "/foo"}
+    assert "left out /foo" in info["metadata"][REPAIRED_KEY]
+
+
+def test_a_repair_that_would_carry_nothing_over_leaves_the_bag_alone(tmp_path: Path) -> None:
+    bag = humble_killed_copy(tmp_path, ("", b""), hand=False)
+    original = (bag / "killed.mcap").read_bytes()
+    with pytest.raises(BagError, match=r"none of the messages read can be carried over \(/foo .*left as it is"):
+        repair_bag(bag)
+    assert [p.name for p in bag.iterdir()] == ["killed.mcap"] and (bag / "killed.mcap").read_bytes() == original
+
+
+def test_a_failure_writing_the_new_bag_is_no_damage_of_the_old(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only reading the input finds damage: what the writing raises propagates, the bag untouched (it was taken for
+    a cut file, and the bag rewritten without the messages after it)."""
+    bag = humble_killed_copy(tmp_path, ("ros2msg", b"int32 a\n"))
+    original = (bag / "killed.mcap").read_bytes()
+
+    def failing(*_: Any) -> None:
+        raise RuntimeError("the disk caught fire")
+
+    monkeypatch.setattr(JazzyWriter, "write", failing)
+    with pytest.raises(RuntimeError, match="the disk caught fire"):
+        repair_bag(bag)
+    assert [p.name for p in bag.iterdir()] == ["killed.mcap"] and (bag / "killed.mcap").read_bytes() == original

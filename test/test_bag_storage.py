@@ -9,7 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bag_builders import assert_same, damaged_copy, fixture_copy, refusal
+from bag_builders import (
+    LOG,
+    assert_same,
+    damaged_copy,
+    fixture_copy,
+    read_quietly,
+    refusal,
+    sqlite3_without_a_definition,
+)
 from fuzz_harness import DecoderWorker
 
 from t42_transfer.data.bag import (
@@ -64,6 +72,20 @@ def test_corrupt_sqlite3_bag(tmp_path, small_set):
     with pytest.raises(BagError, match="rosbags cannot read it") as err:
         read_bag(bag)
     assert str(bag) in str(err.value)
+
+
+def test_a_sqlite3_bag_with_a_topic_stored_without_a_definition_is_read(tmp_path, small_set):
+    """``ros2 bag record`` stores a type whose .msg it cannot find with an empty definition (encoding ""); rosbags'
+    sqlite3 reader refused the whole bag (KeyError: '').  The hand's topics are read, the other one counted."""
+    bag = sqlite3_without_a_definition(tmp_path / "bag", small_set)
+    for path in (bag, bag / "bag.db3"):
+        got = read_quietly(path)
+        assert len(got) == len(small_set)
+        for traj, want in zip(got, small_set, strict=True):
+            assert np.array_equal(traj.states, want.states) and np.array_equal(traj.actions, want.actions)
+        info = bag_info(path)
+        assert info["topics"]["/rosout"] == {"type": LOG, "count": 1} and info["episodes"] == len(small_set)
+    assert verify_bag(bag) == []
 
 
 def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):

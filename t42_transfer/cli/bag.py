@@ -22,11 +22,11 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
     if args.bag.is_dir() and not is_bag(args.bag):  # a recorder's out_dir
         return _folder_info(args.bag, args.json, args.verify)
     info = bag_info(args.bag)
-    if info["topics"]:
+    if info["no_hand_episodes"] is None:
         with warnings.catch_warnings():  # bag_info has already warned about whatever it salvaged
             warnings.simplefilter("ignore")
             data = read_bag(args.bag)
-    else:  # an empty bag (repaired after its recorder stopped at once) has no hand topics to read
+    else:  # an empty bag, or one of other topics (ros2 bag record /rosout): listed, no episodes to read
         data = TrajectorySet([])
     findings = scan(data)
     mismatches = verify_bag(args.bag) if args.verify else []
@@ -35,7 +35,10 @@ def _cmd_bag_info(args: argparse.Namespace) -> int:
         print(json.dumps({**info, "verify": mismatches} if args.verify else info, indent=2, default=str))
         return 1 if mismatches else 0
     for key, value in info.items():
-        if isinstance(value, dict):
+        if key == "no_hand_episodes":
+            if value:  # why episodes is 0
+                print(f"no hand episodes: {value}")
+        elif isinstance(value, dict):
             print(f"{key}:")
             for k, v in value.items():
                 print(f"  {k}: {v}")
@@ -106,13 +109,19 @@ def _cmd_bag_repair(args: argparse.Namespace) -> int:
         print(f"{report.path}: sound, left as it is ({report.message_count} messages)")
         return 0
     print(f"{report.path}: repaired ({'; '.join(report.problems)})")
-    if not report.counts:
+    if not report.counts and not report.left_out:
         print("  it held nothing readable (its recorder stopped right after opening it): now an empty bag")
     if report.stopped:
         print(f"  salvaged up to where {report.stopped}")
     for topic, count in sorted(report.counts.items()):
         print(f"  {topic}: {count} messages")
+    for line in report.left_out:
+        print(f"  left out {line}")
     print(f"  originals kept as {', '.join(str(p) for p in report.originals)}")
+    if report.left_out_messages:  # repaired, but not whole: a script must not take it for a full salvage
+        print(f"t42: {report.left_out_messages} messages read could not be carried over; they are in the originals",
+              file=sys.stderr)
+        return 1
     return 0
 
 
@@ -197,7 +206,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     imp.add_argument("out", type=Path, help="bag directory to create")
     imp.set_defaults(func=_cmd_bag_import_t42)
     rep = bag.add_parser("repair", help="rewrite a bag left by a killed recorder (its files and metadata.yaml kept "
-                                        "as *.orig)")
+                                        "as *.orig); exit 1 when a topic read could not be carried over")
     rep.add_argument("bag", type=Path, help="bag directory")
     rep.set_defaults(func=_cmd_bag_repair)
     play = bag.add_parser("play", help="publish a bag's messages on their topics over ROS 2 (rclpy), as ros2 bag play")

@@ -111,7 +111,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                          help="how long to let discovery fill the graph in first (default 1 s)")
     listing.set_defaults(func=_cmd_topic_list)
     echo = topic.add_parser("echo", help="print a topic's messages as YAML until Ctrl-C (its type and QoS taken "
-                                         "from its publishers; a latched topic gives first the last 10 messages it keeps)")
+                                         "from its publishers; a latched topic gives first the last 10 it keeps)")
     echo.add_argument("topic", metavar="TOPIC", help="e.g. /hand/status (a relative name is taken from /)")
     echo.add_argument("-n", "--count", type=int_arg(0), default=0, metavar="N",
                       help="stop after N messages (default 0: until Ctrl-C)")

@@ -1,7 +1,8 @@
 """rosbag2 bags <-> TrajectorySet, in the hand wire format of :mod:`msg_adapters`.
 
 One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps,
-:mod:`.storage` reads storage files (MCAP record by record, sqlite3 through rosbags), :mod:`.metadata`
+:mod:`.storage` reads storage files (MCAP record by record, sqlite3 through :mod:`.db3`'s rosbags reader, which
+:mod:`.playback` opens bags with too), :mod:`.metadata`
 parses ``metadata.yaml`` and ``custom_data``,
 :mod:`.episodes` turns hand messages into episodes, :mod:`.reader` reads a bag whole, :mod:`.playback` opens one
 to play in time order and paces it, and :mod:`.repair` rewrites a killed writer's bag.  The names here are the

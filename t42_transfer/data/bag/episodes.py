@@ -99,14 +99,24 @@ def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
     return streams
 
 
+def missing_hand_topics(raw: RawBag, namespace: str) -> list[str]:
+    """The hand's step topics (with their types) ``raw`` lacks under ``namespace``: why it holds no episodes.
+
+    Such a bag is readable (``bag info`` lists it, as ``ros2 bag info`` does); :func:`decode_streams` refuses it.
+    """
+    return [f"{namespace + topic} ({msgtype})" for topic, msgtype in ma.HAND_TOPICS.items()
+            if namespace + topic not in raw.topics]
+
+
 def _check_topics(bag: Path, raw: RawBag, namespace: str) -> None:
     topics = raw.topics
+    missing = missing_hand_topics(raw, namespace)
+    if missing:
+        present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
+        raise BagError(bag, f"required topic {missing[0]} is missing; the bag has {present}")
     for hand, expected in ma.HAND_TOPICS.items():
         topic = namespace + hand
-        info = topics.get(topic)
-        if info is None:
-            present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
-            raise BagError(bag, f"required topic {topic} ({expected}) is missing; the bag has {present}")
+        info = topics[topic]
         if info.msgtype != expected:
             raise BagError(bag, f"topic {topic} has type {info.msgtype}, expected {expected}")
         jazzy = ma.TYPESTORE.hash_rihs01(expected)

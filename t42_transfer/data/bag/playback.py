@@ -11,19 +11,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from rosbags.highlevel import AnyReader
-
-import msg_adapters as ma
+from t42_transfer.data.bag.db3 import BagReader
 from t42_transfer.data.bag.storage import bag_files
 from t42_transfer.data.errors import BagError
 
 
-def open_bag(path: str | Path, purpose: str = "played") -> AnyReader:
+def open_bag(path: str | Path, purpose: str = "played") -> BagReader:
     """An open rosbags reader of ``path``, or BagError saying why it cannot be ``purpose`` ("played", "served")."""
     bag = Path(path)
     storage = bag_files(bag)[0]  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     try:
-        reader = AnyReader([bag], default_typestore=ma.TYPESTORE)
+        reader = BagReader([bag])
         reader.open()
     except Exception as err:  # rosbags raises many types for what is not a sound bag
         hint = ("; an MCAP bag left by a killed recorder needs `t42 bag repair` first" if storage == "mcap" else

@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, hand_namespace
+from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, hand_namespace, missing_hand_topics
 from t42_transfer.data.bag.metadata import EPISODES_KEY
 from t42_transfer.data.bag.storage import RawBag, load_raw, metadata_mismatches
 from t42_transfer.data.errors import BagError
@@ -45,19 +45,25 @@ def read_bag(path: str | Path) -> TrajectorySet:
 
 
 def bag_info(path: str | Path) -> dict[str, Any]:
-    """Summary for a CLI; episodes are counted as :func:`read_bag` (and so the transfer server) finds them."""
+    """Summary for a CLI; episodes are counted as :func:`read_bag` (and so the transfer server) finds them.
+
+    A bag without the hand's topics (an empty one, a ``ros2 bag record`` of other topics) is listed as
+    ``ros2 bag info`` lists it, with ``no_hand_episodes`` saying what it lacks (None for a hand's bag):
+    a summary names what is there, :func:`read_bag` refuses it.
+    """
     bag = Path(path)
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        if raw.topics:
+        namespace = hand_namespace(bag, raw.topics)
+        missing = missing_hand_topics(raw, namespace)
+        if not missing:
             data = assemble_episodes(bag, decode_streams(bag, raw), raw)
             episodes, transitions, hand = len(data), data.num_transitions, data.hand
             late = sum(len(t.late_steps) for t in data)
             ends = dict(sorted(Counter(t.end_reason or "unknown" for t in data).items()))
-            namespace = hand_namespace(bag, raw.topics)
-        else:  # an empty bag (its recorder stopped before the first message): nothing to count
-            episodes, transitions, late, ends, hand, namespace = 0, 0, 0, {}, None, ""
+        else:  # nothing to count
+            episodes, transitions, late, ends, hand = 0, 0, 0, {}, None
     return {
         "path": str(bag),
         "storage": raw.storage,
@@ -71,6 +77,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "late_steps": late,
         "end_reasons": ends,
         "hand": hand,
+        "no_hand_episodes": f"it has no {', '.join(missing)}" if missing else None,
         "metadata": {k: v for k, v in raw.custom.items() if k != EPISODES_KEY},
         "recovered_prefix": raw.cut,
     }

@@ -12,7 +12,9 @@ original file, ``metadata.yaml`` included, is kept as ``<name>.orig``.
 ``custom_data`` keeps what the bag had (the MCAP's own record, written only on a clean
 close, else the old ``metadata.yaml``'s: a cut file loses its record, not its yaml) and
 gains ``REPAIRED_KEY`` (what was wrong), so :func:`~t42_transfer.data.bag.read_bag` still
-treats a cut-off last step as a cut, not an error.
+treats a cut-off last step as a cut, not an error.  A topic of a type the project's store lacks keeps the file's
+own definition; one whose type rosbags cannot write (no definition in the file) is left out and named, never
+silently: only reading the input finds damage, and a repair that would carry nothing over leaves the bag alone.
 
 What is wrong is found as ``t42 bag info --verify`` finds it (the same scan of
 every record, the same comparison with ``metadata.yaml``), plus files without a
@@ -32,6 +34,7 @@ import yaml
 from mcap.records import Channel, Message, Metadata, Schema
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from msg_adapters import TYPESTORE
 from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
@@ -65,6 +68,11 @@ class RepairReport:
     """Where the original storage files and metadata.yaml were moved."""
     stopped: str = ""
     """Where reading stopped in a damaged file ("" when every file read to its end)."""
+    left_out: tuple[str, ...] = ()
+    """What was read but could not be carried over (it is in the originals), and why: a topic of a type rosbags
+    cannot write."""
+    left_out_messages: int = 0
+    """Messages read but not carried over."""
 
     @property
     def message_count(self) -> int:
@@ -76,9 +84,11 @@ def repair_bag(path: str | Path) -> RepairReport:
 
     A sound bag (every file read to its summary, ``metadata.yaml`` agreeing with
     the data in files, counts, start and duration) is left as it is; one with
-    nothing readable (killed just after it was opened) becomes an empty bag.  Raises
+    nothing readable (killed just after it was opened) becomes an empty bag.  A topic
+    whose type cannot be written is left out and named in the report (``left_out``).  Raises
     :class:`BagError` for a path that is no MCAP bag directory or holds non-regular
-    files where files belong, and FileExistsError when
+    files where files belong, or when none of the messages read can be carried over (the
+    bag is then left as it is: no repair empties a bag), and FileExistsError when
     ``*.orig`` files of an earlier repair are in the way (nothing is ever overwritten).
     """
     bag = Path(path)
@@ -97,12 +107,16 @@ def repair_bag(path: str | Path) -> RepairReport:
         with tempfile.TemporaryDirectory(prefix=f".{bag.name}.", suffix=".repair", dir=bag) as staging:
             rebuilt = Path(staging) / bag.name
             # Nothing readable (a recorder killed right after it opened the file) makes an empty, valid bag.
-            counts, stopped = _rewrite(files, rebuilt, "; ".join(problems), meta.custom if meta else {})
+            rewriter, stopped = _rewrite(files, rebuilt, "; ".join(problems), meta.custom if meta else {})
+            left_out, lost = rewriter.left_out(), sum(count for _, count, _ in rewriter.lost.values())
+            if lost and not any(rewriter.counts.values()):
+                raise BagError(bag, f"none of the messages read can be carried over ({'; '.join(left_out)}); "
+                                    "left as it is")
             for original, orig in zip(originals, kept, strict=True):
                 original.rename(orig)
             (rebuilt / f"{bag.name}.mcap").rename(files[0])
             _write_metadata(rebuilt / "metadata.yaml", meta_file, files[0].name)
-    return RepairReport(bag, True, tuple(problems), counts, tuple(kept), stopped)
+    return RepairReport(bag, True, tuple(problems), rewriter.counts, tuple(kept), stopped, tuple(left_out), lost)
 
 
 def _mcap_files(bag: Path) -> list[Path]:
@@ -136,46 +150,117 @@ def _problems(bag: Path, raw: RawBag) -> tuple[BagMetadata | None, list[str]]:
     return meta, [*problems, *metadata_mismatches(bag, meta, raw)]
 
 
+_SEPARATOR = "=" * 80 + "\n"
+"""What separates the definitions of a type and its dependencies in an MCAP schema (rosbag2's, and rosbags')."""
+
+
+def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
+    """``add_connection``'s type arguments for ``channel``, or why its type cannot be carried over.
+
+    A type of the project's (Jazzy's) store is written as Jazzy defines it.  Any other keeps the file's own
+    definition, with that definition's RIHS01 hash as rosbags computes it: Humble's MCAP plugin writes no
+    ``topic_type_hash`` and Jazzy's an empty one for some publishers, rosbags' writer needs one, and its reader
+    refuses a bag whose hash and definition disagree.  A type with neither (rosbag2 records a type whose ``.msg``
+    it could not find with an empty schema) cannot be written by rosbags.
+    """
+    if schema is None:
+        return "its channel names no schema, so no message type"
+    if schema.name in TYPESTORE.types:
+        return {"typestore": TYPESTORE}
+    if schema.encoding not in ("ros2msg", "ros2idl") or not schema.data.strip():
+        return (f"the file holds no definition of {schema.name} (schema encoding {schema.encoding!r}) and ROS 2 "
+                "Jazzy's types do not include it")
+    try:
+        text = schema.data.decode()
+        if schema.encoding == "ros2msg":
+            types = get_types_from_msg(text, schema.name)
+        else:  # rosbags' writer tells IDL from msg by this header; rosbag2 writes it before each type's IDL
+            text = text if text.startswith(f"{_SEPARATOR}IDL: ") else f"{_SEPARATOR}IDL: {schema.name}\n{text}"
+            types = {}
+            for part in text.split(_SEPARATOR)[1:]:
+                types.update(get_types_from_idl(part.partition("\n")[2]))
+        store = get_typestore(Stores.EMPTY)
+        store.register({**TYPESTORE.fielddefs, **types})  # the file's definitions first, Jazzy's for the rest
+        rihs01 = store.hash_rihs01(schema.name)
+    except Exception as err:  # rosbags raises many types for a definition it cannot parse or resolve
+        return f"its definition of {schema.name} cannot be used ({type(err).__name__}: {err})"
+    return {"msgdef": text, "rihs01": rihs01}
+
+
 class _Rewriter:
-    """Streams salvaged records into a rosbags writer, one connection per (topic, type, offered QoS)."""
+    """Streams salvaged records into a rosbags writer, one connection per (topic, type, offered QoS).
+
+    Only reading the input finds damage: what writing raises (our code, rosbags') propagates, so a failure here
+    never passes for a cut file and never empties a bag.  A topic whose type cannot be written is left out,
+    counted, and said so.
+    """
 
     def __init__(self, writer: JazzyWriter) -> None:
         self.writer = writer
-        self.connections: dict[tuple[str, str, str], Any] = {}
+        self.connections: dict[tuple[str, str, tuple[Any, ...]], Any] = {}
         self.counts: dict[str, int] = {}
+        self.lost: dict[str, list[Any]] = {}
+        """Topics left out: [type, messages read, why]."""
+        self.notes: list[str] = []
+        """What else was not carried over (a channel's unreadable offered QoS)."""
         self.custom: dict[str, str] | None = None
         """custom_data of the files' rosbag2 metadata record (None: none was read)."""
 
-    def file(self, stream: BinaryIO, size: int) -> None:
+    def file(self, stream: BinaryIO, size: int, name: str) -> str:
+        """Carry one file's readable records over; where reading stopped ("" when it was read to its end)."""
         schemas: dict[int, Schema] = {}
-        channels: dict[int, Any] = {}
-        for record in mcap_records(stream, size):
+        channels: dict[int, tuple[str, Any]] = {}  # by channel id: its topic and connection (None: left out)
+        records = mcap_records(stream, size)
+        while True:
+            try:
+                record = next(records, None)
+                if isinstance(record, Message) and record.channel_id not in channels:  # as the reader stops there
+                    raise ValueError(f"a message on channel {record.channel_id}, which no channel record declared")
+            except Exception as err:  # whatever the damage, the records before it stand
+                return f"{name} is unreadable from offset {stream.tell()} ({type(err).__name__}: {err})"
+            if record is None:
+                return ""
             if isinstance(record, Schema):
                 schemas[record.id] = record
             elif isinstance(record, Channel):
-                channels[record.id] = self._connection(record, schemas[record.schema_id])
+                channels[record.id] = (record.topic, self._connection(record, schemas.get(record.schema_id)))
             elif isinstance(record, Message):
-                connection = channels[record.channel_id]
-                self.writer.write(connection, record.log_time, record.data)
-                self.counts[connection.topic] += 1
+                topic, connection = channels[record.channel_id]
+                if connection is None:
+                    self.lost[topic][1] += 1
+                else:
+                    self.writer.write(connection, record.log_time, record.data)
+                    self.counts[topic] += 1
             elif isinstance(record, Metadata) and record.name == "rosbag2" and self.custom is None:
                 self._custom_data(record)
 
-    def _connection(self, channel: Channel, schema: Schema) -> Any:
+    def _connection(self, channel: Channel, schema: Schema | None) -> Any:
+        """The writer's connection for ``channel``; None when its type cannot be written (noted in ``lost``)."""
+        msgtype = schema.name if schema is not None else "no type"
         qos_text = channel.metadata.get("offered_qos_profiles", "")
-        key = (channel.topic, schema.name, qos_text)
-        if key not in self.connections:
+        try:
             qos = parse_qos(qos_text) if qos_text else []
-            if schema.name in TYPESTORE.types:
-                typed: dict[str, Any] = {"typestore": TYPESTORE}
-            else:  # a type Jazzy's store does not know: keep the bag's own definition
-                typed = {"msgdef": schema.data.decode(), "rihs01": channel.metadata.get("topic_type_hash", "")}
-            self.connections[key] = self.writer.add_connection(
-                channel.topic, schema.name, serialization_format=channel.message_encoding,
-                offered_qos_profiles=qos, **typed,
-            )
-            self.counts.setdefault(channel.topic, 0)
+        except Exception as err:  # a damaged QoS text: the messages stand, offered the default QoS
+            qos, note = [], f"{channel.topic}: its offered QoS, unreadable ({type(err).__name__}: {err})"
+            self.notes += [] if note in self.notes else [note]
+        key = (channel.topic, msgtype, tuple(qos))
+        if key not in self.connections:
+            typed = _typing(channel, schema)
+            if isinstance(typed, str):
+                self.lost.setdefault(channel.topic, [msgtype, 0, typed])
+                self.connections[key] = None
+            else:
+                self.connections[key] = self.writer.add_connection(
+                    channel.topic, msgtype, serialization_format=channel.message_encoding,
+                    offered_qos_profiles=qos, **typed,
+                )
+                self.counts.setdefault(channel.topic, 0)
         return self.connections[key]
+
+    def left_out(self) -> list[str]:
+        """What the new bag lacks of what was read, and why."""
+        return [*(f"{topic} ({msgtype}, {count} messages): {why}"
+                  for topic, (msgtype, count, why) in sorted(self.lost.items())), *self.notes]
 
     def _custom_data(self, record: Metadata) -> None:
         """custom_data of rosbag2's own metadata record (written only on a clean close)."""
@@ -189,25 +274,23 @@ class _Rewriter:
                 self.writer.set_custom_data(key, value)
 
 
-def _rewrite(files: list[Path], rebuilt: Path, problems: str, old_custom: dict[str, str]) -> tuple[dict[str, int], str]:
-    """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (counts, where reading stopped).
+def _rewrite(files: list[Path], rebuilt: Path, problems: str, old_custom: dict[str, str]) -> tuple[_Rewriter, str]:
+    """Salvage every readable record of ``files`` into a new bag at ``rebuilt``: (what was carried, where reading
+    stopped).
 
     ``old_custom`` (the old metadata.yaml's custom_data) stands in where no file's metadata record was read.
     """
     stopped = []
     with JazzyWriter(rebuilt, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         rewriter = _Rewriter(writer)
-        writer.set_custom_data(REPAIRED_KEY, problems)
         for file in files:
             with file.open("rb") as stream:
-                try:
-                    rewriter.file(stream, file.stat().st_size)
-                except Exception as err:  # whatever the damage, the records before it stand
-                    stopped.append(f"{file.name} is unreadable from offset {stream.tell()} "
-                                   f"({type(err).__name__}: {err})")
+                stopped.append(rewriter.file(stream, file.stat().st_size, file.name))
         if rewriter.custom is None:
             rewriter.keep_custom(old_custom)
-    return rewriter.counts, "; ".join(stopped)
+        left_out = rewriter.left_out()
+        writer.set_custom_data(REPAIRED_KEY, "; ".join([problems, *(f"left out {line}" for line in left_out)]))
+    return rewriter, "; ".join(s for s in stopped if s)
 
 
 def _write_metadata(written: Path, target: Path, file_name: str) -> None:

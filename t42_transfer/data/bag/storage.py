@@ -1,4 +1,5 @@
-"""A bag's storage files read into a :class:`RawBag`: MCAP scanned record by record, sqlite3 through rosbags.
+"""A bag's storage files read into a :class:`RawBag`: MCAP scanned record by record, sqlite3 through
+:class:`~.db3.BagReader` (rosbags, taking a topic stored without a definition).
 
 Bags are untrusted input.  Every MCAP read is bounded by the file's size and every chunk by its stated
 size, so a damaged MCAP (cut off mid-write, writer killed) gives its readable prefix; non-regular files
@@ -18,10 +19,10 @@ import lz4.frame
 import zstandard
 from mcap.records import Channel, Chunk, McapRecord, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, breakup_chunk
-from rosbags.highlevel import AnyReader
 from rosbags.rosbag2 import StoragePlugin
 
 import msg_adapters as ma
+from t42_transfer.data.bag.db3 import BagReader
 from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
 from t42_transfer.data.errors import BagError
 from t42_transfer.files import file_kind, not_regular_reason
@@ -164,10 +165,11 @@ def _add_topic(topics: dict[str, _Topic], topic: str, msgtype: str, count: int, 
 
 
 def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> RawBag:
-    """A sqlite3 bag through rosbags (its counts and times are SQL over the stored messages)."""
+    """A sqlite3 bag through :class:`~.db3.BagReader`, as it is played (its counts and times are SQL over the stored
+    messages)."""
     digests = meta.digests if meta else {}
     try:
-        with AnyReader(files, default_typestore=ma.TYPESTORE) as reader:
+        with BagReader(files) as reader:
             topics: dict[str, _Topic] = {}
             for conn in reader.connections:
                 _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest or digests.get(conn.topic, ""))
