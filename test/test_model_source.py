@@ -40,8 +40,8 @@ def authors_pkl(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _no_source_training(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(exp, "train_transition_model", lambda *a, **k: pytest.fail("the source was trained"))
-    monkeypatch.setattr(exp, "load_data", lambda spec, cache: pytest.fail(f"data was read for {spec}")
-                        if spec.model is not None else _load_data(spec, cache))
+    monkeypatch.setattr(exp, "load_data", lambda spec, cache, progress=True: pytest.fail(f"data was read for {spec}")
+                        if spec.model is not None else _load_data(spec, cache, progress))
 
 
 _load_data = exp.load_data
