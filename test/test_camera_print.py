@@ -111,7 +111,7 @@ def _spacing(board_m: np.ndarray, image_px: np.ndarray) -> float:
     (["markers", "{out}", "--config", "{config}", "--node", "recorder"],
      "recorder: mode, out_dir: not a parameter of the object tracker"),
     (["markers", "{out}", "--config", "{typo}"], "object_size: not a parameter of the object tracker"),
-    (["markers", "{out}", "--config", "{text_id}"], "object_id"),
+    (["markers", "{out}", "--config", "{text_id}"], r"text_id.yaml: /object_tracker: parameter 'object_id'"),
     (["markers", "{out}", "--config", "{not_yaml}"], "not_yaml.yaml"),
     (["markers", "{out}", "--config", "{bad_id}"], r"marker id\(s\) \[60\] are not in DICT_4X4_50"),
     (["markers", "{out}", "--config", "{no_tracker}"], "no parameters for /object_tracker"),

@@ -186,7 +186,10 @@ def params_from_file(params_cls: type[P], params_file: str | Path, node_name: st
         if not parameter_overrides(node):
             raise ValueError(f"{params_file}: no parameters for {node.get_fully_qualified_name()} (a section "
                              f"/**/{name}, or {node.get_fully_qualified_name()})")
-        return declare_params(node, params_cls), undeclared_overrides(node)
+        try:
+            return declare_params(node, params_cls), undeclared_overrides(node)
+        except ValueError as err:  # the node's words, with the file they came from
+            raise ValueError(f"{params_file}: {err}") from None
     finally:
         node.destroy_node()
         rclpy.shutdown(context=context)
