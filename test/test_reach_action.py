@@ -209,6 +209,32 @@ def test_goals_end_right_after_many_trajectories_and_episode_ends_have_been_hear
     assert got.status == GoalStatus.STATUS_ABORTED and "the episode ended (dropped)" in got.result.reason
 
 
+def test_an_open_loop_plan_is_waited_for_its_length_and_one_that_overruns_stops_the_hand(ros, tmp_path: Any) -> None:
+    """An open-loop plan is one piece: it was given piece_timeout_s from its sending whatever its length (a
+    400-step plan at 10 Hz ended `incomplete` after 30 s), and the hand ran the rest of it with no goal."""
+    import time
+
+    rig = ReachRig(ros, toy_file(tmp_path / "toy.safetensors"), **{**SMALL, "piece_timeout_s": 2.0})
+    rig.tick()
+    handle = rig.send(START_XY + [6.0, -4.0], steps=40, tolerance_m=0.02)
+    rig.wait_sent()
+    future, start = handle.get_result_async(), time.monotonic()
+    while rig.driver.pending_actions:  # the hand at about its 10 Hz: 4 s for the plan, twice piece_timeout_s
+        rig.tick()
+        rig.ros.spin_for(0.06)
+    assert time.monotonic() - start > 2.0  # (else this tells nothing)
+    got = rig.run_until(future, 5)
+    assert got.result.verdict != "incomplete", got.result.reason
+    rig.tick()  # a fresh state to plan from
+    handle = rig.send(START_XY + [6.0, 0.0], steps=20, tolerance_m=0.03)  # a hand that stalls mid-plan
+    rig.wait_sent()
+    rig.tick(2)
+    future = handle.get_result_async()
+    assert rig.ros.spin_until(future.done, 15.0), "no result"  # after 2 s of plan and piece_timeout_s
+    assert future.result().result.verdict == "incomplete", future.result().result.reason
+    assert rig.ros.spin_until(lambda: rig.driver.pending_actions == 0, 5.0), "the hand was left running the plan"
+
+
 def t42_reach(rig: ReachRig, *argv: str, interrupt_after_ticks: int | None = None) -> tuple[int, str, str]:
     """Run ``t42 reach *argv`` as a process while the rig's driver steps (``interrupt_after_ticks``: SIGINT once
     the plan reached the driver and the hand took so many steps of it); (exit code, stdout, stderr)."""

@@ -158,8 +158,8 @@ class PlannerNode(Node):
         """The loader is reading an announced model (goals wait for it)."""
         self._done_stamps: list[int] = []
         """Last-step stamps of the driver's trajectory_done statuses, newest last (the ten newest)."""
-        self._dones = 0
-        """trajectory_done statuses received in all: a piece has run when this grew (the list stops growing)."""
+        self._dones, self._piece_steps = 0, 0
+        """trajectory_done statuses received in all: a piece has run when this grew; the last piece's steps."""
         self._active: ReachRun | None = None
         """The action goal being planned or executed."""
         self._episode_ends: list[str] = []
@@ -502,8 +502,7 @@ class PlannerNode(Node):
                         self._publish_result(unsent(goal, result, run is not None and run.cancelled,
                                                     self._pending is None and self._ends > ends_before))
                     return "interrupted"
-                done_before = self._dones
-                stamp = self._now_ns()
+                done_before, self._piece_steps, stamp = self._dones, len(piece), self._now_ns()
                 self._trajectory_pub.publish(actions_to_joint_trajectory(piece, hand.angles, stamp, kit=RCLPY))
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
             if offset == 0 and current.candidates:  # a new plan: what its search weighed
@@ -536,8 +535,8 @@ class PlannerNode(Node):
         with self._cond:
             new_ends = min(self._ends - ends_before, len(self._episode_ends))
             ends = self._episode_ends[len(self._episode_ends) - new_ends:]
-            pending, stopping = self._pending is not None, self._stopping
-            if final is None and not run.cancelled and (pending or stopping):
+            pending = self._pending is not None
+            if final is None and not run.cancelled:  # (a piece that timed out would run on without its goal)
                 self._stop_hand()
         run.end_at(None if final is None else final.state[:2])
         outcome, verdict, reason, error = judge(run, first.predicted[0, :2], None if final is None else
@@ -558,8 +557,8 @@ class PlannerNode(Node):
     def _after_piece(self, done_before: int, run: ReachRun | None = None, ends_before: int = 0) -> HandState | None:
         """The hand state after the piece sent last has run (None: stopping, a newer goal, a cancel, the
         episode's end, or a timeout)."""
-        p = self.params
-        deadline = time.monotonic() + p.piece_timeout_s
+        p = self.params  # the piece's own length at 10 Hz, then piece_timeout_s (an open-loop plan is one piece)
+        deadline = time.monotonic() + self._piece_steps * CONTROL_PERIOD_NS / 1e9 + p.piece_timeout_s
 
         def ready() -> bool:
             return self._interrupted(run, ends_before) or self._dones > done_before
@@ -570,7 +569,8 @@ class PlannerNode(Node):
             if self._interrupted(run, ends_before):
                 return None
             if self._dones <= done_before:
-                self.log.warning(f"a piece did not finish within {p.piece_timeout_s} s; closed loop ends")
+                self.log.warning(f"a {self._piece_steps}-step piece did not finish within its time and "
+                                 f"{p.piece_timeout_s} s more; the hand is stopped")
                 return None
             last = self._done_stamps[-1]
         after = last + 1  # the next state published after the piece's last step: where its last action led

@@ -42,7 +42,8 @@ class PlannerNodeParams:
                                  "from the measured state (MPC)", min=0)
     warm_start: bool = param(_DEFAULTS.warm_start, "with replan_every: each replan's search starts from the rest "
                                                   "of the plan it replaces (false: a fresh search)")
-    piece_timeout_s: float = param(30.0, "with replan_every: longest wait (wall time) for a piece to run",
+    piece_timeout_s: float = param(30.0, "longest wait (wall time) for a piece (with replan_every; else the "
+                                         "whole plan) to run beyond its own length at 10 Hz",
                                    min=0.0, constraints="positive, finite")
     candidates: int = param(_DEFAULTS.candidates, "publish the predicted paths of each plan's this many "
                                                   "lowest-cost sequences on t42/plan_candidates (0: off)",
