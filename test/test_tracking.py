@@ -15,6 +15,7 @@ import cv2
 import mujoco
 import numpy as np
 import pytest
+import yaml
 
 from t42_transfer.hand import SimulatedHand
 from t42_transfer.hand.mjcf import MarkerScene, SceneCamera, hand_mjcf
@@ -243,6 +244,30 @@ def test_intrinsics_from_messages_and_yaml(intrinsics: Intrinsics) -> None:
            "distortion_model": "plumb_bob", "distortion_coefficients": {"rows": 1, "cols": 5, "data": [0.1] * 5}}
     parsed = Intrinsics.from_yaml_dict(doc)
     assert parsed.k[0, 0] == 500.0 and parsed.d.tolist() == [0.1] * 5
+
+
+@pytest.mark.parametrize("model, d, refused", [
+    ("equidistant", [0.1, 0.05, 0.01, 0.0], True),  # fisheye: its 4 numbers are no k1 k2 p1 p2
+    ("", [0.1, 0.05, 0.01, 0.0], True),
+    ("", [], False),  # what a camera without distortion may say
+    ("rational_polynomial", [0.1] * 8, False),
+    ("plumb_bob", [0.1] * 5, False),
+])
+def test_a_distortion_model_opencvs_pinhole_model_does_not_compute_is_refused(model: str, d: list, refused: bool,
+                                                                              tmp_path) -> None:
+    """Read as plumb_bob, a fisheye calibration moved a tracked pose by 2 mm without a word."""
+    from t42_transfer.tracking.capture import load_camera_info
+
+    info = type("Info", (), {"width": 640, "height": 480, "k": _k(), "d": d, "distortion_model": model})()
+    doc = {"image_width": 640, "image_height": 480, "camera_matrix": {"rows": 3, "cols": 3, "data": _k()},
+           "distortion_model": model, "distortion_coefficients": {"rows": 1, "cols": len(d), "data": d}}
+    (tmp_path / "cam.yaml").write_text(yaml.safe_dump(doc))
+    for read in (lambda: Intrinsics.from_camera_info(info), lambda: load_camera_info(tmp_path / "cam.yaml")):
+        if refused:
+            with pytest.raises(ValueError, match=f"distortion model {model!r} is not one of"):
+                read()
+        else:
+            assert read().distortion_model == (model or "plumb_bob")
 
 
 def test_image_buffers_are_checked() -> None:

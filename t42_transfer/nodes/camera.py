@@ -267,7 +267,8 @@ class Camera(DestroyableLifecycleNode):
             info = camera_info_msg(width, height, np.zeros(9), np.zeros(0), frame.stamp_ns, p.frame_id, kit=RCLPY)
         else:
             c = self.calibration
-            info = camera_info_msg(c.width, c.height, c.k, c.d, frame.stamp_ns, p.frame_id, kit=RCLPY)
+            info = camera_info_msg(c.width, c.height, c.k, c.d, frame.stamp_ns, p.frame_id, c.distortion_model,
+                                   kit=RCLPY)
         self._info_pub.publish(info)
         self.published += 1
 

@@ -183,7 +183,8 @@ class ObjectTracker(Node):
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             calibration = camera_info_calibration(msg)
-            intrinsics = markers.Intrinsics(calibration.width, calibration.height, calibration.k, calibration.d)
+            intrinsics = markers.Intrinsics(calibration.width, calibration.height, calibration.k, calibration.d,
+                                            calibration.distortion_model)
         except ValueError as err:
             self._intrinsics = None  # a camera that now says this is not calibrated any more
             self._count("bad_camera_info")

@@ -29,6 +29,9 @@ ENCODINGS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 """Image encodings the tracker reads (sensor_msgs/Image names) and their channel counts."""
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 """Distortion vectors OpenCV accepts (plumb_bob has 5, rational_polynomial 8)."""
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
+"""The ROS distortion models OpenCV's pinhole model computes; ``equidistant`` (fisheye) is another model, whose
+coefficients read as these would place every marker wrong."""
 APRILTAG_CORNER_OFFSET_PX = 0.5
 """OpenCV's AprilTag corner refinement reports corners half a pixel right of and below where they are (pixel
 centres on integer coordinates, OpenCV's convention): measured on images warped from known corners
@@ -44,6 +47,7 @@ class Intrinsics:
     height: int
     k: np.ndarray
     d: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    distortion_model: str = "plumb_bob"
 
     def __post_init__(self) -> None:
         k = np.asarray(self.k, dtype=float)
@@ -67,8 +71,12 @@ class Intrinsics:
             raise ValueError(f"distortion must have one of {DISTORTION_LENGTHS} values, got {d.size}")
         if not np.all(np.isfinite(d)):
             raise ValueError(f"distortion has non-finite values: {d.tolist()}")
+        if self.distortion_model not in DISTORTION_MODELS and (self.distortion_model or np.any(d)):
+            raise ValueError(f"distortion model {self.distortion_model!r} is not one of {list(DISTORTION_MODELS)} "
+                             "(OpenCV's pinhole model; a fisheye calibration needs another)")
         object.__setattr__(self, "k", k)
         object.__setattr__(self, "d", d)
+        object.__setattr__(self, "distortion_model", self.distortion_model or "plumb_bob")  # ("": no distortion)
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 
@@ -80,7 +88,8 @@ class Intrinsics:
         except AttributeError as err:
             raise ValueError(f"not a CameraInfo: {err}") from None
         try:
-            return cls(int(width), int(height), np.asarray(k, dtype=float), np.asarray(d, dtype=float))
+            return cls(int(width), int(height), np.asarray(k, dtype=float), np.asarray(d, dtype=float),
+                       str(getattr(msg, "distortion_model", "plumb_bob")))
         except TypeError as err:
             raise ValueError(f"not a CameraInfo: {err}") from None
 
@@ -91,7 +100,7 @@ class Intrinsics:
             k = data["camera_matrix"]["data"]
             d = data.get("distortion_coefficients", {}).get("data", [])
             return cls(int(data["image_width"]), int(data["image_height"]), np.asarray(k, dtype=float),
-                       np.asarray(d, dtype=float))
+                       np.asarray(d, dtype=float), str(data.get("distortion_model", "plumb_bob")))
         except (KeyError, TypeError, AttributeError) as err:
             raise ValueError(f"not a camera_info YAML document: missing or malformed {err}") from None
 
