@@ -55,6 +55,21 @@ def test_calibrated_focal_lengths_and_principal_point_within_one_percent(board_v
     assert np.abs(found.d).max() < 0.05  # a pinhole renderer: next to no distortion
 
 
+def test_views_that_all_face_the_camera_squarely_are_refused_not_fitted(tmp_path, capsys) -> None:
+    """Such views fit a focal length many times the true one at a tiny error, and nothing looked wrong."""
+    camera = BoardCamera.checkerboard(PATTERN, 20.0, width=640, height=480, fovy_deg=50.0)
+    try:
+        for i, (x, y) in enumerate([(-0.04, -0.03), (0.04, -0.03), (0.0, 0.0), (-0.04, 0.03), (0.04, 0.03)]):
+            square_on = camera.render_at((x, y, -0.4), (0.0, 0.0, 0.1 * i))
+            cv2.imwrite(str(tmp_path / f"flat_{i}.png"), square_on[:, :, ::-1])
+    finally:
+        camera.close()
+    out = tmp_path / "camera_info.yaml"
+    assert main(["camera", "calibrate", str(tmp_path), str(out), "--pattern", "9x6", "--square", "0.02"]) == 2
+    assert "the board faces the camera squarely (tilted under 10 deg) in 5 of 5 views" in capsys.readouterr().err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("argv, message", [
     (["{missing}", "{out}"], "does not exist"),
     (["{empty}", "{out}"], "no images"),
