@@ -17,7 +17,7 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.serialization import deserialize_message, serialize_message
-from ros_rig import REPO, RosRig, Tester, stop
+from ros_rig import REPO, Rosout, RosRig, Tester, stop
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
@@ -133,6 +133,15 @@ def test_a_client_publishes_a_goal_onto_the_graph_and_nothing_else(ros, view):
     _run_probe(ros, step, view.port, topics=[], count=0, publish=refused, timeout_s=10)
     ros.spin_for(0.5)
     assert commands == []
+    # An allowed topic in another type: refused with the node's warning (rcl's error bypassed /rosout).
+    from std_msgs.msg import String
+
+    log = Rosout(ros, "view")
+    retyped = {"topic": "/t42/goal", "schemaName": "std_msgs/msg/String",
+               "data": serialize_message(String(data="go")), "repeat": 2}
+    _run_probe(ros, step, view.port, topics=[], count=0, publish=retyped, timeout_s=10)
+    assert any("as std_msgs/msg/String; the graph's type is geometry_msgs/msg/PointStamped" in w
+               for w in log.wait_warnings()), log.warnings()
 
 
 def test_t42_view_runs_the_node_until_ctrl_c(ros, tmp_path):

@@ -355,6 +355,11 @@ class View(Node):
             self.log.warning(f"client {client.id} publishes {channel.topic} as {channel.schema_name!r}, "
                              "not a message type installed here")
             return
+        on_graph = dict(self.get_topic_names_and_types()).get(topic, [])
+        if on_graph and channel.schema_name not in on_graph:  # (rcl would refuse the publisher with its own words)
+            self.log.warning(f"client {client.id} publishes {channel.topic} as {channel.schema_name}; the graph's "
+                             f"type is {', '.join(on_graph)}")
+            return
         with self._lock:
             self._client_pubs[(client.id, channel.id)] = (self.create_publisher(msg_class, topic, 10),
                                                           channel.schema_name)
