@@ -146,14 +146,21 @@ def test_bad_images_and_camera_infos_are_counted_and_the_node_goes_on(ros, scene
     rig.report_when(lambda v: v["bad_camera_info"] == "2")
     rig.info()
     bgra = np.dstack([image, np.full(image.shape[:2], 255, np.uint8)])
+    log = Rosout(ros, "object_tracker")
     rig.image(bgra, 12, "bgra8")  # an encoding the tracker does not read
     ros.spin_for(0.05)  # camera topics keep 2 messages: one at a time
+    yuv = image_msg(image, "rgb8", 12, "camera", RCLPY)
+    yuv.encoding, yuv.step, yuv.data = "yuv422", 2 * yuv.width, bytes(2 * yuv.width * yuv.height)
+    rig.images.publish(yuv)  # one no decoder here reads: the tracker's list is the one to name
+    ros.spin_for(0.05)
     rig.image(image[:240, :320], 13)  # not the calibrated size
     ros.spin_for(0.05)
     bad = image_msg(image, "rgb8", 14, "camera", RCLPY)
     bad.step = 100  # fields that describe no image
     rig.images.publish(bad)
-    values = rig.report_when(lambda v: v["bad_images"] == "3")
+    values = rig.report_when(lambda v: v["bad_images"] == "4")
+    said = [m.msg for m in log.lines if "encoding" in m.msg]
+    assert said and all("is not one the tracker reads (['bgr8', 'mono8', 'rgb8'])" in m for m in said), said
     assert values["tracked"] == "0" and values["failed"] == "0" and values["status"] == "bad_image"
     pose = rig.track(image, 15)
     assert np.linalg.norm(object_xy_mm(pose) - truth) < 1.0

@@ -208,8 +208,11 @@ class ObjectTracker(Node):
             self.per_message.warning(f"{names.CAMERA_IMAGE}: no usable {names.CAMERA_INFO} yet; frame not tracked")
             return
         try:
+            if msg.encoding not in markers.ENCODINGS:  # before decoding: the decoder's own list is no answer here
+                raise ValueError(f"image encoding {msg.encoding!r} is not one the tracker reads "
+                                 f"({sorted(markers.ENCODINGS)})")
             image = image_array(msg)
-            _check_image(image, msg.encoding, intrinsics)
+            _check_image(image, intrinsics)
         except ValueError as err:
             self._count("bad_images")
             self._set_last(status="bad_image")
@@ -278,10 +281,8 @@ class ObjectTracker(Node):
                                                    self.get_clock().now().nanoseconds, kit=RCLPY))
 
 
-def _check_image(image: np.ndarray, encoding: str, intrinsics: markers.Intrinsics) -> None:
-    """ValueError for an image the tracker cannot read or the calibrated camera cannot have taken."""
-    if encoding not in markers.ENCODINGS:
-        raise ValueError(f"image encoding {encoding!r} is not one the tracker reads ({sorted(markers.ENCODINGS)})")
+def _check_image(image: np.ndarray, intrinsics: markers.Intrinsics) -> None:
+    """ValueError for an image the calibrated camera cannot have taken."""
     height, width = image.shape[:2]
     if (width, height) != (intrinsics.width, intrinsics.height):
         raise ValueError(f"image is {width}x{height} but the camera is calibrated for "
