@@ -27,6 +27,7 @@ from t42_transfer.models.checkpoint import FORMAT, load_model, read_metadata, sa
 from t42_transfer.models.residual import CumulativeResidualModel
 from t42_transfer.models.training import TrainConfig, train_transition_model
 from t42_transfer.nodes.transfer_server import (
+    SHUTTING_DOWN,
     STATUS_NAME,
     TransferServer,
 )
@@ -280,6 +281,39 @@ def test_closing_the_node_cancels_a_running_transfer_and_waits_for_it(ros, tmp_p
     time.sleep(0.2)
     assert len(epochs) == stopped_at, "the transfer ran on after the node closed"
     assert not rig.server.busy and rig.model_files() == []
+
+
+def test_stopping_the_node_during_a_goal_ends_it_and_its_client_gets_the_result(ros, tmp_path, source_model,
+                                                                                 monkeypatch):
+    """As ``t42 node`` stops the node (SIGTERM, Ctrl-C): close() from the thread that spun it, then the node is
+    destroyed.  The goal's client still gets its result (ABORTED, the shutdown reason), sent before the node left."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.action import ActionClient
+    from t42_interfaces.action import Transfer
+
+    from t42_transfer.models.training import Progress
+
+    def endless(source, target, cfg, seed, on_epoch=None):
+        for epoch in range(1, 10**6):  # stops only when on_epoch raises (the transfer cancelled)
+            on_epoch(Progress("endless", epoch, 10**6, 1.0, None))
+            time.sleep(0.005)
+
+    monkeypatch.setitem(METHODS, "endless", endless)
+    rig = Rig(ros, tmp_path, source_model, method="endless")
+    add_target_bag(rig.bag_dir)
+    client = ActionClient(rig.tester, Transfer, names.TRANSFER)
+    assert ros.spin_until(client.server_is_ready, 10.0)
+    sent = client.send_goal_async(Transfer.Goal())
+    assert ros.spin_until(sent.done, 10.0) and sent.result().accepted
+    result = sent.result().get_result_async()
+    assert ros.spin_until(lambda: sum(r.values["stage"] == "training" for r in rig.reports) >= 3, 60.0)
+    rig.server.close()
+    rig.server.destroy_node()  # (t42 node shuts its executor down first; the test's spins on for the client)
+    ros.nodes.remove(rig.server)
+    assert ros.spin_until(result.done, 5.0), "the goal of a stopped server got no result"
+    assert result.result().status == GoalStatus.STATUS_ABORTED
+    assert result.result().result.message == SHUTTING_DOWN and not result.result().result.success
+    assert rig.model_files() == []
 
 
 def _corrupt_bag(bag_dir: Path, name: str = "episode_000") -> Path:

@@ -21,7 +21,7 @@ from test_transfer_server import Rig, add_target_bag, config_file, source_model 
 from msg_adapters import DiagnosticReport, names, status_report
 from t42_transfer.data.bag import read_bag
 from t42_transfer.nodes.recorder import Recorder
-from t42_transfer.nodes.transfer_server import STATUS_NAME
+from t42_transfer.nodes.transfer_server import SHUTTING_DOWN, STATUS_NAME
 from t42_transfer.ros.qos import profile
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -80,6 +80,45 @@ def test_busy_answer_and_diagnostics_while_a_transfer_trains_then_success(ros, t
     finally:
         codes = stop([server])
     assert codes == [0], log.read_text()
+
+
+@pytest.mark.executor_threads(4)
+def test_sigterm_during_a_goal_ends_it_and_its_client_gets_the_result(ros, tmp_path: Path,
+                                                                       source_model: Path) -> None:  # noqa: F811
+    """SIGTERM (Ctrl-C, t42 up's restart) while a goal trains: the goal ends ABORTED with the shutdown reason, and
+    the result reaches its client before the node leaves; the process exits 0 with nothing saved."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.action import ActionClient
+    from t42_interfaces.action import Transfer
+
+    bag_dir, model_dir = tmp_path / "bags", tmp_path / "models"
+    bag_dir.mkdir()
+    add_target_bag(bag_dir)
+    log = tmp_path / "server.log"
+    server = start_node(
+        "transfer_server", "-p", f"source_model:={source_model}", "-p", f"model_dir:={model_dir}",
+        "-p", f"bag_dir:={bag_dir}", "-p", f"config:={config_file(tmp_path / 'long.yaml', LONG)}",
+        "-p", "progress_period_s:=0.05", log=log,
+    )
+    try:
+        tester = ros.node("tester")
+        client = ActionClient(tester, Transfer, names.TRANSFER)
+        assert ros.spin_until(client.server_is_ready, 60.0), log.read_text()
+        feedback: list = []
+        sent = client.send_goal_async(Transfer.Goal(), feedback_callback=lambda m: feedback.append(m.feedback))
+        assert ros.spin_until(sent.done, 10.0) and sent.result().accepted, log.read_text()
+        result = sent.result().get_result_async()
+        assert ros.spin_until(lambda: sum(f.epoch > 0 for f in feedback) >= 3, 60.0), log.read_text()
+        server.send_signal(signal.SIGTERM)
+        assert ros.spin_until(result.done, 15.0), f"no result after SIGTERM: {log.read_text()}"
+    finally:
+        codes = stop([server], sig=signal.SIGTERM)
+    assert codes == [0], log.read_text()
+    got = result.result()
+    assert got.status == GoalStatus.STATUS_ABORTED, got.result.message
+    assert got.result.message == SHUTTING_DOWN and not got.result.success
+    assert not model_dir.exists() or not any(model_dir.glob("*.safetensors"))
+    assert "Failed to send result" not in log.read_text()
 
 
 def test_a_bad_parameter_ends_the_process_with_one_line(ros_domain: int, tmp_path: Path) -> None:

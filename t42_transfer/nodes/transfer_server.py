@@ -9,7 +9,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   held-out divergence and MSE of the model, the source and the hold-still baseline, ``auto``'s candidates and their
   held-out divergence, and the bags skipped as unreadable (or missing) with why; ABORTED with the reason for an
   unknown method (``unknown transfer method ...``, at once), a goal while a transfer runs (``busy: ...``, at once),
-  and every refusal or failure the service answers; CANCELED when the client cancelled it: training stops after the
+  the node stopping (:data:`SHUTTING_DOWN`, sent before the node leaves) and every refusal or failure the service
+  answers; CANCELED when the client cancelled it: training stops after the
   epoch in progress and nothing is written (the current model, the numbered models, the state file stay as they
   were, nothing is announced). A cancel is refused once the save has begun. Feedback at each stage change and after
   every training epoch: ``phase`` (the stage; ``training: <what it trains>`` once an epoch named it), epoch /
@@ -106,6 +107,8 @@ STATUS_NAME = "t42_transfer: transfer"
 CLOSE_WAIT_S = 10.0
 """How long closing the node waits for a cancelled transfer to stop (it stops at its next epoch, or finishes a
 save under way) before leaving it to end with the process."""
+SHUTTING_DOWN = "the node is shutting down; the transfer is cancelled, the previous model stays"
+"""The message of a goal's (or call's) result when closing the node cancelled its transfer."""
 FEEDBACK_LEAD_S = 0.2
 """Wall time between a goal's last feedback and its result (see ``_on_goal``): a transfer takes seconds."""
 
@@ -131,6 +134,29 @@ class Job:
     """Set to stop it (a goal cancelled): checked after each training epoch and stage, until the save begins."""
     cancelled: bool = False
     """It stopped on :attr:`cancel`: nothing was written."""
+
+
+def answering(callback: Callable[..., Any]) -> Callable[..., Any]:
+    """A goal or call callback that closing the node waits for (see :meth:`TransferServer.close`): a call until it
+    returned, a goal until rclpy has sent its result to the clients that asked for it (the done callbacks of its
+    result future run in order: ours after the sending one)."""
+
+    def counted(self: TransferServer, *args: Any) -> Any:
+        def done(*_: Any) -> None:
+            with self._in_flight_lock:
+                self._in_flight -= 1
+
+        with self._in_flight_lock:
+            self._in_flight += 1
+        try:
+            return callback(self, *args)
+        finally:
+            goal_id = getattr(args[0], "goal_id", None)
+            future = None if goal_id is None else getattr(self._action, "_result_futures", {}).get(bytes(goal_id.uuid))
+            future.add_done_callback(done) if future is not None else done()
+
+    counted.__name__, counted.__doc__ = callback.__name__, callback.__doc__
+    return counted
 
 
 class TransferServer(Node):
@@ -161,6 +187,9 @@ class TransferServer(Node):
         """The method of the running (or last) transfer."""
         self._started = time.monotonic()
         self._closed = False
+        self._in_flight = 0
+        """Goal and call callbacks running (closing waits for their answers)."""
+        self._in_flight_lock = threading.Lock()
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_periodic)
         self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED,
@@ -212,7 +241,9 @@ class TransferServer(Node):
 
     def close(self) -> None:
         """Stop publishing and cancel a running transfer (the previous model stays), waiting for its thread to end:
-        a transfer left running would be cut off by the process's exit wherever it was."""
+        a transfer left running would be cut off by the process's exit wherever it was.  A goal or call in progress
+        then ends (ABORTED: the node is shutting down) and its answer goes out before this returns: the node's
+        executor is spun meanwhile (from the thread that spins it), as the result is sent by the action server."""
         if self._closed:
             return
         self._closed = True
@@ -221,13 +252,36 @@ class TransferServer(Node):
             job.cancel.set()
             self.log.warning("closing while a transfer runs: it is cancelled at its next epoch (the previous model "
                              "stays; a save under way completes)")
-        for thread in (self._worker, self._auto_thread):
-            if thread is None or thread is threading.current_thread():
-                continue
-            thread.join(CLOSE_WAIT_S)
+        deadline = time.monotonic() + CLOSE_WAIT_S
+        threads = [t for t in (self._worker, self._auto_thread) if t not in (None, threading.current_thread())]
+        self._spin_until(lambda: not any(t.is_alive() for t in threads) and self._answered(), deadline)
+        for thread in threads:
             if thread.is_alive():
                 self.log.warning(f"the {thread.name} thread still runs after {CLOSE_WAIT_S:g} s; it ends with the "
                                  "process, unannounced (saves are atomic)")
+        if not self._answered():
+            self.log.warning(f"a {names.TRANSFER} goal or {names.TRANSFER_NOW} call is still unanswered after "
+                             f"{CLOSE_WAIT_S:g} s")
+
+    def _answered(self) -> bool:
+        """No goal or call callback runs, nor has a goal's result still to go out."""
+        with self._in_flight_lock:
+            return self._in_flight == 0
+
+    def _spin_until(self, condition: Callable[[], bool], deadline: float) -> None:
+        """Wait until ``condition`` or ``deadline``, spinning the node's executor when it is this thread's to spin
+        (the main thread, where ``t42 node`` and the tests spin it): a result request still in the middleware is
+        then taken and answered too."""
+        executor = self.executor if threading.current_thread() is threading.main_thread() else None
+        while not condition() and time.monotonic() < deadline:
+            if executor is None:
+                time.sleep(0.02)
+                continue
+            try:
+                executor.spin_once(timeout_sec=0.02)
+            except Exception as err:  # shut down, or spun elsewhere after all: wait without it
+                self.log.debug(f"not spinning while closing: {err!r}")
+                executor = None
 
     def destroy_node(self) -> None:
         self.close()
@@ -266,7 +320,11 @@ class TransferServer(Node):
         return (f"busy: a {self._method} transfer is {self._status['stage']} "
                 f"({time.monotonic() - self._started:.0f} s in); {again} when it is done")
 
+    @answering
     def _on_transfer(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if self._closed:
+            response.success, response.message = False, "the node is shutting down; call again when it runs"
+            return response
         if not self._job.acquire(blocking=False):
             response.success, response.message = False, self._busy("call again")
             return response
@@ -282,10 +340,14 @@ class TransferServer(Node):
         return response
 
     # ------------------------------------------------------------------ the action
+    @answering
     def _on_goal(self, handle: Any) -> Any:
         """Execute callback of ``t42/transfer``: runs the goal's transfer here (an executor thread) and returns
         its result; ends the goal SUCCEEDED, ABORTED (with the reason) or CANCELED."""
         try:
+            if self._closed:
+                return self._end(handle, TransferOutcome(False, "the node is shutting down; send the goal again "
+                                                                "when it runs"))
             request = transfer_request(handle.request)
             method = request.method or self.params.method
             if method not in method_names():
@@ -322,7 +384,7 @@ class TransferServer(Node):
                 handle.succeed()
             elif cancelled:
                 deadline = time.monotonic() + 2.0  # the server marks the goal CANCELING once our callback returned
-                while not handle.is_cancel_requested and time.monotonic() < deadline:
+                while not handle.is_cancel_requested and not self._closed and time.monotonic() < deadline:
                     time.sleep(0.01)
                 handle.canceled() if handle.is_cancel_requested else handle.abort()
             else:
@@ -433,9 +495,10 @@ class TransferServer(Node):
         why there is none."""
         result: TransferResult | None = outcome.get("result")
         if result is None:
-            if not done:
-                return TransferOutcome(False, "the node is shutting down; the transfer is cancelled, the previous "
-                                              "model stays")
+            if not done or self._closed:  # cancelled by close(): the caller is told why
+                if "cancelled" in outcome:
+                    self.log.info(f"transfer not done: {one_line(outcome['cancelled'])}")
+                return TransferOutcome(False, SHUTTING_DOWN)
             if "cancelled" in outcome:
                 job.cancelled = True
                 message = one_line(outcome["cancelled"])
