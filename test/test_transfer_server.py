@@ -346,7 +346,7 @@ def _wrong_layout_source(tmp_path: Path, source_model: Path) -> Path:
 
 
 BAD_REQUESTS = {
-    "no bags": (lambda bag_dir, make_set: None, "no new bags"),
+    "no bags": (lambda bag_dir, make_set: None, "no finished bags in"),  # none ever: not "all used already"
     "too little data": (lambda bag_dir, make_set: add_synthetic_bag(bag_dir, make_set, "e", (30,)), "too little data"),
     "corrupt bag": (lambda bag_dir, make_set: _corrupt_bag(bag_dir), "unreadable bag"),
     "truncated bag": (lambda bag_dir, make_set: _truncated_bag(bag_dir), "unreadable bag"),

@@ -441,6 +441,9 @@ def bags_to_read(spec: OnlineTransferSpec, state: Mapping[str, Any]) -> list[Pat
         candidates, where = list_bags(spec.bag_dir), str(spec.bag_dir)
     else:
         raise TransferRefused("no bags configured: set bag_dir or bags")
+    if not candidates:  # (none ever came: "all used already" would send the user looking for earlier transfers)
+        raise TransferRefused(f"no finished bags in {where} yet (a bag is finished once its metadata.yaml is "
+                              "written: the recorder closes it at the episode's end)")
     used = set(state["used_bags"])
     new = [b for b in candidates if bag_key(b) not in used]
     if not new:
