@@ -31,7 +31,7 @@ OWNER_GRACE_S = 3.0
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 """The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
 
-_INTERRUPTED = threading.Event()
+INTERRUPTED = threading.Event()
 """Set by Ctrl-C while a command is on the graph: its loops stop at their next turn (:func:`_stop_if_asked`).  A
 KeyboardInterrupt raised wherever the program happens to be, inside rclpy's C++ calls too, came out as another
 error there, or left an action client half-way."""
@@ -39,14 +39,14 @@ error there, or left an action client half-way."""
 
 def _stop_if_asked() -> None:
     """KeyboardInterrupt, at a point where stopping is safe, once Ctrl-C was pressed."""
-    if _INTERRUPTED.is_set():
+    if INTERRUPTED.is_set():
         raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
-def _graph_node() -> Iterator[Node]:
+def graph_node() -> Iterator[Node]:
     """A node of its own on the graph (local discovery unless chosen otherwise, as ``t42 up`` starts the suite);
-    Ctrl-C sets :data:`_INTERRUPTED` meanwhile."""
+    Ctrl-C sets :data:`INTERRUPTED` meanwhile."""
     from t42_transfer.ros.runner import keep_discovery_local
 
     keep_discovery_local()
@@ -56,8 +56,8 @@ def _graph_node() -> Iterator[Node]:
     context = rclpy.Context()
     rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f"t42_cli_{os.getpid()}", context=context)
-    _INTERRUPTED.clear()
-    before = signal.signal(signal.SIGINT, lambda *_: _INTERRUPTED.set())
+    INTERRUPTED.clear()
+    before = signal.signal(signal.SIGINT, lambda *_: INTERRUPTED.set())
     try:
         yield node
     except KeyboardInterrupt:  # Ctrl-C while waiting: the node goes on with what it was asked (a transfer, say)
@@ -88,7 +88,7 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float, aga
     client = node.create_client(srv_type, name)
     still_waiting = _waiting_for(node, name, wait_s, f"a {srv_type.__name__} service; ")
     while not client.wait_for_service(timeout_sec=0.2):
-        shown = _served_types(node, _absolute(name))
+        shown = _served_types(node, absolute_name(name))
         if shown and _type_name(srv_type) not in shown:  # no client of this type ever matches it
             raise ValueError(f"{name}: a {', '.join(shown)} service, not a {_type_name(srv_type)}")
         still_waiting()
@@ -119,7 +119,7 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float, aga
 def _waiting_for(node: Node, name: str, wait_s: float, kind: str = "") -> Callable[[], None]:
     """A check to call while waiting for the service ``name``: KeyboardInterrupt on Ctrl-C; ValueError when its
     node runs without it for :data:`OWNER_GRACE_S`, or after ``wait_s``.  ``kind`` goes into the message."""
-    owner = _absolute(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
+    owner = absolute_name(name).rsplit("/", 1)[0]  # the node a node's own service (``/driver/get_state``) belongs to
     start, seen = time.monotonic(), None
 
     def check() -> None:
@@ -142,7 +142,7 @@ def _type_name(cls: Any) -> str:
     return f"{cls.__module__.split('.')[0]}/srv/{cls.__name__}"
 
 
-def _absolute(name: str, node: bool = False) -> str:
+def absolute_name(name: str, node: bool = False) -> str:
     """A node (``node``), service or topic name from the root namespace, where the command's own node is;
     ValueError for a name ROS refuses, which rclpy would raise as its own exception (a traceback) at the first
     client or publisher."""
@@ -168,8 +168,8 @@ def _absolute(name: str, node: bool = False) -> str:
 def _cmd_lifecycle(args: argparse.Namespace) -> int:
     from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
 
-    target = _absolute(args.node, node=True)
-    with _graph_node() as node:
+    target = absolute_name(args.node, node=True)
+    with graph_node() as node:
         state = _call(node, GetState, f"{target}/get_state", GetState.Request(), args.wait, again=True)
         if args.transition is None:
             print(f"{target}: {state.current_state.label}")
@@ -194,14 +194,14 @@ def _cmd_lifecycle(args: argparse.Namespace) -> int:
 def _cmd_call(args: argparse.Namespace) -> int:
     from msg_adapters import message_fields, message_from_fields
 
-    service = _absolute(args.service)
+    service = absolute_name(args.service)
     typename, values = args.type, args.values
     if typename is not None and values is None and not _SERVICE_TYPE.fullmatch(typename):
         typename, values = None, typename  # ``t42 call /srv '{data: true}'``: the type is the graph's
-    fields = _yaml(values or "{}")
+    fields = yaml_value(values or "{}")
     srv = None if typename is None else _service_class(typename)  # a bad field is said before the graph
     request = None if srv is None else message_from_fields(srv.Request, fields, "request")
-    with _graph_node() as node:
+    with graph_node() as node:
         if srv is None:
             srv = _service_class(_graph_service_type(node, service, args.wait))
             request = message_from_fields(srv.Request, fields, "request")
@@ -254,7 +254,7 @@ def _served_types(node: Node, service: str) -> list[str]:
     return sorted(types)
 
 
-def _yaml(values: str) -> Any:
+def yaml_value(values: str) -> Any:
     try:
         return yaml.safe_load(values)
     except yaml.YAMLError as err:
@@ -266,8 +266,8 @@ def _cmd_param(args: argparse.Namespace) -> int:
     from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters, SetParameters
     from rclpy.parameter import Parameter, parameter_value_to_python
 
-    target = _absolute(args.node, node=True)
-    with _graph_node() as node:
+    target = absolute_name(args.node, node=True)
+    with graph_node() as node:
         if args.name is None:  # as ros2 param dump: every parameter with its value
             listed = sorted(_call(node, ListParameters, f"{target}/list_parameters", ListParameters.Request(),
                                   args.wait, again=True).result.names)
@@ -317,10 +317,10 @@ def _cmd_reach(args: argparse.Namespace) -> int:
 
     from msg_adapters.reach import reach_goal, reach_outcome, reach_progress, reach_type
 
-    _absolute(args.action)  # a name ROS refuses: one line, before the graph
+    absolute_name(args.action)  # a name ROS refuses: one line, before the graph
     goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
                       args.replan_every)  # stamp 0: now, for the planner
-    with _graph_node() as node:
+    with graph_node() as node:
         client = ActionClient(node, reach_type(), args.action)
         executor = SingleThreadedExecutor(context=node.context)
         executor.add_node(node)

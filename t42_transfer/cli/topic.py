@@ -11,11 +11,11 @@ from typing import Any
 import yaml
 
 from t42_transfer.cli.args import float_arg, int_arg
-from t42_transfer.cli.graph import _INTERRUPTED, _absolute, _graph_node, _yaml
+from t42_transfer.cli.graph import INTERRUPTED, absolute_name, graph_node, yaml_value
 
 
 def _cmd_topic_list(args: argparse.Namespace) -> int:
-    with _graph_node() as node:
+    with graph_node() as node:
         deadline = time.monotonic() + args.wait  # discovery: the graph fills in over the first moments
         while time.monotonic() < deadline:
             time.sleep(0.1)
@@ -30,14 +30,14 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
 
     from msg_adapters import message_fields, rclpy_class
 
-    topic = _absolute(args.topic)
-    with _graph_node() as node:
+    topic = absolute_name(args.topic)
+    with graph_node() as node:
         deadline = time.monotonic() + args.wait
         while not (writers := node.get_publishers_info_by_topic(topic)):
             if time.monotonic() > deadline:
                 raise ValueError(f"{topic}: no publisher on the graph after {args.wait:g} s (ROS_DOMAIN_ID "
                                  f"{os.environ.get('ROS_DOMAIN_ID', '0')}; t42 topic list shows what there is)")
-            if _INTERRUPTED.is_set():
+            if INTERRUPTED.is_set():
                 return 130
             time.sleep(0.1)
         qos = QoSProfile(depth=10)  # as ros2 topic echo adapts: what every publisher offers, latched ones' history
@@ -51,7 +51,7 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
         executor.add_node(node)
         shown = 0
         try:
-            while not _INTERRUPTED.is_set() and (args.count == 0 or shown < args.count):
+            while not INTERRUPTED.is_set() and (args.count == 0 or shown < args.count):
                 executor.spin_once(timeout_sec=0.1)
                 while seen and (args.count == 0 or shown < args.count):
                     print(yaml.safe_dump(message_fields(seen.pop(0)), sort_keys=False, width=120) + "---",
@@ -59,7 +59,7 @@ def _cmd_topic_echo(args: argparse.Namespace) -> int:
                     shown += 1
         finally:
             executor.shutdown(timeout_sec=1.0)
-    return 130 if _INTERRUPTED.is_set() else 0
+    return 130 if INTERRUPTED.is_set() else 0
 
 
 def _cmd_topic_pub(args: argparse.Namespace) -> int:
@@ -73,7 +73,7 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
         cls = rclpy_class(args.type)
     except (ImportError, AttributeError, ValueError):
         raise ValueError(f"{args.type}: no such message type (pkg/msg/Name, e.g. std_msgs/msg/String)") from None
-    fields = _yaml(args.values)
+    fields = yaml_value(args.values)
     message = message_from_fields(cls, fields)
     if args.stamp and not hasattr(message, "header"):
         raise ValueError(f"--stamp: a {args.type} has no header")
@@ -81,16 +81,16 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
         serialize_message(message)  # a value no field can hold: said before anything is sent
     except Exception as err:
         raise ValueError(f"{args.values!r}: not a {args.type} ({err})") from None
-    topic = _absolute(args.topic)
+    topic = absolute_name(args.topic)
     qos = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL if args.latched else
                      DurabilityPolicy.VOLATILE)
-    with _graph_node() as node:
+    with graph_node() as node:
         publisher = node.create_publisher(cls, topic, qos)
         deadline = time.monotonic() + args.wait  # as ros2 topic pub: the first message for a reader that is there
-        while not publisher.get_subscription_count() and time.monotonic() < deadline and not _INTERRUPTED.is_set():
+        while not publisher.get_subscription_count() and time.monotonic() < deadline and not INTERRUPTED.is_set():
             time.sleep(0.05)
         sent = 0
-        while not _INTERRUPTED.is_set() and (args.count == 0 or sent < args.count):
+        while not INTERRUPTED.is_set() and (args.count == 0 or sent < args.count):
             if args.stamp:
                 message.header.stamp = ns_to_stamp(node.get_clock().now().nanoseconds, RCLPY)
             publisher.publish(message)
@@ -98,9 +98,9 @@ def _cmd_topic_pub(args: argparse.Namespace) -> int:
             print(f"published {sent} on {topic}", flush=True)
             if args.count and sent >= args.count:
                 break
-            _INTERRUPTED.wait(1.0 / args.rate)
+            INTERRUPTED.wait(1.0 / args.rate)
         publisher.wait_for_all_acked(Duration(seconds=2))  # a reliable reader has what was sent before we leave
-    return 130 if _INTERRUPTED.is_set() else 0
+    return 130 if INTERRUPTED.is_set() else 0
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
