@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -345,6 +346,10 @@ def test_start_or_goal_outside_the_workspace_and_bad_input() -> None:
     assert plan(Toy(), (15.0, 80.0), tight, samples=10, horizon=5).status == "start_outside_workspace"
     with pytest.raises(ValueError, match="goal must be 2 finite"):
         plan(Toy(), (math.nan, 80.0), samples=10, horizon=5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # finite in float64 but not in float32: refused, not cast to inf with a warning
+        with pytest.raises(ValueError, match="goal must be 2 finite"):
+            plan(Toy(), (1e300, 80.0), samples=10, horizon=5)
     with pytest.raises(ValueError, match="state must be 4"):
         Planner(Toy(), BOX).plan(START[:3], (0.0, 80.0))
     with pytest.raises(ValueError, match="sampler"):

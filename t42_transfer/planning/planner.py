@@ -409,10 +409,11 @@ def _previous(actions: np.ndarray | Tensor, horizon: int) -> Tensor | None:
 
 
 def _vector(value: np.ndarray | Tensor, size: int, name: str) -> Tensor:
-    vec = torch.as_tensor(np.asarray(value, dtype=np.float32)).reshape(-1)
-    if vec.numel() != size or not torch.isfinite(vec).all():
-        raise ValueError(f"{name} must be {size} finite numbers, got {np.asarray(value).tolist()}")
-    return vec
+    """The float32 vector, checked in float64 first so a number beyond float32's range is refused, not cast to inf."""
+    wide = np.asarray(value, dtype=np.float64).reshape(-1)
+    if wide.size != size or not np.all(np.abs(wide) <= np.finfo(np.float32).max):
+        raise ValueError(f"{name} must be {size} finite numbers, got {wide.tolist()}")
+    return torch.as_tensor(wide.astype(np.float32))
 
 
 def _refusal(
