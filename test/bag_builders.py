@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from mcap.reader import make_reader
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 import msg_adapters as ma
@@ -101,6 +102,14 @@ TARGET = REPO / "bags" / "target_small"
 def fixture_message_count(bag: Path = TARGET) -> int:
     """The message count a fixture bag's shipped metadata.yaml gives (what a repair must find again)."""
     return int(yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["message_count"])
+
+
+def mcap_ros_distro(mcap: Path) -> str:
+    """ros_distro of rosbag2's own metadata record in the MCAP file."""
+    with mcap.open("rb") as stream:
+        record = next(r for r in make_reader(stream).iter_metadata() if r.name == "rosbag2")
+    info = yaml.safe_load(record.metadata["serialized_metadata"])
+    return info.get("rosbag2_bagfile_information", info)["ros_distro"]
 
 
 def fixture_copy(tmp_path: Path, edit=None) -> Path:

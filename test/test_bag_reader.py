@@ -6,7 +6,18 @@ import json
 import shutil
 
 import pytest
-from bag_builders import ACTION, JOINTS, LOG, TARGET, damaged_copy, fixture_copy, log_message, refusal, write_messages
+from bag_builders import (
+    ACTION,
+    JOINTS,
+    LOG,
+    TARGET,
+    damaged_copy,
+    fixture_copy,
+    log_message,
+    mcap_ros_distro,
+    refusal,
+    write_messages,
+)
 
 import msg_adapters as ma
 from t42_transfer.cli import main
@@ -34,6 +45,16 @@ def test_bag_info_summarises(tmp_path, small_set):
     assert info["duration_s"] == pytest.approx((last.start_ns + len(last) * CONTROL_PERIOD_NS - info["start_ns"]) / 1e9)
     assert info["metadata"] == {"operator": "ada", HAND_KEY: "sim_a"}
     assert info["recovered_prefix"] is False
+
+
+@pytest.mark.parametrize("name", ["source_small", "target_small"])
+def test_the_shipped_fixture_bags_are_as_the_recorder_writes_them(name):
+    """bags/make_fixtures.sh output: rosbag2's metadata says Jazzy, in metadata.yaml and in the MCAP's own record."""
+    bag = TARGET.parent / name
+    info = bag_info(bag)
+    assert info["storage"] == "mcap" and info["ros_distro"] == "jazzy"
+    assert "ros_distro: jazzy" in (bag / "metadata.yaml").read_text()
+    assert mcap_ros_distro(bag / f"{name}.mcap") == "jazzy"
 
 
 def test_missing_or_non_bag_paths(tmp_path):

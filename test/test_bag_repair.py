@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from bag_builders import assert_same, fixture_message_count
+from bag_builders import assert_same, fixture_message_count, mcap_ros_distro
 from fuzz_harness import DecoderWorker
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message, Metadata
@@ -66,14 +66,6 @@ def killed_bag(ros: Any, tmp_path: Path, steps: int = 60, unflushed: int = 5) ->
 def first_stamp(flushed: dict[str, list[bytes]]) -> int:
     return stamp_to_ns(TYPESTORE.deserialize_cdr(flushed[JOINT_STATES_TOPIC][0], HAND_TOPICS[JOINT_STATES_TOPIC])
                        .header.stamp)
-
-
-def mcap_ros_distro(mcap: Path) -> str:
-    """ros_distro of rosbag2's own metadata record in the MCAP file."""
-    with mcap.open("rb") as stream:
-        record = next(r for r in make_reader(stream).iter_metadata() if r.name == "rosbag2")
-    info = yaml.safe_load(record.metadata["serialized_metadata"])
-    return info.get("rosbag2_bagfile_information", info)["ros_distro"]
 
 
 def test_a_killed_recorders_bag_is_repaired(ros: Any, tmp_path: Path) -> None:
