@@ -401,10 +401,17 @@ def test_the_camera_node_publishes_a_video_files_frames_with_stamps_and_calibrat
 
 
 def test_bad_camera_and_tracker_settings_are_one_line_errors(ros_domain, video, tmp_path) -> None:
+    from t42_transfer.tracking.markers import Intrinsics
+
     (tmp_path / "bad.yaml").write_text("image_width: 320\n")
+    wider = tmp_path / "wider.yaml"  # a sound calibration of another camera size than the video's 320x240
+    write_camera_info(wider, Intrinsics(640, 480, np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), np.zeros(5)))
     cases = (
         (["camera", "--ros-args", "-p", "device:=/nonexistent"], "no such device or video file"),
-        (["camera", "--ros-args", "-p", f"device:={video}", "-p", "width:=640"], "gives 320x240 frames"),
+        (["camera", "--ros-args", "-p", f"device:={video}", "-p", "width:=640"], "gives 320x240 frames, not the "
+                                                                                 "640x240 asked for"),
+        (["camera", "--ros-args", "-p", f"device:={video}", "-p", f"calibration_file:={wider}"],
+         f"gives 320x240 frames, not the 640x480 its calibration is for ({wider})"),
         (["camera", "--ros-args", "-p", f"device:={video}", "-p", f"calibration_file:={tmp_path / 'bad.yaml'}"],
          "bad.yaml"),
         (["camera", "--ros-args", "-p", f"device:={video}", "-p", "frame_id:=/cam"], "tf2 frame name"),

@@ -214,7 +214,9 @@ class Camera(DestroyableLifecycleNode):
     # ------------------------------------------------------------------ the capture thread
     def _open(self) -> Capture:
         p = self.params
-        return Capture(p.device, self.width, self.height, p.fps, clock=lambda: self.get_clock().now().nanoseconds)
+        size_from = "asked for" if self.calibration is None else f"its calibration is for ({p.calibration_file})"
+        return Capture(p.device, self.width, self.height, p.fps, clock=lambda: self.get_clock().now().nanoseconds,
+                       size_from=size_from)
 
     def _run(self) -> None:
         due = time.monotonic()

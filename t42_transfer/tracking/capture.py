@@ -60,10 +60,12 @@ def _quiet_opencv() -> Iterator[None]:
 
 
 class Capture:
-    """One opened source; ``width``/``height``/``fps`` of 0 take what it gives, otherwise it must give that."""
+    """One opened source; ``width``/``height``/``fps`` of 0 take what it gives, otherwise it must give that.
+
+    ``size_from`` ends the error of a frame of another size: where the size came from (a calibration file's, say)."""
 
     def __init__(self, device: str | int, width: int = 0, height: int = 0, fps: float = 0.0,
-                 clock: Callable[[], int] = time.time_ns) -> None:
+                 clock: Callable[[], int] = time.time_ns, size_from: str = "asked for") -> None:
         self.device = parse_device(device)
         if not (0 <= width <= MAX_SIDE and 0 <= height <= MAX_SIDE):
             raise CaptureError(f"camera size {width}x{height} is out of range (0 = as the camera gives)")
@@ -72,7 +74,7 @@ class Capture:
         if isinstance(self.device, str) and not self.device.startswith("/dev/") and not Path(self.device).is_file():
             raise CaptureError(f"camera {self.device!r}: no such device or video file")
         self.width, self.height, self.fps = width, height, fps
-        self._clock = clock
+        self._clock, self._size_from = clock, size_from
         with _quiet_opencv():
             self._cap = cv2.VideoCapture(self.device)
             if not self._cap.isOpened():
@@ -106,7 +108,7 @@ class Capture:
         h, w = image.shape[:2]
         if (self.width and w != self.width) or (self.height and h != self.height):
             raise CaptureError(f"camera {self.device!r} gives {w}x{h} frames, not the {self.width or w}x"
-                               f"{self.height or h} asked for")
+                               f"{self.height or h} {self._size_from}")
         self.frames += 1
         return Frame(image, int(stamp), encoding)
 
