@@ -33,6 +33,15 @@ class TransferRequest:
     method: str
     bags: tuple[str, ...]
 
+    @property
+    def problem(self) -> str | None:
+        """Why the goal cannot be run as sent, else None: a blank bag path (as a path, "" is "." and the
+        server's working directory would be read as a bag)."""
+        blank = next((i for i, bag in enumerate(self.bags) if not bag.strip()), None)
+        if blank is None:
+            return None
+        return f"bags[{blank}] is an empty path; name bag directories, or send no bags for the new ones"
+
 
 def transfer_request(goal: Any) -> TransferRequest:
     """The server's view of a ``Transfer.Goal`` (blanks around the method dropped)."""

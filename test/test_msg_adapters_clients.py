@@ -48,6 +48,8 @@ def test_a_transfer_goal_and_its_result_and_feedback_read_back() -> None:
     assert transfer_request(transfer_goal()) == transfer_request(transfer_goal("", []))
     request = transfer_request(transfer_goal("residual", ["/b/episode_000", "rel/episode_001"]))
     assert request.method == "residual" and request.bags == ("/b/episode_000", "rel/episode_001")
+    assert request.problem is None and transfer_request(transfer_goal()).problem is None
+    assert transfer_request(transfer_goal("", ["/b/e0", "  "])).problem.startswith("bags[1] is an empty path")
     outcome = TransferOutcome(True, "done", "/m/transferred_000.safetensors", Scores(50.0, 6.5), Scores(40.0, 20.0),
                               Scores(5.0, 400.0), (("l2_finetune", 50.0), ("residual", math.nan)),
                               (("/b/x", "missing"),))

@@ -177,9 +177,11 @@ def test_an_unknown_method_is_aborted_with_the_reason_and_nothing_runs(ros, tmp_
     assert got.status == GoalStatus.STATUS_ABORTED and not got.result.success
     assert got.result.message.startswith("unknown transfer method 'nope'") and "l2_finetune" in got.result.message
     assert rig.reports == [] and rig.model_files() == []
-    named_nothing = client.result(client.send("direct", ["", str(tmp_path / "missing")]))
+    named_nothing = client.result(client.send("direct", [str(tmp_path / "missing"), str(tmp_path / "gone")]))
     assert named_nothing.status == GoalStatus.STATUS_ABORTED and "too little data" in named_nothing.result.message
     assert len(named_nothing.result.skipped_bags) == 2 == len(named_nothing.result.skipped_reasons)
+    empty = client.result(client.send("direct", [str(tmp_path / "missing"), " "]))  # not read as the server's "."
+    assert empty.status == GoalStatus.STATUS_ABORTED and empty.result.message.startswith("bags[1] is an empty path")
     bag = add_target_bag(rig.bag_dir, "episode_001")
     twice = client.result(client.send("direct", [str(bag), str(rig.bag_dir / ".." / rig.bag_dir.name / bag.name)]))
     assert twice.status == GoalStatus.STATUS_ABORTED and "named more than once" in twice.result.message, \

@@ -346,13 +346,14 @@ class TransferServer(Node):
         its result; ends the goal SUCCEEDED, ABORTED (with the reason) or CANCELED."""
         try:
             if self._closed:
-                return self._end(handle, TransferOutcome(False, "the node is shutting down; send the goal again "
-                                                                "when it runs"))
+                return self._end(handle, TransferOutcome(False, "the node is shutting down; send it when it runs"))
             request = transfer_request(handle.request)
             method = request.method or self.params.method
             if method not in method_names():
                 return self._end(handle, TransferOutcome(False, f"unknown transfer method {method!r}; expected one "
                                                                 f"of {method_names()} (or '' for the server's)"))
+            if request.problem:
+                return self._end(handle, TransferOutcome(False, request.problem))
             if handle.is_cancel_requested:
                 return self._end(handle, TransferOutcome(False, "cancelled before it started; nothing was written"),
                                  cancelled=True)
