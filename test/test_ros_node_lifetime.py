@@ -68,3 +68,25 @@ def test_a_destroyed_lifecycle_node_leaves_the_graph_and_a_later_one_keeps_its_r
     gc.collect()
     second.get_logger().warning("said after the collection")
     assert log.wait_warnings(1) == ["said after the collection"]
+
+
+@pytest.mark.parametrize("node_name", ["camera", "dynamixel_driver"])
+def test_a_transition_not_valid_in_the_state_is_answered_false_and_the_node_goes_on(ros: Any, node_name: str) -> None:
+    """rclpy raised rcl's "Transition is not registered" out of ``change_state`` for, say, activate while
+    unconfigured (configure while active); the runner takes that for a bug and ended the process (a driver then
+    dropped the object).  Now: ``success: false``, a warning naming the valid transitions, the state unchanged."""
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    params = {"autostart": False} if node_name == "camera" else {"port": "/dev/null/no_bus"}
+    ros.add(NODES[node_name].node_class(), params)
+    log = Rosout(ros, node_name)
+    tester = ros.node("tester")
+    change = tester.create_client(ChangeState, f"{node_name}/change_state")
+    get = tester.create_client(GetState, f"{node_name}/get_state")
+    for transition in (Transition(id=Transition.TRANSITION_ACTIVATE), Transition(id=99),
+                       Transition(label="activate")):
+        assert ros.call(change, ChangeState.Request(transition=transition)).success is False
+        assert ros.call(get, GetState.Request()).current_state.label == "unconfigured"
+    said = log.wait_warnings(2)
+    assert any("not valid in state 'unconfigured'" in line and "configure (id 1)" in line for line in said), said

@@ -13,10 +13,12 @@ import functools
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode
 from rclpy.node import Node
 
 F = TypeVar("F", bound=Callable[..., None])
+RCLError = _rclpy.RCLError
 
 
 def _finalize(node: Any) -> None:
@@ -51,9 +53,42 @@ def lifecycle_state(node: LifecycleNode) -> str:
     return node._state_machine.current_state[1]
 
 
+def _change_state_checked(node: LifecycleNode, answer: Callable[[Any, Any], Any], request: Any, response: Any) -> Any:
+    """rclpy's ``change_state`` callback ``answer``, for a transition valid in the node's state only (by id; a
+    label rclpy resolves in the current state itself); any other is answered ``success: false``."""
+    transition = request.transition
+    valid = {t[0]: t[1] for t in node._state_machine.available_transitions}
+    if not transition.label and transition.id not in valid:
+        return _refuse(node, response, f"transition id {transition.id}", valid)
+    try:
+        return answer(request, response)
+    except RCLError as err:  # rcl refused it after all: the state is as it was
+        return _refuse(node, response, f"transition {transition.label or transition.id} ({err})", valid)
+
+
+def _refuse(node: LifecycleNode, response: Any, what: str, valid: dict[int, str]) -> Any:
+    choices = ", ".join(f"{label} (id {i})" for i, label in valid.items()) or "none"
+    node.get_logger().warning(f"change_state refused: {what} is not valid in state "
+                              f"'{lifecycle_state(node)}'; valid now: {choices}")
+    response.success = False
+    return response
+
+
 class DestroyableLifecycleNode(LifecycleNode):
     """rclpy's LifecycleNode, whose ``destroy_node`` leaves the graph at once: rclpy 7.1's leaves the rcl node
-    to its state machine, which refers back to the node and so lives until the garbage collector runs."""
+    to its state machine, which refers back to the node and so lives until the garbage collector runs.
+
+    Its ``change_state`` service answers a transition not valid in the current state (configure while active, a
+    lifecycle manager that lost a race with ``autostart``) ``success: false`` with a warning naming the valid
+    ones: rclpy 7.1 raises rcl's "Transition is not registered" out of the service callback instead, and the
+    runner takes an exception out of a callback for a bug and ends the process (a driver then lets the object
+    go)."""
+
+    def __init__(self, node_name: str, **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+        service = getattr(self, "_service_change_state", None)  # None: no communication interface
+        if service is not None:
+            service.callback = functools.partial(_change_state_checked, self, service.callback)
 
     @property
     def state(self) -> str:
