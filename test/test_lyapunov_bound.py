@@ -86,6 +86,7 @@ def test_the_grasp_is_held_at_the_episode_start_in_the_training_error():
     model = grasp_net(1)
     data = own_paths(model, seed=3)
     assert training_error(model, data, ONES) < 1e-6
+    assert max_training_error(model, data.transitions(), ONES, starts=data.start_states()).normalised < 1e-5
     assert max_training_error(model, data.transitions(), state_scale=ONES).normalised > 1e-3  # grasp = x_t there
 
 

@@ -106,10 +106,14 @@ def test_set_basics():
     x, a, x_next = data.transitions()
     assert x.shape == x_next.shape == (7, 4) and a.shape == (7, 2)
     assert np.array_equal(x_next[3:], data[1].states[1:])
+    starts = data.start_states()  # row for row with the transitions: each one's episode's first state
+    assert starts.shape == (7, 4) and starts.dtype == np.float32
+    assert np.array_equal(starts, np.repeat([data[0].states[0], data[1].states[0]], [3, 4], axis=0))
     sub = data.subset([1])
     assert sub.hand == "h" and len(sub) == 1 and sub[0] == data[1]
     empty = TrajectorySet(hand="h")
     assert [arr.shape for arr in empty.transitions()] == [(0, 4), (0, 2), (0, 4)]
+    assert empty.start_states().shape == (0, 4)
     assert data.fingerprint() == TrajectorySet([episode(3, 0), episode(4, 1)]).fingerprint()
     assert data.fingerprint() != data.subset([1, 0]).fingerprint()
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.models import Normalisation, TransitionModel
 from t42_transfer.models.residual import CumulativeResidualModel, RecurrentResidualModel
 from t42_transfer.models.training import Progress, TrainConfig, train_transition_model
@@ -161,6 +162,46 @@ def test_cumulative_residual_follows_algorithm_2() -> None:
     np.testing.assert_allclose(states[1:, 1].numpy(), 2 * np.array(expected), rtol=1e-6)
     recurrent = RecurrentResidualModel(source, residual, alpha).rollout(torch.zeros(1, 4), torch.zeros(1, 4, 2))[0]
     np.testing.assert_allclose(recurrent[1:, 0].numpy(), alpha * np.arange(1, 5), rtol=1e-6)
+
+
+def _start_state_source_and_its_own_paths() -> tuple[TransitionModel, TrajectorySet]:
+    """An untrained network that reads the episode's start state (as the authors' models do), and four episodes of
+    its own open-loop rollouts: data it predicts exactly when its start state is held, and not otherwise."""
+    torch.manual_seed(1)
+    norm = Normalisation(np.zeros(4, np.float32), np.ones(4, np.float32), np.zeros(4, np.float32),
+                         np.full(4, 0.05, np.float32))
+    source = TransitionModel(norm, grasp_input=True, dropout=0.0).eval()  # no dropout: training sees what eval does
+    rng = np.random.default_rng(0)
+    x0 = torch.as_tensor(rng.normal(0.0, 1.0, (4, 4)), dtype=torch.float32)
+    actions = torch.as_tensor(rng.uniform(-1, 1, (4, 30, 2)), dtype=torch.float32)
+    states = source.rollout(x0, actions)
+    lengths = (30, 24, 27, 21)
+    return source, TrajectorySet(Trajectory(states[i, : n + 1].numpy(), actions[i, :n].numpy())
+                                 for i, n in enumerate(lengths))
+
+
+def test_the_residuals_target_is_the_sources_error_within_the_episode() -> None:
+    """g learns ``x' - f_S(x, a)`` with f_S run as the residual model's rollout runs it: its start state is the
+    episode's, not each transition's own state. On the source's own paths that error is zero."""
+    from t42_transfer.models.training import step_batch
+    from t42_transfer.transfer.methods import _source_prediction
+
+    source, own = _start_state_source_and_its_own_paths()
+    batch = step_batch(TransitionModel(Normalisation.identity()), own, _source_prediction(source))
+    assert batch.target.abs().max() < 1e-5
+    x, a, x_next = (torch.from_numpy(v) for v in own.transitions())
+    assert (x_next - source.rollout(x, a[:, None])[:, 1]).abs().max() > 1e-3  # each state its own start: not zero
+
+
+def test_trajectory_finetuning_keeps_a_cropped_episodes_start_state() -> None:
+    """The authors' batches crop episodes at random offsets; a start-state model still reads each episode's first
+    state, so on its own paths (lr ~0: the model stays put) the loss is zero from the first epoch."""
+    source, own = _start_state_source_and_its_own_paths()
+    epochs = []
+    cfg = dataclasses.replace(FAST, trajectory_finetune=dataclasses.replace(
+        FAST.trajectory_finetune, train=TrainConfig(lr=1e-12, epochs=2, batch_size=4, patience=None)))
+    transfer("trajectory_finetune", source, own, cfg, seed=3, on_epoch=epochs.append)
+    assert len(epochs) == 2 and max(p.train_loss for p in epochs) < 1e-8, epochs
 
 
 def _constant_drift_source(step: tuple[float, float, float, float]) -> TransitionModel:

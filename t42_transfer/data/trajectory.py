@@ -154,6 +154,13 @@ class TrajectorySet:
         parts = [t.transitions() for t in self.trajectories]
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))  # type: ignore[return-value]
 
+    def start_states(self) -> np.ndarray:
+        """Each transition's episode's first state, row for row with :meth:`transitions` (the grasp input of
+        models that read it)."""
+        if not self.trajectories:
+            return np.zeros((0, STATE_DIM), np.float32)
+        return np.concatenate([np.repeat(t.states[:1], len(t), axis=0) for t in self.trajectories])
+
     def fingerprint(self) -> str:
         h = hashlib.sha256()
         for t in self.trajectories:

@@ -245,7 +245,7 @@ def _bound_scale(train: TrajectorySet, test: TrajectorySet) -> np.ndarray:
 def _training_error(model: LatentDynamics, train: TrajectorySet, test: TrajectorySet) -> dict[str, float]:
     from t42_transfer.evaluation.metrics import max_training_error
 
-    error = max_training_error(model, train.transitions(), state_scale=_bound_scale(train, test))
+    error = max_training_error(model, train.transitions(), _bound_scale(train, test), starts=train.start_states())
     return {"train_error_normalised": error.normalised, "train_error_xy_mm": error.xy_mm}
 
 

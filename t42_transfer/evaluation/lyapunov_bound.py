@@ -92,17 +92,10 @@ def _analysed(model: LatentDynamics) -> LatentDynamics:
     return copy.deepcopy(model).to(torch.float64).eval().requires_grad_(False)
 
 
-def _latents(model: LatentDynamics, states: Tensor, starts: Tensor) -> Tensor:
-    """Latents of hand states ``states`` in episodes that started at ``starts`` (the grasp held as it was)."""
-    z = model.initial_latent(starts).clone()
-    z[:, :STATE_DIM] = states
-    return z
-
-
 def state_jacobians(model: LatentDynamics, states: Tensor, starts: Tensor, actions: Tensor,
                     scales: Tensor) -> Tensor:
     """``[B, N, N]``: the one-step map's Jacobian ``d x' / d x`` at each row, in coordinates ``x / scales``."""
-    z = _latents(model, states, starts)
+    z = model.episode_latent(states, starts)
 
     def step(state: Tensor, rest: Tensor, action: Tensor) -> Tensor:
         latent = torch.cat([state, rest])[None]
@@ -159,7 +152,7 @@ def training_error(model: LatentDynamics, train: TrajectorySet, scales: np.ndarr
     states, actions = _episode_arrays(train)
     with torch.no_grad():
         for x, a in zip(states, actions, strict=True):
-            z = _latents(analysed, x[:-1], x[:1].expand(len(a), -1))
+            z = analysed.episode_latent(x[:-1], x[:1].expand(len(a), -1))
             error = (analysed.observe(analysed.latent_step(z, a)) - x[1:]) / s
             worst = max(worst, float(torch.linalg.vector_norm(error, dim=1).max()))
     return worst

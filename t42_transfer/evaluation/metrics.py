@@ -273,28 +273,37 @@ def max_training_error(
     transitions: tuple[ArrayLike, ArrayLike, ArrayLike],
     state_scale: ArrayLike | None = None,
     chunk: int = 65536,
+    starts: ArrayLike | None = None,
 ) -> TrainingError:
     """The paper's ``epsilon``: the largest one-step prediction error on ``(x, a, x_next)`` data.
 
-    A one-step prediction is ``observe(latent_step(initial_latent(x), a))`` (a
-    rollout of one step, dropout off).  The normalised metric divides each state
-    component by ``state_scale`` (default: the model's ``state_std``) so that
-    millimetres and load units weigh alike.
+    A one-step prediction is ``observe(latent_step(episode_latent(x, start), a))``,
+    dropout off; ``starts`` are the transitions' episodes' first states
+    (:meth:`TrajectorySet.start_states`), which a start-state model reads as its
+    rollouts do (default: each ``x`` its own start).  The normalised metric divides
+    each state component by ``state_scale`` (default: the model's ``state_std``) so
+    that millimetres and load units weigh alike.
     """
     x, a, x_next = (_as_numpy(v) for v in transitions)
     if not (len(x) == len(a) == len(x_next)) or not len(x):
         raise ValueError(f"need equally many (x, a, x_next), got {len(x)}, {len(a)}, {len(x_next)}")
+    first = x if starts is None else _as_numpy(starts)
+    if first.shape != x.shape:
+        raise ValueError(f"need a start state per transition, got {first.shape} for {x.shape}")
     scale = model_state_scale(model) if state_scale is None else _as_numpy(state_scale)
     device = model_device(model)
     worst_norm, worst_xy = 0.0, 0.0
+    was_training = model.training
+    model.eval()
     for start in range(0, len(x), chunk):
         rows = slice(start, start + chunk)
-        pred = model.rollout(
-            torch.as_tensor(x[rows], dtype=torch.float32, device=device),
-            torch.as_tensor(a[rows, None, :], dtype=torch.float32, device=device),
-        )[:, 1]
+        tensors = (torch.as_tensor(v[rows], dtype=torch.float32, device=device) for v in (x, first, a))
+        with torch.no_grad():
+            states, firsts, actions = tensors
+            pred = model.observe(model.latent_step(model.episode_latent(states, firsts), actions))
         diff = _as_numpy(pred) - x_next[rows]
         # np.maximum, not max(): a NaN prediction must show up in the result, not vanish.
         worst_norm = np.maximum(worst_norm, np.linalg.norm(diff / scale, axis=1).max())
         worst_xy = np.maximum(worst_xy, np.linalg.norm(diff[:, :2], axis=1).max())
+    model.train(was_training)
     return TrainingError(float(worst_norm), float(worst_xy))

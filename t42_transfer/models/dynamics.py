@@ -64,6 +64,16 @@ class LatentDynamics(nn.Module, abc.ABC):
     def observe(self, z: Tensor) -> Tensor:
         """Hand state ``[B, 4]`` shown by latent ``z``."""
 
+    def episode_latent(self, states: Tensor, starts: Tensor) -> Tensor:
+        """Latent ``[B, latent_dim]`` of hand states ``states[B, 4]`` met in episodes that began at ``starts[B, 4]``:
+        the episode's parameters (the grasp state some networks read) are the start's, not the state's, as a rollout
+        from ``starts`` carries them.  A one-step prediction from a mid-episode state needs this, not
+        :meth:`initial_latent`, which takes the state for its own start.  The latent's first four coordinates are the
+        hand state (residual sums start at 0); a model whose latent is otherwise overrides this."""
+        z = self.initial_latent(starts).clone()
+        z[:, :STATE_DIM] = states
+        return z
+
     def held_latents(self) -> tuple[int, ...]:
         """Latent coordinates ``latent_step`` carries unchanged: parameters of the episode (the grasp state some
         networks read), not state. Their directions are neutral by construction, so dynamics analyses leave them out."""

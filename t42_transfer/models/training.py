@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -139,26 +138,21 @@ class StepBatch:
         return len(self.features)
 
 
-def step_batch(
-    model: TransitionModel, data: TrajectorySet, reference: Callable[[Tensor, Tensor], Tensor] | None = None
-) -> StepBatch:
-    """Every transition of ``data`` as ``model``'s inputs and normalised targets ``x' - reference(x, a)``.
+Reference = Callable[[Tensor, Tensor, Tensor], Tensor]
+"""``reference(x, a, start)``: a prediction of ``x'`` from state, action and the episode's first state."""
+
+
+def step_batch(model: TransitionModel, data: TrajectorySet, reference: Reference | None = None) -> StepBatch:
+    """Every transition of ``data`` as ``model``'s inputs and normalised targets ``x' - reference(x, a, start)``.
 
     Built once per training run: the normalisation is fixed while training, so
     the per-batch work is one gather and the network.
     """
-    xs, acts, nexts, grasps = [], [], [], []
-    for traj in data:
-        x, a, x_next = traj.transitions()
-        xs.append(x)
-        acts.append(a)
-        nexts.append(x_next)
-        grasps.append(np.repeat(traj.states[:1], len(x), axis=0))
-    if not xs:
+    if not data.num_transitions:
         raise ValueError("no transitions to train on")
-    x, a, x_next, grasp = (torch.from_numpy(np.concatenate(p)) for p in (xs, acts, nexts, grasps))
+    x, a, x_next, grasp = (torch.from_numpy(v) for v in (*data.transitions(), data.start_states()))
     with torch.no_grad():
-        base = x if reference is None else reference(x, a)
+        base = x if reference is None else reference(x, a, grasp)
         return StepBatch(model.features(x, a, grasp), model.normalise_delta(x_next - base))
 
 
@@ -305,9 +299,9 @@ def fit_single_step(
     on_epoch: ProgressHook | None = None,
     phase: str = "train",
     penalty: Callable[[], Tensor] | None = None,
-    reference: Callable[[Tensor, Tensor], Tensor] | None = None,
+    reference: Reference | None = None,
 ) -> TrainReport:
-    """Fit ``model``'s normalised output to ``x_next - reference(x, a)`` on ``train``, keeping its normalisation.
+    """Fit ``model``'s normalised output to ``x_next - reference(x, a, start)`` on ``train``, keeping its normalisation.
 
     The default reference is ``x`` itself (a transition model learns the state
     change); a residual network's reference is the source model's prediction.

@@ -29,6 +29,7 @@ from t42_transfer.models.residual import AdjustedStateResidualModel, CumulativeR
 from t42_transfer.models.training import (
     LOAD_LOSS_WEIGHT,
     ProgressHook,
+    Reference,
     StepBatch,
     TrainConfig,
     fit,
@@ -131,9 +132,7 @@ def multistep_l2_finetune(
         picked = windows[idx].tolist()
         true = torch.stack([episodes[e][0][s : s + c.horizon + 1] for e, s in picked])
         actions = torch.stack([episodes[e][1][s : s + c.horizon] for e, s in picked])
-        z = true[:, 0]
-        if model.grasp_input:
-            z = torch.cat([z, torch.stack([episodes[e][0][0] for e, _ in picked])], dim=-1)
+        z = model.episode_latent(true[:, 0], torch.stack([episodes[e][0][0] for e, _ in picked]))
         errors = []
         for k in range(c.horizon):
             z = model.latent_step(z, actions[:, k])
@@ -194,7 +193,8 @@ def trajectory_finetune(
         starts = [int(torch.randint(0, len(a) - length + 1, (1,), generator=offsets)) for _, a in picked]
         true = torch.stack([x[s : s + length + 1] for (x, _), s in zip(picked, starts, strict=True)])
         actions = torch.stack([a[s : s + length] for (_, a), s in zip(picked, starts, strict=True)])
-        predicted = rollout_until(model, true, actions, c.cutoff_mm2)
+        firsts = torch.stack([x[0] for x, _ in picked])  # a crop is still within its episode (the grasp input)
+        predicted = rollout_until(model, true, actions, c.cutoff_mm2, firsts)
         return trajectory_loss(predicted, true[:, : predicted.shape[1]], model.state_std, c.loss)
 
     fit(list(model.net.parameters()), model, loss_on, len(episodes), None, _seeded(c.train, seed),
@@ -202,13 +202,15 @@ def trajectory_finetune(
     return model
 
 
-def rollout_until(model: LatentDynamics, true: Tensor, actions: Tensor, cutoff_mm2: float | None) -> Tensor:
+def rollout_until(model: LatentDynamics, true: Tensor, actions: Tensor, cutoff_mm2: float | None,
+                  starts: Tensor | None = None) -> Tensor:
     """Open-loop rollout ``[B, n + 1, 4]`` from ``true[:, 0]``, with gradients, stopped for the whole batch
     before the first step ``k >= 2`` whose batch-mean per-coordinate x,y squared error passes ``cutoff_mm2``.
+    ``starts``: the episodes' first states, when ``true`` is cropped from within them (default ``true[:, 0]``).
 
     The authors' rule (TrajNet.run_traj with threshold 150); the first step is always kept.
     """
-    z = model.initial_latent(true[:, 0])
+    z = model.episode_latent(true[:, 0], true[:, 0] if starts is None else starts)
     states = [model.observe(z)]
     for k in range(actions.shape[1]):
         z = model.latent_step(z, actions[:, k])
@@ -241,13 +243,14 @@ def trajectory_loss(predicted: Tensor, true: Tensor, state_std: Tensor, definiti
     raise ValueError(f"trajectory loss must be 'paper' or 'authors', got {definition!r}")
 
 
-def _source_prediction(source: TransitionModel) -> Callable[[Tensor, Tensor], Tensor]:
-    """The frozen source's one-step prediction, dropout off."""
+def _source_prediction(source: TransitionModel) -> Reference:
+    """The frozen source's one-step prediction within the episode (its start state held), dropout off: as the
+    residual model's rollout runs the source, so that g learns the error of the function it is added to."""
 
     @torch.no_grad()
-    def predict(x: Tensor, a: Tensor) -> Tensor:
+    def predict(x: Tensor, a: Tensor, start: Tensor) -> Tensor:
         source.eval()
-        return source.observe(source.latent_step(source.initial_latent(x), a))
+        return source.observe(source.latent_step(source.episode_latent(x, start), a))
 
     return predict
 
@@ -268,8 +271,8 @@ def _residual_net(
     if c.normalisation == "source":
         norm = dataclasses.replace(source.norm, delta_mean=np.zeros_like(source.norm.delta_mean))
     else:
-        x, a, x_next = (torch.from_numpy(v) for v in target.transitions())
-        norm = Normalisation.from_transitions(x.numpy(), x.numpy() + (x_next - predict(x, a)).numpy())
+        x, a, x_next, start = (torch.from_numpy(v) for v in (*target.transitions(), target.start_states()))
+        norm = Normalisation.from_transitions(x.numpy(), x.numpy() + (x_next - predict(x, a, start)).numpy())
     torch.manual_seed(seed)
     g = TransitionModel(norm, grasp_input=adjusted_input)
     train, val = validation_split(target, c.val_fraction, seed)
@@ -279,9 +282,9 @@ def _residual_net(
         return g
 
     def batch_of(data: TrajectorySet) -> StepBatch:
-        x, a, x_next = (torch.from_numpy(v) for v in data.transitions())
+        x, a, x_next, start = (torch.from_numpy(v) for v in (*data.transitions(), data.start_states()))
         with torch.no_grad():
-            return StepBatch(g.features(x, a, x), g.normalise_delta(x_next - predict(x, a)))
+            return StepBatch(g.features(x, a, x), g.normalise_delta(x_next - predict(x, a, start)))
 
     batch = batch_of(train)
     val_batch = batch_of(val) if val is not None and len(val) else None
