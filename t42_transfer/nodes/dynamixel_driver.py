@@ -143,7 +143,8 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self.refusals = ThrottledLog(_LogAndStatus(self.log, lambda line: self._status(REFUSED, line)))
         """Commands refused or cut short, on /rosout and ``hand/status`` alike, throttled as :attr:`per_message`."""
         self._configure_error = ""
-        """The last configure failure reported on ``hand/status`` (autostart retries say a new one only)."""
+        """The last configure failure reported on ``hand/status`` (autostart retries say a new one only), or the fault
+        held when the hand was released: the next configure that passes says ``recovered`` after it."""
         self._autostarting = False
         """Whether the configure under way is an autostart retry."""
         self._transition_error = ""
@@ -331,6 +332,10 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self._stop_episode("the driver stopped")
         hand, self.hand = self.hand, None
         self._servo_limits_rad = None
+        fault, self.fault = self.fault, None  # a configure starts over: the next fault is the new hand's
+        self._next_retry_s = 0.0
+        if fault is not None and not self._configure_error:  # the next configure that passes says recovered
+            self._configure_error = f"fault: {fault}"
         if hand is None:
             return False
         failed = hand.servos.set_torque(False)  # each servo tried on its own: one silent servo leaves no other on

@@ -1,0 +1,52 @@
+"""The Dynamixel driver's faults on the emulated servo bus, each on a rig of its own: what is latched, what recovers,
+what a cleanup and configure start over, and what a second program on the port meets.
+
+The rig is :mod:`test_dynamixel_driver`'s (the bus on a pty with the simulated hand behind it, the driver on
+rclpy's EventsExecutor, the lifecycle through the stock services).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+from lifecycle_msgs.msg import Transition
+from ros_rig import RosRig
+from std_srvs.srv import Trigger
+from test_dynamixel_driver import Rig
+
+from msg_adapters import names
+
+pytestmark = pytest.mark.events_executor
+
+
+@pytest.fixture
+def rig(ros: RosRig) -> Iterator[Rig]:
+    """A rig of the test's own, the driver active (torque on, holding; no episode)."""
+    r = Rig(ros)
+    try:
+        assert r.transition(Transition.TRANSITION_CONFIGURE) and r.transition(Transition.TRANSITION_ACTIVATE)
+        r.forget()
+        yield r
+    finally:
+        r.bench.bus.bus.faults.dead.clear()
+        r.driver.close()  # torque off while the bus is still there
+        r.bench.close()
+
+
+def test_a_fault_held_at_cleanup_is_gone_after_configure_and_a_reset_is_taken(rig: Rig) -> None:
+    """Servo 1 stops answering; the user deactivates and cleans up, fixes the cable, configures and activates: the
+    hand is healthy, and hand/reset used to be refused for the fault held since before the cleanup."""
+    faults = rig.bench.bus.bus.faults
+    faults.dead.add(1)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 3.0), rig.events()
+    assert rig.transition(Transition.TRANSITION_DEACTIVATE) and rig.transition(Transition.TRANSITION_CLEANUP)
+    faults.dead.clear()  # the cable fixed
+    rig.forget()
+    assert rig.transition(Transition.TRANSITION_CONFIGURE)
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 2.0), rig.events()
+    assert "configured" in rig.statuses[-1].data and "servo 1" in rig.statuses[-1].data  # after the fault it said
+    assert rig.transition(Transition.TRANSITION_ACTIVATE)
+    answer = rig.reset_client.call_async(Trigger.Request())  # at once: taken, the grasp begins (not waited for)
+    assert rig.ros.spin_until(lambda: names.GRASPING in rig.events() or answer.done(), 5.0), rig.events()
+    assert not answer.done(), answer.result()
