@@ -10,12 +10,15 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from ros_rig import RosRig
 from std_srvs.srv import Trigger
 from test_dynamixel_driver import Rig
 
-from msg_adapters import names
+from msg_adapters import names, status_report
+from t42_transfer.hardware.servos import TORQUE_OFF
+from t42_transfer.nodes.dynamixel_driver import STATUS_NAME
 
 pytestmark = pytest.mark.events_executor
 
@@ -50,3 +53,20 @@ def test_a_fault_held_at_cleanup_is_gone_after_configure_and_a_reset_is_taken(ri
     answer = rig.reset_client.call_async(Trigger.Request())  # at once: taken, the grasp begins (not waited for)
     assert rig.ros.spin_until(lambda: names.GRASPING in rig.events() or answer.done(), 5.0), rig.events()
     assert not answer.done(), answer.result()
+
+
+def test_a_servo_that_restarted_while_active_is_a_fault_and_its_torque_comes_back(rig: Rig) -> None:
+    """A supply dip restarts both servos: Torque Enable 0, no error bit.  The driver stepped on with limp fingers,
+    saying nothing; now it reads Torque Enable each second: a fault on hand/status and diagnostics, then the usual
+    recovery (torque on, holding) and ``recovered``."""
+    diagnostics = rig.listen(DiagnosticArray, names.DIAGNOSTICS)
+    bus = rig.bench.bus.bus
+    with bus.lock:
+        for servo in bus.servos.values():
+            servo.reboot()
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.5), rig.events()
+    assert "torque_off on servo 1" in rig.statuses[-1].data, rig.statuses[-1].data
+    assert rig.ros.spin_until(lambda: any(status_report(d, STATUS_NAME).values.get("fault_kind") == TORQUE_OFF
+                                          for d in diagnostics), 2.0)
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
+    assert rig.bench.torque() == [True, True]

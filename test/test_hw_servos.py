@@ -47,7 +47,8 @@ def test_check_configure_torque_and_one_step(hand) -> None:
     (lambda bus: bus.bus.faults.dead.add(2), s.TIMEOUT, 2),
     (lambda bus: bus.bus.servos[2].raise_error(1 << 5), s.HARDWARE, 2),
     (lambda bus: bus.close_port(), s.PORT, None),
-], ids=["dropped", "corrupt", "dead", "error bit", "unplugged"])
+    (lambda bus: bus.bus.servos[2].reboot(), s.TORQUE_OFF, 2),  # a supply dip: torque off, no error bit
+], ids=["dropped", "corrupt", "dead", "error bit", "unplugged", "restarted"])
 def test_each_fault_is_one_servo_fault_naming_the_servo(hand, inject, kind: str, servo: int | None) -> None:
     bus, servos = hand
     servos.torque(True)

@@ -1,8 +1,10 @@
 """The hand's two servos through dynamixel-sdk: open, check, configure, one sync read and one sync write a step.
 
-Every failure is a :class:`ServoFault` naming the servo and what went wrong, in one of four kinds: the port
-(gone, or not a serial port), no answer (timeout), a garbled answer (CRC), or a Hardware Error Status bit
-(decoded).  pyserial's own errors never escape.  Nothing here needs ROS; the driver node wraps it.
+Every failure is a :class:`ServoFault` naming the servo and what went wrong, in one of five kinds: the port
+(gone, or not a serial port), no answer (timeout), a garbled answer (CRC), a Hardware Error Status bit
+(decoded), or the torque found off on a servo that was turned on (it restarted: a supply dip; XM430s come back
+with Torque Enable 0 and no error bit, so only Torque Enable tells).  pyserial's own errors never escape.
+Nothing here needs ROS; the driver node wraps it.
 
 A read of the port waits for the servos' answer in ``select`` (:data:`READ_WAIT_S` at a time) instead of
 polling: dynamixel-sdk opens the port non-blocking and spins on it until the answer or its packet timeout,
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import termios
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -30,6 +33,11 @@ from t42_transfer.hardware import protocol as p
 from t42_transfer.hardware import xm430 as xm
 
 PORT, TIMEOUT, CORRUPT, HARDWARE, REFUSED = "port", "timeout", "corrupt", "hardware", "refused"
+TORQUE_OFF = "torque_off"
+TORQUE_CHECK_S = 1.0
+"""How often :meth:`HandServos.read_state` also reads Torque Enable of the servos turned on (one more sync read of
+one byte, the first read after the torque came on included): a servo that restarted holds nothing, and says so
+nowhere else."""
 _PORT_ERRORS = (OSError, termios.error, serial.SerialException, ValueError)
 READ_WAIT_S = 0.001
 """Longest one read of the port blocks for bytes; dynamixel-sdk checks its own packet timeout between reads, so a
@@ -37,8 +45,8 @@ silent servo is still reported after that timeout (at most this much later)."""
 
 
 class ServoFault(RuntimeError):
-    """``kind`` (``port``, ``timeout``, ``corrupt``, ``hardware`` or ``refused``) on servo ``servo_id`` (None: the
-    port); one line."""
+    """``kind`` (``port``, ``timeout``, ``corrupt``, ``hardware``, ``torque_off`` or ``refused``) on servo
+    ``servo_id`` (None: the port); one line."""
 
     def __init__(self, kind: str, servo_id: int | None, detail: str) -> None:
         where = "" if servo_id is None and kind == PORT else " on the port" if servo_id is None else \
@@ -103,6 +111,9 @@ class HandServos:
         self.latency_timer_ms = latency_timer_ms
         self._port: PortHandler | None = None
         self._packets = PacketHandler(2.0)
+        self._torqued: set[int] = set()
+        """Servos whose Torque Enable this turned on (and not off since): :meth:`read_state` checks they still are."""
+        self._torque_checked_s = 0.0
 
     # ------------------------------------------------------------------ port
     def open(self) -> None:
@@ -119,6 +130,7 @@ class HandServos:
 
     def close(self) -> None:
         port, self._port = self._port, None
+        self._torqued.clear()
         if port is not None:
             try:
                 port.closePort()
@@ -197,6 +209,8 @@ class HandServos:
             xm.PRESENT_POSITION, xm.PRESENT_CURRENT, xm.HARDWARE_ERROR_STATUS)))
 
     def reboot(self, servo_id: int) -> None:
+        """Reboot the servo: its Hardware Error Status cleared, its torque off (as this asked: not a fault)."""
+        self._torqued.discard(servo_id)
         result, error = self._call(servo_id, "reboot", self._packets.reboot)
         self._check(servo_id, result, error & ~p.ALERT, "reboot")
 
@@ -247,28 +261,50 @@ class HandServos:
                 else:
                     failed.pop(i, None)
                     break
+            if on and i not in failed:
+                self._torqued.add(i)
+            elif not on:
+                self._torqued.discard(i)
         return failed
 
     def read_state(self) -> ServoState:
-        """One sync read of Present Current, Velocity and Position of every servo, each answer's error byte checked.
+        """One sync read of Present Current, Velocity and Position of every servo, each answer's error byte checked;
+        every :data:`TORQUE_CHECK_S` also Torque Enable of the servos turned on (:meth:`check_torque`)."""
+        address, _ = xm.STATE_BLOCK
+        positions, currents = {}, {}
+        for i, block in self._sync_read(*xm.STATE_BLOCK, self.ids).items():
+            positions[i] = xm.PRESENT_POSITION.decode(block[xm.PRESENT_POSITION.address - address:])
+            currents[i] = xm.PRESENT_CURRENT.decode(block[xm.PRESENT_CURRENT.address - address:])
+        if self._torqued and time.monotonic() - self._torque_checked_s >= TORQUE_CHECK_S:
+            self.check_torque()
+        return ServoState(positions, currents)
+
+    def check_torque(self) -> None:
+        """One sync read of Torque Enable of the servos turned on; a ``torque_off`` :class:`ServoFault` naming the
+        first found off: it restarted (a supply dip, a loose power wire) and its finger went limp."""
+        turned_on = [i for i in self.ids if i in self._torqued]
+        answers = self._sync_read(xm.TORQUE_ENABLE.address, xm.TORQUE_ENABLE.size, turned_on)
+        self._torque_checked_s = time.monotonic()
+        off = [i for i, data in answers.items() if not xm.TORQUE_ENABLE.decode(data)]
+        if off:
+            raise ServoFault(TORQUE_OFF, off[0], f"Torque Enable reads 0 on servo(s) {off}, turned on before: "
+                                                 "the servo restarted (a supply dip, a loose power wire?)")
+
+    def _sync_read(self, address: int, length: int, ids: Sequence[int]) -> dict[int, bytes]:
+        """One sync read of ``length`` bytes from ``address`` of servos ``ids``, each answer's error byte checked.
 
         dynamixel-sdk's GroupSyncRead drops the error byte (where a Hardware Error Status alert shows), so
         the sync read is sent and its answers taken with the packet handler's own calls.
         """
         port = self._need_port()
-        address, length = xm.STATE_BLOCK
-        positions, currents = {}, {}
         with self._port_errors("sync read"):
-            result = self._packets.syncReadTx(port, address, length, list(self.ids), len(self.ids), False)
+            result = self._packets.syncReadTx(port, address, length, list(ids), len(ids), False)
             if result != COMM_SUCCESS:
                 raise ServoFault(PORT, None, f"sync read: {self._packets.getTxRxResult(result)}")
-            answers = {i: self._packets.readRx(port, i, length) for i in self.ids}  # all, before any other exchange
-        for i, (data, result, error) in answers.items():
+            answers = {i: self._packets.readRx(port, i, length) for i in ids}  # all, before any other exchange
+        for i, (_, result, error) in answers.items():
             self._check(i, result, error, "sync read")
-            block = bytes(data)
-            positions[i] = xm.PRESENT_POSITION.decode(block[xm.PRESENT_POSITION.address - address:])
-            currents[i] = xm.PRESENT_CURRENT.decode(block[xm.PRESENT_CURRENT.address - address:])
-        return ServoState(positions, currents)
+        return {i: bytes(data) for i, (data, _, _) in answers.items()}
 
     def write_goals(self, goals: dict[int, int]) -> None:
         """One sync write of Goal Position (no answer comes: limits are the caller's to keep)."""

@@ -41,7 +41,8 @@ Drops: a published pose more than ``drop_jump_m`` (the paper's 8 mm) a control p
 frame's stamp and the step before's, from the step before's ends the episode as the mock driver ends one: that
 step's state goes out without an action, ``hand/status`` says ``dropped`` and the hand holds until the next reset.
 
-Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the port gone) are
+Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the torque found off on a
+servo that restarted, the port gone) are
 reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
 and the error bits decoded; so is a configure that fails (no port, a port that is no Dynamixel bus, servos of
 another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes, and
