@@ -133,3 +133,24 @@ def test_hw_reboot_exits_1_when_the_error_comes_back(capsys: pytest.CaptureFixtu
         (line,) = capsys.readouterr().out.splitlines()
         assert line.startswith("servo 1: hardware on servo 1: rebooted, but the error is back:"), line
         assert "Hardware Error Status 4 (overheating error)" in line, line
+
+
+@pytest.mark.parametrize("command", ["read", "reboot"])
+def test_hw_read_and_reboot_say_the_port_is_in_use_while_a_driver_holds_it(
+        command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """A driver holds the port (opened exclusively): the command says so and exits 1, and nothing reaches the bus
+    (a read used to answer beside the driver; a reboot turned its torque off under it)."""
+    with PtyBus(t42_bus()) as bus:
+        driver = HandServos(bus.port, 1_000_000, (1, 2), latency_timer_ms=EMULATED_LATENCY_TIMER_MS)
+        driver.open()
+        try:
+            driver.torque(True)
+            handled = bus.bus.handled
+            assert main(["hw", command, "--port", bus.port, "--latency-timer", str(EMULATED_LATENCY_TIMER_MS)]) == 1
+            err = capsys.readouterr().err
+            assert err == f"t42: error: port: {bus.port} is in use by another program (a driver, t42 hw read or " \
+                          f"reboot?); fuser -v {bus.port} names it\n", err
+            assert bus.bus.handled == handled and [bus.bus.servos[i].torque for i in (1, 2)] == [True, True]
+        finally:
+            driver.close()
+        assert main(["hw", "read", "--port", bus.port, "--latency-timer", str(EMULATED_LATENCY_TIMER_MS)]) == 0

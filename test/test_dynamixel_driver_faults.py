@@ -12,13 +12,17 @@ from collections.abc import Iterator
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
+from rclpy.lifecycle import TransitionCallbackReturn
 from ros_rig import RosRig
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from test_dynamixel_driver import Rig
 
 from msg_adapters import names, status_report
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
 from t42_transfer.hardware.servos import TORQUE_OFF
-from t42_transfer.nodes.dynamixel_driver import STATUS_NAME
+from t42_transfer.nodes.dynamixel_driver import STATUS_NAME, DynamixelDriver
+from t42_transfer.ros.qos import profile
 
 pytestmark = pytest.mark.events_executor
 
@@ -70,3 +74,18 @@ def test_a_servo_that_restarted_while_active_is_a_fault_and_its_torque_comes_bac
                                           for d in diagnostics), 2.0)
     assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
     assert rig.bench.torque() == [True, True]
+
+
+def test_a_second_driver_on_the_port_is_refused_as_in_use_and_the_first_holds_on(rig: Rig) -> None:
+    """A params-file slip: a second driver (another namespace) on the same port.  Its configure wrote Torque
+    Enable 0 to the servos the first held; now the port is opened exclusively and its configure fails, saying so."""
+    other = rig.ros.add(DynamixelDriver, {"port": rig.bench.bus.port, "latency_timer_ms": EMULATED_LATENCY_TIMER_MS},
+                        namespace="/other")
+    theirs = rig.listen(String, f"/other/{names.HAND_STATUS}", profile(names.EVENTS))
+    handled = rig.bench.bus.bus.handled
+    assert other.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert rig.ros.spin_until(lambda: bool(theirs), 2.0)
+    assert f"fault: configure failed: port: {rig.bench.bus.port} is in use by another program" in theirs[-1].data
+    rig.ros.spin_for(0.5)
+    assert rig.bench.torque() == [True, True] and rig.driver.fault is None and names.FAULT not in rig.events()
+    assert rig.bench.bus.bus.handled > handled  # the first steps on

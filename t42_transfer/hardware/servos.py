@@ -14,6 +14,7 @@ which burns the CPU for the whole round trip of every exchange.
 from __future__ import annotations
 
 import contextlib
+import errno
 import termios
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -89,13 +90,37 @@ SDK_LATENCY_TIMER_MS = 16.0
 """The USB adapter's latency timer dynamixel-sdk assumes (FTDI's default) when it times an answer out."""
 
 
+class PortInUse(OSError):
+    """The port is held by another program (:class:`_Port` opens it exclusively)."""
+
+
 class _Port(PortHandler):
     """dynamixel-sdk's port with the adapter's real latency timer in its answer timeout (the SDK fixes 16 ms):
-    an adapter set to 1 ms times out sooner, a slow link (an emulated bus on a busy machine) later."""
+    an adapter set to 1 ms times out sooner, a slow link (an emulated bus on a busy machine) later; and opened
+    exclusively: pyserial's ``exclusive`` locks it (``flock``) before it touches the line's settings, so a second
+    program of ours (another driver, ``t42 hw read``) is refused instead of resetting the baud rate and writing
+    to servos the driver holds.  (The lock is advisory: a program that does not ask for it, Dynamixel Wizard say,
+    still opens the port.)"""
 
     def __init__(self, name: str, latency_timer_ms: float) -> None:
         super().__init__(name)
         self.extra_ms = 2.0 * (latency_timer_ms - SDK_LATENCY_TIMER_MS)
+
+    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802 (dynamixel-sdk's name; its own, exclusive=True)
+        if self.is_open:
+            self.closePort()
+        try:
+            self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
+                                     timeout=0, exclusive=True)
+        except serial.SerialException as err:
+            if err.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise PortInUse(err.errno, "in use by another program (a driver, t42 hw read or reboot?); "
+                                           f"fuser -v {self.port_name} names it") from None
+            raise
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
 
     def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (dynamixel-sdk's name)
         super().setPacketTimeout(packet_length)
@@ -122,6 +147,8 @@ class HandServos:
             opened = port.openPort() and port.setBaudRate(self.baud)
             if opened:
                 port.ser.timeout = READ_WAIT_S
+        except PortInUse as err:
+            raise ServoFault(PORT, None, f"{self.port_name} is {err.strerror}") from None
         except _PORT_ERRORS as err:
             raise ServoFault(PORT, None, f"cannot open {self.port_name}: {err}") from None
         if not opened:

@@ -2,7 +2,8 @@
 
 Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
 
-* configure: open ``port`` at ``baud``, ping both servos (an XM430-W350 each), torque off, set the
+* configure: open ``port`` at ``baud`` (exclusively: a second driver or ``t42 hw`` on it is refused as in use until
+  cleanup), ping both servos (an XM430-W350 each), torque off, set the
   operating mode and the position limits, read where the fingers stand;
 * activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
 * deactivate: hold the position, stop stepping (torque stays on);
