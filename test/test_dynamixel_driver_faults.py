@@ -89,3 +89,26 @@ def test_a_second_driver_on_the_port_is_refused_as_in_use_and_the_first_holds_on
     rig.ros.spin_for(0.5)
     assert rig.bench.torque() == [True, True] and rig.driver.fault is None and names.FAULT not in rig.events()
     assert rig.bench.bus.bus.handled > handled  # the first steps on
+
+
+def test_while_inactive_the_servos_are_read_each_second_and_a_fault_is_said_and_recovered(rig: Rig) -> None:
+    """Deactivated, the servos hold the grasp with their torque on; nothing was read or said until activate."""
+    diagnostics = rig.listen(DiagnosticArray, names.DIAGNOSTICS)
+    assert rig.transition(Transition.TRANSITION_DEACTIVATE)
+    rig.ros.spin_for(2.2)
+    said = [status_report(d, STATUS_NAME).message for d in diagnostics]
+    assert said.count("inactive: torque on, holding") >= 2, said
+    rig.bench.bus.bus.faults.dead.add(1)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.5), rig.events()
+    assert "timeout on servo 1" in rig.statuses[-1].data
+    rig.bench.bus.bus.faults.dead.clear()
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
+    assert rig.state() == "inactive" and rig.bench.torque() == [True, True]
+    # configured, never activated: the torque is off, and recovery leaves it so
+    assert rig.transition(Transition.TRANSITION_CLEANUP) and rig.transition(Transition.TRANSITION_CONFIGURE)
+    rig.forget()
+    rig.bench.bus.bus.faults.dead.add(2)
+    assert rig.ros.spin_until(lambda: names.FAULT in rig.events(), 2.5), rig.events()
+    rig.bench.bus.bus.faults.dead.clear()
+    assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
+    assert rig.bench.torque() == [False, False]

@@ -49,9 +49,11 @@ and the error bits decoded; so is a configure that fails (no port, a port that i
 another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes, and
 ``recovered`` once a configure passes).  A command
 refused or cut short (clamped at a position limit, a finger held for its load) says ``refused`` on
-``hand/status`` as on /rosout, at most once a second per kind.  Recovery is automatic: once a second the
-driver reopens the port if it went, pings, reboots a servo that raised an error bit, turns the torque back on
-and holds; ``recovered`` then says the hand is back (a reset starts the next episode).  Late steps are counted
+``hand/status`` as on /rosout, at most once a second per kind.  A Hardware Error Status bit latches: the servo is
+never rebooted by the driver, the fault stays until cleanup and configure (:mod:`t42_transfer.driver.faults`).  From
+the others recovery is automatic: once a second the driver reopens the port if it went, pings, turns the torque
+back on and holds; ``recovered`` then says the hand is back (a reset starts the next episode).  While inactive the
+servos are read once a second (the torque may be on, holding a grasp), faults said as while active.  Late steps are counted
 and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
 data); a tick whose stamp would come less than half a period after the last step's (a timer catching up after a
 late one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on
@@ -92,6 +94,7 @@ from msg_adapters import (
 )
 from t42_transfer.conventions import CONTROL_PERIOD_S, MM_PER_M
 from t42_transfer.driver.commands import ActionQueue, accept, validate_command, validate_trajectory
+from t42_transfer.driver.faults import RETRY_PERIOD_S, FaultState, latched_hint, recover
 from t42_transfer.driver.pose import DropWatch, NewestPose
 from t42_transfer.driver.servo_hand import Grasp, ServoHand
 from t42_transfer.driver.timing import StepTiming, step_timing
@@ -110,7 +113,6 @@ REFUSED = "refused"
 """``hand/status`` word of a command refused or cut short: a goal clamped at the position limits, a finger not
 closed for its load over the limit, a command or trajectory rejected (NaN, wrong names, stale); at most a line a
 second per kind, as on /rosout.  It neither ends nor splits an episode."""
-RETRY_PERIOD_S = 1.0
 PORT_GRACE_S = 10.0
 """How long ``autostart`` waits quietly for a port that does not exist yet (``t42 up`` starts an emulator beside the
 driver; an adapter is plugged in) before a missing port is a fault."""
@@ -159,14 +161,15 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self.late_steps = 0
         self.skipped_ticks = 0
         """Timer ticks that came less than half a period after a step (after a late one) and did not step."""
-        self.fault: ServoFault | None = None
+        self._faults = FaultState()
+        self._torque_wanted = False
+        """Whether the hand has its torque on (activate turned it on; deactivate keeps it): recovery restores it."""
         self._grasp: Grasp | None = None
         self._grasp_answer: Pending | None = None
         self._stepping = False
         self._last_stamp = 0
         self.pose = NewestPose()
         self.drops = DropWatch()
-        self._next_retry_s = 0.0
         self._ticks = 0
         pub, sub = {"event_callbacks": _NO_PUB_EVENTS}, {"event_callbacks": _NO_SUB_EVENTS}
         self._pose_pub = self.create_publisher(PoseStamped, names.OBJECT_POSE, 10, **pub)
@@ -218,6 +221,11 @@ class DynamixelDriver(DestroyableLifecycleNode):
     @property
     def params(self) -> DynamixelDriverParams:
         return self._params.value
+
+    @property
+    def fault(self) -> ServoFault | None:
+        """The fault held (None: none)."""
+        return self._faults.fault
 
     def now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -296,7 +304,7 @@ class DynamixelDriver(DestroyableLifecycleNode):
             self.log.error(f"activate failed: {err}")
             self._need_hand().servos.set_torque(False)  # inactive again: no servo left on
             return TransitionCallbackReturn.FAILURE
-        self._stepping = True
+        self._stepping = self._torque_wanted = True
         self.log.info("active: torque on, holding; call hand/reset to grasp")
         return super().on_activate(state)
 
@@ -334,8 +342,8 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self._stop_episode("the driver stopped")
         hand, self.hand = self.hand, None
         self._servo_limits_rad = None
-        fault, self.fault = self.fault, None  # a configure starts over: the next fault is the new hand's
-        self._next_retry_s = 0.0
+        self._torque_wanted = False
+        fault = self._faults.clear()  # a configure starts over: the next fault is the new hand's
         if fault is not None and not self._configure_error:  # the next configure that passes says recovered
             self._configure_error = f"fault: {fault}"
         if hand is None:
@@ -410,17 +418,25 @@ class DynamixelDriver(DestroyableLifecycleNode):
 
     # ------------------------------------------------------------------ steps
     def _on_timer(self) -> None:
-        if not self._stepping:
+        """Active: a step each period.  Inactive (configured), a health read a second with diagnostics: the
+        servos may hold a grasp with their torque on.  A fault held: a retry when due (a latched one: said again)."""
+        if self.hand is None:
             return
         self._ticks += 1
-        if self._ticks % DIAGNOSTICS_EVERY == 0 and self.fault is None:
-            stale = self.pose.stale
-            self._publish_diagnostics("WARN" if stale else "OK", "stale object pose" if stale else "stepping")
+        second = self._ticks % DIAGNOSTICS_EVERY == 0
         try:
             if self.fault is not None:
-                self._try_recover(time.monotonic())  # a port is retried on the wall clock, whatever the graph's
-                return
-            self.step()
+                if self._faults.due(time.monotonic()):  # on the wall clock, whatever the graph's
+                    self._try_recover()
+            elif self._stepping:
+                if second:
+                    stale = self.pose.stale
+                    self._publish_diagnostics("WARN" if stale else "OK", "stale object pose" if stale else "stepping")
+                self.step()
+            elif second:
+                self.hand.read()
+                self._publish_diagnostics("OK", "inactive: " + ("torque on, holding" if self._torque_wanted
+                                                                  else "torque off"))
         except ServoFault as err:
             self._on_fault(err)
         except Exception as err:  # a bug must not leave the hand moving
@@ -517,15 +533,15 @@ class DynamixelDriver(DestroyableLifecycleNode):
     # ------------------------------------------------------------------ faults
     def _on_fault(self, fault: ServoFault) -> None:
         """A fault, or a retry that failed: on /rosout and ``hand/status`` when its cause (kind and servo) differs
-        from the one held (a retry failing the same way every second says so on ``diagnostics`` only)."""
-        held = self.fault
-        new = held is None or (fault.kind, fault.servo_id) != (held.kind, held.servo_id)
-        self.fault = fault
+        from the one held (a retry failing the same way every second says so on ``diagnostics`` only).  A hardware
+        error bit latches (:mod:`t42_transfer.driver.faults`): no retry until the operator acts."""
+        new = self._faults.hold(fault, time.monotonic())
         self._stop_episode(str(fault))
-        self._next_retry_s = time.monotonic() + RETRY_PERIOD_S
         if new:
-            self.log.error(f"{fault}; holding, retrying every {RETRY_PERIOD_S:g} s")
-            self._status(names.FAULT, str(fault))
+            then = latched_hint(self.params.port) if self._faults.latched else \
+                f"retrying every {RETRY_PERIOD_S:g} s"
+            self.log.error(f"{fault}; holding, {then}")
+            self._status(names.FAULT, f"{fault}; {then}" if self._faults.latched else str(fault))
         self._publish_diagnostics("ERROR", str(fault))
         if self.hand is not None:
             try:
@@ -533,25 +549,14 @@ class DynamixelDriver(DestroyableLifecycleNode):
             except ServoFault:
                 pass
 
-    def _try_recover(self, now_s: float) -> None:
-        if now_s < self._next_retry_s:
-            return
-        self._next_retry_s = now_s + RETRY_PERIOD_S
-        hand = self._need_hand()
+    def _try_recover(self) -> None:
         fault = self.fault
         assert fault is not None
-        servos = hand.servos
-        if fault.kind == PORT:
-            servos.close()
-            servos.open()
-        servos.check()
-        for i in servos.ids:
-            if servos.hardware_status(i):
-                servos.reboot(i)
-        servos.torque(True)
-        hand.start_from_present()
-        hand.hold()
-        self.fault = None
+        if self._faults.latched:  # said again on diagnostics each second; the servos are left alone
+            self._publish_diagnostics("ERROR", f"{fault}; {latched_hint(self.params.port)}")
+            return
+        recover(self._need_hand(), fault, self._torque_wanted)
+        self._faults.clear()
         self.log.info(f"recovered from: {fault}")
         self._status(names.RECOVERED, f"after {fault}; the hand holds (call hand/reset for a new episode)")
         self._publish_diagnostics("OK", f"back from: {fault}")
