@@ -53,8 +53,8 @@ refused or cut short (clamped at a position limit, a finger held for its load) s
 never rebooted by the driver, the fault stays until cleanup and configure (:mod:`t42_transfer.driver.faults`).  From
 the others recovery is automatic: once a second the driver reopens the port if it went, pings, turns the torque
 back on and holds; ``recovered`` then says the hand is back (a reset starts the next episode).  While inactive the
-servos are read once a second (the torque may be on, holding a grasp), faults said as while active.  Late steps are counted
-and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
+servos are read once a second (the torque may be on, holding a grasp), faults said as while active.  Late steps are
+counted and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
 data); a tick whose stamp would come less than half a period after the last step's (a timer catching up after a
 late one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on
 the stamps published, taken after the read (:mod:`t42_transfer.driver.timing`).
