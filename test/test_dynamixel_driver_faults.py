@@ -13,6 +13,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition
 from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.parameter import Parameter
 from ros_rig import RosRig
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -112,3 +113,22 @@ def test_while_inactive_the_servos_are_read_each_second_and_a_fault_is_said_and_
     rig.bench.bus.bus.faults.dead.clear()
     assert rig.ros.spin_until(lambda: names.RECOVERED in rig.events(), 3.0), rig.events()
     assert rig.bench.torque() == [False, False]
+
+
+def test_configure_refuses_a_finger_standing_outside_its_range_naming_its_tick_and_open_ticks(ros: RosRig) -> None:
+    """open_ticks not this hand's: the fingers stand open at tick 2048, the driver thinks open is 2200.  Configure
+    and activate passed, and activate's goals (clamped onto the range) closed the fingers by themselves."""
+    r = Rig(ros)
+    try:
+        for name, value in (("max_angle_rad", [2.5, 2.5]), ("open_ticks", [2200, 2200])):
+            assert r.driver.set_parameters([Parameter(name, value=value)])[0].successful
+        assert not r.transition(Transition.TRANSITION_CONFIGURE)
+        assert r.ros.spin_until(lambda: names.FAULT in r.events(), 2.0), r.events()
+        said = r.statuses[-1].data
+        assert "servo 1 stands at tick 2048, outside its range 2200..3830 (open_ticks 2200" in said, said
+        assert r.state() == "unconfigured" and r.bench.torque() == [False, False] and r.driver.hand is None
+        assert r.driver.set_parameters([Parameter("open_ticks", value=[2080, 2080])])[0].successful
+        assert r.transition(Transition.TRANSITION_CONFIGURE)  # 32 ticks (0.05 rad) out: a slack tendon, accepted
+    finally:
+        r.driver.close()
+        r.bench.close()

@@ -23,6 +23,10 @@ from t42_transfer.hardware.servos import HandServos
 
 MAX_TRAVEL_RAD = 4.0
 """How far a T42 finger's servo turns from open to fully closed on its tendon."""
+RANGE_MARGIN_RAD = 0.1
+"""How far outside [0, max_angle_rad] a finger may stand at configure (about 65 ticks; a slack tendon lets an open
+finger's servo sit a little below its open tick): activate sets the goals where the fingers stand, clamped onto the
+range, so a finger further out would move there by itself."""
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,21 @@ class ServoHand:
         """Goals where the servos stand (after configure, before torque: nothing moves when it comes on)."""
         self.read()
         self.goal = np.array(self.geometry.clamp(self.angles))
+
+    def check_range(self, margin_rad: float = RANGE_MARGIN_RAD) -> None:
+        """ValueError naming a servo that stands (at the last read) more than ``margin_rad`` outside its range: the
+        goal activate gives it, clamped onto the range, would move its finger (``open_ticks`` not this hand's, most
+        likely)."""
+        g = self.geometry
+        ticks, limits = g.positions(self.angles), g.limits()
+        for k, i in enumerate(g.servo_ids):
+            if -margin_rad <= self.angles[k] <= g.max_angle_rad[k] + margin_rad:
+                continue
+            raise ValueError(
+                f"servo {i} stands at tick {ticks[i]}, outside its range {limits[i][0]}..{limits[i][1]} (open_ticks "
+                f"{g.open_ticks[k]}, directions {g.directions[k]:+d}, max_angle_rad {g.max_angle_rad[k]:g}) by more "
+                f"than {margin_rad:g} rad: activate would move the finger there. Read the servos with t42 hw read, "
+                "the finger open, and set open_ticks (and directions) to this hand's")
 
     def apply(self, action: np.ndarray) -> str:
         """Move by ``action`` (one sync write); why part of it was not applied ("" when all of it was)."""

@@ -4,7 +4,8 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
 
 * configure: open ``port`` at ``baud`` (exclusively: a second driver or ``t42 hw`` on it is refused as in use until
   cleanup), ping both servos (an XM430-W350 each), torque off, set the
-  operating mode and the position limits, read where the fingers stand;
+  operating mode and the position limits, read where the fingers stand (a finger more than 0.1 rad outside its
+  range is refused: activate would move it);
 * activate: torque on, goals where the fingers stand (nothing moves), then step every control period;
 * deactivate: hold the position, stop stepping (torque stays on);
 * cleanup and shutdown: torque off, close the port;
@@ -263,13 +264,14 @@ class DynamixelDriver(DestroyableLifecycleNode):
             models = servos.check()
             geometry = p.geometry()
             servos.configure(xm.POSITION_MODE, geometry.limits())
-            self.hand = ServoHand(servos, geometry)
-            self._servo_limits_rad = geometry.max_angle_rad
-            self.hand.start_from_present()
+            hand = ServoHand(servos, geometry)
+            hand.start_from_present()
+            hand.check_range()  # activate would move a finger standing outside its range
         except (ServoFault, ValueError) as err:
             servos.close()
             self._configure_failed(err)
             return TransitionCallbackReturn.FAILURE
+        self.hand, self._servo_limits_rad = hand, geometry.max_angle_rad
         if self._configure_error:  # said on hand/status (latched): a late joiner hears that it passed
             self._status(names.RECOVERED, f"configured {p.port} after: {self._configure_error}")
             self._publish_diagnostics("OK", f"configured after: {self._configure_error}")
