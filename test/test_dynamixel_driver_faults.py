@@ -7,6 +7,10 @@ rclpy's EventsExecutor, the lifecycle through the stock services).
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -20,7 +24,7 @@ from std_srvs.srv import Trigger
 from test_dynamixel_driver import Rig
 
 from msg_adapters import names, status_report
-from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS
+from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, PtyBus, t42_bus
 from t42_transfer.hardware.servos import TORQUE_OFF
 from t42_transfer.nodes.dynamixel_driver import STATUS_NAME, DynamixelDriver
 from t42_transfer.ros.qos import profile
@@ -132,3 +136,34 @@ def test_configure_refuses_a_finger_standing_outside_its_range_naming_its_tick_a
     finally:
         r.driver.close()
         r.bench.close()
+
+
+def test_a_hangup_stops_the_driver_process_cleanly_with_the_torque_off(ros_domain: int) -> None:
+    """SIGHUP (the terminal or ssh session closed) ended ``t42 node dynamixel_driver`` at once, the torque left on;
+    now it stops it as SIGINT does.  In this process (run_node as ``t42 node`` runs it): a SIGHUP that reaches the
+    handler set before run_node's is one run_node left alone (the handler then stops it with SIGINT)."""
+    from t42_transfer.ros.runner import run_node
+
+    left_alone: list[int] = []
+
+    def before(signum: int, frame: object) -> None:
+        left_alone.append(signum)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    previous = signal.signal(signal.SIGHUP, before)
+    try:
+        with PtyBus(t42_bus()) as bus:
+            def hang_up() -> None:
+                deadline = time.monotonic() + 30.0
+                while not all(s.torque for s in bus.bus.servos.values()) and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                time.sleep(0.3)  # a few steps
+                os.kill(os.getpid(), signal.SIGHUP)
+
+            threading.Thread(target=hang_up, daemon=True).start()
+            code = run_node("dynamixel_driver", ["--ros-args", "-p", f"port:={bus.port}", "-p", "autostart:=true",
+                                                 "-p", f"latency_timer_ms:={EMULATED_LATENCY_TIMER_MS}"])
+            assert (code, left_alone) == (0, [])
+            assert [s.torque for s in bus.bus.servos.values()] == [False, False]
+    finally:
+        signal.signal(signal.SIGHUP, previous)

@@ -283,7 +283,12 @@ class Lines:
         import threading
 
         self.lines: list[str] = []
-        threading.Thread(target=lambda: self.lines.extend(iter(proc.stdout.readline, "")), daemon=True).start()
+        self._reader = threading.Thread(target=lambda: self.lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+        self._reader.start()
+
+    def reading(self) -> bool:
+        """Whether the output has not ended yet."""
+        return self._reader.is_alive()
 
     def pids(self, name: str) -> list[int]:
         """Every pid ``t42 up`` started ``name`` with, in order."""
@@ -354,6 +359,40 @@ def test_t42_up_no_respawn_stops_everything_when_a_node_dies(tmp_path: Path, ros
     assert out.wait(lambda: any("recorder exited with code -9 unexpectedly (no respawn): stopping the others" in line
                                 for line in out.lines), 5.0), out.lines
     assert len(out.pids("recorder")) == 1
+
+
+@pytest.mark.parametrize("sig", [signal.SIGHUP, signal.SIGKILL], ids=["SIGHUP", "SIGKILL"])
+def test_t42_up_stops_its_nodes_on_a_hangup_and_they_stop_should_it_be_killed(tmp_path: Path, ros_domain: int,
+                                                                             sig: int) -> None:
+    """SIGHUP (the terminal or ssh session closed) ended `t42 up` at once and left its nodes running orphaned, a
+    driver holding its servos; now it stops them as Ctrl-C does.  Killed (SIGKILL, a crash), it cannot: each node
+    then gets SIGTERM from the kernel (PR_SET_PDEATHSIG) and stops."""
+    from t42_transfer.ros.runner import RUNNING
+
+    config = _suite_copy(tmp_path, out_dir=str(tmp_path / "recordings"))
+    proc = subprocess.Popen([*T42, "up", str(config), "--only", "mock_driver"], cwd=tmp_path, env=unbuffered_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out = Lines(proc)
+    try:
+        assert out.wait(lambda: any(line.startswith("[mock_driver]") and RUNNING in line for line in out.lines),
+                        30.0), out.lines
+        (child,) = out.pids("mock_driver")
+        proc.send_signal(sig)
+        code = proc.wait(timeout=30)
+        assert out.wait(lambda: not _alive(child), 10.0), f"mock_driver (pid {child}) still runs"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for pid in out.pids("mock_driver"):  # (a node that outlived it: not left running after the test)
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        out.wait(lambda: proc.stdout.closed or not out.reading(), 5.0)
+        proc.stdout.close()
+    if sig == signal.SIGHUP:
+        assert code == 0 and any("[t42 up] stopping" in line for line in out.lines), out.lines
+        assert out.wait(lambda: any("[mock_driver]" in line and "shut down cleanly" in line for line in out.lines),
+                        2.0), out.lines
 
 
 def test_t42_up_rejects_unknown_sections_and_only(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -5,8 +5,11 @@ Each node with its own section in the params file runs as
 :func:`namespace_args` when a namespace is given), in its
 own session (so a terminal's Ctrl-C reaches only this supervisor, which then
 stops the children in order).  Their output is forwarded line by line, prefixed
-``[<name>]``.  On SIGINT/SIGTERM every child gets SIGINT, then SIGTERM after
-``stop_timeout_s``, then SIGKILL.  A child that exits on its own after running a
+``[<name>]``.  On SIGINT, SIGTERM or SIGHUP (the terminal or ssh session closed)
+every child gets SIGINT, then SIGTERM after ``stop_timeout_s``, then SIGKILL.
+Should the supervisor itself die (SIGKILL, a crash), each child gets SIGTERM
+from the kernel and stops cleanly (:func:`~t42_transfer.ros.runner.stop_with_supervisor`).
+A child that exits on its own after running a
 while is restarted alone, as launch's ``respawn`` does: after 1 s, then 2, 4, 8 s
 for each further restart, at most ``max_respawns`` times; the others keep running
 (a restarted recorder begins a new bag, a restarted driver grasps on the next reset,
@@ -34,7 +37,7 @@ from typing import IO, Any, TextIO, TypeVar
 from msg_adapters import names
 from t42_transfer.config import show
 from t42_transfer.nodes.registry import NODES
-from t42_transfer.ros.runner import RUNNING, keep_discovery_local
+from t42_transfer.ros.runner import RUNNING, STOP_SIGNALS, SUPERVISOR_ENV, keep_discovery_local
 from t42_transfer.yaml_files import read_yaml
 
 PACKAGE = "t42_transfer"
@@ -274,8 +277,9 @@ class Supervisor:
         cmd += namespace_args(self.namespace)
         for override in overrides:
             cmd += ["-p", override]
+        env = dict(os.environ if self.env is None else self.env, **{SUPERVISOR_ENV: str(os.getpid())})
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                bufsize=1, start_new_session=True, env=self.env)
+                                bufsize=1, start_new_session=True, env=env)
         child = Child(name, proc, threading.Thread(), overrides, time.monotonic())
         child.forwarder = threading.Thread(target=_forward, args=(child, proc.stdout, self.out, self._lock),
                                            daemon=True)
@@ -317,8 +321,8 @@ class Supervisor:
 
 def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
        out: TextIO | None = None, namespace: str = "", respawn: bool = True, max_respawns: int = MAX_RESPAWNS) -> int:
-    """Run the nodes of params file ``config`` until SIGINT/SIGTERM or a child fails (see the module docstring);
-    the exit code."""
+    """Run the nodes of params file ``config`` until SIGINT, SIGTERM or SIGHUP, or a child fails (see the module
+    docstring); the exit code."""
     names = plan_nodes(config, only)
     supervisor = Supervisor(config, out, stop_timeout_s, namespace=namespace)
     supervisor.say(f"discovery range {keep_discovery_local()}, ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}")
@@ -327,7 +331,7 @@ def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: fl
     def on_signal(signum: int, frame: FrameType | None) -> None:
         stop.set()
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
     failed: list[str] = []
     respawner = _Respawner(supervisor, max_respawns if respawn else 0)
     try:

@@ -4,7 +4,8 @@
 t42_transfer NAME``) both end here.  rclpy takes the whole argument list
 (remapping, namespaces, ``-p``, ``--params-file``, ``--log-level``,
 ``use_sim_time``); the node declares its parameters.  The node spins on the
-executor :func:`make_executor` picks for it until SIGINT or SIGTERM, or until a
+executor :func:`make_executor` picks for it until SIGINT, SIGTERM or SIGHUP (its terminal or ssh session gone), or
+until a
 node with a ``finished`` property (the explorer) is done; then the node's
 ``close()`` runs (a recorder finishes its bag) and the process exits 0.  A bad
 command line or parameter exits 2 with one ``t42: error: ...`` line.  An exception
@@ -29,6 +30,11 @@ DISCOVERY_ENV = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 TEARDOWN_TIMEOUT_S = 8.0
 """How long releasing rclpy's handles may take after the node closed before the process exits regardless."""
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""What stops a node (and ``t42 up``) cleanly: Ctrl-C, ``kill``, and the terminal or ssh session closing (SIGHUP's
+default would end the process at once, a driver's torque left on)."""
+SUPERVISOR_ENV = "T42_SUPERVISOR_PID"
+"""Set by ``t42 up`` for its children (:func:`stop_with_supervisor`)."""
 RUNNING = "SIGINT or SIGTERM stops"
 """The end of a node's first log line once it runs (t42 up reads it: a node stopped before it is a start cut
 short, not an unclean stop)."""
@@ -141,12 +147,32 @@ def run_node(name: str, argv: Sequence[str]) -> int:
         stop.set()
 
     # Caught from the start: a stop during the (slow) imports still ends in a clean close.
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
+    stop_with_supervisor(stop)
     try:
         return _run(name, list(argv), stop)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+PR_SET_PDEATHSIG = 1
+
+
+def stop_with_supervisor(stop: threading.Event) -> None:
+    """A child of ``t42 up`` (:data:`SUPERVISOR_ENV` names its pid) gets SIGTERM when the supervisor dies, however
+    it dies (SIGKILL, a crash), and so stops cleanly instead of running on orphaned (Linux: ``prctl``'s
+    PR_SET_PDEATHSIG); one whose supervisor died before this ran stops at once.  The variable is taken out of the
+    environment: a process this one starts is not ``t42 up``'s child."""
+    supervisor = os.environ.pop(SUPERVISOR_ENV, "")
+    if not supervisor.isdigit():
+        return
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    if os.getppid() != int(supervisor):  # it died before the prctl: no signal will come
+        stop.set()
 
 
 def main() -> int:
