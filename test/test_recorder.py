@@ -650,3 +650,97 @@ def test_a_full_disk_is_reported_once_and_recording_resumes_when_space_returns(r
     hand.settle()
     assert len(read_bag(rec.bags[-1])[0]) == 20  # a new bag records once there is room
     rec.close()
+
+
+def _error_reports(hand: Hand) -> list[str]:
+    """The recorder's ERROR messages on diagnostics, as they come."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from msg_adapters import status_report
+    from t42_transfer.nodes.recorder import STATUS_NAME
+
+    errors: list[str] = []
+
+    def on_report(msg: DiagnosticArray) -> None:
+        report = status_report(msg, STATUS_NAME)
+        if report is not None and report.level == "ERROR":
+            errors.append(report.message)
+
+    hand.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_report, 100)
+    return errors
+
+
+def test_out_dir_removed_while_recording_is_a_reported_write_failure_and_a_new_bag_records(ros, tmp_path):
+    """``rm -rf out_dir`` under a recorder: the bag being written is lost. A split that cannot close it, and the
+    next flush, which finds its file gone, say so (ERROR on diagnostics), and a new bag records at once."""
+    import shutil
+
+    out = tmp_path / "bags"
+    rec = add_recorder(ros, out, step_hold_s=1.0, flush_period_s=30.0)
+    hand = Hand(ros, rec)
+    errors = _error_reports(hand)
+    t0 = now_ns()
+    hand.episode(t0, 3, last_state=False)
+    shutil.rmtree(out)  # before a flush noticed: the split's close fails
+    reply = hand.call("split")
+    assert not reply.success and "closing" in reply.message and "failed" in reply.message
+    assert ros.spin_until(lambda: any("closing" in e for e in errors), 5.0), errors
+    assert rec.current_bag == out / "recording_000" and rec.bags == []  # a new bag, out_dir made again
+
+    hand.episode(t0 + 10 * CONTROL_PERIOD_NS, 3, last_state=False)
+    shutil.rmtree(out)  # now the flush finds the file gone
+    rec.set_parameters([Parameter("flush_period_s", value=0.1)])
+    assert ros.spin_until(lambda: any("was removed" in e for e in errors), 5.0), errors
+    assert ros.spin_until(lambda: rec.recording and out.is_dir(), 5.0)
+    assert rec.write_failure is None
+    start = t0 + 20 * CONTROL_PERIOD_NS
+    expected = hand.episode(start, 16)
+    assert hand.call("stop").success
+    hand.settle()  # the final state is written after step_hold_s, then the bag closes
+    assert rec.bags == [out / "recording_000"]
+    check_episode(read_bag(rec.bags[0]).trajectories[0], expected, start)
+
+
+def test_a_bag_name_another_writer_took_is_passed_over_and_a_bag_that_does_not_open_is_a_write_failure(
+        ros, tmp_path, monkeypatch):
+    """Two recorders on one out_dir race for the next name (rosbags raises WriterError, no OSError, for a path
+    that exists): the loser takes the next name and goes on recording. Any other failure to open a bag is a
+    write failure, which ~/start ends."""
+    import t42_transfer.data.bag.recording as recording
+    import t42_transfer.nodes.recorder as recorder
+
+    real_name, real_writer, race = recorder.next_bag_path, recording.BagWriter, [False]
+
+    def taken_first(out_dir, prefix):  # the other writer makes the directory between the choice and the open
+        path = real_name(out_dir, prefix)
+        if race[0]:
+            race[0] = False
+            path.mkdir()
+        return path
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the storage plugin fails")
+
+    monkeypatch.setattr(recorder, "next_bag_path", taken_first)
+    rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=1.0, resume_free_mb=1e6)  # no resume on room
+    hand = Hand(ros, rec)
+    t0 = now_ns()
+    hand.episode(t0, 3, last_state=False)
+    race[0] = True
+    hand.status(status_message("reset", "episode 1", t0 + 2 * CONTROL_PERIOD_NS))
+    hand.settle()
+    assert rec.current_bag == tmp_path / "episode_002" and rec.write_failure is None
+
+    monkeypatch.setattr(recording, "BagWriter", broken)
+    hand.episode(t0 + 3 * CONTROL_PERIOD_NS, 3, last_state=False)
+    assert hand.call("split").success
+    hand.settle()  # after the step in progress: the bag closes, the next does not open
+    assert not rec.recording and "storage plugin fails" in (rec.write_failure or "")
+    monkeypatch.setattr(recording, "BagWriter", real_writer)
+    reply = hand.call("start")
+    assert reply.success and rec.current_bag == tmp_path / "episode_003", reply.message
+    start = t0 + 10 * CONTROL_PERIOD_NS
+    expected = hand.episode(start, 16)
+    rec.close()
+    assert rec.bags[-1] == tmp_path / "episode_003"
+    check_episode(read_bag(rec.bags[-1]).trajectories[0], expected, start)

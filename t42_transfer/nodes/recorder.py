@@ -29,76 +29,59 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   of its first and last message), ``reason``: ``stop``, ``split``, the status word that split it in episode
   mode (``reset``, ``dropped``...), ``write_failed`` (a full disk; only if the bag could still be
   finalised), ``shutdown`` or ``snapshot``.  A relative name, as rosbag2's ``events/write_split``;
-* ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes
-  (a driver's ``late`` word there tells a reader that a step came late and none is
-  missing); in ``mode="episode"`` a status whose first word is in
-  ``params.split_on`` also splits the bag, so each bag holds one episode (see
-  "Steps" for where).  Statuses and events go only into a bag that holds a step
-  (:mod:`~t42_transfer.nodes.recorder_loose`);
+* ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes (a driver's ``late``
+  word there tells a reader that a step came late and none is missing); in ``mode="episode"`` a status whose first
+  word is in ``params.split_on`` also splits the bag, so each bag holds one episode (see "Steps" for where).  Statuses
+  and events go only into a bag that holds a step (:mod:`~t42_transfer.nodes.recorder_loose`);
 * ``~/snapshot`` (std_srvs/srv/Trigger), snapshot mode (``snapshot_s`` > 0, rosbag2's ``--snapshot-mode``): the
   whole steps of the last ``snapshot_s`` seconds are kept in memory and written as a bag in
   ``out_dir/snapshots`` on the service or a ``snapshot_on`` status (:mod:`~t42_transfer.nodes.recorder_snapshot`).
 
-Steps.  A control step is the state (object pose and joint states) and the action
-applied from it, all with ONE header stamp (the mock driver's and the bag
-convention of :mod:`t42_transfer.data.bag`).  Each topic has its own queue, so
-the messages of a step arrive in any order and interleaved with the next step's;
-a bag begun or ended "now" could hold an action without its state (a transfer
-refuses such a bag).  So messages are grouped by stamp (:class:`StepBuffer`) and
-whole steps are written, in stamp order (:mod:`t42_transfer.data.bag.steps`).  A step is complete once every recorded
-topic has either delivered its message for the stamp or already delivered a
-later one (one publisher per topic delivers in order, so nothing more will come
-for it); a step still incomplete ``params.step_hold_s`` after its first message
-(an episode's final state waits for an action that never comes) is written as it
-is once no message has arrived for ``step_hold_s / 2`` (while messages keep
-coming, a backlog is being worked through and the rest of the step may be in it)
-when it holds the whole state, and after ``HOLD_CAP * step_hold_s`` in any case (a topic that
-went silent).  A step lacking part of its state is not written on silence alone: a
-driver stalled between its messages (a loaded machine) is silent too.  A message that
-comes after its step was written joins the step in its bag while that bag is open and
-the step lacks the topic (a reader aligns a bag's messages by stamp, not by order); one
-for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag
-changes happen between steps:
+Steps.  A control step is the state (object pose and joint states) and the action applied from it, all with ONE header
+stamp (the mock driver's and the bag convention of :mod:`t42_transfer.data.bag`).  Each topic has its own queue, so
+the messages of a step arrive in any order and interleaved with the next step's; a bag begun or ended "now" could hold
+an action without its state (a transfer refuses such a bag).  So messages are grouped by stamp (:class:`StepBuffer`)
+and whole steps are written, in stamp order, once complete: every recorded topic delivered its message for the stamp
+or a later one, or ``params.step_hold_s`` passed as :mod:`t42_transfer.data.bag.steps` says (an episode's final state
+waits for an action that never comes; a step lacking part of its state waits up to ``HOLD_CAP`` times that: a driver
+stalled between its messages is silent too).  A message that comes after its step was written joins the step in its
+bag while that bag is open and the step lacks the topic (a reader aligns a bag's messages by stamp, not by order); one
+for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag changes happen between steps:
 
-* start, stop, split: after the step in progress (the newest stamp received): the
-  bag opens, closes, or closes and the next opens at once when no step is in
-  progress, else as soon as that step is complete (the answer says which); the
+* start, stop, split: after the step in progress (the newest stamp received): the bag opens, closes, or closes and the
+  next opens at once when no step is in progress, else as soon as that step is complete (the answer says which); the
   step in progress belongs to the time before the request;
-* episode mode: a split word splits after the step in progress, and an end status
-  (``dropped``, ``lost_contact``, ``overload``) after the steps stamped up to its
-  receive time too (the final state, stamped before it, may arrive after it: it
-  stays in its episode; this assumes the driver stamps with the recorder's clock,
-  as on one machine or with ``use_sim_time`` on both).  Only a bag holding
-  messages is split, so the ``reset`` that follows an episode end (or one
-  published on start) opens no empty bag.
+* episode mode: a split word splits after the step in progress, and an end status (``dropped``, ``lost_contact``,
+  ``overload``) after the steps stamped up to its receive time too (the final state, stamped before it, may arrive
+  after it: it stays in its episode; this assumes the driver stamps with the recorder's clock, as on one machine or
+  with ``use_sim_time`` on both).  Only a bag holding messages is split, so the ``reset`` that follows an episode end
+  (or one published on start) opens no empty bag.
 
-A bag never begins with a step whose state was not received (an action alone, a
-pose alone: dropped with a warning), and on close only steps holding their whole
-state are written.
+A bag never begins with a step whose state was not received (an action alone, a pose alone: dropped with a warning),
+and on close only steps holding their whole state are written.
 
-Bags are written as :mod:`t42_transfer.data.bag` writes them (rosbags
-``Writer(version=9)``, MCAP, ``ros_distro: jazzy``, ``offered_qos_profiles=[RECORD_QOS]``,
-one connection per recorded topic, ``metadata.yaml`` on close) and are named
-``<prefix>_<NNN>`` in ``out_dir``: ``NNN`` counts on from the highest index
-already there, so no bag is ever overwritten.
+Bags are written as :mod:`t42_transfer.data.bag` writes them (rosbags ``Writer(version=9)``, MCAP, ``ros_distro:
+jazzy``, ``offered_qos_profiles=[RECORD_QOS]``, one connection per recorded topic, ``metadata.yaml`` on close) and
+are named ``<prefix>_<NNN>`` in ``out_dir``: ``NNN`` counts on from the highest index already there, past a name
+another writer takes meanwhile (two recorders on one ``out_dir``), so no bag is ever overwritten.  A bag that does
+not open is a write failure, as a full disk: ``~/start`` or free space resumes.
 
-Nothing is held back longer than a step: every ``params.flush_period_s`` (steady
-time) the open chunk is closed and the file flushed, so a recorder killed with
-SIGKILL leaves a bag whose MCAP is readable up to the last flush (``t42 bag
-repair`` then rewrites its summary and ``metadata.yaml``), and memory stays
-bounded by one chunk (rosbags also closes a chunk at 1 MiB).
+Nothing is held back longer than a step: every ``params.flush_period_s`` (steady time) the open chunk is closed and
+the file flushed, so a recorder killed with SIGKILL leaves a bag whose MCAP is readable up to the last flush (``t42
+bag repair`` then rewrites its summary and ``metadata.yaml``), and memory stays bounded by one chunk (rosbags also
+closes a chunk at 1 MiB).  A bag file found gone then (``out_dir`` removed) is a write failure too, reported as
+one, and a new bag opens at once where it can.
 
-A message whose bytes do not decode as its topic's type is logged and not written
-(a bag stays readable).  No callback or service handler raises; failures are
-logged (services answer ``success=False``).
+A message whose bytes do not decode as its topic's type is logged and not written (a bag stays readable).  No
+callback or service handler raises; failures are logged (services answer ``success=False``).
 """
 
 from __future__ import annotations
 
-import shutil
 import threading
 import time
 from collections import deque
+from contextlib import suppress
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -120,6 +103,7 @@ from msg_adapters import (
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
+from t42_transfer.data.bag.recording import OpenedFile, Pause, open_next_bag, room
 from t42_transfer.data.bag.steps import Step, StepBuffer, WrittenSteps
 from t42_transfer.nodes.recorder_loose import LooseMessages
 from t42_transfer.nodes.recorder_params import (
@@ -180,6 +164,8 @@ class Recorder(LooseMessages, Node):
         """Messages that came after their step was written and joined it in its bag."""
         self._written = WrittenSteps()
         self._bag: BagWriter | None = None
+        self._file: OpenedFile | None = None
+        """The open bag's storage file: flush checks it is still there (out_dir removed while recording)."""
         self.write_failure: str | None = None
         """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
@@ -190,13 +176,7 @@ class Recorder(LooseMessages, Node):
         self._closed = False
         self._first_stamp: int | None = None
         """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
-        self._latest_seen: int | None = None
-        """The newest stamp received (paused or not): where a pause or a resume draws its border."""
-        self._pause: tuple[int, int | None] | None = None
-        """Messages stamped after the first and up to the second (None: until ~/resume) are dropped."""
-        self.paused_dropped = 0
-        """Messages dropped while paused (recorded topics and statuses), in all."""
-        self._paused_from = 0
+        self._pause = Pause()
         self._span: list[int] = []
         """Log times of the open bag's first and last message (min and max)."""
         self._announcer = Announcer(self.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS)),
@@ -212,14 +192,10 @@ class Recorder(LooseMessages, Node):
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p), required=self._state_topics)
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
         self.create_subscription(String, names.HAND_STATUS, self._on_status, profile(names.EVENT_READER), raw=True)
-        requests = profile(names.REQUESTS)
-        self.create_service(Trigger, names.RECORDER_START, partial(self._answer, self.start), qos_profile=requests)
-        self.create_service(Trigger, names.RECORDER_STOP, partial(self._answer, self.stop), qos_profile=requests)
-        self.create_service(Trigger, names.RECORDER_SPLIT, partial(self._answer, self.split), qos_profile=requests)
-        self.create_service(Trigger, names.RECORDER_PAUSE, partial(self._answer, self.pause), qos_profile=requests)
-        self.create_service(Trigger, names.RECORDER_RESUME, partial(self._answer, self.resume), qos_profile=requests)
-        self.create_service(Trigger, names.RECORDER_SNAPSHOT, partial(self._answer, self.snapshot),
-                            qos_profile=requests)
+        for service, action in ((names.RECORDER_START, self.start), (names.RECORDER_STOP, self.stop),
+                                (names.RECORDER_SPLIT, self.split), (names.RECORDER_PAUSE, self.pause),
+                                (names.RECORDER_RESUME, self.resume), (names.RECORDER_SNAPSHOT, self.snapshot)):
+            self.create_service(Trigger, service, partial(self._answer, action), qos_profile=profile(names.REQUESTS))
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._flush_timer = self.create_timer(p.flush_period_s, self.flush, clock=steady)
         self._hold_timer = self.create_timer(p.step_hold_s / 2, self._on_hold_timer, clock=steady)
@@ -301,33 +277,29 @@ class Recorder(LooseMessages, Node):
     @property
     def paused(self) -> bool:
         """Whether messages are being dropped until ~/resume."""
-        return self._pause is not None and self._pause[1] is None
+        return self._pause.paused
+
+    @property
+    def paused_dropped(self) -> int:
+        """Messages dropped while paused (recorded topics and statuses), in all."""
+        return self._pause.dropped
+
+    @paused_dropped.setter
+    def paused_dropped(self, count: int) -> None:
+        self._pause.dropped = count
 
     def pause(self) -> tuple[bool, str]:
         """Drop the messages of the steps after the one in progress, the bag kept open; (success, message)."""
         with self._lock:
             if not self._will_record:
                 return False, "not recording: nothing to pause (call start)"
-            if self.paused:
-                return False, (f"already paused after the step stamped {self._pause[0]} ns "
-                               f"({self.paused_dropped - self._paused_from} messages dropped since)")
-            after = -1 if self._latest_seen is None else self._latest_seen
-            self._pause, self._paused_from = (after, None), self.paused_dropped
-            bag = self._bag.path if self._bag is not None else "the next bag"
-            return True, f"paused after the step stamped {after} ns: messages are dropped, {bag} stays open"
+            return self._pause.pause(self._bag.path if self._bag is not None else "the next bag")
 
     def resume(self) -> tuple[bool, str]:
         """Record again, into the same bag, from the first step after the newest stamp received; (success,
         message)."""
         with self._lock:
-            if not self.paused:
-                return False, "not paused"
-            assert self._pause is not None
-            until = max(self._pause[0], -1 if self._latest_seen is None else self._latest_seen)
-            self._pause = (self._pause[0], until)
-            bag = self._bag.path if self._bag is not None else "no bag"
-            return True, (f"resumed {bag}: {self.paused_dropped - self._paused_from} messages dropped while "
-                          f"paused; recording from the first step after {until} ns")
+            return self._pause.resume(self._bag.path if self._bag is not None else "no bag")
 
     def snapshot(self) -> tuple[bool, str]:
         """Write the steps of the last ``snapshot_s`` seconds as a bag, after the step in progress; (success,
@@ -337,16 +309,18 @@ class Recorder(LooseMessages, Node):
                 return self.snapshots.take(None)  # off: says so
             return self._request("snapshot", self._buffer.latest_stamp)
 
-    def _in_pause(self, stamp: int) -> bool:
-        return self._pause is not None and stamp > self._pause[0] and (self._pause[1] is None
-                                                                       or stamp <= self._pause[1])
-
     def flush(self) -> None:
         """Write out what the open bag holds so far; failures are logged (it runs from a timer).  After a write
         failure, recording resumes here once there is room again."""
         with self._lock:
-            if self.write_failure is not None and self._will_record and self._room():
-                self._resume("space is back")
+            bag = self._bag
+            if bag is not None and self._file is not None and (gone := self._file.lost()) is not None:
+                self._bag = None  # out_dir removed: the bag cannot be finalised, a write failure
+                with suppress(Exception):
+                    bag.abort()
+                self._write_failed(bag.path, FileNotFoundError(f"{gone}: its {bag.count} messages are lost"))
+            if self.write_failure is not None and self._will_record and room(self.out_dir, self.params.resume_free_mb):
+                self._resume("space is back" if bag is self._bag else "a new bag")
             if self._bag is None:
                 return
             try:
@@ -422,13 +396,13 @@ class Recorder(LooseMessages, Node):
         return closed_ok and opened_ok, message
 
     def _open_bag(self, say: bool = True) -> tuple[bool, str]:
-        p = self.params
-        try:
-            bag = BagWriter(next_bag_path(self.out_dir, p.bag_prefix), self._types, offered=self._offers)
-        except OSError as err:
+        try:  # a name another writer took first is passed over; any other failure is a write failure
+            bag = open_next_bag(lambda: next_bag_path(self.out_dir, self.params.bag_prefix), self._types,
+                                self._offers)
+        except Exception as err:
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"
-        self._bag, self._span = bag, []
+        self._bag, self._span, self._file = bag, [], OpenedFile(bag.path)
         if say:
             self.log.info(f"recording to {bag.path}")
         return True, f"recording to {bag.path}"
@@ -440,8 +414,9 @@ class Recorder(LooseMessages, Node):
         assert bag is not None
         try:
             bag.close()
-        except Exception as err:
+        except Exception as err:  # its directory was removed...: nothing final to announce
             self.log.error(f"closing {bag.path} failed: {err!r}")
+            self._report("ERROR", f"closing {bag.path} failed: {type(err).__name__}: {err}")
             return False, f"closing {bag.path} failed: {type(err).__name__}: {err}"
         self.bags.append(bag.path)
         self._announce(bag, reason)
@@ -450,7 +425,7 @@ class Recorder(LooseMessages, Node):
         return True, f"closed {bag.path} ({bag.count} messages)"
 
     # ------------------------------------------------------------------ write failures
-    def _write_failed(self, where: Path, err: OSError) -> None:
+    def _write_failed(self, where: Path, err: Exception) -> None:
         """Writing failed (a full disk): leave the bag as it is (repairable), drop steps until there is room."""
         bag, self._bag = self._bag, None
         if bag is not None:
@@ -461,20 +436,15 @@ class Recorder(LooseMessages, Node):
                 pass
         if self.write_failure is not None:
             return
-        self.write_failure = f"writing to {where} failed: {err.strerror or err}"
+        self.write_failure = f"writing to {where} failed: {getattr(err, 'strerror', None) or err}"
+        kept = "" if isinstance(err, FileNotFoundError) else "; what was written stays readable (t42 bag repair)"
         self.log.error(f"{self.write_failure}; recording stops until {self.params.resume_free_mb:g} MB are free on "
-                       f"{self.out_dir} (or ~/start); what was written stays readable (t42 bag repair)")
+                       f"{self.out_dir} (or ~/start){kept}")
         self._report("ERROR", self.write_failure)
-
-    def _room(self) -> bool:
-        try:
-            return shutil.disk_usage(self.out_dir).free >= self.params.resume_free_mb * 1e6
-        except OSError:
-            return False
 
     def _resume(self, why: str) -> tuple[bool, str]:
         failure, self.write_failure = self.write_failure, None
-        ok, message = self._open_bag()
+        ok, message = self._open_bag(say=False)  # said here, with why
         if ok:
             self.log.info(f"{why}: {message} (writing had failed: {failure})")
             self._report("OK", message)
@@ -542,10 +512,7 @@ class Recorder(LooseMessages, Node):
             with self._lock:
                 if self._closed:
                     return
-                if self._latest_seen is None or stamp > self._latest_seen:
-                    self._latest_seen = stamp
-                if self._in_pause(stamp):
-                    self.paused_dropped += 1
+                if self._pause.drops(stamp):
                     return
                 if self._first_stamp is None or stamp < self._first_stamp:
                     self._first_stamp = stamp

@@ -1,0 +1,120 @@
+"""What a recorder keeps track of about the bag it writes, needing no ROS (:mod:`t42_transfer.nodes.recorder` is
+the node): the next free bag name (another writer may take a name first), whether the open bag's file is still
+there (``out_dir`` removed while recording), free space, and a pause's border.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+from msg_adapters import names
+from t42_transfer.data.bag.writer import BagWriter
+
+NAME_TRIES = 100
+"""Bag names tried in a row before opening counts as a failure."""
+
+
+def open_next_bag(choose: Callable[[], Path], types: Mapping[str, str], offered: Mapping[str, names.Qos],
+                  tries: int = NAME_TRIES) -> BagWriter:
+    """A new bag at the path ``choose()`` gives.  A path another writer took first (it exists when the bag
+    opens: a second recorder on the same ``out_dir``) is passed over for the next ``choose()`` gives, which counts
+    on past it; whatever else fails is raised, as is the last of ``tries`` names taken."""
+    for _ in range(tries - 1):
+        try:
+            return BagWriter(choose(), types, offered=offered)
+        except Exception as err:
+            if not _taken(err):
+                raise
+    return BagWriter(choose(), types, offered=offered)
+
+
+def _taken(err: BaseException) -> bool:
+    """Whether opening a bag failed because its path exists: rosbags raises WriterError("... exists already, not
+    overwriting.") when it does at the start, and from the FileExistsError of its mkdir."""
+    return (isinstance(err, FileExistsError) or isinstance(err.__context__, FileExistsError)
+            or "exists already" in str(err))
+
+
+class OpenedFile:
+    """The storage file of a bag just opened, told apart from one put at its path later: :meth:`lost` says whether
+    it is still there (a removed ``out_dir`` takes the file an open writer goes on writing to, unseen)."""
+
+    def __init__(self, bag: Path) -> None:
+        files = sorted(p for p in bag.iterdir() if p.is_file()) if bag.is_dir() else []
+        self.path = files[0] if files else bag / f"{bag.name}.mcap"
+        try:
+            st = os.stat(self.path)
+            self._id: tuple[int, int] | None = (st.st_dev, st.st_ino)
+        except OSError:
+            self._id = None
+
+    def lost(self) -> str | None:
+        """Why the file the writer writes to is no longer at its path (None while it is)."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return f"{self.path} was removed while it was recorded"
+        except OSError as err:
+            return f"{self.path} cannot be reached ({err.strerror or err})"
+        if (st.st_dev, st.st_ino) != self._id:
+            return f"{self.path} was replaced by another file while it was recorded"
+        return None
+
+
+def room(out_dir: Path, free_mb: float) -> bool:
+    """Whether the file system of ``out_dir`` (of its nearest existing parent, when it was removed: a bag would
+    make it again) has ``free_mb`` MB free."""
+    where = out_dir
+    while not where.exists() and where.parent != where:
+        where = where.parent
+    try:
+        return shutil.disk_usage(where).free >= free_mb * 1e6
+    except OSError:
+        return False
+
+
+class Pause:
+    """``~/pause`` and ``~/resume`` by stamp: pause drops the messages of the steps after the newest stamp received,
+    resume records again from the first step after the newest stamp received then.  The node holds the lock."""
+
+    def __init__(self) -> None:
+        self.latest_seen: int | None = None
+        """The newest stamp received (paused or not): where a pause or a resume draws its border."""
+        self.window: tuple[int, int | None] | None = None
+        """Messages stamped after the first and up to the second (None: until resume) are dropped."""
+        self.dropped = 0
+        """Messages dropped while paused (recorded topics and statuses), in all."""
+        self._from = 0
+
+    @property
+    def paused(self) -> bool:
+        return self.window is not None and self.window[1] is None
+
+    def drops(self, stamp: int) -> bool:
+        """Note a message stamped ``stamp``; whether it is dropped (counted)."""
+        if self.latest_seen is None or stamp > self.latest_seen:
+            self.latest_seen = stamp
+        window = self.window
+        if window is not None and stamp > window[0] and (window[1] is None or stamp <= window[1]):
+            self.dropped += 1
+            return True
+        return False
+
+    def pause(self, bag: object) -> tuple[bool, str]:
+        if self.window is not None and self.window[1] is None:
+            return False, (f"already paused after the step stamped {self.window[0]} ns "
+                           f"({self.dropped - self._from} messages dropped since)")
+        after = -1 if self.latest_seen is None else self.latest_seen
+        self.window, self._from = (after, None), self.dropped
+        return True, f"paused after the step stamped {after} ns: messages are dropped, {bag} stays open"
+
+    def resume(self, bag: object) -> tuple[bool, str]:
+        if self.window is None or self.window[1] is not None:
+            return False, "not paused"
+        until = max(self.window[0], -1 if self.latest_seen is None else self.latest_seen)
+        self.window = (self.window[0], until)
+        return True, (f"resumed {bag}: {self.dropped - self._from} messages dropped while paused; recording from "
+                      f"the first step after {until} ns")
