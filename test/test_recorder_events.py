@@ -205,3 +205,45 @@ def test_a_status_split_is_one_line_on_rosout(ros: Any, tmp_path: Path) -> None:
     ros.spin_for(0.3)
     (line,) = closing()
     assert line.startswith("status 'reset': closed ") and "; recording to " in line, line
+
+
+def test_a_clock_restart_splits_the_bag_so_both_bags_read(ros: Any, tmp_path: Path) -> None:
+    """The graph's clock (a sim-time driver) restarts behind its old time, as when ``t42 up`` respawns the driver,
+    and the new driver's first step arrives before its first /clock: it is received at the old, later time. The
+    bag is split before it and its messages are logged at their stamp, so read_bag reads both bags (one bag kept
+    across the jump read as none); a pause after the restart draws its border on the new clock."""
+    from rosgraph_msgs.msg import Clock
+
+    from msg_adapters import RCLPY, ns_to_stamp
+    from t42_transfer.data.bag.recording import CLOCK_RESTART
+
+    rec = add_recorder(ros, tmp_path, use_sim_time=True, step_hold_s=1.0)
+    hand = Hand(ros, rec)
+    events = Events(hand)
+    clock = hand.node.create_publisher(Clock, "/clock", 10)
+
+    def tick(ns: int) -> None:
+        clock.publish(Clock(clock=ns_to_stamp(ns, RCLPY)))
+        assert ros.spin_until(lambda: rec.get_clock().now().nanoseconds == ns, 5.0), "/clock not heard"
+
+    old, new = now_ns() + 60 * 10**9, now_ns()  # the old driver's clock ran ahead; the new one starts at the wall's
+    for k in range(16):
+        tick(old + k * CONTROL_PERIOD_NS)
+        hand.step(old + k * CONTROL_PERIOD_NS)
+    hand.step(new)  # before the new driver's first /clock
+    for k in range(1, 16):
+        tick(new + k * CONTROL_PERIOD_NS)
+        hand.step(new + k * CONTROL_PERIOD_NS)
+    assert rec.pause()[0]
+    dropped = rec.paused_dropped
+    hand.step(new + 16 * CONTROL_PERIOD_NS)
+    assert rec.paused_dropped == dropped + 3
+    rec.close()
+    assert rec.bags == [tmp_path / "recording_000", tmp_path / "recording_001"]
+    got = events.wait(2, ros)
+    assert [e.reason for e in got] == [CLOCK_RESTART, SHUTDOWN]
+    assert (got[1].start_ns, got[1].end_ns) == (new, new + 15 * CONTROL_PERIOD_NS)  # on the new clock only
+    for bag, start in zip(rec.bags, (old, new), strict=True):
+        (traj,) = read_bag(bag)
+        assert traj.start_ns == start and len(traj) == 15
+

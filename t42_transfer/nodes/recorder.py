@@ -28,7 +28,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   episode), so the bag is readable when the event arrives.  ``messages``, and ``start``/``end`` (log times
   of its first and last message), ``reason``: ``stop``, ``split``, the status word that split it in episode
   mode (``reset``, ``dropped``...), ``write_failed`` (a full disk; only if the bag could still be
-  finalised), ``shutdown`` or ``snapshot``.  A relative name, as rosbag2's ``events/write_split``;
+  finalised), ``shutdown``, ``snapshot`` or ``clock_restart``.  A relative name, as rosbag2's ``events/write_split``;
 * ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes (a driver's ``late``
   word there tells a reader that a step came late and none is missing); in ``mode="episode"`` a status whose first
   word is in ``params.split_on`` also splits the bag, so each bag holds one episode (see "Steps" for where).  Statuses
@@ -55,7 +55,11 @@ for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag chan
   ``overload``) after the steps stamped up to its receive time too (the final state, stamped before it, may arrive
   after it: it stays in its episode; this assumes the driver stamps with the recorder's clock, as on one machine or
   with ``use_sim_time`` on both).  Only a bag holding messages is split, so the ``reset`` that follows an episode end
-  (or one published on start) opens no empty bag.
+  (or one published on start) opens no empty bag;
+* stamps restarting over a second behind those written (a respawned sim-time driver, whose first steps may come before
+  its first ``/clock``): the bag is split before the new clock's first step (reason ``clock_restart``), whose messages
+  received on the old clock are logged at their stamps (:class:`~t42_transfer.data.bag.recording.LogTimes`), so both
+  bags read.
 
 A bag never begins with a step whose state was not received (an action alone, a pose alone: dropped with a warning),
 and on close only steps holding their whole state are written.
@@ -103,7 +107,7 @@ from msg_adapters import (
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
-from t42_transfer.data.bag.recording import OpenedFile, Pause, open_next_bag, room
+from t42_transfer.data.bag.recording import CLOCK_RESTART, LogTimes, OpenedFile, Pause, open_next_bag, room
 from t42_transfer.data.bag.steps import Step, StepBuffer, WrittenSteps
 from t42_transfer.nodes.recorder_loose import LooseMessages
 from t42_transfer.nodes.recorder_params import (
@@ -166,6 +170,7 @@ class Recorder(LooseMessages, Node):
         self._bag: BagWriter | None = None
         self._file: OpenedFile | None = None
         """The open bag's storage file: flush checks it is still there (out_dir removed while recording)."""
+        self._log_times = LogTimes()
         self.write_failure: str | None = None
         """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
@@ -403,6 +408,7 @@ class Recorder(LooseMessages, Node):
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"
         self._bag, self._span, self._file = bag, [], OpenedFile(bag.path)
+        self._log_times.new_bag()
         if say:
             self.log.info(f"recording to {bag.path}")
         return True, f"recording to {bag.path}"
@@ -492,7 +498,8 @@ class Recorder(LooseMessages, Node):
                                          "bag began, or lost)")
                 continue
             try:
-                for topic, log_ns, data in step.messages:
+                for topic, received_ns, data in step.messages:
+                    log_ns = self._log_times(topic, received_ns, step.stamp)
                     bag.write(topic, log_ns, data)
                     self._spanned(log_ns)
                 self._written.add(step, bag)
@@ -516,7 +523,10 @@ class Recorder(LooseMessages, Node):
                     return
                 if self._first_stamp is None or stamp < self._first_stamp:
                     self._first_stamp = stamp
+                restarts = self._buffer.restarts
                 released, late = self._buffer.add(topic, stamp, log_ns, bytes(data), time.monotonic())
+                if self._buffer.restarts != restarts:
+                    released = self._clock_restarted(stamp, log_ns, released)
                 if late:
                     self._write_late(topic, stamp, log_ns, bytes(data))
                 self._write_steps(released)
@@ -526,6 +536,18 @@ class Recorder(LooseMessages, Node):
             self.log.error(f"could not record a message on {topic}: {err!r}")
         finally:
             self.received += 1
+
+    def _clock_restarted(self, stamp: int, log_ns: int, released: list[Step]) -> list[Step]:
+        """The stamps restarted behind those written (a respawned sim-time driver), at ``stamp``: the old clock's
+        steps and waiting changes go into the open bag, which closes; the new clock's steps, of which those in
+        ``released`` are returned, go into the next (a reader needs a bag's stamps to increase)."""
+        self._write_steps([s for s in released if s.stamp != stamp])
+        self._carry_out(None)
+        self._pause.restart(stamp)
+        if self._bag is not None and self._bag.count:
+            self._change(Change("split", None, f"the stamps restarted at {stamp} ns", CLOCK_RESTART))
+        self._log_times.restart(log_ns, stamp)
+        return [s for s in released if s.stamp == stamp]
 
     def _on_hold_timer(self) -> None:
         with self._lock:

@@ -1,6 +1,7 @@
 """What a recorder keeps track of about the bag it writes, needing no ROS (:mod:`t42_transfer.nodes.recorder` is
 the node): the next free bag name (another writer may take a name first), whether the open bag's file is still
-there (``out_dir`` removed while recording), free space, and a pause's border.
+there (``out_dir`` removed while recording), the log times of the steps after the publishers' clock restarted,
+free space, and a pause's border.
 """
 
 from __future__ import annotations
@@ -11,8 +12,12 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from msg_adapters import names
+from t42_transfer.data.bag.steps import CLOCK_RESTART_NS
 from t42_transfer.data.bag.writer import BagWriter
 
+CLOCK_RESTART = "clock_restart"
+"""The reason of a bag closed because the stamps restarted behind it (a respawned sim-time driver): its steps
+and the next bag's would not read as one recording (a bag's stamps increase)."""
 NAME_TRIES = 100
 """Bag names tried in a row before opening counts as a failure."""
 
@@ -76,6 +81,39 @@ def room(out_dir: Path, free_mb: float) -> bool:
         return False
 
 
+class LogTimes:
+    """The log times a bag's step messages are written at: their receive times (the node's ROS time), but never
+    going back on a topic, and, after the stamps restarted behind the steps written (:meth:`restart`), a message
+    received on the old clock is logged at its stamp.
+
+    A respawned sim-time driver's first steps can reach the recorder before its first ``/clock``: they are
+    received at the old, later time, and a reader, which orders a topic by log time, would find their stamps
+    after the next steps'.  Under the recorder's assumption that the driver stamps with its clock, such a message
+    is one received over ``CLOCK_RESTART_NS`` after its stamp, at or after the time the restart was seen."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, int] = {}
+        self._old_clock_from: int | None = None
+
+    def new_bag(self) -> None:
+        self._last.clear()
+        self._old_clock_from = None
+
+    def restart(self, log_ns: int, stamp: int) -> None:
+        """The step stamped ``stamp``, received at ``log_ns``, is the first after the stamps restarted."""
+        self._last.clear()
+        self._old_clock_from = log_ns if log_ns > stamp + CLOCK_RESTART_NS else None
+
+    def __call__(self, topic: str, log_ns: int, stamp: int) -> int:
+        """The log time to write the message on ``topic`` stamped ``stamp``, received at ``log_ns``, at."""
+        old = self._old_clock_from
+        if old is not None and log_ns >= old and log_ns > stamp + CLOCK_RESTART_NS:
+            log_ns = stamp
+        log_ns = max(log_ns, self._last.get(topic, log_ns))
+        self._last[topic] = log_ns
+        return log_ns
+
+
 class Pause:
     """``~/pause`` and ``~/resume`` by stamp: pause drops the messages of the steps after the newest stamp received,
     resume records again from the first step after the newest stamp received then.  The node holds the lock."""
@@ -118,3 +156,10 @@ class Pause:
         self.window = (self.window[0], until)
         return True, (f"resumed {bag}: {self.dropped - self._from} messages dropped while paused; recording from "
                       f"the first step after {until} ns")
+
+    def restart(self, stamp: int) -> None:
+        """The stamps restarted behind those received, at ``stamp``: the borders are drawn on the new clock (a
+        pause goes on after ``stamp``; a past pause's window, on the old clock, is forgotten)."""
+        self.latest_seen = stamp
+        if self.window is not None:
+            self.window = (stamp, None) if self.window[1] is None else None

@@ -62,6 +62,8 @@ class StepBuffer:
         """Steady time of the latest message."""
         self.released_stamp: int | None = None
         """Stamp of the newest step released."""
+        self.restarts = 0
+        """Times the stamps restarted (:meth:`add`): a caller that sees it grow keeps the steps apart."""
 
     @property
     def latest_stamp(self) -> int | None:
@@ -74,7 +76,11 @@ class StepBuffer:
 
     def add(self, topic: str, stamp: int, log_ns: int, data: bytes, now_s: float) -> tuple[list[Step], bool]:
         """File one message; (the steps now released in stamp order, whether the message came too late or is a
-        duplicate: a second message on a topic for a step not yet released is not filed, the first one stands)."""
+        duplicate: a second message on a topic for a step not yet released is not filed, the first one stands).
+
+        A stamp over ``CLOCK_RESTART_NS`` older than the newest step released means the publisher's clock restarted
+        (a respawned sim-time driver): the steps waiting are released first, then the step of this message if it
+        is complete already, and :attr:`restarts` counts one more."""
         released: list[Step] = []
         if self.released_stamp is not None and stamp <= self.released_stamp:
             if stamp > self.released_stamp - CLOCK_RESTART_NS:
@@ -82,6 +88,7 @@ class StepBuffer:
             released = self.drain()  # the publisher's clock restarted: what waits is all there will be
             self._latest.clear()
             self.released_stamp = None
+            self.restarts += 1
         step = self._pending.get(stamp)
         if step is not None and topic in step.topics:
             return released, True
