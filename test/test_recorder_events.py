@@ -247,3 +247,33 @@ def test_a_clock_restart_splits_the_bag_so_both_bags_read(ros: Any, tmp_path: Pa
         (traj,) = read_bag(bag)
         assert traj.start_ns == start and len(traj) == 15
 
+
+def test_shutting_down_with_a_split_waiting_leaves_no_empty_bag(ros: Any, tmp_path: Path) -> None:
+    """An episode-ending status, then shutdown before the split was carried out: the bag closes with its steps,
+    and no new bag is opened only to be closed empty (and announced)."""
+    rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=10.0)  # steps wait 5 s for a status
+    hand = Hand(ros, rec)
+    events = Events(hand)
+    t0 = now_ns()
+    for k in range(16):
+        hand.step(t0 + k * CONTROL_PERIOD_NS)
+    hand.status(status_message(names.RESET, "episode 1 grasped", t0 + 15 * CONTROL_PERIOD_NS))
+    assert rec.waiting_changes == 1  # the split waits for the last step
+    rec.close()  # SIGINT now
+    assert rec.bags == [tmp_path / "episode_000"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_000"]
+    (event,) = events.wait(1, ros)
+    assert (event.reason, event.episodes) == (SHUTDOWN, 1)
+
+
+def test_use_sim_time_with_no_clock_is_warned_of(ros: Any, tmp_path: Path) -> None:
+    """Every message would be logged at 0 ns: said (throttled), not silent."""
+    from ros_rig import Rosout
+
+    log = Rosout(ros, "recorder")
+    rec = add_recorder(ros, tmp_path, use_sim_time=True)
+    hand = Hand(ros, rec)
+    hand.step(now_ns())
+    hand.step(now_ns() + CONTROL_PERIOD_NS)
+    warnings = [w for w in log.wait_warnings(1) if "no /clock" in w]
+    assert len(warnings) == 1, log.warnings()

@@ -59,7 +59,7 @@ for a step in a closed bag, or a duplicate, is dropped with a warning.  Bag chan
 * stamps restarting over a second behind those written (a respawned sim-time driver, whose first steps may come before
   its first ``/clock``): the bag is split before the new clock's first step (reason ``clock_restart``), whose messages
   received on the old clock are logged at their stamps (:class:`~t42_transfer.data.bag.recording.LogTimes`), so both
-  bags read.
+  bags read.  Shutting down carries out no waiting start or split (it would make an empty bag).
 
 A bag never begins with a step whose state was not received (an action alone, a pose alone: dropped with a warning),
 and on close only steps holding their whole state are written.
@@ -76,8 +76,9 @@ bag repair`` then rewrites its summary and ``metadata.yaml``), and memory stays 
 closes a chunk at 1 MiB).  A bag file found gone then (``out_dir`` removed) is a write failure too, reported as
 one, and a new bag opens at once where it can.
 
-A message whose bytes do not decode as its topic's type is logged and not written (a bag stays readable).  No
-callback or service handler raises; failures are logged (services answer ``success=False``).
+A message whose bytes do not decode as its topic's type is logged and not written (a bag stays readable); one
+logged at 0 ns (``use_sim_time`` with no ``/clock``) is warned of.  No callback or service handler raises;
+failures are logged (services answer ``success=False``).
 """
 
 from __future__ import annotations
@@ -344,6 +345,8 @@ class Recorder(LooseMessages, Node):
             try:
                 whole = [s for s in self._buffer.drain() if self._state_topics <= s.topics]
                 self._write_steps(whole)
+                # a start or split still waiting would open a bag only to close it empty
+                self._changes = deque(c for c in self._changes if c.kind in ("stop", "snapshot"))
                 self._carry_out(None)
                 if self._bag is not None:
                     self._close_bag(SHUTDOWN)
@@ -513,6 +516,8 @@ class Recorder(LooseMessages, Node):
     def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
         try:
             log_ns = self.get_clock().now().nanoseconds
+            if log_ns == 0:
+                self.per_message.warning("use_sim_time is true and no /clock has come: messages are logged at 0 ns")
             if (msg := self._decoded(topic, msgtype, data)) is None:
                 return
             stamp = stamp_to_ns(msg.header.stamp)
