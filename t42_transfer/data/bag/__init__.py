@@ -1,6 +1,7 @@
 """rosbag2 bags <-> TrajectorySet, in the hand wire format of :mod:`msg_adapters`.
 
-One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps,
+One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps, :mod:`.recording`
+keeps a recorder's bag bookkeeping (free names, a removed file, log times after a clock restart, pauses),
 :mod:`.storage` reads storage files (MCAP record by record, sqlite3 through :mod:`.db3`'s rosbags reader, which
 :mod:`.playback` opens bags with too), :mod:`.metadata`
 parses ``metadata.yaml`` and ``custom_data``,
