@@ -267,12 +267,18 @@ def test_shutting_down_with_a_split_waiting_leaves_no_empty_bag(ros: Any, tmp_pa
 
 
 def test_use_sim_time_with_no_clock_is_warned_of(ros: Any, tmp_path: Path) -> None:
-    """Every message would be logged at 0 ns: said (throttled), not silent."""
+    """Every message would be logged at 0 ns: said (throttled) once it lasts NO_CLOCK_S, not silent (a driver's
+    first steps before its first /clock are no cause)."""
     from ros_rig import Rosout
+
+    from t42_transfer.nodes.recorder import NO_CLOCK_S
 
     log = Rosout(ros, "recorder")
     rec = add_recorder(ros, tmp_path, use_sim_time=True)
     hand = Hand(ros, rec)
+    hand.step(now_ns())
+    assert not [w for w in log.wait_warnings(1, 0.3) if "no /clock" in w]
+    ros.spin_for(NO_CLOCK_S)
     hand.step(now_ns())
     hand.step(now_ns() + CONTROL_PERIOD_NS)
     warnings = [w for w in log.wait_warnings(1) if "no /clock" in w]

@@ -76,9 +76,9 @@ bag repair`` then rewrites its summary and ``metadata.yaml``), and memory stays 
 closes a chunk at 1 MiB).  A bag file found gone then (``out_dir`` removed) is a write failure too, reported as
 one, and a new bag opens at once where it can.
 
-A message whose bytes do not decode as its topic's type is logged and not written (a bag stays readable); one
-logged at 0 ns (``use_sim_time`` with no ``/clock``) is warned of.  No callback or service handler raises;
-failures are logged (services answer ``success=False``).
+A message whose bytes do not decode as its topic's type is logged and not written (a bag stays readable); messages
+logged at 0 ns (``use_sim_time`` with no ``/clock``) for ``NO_CLOCK_S`` are warned of.  No callback or service handler
+raises; failures are logged (services answer ``success=False``).
 """
 
 from __future__ import annotations
@@ -130,6 +130,8 @@ from t42_transfer.ros.qos import profile, recording
 STATE_TOPICS = (names.OBJECT_POSE, names.JOINT_STATES)
 """The messages that make a step's state; the rest of a step (``hand/applied_action``) is applied from it."""
 
+NO_CLOCK_S = 2.0  # messages logged at 0 ns (use_sim_time with no /clock) this long are warned of, throttled
+
 STATUS_NAME = "t42_transfer: recorder"
 """The recorder's status name on ``diagnostics``: at once on a write failure and on the resume, and each
 :data:`~msg_adapters.diagnostics.PERIOD_S` (ERROR while writing fails; OK recording, paused or idle)."""
@@ -180,6 +182,7 @@ class Recorder(LooseMessages, Node):
         """Whether a bag is open once every waiting change is carried out."""
         self._lock = threading.RLock()
         self._closed = False
+        self._no_clock_since = 0.0  # steady time of the first message logged at 0 ns (no /clock yet); 0.0: none
         self._first_stamp: int | None = None
         """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
         self._pause = Pause()
@@ -516,8 +519,11 @@ class Recorder(LooseMessages, Node):
     def _on_message(self, topic: str, msgtype: str, data: bytes) -> None:
         try:
             log_ns = self.get_clock().now().nanoseconds
-            if log_ns == 0:
-                self.per_message.warning("use_sim_time is true and no /clock has come: messages are logged at 0 ns")
+            if log_ns == 0:  # said once it lasts: a driver's first steps may come before its first /clock
+                self._no_clock_since = self._no_clock_since or time.monotonic()
+                if time.monotonic() - self._no_clock_since > NO_CLOCK_S:
+                    self.per_message.warning(f"use_sim_time is true and no /clock has come in {NO_CLOCK_S:g} s: "
+                                             "messages are logged at 0 ns")
             if (msg := self._decoded(topic, msgtype, data)) is None:
                 return
             stamp = stamp_to_ns(msg.header.stamp)
