@@ -1,17 +1,23 @@
-"""The one check that a path a user names is a regular file, and its one message.
+"""The one check that a path a user names is a regular file, and its one message; writing a file whole.
 
 A FIFO blocks ``open()``, a device never ends and a directory cannot be read as a
 file, so every reader of user files checks the file's mode before it opens it (and
 again with ``fstat`` after a non-blocking open, where a swap in between matters).
 Readers raise their own error types (BagError, CheckpointError, ...) with the reason
-given here, so the words a user reads are the same whatever the file.
+given here, so the words a user reads are the same whatever the file.  Files a later
+run trusts (an experiment's cells and results) are written whole or not at all
+(:func:`write_atomic`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
+import secrets
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -111,3 +117,39 @@ def read_json(path: str | os.PathLike[str], what: str) -> Any:
                          f"column {err.colno}") from None
     except RecursionError:
         raise ValueError(f"{path}: the {what} is nested too deeply to read") from None
+
+
+def write_atomic(path: str | os.PathLike[str], text: str) -> None:
+    """Replace ``path`` with ``text``, whole or not at all.
+
+    Written to a hidden file beside it (the same filesystem), synced and renamed over it, so a full disk or a kill
+    mid-write leaves the old file or none, never a half file that a resume would trust.  An OSError names ``path``
+    (the temporary file's name would tell a user nothing)."""
+    file = Path(path)
+    tmp = file.with_name(f".{file.name}.{os.getpid()}.{secrets.token_hex(4)}.partial")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies, as for open()
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, file)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(file)) from None
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+@contextlib.contextmanager
+def held_lock(path: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold an advisory ``flock`` on ``path`` (made if missing), waiting for another holder to let go.
+
+    For work two processes would otherwise do at once into one place (two experiments collecting the same data
+    set); the kernel drops the lock when its holder exits, however it ends, so none is left stale."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
