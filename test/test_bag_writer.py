@@ -128,6 +128,23 @@ def test_write_refuses_existing_paths_and_bad_arguments(tmp_path, small_set):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
 
 
+def test_a_bag_another_writer_finishes_first_at_the_same_path_is_a_file_exists_error(tmp_path, small_set,
+                                                                                     monkeypatch):
+    """Two experiments collecting the same data set into one cache: the later rename finds the earlier's bag."""
+    target, close, others = tmp_path / "bag", bag_writer.BagWriter.close, []
+
+    def the_other_writer_finishes_now(writer):
+        close(writer)
+        if not others:
+            others.append(writer)
+            write_bag(target, small_set)
+
+    monkeypatch.setattr(bag_writer.BagWriter, "close", the_other_writer_finishes_now)
+    with pytest.raises(FileExistsError, match=f"{target} exists already \\(written while this bag was built\\)"):
+        write_bag(target, small_set)
+    assert [p.name for p in tmp_path.iterdir()] == ["bag"]  # the other's, whole; no staging left
+
+
 def test_failed_write_leaves_nothing(tmp_path, small_set, monkeypatch):
     calls = []
     write = bag_writer.JazzyWriter.write

@@ -169,7 +169,8 @@ def write_bag(
     """Write ``data`` as a new rosbag2 bag at ``path``; returns ``path``.
 
     The bag is built in a hidden directory beside ``path`` and renamed into place
-    only once complete, so a failure never leaves a half bag that looks whole.
+    only once complete, so a failure never leaves a half bag that looks whole.  FileExistsError when a bag is at
+    ``path`` already, also one another writer put there while this one was built.
     ``metadata`` lands in rosbag2 ``custom_data`` next to the keys this module owns.
     """
     target = Path(path)
@@ -186,7 +187,13 @@ def write_bag(
         with BagWriter(bag, ma.HAND_TOPICS, storage, custom) as writer:
             for traj in data:
                 _write_episode(writer, traj)
-        bag.rename(target)
+        try:
+            bag.rename(target)
+        except OSError:
+            if target.exists() or target.is_symlink():  # another writer of the same path finished first
+                raise FileExistsError(f"{target} exists already (written while this bag was built); bags are "
+                                      "never overwritten") from None
+            raise
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return target
