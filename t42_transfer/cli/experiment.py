@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from t42_transfer.cli.args import existing_dir, existing_file, int_arg, output_dir
@@ -19,8 +20,11 @@ def _scheduler_arg(text: str) -> str:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
+    """Run the experiment; cells that failed (the others kept) end in one error and exit code 1, Ctrl-C in one line
+    and 130, each saying that the same command resumes the run."""
     import dataclasses
 
+    from t42_transfer.evaluation.cluster import CellsFailed
     from t42_transfer.evaluation.experiment import run_experiment
     from t42_transfer.evaluation.experiment_config import load_config
     from t42_transfer.evaluation.report import write_report
@@ -31,8 +35,16 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
     output_dir(args.out)
-    rows = run_experiment(cfg, args.out, progress=not args.quiet, scheduler=args.scheduler)
     run_dir = args.out / cfg.name
+    try:
+        rows = run_experiment(cfg, args.out, progress=not args.quiet, scheduler=args.scheduler)
+    except CellsFailed as err:
+        print(f"t42: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"t42: interrupted: the cells that finished are kept in {run_dir / 'cells'}; the same command "
+              "resumes the run", file=sys.stderr)
+        return 130
     print(f"{len(rows)} rows (cells and the hold-still baseline) -> {run_dir / 'results.csv'}")
     if not args.no_report:
         print(f"report: {write_report(run_dir)}")

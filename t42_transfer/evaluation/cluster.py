@@ -2,9 +2,9 @@
 
 Cells are independent and seeded, so where one runs changes nothing in its numbers: the same function runs
 each cell on a worker (one torch thread each) and its row comes back here, where it is kept at once
-(``on_row``), so a run stopped or a worker lost costs only the cells still running.  On Dask a worker that
-dies mid-cell loses that cell, which the scheduler runs again on another worker; a cell that fails for any
-other reason is reported once the others are done and stays to be redone on the next resume.
+(``on_row``), whatever order the cells finish in, so a run stopped or a worker lost costs only the cells still
+running.  On Dask a worker that dies mid-cell loses that cell, which the scheduler runs again on another worker.
+A cell that raises is named in one error once the others are done, and stays to be redone on the next resume.
 
 ``scheduler`` is ``local:N`` (a LocalCluster of N worker processes on this machine) or a scheduler's address
 (``tcp://host:8786``: a cluster whose workers see the run directory at the same path, a shared filesystem,
@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import multiprocessing
 import re
+import signal
 import socket
+import threading
+import uuid
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
@@ -57,21 +60,89 @@ def check_reachable(scheduler: str, timeout_s: float = 5.0) -> None:
                          "(`dask scheduler`) or check the address") from None
 
 
+class CellsFailed(RuntimeError):
+    """Cells raised while the others ran and were kept: one error for all of them, each named, once the run is
+    over (a resume runs them again)."""
+
+    def __init__(self, failed: Sequence[str], total: int, where: str = "") -> None:
+        super().__init__(f"{len(failed)} of {total} cells failed{where} (the others are kept; run again to redo "
+                         f"these): {'; '.join(failed)}")
+        self.failed = list(failed)
+
+
 def run_cells(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],
-              workers: int = 1, scheduler: str | None = None, bar: Any = None) -> None:
+              workers: int = 1, scheduler: str | None = None, bar: Any = None, name: Callable[[Task], str] = str,
+              key: Callable[[Task], str] | None = None) -> None:
     """``fn(task)`` for every task, each row handed to ``on_row`` as it comes: serially (``workers == 1``), on a
-    local process pool of ``workers``, or on the Dask ``scheduler``.  RuntimeError after the others when cells
-    failed on Dask (their rows were never kept: a resume runs them again)."""
+    local process pool of ``workers``, or on the Dask ``scheduler``.
+
+    A task that raises does not stop the others: CellsFailed once they ran, naming each failed task by
+    ``name(task)``.  An error of ``on_row`` (a full disk) or Ctrl-C stops the run at once, its workers with it;
+    the rows handed over so far stay kept.  ``key(task)`` (default ``name``) tells a task from the run's others;
+    with an id of this call it is the task's Dask key, so two runs sharing a scheduler never share a result.
+    """
+    failed: list[str] = []
+
+    def fail(task: Task, err: BaseException) -> None:
+        failed.append(f"{name(task)}: {err!r}")
+        if bar is not None:
+            bar.set_postfix(failed=len(failed))
+
     if scheduler is not None:
-        _run_on_dask(fn, tasks, on_row, check_scheduler(scheduler), bar)
+        _run_on_dask(fn, tasks, on_row, fail, check_scheduler(scheduler), key or name)
     elif workers == 1 or len(tasks) <= 1:
         for task in tasks:
-            on_row(task, fn(task))
+            try:
+                row = fn(task)
+            except Exception as err:  # any error of one cell (a bug, a numerical error, memory): the others run on
+                fail(task, err)
+                continue
+            on_row(task, row)
     else:
-        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            for task, row in zip(tasks, pool.map(fn, tasks), strict=True):
-                on_row(task, row)
+        _run_on_pool(fn, tasks, on_row, fail, workers)
+    if failed:
+        raise CellsFailed(failed, len(tasks), "" if scheduler is None else f" on {scheduler}")
+
+
+@contextmanager
+def _interrupts_ignored() -> Iterator[None]:
+    """SIGINT ignored while child processes start (where this thread may set it): they inherit that."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _ignore_interrupt() -> None:
+    """Pool workers leave Ctrl-C (sent to the whole process group) to the parent, which stops them and keeps the
+    rows that came back: no worker prints a traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_on_pool(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],
+                 fail: Callable[[Task, BaseException], None], workers: int) -> None:
+    """The tasks on a local pool of ``workers`` processes, each row kept as soon as it is back (not in task order:
+    a kill then loses only the cells still running)."""
+    ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_interrupt)
+    try:
+        futures = {pool.submit(fn, task): task for task in tasks}
+        for future in as_completed(futures):
+            error = future.exception()
+            if error is None:
+                on_row(futures[future], future.result())
+            else:  # the cell's own error, or BrokenProcessPool for a worker that died (a resume redoes it)
+                fail(futures[future], error)
+    except BaseException:  # Ctrl-C or on_row's error: the workers stop now, not after every queued cell
+        for process in list((getattr(pool, "_processes", None) or {}).values()):  # (no public way before 3.14)
+            process.terminate()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @contextmanager
@@ -81,8 +152,10 @@ def dask_client(scheduler: str) -> Iterator[Any]:
 
     local = LOCAL.match(scheduler)
     if local:
-        with LocalCluster(n_workers=int(local.group(1)), threads_per_worker=1, processes=True,
-                          dashboard_address=None) as cluster, Client(cluster) as client:
+        with _interrupts_ignored():  # its processes inherit that, and leave Ctrl-C to this one (no tracebacks)
+            cluster = LocalCluster(n_workers=int(local.group(1)), threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+        with cluster, Client(cluster) as client:
             yield client
     else:
         with Client(scheduler, timeout="30s") as client:
@@ -90,22 +163,14 @@ def dask_client(scheduler: str) -> Iterator[Any]:
 
 
 def _run_on_dask(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],
-                 scheduler: str, bar: Any) -> None:
-    from distributed import as_completed
+                 fail: Callable[[Task, BaseException], None], scheduler: str, key: Callable[[Task], str]) -> None:
+    from distributed import as_completed as completed
 
-    failed: list[str] = []
+    run = uuid.uuid4().hex  # keys unique to this run: another run on the scheduler never gets these results
     with dask_client(scheduler) as client:
-        # pure=False: every cell is its own task even if two tasks pickle alike; the key names the cell.
-        futures = {client.submit(fn, task, pure=False, key=f"cell-{i}"): task for i, task in enumerate(tasks)}
-        for future in as_completed(futures):
-            task = futures[future]
+        futures = {client.submit(fn, task, key=f"{key(task)}-{run}"): task for task in tasks}
+        for future in completed(futures):
             if future.status == "finished":
-                on_row(task, future.result())
+                on_row(futures[future], future.result())
             else:
-                failed.append(f"{future.key}: {future.exception()!r}")
-            if bar is not None:
-                running = sum(not f.done() for f in futures)
-                bar.set_postfix(done=len(futures) - running - len(failed), failed=len(failed), running=running)
-    if failed:
-        raise RuntimeError(f"{len(failed)} of {len(tasks)} cells failed on {scheduler} (the others are kept; "
-                           f"run again to redo these): {'; '.join(failed)}")
+                fail(futures[future], future.exception())

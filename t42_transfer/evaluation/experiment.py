@@ -557,6 +557,9 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
     workspace = _workspace(cfg, source.data, target.data, sources[todo[0]]).to_dict() if todo else {}
     tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]
 
+    def name(task: tuple[Any, ...]) -> str:
+        return f"{task[1].method} at amount {task[1].amount:g}, seed {task[1].seed}"
+
     def keep(task: tuple[Any, Cell, Any, Any, Any], row: dict[str, Any]) -> None:
         cell = task[1]
         rows[cell] = row
@@ -564,7 +567,8 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
         bar.update()
 
     try:
-        run_cells(_run_cell, tasks, keep, workers, scheduler, bar)
+        run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name,
+                  key=lambda task: _cell_key(cfg, task[1], sources[task[1]]))
     finally:
         bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
