@@ -288,16 +288,16 @@ def test_a_test_set_keeps_the_cell_keys_of_runs_without_one(config_file: Path) -
         "test_fraction": 0.2, "epsilon": 4.0, "offsets": [0], "horizon": None, "lyapunov_steps": 20,
         "method_config": methods, "source": source.name, "definition": "paper",
     }
-    assert exp._cell_key(cfg, cell, source) == f"direct-1-0-{exp._digest(before)}"
+    assert exp.cell_key(cfg, cell, source) == f"direct-1-0-{exp.digest(before)}"
     rule = dataclasses.replace(cfg.transfer.cumulative_residual, gamma_rule="lyapunov")
     ruled = dataclasses.replace(cfg, transfer=dataclasses.replace(cfg.transfer, cumulative_residual=rule))
-    assert exp._cell_key(ruled, cell, source) != exp._cell_key(cfg, cell, source)
+    assert exp.cell_key(ruled, cell, source) != exp.cell_key(cfg, cell, source)
     longer = dataclasses.replace(cfg.transfer.multistep_l2_finetune, horizon=20)  # a changed setting is hashed
     stretched = dataclasses.replace(cfg, transfer=dataclasses.replace(cfg.transfer, multistep_l2_finetune=longer))
-    assert exp._cell_key(stretched, cell, source) != exp._cell_key(cfg, cell, source)
+    assert exp.cell_key(stretched, cell, source) != exp.cell_key(cfg, cell, source)
     sustained = dataclasses.replace(cfg, test=DataSpec(hand="target", policy="sustained"))
     random = dataclasses.replace(cfg, test=DataSpec(hand="target"))
-    keys = {exp._cell_key(c, cell, source) for c in (cfg, sustained, random)}
+    keys = {exp.cell_key(c, cell, source) for c in (cfg, sustained, random)}
     assert len(keys) == 3
 
 

@@ -12,14 +12,10 @@ test episodes, the baseline each method's numbers are read against.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
-import hashlib
 import json
 import os
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,6 +42,13 @@ from t42_transfer.evaluation.experiment_config import (
     config_dict,
     sides,
 )
+from t42_transfer.evaluation.experiment_files import (
+    RESULT_COLUMNS,
+    Cell,
+    cell_key,
+    digest,
+    run_lock,
+)
 from t42_transfer.evaluation.model_files import file_sha256, load_source_model, put_source_model
 from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
@@ -57,20 +60,11 @@ from t42_transfer.transfer.methods import select_method, transfer
 if TYPE_CHECKING:
     from t42_transfer.planning.workspace import Workspace
 
-RESULT_COLUMNS = (
-    "method", "amount", "seed", "train_episodes", "train_transitions", "test_rollouts", "divergence_mean",
-    "divergence_median", "divergence_mean_4mm", "divergence_mean_10mm", "position_mse_mean", "lyapunov_mean",
-    "lyapunov_median", "covering_radius", "train_error_normalised", "train_error_xy_mm", "seconds",
-)
 THRESHOLDS_MM = (4.0, 10.0)
 """Divergence is also reported at both thresholds in use (the paper's figure: 4 mm; the authors' scripts: 10 mm),
 counted by the experiment's definition, since the threshold alone can flip a ranking."""
 BASELINE = HoldStill.kind
 """The method name of the hold-still rows every run writes beside its cells'."""
-
-
-def _digest(obj: Any) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 # ------------------------------------------------------------------------------- data
@@ -94,7 +88,7 @@ def load_data(spec: DataSpec, cache: Path, progress: bool = True) -> TrajectoryS
     if spec.bag:
         return read_bag(spec.bag)
     if spec.hand:
-        bag = cache / f"{spec.hand}_{_digest(spec.describe())}"
+        bag = cache / f"{spec.hand}_{digest(spec.describe())}"
         if bag.exists():
             return read_bag(bag)
         from t42_transfer.hand.collect import collect
@@ -181,13 +175,6 @@ def excluded_sources(cfg: ExperimentConfig, source: SideData, tested: SideData, 
 
 
 # ------------------------------------------------------------------------------ cells
-
-
-@dataclass(frozen=True)
-class Cell:
-    method: str
-    amount: float
-    seed: int
 
 
 def target_split(
@@ -293,7 +280,7 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
     sources = _WORKER.setdefault("sources", {})  # one per test set when the source leaves test sequences out
     if source_path not in sources:
         sources[source_path] = load_model(source_path)[0]
-    data_key = _digest({"data": [dataclasses.asdict(getattr(cfg, side)) for side in sides(cfg)], "run": str(run_dir)})
+    data_key = digest({"data": [dataclasses.asdict(getattr(cfg, side)) for side in sides(cfg)], "run": str(run_dir)})
     if _WORKER.get("data_key") != data_key:
         test_side = load_test(cfg, data_cache(run_dir))
         _WORKER["target"] = load_side(cfg, "target", data_cache(run_dir)).data
@@ -314,7 +301,7 @@ def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -
         model = transfer(cell.method, source, train, cfg.transfer, seed=cell.seed)
     row.update(_score(model, train, test, cfg))
     row["seconds"] = time.perf_counter() - start
-    save_model(model, run_dir / "models" / f"{_cell_key(cfg, cell, source_path)}.safetensors", method=cell.method,
+    save_model(model, run_dir / "models" / f"{cell_key(cfg, cell, source_path)}.safetensors", method=cell.method,
                hyperparameters=dataclasses.asdict(cfg.transfer), data={"target_train": train.fingerprint()},
                extra={"workspace": workspace})
     return row
@@ -336,50 +323,15 @@ def cell_excluded(
     return excluded_sources(cfg, source, target if test is None else test, episodes)
 
 
-_TRAINING_WHEN_ADDED = {"lr": 1e-4, "epochs": 30, "batch_size": 64, "weight_decay": 1e-3, "grad_clip": 10.0,
-                        "patience": None, "seed": 0}
-METHODS_ADDED_LATER = {
-    "multistep_l2_finetune": {"train": _TRAINING_WHEN_ADDED, "l2": 1e-2, "horizon": 10},
-    "anchored_finetune": {"train": _TRAINING_WHEN_ADDED, "anchor": 1.0, "state_noise": 1.0},
-}
-"""Methods whose settings joined the transfer config after runs were stored, with their settings when they joined:
-hashed only when they differ from those (a later change of the defaults changes the keys, as it should)."""
-
-
 def _cells(cfg: ExperimentConfig) -> list[Cell]:
     return [Cell(m, a, s) for m in cfg.methods for a in cfg.amounts for s in range(cfg.seeds)]
-
-
-def _method_config(cfg: ExperimentConfig) -> dict[str, Any]:
-    """The transfer settings a cell's key hashes; a setting added later is left out at its default, so the cells
-    of earlier runs keep their keys."""
-    settings = dataclasses.asdict(cfg.transfer)
-    for method in ("cumulative_residual", "recurrent_residual"):
-        if settings[method]["gamma_rule"] == "fixed":
-            del settings[method]["gamma_rule"]
-    for method, when_added in METHODS_ADDED_LATER.items():
-        if settings[method] == when_added:
-            del settings[method]
-    return settings
-
-
-def _cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
-    depends = {
-        "cell": dataclasses.asdict(cell), "target": cfg.target.describe(), "split": cfg.split,
-        "test_fraction": cfg.test_fraction, "epsilon": cfg.epsilon_mm, "offsets": cfg.start_offsets,
-        "horizon": cfg.horizon, "lyapunov_steps": cfg.lyapunov_steps,
-        "method_config": _method_config(cfg), "source": source_path.name, "definition": cfg.definition,
-    }
-    if cfg.test is not None:  # absent otherwise: keys of runs without a test set stay valid
-        depends["test"] = cfg.test.describe()
-    return f"{cell.method}-{cell.amount}-{cell.seed}-{_digest(depends)}"
 
 
 def cell_model_file(cfg: ExperimentConfig, run_dir: Path, cell: Cell, source: SideData, target: SideData,
                     test: SideData | None = None) -> Path:
     """Where a run keeps the model ``cell`` trained (``run_dir/models/<cell key>.safetensors``), made or not."""
     source_path = source_model_path(cfg, run_dir, cell_excluded(cfg, cell, source, target, test))
-    return run_dir / "models" / f"{_cell_key(cfg, cell, source_path)}.safetensors"
+    return run_dir / "models" / f"{cell_key(cfg, cell, source_path)}.safetensors"
 
 
 def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int, ...] = ()) -> Path:
@@ -389,13 +341,13 @@ def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int,
     """
     if cfg.source.model is not None:
         model = {"model_sha256": file_sha256(cfg.source.model), "negate_actions": cfg.source.negate_actions}
-        return Path(run_dir).parent / "sources" / f"source-{_digest(model)}.safetensors"
+        return Path(run_dir).parent / "sources" / f"source-{digest(model)}.safetensors"
     depends: dict[str, Any] = {"source": cfg.source.describe(), "train": dataclasses.asdict(cfg.source_training)}
     if cfg.source.mirror_about == "grasp":  # mirrored onto the target's grasp
         depends["onto"] = cfg.target.describe()
     if excluded:
         depends["excluded"] = list(excluded)
-    return Path(run_dir).parent / "sources" / f"source-{_digest(depends)}.safetensors"
+    return Path(run_dir).parent / "sources" / f"source-{digest(depends)}.safetensors"
 
 
 def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, excluded: tuple[int, ...] = ()) -> Path:
@@ -467,7 +419,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
             if not set(source.origins) - set(cell_excluded(cfg, cell, source, target, test)):
                 raise ValueError(f"every source episode ran a test sequence of {cell}: none is left to train on")
     (run_dir / "cells").mkdir(parents=True, exist_ok=True)
-    with _run_lock(run_dir):
+    with run_lock(run_dir):
         return _run(cfg, run_dir.absolute(), progress, scheduler)  # absolute: workers elsewhere see the same path
 
 
@@ -502,27 +454,6 @@ def _workspace(cfg: ExperimentConfig, source: TrajectorySet, target: TrajectoryS
     return Workspace.from_metadata(load_model(source_file)[1], source_file) or Workspace.from_trajectories(target)
 
 
-@contextlib.contextmanager
-def _run_lock(run_dir: Path) -> Iterator[None]:
-    """Hold ``run_dir/.lock`` while a run writes there: a second run would interleave cells and results.
-
-    An advisory ``flock``: the kernel drops it when the holder exits, however it ends, so no stale lock.
-    """
-    path = run_dir / ".lock"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
-            raise ValueError(f"{run_dir}: in use by another run ({holder or 'its lock file is held'})") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"pid {os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)
-
-
 def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | None) -> list[dict[str, Any]]:
     from t42_transfer.progress import progress_bar
 
@@ -540,7 +471,7 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
     rows: dict[Cell, dict[str, Any]] = {}
     todo = []
     for cell in cells:
-        done = run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json"
+        done = run_dir / "cells" / f"{cell_key(cfg, cell, sources[cell])}.json"
         if done.exists():
             rows[cell] = json.loads(done.read_text())
             if "train_draw" not in rows[cell]:  # a cell kept from before the column: its split's draw, recomputed
@@ -563,12 +494,12 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
     def keep(task: tuple[Any, Cell, Any, Any, Any], row: dict[str, Any]) -> None:
         cell = task[1]
         rows[cell] = row
-        (run_dir / "cells" / f"{_cell_key(cfg, cell, sources[cell])}.json").write_text(json.dumps(row, indent=1))
+        (run_dir / "cells" / f"{cell_key(cfg, cell, sources[cell])}.json").write_text(json.dumps(row, indent=1))
         bar.update()
 
     try:
         run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name,
-                  key=lambda task: _cell_key(cfg, task[1], sources[task[1]]))
+                  key=lambda task: cell_key(cfg, task[1], sources[task[1]]))
     finally:
         bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
