@@ -12,10 +12,12 @@ test episodes, the baseline each method's numbers are read against.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,16 +45,19 @@ from t42_transfer.evaluation.experiment_config import (
     sides,
 )
 from t42_transfer.evaluation.experiment_files import (
-    RESULT_COLUMNS,
     Cell,
     cell_key,
     digest,
     run_lock,
+    stored_rows,
+    warn_if_diverged,
+    write_results,
 )
 from t42_transfer.evaluation.model_files import file_sha256, load_source_model, put_source_model
+from t42_transfer.files import held_lock, write_atomic
 from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
-from t42_transfer.models.checkpoint import load_model, save_model
+from t42_transfer.models.checkpoint import load_model, read_metadata, save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.training import ProgressBar, train_transition_model
 from t42_transfer.transfer.methods import select_method, transfer
@@ -76,7 +81,8 @@ def data_cache(run_dir: Path) -> Path:
 
 
 def load_data(spec: DataSpec, cache: Path, progress: bool = True) -> TrajectorySet:
-    """The trajectories ``spec`` names, as stored; simulated sets are collected once and kept as bags in ``cache``.
+    """The trajectories ``spec`` names, as stored; simulated sets are collected once and kept as bags in ``cache``
+    (once also when experiments sharing ``cache`` need one at the same time: the later waits for the first).
 
     The spec's moves (mirror, negated actions) and its handling of flagged episodes are :func:`load_spec`'s.
     A source that is a model (``model``) has no trajectories.
@@ -89,14 +95,22 @@ def load_data(spec: DataSpec, cache: Path, progress: bool = True) -> TrajectoryS
         return read_bag(spec.bag)
     if spec.hand:
         bag = cache / f"{spec.hand}_{digest(spec.describe())}"
-        if bag.exists():
+        if bag.exists():  # (no lock: a cache others keep may be read-only)
             return read_bag(bag)
-        from t42_transfer.hand.collect import collect
+        cache.mkdir(parents=True, exist_ok=True)
+        lock = cache / f".{bag.name}.lock"
+        with held_lock(lock):  # another experiment collecting the same set: wait for it, then read its bag
+            if bag.exists():
+                data = read_bag(bag)
+            else:
+                from t42_transfer.hand.collect import collect
 
-        collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed, policy=POLICIES[spec.policy](),
-                               progress=progress)
-        data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
-        write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
+                collected, _ = collect(spec.hand, spec.episodes, spec.steps, seed=spec.seed,
+                                       policy=POLICIES[spec.policy](), progress=progress)
+                data = TrajectorySet(assign_start_times(collected), hand=collected.hand)
+                with contextlib.suppress(FileExistsError):  # put there by a writer no lock held off: the same data
+                    write_bag(bag, data, metadata={"experiment_spec": json.dumps(spec.describe())})
+            lock.unlink(missing_ok=True)  # the bag is in place for good: whoever locks the file unlinked finds it
         return data
     raise ValueError("a data spec needs one of hand, bag or real")
 
@@ -274,26 +288,48 @@ def baseline_rows(
 _WORKER: dict[str, Any] = {}
 
 
-def _run_cell(args: tuple[ExperimentConfig, Cell, Path, Path, dict[str, Any]]) -> dict[str, Any]:
-    cfg, cell, run_dir, source_path, workspace = args
-    torch.set_num_threads(1)
-    sources = _WORKER.setdefault("sources", {})  # one per test set when the source leaves test sequences out
-    if source_path not in sources:
-        sources[source_path] = load_model(source_path)[0]
-    data_key = digest({"data": [dataclasses.asdict(getattr(cfg, side)) for side in sides(cfg)], "run": str(run_dir)})
+def _data_id(target: TrajectorySet, test: TrajectorySet | None) -> str:
+    """What a run's target (and test) data hold, by content: the bag at a path can be recorded again."""
+    return digest([target.fingerprint(), None if test is None else test.fingerprint()])
+
+
+def _worker_data(cfg: ExperimentConfig, run_dir: Path, data_id: str | None) -> tuple[TrajectorySet, Any]:
+    """The target (and test) data, read once per process and run, and kept while the run's ``data_id`` (None:
+    unchecked) stays: ValueError when this process reads other data than the run holds (changed since)."""
+    data_key = digest({"data": [dataclasses.asdict(getattr(cfg, side)) for side in sides(cfg)], "run": str(run_dir),
+                        "id": data_id})
     if _WORKER.get("data_key") != data_key:
         test_side = load_test(cfg, data_cache(run_dir))
-        _WORKER["target"] = load_side(cfg, "target", data_cache(run_dir)).data
-        _WORKER["test"] = None if test_side is None else test_side.data
-        _WORKER["data_key"] = data_key
-    source, target = sources[source_path], _WORKER["target"]
-    train, test = target_split(cfg, target, cell, _WORKER["test"])
+        target, test = load_side(cfg, "target", data_cache(run_dir)).data, None if test_side is None else test_side.data
+        if data_id is not None and _data_id(target, test) != data_id:
+            raise ValueError("the target data read for the cell differ from the run's: changed at their path since "
+                             "the run started, or another copy on this worker's host")
+        _WORKER.update(target=target, test=test, data_key=data_key)
+    return _WORKER["target"], _WORKER["test"]
+
+
+def _run_cell(args: tuple[Any, ...]) -> dict[str, Any]:
+    """One cell's row, computed on whichever process runs it.  ``args``: the config, the cell, the run directory,
+    its source model file, the planning workspace and (optional) what the run's data hold (``data``:
+    :func:`_data_id`; ``source_data``: the source model's identity, recorded in the row as ``test_draw`` is)."""
+    cfg, cell, run_dir, source_path, workspace, *more = args
+    expect: dict[str, str] = more[0] if more else {}
+    torch.set_num_threads(1)
+    sources = _WORKER.setdefault("sources", {})  # one per test set when the source leaves test sequences out
+    source_id = (source_path, expect.get("source_data"))  # a source trained again on new data is read again
+    if source_id not in sources:
+        sources[source_id] = load_model(source_path)[0]
+    target, tests = _worker_data(cfg, run_dir, expect.get("data"))
+    source = sources[source_id]
+    train, test = target_split(cfg, target, cell, tests)
     start = time.perf_counter()
     row = {
         "method": cell.method, "amount": cell.amount, "seed": cell.seed,
         "train_episodes": len(train), "train_transitions": train.num_transitions,
         "train_draw": train.fingerprint()[:16],  # seeds that drew the same episodes are one cell (stats.one_per_draw)
     }
+    if expect:  # what a resume compares with the data it holds then
+        row.update(test_draw=test.fingerprint()[:16], source_data=expect["source_data"])
     if cell.method == "auto":  # keep which candidate the held-out evidence picked (results.json only)
         selection = select_method(source, train, cfg.transfer, seed=cell.seed)
         model, row["auto_picked"] = selection.model.eval(), selection.best
@@ -350,21 +386,27 @@ def source_model_path(cfg: ExperimentConfig, run_dir: Path, excluded: tuple[int,
     return Path(run_dir).parent / "sources" / f"source-{digest(depends)}.safetensors"
 
 
-def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, excluded: tuple[int, ...] = ()) -> Path:
+def source_training_data(side: SideData, excluded: tuple[int, ...] = ()) -> TrajectorySet:
+    """What a source model is trained on: the source data without the episodes ``excluded`` (of ``side.raw``)."""
+    return TrajectorySet((t for t, o in zip(side.data, side.origins, strict=True) if o not in excluded),
+                         hand=side.data.hand)
+
+
+def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, excluded: tuple[int, ...] = (),
+                 again: bool = False) -> Path:
     """The source model of this experiment, trained once and cached by its data and settings.
 
     ``excluded``: episodes of the source data as loaded (:attr:`SideData.raw`) left out of training.
+    ``again``: train it anew over the one kept (trained on data since changed at the same path).
     A source that is a model is not trained: it is imported or copied as it is.
     """
     path = source_model_path(cfg, run_dir, excluded)
-    if path.exists():
+    if path.exists() and not again:
         return path
     if cfg.source.model is not None:
         put_source_model(cfg.source, path)
         return path
-    side = load_side(cfg, "source", data_cache(run_dir))
-    data = TrajectorySet((t for t, o in zip(side.data, side.origins, strict=True) if o not in excluded),
-                         hand=side.data.hand)
+    data = source_training_data(load_side(cfg, "source", data_cache(run_dir)), excluded)
     if not len(data):
         raise ValueError(f"no source episode is left to train on once episodes {list(excluded)} are excluded")
     # Minibatches of 64 gain nothing from a second thread, and idle OpenMP threads
@@ -454,62 +496,86 @@ def _workspace(cfg: ExperimentConfig, source: TrajectorySet, target: TrajectoryS
     return Workspace.from_metadata(load_model(source_file)[1], source_file) or Workspace.from_trajectories(target)
 
 
+Exclusions = tuple[int, ...]
+
+
+def _source_ids(cfg: ExperimentConfig, run_dir: Path, source: SideData,
+                exclusions: set[Exclusions]) -> tuple[dict[Exclusions, str], set[Exclusions]]:
+    """What each source model of the run is made of (the fingerprint of its training data; for a source that is a
+    model, its file's sha256), and those kept but trained on other data, with a warning: a bag recorded again at
+    the same path, which the file's name (it hashes the spec's path) cannot tell.  Those are trained again."""
+    if cfg.source.model is not None:  # kept under its file's sha256: never stale
+        return dict.fromkeys(exclusions, file_sha256(cfg.source.model)), set()
+    made_of = {e: source_training_data(source, e).fingerprint() for e in exclusions}
+    stale = set()
+    for excluded, fingerprint in made_of.items():
+        path = source_model_path(cfg, run_dir, excluded)
+        if path.exists() and read_metadata(path).get("data", {}).get("source", fingerprint) != fingerprint:
+            where = next(f"{k} {v}" for k in ("bag", "real", "hand") if (v := getattr(cfg.source, k)) is not None)
+            warnings.warn(f"{path}: the source model was trained on other data than the source ({where}) holds "
+                          f"now: it is trained again and its cells are run again", stacklevel=3)
+            stale.add(excluded)
+    return made_of, stale
+
+
+def _draws(cfg: ExperimentConfig, cells: list[Cell], target: SideData, test: SideData | None,
+           source_ids: dict[Cell, str]) -> dict[Cell, dict[str, str]]:
+    """What each cell's row records of the data it runs on now: its training draw, its test episodes, its source."""
+    splits: dict[tuple[float, int], tuple[str, str]] = {}  # the split depends on the amount and seed alone
+    for cell in cells:
+        if (cell.amount, cell.seed) not in splits:
+            train, tested = target_split(cfg, target.data, cell, None if test is None else test.data)
+            splits[cell.amount, cell.seed] = (train.fingerprint()[:16], tested.fingerprint()[:16])
+    return {c: dict(zip(("train_draw", "test_draw"), splits[c.amount, c.seed], strict=True),
+                    source_data=source_ids[c][:16]) for c in cells}
+
+
 def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | None) -> list[dict[str, Any]]:
     from t42_transfer.progress import progress_bar
 
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(config_dict(cfg), sort_keys=False))
+    write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_dict(cfg), sort_keys=False))
     cache = data_cache(run_dir)
     source, target = load_side(cfg, "source", cache, progress), load_side(cfg, "target", cache, progress)
     test = load_test(cfg, cache, progress)
     quality = {"source": source.quality, "target": target.quality}
     if test is not None:
         quality["test"] = test.quality
-    (run_dir / "data_quality.json").write_text(json.dumps(quality, indent=1))
+    write_atomic(run_dir / "data_quality.json", json.dumps(quality, indent=1))
     cells = _cells(cfg)
     excluded = {c: cell_excluded(cfg, c, source, target, test) for c in cells}
     sources = {c: source_model_path(cfg, run_dir, excluded[c]) for c in cells}
-    rows: dict[Cell, dict[str, Any]] = {}
-    todo = []
-    for cell in cells:
-        done = run_dir / "cells" / f"{cell_key(cfg, cell, sources[cell])}.json"
-        if done.exists():
-            rows[cell] = json.loads(done.read_text())
-            if "train_draw" not in rows[cell]:  # a cell kept from before the column: its split's draw, recomputed
-                train = target_split(cfg, target.data, cell, None if test is None else test.data)[0]
-                rows[cell]["train_draw"] = train.fingerprint()[:16]
-        else:
-            todo.append(cell)
+    files = {c: run_dir / "cells" / f"{cell_key(cfg, c, sources[c])}.json" for c in cells}
+    made_of, stale = _source_ids(cfg, run_dir, source, set(excluded.values()))
+    draws = _draws(cfg, cells, target, test, {c: made_of[excluded[c]] for c in cells})
+    rows = stored_rows({c: files[c] for c in cells if excluded[c] not in stale}, draws)
+    todo = [c for c in cells if c not in rows]
     for left_out in sorted({excluded[c] for c in todo}):
-        train_source(cfg, run_dir, progress, left_out)
+        train_source(cfg, run_dir, progress, left_out, again=left_out in stale)
     workers = cfg.workers or os.cpu_count() or 1
     bar = progress_bar(total=len(cells), initial=len(cells) - len(todo), desc=cfg.name, unit="cell",
                        disable=not progress)
     # The planner keeps predictions inside the states these models were trained on.
     workspace = _workspace(cfg, source.data, target.data, sources[todo[0]]).to_dict() if todo else {}
-    tasks = [(cfg, c, run_dir, sources[c], workspace) for c in todo]
+    data_id = _data_id(target.data, None if test is None else test.data)
+    tasks = [(cfg, c, run_dir, sources[c], workspace, {"data": data_id, "source_data": draws[c]["source_data"]})
+             for c in todo]
 
     def name(task: tuple[Any, ...]) -> str:
         return f"{task[1].method} at amount {task[1].amount:g}, seed {task[1].seed}"
 
-    def keep(task: tuple[Any, Cell, Any, Any, Any], row: dict[str, Any]) -> None:
-        cell = task[1]
-        rows[cell] = row
-        (run_dir / "cells" / f"{cell_key(cfg, cell, sources[cell])}.json").write_text(json.dumps(row, indent=1))
+    def keep(task: tuple[Any, ...], row: dict[str, Any]) -> None:
+        rows[task[1]] = row
+        write_atomic(files[task[1]], json.dumps(row, indent=1))
         bar.update()
+        warn_if_diverged(name(task), row)
 
     try:
-        run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name,
-                  key=lambda task: cell_key(cfg, task[1], sources[task[1]]))
+        run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name, key=lambda task: files[task[1]].stem)
     finally:
         bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)
     results: dict[str, Any] = {"config": config_dict(cfg), "rows": ordered, "data_quality": quality}
     if cfg.source.exclude_test_sequences:
         results["excluded_source_episodes"] = {f"{c.method}-{c.amount}-{c.seed}": list(excluded[c]) for c in cells}
-    (run_dir / "results.json").write_text(json.dumps(results, indent=1))
-    with open(run_dir / "results.csv", "w") as f:
-        f.write(",".join(RESULT_COLUMNS) + "\n")
-        for row in ordered:
-            f.write(",".join(str(row[c]) for c in RESULT_COLUMNS) + "\n")
+    write_results(run_dir, results)
     return ordered
-

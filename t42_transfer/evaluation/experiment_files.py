@@ -1,4 +1,10 @@
-"""The files of an experiment's run directory: named by the cells' keys, locked while a run writes."""
+"""The files of an experiment's run directory: named by the cells' keys, locked while a run writes, written whole,
+read back with suspicion.
+
+A resume trusts what ``cells/`` holds, so every file is written whole or not at all (:func:`write_atomic`), and a
+cell read back is used only when it is whole and was computed on the data the run holds now: anything else is
+run again, with a warning naming the file, instead of stopping every later resume.
+"""
 
 from __future__ import annotations
 
@@ -7,13 +13,16 @@ import dataclasses
 import fcntl
 import hashlib
 import json
+import math
 import os
-from collections.abc import Iterator
+import warnings
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from t42_transfer.evaluation.experiment_config import ExperimentConfig
+from t42_transfer.files import read_json, write_atomic
 
 
 def digest(obj: Any) -> str:
@@ -55,7 +64,8 @@ def _method_config(cfg: ExperimentConfig) -> dict[str, Any]:
 
 def cell_key(cfg: ExperimentConfig, cell: Cell, source_path: Path) -> str:
     """The name of ``cell``'s files (``cells/<key>.json``, ``models/<key>.safetensors``): a hash of everything it
-    depends on by name and setting, so a resume finds it again."""
+    depends on by name and setting, so a resume finds it again (the data's content is checked apart: its row's
+    draws, :func:`stored_rows`)."""
     depends = {
         "cell": dataclasses.asdict(cell), "target": cfg.target.describe(), "split": cfg.split,
         "test_fraction": cfg.test_fraction, "epsilon": cfg.epsilon_mm, "offsets": cfg.start_offsets,
@@ -94,3 +104,55 @@ def run_lock(run_dir: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)
+
+
+def stored_rows(files: Mapping[Any, Path], draws: Mapping[Any, Mapping[str, str]]) -> dict[Any, dict[str, Any]]:
+    """The rows finished cells kept (``files``: each cell's file, made or not), leaving out, with a warning naming
+    the files, those to run again: unreadable or incomplete (a write cut short by a full disk or a kill), or
+    computed on other data than the run holds now (``draws``, what a row records of its data: a bag recorded again
+    at the same path keeps the cell's key, which hashes the path, not the data).
+
+    A draw a row lacks counts as matching, so that rows written before it was recorded (every committed run's)
+    resume unchanged; ``train_draw`` is then filled in from the split, as results.json has it.
+    """
+    rows, changed = {}, {}
+    for cell, path in files.items():
+        if not path.exists():
+            continue
+        try:
+            row = read_json(path, "cell")
+            if not isinstance(row, dict):
+                raise ValueError(f"{path}: the cell is not a JSON object")
+        except ValueError as err:
+            warnings.warn(f"{err}: the cell is run again", stacklevel=2)
+            continue
+        if missing := [c for c in RESULT_COLUMNS if c not in row]:
+            warnings.warn(f"{path}: the cell lacks {', '.join(missing)}: it is run again", stacklevel=2)
+            continue
+        row.setdefault("train_draw", draws[cell]["train_draw"])
+        if differ := tuple(k for k, v in draws[cell].items() if row.get(k, v) != v):  # a missing draw: matching
+            changed.setdefault(differ, []).append(path.name)
+            continue
+        rows[cell] = row
+    for differ, names in changed.items():
+        warnings.warn(f"{len(names)} cell(s) in {next(iter(files.values())).parent} were computed on other data "
+                      f"(their {', '.join(differ)} differ): run again: {', '.join(names)}", stacklevel=2)
+    return rows
+
+
+def warn_if_diverged(cell: str, row: Mapping[str, Any]) -> None:
+    """A model whose predictions are no numbers (a fine-tuning that diverged) scores a divergence time that
+    measures nothing: said at once, naming the cell, rather than left as a row that reads as a result."""
+    bad = [k for k in RESULT_COLUMNS if isinstance(row.get(k), float) and not math.isfinite(row[k])]
+    if bad:
+        warnings.warn(f"{cell}: {', '.join(bad)} not finite: the transferred model predicts no numbers (its "
+                      f"training diverged?), so its divergence time ({row['divergence_mean']:g}) measures nothing",
+                      stacklevel=2)
+
+
+def write_results(run_dir: Path, results: Mapping[str, Any]) -> None:
+    """``results.json`` and its rows as ``results.csv`` (:data:`RESULT_COLUMNS`), each written whole."""
+    write_atomic(run_dir / "results.json", json.dumps(results, indent=1))
+    rows = results["rows"]
+    lines = [",".join(RESULT_COLUMNS), *(",".join(str(row[c]) for c in RESULT_COLUMNS) for row in rows)]
+    write_atomic(run_dir / "results.csv", "\n".join(lines) + "\n")
