@@ -213,3 +213,24 @@ def test_the_drop_rule_ends_an_episode_before_its_first_jump_and_leaves_out_a_sh
     assert np.array_equal(kept[1].states, data[1].states[:31]) and np.array_equal(kept[1].actions, data[1].actions[:30])
     assert kept[1].end_reason == "dropped" and kept[1].start_ns == 10**10
     assert len(notes) == 2 and "step 30" in notes[0] and "kept its first 30" in notes[0] and "left out" in notes[1]
+
+
+def test_a_jump_out_of_frozen_tracking_is_the_marker_found_again_not_a_drop() -> None:
+    """Hand B's path 0: the tracker froze for 198 steps, then the pose jumped 26 mm to where the object was. The
+    frozen stretch is no data and the jump no fall: both are left out and the tracked rest is kept (the drop rule
+    alone kept the frozen stretch and threw the rest away)."""
+    from t42_transfer.data.quality import usable_stretches
+
+    states = path(400)
+    lost = states.copy()
+    lost[1:120, :2] = states[0, :2]  # the pose stays put while the hand moves on; at state 120 it is found again
+    assert np.linalg.norm(lost[120, :2] - lost[119, :2]) > 8.0  # the re-acquisition jumps like a fall
+    fallen = states.copy()
+    fallen[301:, 1] -= 20.0  # a true fall later in another episode still ends it
+    data = TrajectorySet([episode(lost), episode(fallen, start_ns=10**11)])
+    usable, notes = usable_stretches(data)
+    assert usable.origins == (0, 1)
+    rest, ended = usable.data
+    assert np.array_equal(rest.states, lost[120:].astype(np.float32)) and len(rest) == 280  # the tracked rest, whole
+    assert np.array_equal(ended.states, fallen[:301].astype(np.float32)) and ended.end_reason == "dropped"
+    assert any("frozen tracking at steps 0-119" in n and "280 of its 400" in n for n in notes), notes

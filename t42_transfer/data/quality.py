@@ -216,9 +216,12 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
     return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), findings)
 
 
-def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajectory | None, list[str]]:
-    """``traj`` ended at its first drop (None: too little before it), and a line when it was cut."""
+def _end_at_drop(traj: Trajectory, index: int, jump_mm: float,
+                 frozen: tuple[Finding, ...] = ()) -> tuple[Trajectory | None, list[str]]:
+    """``traj`` ended at its first drop (None: too little before it), and a line when it was cut.  A jump out of a
+    ``frozen`` stretch is the tracker finding the marker again, no drop: the stretch is left out, not the rest."""
     moves, jumped = jumps(traj, jump_mm)
+    jumped = np.array([k for k in jumped.tolist() if not any(f.start <= k < f.end for f in frozen)], dtype=int)
     if not len(jumped):
         return traj, []
     cut = int(jumped[0])
@@ -236,8 +239,9 @@ def _end_at_drop(traj: Trajectory, index: int, jump_mm: float) -> tuple[Trajecto
 
 def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tuple[Handled, list[str]]:
     """What a transfer trains and scores on of recorded episodes: each ended before its first one-step x,y jump over
-    ``jump_mm`` (the paper's drop rule: the object falling), then without its late steps, the stretches between
-    them kept when at least MIN_EPISODE_STEPS long (the paper's rule for short episodes).  The stretches with the
+    ``jump_mm`` (the paper's drop rule: the object falling), then without its late steps and its frozen tracking
+    (a jump out of a frozen stretch is the tracker finding the marker again, no drop), the stretches between them
+    kept when at least MIN_EPISODE_STEPS long (the paper's rule for short episodes).  The stretches with the
     episode each came from and the late steps found (by episode), and a line per episode cut or split, naming it
     as ``data`` counts.
 
@@ -255,18 +259,26 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     origins: list[int] = []
     notes: list[str] = []
     late: dict[int, tuple[Finding, ...]] = {}
+    thresholds = dataclasses.replace(THRESHOLDS, jump_mm=jump_mm)
     for i, traj in enumerate(data):
-        ended, note = _end_at_drop(traj, i, jump_mm)
+        frozen = tuple(f for f in find_problems(traj, thresholds) if f.kind == FROZEN)
+        ended, note = _end_at_drop(traj, i, jump_mm, frozen)
         notes += note
         if ended is None:
             continue
-        found = tuple(_late(ended))
+        frozen = tuple(f for f in frozen if f.start < len(ended))
+        late_found = tuple(_late(ended))
+        found = tuple(sorted(frozen + late_found, key=lambda f: f.start))
         pieces = _pieces(ended, found) if found else [ended]
+        if late_found:
+            late[i] = late_found
         if found:
-            late[i] = found
-            notes.append(f"episode {i} (start {traj.start_ns} ns): {len(found)} late step(s) (the longest "
-                         f"{max(f.size for f in found):.0f} ms) left out: {sum(len(t) for t in pieces)} of its "
-                         f"{len(ended)} transitions kept, in {len(pieces)} stretch(es) of at least {MIN_EPISODE_STEPS}")
+            what = "; ".join(filter(None, (
+                f"{len(late_found)} late step(s) (the longest {max(f.size for f in late_found):.0f} ms)"
+                if late_found else "", ", ".join(f.describe() for f in frozen))))
+            notes.append(f"episode {i} (start {traj.start_ns} ns): {what} left out: {sum(len(t) for t in pieces)} of "
+                         f"its {len(ended)} transitions kept, in {len(pieces)} stretch(es) of at least "
+                         f"{MIN_EPISODE_STEPS}")
         kept += pieces
         origins += [i] * len(pieces)
     return Handled(TrajectorySet(kept, hand=data.hand), tuple(origins), late), notes
