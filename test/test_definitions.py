@@ -206,10 +206,10 @@ def test_trajectory_finetune_rolls_out_whole_episodes_or_cropped_batches(definit
     shapes, cutoffs = [], set()
     original = methods.rollout_until
 
-    def spy(model, true, actions, cutoff_mm2):
+    def spy(model, true, actions, cutoff_mm2, starts=None):
         shapes.append(tuple(true.shape))
         cutoffs.add(cutoff_mm2)
-        return original(model, true, actions, cutoff_mm2)
+        return original(model, true, actions, cutoff_mm2, starts)
 
     monkeypatch.setattr(methods, "rollout_until", spy)
     target = make_set([12, 20, 15, 9], seed=6)
