@@ -94,7 +94,7 @@ from msg_adapters.transfer import (
     transfer_type,
 )
 from t42_transfer.nodes.transfer_server_params import TransferServerParams, method_names
-from t42_transfer.ros.dirs import claim, in_namespace
+from t42_transfer.ros.dirs import claim_made
 from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
@@ -212,11 +212,8 @@ class TransferServer(Node):
         torch.set_num_threads(self.params.torch_threads)
         # In a thread of its own while the server waits for its first goal, not inside its first transfer.
         threading.Thread(target=import_optimizer_machinery, name="import-torch-optim", daemon=True).start()
-        model_dir = in_namespace(self.params.model_dir, self.get_namespace())
-        for directory in (model_dir, self.params.bag_dir):  # at start, so a shared directory fails in one line
-            if directory:
-                claim(in_namespace(directory, self.get_namespace()), self.get_namespace(), self.params.share_dirs)
-        self._announce_latest(model_dir)
+        # the directories as each call takes them (claimed there too): a shared one fails at start, in one line
+        self._announce_latest(self.params.spec(self.get_namespace()).model_dir)
         if not self.params.source_model.is_file():  # said now, not first at the transfer a user waits for
             where = self.params.source_model.absolute()  # (the node's working directory may not be the user's)
             self.log.warning(f"source_model {where} does not exist (yet) or is no file: every transfer fails until "
@@ -478,6 +475,7 @@ class TransferServer(Node):
             except Exception as err:  # reported, never raised from the thread
                 outcome["error"] = f"failed: {type(err).__name__}: {err}"
             finally:
+                claim_made(spec.model_dir, self.get_namespace(), params.share_dirs)  # the first save made it
                 done.set()
 
         self._worker = threading.Thread(target=work, name="transfer", daemon=True)

@@ -55,3 +55,13 @@ def claim(directory: str | Path, namespace: str, share: bool = False) -> None:
         return
     with os.fdopen(fd, "w") as out:
         out.write(owner + "\n")
+
+
+def claim_made(directory: str | Path, namespace: str, share: bool = False) -> None:
+    """:func:`claim` a directory its user may just have made (a transfer server's first save makes its model
+    directory after the start's claim found none); one another namespace took meanwhile is not an error here: the
+    next use, claiming it again, refuses it in one line."""
+    try:
+        claim(directory, namespace, share)
+    except ValueError:
+        pass
