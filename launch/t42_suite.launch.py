@@ -5,7 +5,9 @@ The default is the simulated suite, ``share/t42_transfer/config/suite.yaml`` (mo
 transfer server, planner); the package installs the other params files beside it: ``suite_camera.yaml``,
 ``hardware_emulated.yaml`` and ``hardware_real.yaml`` (edit a copy of the last for your hand).  The same
 file runs without a ROS install as ``t42 up configs/<file>.yaml [--namespace /left]``, and both start the
-same nodes the same way (``t42_transfer.ros.launcher.launch_nodes``).  Each executable is a console script
+same nodes the same way (``t42_transfer.ros.launcher.launch_nodes``), restarted as ``t42 up`` restarts them
+(``respawn``, at most 5 times), though after a fixed 1 s (launch has no backoff); a node that can finish (the
+explorer) is not restarted, since launch would start it again after its exit 0 too.  Each executable is a console script
 of setup.py, one per entry of t42_transfer.nodes.registry.NODES; every name the nodes use is relative, so a
 namespace puts a whole suite (one hand) beside another.
 """

@@ -9,20 +9,24 @@ stops the children in order).  Their output is forwarded line by line, prefixed
 every child gets SIGINT, then SIGTERM after ``stop_timeout_s``, then SIGKILL.
 Should the supervisor itself die (SIGKILL, a crash), each child gets SIGTERM
 from the kernel and stops cleanly (:func:`~t42_transfer.ros.runner.stop_with_supervisor`).
-A child that exits on its own after running a
+A child that exits 0 finished (the explorer after its episodes) and is
+not started again, as in ``ros2 launch``; the others keep running, and ``t42 up`` ends (0) once none is left.
+A child that exits otherwise after running a
 while is restarted alone, as launch's ``respawn`` does: after 1 s, then 2, 4, 8 s
 for each further restart, at most ``max_respawns`` times; the others keep running
 (a restarted recorder begins a new bag, a restarted driver grasps on the next reset,
 a restarted planner reads its model again).  A child that exits within
 ``MIN_UPTIME_S`` of its start failed to start, and one past its restarts, or any
 with ``respawn=False`` (``--no-respawn``), is a failure: the others are stopped the
-same way and the exit code is 1.  Discovery stays on this machine
+same way and the exit code is 1.  A second ``t42 up`` of nodes of the same names (the same file and namespace)
+on the same ROS domain is refused (:func:`hold_node_names`).  Discovery stays on this machine
 (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``) unless the user set a range.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -42,7 +46,8 @@ from t42_transfer.yaml_files import read_yaml
 
 PACKAGE = "t42_transfer"
 """The ROS package whose executables (setup.py's console scripts, one per node) a launch file starts."""
-WILDCARDS = ("/**", "**")
+WILDCARDS = ("*", "**")
+"""rcl's wildcard tokens of a section's name: one token, any number of tokens."""
 PARAMS_KEY = "ros__parameters"
 
 POLL_S = 0.1
@@ -151,14 +156,43 @@ def node_sections(path: str | Path) -> list[str]:
     Write sections as ``/**/name`` to match the node under any namespace (``t42 up --namespace``);
     a plain ``name`` section matches it only at the root namespace, as in rcl.
     """
+    return _node_names(read_params_file(path))
+
+
+def _node_names(doc: dict[str, Any]) -> list[str]:
     names: list[str] = []
-    for key in read_params_file(path):
-        if key in WILDCARDS:
-            continue
-        name = key.rsplit("/", 1)[-1]  # "/**/recorder", "/left/recorder" and "recorder" name the recorder
-        if name not in names:
-            names.append(name)
+    for tokens in _section_names(doc):
+        if tokens and tokens[-1] not in WILDCARDS and tokens[-1] not in names:
+            names.append(tokens[-1])
     return names
+
+
+def _section_names(doc: dict[str, Any], outer: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """The node name of each section of a checked params file, as rcl reads it: the keys from the outermost in,
+    split at ``/`` (``left: {mock_driver: ...}`` and ``/left/mock_driver`` are both ``("left", "mock_driver")``)."""
+    found: list[tuple[str, ...]] = []
+    for key, section in doc.items():
+        path = (*outer, *(t for t in key.split("/") if t))
+        found += [path] if PARAMS_KEY in section else _section_names(section, path)
+    return found
+
+
+def _matches(tokens: Sequence[str], fqn: str) -> bool:
+    """Whether rcl gives the section named ``tokens`` to the node ``fqn``: ``*`` is one token, ``**`` any number."""
+    parts = {"*": "/[^/]+", "**": "(?:/[^/]+)*"}
+    return re.fullmatch("".join(parts.get(t, "/" + re.escape(t)) for t in tokens), fqn) is not None
+
+
+def _check_namespaces(config: str | Path, doc: dict[str, Any], run: Sequence[str], namespace: str) -> None:
+    """ValueError, one line, for a section of a node in ``run`` that rcl would not give that node under
+    ``namespace``: the node would start on the file's other values or its defaults, silently."""
+    for tokens in _section_names(doc):
+        fqn = f"{namespace}/{tokens[-1]}" if tokens else ""
+        if tokens and tokens[-1] in run and not _matches(tokens, fqn):
+            key = "/" + "/".join(tokens)
+            raise ValueError(f"{config}: section {key} does not match the node {fqn} it would start (under "
+                             f"{namespace or 'no namespace'}): run under --namespace /{'/'.join(tokens[:-1])}, "
+                             f"or name the section /**/{tokens[-1]} (any namespace)")
 
 
 P = TypeVar("P")
@@ -198,9 +232,11 @@ def params_from_file(params_cls: type[P], params_file: str | Path, node_name: st
         rclpy.shutdown(context=context)
 
 
-def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[str]:
-    """The registered nodes ``config`` has sections for (filtered by ``only``); ValueError for unknown names."""
-    sections = node_sections(config)
+def plan_nodes(config: str | Path, only: Sequence[str] | None = None, namespace: str = "") -> list[str]:
+    """The registered nodes ``config`` has sections for (filtered by ``only``), to run under ``namespace``;
+    ValueError for unknown names and for a section of one of them that rcl would not give it there."""
+    doc = read_params_file(config)
+    sections = _node_names(doc)
     unknown = [n for n in sections if n not in NODES]
     if unknown:
         raise ValueError(f"{config}: no registered node named {', '.join(unknown)}; available: {', '.join(NODES)}")
@@ -211,27 +247,39 @@ def plan_nodes(config: str | Path, only: Sequence[str] | None = None) -> list[st
         sections = [n for n in sections if n in only]
     if not sections:
         raise ValueError(f"{config}: no node sections to run")
+    _check_namespaces(config, doc, sections, _absolute(namespace))
     return sections
+
+
+RESPAWN_DELAY_S = 1.0
+"""The first restart's delay (then 2, 4, 8 s): the launch file's ``respawn_delay``."""
 
 
 def launch_nodes(params_file: str | Path, namespace: str = "") -> list[dict[str, Any]]:
     """The launch_ros ``Node`` arguments ``launch/t42_suite.launch.py`` starts for ``params_file``: the nodes
     :func:`plan_nodes` names, as ``t42 up`` starts them (one process each, the file as their parameters, and in a
-    namespace its own ``/clock``, :func:`namespace_args`): one node list for both ways of starting a suite."""
+    namespace its own ``/clock``, :func:`namespace_args`): one node list for both ways of starting a suite.
+
+    Restarted as ``t42 up`` restarts them (``respawn``, at most :data:`MAX_RESPAWNS` times), but after a fixed
+    :data:`RESPAWN_DELAY_S` (launch has no backoff); launch restarts a process whatever its exit code, so a node
+    that can finish (the explorer, a camera at a video's end) is not respawned: its exit 0 is its end."""
     namespace = _absolute(namespace)
     clock = [(names.CLOCK, namespace + names.CLOCK)] if namespace else []
-    return [{"package": PACKAGE, "executable": name, "name": name, "namespace": namespace,
-             "parameters": [str(params_file)], "remappings": clock, "output": "screen", "emulate_tty": True}
-            for name in plan_nodes(params_file)]
+    nodes = []
+    for name in plan_nodes(params_file, namespace=namespace):
+        respawn = not hasattr(NODES[name].node_class(), "finished")
+        nodes.append({"package": PACKAGE, "executable": name, "name": name, "namespace": namespace,
+                      "parameters": [str(params_file)], "remappings": clock, "output": "screen", "emulate_tty": True,
+                      "respawn": respawn, "respawn_delay": RESPAWN_DELAY_S,
+                      "respawn_max_retries": MAX_RESPAWNS if respawn else 0})
+    return nodes
 
 
-def _forward(child: Child, stream: IO[str], out: TextIO, lock: threading.Lock) -> None:
+def _forward(child: Child, stream: IO[str], emit: Callable[[str], None]) -> None:
     for line in stream:
         if not child.running and RUNNING in line:
             child.running = True
-        with lock:
-            out.write(f"[{child.name}] {line}" if line.endswith("\n") else f"[{child.name}] {line}\n")
-            out.flush()
+        emit(f"[{child.name}] {line}" if line.endswith("\n") else f"[{child.name}] {line}\n")
 
 
 def _stop(children: list[Child], timeout_s: float, say: Callable[[str], None]) -> None:
@@ -264,11 +312,28 @@ class Supervisor:
         self.env = env
         self.children: list[Child] = []
         self._lock = threading.Lock()
+        self._broken = False
 
     def say(self, message: str) -> None:
+        self.emit(f"[t42 up] {message}\n")
+
+    def emit(self, text: str) -> None:
+        """Write ``text`` whole; once the reader is gone (``t42 up | head``), drop it: the children's output is
+        still read to the end (a child blocks on a full pipe) and the suite runs on until stopped."""
         with self._lock:
-            self.out.write(f"[t42 up] {message}\n")
-            self.out.flush()
+            if self._broken:
+                return
+            try:
+                self.out.write(text)
+                self.out.flush()
+            except (BrokenPipeError, ValueError):  # (ValueError: the stream was closed)
+                self._broken = True
+                try:  # nothing more reaches the pipe, the interpreter's last flush included
+                    devnull = os.open(os.devnull, os.O_WRONLY)
+                    os.dup2(devnull, self.out.fileno())
+                    os.close(devnull)
+                except (OSError, ValueError, AttributeError):
+                    pass
 
     def start(self, name: str, *overrides: str) -> Child:
         """Start node ``name`` with its section of the params file (and ``-p`` ``overrides``, ``key:=value``)."""
@@ -281,7 +346,7 @@ class Supervisor:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 bufsize=1, start_new_session=True, env=env)
         child = Child(name, proc, threading.Thread(), overrides, time.monotonic())
-        child.forwarder = threading.Thread(target=_forward, args=(child, proc.stdout, self.out, self._lock),
+        child.forwarder = threading.Thread(target=_forward, args=(child, proc.stdout, self.emit),
                                            daemon=True)
         child.forwarder.start()
         self.children.append(child)
@@ -319,11 +384,59 @@ class Supervisor:
         self.stop()
 
 
+def hold_node_names(fqns: Sequence[str], config: str | Path, domain: str | None = None,
+                    where: Path | None = None) -> list[IO[str]]:
+    """Lock files, one per fully qualified node name on the ROS domain, held while this ``t42 up`` runs (close
+    them to let go); ValueError naming the ``t42 up`` that holds one.
+
+    rcl lets two nodes of one name run side by side: two suites of one params file and namespace would run two
+    drivers on the hand's topics, and each recorder would record both.  An ``flock`` is let go by the kernel
+    however its holder ends (no stale lock after a SIGKILL); the file names the holder for the message."""
+    import fcntl
+    import tempfile
+
+    domain = os.environ.get("ROS_DOMAIN_ID", "0") if domain is None else domain
+    where = Path(tempfile.gettempdir()) / f"t42_up_{os.getuid()}" if where is None else where
+    where.mkdir(parents=True, exist_ok=True)
+    held: list[IO[str]] = []
+    try:
+        for fqn in fqns:
+            handle = open(where / f"domain{domain}{fqn.replace('/', '%')}.lock", "a+")
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                handle.seek(0)
+                owner = handle.read().strip() or "another t42 up"
+                handle.close()
+                raise ValueError(f"{fqn} already runs in {owner} on ROS_DOMAIN_ID {domain}: stop that suite first, "
+                                 "or start this one under another --namespace") from None
+            handle.seek(0)
+            handle.truncate()
+            handle.write(f"t42 up (pid {os.getpid()}) of {Path(config).absolute()}\n")
+            handle.flush()
+            held.append(handle)
+    except BaseException:
+        for handle in held:
+            handle.close()
+        raise
+    return held
+
+
 def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: float = 5.0,
        out: TextIO | None = None, namespace: str = "", respawn: bool = True, max_respawns: int = MAX_RESPAWNS) -> int:
     """Run the nodes of params file ``config`` until SIGINT, SIGTERM or SIGHUP, or a child fails (see the module
     docstring); the exit code."""
-    names = plan_nodes(config, only)
+    names = plan_nodes(config, only, namespace)
+    held = hold_node_names([f"{_absolute(namespace)}/{name}" for name in names], config)
+    try:
+        return _run_suite(config, names, stop_timeout_s, out, namespace, max_respawns if respawn else 0)
+    finally:
+        for handle in held:
+            handle.close()
+
+
+def _run_suite(config: str | Path, names: list[str], stop_timeout_s: float, out: TextIO | None, namespace: str,
+               max_respawns: int) -> int:
     supervisor = Supervisor(config, out, stop_timeout_s, namespace=namespace)
     supervisor.say(f"discovery range {keep_discovery_local()}, ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}")
     stop = threading.Event()
@@ -333,7 +446,7 @@ def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: fl
 
     previous = {sig: signal.signal(sig, on_signal) for sig in STOP_SIGNALS}
     failed: list[str] = []
-    respawner = _Respawner(supervisor, max_respawns if respawn else 0)
+    respawner = _Respawner(supervisor, max_respawns)
     try:
         for name in names:
             supervisor.start(name)
@@ -341,6 +454,9 @@ def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: fl
             failed = respawner.tend()
             if failed:
                 supervisor.say(f"{'; '.join(failed)}: stopping the others")
+                break
+            if respawner.idle():
+                supervisor.say("every node finished")
                 break
             stop.wait(POLL_S)
         else:
@@ -358,6 +474,21 @@ def up(config: str | Path, only: Sequence[str] | None = None, stop_timeout_s: fl
     return 1 if failed or unclean else 0
 
 
+def after_exit(code: int, ran_s: float, restarts: int, max_respawns: int) -> tuple[str, float | str]:
+    """What ``t42 up`` does about a node that exited with ``code`` after ``ran_s`` s, restarted ``restarts`` times
+    so far: ``("done", "")`` for exit 0 (a node that finished, the explorer after its episodes: as in launch, its
+    end is no failure and starting it again would redo its work), ``("restart", delay_s)``, or ``("fail", why)``."""
+    if code == 0:
+        return "done", ""
+    if max_respawns <= 0:
+        return "fail", "no respawn"
+    if ran_s < MIN_UPTIME_S:
+        return "fail", "it failed to start"
+    if restarts >= max_respawns:
+        return "fail", f"restarted {restarts} time(s) already"
+    return "restart", min(MAX_BACKOFF_S, RESPAWN_DELAY_S * 2.0 ** restarts)
+
+
 class _Respawner:
     """Restarts the supervisor's children that exit after running a while, with backoff, up to a limit."""
 
@@ -368,23 +499,29 @@ class _Respawner:
         """Children waiting to be started again: when, and with which overrides."""
 
     def tend(self) -> list[str]:
-        """Schedule restarts of children that died, start those due; what failed for good (empty: all is well)."""
+        """Schedule restarts of children that died, start those due; what failed for good (empty: all is well).
+        A child that finished (exit 0) is dropped: the others keep running."""
         now, failed = time.monotonic(), []
         for child in self.supervisor.dead():
             code, ran_s, count = child.proc.returncode, now - child.started, self.respawns.get(child.name, 0)
-            if ran_s < MIN_UPTIME_S or count >= self.max_respawns:
-                why = ("it failed to start" if ran_s < MIN_UPTIME_S else f"restarted {count} time(s) already") \
-                    if self.max_respawns else "no respawn"
-                failed.append(f"{child.name} exited with code {code} unexpectedly ({why})")
+            action, detail = after_exit(code, ran_s, count, self.max_respawns)
+            if action == "fail":
+                failed.append(f"{child.name} exited with code {code} unexpectedly ({detail})")
                 continue
-            delay = min(MAX_BACKOFF_S, 2.0 ** count)
-            self.supervisor.say(f"{child.name} exited with code {code} after {ran_s:.0f} s: restarting it in "
-                                f"{delay:g} s ({count + 1} of {self.max_respawns})")
             self.supervisor.forget(child)
+            if action == "done":
+                self.supervisor.say(f"{child.name} finished (exit 0 after {ran_s:.0f} s)")
+                continue
+            self.supervisor.say(f"{child.name} exited with code {code} after {ran_s:.0f} s: restarting it in "
+                                f"{detail:g} s ({count + 1} of {self.max_respawns})")
             self.respawns[child.name] = count + 1
-            self.due[child.name] = (now + delay, child.overrides)
+            self.due[child.name] = (now + float(detail), child.overrides)
         for name, (when, overrides) in list(self.due.items()):
             if now >= when and not failed:
                 del self.due[name]
                 self.supervisor.start(name, *overrides)
         return failed
+
+    def idle(self) -> bool:
+        """Every child finished and none waits for its restart: the suite is done."""
+        return not self.supervisor.children and not self.due
