@@ -246,8 +246,13 @@ def t42_reach(rig: ReachRig, *argv: str, interrupt_after_ticks: int | None = Non
     proc = subprocess.Popen([sys.executable, "-m", "t42_transfer.cli", "reach", *argv], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline, moving = time.monotonic() + 90.0, 0
+    # No ticks before the plan: the goal is planned from the rig's state however long the process takes to start
+    # (ticking meanwhile moved the hand a load-dependent number of steps, and a toy plan refused a goal once).
+    assert all(r.successful for r in rig.set(max_state_age_s=600.0))
+    plans = len(rig.results)
     while proc.poll() is None and time.monotonic() < deadline:
-        rig.tick()
+        if rig.driver.pending_actions > 0 or len(rig.results) > plans:
+            rig.tick()
         moving += rig.driver.pending_actions > 0
         if moving == interrupt_after_ticks:
             proc.send_signal(signal.SIGINT)
