@@ -295,15 +295,17 @@ def max_training_error(
     worst_norm, worst_xy = 0.0, 0.0
     was_training = model.training
     model.eval()
-    for start in range(0, len(x), chunk):
-        rows = slice(start, start + chunk)
-        tensors = (torch.as_tensor(v[rows], dtype=torch.float32, device=device) for v in (x, first, a))
-        with torch.no_grad():
-            states, firsts, actions = tensors
-            pred = model.observe(model.latent_step(model.episode_latent(states, firsts), actions))
-        diff = _as_numpy(pred) - x_next[rows]
-        # np.maximum, not max(): a NaN prediction must show up in the result, not vanish.
-        worst_norm = np.maximum(worst_norm, np.linalg.norm(diff / scale, axis=1).max())
-        worst_xy = np.maximum(worst_xy, np.linalg.norm(diff[:, :2], axis=1).max())
-    model.train(was_training)
+    try:
+        for start in range(0, len(x), chunk):
+            rows = slice(start, start + chunk)
+            tensors = (torch.as_tensor(v[rows], dtype=torch.float32, device=device) for v in (x, first, a))
+            with torch.no_grad():
+                states, firsts, actions = tensors
+                pred = model.observe(model.latent_step(model.episode_latent(states, firsts), actions))
+            diff = _as_numpy(pred) - x_next[rows]
+            # np.maximum, not max(): a NaN prediction must show up in the result, not vanish.
+            worst_norm = np.maximum(worst_norm, np.linalg.norm(diff / scale, axis=1).max())
+            worst_xy = np.maximum(worst_xy, np.linalg.norm(diff[:, :2], axis=1).max())
+    finally:
+        model.train(was_training)
     return TrainingError(float(worst_norm), float(worst_xy))

@@ -42,9 +42,7 @@ import dataclasses
 import itertools
 import json
 import math
-import os
 import re
-import tempfile
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -61,6 +59,7 @@ from t42_transfer.data.quality import usable_stretches
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
+from t42_transfer.files import write_atomic
 from t42_transfer.models.baselines import HoldStill
 from t42_transfer.models.checkpoint import load_model, save_model
 from t42_transfer.models.network import TransitionModel
@@ -255,17 +254,7 @@ def read_state(model_dir: Path) -> dict[str, Any]:
 def write_state(model_dir: Path, state: Mapping[str, Any]) -> None:
     """Replace the state file atomically (written beside it, fsynced, renamed)."""
     model_dir.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{STATE_FILE}.", suffix=".partial", dir=model_dir)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(state, f, indent=2)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, model_dir / STATE_FILE)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_atomic(model_dir / STATE_FILE, json.dumps(state, indent=2) + "\n")
 
 
 def latest_transfer(model_dir: Path) -> tuple[Path, dict[str, Any]] | None:
