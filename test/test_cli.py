@@ -110,9 +110,11 @@ def test_import_t42(t42_real_dir: Path, tmp_path: Path, capsys: pytest.CaptureFi
 def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "docs"
     assert main(["sim", "compare-real", "--real-dir", str(t42_real_dir), "--out-dir", str(out)]) == 0
-    rows = json.loads((out / "sim_vs_real.json").read_text())
-    names = [r["name"] for r in rows]
+    summary = json.loads((out / "sim_vs_real.json").read_text())
+    names = [r["name"] for r in summary["paths"]]
     assert names == ["real A", "real B", "sim source (same actions)", "sim target (same actions)"]
+    held = {(r["name"], tuple(r["action"])) for r in summary["held_moves"]}
+    assert ("real A", (-1.0, 1.0)) in held and ("sim source (same actions)", (-1.0, 1.0)) in held
     assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
 
 

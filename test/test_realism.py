@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-from t42_transfer.hand.realism import markdown_table, replay, summarise
+from t42_transfer.hand.realism import held_move_rates, held_moves_table, held_runs, markdown_table, replay, summarise
 
 
 def _path(xy: list[tuple[float, float]], end_reason: str = "length") -> Trajectory:
@@ -37,3 +38,46 @@ def test_replay_runs_the_same_actions_on_the_simulated_hand() -> None:
     assert len(sim) == 1
     np.testing.assert_array_equal(sim[0].actions, actions[: len(sim[0])])
     assert np.ptp(sim[0].states[:, 0]) > 2.0  # a sustained sideways action moves the object
+
+
+def test_held_runs_finds_stretches_of_one_action() -> None:
+    actions = np.array([[1, 1]] * 3 + [[-1, 1]] * 5 + [[0, 1.5]] * 2 + [[-1, 1]] * 4, dtype=float)
+    assert held_runs(actions, 4) == [(3, 8), (10, 14)]
+    assert held_runs(actions, 6) == []
+    assert held_runs(actions, 1) == [(0, 3), (3, 8), (8, 10), (10, 14)]
+
+
+def _held_path(moves: list[tuple[tuple[float, float], int, float, float]]) -> Trajectory:
+    """A path of held moves, each (action, steps, object speed mm/step along x, load1 change per step)."""
+    actions, states = [], [np.array([0.0, 50.0, 100.0, -100.0])]
+    for action, steps, speed, load_rate in moves:
+        for _ in range(steps):
+            actions.append(action)
+            states.append(states[-1] + np.array([speed, 0.0, load_rate, -load_rate]))
+    return Trajectory(states=np.array(states), actions=np.array(actions, dtype=float))
+
+
+def test_held_move_rates_measure_the_first_window_of_each_run() -> None:
+    # Path 2's run of [-1, 1] moves 0.1 mm/step for 10 steps, then stands still (the end of travel):
+    # over a 10-step window it is 0.1 mm/step, not the whole run's 0.05.
+    data = TrajectorySet([
+        _held_path([((-1.0, 1.0), 12, 0.3, 2.0), ((1.0, 1.0), 5, 9.0, 9.0), ((-1.0, 1.0), 10, 0.1, 1.0)]),
+        _held_path([((-1.0, 1.0), 10, 0.1, 1.0), ((-1.0, 1.0), 10, 0.0, 0.0)]),  # one run of 20 that stops at 10
+    ])
+    rows = held_move_rates("made", data, window=10)
+    assert [r.action for r in rows] == [(-1.0, 1.0)]  # [1, 1] is held 5 < 10 steps
+    (row,) = rows
+    assert row.runs == 3 and row.window == 10
+    assert row.speed_mm_per_step == pytest.approx(0.1)  # median of 0.3, 0.1, 0.1
+    assert row.load1_per_step == pytest.approx(1.0) and row.load2_per_step == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="window"):
+        held_move_rates("made", data, window=0)
+
+
+def test_held_moves_table_gives_the_speed_against_the_real_hands() -> None:
+    real = TrajectorySet([_held_path([((-1.0, 1.0), 20, 0.1, 1.0)])])
+    fast = TrajectorySet([_held_path([((-1.0, 1.0), 20, 2.5, 1.0)])])
+    rates = held_move_rates("real A", real, 10) + held_move_rates("sim source", fast, 10)
+    table = held_moves_table(rates)
+    assert "| [-1, 1] | sim source | 1 | 2.500 | +1.00 | -1.00 | 25.0x |" in table
+    assert "| [-1, 1] | real A | 1 | 0.100 | +1.00 | -1.00 |  |" in table

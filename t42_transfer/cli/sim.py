@@ -42,12 +42,15 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
         output_dir(args.out_dir)
     real = {hand: load_t42_testpaths(folder / name) for hand, name in REAL_FILES.items()}
     rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
-    table = realism.markdown_table(rows)
+    named = {f"real {k}": v for k, v in real.items()} | {f"{k} (same actions)": v for k, v in replays.items()}
+    rates = [r for name, data in named.items() for r in realism.held_move_rates(name, data, args.window)]
+    table = realism.markdown_table(rows) + "\n" + realism.held_moves_table(rates)
     print(table)
     if args.out_dir:
         args.out_dir.mkdir(parents=True, exist_ok=True)
         (args.out_dir / "sim_vs_real.md").write_text(table)
-        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(realism.rows_as_dicts(rows), indent=2) + "\n")
+        summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates)}
+        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2) + "\n")
         figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
         print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json and {figure}")
     return 0
@@ -74,5 +77,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     )
     cmp_.add_argument("--hands", nargs="+", default=["source", "target"])
     cmp_.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
+    cmp_.add_argument(
+        "--window", type=int_arg(1), default=30,
+        help="steps of each held move over which its rates are measured (default 30)",
+    )
     cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
     cmp_.set_defaults(func=_cmd_sim_compare_real)

@@ -4,7 +4,9 @@ The real T42 test paths (two hands, the same six action sequences) are replayed
 open loop on simulated hands; both are summarised by the quantities a
 researcher would eyeball: workspace extent, step sizes, load ranges and drops.
 The aim is credible behaviour, not a fit: frames differ (camera vs hand base), so
-extents are compared as spans, not coordinates.
+extents are compared as spans, not coordinates.  Time scales are compared by the
+held moves: how far a move held for many steps carries the object and the loads
+per step, the rate a model has to learn and the one divergence times are counted in.
 """
 
 from __future__ import annotations
@@ -62,6 +64,51 @@ def summarise(name: str, data: TrajectorySet) -> BehaviourStats:
     )
 
 
+@dataclass(frozen=True)
+class HeldMoveRate:
+    """How fast one move, held, carries the object and the loads (one row of the held-moves table).
+
+    Rates are medians over the runs where the move was held at least ``window`` steps, each measured
+    over the run's first ``window`` steps (net change / window), so a hand that reaches the end of its
+    travel early is not averaged with the standstill that follows."""
+
+    name: str
+    action: tuple[float, float]
+    runs: int
+    window: int
+    speed_mm_per_step: float
+    load1_per_step: float
+    load2_per_step: float
+
+
+def held_runs(actions: np.ndarray, min_steps: int) -> list[tuple[int, int]]:
+    """``(start, stop)`` of every stretch of one action repeated at least ``min_steps`` times."""
+    runs, start = [], 0
+    for i in range(1, len(actions) + 1):
+        if i == len(actions) or not np.array_equal(actions[i], actions[start]):
+            if i - start >= min_steps:
+                runs.append((start, i))
+            start = i
+    return runs
+
+
+def held_move_rates(name: str, data: TrajectorySet, window: int = 30) -> list[HeldMoveRate]:
+    """One :class:`HeldMoveRate` per move held at least ``window`` steps somewhere in ``data``, by move."""
+    if window < 1:
+        raise ValueError(f"window must be at least 1 step, got {window}")
+    changes: dict[tuple[float, float], list[np.ndarray]] = {}
+    for t in data:
+        for start, _ in held_runs(t.actions, window):
+            delta = (t.states[start + window] - t.states[start]) / window
+            move = (float(t.actions[start][0]), float(t.actions[start][1]))
+            changes.setdefault(move, []).append(np.array([np.linalg.norm(delta[:2]), delta[2], delta[3]]))
+    rows = []
+    for move in sorted(changes):
+        rates = np.median(np.array(changes[move]), axis=0)
+        rows.append(HeldMoveRate(name, move, len(changes[move]), window, *(float(r) for r in rates)))
+    return rows
+
+
 def replay(real: TrajectorySet, hand: str, seed: int = 0) -> TrajectorySet:
     """Run every real path's action sequence open loop on the simulated ``hand``."""
     sim = SimulatedHand(hand)
@@ -108,6 +155,27 @@ def markdown_table(rows: Sequence[BehaviourStats]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+def held_moves_table(rates: Sequence[HeldMoveRate]) -> str:
+    """Markdown, a row per move and data set; the last column is the speed over the real sets' mean speed."""
+    real = {}
+    for r in rates:
+        if r.name.startswith("real"):
+            real.setdefault(r.action, []).append(r.speed_mm_per_step)
+    head = (
+        "| move | data | runs | object mm/step | load1 /step | load2 /step | speed / real |\n"
+        "|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in sorted(rates, key=lambda r: (r.action, r.name)):
+        compared = r.action in real and not r.name.startswith("real")
+        ratio = f"{r.speed_mm_per_step / np.mean(real[r.action]):.1f}x" if compared else ""
+        lines.append(
+            f"| [{r.action[0]:g}, {r.action[1]:g}] | {r.name} | {r.runs} | {r.speed_mm_per_step:.3f} "
+            f"| {r.load1_per_step:+.2f} | {r.load2_per_step:+.2f} | {ratio} |"
+        )
+    return head + "\n".join(lines) + "\n"
+
+
 def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, TrajectorySet], path: Path) -> Path:
     """x-y paths of every real set next to the simulated replays, one panel each, path colours matched."""
     from t42_transfer.plots import pyplot, save
@@ -129,5 +197,5 @@ def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, Trajector
     return save(fig, path)
 
 
-def rows_as_dicts(rows: Sequence[BehaviourStats]) -> list[dict]:
+def rows_as_dicts(rows: Sequence[BehaviourStats | HeldMoveRate]) -> list[dict]:
     return [asdict(r) for r in rows]

@@ -1,0 +1,74 @@
+"""How the simulated source hand's held-move rates change with its step per action unit and its spool radius.
+
+For each setting ``UNIT_RAD,SPOOL_MM``, the real hands' six test-path action sequences are replayed open loop on
+the simulated source hand (as ``t42 sim compare-real`` does), and each move's rates over the first ``--window``
+steps of its runs are set beside the real hands' (``hand/realism.py``). A scan, not a calibration: the unit is
+written into the simulator module for this process only (the suite's wire unit, ``ACTION_UNIT_RAD``, is what
+the mock and Dynamixel drivers use), and the grasp routine keeps its servo increment per step in radians.
+
+    .venv/bin/python docs/experiments/sim_calibration/scan.py 0.025,20 0.0039,20 0.0039,8 \
+        --out docs/experiments/sim_calibration/scan.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+import t42_transfer.hand.sim as simulator
+from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
+from t42_transfer.data.trajectory import TrajectorySet
+from t42_transfer.hand.collect import run_episode
+from t42_transfer.hand.params import variant
+from t42_transfer.hand.realism import held_move_rates, rows_as_dicts
+
+GRASP_STEP_RAD = simulator.GRASP_INCREMENT * simulator.ACTION_UNIT_RAD
+
+
+def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: int) -> dict:
+    simulator.ACTION_UNIT_RAD = unit_rad
+    simulator.GRASP_INCREMENT = GRASP_STEP_RAD / unit_rad
+    simulator.GRASP_MAX_STEPS = 4000
+    hand = simulator.SimulatedHand(dataclasses.replace(variant("source"), spool_radius_mm=spool_mm))
+    replayed = TrajectorySet(run_episode(hand, t.actions, seed) for seed, t in enumerate(real))
+    return {
+        "unit_rad": unit_rad, "spool_mm": spool_mm,
+        "path_steps": [len(t) for t in replayed], "end_reasons": [t.end_reason for t in replayed],
+        "grasp_state": [round(float(v), 1) for v in replayed[0].states[0]],
+        "held_moves": rows_as_dicts(held_move_rates("sim source", replayed, window)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("settings", nargs="+", help="UNIT_RAD,SPOOL_MM pairs")
+    parser.add_argument("--window", type=int, default=30)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    folder = real_data_dir()
+    real = {name: load_t42_testpaths(folder / file) for name, file in REAL_FILES.items()}
+    speeds: dict[tuple, list[float]] = {}
+    for name, data in real.items():
+        for r in held_move_rates(f"real {name}", data, args.window):
+            speeds.setdefault(r.action, []).append(r.speed_mm_per_step)
+    reference = {move: float(np.mean(v)) for move, v in speeds.items()}
+    rows = [run_setting(real["A"], *(float(v) for v in s.split(",")), args.window) for s in args.settings]
+    for row in rows:
+        print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm: path steps {row['path_steps']} "
+              f"(real {[len(t) for t in real['A']]}), grasp at {row['grasp_state']}")
+        for m in row["held_moves"]:
+            move = tuple(m["action"])
+            ratio = m["speed_mm_per_step"] / reference[move]
+            print(f"  {list(move)}: {m['speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real), "
+                  f"loads {m['load1_per_step']:+.2f} {m['load2_per_step']:+.2f} /step ({m['runs']} runs)")
+    real_speeds = {str(list(move)): speed for move, speed in reference.items()}
+    summary = {"window": args.window, "real_speed_mm_per_step": real_speeds, "settings": rows}
+    args.out.write_text(json.dumps(summary, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()
