@@ -31,7 +31,7 @@ from msg_adapters import (
     status_message,
 )
 from t42_transfer.conventions import CONTROL_PERIOD_NS
-from t42_transfer.data.bag import RECORD_QOS, JazzyWriter, read_bag
+from t42_transfer.data.bag import RECORD_QOS, JazzyWriter, bag_info, read_bag
 from t42_transfer.data.errors import BagError
 from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.recorder import Recorder, RecorderParams, next_bag_path
@@ -49,12 +49,13 @@ def now_ns() -> int:
 class Hand:
     """The test's node: the hand topics (CDR from rosbags, published as bytes), hand/status, the Trigger clients."""
 
-    def __init__(self, ros: Any, recorder: Recorder, ns: str = "") -> None:
+    def __init__(self, ros: Any, recorder: Recorder, ns: str = "", remapped: dict[str, str] | None = None) -> None:
         self.ros, self.recorder = ros, recorder
         self.node: Node = ros.node("hand_tester")
         qos = recording(1000)  # a burst must not overflow the writer's history before the reader acks
-        self.pubs = {t: self.node.create_publisher(rclpy_class(m), ns + t, qos) for t, m in HAND_TOPICS.items()}
-        self.status_pub = self.node.create_publisher(String, f"{ns}/hand/status", 10)
+        where = {t: (remapped or {}).get(t, ns + t) for t in (*HAND_TOPICS, "/hand/status")}  # where each goes
+        self.pubs = {t: self.node.create_publisher(rclpy_class(m), where[t], qos) for t, m in HAND_TOPICS.items()}
+        self.status_pub = self.node.create_publisher(String, where["/hand/status"], 10)
         rec_name = recorder.get_fully_qualified_name()
         self.clients = {name: self.node.create_client(Trigger, f"{rec_name}/{name}")
                         for name in ("start", "stop", "split")}
@@ -258,6 +259,23 @@ def test_under_a_namespace_topics_are_recorded_by_their_full_names(ros: Any, tmp
     bag = rec.bags[0]
     assert set(raw_messages(bag)) == {"/left" + t for t in HAND_TOPICS}
     check_episode(read_bag(bag).trajectories[0], expected, t0)
+
+
+def test_remapped_hand_topics_are_recorded_under_their_new_names_and_read_back(ros: Any, tmp_path: Path) -> None:
+    """``-r hand/object_pose:=pose`` (as on driver, recorder and explorer alike): the bag holds /pose, and read_bag
+    finds the episode through the names the recorder wrote down (by name alone it found no object pose)."""
+    rec = ros.add(Recorder, params={"out_dir": str(tmp_path), "step_hold_s": 1.0},
+                  cli_args=["--ros-args", "-r", "hand/object_pose:=pose", "-r", "hand/status:=events/hand"])
+    hand = Hand(ros, rec, remapped={POSE: "/pose", "/hand/status": "/events/hand"})
+    t0 = now_ns()
+    expected = hand.episode(t0, 16)
+    hand.call("stop")
+    hand.settle()
+    bag = rec.bags[0]
+    assert set(raw_messages(bag)) == {"/pose", JOINTS, ACTION}
+    check_episode(read_bag(bag).trajectories[0], expected, t0)
+    assert bag_info(bag)["hand_topics"] == {POSE: "/pose", JOINTS: JOINTS, ACTION: ACTION,
+                                            "/hand/status": "/events/hand"}
 
 
 def test_a_bag_of_two_namespaces_is_refused(tmp_path: Path) -> None:

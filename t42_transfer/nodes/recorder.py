@@ -2,12 +2,10 @@
 
 Wiring (relative names: remap them with ``--ros-args -r``, or run under a namespace):
 
-* the hand topics of ``params.topics`` (default ``hand/object_pose``,
-  ``hand/joint_states``, ``hand/applied_action``; :data:`RECORDABLE` knows their
-  types): subscribed raw with a ``params.queue_depth`` deep RELIABLE queue; each
-  message's CDR bytes are written UNCHANGED, logged at its receive time (the
-  node's ROS time), under the topic's fully resolved name (``/left/hand/object_pose``
-  under namespace ``/left``), which :func:`t42_transfer.data.bag.read_bag` finds;
+* the hand topics of ``params.topics`` (default ``hand/object_pose``, ``hand/joint_states``, ``hand/applied_action``;
+  :data:`RECORDABLE` knows their types): subscribed raw with a ``params.queue_depth`` deep RELIABLE queue; each
+  message's CDR bytes are written UNCHANGED, logged at its receive time (the node's ROS time), under the topic's
+  fully resolved name (``/left/hand/object_pose`` under namespace ``/left``, or the name it is remapped to);
 * the typed events of ``params.topics`` (default both: ``t42/plan_result`` as t42_interfaces/msg/PlanResult,
   ``t42/model_updated`` as ModelUpdated; :data:`EVENT_TOPICS`): subscribed raw, VOLATILE (the events as they
   happen), written as ``hand/status`` is, their bytes unchanged, with their full ``ros2msg`` definitions in the
@@ -22,20 +20,19 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   again into the same bag from the first step after the newest stamp received (a whole step).  Pausing when
   not recording or already paused, or resuming when not paused, answers ``success=False`` with why; stop ends
   a pause.  The steps dropped leave a gap in the episode (two episodes to a reader when it is over 1 s);
-* ``recorder/bag_closed`` (t42_interfaces/msg/BagClosed, :data:`~msg_adapters.names.EVENTS` QoS: a late
-  joiner gets the recent ones): one per bag closed and final (``metadata.yaml`` written), published after
-  the bag was read back with ``read_bag`` (its ``episodes`` are the reader's count, 0 for a bag of no whole
-  episode), so the bag is readable when the event arrives.  ``messages``, and ``start``/``end`` (log times
-  of its first and last message), ``reason``: ``stop``, ``split``, the status word that split it in episode
-  mode (``reset``, ``dropped``...), ``write_failed`` (a full disk; only if the bag could still be
-  finalised), ``shutdown``, ``snapshot`` or ``clock_restart``.  A relative name, as rosbag2's ``events/write_split``;
+* ``recorder/bag_closed`` (t42_interfaces/msg/BagClosed, :data:`~msg_adapters.names.EVENTS` QoS: a late joiner gets
+  the recent ones): one per bag closed and final (``metadata.yaml`` written), published after the bag was read back
+  with ``read_bag`` (its ``episodes`` are the reader's count, 0 for a bag of no whole episode), so the bag is readable
+  when the event arrives.  ``messages``, ``start``/``end`` (log times of its first and last message), ``reason``:
+  ``stop``, ``split``, the status word that split it in episode mode (``reset``, ``dropped``...), ``write_failed`` (a
+  full disk; only if the bag could still be finalised), ``shutdown``, ``snapshot`` or ``clock_restart``.  Relative,
+  as rosbag2's ``events/write_split``;
 * ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes (a driver's ``late``
   word there tells a reader that a step came late and none is missing); in ``mode="episode"`` a status whose first
   word is in ``params.split_on`` also splits the bag, so each bag holds one episode (see "Steps" for where).  Statuses
   and events go only into a bag that holds a step (:mod:`~t42_transfer.nodes.recorder_loose`);
-* ``~/snapshot`` (std_srvs/srv/Trigger), snapshot mode (``snapshot_s`` > 0, rosbag2's ``--snapshot-mode``): the
-  whole steps of the last ``snapshot_s`` seconds are kept in memory and written as a bag in
-  ``out_dir/snapshots`` on the service or a ``snapshot_on`` status (:mod:`~t42_transfer.nodes.recorder_snapshot`).
+* ``~/snapshot`` (std_srvs/srv/Trigger), snapshot mode (``snapshot_s`` > 0, rosbag2's ``--snapshot-mode``): the last
+  ``snapshot_s`` seconds' steps, kept in memory, go to a bag in ``out_dir/snapshots`` (``recorder_snapshot``).
 
 Steps.  A control step is the state (object pose and joint states) and the action applied from it, all with ONE header
 stamp (the mock driver's and the bag convention of :mod:`t42_transfer.data.bag`).  Each topic has its own queue, so
@@ -65,10 +62,10 @@ A bag never begins with a step whose state was not received (an action alone, a 
 and on close only steps holding their whole state are written.
 
 Bags are written as :mod:`t42_transfer.data.bag` writes them (rosbags ``Writer(version=9)``, MCAP, ``ros_distro:
-jazzy``, ``offered_qos_profiles=[RECORD_QOS]``, one connection per recorded topic, ``metadata.yaml`` on close) and
-are named ``<prefix>_<NNN>`` in ``out_dir``: ``NNN`` counts on from the highest index already there, past a name
-another writer takes meanwhile (two recorders on one ``out_dir``), so no bag is ever overwritten.  A bag that does
-not open is a write failure, as a full disk: ``~/start`` or free space resumes.
+jazzy``, ``offered_qos_profiles=[RECORD_QOS]``, ``metadata.yaml`` on close, its custom data naming the topic each
+hand topic went to: remapped ones read too) as ``<prefix>_<NNN>`` in ``out_dir``, ``NNN`` counting on from the
+highest index there, past a name another writer takes meanwhile: no bag is overwritten.  A bag that does not open
+is a write failure, as a full disk: ``~/start`` or free space resumes.
 
 Nothing is held back longer than a step: every ``params.flush_period_s`` (steady time) the open chunk is closed and
 the file flushed, so a recorder killed with SIGKILL leaves a bag whose MCAP is readable up to the last flush (``t42
@@ -98,17 +95,19 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed
 
-from msg_adapters import (
-    RCLPY,
-    diagnostic_array,
-    names,
-    rclpy_class,
-    stamp_to_ns,
-)
+from msg_adapters import RCLPY, diagnostic_array, names, rclpy_class, stamp_to_ns
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
 from t42_transfer.data.bag import BagWriter
-from t42_transfer.data.bag.recording import CLOCK_RESTART, LogTimes, OpenedFile, Pause, open_next_bag, room
+from t42_transfer.data.bag.recording import (
+    CLOCK_RESTART,
+    LogTimes,
+    OpenedFile,
+    Pause,
+    open_next_bag,
+    recorded_hand_topics,
+    room,
+)
 from t42_transfer.data.bag.steps import Step, StepBuffer, WrittenSteps
 from t42_transfer.nodes.recorder_loose import LooseMessages
 from t42_transfer.nodes.recorder_params import (
@@ -195,8 +194,9 @@ class Recorder(LooseMessages, Node):
         """Resolved topic -> type, of the topics grouped into steps."""
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
         self._offers = latched_offers(self.resolve_topic_name, p.topics)
+        self._custom = recorded_hand_topics(self.resolve_topic_name)
         self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log,
-                                   self._offers)
+                                   self._offers, self._custom)
         """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p), required=self._state_topics)
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
@@ -409,7 +409,7 @@ class Recorder(LooseMessages, Node):
     def _open_bag(self, say: bool = True) -> tuple[bool, str]:
         try:  # a name another writer took first is passed over; any other failure is a write failure
             bag = open_next_bag(lambda: next_bag_path(self.out_dir, self.params.bag_prefix), self._types,
-                                self._offers)
+                                self._offers, self._custom)
         except Exception as err:
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"

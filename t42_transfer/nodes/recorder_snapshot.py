@@ -33,9 +33,10 @@ class Snapshots:
     """The snapshot buffer of a recorder and the bags written from it (see the module docstring)."""
 
     def __init__(self, params: RecorderParams, out_dir: Path, types: Mapping[str, str], state_topics: Collection[str],
-                 announcer: Announcer, log: Any, offered: Mapping[str, names.Qos] | None = None) -> None:
+                 announcer: Announcer, log: Any, offered: Mapping[str, names.Qos] | None = None,
+                 custom: Mapping[str, str] | None = None) -> None:
         self.dir = out_dir / SNAPSHOT_DIR
-        self._offered = dict(offered or {})
+        self._offered, self._custom = dict(offered or {}), dict(custom or {})
         self._types, self._state_topics = dict(types), set(state_topics)
         self._announcer, self._log = announcer, log
         self.buffer: SnapshotBuffer | None = None
@@ -90,7 +91,7 @@ class Snapshots:
         try:
             self.dir.mkdir(exist_ok=True)
             path = next_bag_path(self.dir, self.prefix)
-            count, first, last = write_snapshot(path, self._types, snap, self._offered)
+            count, first, last = write_snapshot(path, self._types, snap, self._offered, self._custom)
         except Exception as err:  # a full disk, a removed directory: say so, keep recording
             self._log.error(f"could not write the snapshot {path}: {err!r}")
             return False, f"could not write the snapshot {path}: {type(err).__name__}: {err}"

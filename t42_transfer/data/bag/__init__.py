@@ -10,7 +10,8 @@ to play in time order and paces it, and :mod:`.repair` rewrites a killed writer'
 package's public API.
 """
 
-from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S, hand_namespace
+from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
+from t42_transfer.data.bag.hand_topics import hand_namespace
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY, REPAIRED_KEY
 from t42_transfer.data.bag.reader import bag_info, read_bag, verify_bag
 from t42_transfer.data.bag.storage import is_bag, list_bags

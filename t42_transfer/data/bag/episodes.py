@@ -9,7 +9,8 @@ says no step is missing before it.  A driver's end status (``dropped``, ``lost_c
 episode's last state and gives the episode its end reason; a state it says the object fell into or slipped out of
 is left out, as a simulated collection leaves it out (the fall is no transition of a hand holding the object).
 Aligning by header stamp, not log time or order, also makes bags of a real
-``ros2 bag record`` readable; the hand topics may lie under one namespace, found by suffix.  A step that lost
+``ros2 bag record`` readable; the hand topics may lie under one namespace, found by suffix, or under the names
+the recorder wrote down (``hand_topics.py``).  A step that lost
 a message is left out with a warning naming it.
 """
 
@@ -18,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ import numpy as np
 import msg_adapters as ma
 from msg_adapters import names
 from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_REASONS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
+from t42_transfer.data.bag.hand_topics import hand_topic_names
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
 from t42_transfer.data.errors import BagError
@@ -45,23 +47,6 @@ _CONVERTERS: dict[str, Callable[[Any], Any]] = {
 }
 
 
-def hand_namespace(path: str | Path, topics: Iterable[str]) -> str:
-    """The one namespace the hand topics among ``topics`` lie under ("" for the root); BagError for several.
-
-    A hand topic is found by suffix: ``/hand/object_pose`` or ``<ns>/hand/object_pose``.
-    """
-    found: dict[str, list[str]] = {}
-    for name in topics:
-        for hand in ma.HAND_TOPICS:
-            if name.endswith(hand):
-                found.setdefault(name[: -len(hand)], []).append(name)
-    if len(found) > 1:
-        listed = "; ".join(f"{ns or '/'} ({', '.join(sorted(names))})" for ns, names in sorted(found.items()))
-        raise BagError(path, f"holds hand topics under {len(found)} namespaces: {listed}; "
-                             "a bag must hold one hand's topics (filter it to one namespace)")
-    return next(iter(found), "")
-
-
 @dataclasses.dataclass
 class _Stream:
     stamps: np.ndarray
@@ -71,13 +56,13 @@ class _Stream:
 
 def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
     """Hand topics as header-stamped numpy values, checked for type, finiteness and order."""
-    namespace = hand_namespace(bag, raw.topics)
-    _check_topics(bag, raw, namespace)
+    recorded = hand_topic_names(bag, raw.custom, raw.topics)
+    _check_topics(bag, raw, recorded)
     streams = {}
     for topic, msgtype in ma.HAND_TOPICS.items():
         stamps: list[int] = []
         values = []
-        name = namespace + topic
+        name = recorded[topic]
         for log_ns, data in raw.messages.get(name, []):
             try:
                 msg = ma.TYPESTORE.deserialize_cdr(data, msgtype)
@@ -99,23 +84,24 @@ def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
     return streams
 
 
-def missing_hand_topics(raw: RawBag, namespace: str) -> list[str]:
-    """The hand's step topics (with their types) ``raw`` lacks under ``namespace``: why it holds no episodes.
+def missing_hand_topics(raw: RawBag, recorded: dict[str, str]) -> list[str]:
+    """The hand's step topics (with their types) ``raw`` lacks under their ``recorded`` names: why it holds no
+    episodes.
 
     Such a bag is readable (``bag info`` lists it, as ``ros2 bag info`` does); :func:`decode_streams` refuses it.
     """
-    return [f"{namespace + topic} ({msgtype})" for topic, msgtype in ma.HAND_TOPICS.items()
-            if namespace + topic not in raw.topics]
+    return [f"{recorded[topic]} ({msgtype})" for topic, msgtype in ma.HAND_TOPICS.items()
+            if recorded[topic] not in raw.topics]
 
 
-def _check_topics(bag: Path, raw: RawBag, namespace: str) -> None:
+def _check_topics(bag: Path, raw: RawBag, recorded: dict[str, str]) -> None:
     topics = raw.topics
-    missing = missing_hand_topics(raw, namespace)
+    missing = missing_hand_topics(raw, recorded)
     if missing:
         present = ", ".join(f"{name} ({t.msgtype})" for name, t in sorted(topics.items())) or "no topics"
         raise BagError(bag, f"required topic {missing[0]} is missing; the bag has {present}")
     for hand, expected in ma.HAND_TOPICS.items():
-        topic = namespace + hand
+        topic = recorded[hand]
         info = topics[topic]
         if info.msgtype != expected:
             raise BagError(bag, f"topic {topic} has type {info.msgtype}, expected {expected}")
@@ -156,7 +142,7 @@ def _any_between(stamps: np.ndarray, after: int, before: int) -> bool:
 
 def status_texts(bag: Path, raw: RawBag) -> list[str]:
     """The bag's ``hand/status`` messages, if it recorded them (the driver's late steps and resets are there)."""
-    topic = hand_namespace(bag, raw.topics) + ma.HAND_STATUS_TOPIC
+    topic = hand_topic_names(bag, raw.custom, raw.topics)[ma.HAND_STATUS_TOPIC]
     info = raw.topics.get(topic)
     if info is None or info.msgtype != ma.STRING:
         return []

@@ -13,7 +13,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, hand_namespace, missing_hand_topics
+from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, missing_hand_topics
+from t42_transfer.data.bag.hand_topics import hand_topic_names
 from t42_transfer.data.bag.metadata import EPISODES_KEY
 from t42_transfer.data.bag.storage import RawBag, load_raw, metadata_mismatches
 from t42_transfer.data.errors import BagError
@@ -55,8 +56,8 @@ def bag_info(path: str | Path) -> dict[str, Any]:
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        namespace = hand_namespace(bag, raw.topics)
-        missing = missing_hand_topics(raw, namespace)
+        recorded = hand_topic_names(bag, raw.custom, raw.topics)
+        missing = missing_hand_topics(raw, recorded)
         if not missing:
             data = assemble_episodes(bag, decode_streams(bag, raw), raw)
             episodes, transitions, hand = len(data), data.num_transitions, data.hand
@@ -71,7 +72,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         "start_ns": raw.start_ns,
         "duration_s": (raw.end_ns - raw.start_ns) / 1e9,
         "topics": {name: {"type": t.msgtype, "count": t.count} for name, t in sorted(raw.topics.items())},
-        "namespace": namespace or "/",
+        "hand_topics": recorded,
         "episodes": episodes,
         "transitions": transitions,
         "late_steps": late,

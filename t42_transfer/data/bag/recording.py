@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from msg_adapters import names
+from t42_transfer.data.bag.hand_topics import HAND_ROLES, recorded_topics_custom
 from t42_transfer.data.bag.steps import CLOCK_RESTART_NS
 from t42_transfer.data.bag.writer import BagWriter
 
@@ -22,18 +23,24 @@ NAME_TRIES = 100
 """Bag names tried in a row before opening counts as a failure."""
 
 
+def recorded_hand_topics(resolve: Callable[[str], str]) -> dict[str, str]:
+    """Custom data writing down the name each hand topic is recorded under (``resolve`` applies the recorder's
+    namespace and remapping), so that a bag of remapped topics reads as one of the usual names."""
+    return recorded_topics_custom({role: resolve(role.lstrip("/")) for role in HAND_ROLES})
+
+
 def open_next_bag(choose: Callable[[], Path], types: Mapping[str, str], offered: Mapping[str, names.Qos],
-                  tries: int = NAME_TRIES) -> BagWriter:
+                  custom: Mapping[str, str], tries: int = NAME_TRIES) -> BagWriter:
     """A new bag at the path ``choose()`` gives.  A path another writer took first (it exists when the bag
     opens: a second recorder on the same ``out_dir``) is passed over for the next ``choose()`` gives, which counts
     on past it; whatever else fails is raised, as is the last of ``tries`` names taken."""
     for _ in range(tries - 1):
         try:
-            return BagWriter(choose(), types, offered=offered)
+            return BagWriter(choose(), types, custom=custom, offered=offered)
         except Exception as err:
             if not _taken(err):
                 raise
-    return BagWriter(choose(), types, offered=offered)
+    return BagWriter(choose(), types, custom=custom, offered=offered)
 
 
 def _taken(err: BaseException) -> bool:

@@ -171,13 +171,14 @@ def wants_snapshot(word: str, after: int | None, snapshot_on: Iterable[str], wai
 
 
 def write_snapshot(path: Path, types: Mapping[str, str], snapshot: Snapshot,
-                   offered: Mapping[str, names.Qos] | None = None) -> tuple[int, int, int]:
+                   offered: Mapping[str, names.Qos] | None = None,
+                   custom: Mapping[str, str] | None = None) -> tuple[int, int, int]:
     """Write ``snapshot`` as a new bag at ``path`` (steps in stamp order, each loose message before the first step
     logged after it), declaring the step topics ``types``; (messages, first log time, last log time).  A failure
     leaves what was written readable (aborted, as a killed recorder's bag) and raises."""
     loose = deque(snapshot.loose)
     first, last = math.inf, -math.inf
-    with BagWriter(path, types, offered=offered) as bag:
+    with BagWriter(path, types, custom=custom, offered=offered) as bag:
         def write(topic: str, log_ns: int, data: bytes, msgtype: str | None = None) -> None:
             nonlocal first, last
             bag.write(topic, log_ns, data, msgtype)

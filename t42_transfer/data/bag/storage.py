@@ -23,13 +23,14 @@ from rosbags.rosbag2 import StoragePlugin
 
 import msg_adapters as ma
 from t42_transfer.data.bag.db3 import BagReader
+from t42_transfer.data.bag.hand_topics import HAND_ROLES, written_names
 from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
 from t42_transfer.data.errors import BagError
 from t42_transfer.files import file_kind, not_regular_reason
 
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
-HAND_SUFFIXES = (*ma.HAND_TOPICS, ma.HAND_STATUS_TOPIC)
+HAND_TYPES = {*ma.HAND_TOPICS.values(), ma.STRING}
 """The topics whose messages are loaded: the hand's steps and its status (which names the late steps)."""
 _MAX_CHUNK_BYTES = 1 << 28
 """An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
@@ -173,7 +174,8 @@ def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> Raw
             topics: dict[str, _Topic] = {}
             for conn in reader.connections:
                 _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest or digests.get(conn.topic, ""))
-            wanted = [c for c in reader.connections if c.topic.endswith(HAND_SUFFIXES)]
+            written = written_names(meta.custom) if meta else set()
+            wanted = [c for c in reader.connections if c.topic.endswith(HAND_ROLES) or c.topic in written]
             messages: dict[str, list[tuple[int, bytes]]] = {c.topic: [] for c in wanted}
             if wanted:  # an empty list would mean "every connection"
                 for conn, log_ns, data in reader.messages(connections=wanted):
@@ -237,6 +239,9 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
     topics: dict[str, _Topic] = {}
     messages: dict[str, list[tuple[int, bytes]]] = {}
     digests = meta.digests if meta else {}
+    # Without metadata.yaml the names a recorder wrote down come last, in the MCAP's own metadata record:
+    # messages of every topic of a hand type are kept until then.
+    written, typed = written_names(meta.custom) if meta else set(), set()
     record_meta: tuple[dict[str, str], str | None] | None = None
     log_times: list[int] = []
     stopped, unsummarized = "", []
@@ -252,12 +257,15 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
                     elif isinstance(record, Channel):
                         channels[record.id] = record.topic
                         digest = record.metadata.get("topic_type_hash", digests.get(record.topic, ""))
-                        _add_topic(topics, record.topic, schemas.get(record.schema_id, "(no schema)"), 0, digest)
+                        msgtype = schemas.get(record.schema_id, "(no schema)")
+                        _add_topic(topics, record.topic, msgtype, 0, digest)
+                        if msgtype in HAND_TYPES:
+                            typed.add(record.topic)
                     elif isinstance(record, Message):
                         topic = channels[record.channel_id]
                         topics[topic].count += 1
                         log_times.append(record.log_time)
-                        if topic.endswith(HAND_SUFFIXES):
+                        if topic.endswith(HAND_ROLES) or topic in written or (meta is None and topic in typed):
                             messages.setdefault(topic, []).append((record.log_time, record.data))
                     elif isinstance(record, Metadata) and record.name == "rosbag2" and record_meta is None:
                         record_meta = record_metadata(record)
