@@ -17,7 +17,7 @@ import json
 import os
 import secrets
 import stat
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -142,14 +142,21 @@ def write_atomic(path: str | os.PathLike[str], text: str) -> None:
 
 
 @contextlib.contextmanager
-def held_lock(path: str | os.PathLike[str]) -> Iterator[None]:
-    """Hold an advisory ``flock`` on ``path`` (made if missing), waiting for another holder to let go.
+def held_lock(path: str | os.PathLike[str], busy: Callable[[int], Exception] | None = None) -> Iterator[int]:
+    """Hold an advisory ``flock`` on ``path`` (made if missing), yielding its descriptor: the one locking step.
 
     For work two processes would otherwise do at once into one place (two experiments collecting the same data
-    set); the kernel drops the lock when its holder exits, however it ends, so none is left stale."""
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    set, two runs into one directory); the kernel drops the lock when its holder exits, however it ends, so none
+    is left stale.  Without ``busy`` it waits for another holder to let go; with it, it does not wait but raises
+    ``busy(fd)`` (made while the lock file is still open, so it can say who holds it)."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if busy is None else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if busy is None:
+                raise
+            raise busy(fd) from None
+        yield fd
     finally:
         os.close(fd)

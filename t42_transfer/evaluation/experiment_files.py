@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import math
@@ -22,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from t42_transfer.evaluation.experiment_config import ExperimentConfig
-from t42_transfer.files import read_json, write_atomic
+from t42_transfer.files import held_lock, read_json, write_atomic
 
 
 def digest(obj: Any) -> str:
@@ -89,21 +88,17 @@ RESULT_COLUMNS = (
 def run_lock(run_dir: Path) -> Iterator[None]:
     """Hold ``run_dir/.lock`` while a run writes there: a second run would interleave cells and results.
 
-    An advisory ``flock``: the kernel drops it when the holder exits, however it ends, so no stale lock.
+    The lock is :func:`held_lock`'s, not waited for: a run already there is refused, naming the pid it wrote.
     """
-    path = run_dir / ".lock"
-    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
-            raise ValueError(f"{run_dir}: in use by another run ({holder or 'its lock file is held'})") from None
+
+    def in_use(fd: int) -> ValueError:
+        holder = os.pread(fd, 64, 0).decode(errors="replace").strip()
+        return ValueError(f"{run_dir}: in use by another run ({holder or 'its lock file is held'})")
+
+    with held_lock(run_dir / ".lock", busy=in_use) as fd:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()}\n".encode(), 0)
         yield
-    finally:
-        os.close(fd)
 
 
 def stored_rows(files: Mapping[Any, Path], draws: Mapping[Any, Mapping[str, str]]) -> dict[Any, dict[str, Any]]:
