@@ -90,6 +90,21 @@ def test_the_grasp_is_held_at_the_episode_start_in_the_training_error():
     assert max_training_error(model, data.transitions(), state_scale=ONES).normalised > 1e-3  # grasp = x_t there
 
 
+def test_the_bounds_epsilon_is_the_metrics_training_error_and_a_nan_one_shows():
+    """One computation: epsilon is max_training_error's normalised metric (on the float64 copy), so a model that
+    predicts NaN gives a NaN epsilon, which the bound then refuses, not a silent zero."""
+    from t42_transfer.evaluation.metrics import max_training_error
+
+    data = own_paths(Affine(np.diag([0.9, 0.8, 0.95, 0.7])), episodes=3, steps=40)
+    model = Affine(np.diag([0.92, 0.8, 0.95, 0.7]))
+    expected = max_training_error(model, data.transitions(), ONES, starts=data.start_states()).normalised
+    assert training_error(model, data, ONES) == pytest.approx(expected, rel=1e-5) and expected > 0  # float32 there
+    model.matrix[0, 0] = math.nan
+    assert math.isnan(training_error(model, data, ONES))
+    with pytest.raises(ValueError, match="finite"):
+        gap_bound(0.1, training_error(model, data, ONES), 1.0)
+
+
 def test_affine_maps_have_c_zero_and_a_bound_of_the_references_exponent():
     reference = Affine(np.diag([0.9, 0.8, 0.95, 0.7]))
     model = Affine(np.diag([0.92, 0.8, 0.95, 0.7]))

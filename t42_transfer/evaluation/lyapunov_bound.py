@@ -37,7 +37,7 @@ from torch.func import jacrev, vmap
 from t42_transfer.conventions import STATE_DIM
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation.lyapunov import _orthonormalise, dynamic_coordinates, model_lyapunov_spectrum
-from t42_transfer.evaluation.metrics import covering_radius
+from t42_transfer.evaluation.metrics import covering_radius, max_training_error
 from t42_transfer.models.dynamics import LatentDynamics
 
 PAIR_GAPS = (1, 3, 10, 30)
@@ -145,17 +145,12 @@ def jacobian_lipschitz(model: LatentDynamics, data: TrajectorySet, scales: np.nd
 
 
 def training_error(model: LatentDynamics, train: TrajectorySet, scales: np.ndarray) -> float:
-    """The theorem's ``epsilon``: the largest normalised one-step error over the training transitions, each
-    predicted from its true state with its episode's start state held (the grasp input)."""
-    analysed, s = _analysed(model), torch.as_tensor(np.asarray(scales, np.float64))
-    worst = 0.0
-    states, actions = _episode_arrays(train)
-    with torch.no_grad():
-        for x, a in zip(states, actions, strict=True):
-            z = analysed.episode_latent(x[:-1], x[:1].expand(len(a), -1))
-            error = (analysed.observe(analysed.latent_step(z, a)) - x[1:]) / s
-            worst = max(worst, float(torch.linalg.vector_norm(error, dim=1).max()))
-    return worst
+    """The theorem's ``epsilon``: :func:`max_training_error`'s normalised metric, each transition predicted from
+    its true state with its episode's start state held (the grasp input), run on the bound's float64 copy so that a
+    model of its own paths scores zero to float64 precision."""
+    error = max_training_error(_analysed(model), train.transitions(), np.asarray(scales, np.float64),
+                               starts=train.start_states(), dtype=torch.float64)
+    return error.normalised
 
 
 def orbit_terms(model: LatentDynamics, reference: LatentDynamics, test: TrajectorySet, scales: np.ndarray,

@@ -274,6 +274,7 @@ def max_training_error(
     state_scale: ArrayLike | None = None,
     chunk: int = 65536,
     starts: ArrayLike | None = None,
+    dtype: torch.dtype = torch.float32,
 ) -> TrainingError:
     """The paper's ``epsilon``: the largest one-step prediction error on ``(x, a, x_next)`` data.
 
@@ -282,7 +283,8 @@ def max_training_error(
     (:meth:`TrajectorySet.start_states`), which a start-state model reads as its
     rollouts do (default: each ``x`` its own start).  The normalised metric divides
     each state component by ``state_scale`` (default: the model's ``state_std``) so
-    that millimetres and load units weigh alike.
+    that millimetres and load units weigh alike.  ``dtype`` is what the inputs are fed as: the model's own
+    (the bound's float64 copies, :func:`t42_transfer.evaluation.lyapunov_bound.training_error`, need float64).
     """
     x, a, x_next = (_as_numpy(v) for v in transitions)
     if not (len(x) == len(a) == len(x_next)) or not len(x):
@@ -298,7 +300,7 @@ def max_training_error(
     try:
         for start in range(0, len(x), chunk):
             rows = slice(start, start + chunk)
-            tensors = (torch.as_tensor(v[rows], dtype=torch.float32, device=device) for v in (x, first, a))
+            tensors = (torch.as_tensor(v[rows], dtype=dtype, device=device) for v in (x, first, a))
             with torch.no_grad():
                 states, firsts, actions = tensors
                 pred = model.observe(model.latent_step(model.episode_latent(states, firsts), actions))
