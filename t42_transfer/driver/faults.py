@@ -65,16 +65,15 @@ def recover(hand: ServoHand, fault: ServoFault, torque: bool) -> None:
     """Bring ``hand`` back after ``fault`` (one that is not latched): the port reopened if it went, every servo
     pinged, the torque on again if ``torque`` (the hand had it on), goals where the fingers stand.  A
     :class:`ServoFault` when it is not back yet; a servo found with a Hardware Error Status bit is a hardware
-    fault, which latches (it is never rebooted here)."""
+    fault, which latches (it is never rebooted here).  That check is the servos' own (a read without ``alert_ok``
+    raises it, naming the bits), made before any torque is written so no servo is torqued beside a shut one."""
     servos = hand.servos
     if fault.kind == PORT:
         servos.close()
         servos.open()
     servos.check()
     for i in servos.ids:
-        status = servos.hardware_status(i)
-        if status:
-            raise ServoFault(HARDWARE, i, ", ".join(xm.hardware_errors(status)) or f"Hardware Error Status {status}")
+        servos.read(i, xm.HARDWARE_ERROR_STATUS)
     if torque:
         servos.torque(True)
     hand.start_from_present()
