@@ -20,6 +20,7 @@ from t42_transfer.data.bag.hand_topics import (
     written_names,
 )
 from t42_transfer.data.errors import BagError
+from t42_transfer.view.bag_scene import bag_scene_inputs
 
 REMAPPED = {POSE: "/pose", JOINTS: "/arm/joint_states", ACTION: "/hand/applied_action", ma.HAND_STATUS_TOPIC: "/st"}
 
@@ -95,3 +96,38 @@ def test_without_the_record_remapped_topics_hold_no_episodes(tmp_path: Path, sma
     assert bag_info(bag)["no_hand_episodes"].startswith("it has no /hand/object_pose")
     with pytest.raises(BagError, match="required topic /hand/object_pose"):
         read_bag(bag)
+
+
+def test_one_recorded_topic_for_two_hand_topics_is_refused() -> None:
+    """Joint states carrying velocities would otherwise read as the actions too (found by review)."""
+    text = json.dumps({**REMAPPED, ACTION: REMAPPED[JOINTS]})
+    with pytest.raises(BagError, match="gives /hand/applied_action and /hand/joint_states the same topic /arm/joint"):
+        hand_topic_names("bag", {HAND_TOPICS_KEY: text}, [])
+
+
+def test_a_status_topic_of_another_type_is_refused(tmp_path: Path, small_set) -> None:
+    """Before, its resets and end reasons were silently ignored."""
+    wrong = {**REMAPPED, ma.HAND_STATUS_TOPIC: "/marker"}
+    messages = [(REMAPPED[topic], stamp, msg) for traj in small_set for topic, stamp, msg in step_messages(traj)]
+    messages.append(("/marker", messages[0][1], messages[0][2]))  # a pose
+    types = {**{REMAPPED[topic]: msgtype for topic, msgtype in ma.HAND_TOPICS.items()}, "/marker": ma.POSE_STAMPED}
+    bad = write_messages(tmp_path / "status_is_a_pose", messages, types, recorded_topics_custom(wrong))
+    with pytest.raises(BagError, match="topic /marker .the hand's status. has type geometry_msgs/msg/PoseStamped"):
+        read_bag(bad)
+
+
+def test_the_scene_of_a_remapped_bag_draws_the_object_and_fingers(tmp_path: Path, small_set) -> None:
+    bag = _remapped_bag(tmp_path / "remapped", small_set)
+    inputs = bag_scene_inputs(bag)
+    last = small_set[-1]
+    np.testing.assert_allclose(inputs.object_xy_mm, last.states[-1, :2], atol=1e-3)
+    np.testing.assert_allclose(inputs.actuator_angles, last.actuator_angles[-1], atol=1e-6)
+
+
+def test_the_scene_of_a_bag_with_nothing_to_draw_is_empty(tmp_path: Path, small_set) -> None:
+    """rosbags reads every connection when given none: a status-only bag crashed the snapshot (found by review)."""
+    stamp = small_set[0].start_ns
+    status = ma.TYPESTORE.types[ma.STRING](data="reset")
+    bag = write_messages(tmp_path / "only_status", [("/hand/status", stamp, status)], {"/hand/status": ma.STRING})
+    inputs = bag_scene_inputs(bag)
+    assert inputs.object_xy_mm is None and inputs.actuator_angles is None and inputs.log_ns == 0

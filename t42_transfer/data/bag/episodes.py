@@ -144,8 +144,10 @@ def status_texts(bag: Path, raw: RawBag) -> list[str]:
     """The bag's ``hand/status`` messages, if it recorded them (the driver's late steps and resets are there)."""
     topic = hand_topic_names(bag, raw.custom, raw.topics)[ma.HAND_STATUS_TOPIC]
     info = raw.topics.get(topic)
-    if info is None or info.msgtype != ma.STRING:
+    if info is None:
         return []
+    if info.msgtype != ma.STRING:
+        raise BagError(bag, f"topic {topic} (the hand's status) has type {info.msgtype}, expected {ma.STRING}")
     texts = []
     for log_ns, data in raw.messages.get(topic, []):
         try:

@@ -80,4 +80,8 @@ def hand_topic_names(path: str | Path, custom: Mapping[str, str], topics: Iterab
     missing = [role for role in ma.HAND_TOPICS if role not in mapping]
     if missing:
         raise BagError(path, f"{where} gives no name for {', '.join(missing)}")
+    shared = {name: sorted(r for r, n in mapping.items() if n == name) for name in set(mapping.values())}
+    for name, roles in sorted(shared.items()):
+        if len(roles) > 1:
+            raise BagError(path, f"{where} gives {' and '.join(roles)} the same topic {name}: one topic holds one")
     return {role: mapping.get(role, role) for role in HAND_ROLES}
