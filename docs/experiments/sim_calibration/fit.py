@@ -45,11 +45,16 @@ RANGES = {  # log-uniform
     "spring_scale": (0.3, 3.0),
     "object_damping": (0.3, 60.0),
     "joint_damping": (0.002, 0.4),
+    "load_unit_scale": (0.1, 10.0),
 }
+SIMULATOR_ONLY = ("spring_scale", "load_unit_scale")
+"""Parameters that are no HandParams field: the springs' common scale, and a scale of the torque one raw load
+unit stands for in the simulator (the real hands' load readings may not be 0.1 % of stall torque)."""
 FINGERTIP_GRASP_Y_MM = 70.0
 """A grasp whose object centre sits nearer the palm than this (the design's grasp is at about 85 mm; the object
 touches the palm at 47.5) holds the object against the palm, not between the pads: penalised."""
 GRASP_STEP_RAD = simulator.GRASP_INCREMENT * simulator.ACTION_UNIT_RAD
+LOAD_UNIT_NM = simulator.LOAD_UNIT_NM
 MISSING_SPEED_RATIO, MISSING_LOAD_ERROR, SPEED_FLOOR = 20.0, 10.0, 0.01
 
 
@@ -58,7 +63,7 @@ def hand_params(candidate: dict[str, float]) -> HandParams:
     scale = candidate.get("spring_scale", 1.0)
     fingers = {side: dataclasses.replace(getattr(base, side), k_proximal=getattr(base, side).k_proximal * scale,
                                          k_distal=getattr(base, side).k_distal * scale) for side in ("left", "right")}
-    own = {k: v for k, v in candidate.items() if k != "spring_scale"}
+    own = {k: v for k, v in candidate.items() if k not in SIMULATOR_ONLY}
     return dataclasses.replace(base, **own, **fingers)
 
 
@@ -67,6 +72,7 @@ def score(candidate: dict[str, float], real: TrajectorySet, unit_rad: float, win
     simulator.ACTION_UNIT_RAD = unit_rad
     simulator.GRASP_INCREMENT = GRASP_STEP_RAD / unit_rad
     simulator.GRASP_MAX_STEPS = 4000
+    simulator.LOAD_UNIT_NM = LOAD_UNIT_NM * candidate.get("load_unit_scale", 1.0)
     try:
         hand = simulator.SimulatedHand(hand_params(candidate))
         replayed = TrajectorySet(run_episode(hand, t.actions, seed) for seed, t in enumerate(real))
@@ -97,9 +103,15 @@ def score(candidate: dict[str, float], real: TrajectorySet, unit_rad: float, win
     }
 
 
-def draw(rng: np.random.Generator, free: list[str]) -> dict[str, float]:
+FIRST_SIX = list(RANGES)[:6]
+"""Drawn from the main stream, six a candidate, as before ``load_unit_scale`` was added (the committed runs
+reproduce); later parameters come from a second stream."""
+
+
+def draw(rngs: tuple[np.random.Generator, np.random.Generator], free: list[str]) -> dict[str, float]:
     """One candidate: every parameter of ``RANGES`` drawn (the same draws whatever is free), the free ones kept."""
-    drawn = {k: float(math.exp(rng.uniform(math.log(lo), math.log(hi)))) for k, (lo, hi) in RANGES.items()}
+    drawn = {k: float(math.exp(rngs[k not in FIRST_SIX].uniform(math.log(lo), math.log(hi))))
+             for k, (lo, hi) in RANGES.items()}
     return {k: drawn[k] for k in free}
 
 
@@ -113,15 +125,15 @@ def main() -> None:
     parser.add_argument("--window", type=int, default=30)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--free", nargs="+", choices=sorted(RANGES), default=list(RANGES),
-                        help="parameters drawn (the others keep the source hand's values; default all)")
+    parser.add_argument("--free", nargs="+", choices=sorted(RANGES), default=FIRST_SIX,
+                        help="parameters drawn (the others keep the source hand's values; default the first six)")
     parser.add_argument("--palm-weight", type=float, default=1.0, help="weight of the grasp-against-the-palm term")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     folder = real_data_dir()
     fit_set, check_set = (load_t42_testpaths(folder / REAL_FILES[h]) for h in (args.fit, args.check))
-    rng = np.random.default_rng(args.seed)
-    candidates = [draw(rng, args.free) for _ in range(args.candidates)]
+    rngs = (np.random.default_rng(args.seed), np.random.default_rng([args.seed, 1]))
+    candidates = [draw(rngs, args.free) for _ in range(args.candidates)]
     with ProcessPoolExecutor(args.workers) as pool:
         def scored(sets: list[dict[str, float]], real: TrajectorySet) -> list[dict]:
             n = len(sets)
