@@ -84,8 +84,10 @@ def test_a_bag_of_remapped_topics_reads_as_its_record_says(tmp_path: Path, small
     assert info["hand_topics"] == REMAPPED and info["episodes"] == len(small_set) and info["no_hand_episodes"] is None
 
 
-def test_an_mcap_without_its_metadata_file_reads_by_the_record_inside(tmp_path: Path, small_set) -> None:
-    bag = _remapped_bag(tmp_path / "remapped", small_set)
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3])
+def test_a_bag_without_its_metadata_file_reads_by_the_copy_inside(tmp_path: Path, small_set, storage) -> None:
+    """An MCAP keeps a copy of metadata.yaml in its metadata record, a db3 in its metadata table."""
+    bag = _remapped_bag(tmp_path / "remapped", small_set, storage)
     (bag / "metadata.yaml").unlink()
     with pytest.warns(UserWarning, match="metadata.yaml is missing"):
         _same_steps(read_bag(bag), small_set)

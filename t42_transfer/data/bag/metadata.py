@@ -127,10 +127,16 @@ def parse_metadata(bag: Path, doc: Any) -> BagMetadata:
 
 def record_metadata(record: Metadata) -> tuple[dict[str, str], str | None]:
     """custom_data and ros_distro of rosbag2's metadata record in an MCAP: a convenience copy, a bad one is none."""
+    return serialized_metadata(record.metadata.get("serialized_metadata", ""), record.name)
+
+
+def serialized_metadata(text: str, name: str) -> tuple[dict[str, str], str | None]:
+    """custom_data and ros_distro of the copy of metadata.yaml a storage file keeps (an MCAP's metadata record, a
+    db3's ``metadata`` table), written on close: a convenience copy, a bad one is none."""
     try:
-        doc = yaml.safe_load(record.metadata.get("serialized_metadata", ""))
+        doc = yaml.safe_load(text)
         info = doc.get("rosbag2_bagfile_information", doc) if isinstance(doc, dict) else None
-        meta = parse_metadata(Path(record.name), {"rosbag2_bagfile_information": info})
+        meta = parse_metadata(Path(name), {"rosbag2_bagfile_information": info})
     except (BagError, ValueError, yaml.YAMLError, RecursionError):
         return {}, None
     return meta.custom, meta.ros_distro

@@ -8,8 +8,10 @@ are refused before anything opens them.  Which messages make episodes is :mod:`.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
+import sqlite3
 import stat
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,7 +26,13 @@ from rosbags.rosbag2 import StoragePlugin
 import msg_adapters as ma
 from t42_transfer.data.bag.db3 import BagReader
 from t42_transfer.data.bag.hand_topics import HAND_ROLES, written_names
-from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
+from t42_transfer.data.bag.metadata import (
+    REPAIRED_KEY,
+    BagMetadata,
+    metadata_yaml,
+    record_metadata,
+    serialized_metadata,
+)
 from t42_transfer.data.errors import BagError
 from t42_transfer.files import file_kind, not_regular_reason
 
@@ -169,12 +177,13 @@ def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> Raw
     """A sqlite3 bag through :class:`~.db3.BagReader`, as it is played (its counts and times are SQL over the stored
     messages)."""
     digests = meta.digests if meta else {}
+    custom, distro = (meta.custom, meta.ros_distro) if meta else _db3_metadata(files[0])
     try:
         with BagReader(files) as reader:
             topics: dict[str, _Topic] = {}
             for conn in reader.connections:
                 _add_topic(topics, conn.topic, conn.msgtype, conn.msgcount, conn.digest or digests.get(conn.topic, ""))
-            written = written_names(meta.custom) if meta else set()
+            written = written_names(custom)
             wanted = [c for c in reader.connections if c.topic.endswith(HAND_ROLES) or c.topic in written]
             messages: dict[str, list[tuple[int, bytes]]] = {c.topic: [] for c in wanted}
             if wanted:  # an empty list would mean "every connection"
@@ -183,8 +192,18 @@ def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> Raw
             start, end = (0, 0) if reader.message_count == 0 else (reader.start_time, reader.end_time - 1)
     except Exception as err:  # rosbags and sqlite3 raise many types on damaged files
         raise BagError(bag, f"rosbags cannot read it ({type(err).__name__}: {err})") from None
-    custom, distro = (meta.custom, meta.ros_distro) if meta else ({}, None)
     return RawBag("sqlite3", topics, messages, custom, distro, start, end)
+
+
+def _db3_metadata(file: Path) -> tuple[dict[str, str], str | None]:
+    """custom_data and ros_distro of the metadata copy in a db3's ``metadata`` table (rosbag2 and rosbags write one
+    on close, schema 4 on): what a bag without its metadata.yaml still says of itself; none when there is none."""
+    try:
+        with contextlib.closing(sqlite3.connect(f"{file.resolve().as_uri()}?mode=ro", uri=True)) as db:
+            row = db.execute("SELECT metadata FROM metadata ORDER BY rowid DESC LIMIT 1").fetchone()
+    except sqlite3.Error:
+        return {}, None
+    return serialized_metadata(row[0], file.name) if row and isinstance(row[0], str) else ({}, None)
 
 
 class _ExactReads:
