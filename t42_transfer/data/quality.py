@@ -217,14 +217,15 @@ def handle_flagged(data: TrajectorySet, how: str, thresholds: Thresholds = THRES
 
 
 def _end_at_drop(traj: Trajectory, index: int, jump_mm: float,
-                 frozen: tuple[Finding, ...] = ()) -> tuple[Trajectory | None, list[str]]:
-    """``traj`` ended at its first drop (None: too little before it), and a line when it was cut.  A jump out of a
-    ``frozen`` stretch is the tracker finding the marker again, no drop: the stretch is left out, not the rest."""
-    moves, jumped = jumps(traj, jump_mm)
-    jumped = np.array([k for k in jumped.tolist() if not any(f.start <= k < f.end for f in frozen)], dtype=int)
-    if not len(jumped):
+                 findings: tuple[Finding, ...]) -> tuple[Trajectory | None, list[str]]:
+    """``traj`` ended at its first drop (None: too little before it), and a line when it was cut.  ``findings``:
+    :func:`find_problems` of ``traj`` (its jumps over ``jump_mm``), so the paths are scanned once.  A jump out of a
+    frozen stretch is the tracker finding the marker again, no drop: the stretch is left out, not the rest."""
+    frozen = [f for f in findings if f.kind == FROZEN]
+    drops = [f for f in findings if f.kind == JUMP and not any(z.start <= f.start < z.end for z in frozen)]
+    if not drops:
         return traj, []
-    cut = int(jumped[0])
+    cut, moved = drops[0].start, drops[0].size  # findings come in order of their start
     ended = None
     if cut >= MIN_EPISODE_STEPS:
         angles = None if traj.actuator_angles is None else traj.actuator_angles[: cut + 1]
@@ -233,7 +234,7 @@ def _end_at_drop(traj: Trajectory, index: int, jump_mm: float,
             end_reason=DROPPED, step_ns=None if traj.step_ns is None else traj.step_ns[:cut])
     what = f"kept its first {cut} transitions" if ended is not None else \
         f"left out (fewer than {MIN_EPISODE_STEPS} transitions before it)"
-    return ended, [f"episode {index} (start {traj.start_ns} ns): the object moved {moves[cut]:.1f} mm in step {cut}, "
+    return ended, [f"episode {index} (start {traj.start_ns} ns): the object moved {moved:.1f} mm in step {cut}, "
                    f"over the {jump_mm:g} mm drop rule: {what}"]
 
 
@@ -261,13 +262,14 @@ def usable_stretches(data: TrajectorySet, jump_mm: float = DROP_JUMP_MM) -> tupl
     late: dict[int, tuple[Finding, ...]] = {}
     thresholds = dataclasses.replace(THRESHOLDS, jump_mm=jump_mm)
     for i, traj in enumerate(data):
-        frozen = tuple(f for f in find_problems(traj, thresholds) if f.kind == FROZEN)
-        ended, note = _end_at_drop(traj, i, jump_mm, frozen)
+        findings = find_problems(traj, thresholds)  # the one scan for jumps, late steps and frozen tracking
+        ended, note = _end_at_drop(traj, i, jump_mm, findings)
         notes += note
         if ended is None:
             continue
-        frozen = tuple(f for f in frozen if f.start < len(ended))
-        late_found = tuple(_late(ended))
+        before_end = [f for f in findings if f.start < len(ended)]
+        frozen = tuple(f for f in before_end if f.kind == FROZEN)
+        late_found = tuple(f for f in before_end if f.kind == LATE)
         found = tuple(sorted(frozen + late_found, key=lambda f: f.start))
         pieces = _pieces(ended, found) if found else [ended]
         if late_found:
