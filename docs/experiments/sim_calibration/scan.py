@@ -1,13 +1,17 @@
-"""How the simulated source hand's held-move rates change with its step per action unit and its spool radius.
+"""How the simulated source hand's held-move rates change with its step per action unit, its spool radius and its
+tendon's moment arms.
 
-For each setting ``UNIT_RAD,SPOOL_MM``, the real hands' six test-path action sequences are replayed open loop on
-the simulated source hand (as ``t42 sim compare-real`` does), and each move's rates over the first ``--window``
-steps of its runs are set beside the real hands' (``hand/realism.py``). A scan, not a calibration: the unit is
-written into the simulator module for this process only (the suite's wire unit, ``ACTION_UNIT_RAD``, is what
-the mock and Dynamixel drivers use), and the grasp routine keeps its servo increment per step in radians.
+For each setting ``UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE]``, real hand A's six test-path action sequences are
+replayed open loop on the simulated source hand (as ``t42 sim compare-real`` does), and each move's rates over
+the first ``--window`` steps of its runs are set beside the real hands' (``hand/realism.py``). A scan, not a
+calibration: the unit is written into the simulator module for this process only (the suite's wire unit,
+``ACTION_UNIT_RAD``, is what the mock and Dynamixel drivers use), and the grasp routine keeps its servo increment
+per step in radians.
 
     .venv/bin/python docs/experiments/sim_calibration/scan.py 0.025,20 0.0039,20 0.0039,8 \
         --out docs/experiments/sim_calibration/scan.json
+    .venv/bin/python docs/experiments/sim_calibration/scan.py 0.0039,20,2 0.0039,20,4 0.0039,10,2 0.0039,10,4 \
+        --out docs/experiments/sim_calibration/scan_moment_arms.json
 """
 
 from __future__ import annotations
@@ -29,14 +33,18 @@ from t42_transfer.hand.realism import held_move_rates, rows_as_dicts
 GRASP_STEP_RAD = simulator.GRASP_INCREMENT * simulator.ACTION_UNIT_RAD
 
 
-def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: int) -> dict:
+def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: int, arm_scale: float = 1.0) -> dict:
     simulator.ACTION_UNIT_RAD = unit_rad
     simulator.GRASP_INCREMENT = GRASP_STEP_RAD / unit_rad
     simulator.GRASP_MAX_STEPS = 4000
-    hand = simulator.SimulatedHand(dataclasses.replace(variant("source"), spool_radius_mm=spool_mm))
+    base = variant("source")
+    fingers = {side: dataclasses.replace(f, r_proximal_mm=f.r_proximal_mm * arm_scale,
+                                         r_distal_mm=f.r_distal_mm * arm_scale)
+               for side, f in (("left", base.left), ("right", base.right))}
+    hand = simulator.SimulatedHand(dataclasses.replace(base, spool_radius_mm=spool_mm, **fingers))
     replayed = TrajectorySet(run_episode(hand, t.actions, seed) for seed, t in enumerate(real))
     return {
-        "unit_rad": unit_rad, "spool_mm": spool_mm,
+        "unit_rad": unit_rad, "spool_mm": spool_mm, "moment_arm_scale": arm_scale,
         "path_steps": [len(t) for t in replayed], "end_reasons": [t.end_reason for t in replayed],
         "grasp_state": [round(float(v), 1) for v in replayed[0].states[0]],
         "held_moves": rows_as_dicts(held_move_rates("sim source", replayed, window)),
@@ -45,7 +53,8 @@ def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: i
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("settings", nargs="+", help="UNIT_RAD,SPOOL_MM pairs")
+    parser.add_argument("settings", nargs="+", help="UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE] (the tendon's moment arms "
+                                                    "at both joints scaled; default 1)")
     parser.add_argument("--window", type=int, default=30)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
@@ -56,9 +65,13 @@ def main() -> None:
         for r in held_move_rates(f"real {name}", data, args.window):
             speeds.setdefault(r.action, []).append(r.speed_mm_per_step)
     reference = {move: float(np.mean(v)) for move, v in speeds.items()}
-    rows = [run_setting(real["A"], *(float(v) for v in s.split(",")), args.window) for s in args.settings]
+    rows = []
+    for setting in args.settings:
+        unit, spool, *arm = (float(v) for v in setting.split(","))
+        rows.append(run_setting(real["A"], unit, spool, args.window, *arm))
     for row in rows:
-        print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm: path steps {row['path_steps']} "
+        print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm, moment arms x{row['moment_arm_scale']:g}: "
+              f"path steps {row['path_steps']} "
               f"(real {[len(t) for t in real['A']]}), grasp at {row['grasp_state']}")
         for m in row["held_moves"]:
             move = tuple(m["action"])
