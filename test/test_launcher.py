@@ -17,6 +17,7 @@ from t42_transfer.ros.launcher import (
     MAX_RESPAWNS,
     MIN_UPTIME_S,
     RESPAWN_DELAY_S,
+    AfterExit,
     _Respawner,
     after_exit,
     hold_node_names,
@@ -44,12 +45,13 @@ def test_a_node_that_exits_0_finished_and_is_not_restarted() -> None:
     again) or, ended within 5 s or under --no-respawn, stopped the suite with exit 1."""
     for ran_s in (1.0, MIN_UPTIME_S + 5):
         for max_respawns in (0, MAX_RESPAWNS):
-            assert after_exit(0, ran_s, 0, max_respawns) == ("done", "")
-    assert after_exit(-9, MIN_UPTIME_S + 1, 0, MAX_RESPAWNS) == ("restart", RESPAWN_DELAY_S)
-    assert after_exit(1, MIN_UPTIME_S + 1, 3, MAX_RESPAWNS) == ("restart", 8.0)
-    assert after_exit(1, 1.0, 0, MAX_RESPAWNS) == ("fail", "it failed to start")
-    assert after_exit(1, MIN_UPTIME_S + 1, MAX_RESPAWNS, MAX_RESPAWNS) == ("fail", "restarted 5 time(s) already")
-    assert after_exit(-9, MIN_UPTIME_S + 1, 0, 0) == ("fail", "no respawn")
+            assert after_exit(0, ran_s, 0, max_respawns) == AfterExit("done")
+    assert after_exit(-9, MIN_UPTIME_S + 1, 0, MAX_RESPAWNS) == AfterExit("restart", delay_s=RESPAWN_DELAY_S)
+    assert after_exit(1, MIN_UPTIME_S + 1, 3, MAX_RESPAWNS) == AfterExit("restart", delay_s=8.0)
+    assert after_exit(1, 1.0, 0, MAX_RESPAWNS) == AfterExit("fail", why="it failed to start")
+    assert after_exit(1, MIN_UPTIME_S + 1, MAX_RESPAWNS, MAX_RESPAWNS) == AfterExit(
+        "fail", why="restarted 5 time(s) already")
+    assert after_exit(-9, MIN_UPTIME_S + 1, 0, 0) == AfterExit("fail", why="no respawn")
 
     class Supervisor:  # the part of launcher.Supervisor the respawner uses
         def __init__(self) -> None:
@@ -155,7 +157,7 @@ def test_the_launch_file_respawns_as_t42_up_does_but_not_a_node_that_finishes(tm
     nodes = {n["name"]: n for n in launch_nodes(params, "/left")}
     for name in ("mock_driver", "recorder"):
         assert nodes[name]["respawn"] is True, name
-        assert nodes[name]["respawn_delay"] == RESPAWN_DELAY_S == after_exit(1, MIN_UPTIME_S, 0, 1)[1]
+        assert nodes[name]["respawn_delay"] == RESPAWN_DELAY_S == after_exit(1, MIN_UPTIME_S, 0, 1).delay_s
         assert nodes[name]["respawn_max_retries"] == MAX_RESPAWNS
     for name in ("explorer", "camera"):  # launch restarts whatever the exit code: its exit 0 would start it again
         assert nodes[name]["respawn"] is False and nodes[name]["respawn_max_retries"] == 0, name

@@ -36,7 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import IO, Any, TextIO, TypeVar
+from typing import IO, Any, Literal, TextIO, TypeVar
 
 from msg_adapters import names
 from t42_transfer.config import show
@@ -474,19 +474,30 @@ def _run_suite(config: str | Path, names: list[str], stop_timeout_s: float, out:
     return 1 if failed or unclean else 0
 
 
-def after_exit(code: int, ran_s: float, restarts: int, max_respawns: int) -> tuple[str, float | str]:
+@dataclass(frozen=True)
+class AfterExit:
+    """What ``t42 up`` does about a node that exited (:func:`after_exit`), a field for each kind of answer."""
+
+    action: Literal["done", "restart", "fail"]
+    delay_s: float = 0.0
+    """How long to wait before starting it again (``restart`` only)."""
+    why: str = ""
+    """Why its exit is a failure (``fail`` only), for the message that stops the suite."""
+
+
+def after_exit(code: int, ran_s: float, restarts: int, max_respawns: int) -> AfterExit:
     """What ``t42 up`` does about a node that exited with ``code`` after ``ran_s`` s, restarted ``restarts`` times
-    so far: ``("done", "")`` for exit 0 (a node that finished, the explorer after its episodes: as in launch, its
-    end is no failure and starting it again would redo its work), ``("restart", delay_s)``, or ``("fail", why)``."""
+    so far: ``done`` for exit 0 (a node that finished, the explorer after its episodes: as in launch, its end is no
+    failure and starting it again would redo its work), ``restart`` after a backoff, or ``fail``."""
     if code == 0:
-        return "done", ""
+        return AfterExit("done")
     if max_respawns <= 0:
-        return "fail", "no respawn"
+        return AfterExit("fail", why="no respawn")
     if ran_s < MIN_UPTIME_S:
-        return "fail", "it failed to start"
+        return AfterExit("fail", why="it failed to start")
     if restarts >= max_respawns:
-        return "fail", f"restarted {restarts} time(s) already"
-    return "restart", min(MAX_BACKOFF_S, RESPAWN_DELAY_S * 2.0 ** restarts)
+        return AfterExit("fail", why=f"restarted {restarts} time(s) already")
+    return AfterExit("restart", delay_s=min(MAX_BACKOFF_S, RESPAWN_DELAY_S * 2.0 ** restarts))
 
 
 class _Respawner:
@@ -504,18 +515,18 @@ class _Respawner:
         now, failed = time.monotonic(), []
         for child in self.supervisor.dead():
             code, ran_s, count = child.proc.returncode, now - child.started, self.respawns.get(child.name, 0)
-            action, detail = after_exit(code, ran_s, count, self.max_respawns)
-            if action == "fail":
-                failed.append(f"{child.name} exited with code {code} unexpectedly ({detail})")
+            verdict = after_exit(code, ran_s, count, self.max_respawns)
+            if verdict.action == "fail":
+                failed.append(f"{child.name} exited with code {code} unexpectedly ({verdict.why})")
                 continue
             self.supervisor.forget(child)
-            if action == "done":
+            if verdict.action == "done":
                 self.supervisor.say(f"{child.name} finished (exit 0 after {ran_s:.0f} s)")
                 continue
             self.supervisor.say(f"{child.name} exited with code {code} after {ran_s:.0f} s: restarting it in "
-                                f"{detail:g} s ({count + 1} of {self.max_respawns})")
+                                f"{verdict.delay_s:g} s ({count + 1} of {self.max_respawns})")
             self.respawns[child.name] = count + 1
-            self.due[child.name] = (now + float(detail), child.overrides)
+            self.due[child.name] = (now + verdict.delay_s, child.overrides)
         for name, (when, overrides) in list(self.due.items()):
             if now >= when and not failed:
                 del self.due[name]
