@@ -69,6 +69,7 @@ def test_registry_and_setup_py_agree() -> None:
     assert scripts == {name: "t42_transfer.ros.runner:main" for name in NODES}
     for name, spec in NODES.items():
         assert issubclass(spec.node_class(), Node), name
+        assert spec.finishes == hasattr(spec.node_class(), "finished"), name  # the launch file reads `finishes`
 
 
 def test_setup_py_installs_the_launch_file_and_every_suite_params_file() -> None:

@@ -22,6 +22,9 @@ class NodeSpec:
     (``context=``, ``namespace=``, ``parameter_overrides=``...), with a ``close()``; a node with a
     ``finished`` property that turns true ends its process (exit 0)."""
     description: str
+    finishes: bool = False
+    """The node class has that ``finished`` property: its exit 0 is its end, so a launch file must not respawn it.
+    Said here so planning a launch imports no node module (torch, mujoco); a test checks it against the class."""
 
     @staticmethod
     def _load(path: str) -> Any:
@@ -42,13 +45,14 @@ NODES: dict[str, NodeSpec] = {
     "recorder": NodeSpec("t42_transfer.nodes.recorder:Recorder",
                          "records the hand topics into rosbag2 MCAP bags"),
     "explorer": NodeSpec("t42_transfer.nodes.explorer:Explorer",
-                         "random-action episodes through the driver; exits when done"),
+                         "random-action episodes through the driver; exits when done", finishes=True),
     "transfer_server": NodeSpec("t42_transfer.nodes.transfer_server:TransferServer",
                                 "transfers the source model to the recorded hand on /t42/transfer"),
     "planner": NodeSpec("t42_transfer.nodes.planner_node:PlannerNode",
                         "plans open-loop action sequences to goals with the current model"),
     "camera": NodeSpec("t42_transfer.nodes.camera:Camera",
-                       "an OpenCV capture (device or video file) on camera/image_raw and camera/camera_info"),
+                       "an OpenCV capture (device or video file) on camera/image_raw and camera/camera_info",
+                       finishes=True),
     "object_tracker": NodeSpec("t42_transfer.nodes.object_tracker:ObjectTracker",
                                "the object's pose in t42_base from ArUco markers in camera images"),
     "view": NodeSpec("t42_transfer.nodes.view:View",

@@ -267,7 +267,7 @@ def launch_nodes(params_file: str | Path, namespace: str = "") -> list[dict[str,
     clock = [(names.CLOCK, namespace + names.CLOCK)] if namespace else []
     nodes = []
     for name in plan_nodes(params_file, namespace=namespace):
-        respawn = not hasattr(NODES[name].node_class(), "finished")
+        respawn = not NODES[name].finishes  # the registry says so: no node module (torch, mujoco) is imported
         nodes.append({"package": PACKAGE, "executable": name, "name": name, "namespace": namespace,
                       "parameters": [str(params_file)], "remappings": clock, "output": "screen", "emulate_tty": True,
                       "respawn": respawn, "respawn_delay": RESPAWN_DELAY_S,
