@@ -474,8 +474,8 @@ class TransferServer(Node):
                 outcome["cancelled"] = str(err)
             except Exception as err:  # reported, never raised from the thread
                 outcome["error"] = f"failed: {type(err).__name__}: {err}"
-            finally:
-                claim_made(spec.model_dir, self.get_namespace(), params.share_dirs)  # the first save made it
+            finally:  # a save makes model_dir, and may be followed by a failure (writing the state file)
+                claim_made(spec.model_dir, self.get_namespace(), params.share_dirs)
                 done.set()
 
         self._worker = threading.Thread(target=work, name="transfer", daemon=True)
