@@ -1,7 +1,7 @@
 """How the simulated source hand's held-move rates change with its step per action unit, its spool radius and its
 tendon's moment arms.
 
-For each setting ``UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE]``, real hand A's six test-path action sequences are
+For each setting ``UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE[,START_Y_MM]]``, real hand A's six test-path action sequences are
 replayed open loop on the simulated source hand (as ``t42 sim compare-real`` does), and each move's rates over
 the first ``--window`` steps of its runs are set beside the real hands' (``hand/realism.py``). A scan, not a
 calibration: the unit is written into the simulator module for this process only (the suite's wire unit,
@@ -12,6 +12,8 @@ per step in radians.
         --out docs/experiments/sim_calibration/scan.json
     .venv/bin/python docs/experiments/sim_calibration/scan.py 0.0039,20,2 0.0039,20,4 0.0039,10,2 0.0039,10,4 \
         --out docs/experiments/sim_calibration/scan_moment_arms.json
+    .venv/bin/python docs/experiments/sim_calibration/scan.py 0.0039,20,1,110 0.0039,10,4,110 0.0039,10,4,125 \
+        0.0039,10,2,110 --out docs/experiments/sim_calibration/scan_placement.json
 """
 
 from __future__ import annotations
@@ -31,10 +33,13 @@ from t42_transfer.hand.params import variant
 from t42_transfer.hand.realism import held_move_rates, rows_as_dicts
 
 GRASP_STEP_RAD = simulator.GRASP_INCREMENT * simulator.ACTION_UNIT_RAD
+START_Y_MM = simulator.OBJECT_START_MM[1]
 
 
-def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: int, arm_scale: float = 1.0) -> dict:
+def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: int, arm_scale: float = 1.0,
+                start_y_mm: float = START_Y_MM) -> dict:
     simulator.ACTION_UNIT_RAD = unit_rad
+    simulator.OBJECT_START_MM = (simulator.OBJECT_START_MM[0], start_y_mm)
     simulator.GRASP_INCREMENT = GRASP_STEP_RAD / unit_rad
     simulator.GRASP_MAX_STEPS = 4000
     base = variant("source")
@@ -42,9 +47,13 @@ def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: i
                                          r_distal_mm=f.r_distal_mm * arm_scale)
                for side, f in (("left", base.left), ("right", base.right))}
     hand = simulator.SimulatedHand(dataclasses.replace(base, spool_radius_mm=spool_mm, **fingers))
-    replayed = TrajectorySet(run_episode(hand, t.actions, seed) for seed, t in enumerate(real))
+    try:
+        replayed = TrajectorySet(run_episode(hand, t.actions, seed) for seed, t in enumerate(real))
+    except simulator.GraspFailed as err:
+        return {"unit_rad": unit_rad, "spool_mm": spool_mm, "moment_arm_scale": arm_scale,
+                "start_y_mm": start_y_mm, "failed": str(err)}
     return {
-        "unit_rad": unit_rad, "spool_mm": spool_mm, "moment_arm_scale": arm_scale,
+        "unit_rad": unit_rad, "spool_mm": spool_mm, "moment_arm_scale": arm_scale, "start_y_mm": start_y_mm,
         "path_steps": [len(t) for t in replayed], "end_reasons": [t.end_reason for t in replayed],
         "grasp_state": [round(float(v), 1) for v in replayed[0].states[0]],
         "held_moves": rows_as_dicts(held_move_rates("sim source", replayed, window)),
@@ -53,8 +62,9 @@ def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: i
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("settings", nargs="+", help="UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE] (the tendon's moment arms "
-                                                    "at both joints scaled; default 1)")
+    parser.add_argument("settings", nargs="+", help="UNIT_RAD,SPOOL_MM[,MOMENT_ARM_SCALE[,START_Y_MM]] (the tendon's "
+                                                    "moment arms at both joints scaled, default 1; where the object "
+                                                    "is placed before the grasp, default the simulator's)")
     parser.add_argument("--window", type=int, default=30)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
@@ -67,11 +77,15 @@ def main() -> None:
     reference = {move: float(np.mean(v)) for move, v in speeds.items()}
     rows = []
     for setting in args.settings:
-        unit, spool, *arm = (float(v) for v in setting.split(","))
-        rows.append(run_setting(real["A"], unit, spool, args.window, *arm))
+        unit, spool, *arm_and_start = (float(v) for v in setting.split(","))
+        rows.append(run_setting(real["A"], unit, spool, args.window, *arm_and_start))
     for row in rows:
-        print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm, moment arms x{row['moment_arm_scale']:g}: "
-              f"path steps {row['path_steps']} "
+        if "failed" in row:
+            print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm, moment arms x{row['moment_arm_scale']:g}, "
+                  f"object placed at y {row['start_y_mm']:g} mm: {row['failed']}")
+            continue
+        print(f"unit {row['unit_rad']} rad, spool {row['spool_mm']} mm, moment arms x{row['moment_arm_scale']:g}, "
+              f"object placed at y {row['start_y_mm']:g} mm: path steps {row['path_steps']} "
               f"(real {[len(t) for t in real['A']]}), grasp at {row['grasp_state']}")
         for m in row["held_moves"]:
             move = tuple(m["action"])
