@@ -116,6 +116,7 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
     held = {(r["name"], tuple(r["action"])) for r in summary["held_moves"]}
     assert ("real A", (-1.0, 1.0)) in held and ("sim source (same actions)", (-1.0, 1.0)) in held
     assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
+    assert (out / "sim_vs_real_held_moves.png").stat().st_size > 10_000
 
 
 

@@ -52,7 +52,8 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
         summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates)}
         (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2) + "\n")
         figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
-        print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json and {figure}")
+        speeds = realism.plot_held_moves(rates, args.out_dir / "sim_vs_real_held_moves.png")
+        print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json, {figure} and {speeds}")
     return 0
 
 

@@ -197,5 +197,29 @@ def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, Trajector
     return save(fig, path)
 
 
+def plot_held_moves(rates: Sequence[HeldMoveRate], path: Path) -> Path:
+    """Each held move's object speed (mm per step, log scale) on every data set, real and simulated side by side:
+    the time scale a model learns, at a glance."""
+    from t42_transfer.plots import pyplot, save
+
+    plt = pyplot()
+    moves = sorted({r.action for r in rates})
+    sets = list(dict.fromkeys(r.name for r in rates))
+    speed = {(r.name, r.action): r.speed_mm_per_step for r in rates}
+    fig, ax = plt.subplots(figsize=(1.2 * len(moves) + 3.0, 3.8))
+    width = 0.8 / max(1, len(sets))
+    for k, name in enumerate(sets):
+        xs = [i + (k - (len(sets) - 1) / 2) * width for i, m in enumerate(moves) if (name, m) in speed]
+        ys = [max(speed[(name, m)], 1e-3) for m in moves if (name, m) in speed]
+        ax.bar(xs, ys, width, label=name, color=f"C{k}", hatch="" if name.startswith("real") else "//")
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(moves)), [f"[{a:g}, {b:g}]" for a, b in moves])
+    ax.set_xlabel("move held")
+    ax.set_ylabel(f"object speed, first {rates[0].window if rates else 0} steps (mm/step; 0 at 0.001)", fontsize=8)
+    ax.legend(fontsize=7)
+    ax.set_title("Held moves: how far one control step carries the object, real and simulated hands", fontsize=9)
+    return save(fig, path)
+
+
 def rows_as_dicts(rows: Sequence[BehaviourStats | HeldMoveRate]) -> list[dict]:
     return [asdict(r) for r in rows]
