@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-from t42_transfer.hand.realism import held_move_rates, held_moves_table, held_runs, markdown_table, replay, summarise
+from t42_transfer.hand.realism import (
+    held_move_rates,
+    held_moves_table,
+    held_runs,
+    markdown_table,
+    plot_held_moves,
+    replay,
+    summarise,
+)
 
 
 def _path(xy: list[tuple[float, float]], end_reason: str = "length") -> Trajectory:
@@ -81,3 +89,10 @@ def test_held_moves_table_gives_the_speed_against_the_real_hands() -> None:
     table = held_moves_table(rates)
     assert "| [-1, 1] | sim source | 1 | 2.500 | +1.00 | -1.00 | 25.0x |" in table
     assert "| [-1, 1] | real A | 1 | 0.100 | +1.00 | -1.00 |  |" in table
+
+
+def test_held_moves_figure_is_written(tmp_path) -> None:
+    rates = held_move_rates("real A", TrajectorySet([_held_path([((-1.0, 1.0), 20, 0.1, 1.0)])]), 10)
+    rates += held_move_rates("sim source", TrajectorySet([_held_path([((-1.0, 1.0), 20, 2.5, 1.0)])]), 10)
+    path = plot_held_moves(rates, tmp_path / "speeds.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5_000
