@@ -133,3 +133,29 @@ def test_the_scene_of_a_bag_with_nothing_to_draw_is_empty(tmp_path: Path, small_
     bag = write_messages(tmp_path / "only_status", [("/hand/status", stamp, status)], {"/hand/status": ma.STRING})
     inputs = bag_scene_inputs(bag)
     assert inputs.object_xy_mm is None and inputs.actuator_angles is None and inputs.log_ns == 0
+
+
+def test_the_scene_reads_a_recorded_bag_by_its_record_only(tmp_path: Path, small_set) -> None:
+    """Another source's /hand/object_pose in the same bag is not the hand's pose when the record says /pose is
+    (read_bag reads it so; the scene drew the other one, found by review)."""
+    messages = [(REMAPPED[topic], stamp, msg) for traj in small_set for topic, stamp, msg in step_messages(traj)]
+    decoy = small_set[-1].start_ns + len(small_set[-1]) * 100_000_000
+    messages.append((POSE, decoy, ma.object_pose_msg((999.0, 999.0), decoy)))
+    types = {**{REMAPPED[topic]: msgtype for topic, msgtype in ma.HAND_TOPICS.items()}, POSE: ma.POSE_STAMPED}
+    bag = write_messages(tmp_path / "with_decoy", messages, types, recorded_topics_custom(REMAPPED))
+    np.testing.assert_allclose(bag_scene_inputs(bag).object_xy_mm, small_set[-1].states[-1, :2], atol=1e-3)
+
+
+def test_a_locked_db3_without_its_metadata_file_still_reads_its_record(tmp_path: Path, small_set) -> None:
+    """A writer's lock on the db3 neither stalls the read of its metadata table nor hides it (review)."""
+    import sqlite3
+
+    bag = _remapped_bag(tmp_path / "locked", small_set, StoragePlugin.SQLITE3)
+    (bag / "metadata.yaml").unlink()
+    holder = sqlite3.connect(next(bag.glob("*.db3")))
+    try:
+        holder.execute("BEGIN EXCLUSIVE")
+        with pytest.warns(UserWarning, match="metadata.yaml is missing"):
+            _same_steps(read_bag(bag), small_set)
+    finally:
+        holder.close()

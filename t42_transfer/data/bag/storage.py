@@ -13,6 +13,7 @@ import dataclasses
 import io
 import sqlite3
 import stat
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import BinaryIO
@@ -197,11 +198,18 @@ def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> Raw
 
 def _db3_metadata(file: Path) -> tuple[dict[str, str], str | None]:
     """custom_data and ros_distro of the metadata copy in a db3's ``metadata`` table (rosbag2 and rosbags write one
-    on close, schema 4 on): what a bag without its metadata.yaml still says of itself; none when there is none."""
+    on close, schema 4 on): what a bag without its metadata.yaml still says of itself; none when there is none.
+
+    Opened immutable, as the messages are read: a writer's lock on the file neither stalls nor hides it."""
+    uri = f"{file.resolve().as_uri()}?mode=ro&immutable=1"
     try:
-        with contextlib.closing(sqlite3.connect(f"{file.resolve().as_uri()}?mode=ro", uri=True)) as db:
+        with contextlib.closing(sqlite3.connect(uri, uri=True, timeout=0)) as db:
+            if not db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'metadata'").fetchone():
+                return {}, None  # a schema before 4 keeps no copy
             row = db.execute("SELECT metadata FROM metadata ORDER BY rowid DESC LIMIT 1").fetchone()
-    except sqlite3.Error:
+    except sqlite3.Error as err:
+        warnings.warn(f"{file}: the copy of metadata.yaml in its metadata table cannot be read ({err}); its custom "
+                      "data (hand, end reasons, remapped hand topics) is lost", stacklevel=2)
         return {}, None
     return serialized_metadata(row[0], file.name) if row and isinstance(row[0], str) else ({}, None)
 
