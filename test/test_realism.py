@@ -96,3 +96,15 @@ def test_held_moves_figure_is_written(tmp_path) -> None:
     rates += held_move_rates("sim source", TrajectorySet([_held_path([((-1.0, 1.0), 20, 2.5, 1.0)])]), 10)
     path = plot_held_moves(rates, tmp_path / "speeds.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5_000
+
+
+def test_a_real_speed_of_zero_gives_no_ratio_and_no_warning() -> None:
+    """The real tracker stands still on a third of steps: over a short window a real median speed can be 0."""
+    import warnings
+
+    rates = held_move_rates("real A", TrajectorySet([_held_path([((-1.0, 1.0), 20, 0.0, 1.0)])]), 10)
+    rates += held_move_rates("sim source", TrajectorySet([_held_path([((-1.0, 1.0), 20, 2.5, 1.0)])]), 10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        table = held_moves_table(rates)
+    assert "| [-1, 1] | sim source | 1 | 2.500 | +1.00 | -1.00 |  |" in table and "inf" not in table

@@ -44,7 +44,8 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
     rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
     named = {f"real {k}": v for k, v in real.items()} | {f"{k} (same actions)": v for k, v in replays.items()}
     rates = [r for name, data in named.items() for r in realism.held_move_rates(name, data, args.window)]
-    table = realism.markdown_table(rows) + "\n" + realism.held_moves_table(rates)
+    held = realism.held_moves_table(rates) if rates else f"No move is held {args.window} steps in any path.\n"
+    table = realism.markdown_table(rows) + "\n" + held
     print(table)
     if args.out_dir:
         args.out_dir.mkdir(parents=True, exist_ok=True)
@@ -52,8 +53,10 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
         summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates)}
         (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2) + "\n")
         figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
-        speeds = realism.plot_held_moves(rates, args.out_dir / "sim_vs_real_held_moves.png")
-        print(f"wrote {args.out_dir / 'sim_vs_real.md'}, .json, {figure} and {speeds}")
+        written = [args.out_dir / "sim_vs_real.md", args.out_dir / "sim_vs_real.json", figure]
+        if rates:
+            written.append(realism.plot_held_moves(rates, args.out_dir / "sim_vs_real_held_moves.png"))
+        print("wrote " + ", ".join(str(w) for w in written))
     return 0
 
 

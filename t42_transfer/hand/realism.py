@@ -167,8 +167,9 @@ def held_moves_table(rates: Sequence[HeldMoveRate]) -> str:
     )
     lines = []
     for r in sorted(rates, key=lambda r: (r.action, r.name)):
-        compared = r.action in real and not r.name.startswith("real")
-        ratio = f"{r.speed_mm_per_step / np.mean(real[r.action]):.1f}x" if compared else ""
+        reference = float(np.mean(real[r.action])) if r.action in real else 0.0
+        compared = reference > 0 and not r.name.startswith("real")  # a tracker standing still gives 0: no ratio
+        ratio = f"{r.speed_mm_per_step / reference:.1f}x" if compared else ""
         lines.append(
             f"| [{r.action[0]:g}, {r.action[1]:g}] | {r.name} | {r.runs} | {r.speed_mm_per_step:.3f} "
             f"| {r.load1_per_step:+.2f} | {r.load2_per_step:+.2f} | {ratio} |"
