@@ -182,3 +182,13 @@ def test_after_the_port_failed_mid_packet_the_next_packets_still_reach_it(hand) 
     failed = servos.set_torque(False)
     assert sorted(failed) == [1, 2]
     assert all(f.kind == s.PORT and "in use" not in str(f) for f in failed.values()), failed  # tried on the port
+
+
+def test_an_error_status_of_bits_without_a_name_is_reported_by_its_value(hand) -> None:
+    """Bit 1 is reserved on an XM430: the fault gives the status value, not "alert without an error bit" (review)."""
+    bus, servos = hand
+    servos.torque(True)
+    bus.bus.servos[2].raise_error(1 << 1)
+    with pytest.raises(s.ServoFault, match="Hardware Error Status 2") as fault:
+        servos.read_state()
+    assert (fault.value.kind, fault.value.servo_id) == (s.HARDWARE, 2)

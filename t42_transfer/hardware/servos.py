@@ -178,8 +178,10 @@ class HandServos:
         if result != COMM_SUCCESS:
             raise ServoFault(TIMEOUT, servo_id, f"{what}: {self._packets.getTxRxResult(result)}")
         if error & p.ALERT:
-            raise ServoFault(HARDWARE, servo_id, ", ".join(xm.hardware_errors(self.hardware_status(servo_id)))
-                             or "alert without an error bit")
+            status = self.hardware_status(servo_id)
+            named = ", ".join(xm.hardware_errors(status))
+            raise ServoFault(HARDWARE, servo_id, named or (f"Hardware Error Status {status}" if status else
+                                                            "alert without an error bit"))
         if error:
             raise ServoFault(REFUSED, servo_id, f"{what} refused ({self._packets.getRxPacketError(error)})")
 
