@@ -31,3 +31,25 @@ def test_a_lock_is_let_go_when_its_block_raises(tmp_path: Path) -> None:
         raise RuntimeError
     with held_lock(path, busy=_in_use):
         pass
+
+
+def test_a_second_holder_without_busy_waits_for_the_first_to_let_go(tmp_path: Path) -> None:
+    """Two experiments collecting one data set rely on this wait (experiment.py)."""
+    import threading
+
+    path, order = tmp_path / ".lock", []
+    got_second = threading.Event()
+
+    def second() -> None:
+        with held_lock(path):
+            order.append("second")
+            got_second.set()
+
+    with held_lock(path):
+        waiter = threading.Thread(target=second)
+        waiter.start()
+        assert not got_second.wait(0.3), "the second holder got a lock that was held"
+        order.append("first lets go")
+    assert got_second.wait(10.0)
+    waiter.join(10.0)
+    assert order == ["first lets go", "second"]
