@@ -159,3 +159,19 @@ def test_failed_write_leaves_nothing(tmp_path, small_set, monkeypatch):
     with pytest.raises(RuntimeError, match="disk full"):
         write_bag(tmp_path / "bag", small_set)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_writer_says_when_its_storage_file_is_removed_or_replaced(tmp_path: Path) -> None:
+    """The recorder's check for a removed out_dir: the open file is gone, or another file stands at its path."""
+    import shutil
+
+    writer = bag_writer.BagWriter(tmp_path / "a", ma.HAND_TOPICS)
+    try:
+        assert writer.lost() is None
+        shutil.rmtree(tmp_path / "a")
+        assert "was removed while it was recorded" in writer.lost()
+        (tmp_path / "a").mkdir()
+        (tmp_path / "a" / "a.mcap").write_bytes(b"another file")
+        assert "was replaced by another file" in writer.lost()
+    finally:
+        writer.abort()

@@ -102,7 +102,6 @@ from t42_transfer.data.bag import BagWriter
 from t42_transfer.data.bag.recording import (
     CLOCK_RESTART,
     LogTimes,
-    OpenedFile,
     Pause,
     open_next_bag,
     recorded_hand_topics,
@@ -170,7 +169,6 @@ class Recorder(LooseMessages, Node):
         """Messages that came after their step was written and joined it in its bag."""
         self._written = WrittenSteps()
         self._bag: BagWriter | None = None
-        self._file: OpenedFile | None = None
         """The open bag's storage file: flush checks it is still there (out_dir removed while recording)."""
         self._log_times = LogTimes()
         self.write_failure: str | None = None
@@ -323,7 +321,7 @@ class Recorder(LooseMessages, Node):
         failure, recording resumes here once there is room again."""
         with self._lock:
             bag = self._bag
-            if bag is not None and self._file is not None and (gone := self._file.lost()) is not None:
+            if bag is not None and (gone := bag.lost()) is not None:
                 self._bag = None  # out_dir removed: the bag cannot be finalised, a write failure
                 with suppress(Exception):
                     bag.abort()
@@ -413,7 +411,7 @@ class Recorder(LooseMessages, Node):
         except Exception as err:
             self._write_failed(self.out_dir, err)
             return False, f"could not open a bag: {self.write_failure}"
-        self._bag, self._span, self._file = bag, [], OpenedFile(bag.path)
+        self._bag, self._span = bag, []
         self._log_times.new_bag()
         if say:
             self.log.info(f"recording to {bag.path}")

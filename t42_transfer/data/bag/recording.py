@@ -1,12 +1,11 @@
 """What a recorder keeps track of about the bag it writes, needing no ROS (:mod:`t42_transfer.nodes.recorder` is
-the node): the next free bag name (another writer may take a name first), whether the open bag's file is still
-there (``out_dir`` removed while recording), the log times of the steps after the publishers' clock restarted,
-free space, and a pause's border.
+the node): the next free bag name (another writer may take a name first), the log times of the steps after the
+publishers' clock restarted, free space, and a pause's border.  (Whether the open bag's file is still there is
+:meth:`BagWriter.lost`.)
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -48,32 +47,6 @@ def _taken(err: BaseException) -> bool:
     overwriting.") when it does at the start, and from the FileExistsError of its mkdir."""
     return (isinstance(err, FileExistsError) or isinstance(err.__context__, FileExistsError)
             or "exists already" in str(err))
-
-
-class OpenedFile:
-    """The storage file of a bag just opened, told apart from one put at its path later: :meth:`lost` says whether
-    it is still there (a removed ``out_dir`` takes the file an open writer goes on writing to, unseen)."""
-
-    def __init__(self, bag: Path) -> None:
-        files = sorted(p for p in bag.iterdir() if p.is_file()) if bag.is_dir() else []
-        self.path = files[0] if files else bag / f"{bag.name}.mcap"
-        try:
-            st = os.stat(self.path)
-            self._id: tuple[int, int] | None = (st.st_dev, st.st_ino)
-        except OSError:
-            self._id = None
-
-    def lost(self) -> str | None:
-        """Why the file the writer writes to is no longer at its path (None while it is)."""
-        try:
-            st = os.stat(self.path)
-        except FileNotFoundError:
-            return f"{self.path} was removed while it was recorded"
-        except OSError as err:
-            return f"{self.path} cannot be reached ({err.strerror or err})"
-        if (st.st_dev, st.st_ino) != self._id:
-            return f"{self.path} was replaced by another file while it was recorded"
-        return None
 
 
 def room(out_dir: Path, free_mb: float) -> bool:

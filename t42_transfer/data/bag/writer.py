@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import shutil
 import tempfile
@@ -78,6 +79,30 @@ class JazzyWriter(Writer):
         tmp.replace(self.metapath)
 
 
+class _StorageFile:
+    """The storage file of a bag just opened, told apart from one put at its path later."""
+
+    def __init__(self, bag: Path) -> None:
+        files = sorted(p for p in bag.iterdir() if p.is_file()) if bag.is_dir() else []
+        self.path = files[0] if files else bag / f"{bag.name}.mcap"
+        try:
+            st = os.stat(self.path)
+            self._id: tuple[int, int] | None = (st.st_dev, st.st_ino)
+        except OSError:
+            self._id = None
+
+    def lost(self) -> str | None:
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return f"{self.path} was removed while it was recorded"
+        except OSError as err:
+            return f"{self.path} cannot be reached ({err.strerror or err})"
+        if (st.st_dev, st.st_ino) != self._id:
+            return f"{self.path} was replaced by another file while it was recorded"
+        return None
+
+
 class BagWriter:
     """A new bag written message by message: one connection per topic, offered :data:`RECORD_QOS`, or for a topic
     of ``offered`` (resolved name -> its publishers' QoS) what they offer.
@@ -99,6 +124,7 @@ class BagWriter:
         for key, value in (custom or {}).items():
             self._writer.set_custom_data(key, value)
         self._writer.open()
+        self._file = _StorageFile(path)
         try:
             self._connections = {
                 topic: self._writer.add_connection(topic, msgtype, typestore=ma.TYPESTORE,
@@ -108,6 +134,11 @@ class BagWriter:
         except Exception:
             self._writer.abort()
             raise
+
+    def lost(self) -> str | None:
+        """Why the storage file this writer writes to is no longer at its path (None while it is): a removed
+        ``out_dir`` takes the file an open writer goes on writing to, unseen."""
+        return self._file.lost()
 
     def write(self, topic: str, log_ns: int, cdr: bytes, msgtype: str | None = None) -> None:
         """One message; ``msgtype`` adds a topic not declared at the start (on its first message only, so a bag
