@@ -291,10 +291,6 @@ class Recorder(LooseMessages, Node):
         """Messages dropped while paused (recorded topics and statuses), in all."""
         return self._pause.dropped
 
-    @paused_dropped.setter
-    def paused_dropped(self, count: int) -> None:
-        self._pause.dropped = count
-
     def pause(self) -> tuple[bool, str]:
         """Drop the messages of the steps after the one in progress, the bag kept open; (success, message)."""
         with self._lock:

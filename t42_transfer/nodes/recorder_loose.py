@@ -25,7 +25,7 @@ class LooseMessages:
     dropped: int
     late_kept: int
     log: Any
-    paused_dropped: int
+    _pause: Any
     per_message: Any
     snapshots: Any
     _written: Any
@@ -39,7 +39,7 @@ class LooseMessages:
                                          f"not a {STRING} ({type(err).__name__}: {err})")
                 return
             if self.paused:  # neither written nor splitting
-                self.paused_dropped += 1
+                self._pause.dropped += 1  # counted where the pause is kept
                 return
             self._write_loose(self._status_topic, bytes(data), STRING)
             event, after = status_event(text), last_step_stamp(text)  # the driver says where the border is
@@ -89,7 +89,7 @@ class LooseMessages:
             if self._decoded(topic, msgtype, data) is None:
                 return
             if self.paused:
-                self.paused_dropped += 1
+                self._pause.dropped += 1  # counted where the pause is kept
                 return
             self._write_loose(topic, bytes(data), msgtype)
         except Exception as err:  # never raise from a callback
