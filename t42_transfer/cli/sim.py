@@ -42,7 +42,7 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
         output_dir(args.out_dir)
     real = {hand: load_t42_testpaths(folder / name) for hand, name in REAL_FILES.items()}
     rows, replays = realism.compare(real, hands=args.hands, seed=args.seed)
-    named = {f"real {k}": v for k, v in real.items()} | {f"{k} (same actions)": v for k, v in replays.items()}
+    named = realism.labelled(real, replays)
     rates = [r for name, data in named.items() for r in realism.held_move_rates(name, data, args.window)]
     held = realism.held_moves_table(rates) if rates else f"No move is held {args.window} steps in any path.\n"
     table = realism.markdown_table(rows) + "\n" + held

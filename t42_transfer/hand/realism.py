@@ -134,10 +134,13 @@ def compare(
         if not same:
             raise ValueError(f"real set {name!r} ran other action sequences than {next(iter(real_sets))!r}")
     longest = TrajectorySet(max((t for t in group), key=len) for group in zip(*sets, strict=True))
-    rows = [summarise(f"real {name}", data) for name, data in real_sets.items()]
     replays = {f"sim {hand}": replay(longest, hand, seed) for hand in hands}
-    rows += [summarise(f"{key} (same actions)", data) for key, data in replays.items()]
-    return rows, replays
+    return [summarise(name, data) for name, data in labelled(real_sets, replays).items()], replays
+
+
+def labelled(real_sets: dict[str, TrajectorySet], replays: dict[str, TrajectorySet]) -> dict[str, TrajectorySet]:
+    """Every set under the name its table row and figure panel give it, real ones first."""
+    return {f"real {k}": v for k, v in real_sets.items()} | {f"{k} (same actions)": v for k, v in replays.items()}
 
 
 def markdown_table(rows: Sequence[BehaviourStats]) -> str:
@@ -183,7 +186,7 @@ def plot_paths(real_sets: dict[str, TrajectorySet], replays: dict[str, Trajector
 
     plt = pyplot()
 
-    panels = [(f"real {k}", v) for k, v in real_sets.items()] + [(f"{k} (same actions)", v) for k, v in replays.items()]
+    panels = list(labelled(real_sets, replays).items())
     fig, axes = plt.subplots(1, len(panels), figsize=(4.0 * len(panels), 3.8), squeeze=False)
     for ax, (title, data) in zip(axes.flat, panels, strict=True):
         for i, t in enumerate(data):

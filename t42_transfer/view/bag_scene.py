@@ -48,12 +48,10 @@ def input_reader(topic: str, renamed: dict[str, str] | None = None) -> tuple[str
     """(the :class:`SceneInputs` field, its message reader) of a bag topic that feeds the scene, else None;
     ``renamed``: recorded topic -> the relative name it stands for (a recorder's record of its hand topics,
     which then are read under those names only, as ``read_bag`` reads them)."""
-    if renamed:
-        if topic in renamed:
-            return _READERS[renamed[topic]]
-        hand = set(renamed.values())
-    else:
-        hand = set()
+    renamed = renamed or {}
+    if topic in renamed:
+        return _READERS[renamed[topic]]
+    hand = set(renamed.values())
     for name, reading in _READERS.items():
         if name not in hand and (topic == "/" + name or topic.endswith("/" + name)):
             return reading

@@ -40,7 +40,9 @@ from t42_transfer.files import file_kind, not_regular_reason
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3"}
 HAND_TYPES = {*ma.HAND_TOPICS.values(), ma.STRING}
-"""The topics whose messages are loaded: the hand's steps and its status (which names the late steps)."""
+"""The types of the hand's steps and status: an MCAP without metadata.yaml keeps every topic of these types until
+its own metadata record says which of them a recorder wrote its remapped hand topics to.  (The messages loaded are
+those of the hand topics, by name or by that record.)"""
 _MAX_CHUNK_BYTES = 1 << 28
 """An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
 
