@@ -117,6 +117,11 @@ def test_compare_real_writes_table_and_figure(t42_real_dir: Path, tmp_path: Path
     assert ("real A", (-1.0, 1.0)) in held and ("sim source (same actions)", (-1.0, 1.0)) in held
     assert (out / "sim_vs_real_paths.png").stat().st_size > 10_000
     assert (out / "sim_vs_real_held_moves.png").stat().st_size > 10_000
+    onsets = {(r["name"], tuple(r["action"])): r for r in summary["onsets"]}
+    real, sim = onsets[("real A", (-1.0, 1.0))], onsets[("sim source (same actions)", (-1.0, 1.0))]
+    assert real["threshold_mm"] == 2.0 and real["window"] == 20 and real["runs"] >= 1
+    assert real["onset_steps"] > sim["onset_steps"]  # the real hands wait tens of steps; these hands do not
+    assert (out / "sim_vs_real_onsets.png").stat().st_size > 10_000
 
 
 

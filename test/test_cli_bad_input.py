@@ -203,6 +203,9 @@ CASES = {
     "compare-real --real-dir is a file": ("sim compare-real --real-dir {file}", "{file}: not a directory"),
     "compare-real --hands bogus": ("sim compare-real --real-dir {dir} --hands source bogus", "bogus"),
     "compare-real --seed -1": ("sim compare-real --real-dir {dir} --seed -1", "--seed"),
+    "compare-real --moving-threshold 0": (
+        "sim compare-real --real-dir {dir} --moving-threshold 0", "--moving-threshold"),
+    "compare-real --moving-window 0": ("sim compare-real --real-dir {dir} --moving-window 0", "--moving-window"),
     "compare-real --out-dir is a file": ("sim compare-real --real-dir {dir} --out-dir {file}", "{file}"),
     # t42 experiment (the config's own cases are in the next test)
     "experiment config missing": ("experiment {missing} --out {out}", "{missing}"),

@@ -7,11 +7,14 @@ import pytest
 
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.hand.realism import (
+    held_move_onsets,
     held_move_rates,
     held_moves_table,
+    held_onsets_table,
     held_runs,
     markdown_table,
     plot_held_moves,
+    plot_held_onsets,
     replay,
     summarise,
 )
@@ -108,3 +111,53 @@ def test_a_real_speed_of_zero_gives_no_ratio_and_no_warning() -> None:
         warnings.simplefilter("error")
         table = held_moves_table(rates)
     assert "| [-1, 1] | sim source | 1 | 2.500 | +1.00 | -1.00 |  |" in table and "inf" not in table
+
+
+def _waiting_path(moves: list[tuple[tuple[float, float], int, int, float]]) -> Trajectory:
+    """A path of held moves, each standing still for its first ``wait`` steps, then moving ``speed`` mm/step in x."""
+    actions, states = [], [np.array([0.0, 50.0, 100.0, -100.0])]
+    for action, steps, wait, speed in moves:
+        for k in range(steps):
+            actions.append(action)
+            states.append(states[-1] + np.array([0.0 if k < wait else speed, 0.0, 0.0, 0.0]))
+    return Trajectory(states=np.array(states), actions=np.array(actions, dtype=float))
+
+
+def test_held_move_onsets_separate_the_wait_from_the_speed() -> None:
+    # Three runs of [-1, 1]: waits of 30, 40 and 50 steps, then 0.1, 0.2 and 0.3 mm/step. The object has moved
+    # 2 mm (the threshold) after 20 steps of 0.1, 10 of 0.2 and 7 of 0.3 (6.67 rounded up).
+    data = TrajectorySet([
+        _waiting_path([((-1.0, 1.0), 120, 30, 0.1), ((1.0, 1.0), 120, 200, 0.0)]),  # [1, 1] never moves
+        _waiting_path([((-1.0, 1.0), 120, 40, 0.2)]),
+        _waiting_path([((-1.0, 1.0), 120, 50, 0.3), ((1.0, -1.0), 50, 0, 1.0)]),  # [1, -1] held < 100 steps
+    ])
+    rows = held_move_onsets("made", data, threshold_mm=2.0, window=20, min_steps=100)
+    assert [r.action for r in rows] == [(-1.0, 1.0), (1.0, 1.0)]
+    moving, still = rows
+    assert (moving.runs, moving.stuck, moving.moving_runs) == (3, 0, 3)
+    assert moving.onset_steps == 50  # median of 30 + 20, 40 + 10 and 50 + 7
+    assert moving.moving_speed_mm_per_step == pytest.approx(0.2)
+    assert (still.runs, still.stuck, still.moving_runs) == (1, 1, 0)
+    assert np.isnan(still.onset_steps) and np.isnan(still.moving_speed_mm_per_step)
+
+
+def test_held_move_onsets_leave_out_a_speed_the_run_cannot_measure() -> None:
+    # The object passes 2 mm at step 110 of a 120-step run: a 20-step window would run past the hold.
+    rows = held_move_onsets("made", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 100, 0.2)])]), window=20)
+    (row,) = rows
+    assert row.onset_steps == 110 and row.moving_runs == 0 and np.isnan(row.moving_speed_mm_per_step)
+    for bad in ({"threshold_mm": 0.0}, {"window": 0}, {"min_steps": 0}):
+        with pytest.raises(ValueError):
+            held_move_onsets("made", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 100, 0.2)])]), **bad)
+
+
+def test_held_onsets_table_and_figure(tmp_path) -> None:
+    real = held_move_onsets("real A", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 40, 0.1)])]))
+    sim = held_move_onsets("sim source", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 0, 2.5)])]))
+    stuck = held_move_onsets("sim target", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 500, 0.0)])]))
+    table = held_onsets_table(real + sim + stuck)
+    assert "| [-1, 1] | real A | 1 | 0 | 60 | 0.100 (1 runs) |  |" in table
+    assert "| [-1, 1] | sim source | 1 | 0 | 1 | 2.500 (1 runs) | 25.0x |" in table
+    assert "| [-1, 1] | sim target | 1 | 1 | never | none |  |" in table
+    path = plot_held_onsets(real + sim + stuck, tmp_path / "onsets.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5_000

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from t42_transfer.cli.args import SEED_MAX, existing_dir, int_arg, new_output, output_dir
+from t42_transfer.cli.args import SEED_MAX, existing_dir, float_arg, int_arg, new_output, output_dir
 
 
 def _cmd_sim_collect(args: argparse.Namespace) -> int:
@@ -45,17 +45,23 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
     named = realism.labelled(real, replays)
     rates = [r for name, data in named.items() for r in realism.held_move_rates(name, data, args.window)]
     held = realism.held_moves_table(rates) if rates else f"No move is held {args.window} steps in any path.\n"
-    table = realism.markdown_table(rows) + "\n" + held
+    onsets = [r for name, data in named.items()
+              for r in realism.held_move_onsets(name, data, args.moving_threshold, args.moving_window)]
+    waits = realism.held_onsets_table(onsets) if onsets else "No move is held 100 steps in any path.\n"
+    table = realism.markdown_table(rows) + "\n" + held + "\n" + waits
     print(table)
     if args.out_dir:
         args.out_dir.mkdir(parents=True, exist_ok=True)
         (args.out_dir / "sim_vs_real.md").write_text(table)
-        summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates)}
+        summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates),
+                   "onsets": realism.rows_as_dicts(onsets)}
         (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2) + "\n")
         figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
         written = [args.out_dir / "sim_vs_real.md", args.out_dir / "sim_vs_real.json", figure]
         if rates:
             written.append(realism.plot_held_moves(rates, args.out_dir / "sim_vs_real_held_moves.png"))
+        if onsets:
+            written.append(realism.plot_held_onsets(onsets, args.out_dir / "sim_vs_real_onsets.png"))
         print("wrote " + ", ".join(str(w) for w in written))
     return 0
 
@@ -84,6 +90,15 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     cmp_.add_argument(
         "--window", type=int_arg(1), default=30,
         help="steps of each held move over which its rates are measured (default 30)",
+    )
+    cmp_.add_argument(
+        "--moving-threshold", type=float_arg(0.0, low_open=True), default=2.0,
+        help="mm the object must move from a hold's start before it counts as moving (default 2; the real "
+             "tracker's positions move in steps of about 0.4 mm)",
+    )
+    cmp_.add_argument(
+        "--moving-window", type=int_arg(1), default=20,
+        help="steps, from that point, over which the moving speed is measured (default 20)",
     )
     cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
     cmp_.set_defaults(func=_cmd_sim_compare_real)

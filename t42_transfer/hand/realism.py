@@ -109,6 +109,88 @@ def held_move_rates(name: str, data: TrajectorySet, window: int = 30) -> list[He
     return rows
 
 
+@dataclass(frozen=True)
+class HeldMoveOnset:
+    """How long one held move takes to start carrying the object, and how fast it carries it then.
+
+    The real hands take tens of steps after a change of move before the object moves at all (a tendon
+    taking up slack, a grasp re-settling), then move it steadily; a rate over a hold's first steps mixes
+    the two.  ``onset_steps``: the median over runs of the first step whose object position is
+    ``threshold_mm`` or more from the run's start.  ``moving_speed_mm_per_step``: the median net
+    displacement over the ``window`` steps from that step on, divided by ``window``, over the runs whose
+    onset leaves ``window`` steps in the run.  ``stuck``: runs in which the object never moved that far.
+    """
+
+    name: str
+    action: tuple[float, float]
+    runs: int
+    stuck: int
+    threshold_mm: float
+    window: int
+    onset_steps: float
+    moving_speed_mm_per_step: float
+    moving_runs: int
+
+
+def held_move_onsets(
+    name: str, data: TrajectorySet, threshold_mm: float = 2.0, window: int = 20, min_steps: int = 100
+) -> list[HeldMoveOnset]:
+    """One :class:`HeldMoveOnset` per move held at least ``min_steps`` steps somewhere in ``data``, by move.
+
+    ``threshold_mm`` should stand clear of the tracker's noise (the real paths' positions move in steps of
+    about 0.4 mm); a median over no runs is NaN.
+    """
+    if not threshold_mm > 0:
+        raise ValueError(f"threshold_mm must be positive, got {threshold_mm}")
+    if window < 1 or min_steps < 1:
+        raise ValueError(f"window and min_steps must be at least 1 step, got {window} and {min_steps}")
+    onsets: dict[tuple[float, float], list[int | None]] = {}
+    speeds: dict[tuple[float, float], list[float]] = {}
+    for t in data:
+        for start, stop in held_runs(t.actions, min_steps):
+            xy = t.states[start : stop + 1, :2]
+            moved = np.flatnonzero(np.linalg.norm(xy - xy[0], axis=1) >= threshold_mm)
+            move = (float(t.actions[start][0]), float(t.actions[start][1]))
+            onset = int(moved[0]) if len(moved) else None
+            onsets.setdefault(move, []).append(onset)
+            speeds.setdefault(move, [])
+            if onset is not None and onset + window < len(xy):
+                speeds[move].append(float(np.linalg.norm(xy[onset + window] - xy[onset])) / window)
+    rows = []
+    for move in sorted(onsets):
+        found = [k for k in onsets[move] if k is not None]
+        rows.append(HeldMoveOnset(
+            name, move, len(onsets[move]), len(onsets[move]) - len(found), threshold_mm, window,
+            float(np.median(found)) if found else float("nan"),
+            float(np.median(speeds[move])) if speeds[move] else float("nan"), len(speeds[move]),
+        ))
+    return rows
+
+
+def held_onsets_table(onsets: Sequence[HeldMoveOnset]) -> str:
+    """Markdown, a row per move and data set; the last column is the moving speed over the real sets' mean."""
+    real: dict[tuple[float, float], list[float]] = {}
+    for r in onsets:
+        if r.name.startswith("real") and np.isfinite(r.moving_speed_mm_per_step):
+            real.setdefault(r.action, []).append(r.moving_speed_mm_per_step)
+    window = onsets[0].window if onsets else 0
+    head = (
+        f"| move | data | runs | never moved | steps to move {onsets[0].threshold_mm if onsets else 0:g} mm "
+        f"| then mm/step (next {window} steps) | speed / real |\n|---|---|---|---|---|---|---|\n"
+    )
+    lines = []
+    for r in sorted(onsets, key=lambda r: (r.action, r.name)):
+        reference = float(np.mean(real[r.action])) if real.get(r.action) else 0.0
+        speed = r.moving_speed_mm_per_step
+        compared = reference > 0 and np.isfinite(speed) and not r.name.startswith("real")
+        ratio = f"{speed / reference:.1f}x" if compared else ""
+        onset = f"{r.onset_steps:g}" if np.isfinite(r.onset_steps) else "never"
+        shown = f"{speed:.3f} ({r.moving_runs} runs)" if np.isfinite(speed) else "none"
+        lines.append(f"| [{r.action[0]:g}, {r.action[1]:g}] | {r.name} | {r.runs} | {r.stuck} | {onset} "
+                     f"| {shown} | {ratio} |")
+    return head + "\n".join(lines) + "\n"
+
+
 def replay(real: TrajectorySet, hand: str, seed: int = 0) -> TrajectorySet:
     """Run every real path's action sequence open loop on the simulated ``hand``."""
     sim = SimulatedHand(hand)
@@ -225,5 +307,32 @@ def plot_held_moves(rates: Sequence[HeldMoveRate], path: Path) -> Path:
     return save(fig, path)
 
 
-def rows_as_dicts(rows: Sequence[BehaviourStats | HeldMoveRate]) -> list[dict]:
+def plot_held_onsets(onsets: Sequence[HeldMoveOnset], path: Path) -> Path:
+    """Per held move and data set: the steps before the object moves, and its speed once it moves (log scale)."""
+    from t42_transfer.plots import pyplot, save
+
+    plt = pyplot()
+    moves = sorted({r.action for r in onsets})
+    sets = list(dict.fromkeys(r.name for r in onsets))
+    by = {(r.name, r.action): r for r in onsets}
+    fig, (ax_wait, ax_speed) = plt.subplots(2, 1, figsize=(1.2 * len(moves) + 3.0, 6.4), sharex=True)
+    width = 0.8 / max(1, len(sets))
+    for k, name in enumerate(sets):
+        shown = [(i, by[(name, m)]) for i, m in enumerate(moves) if (name, m) in by]
+        xs = [i + (k - (len(sets) - 1) / 2) * width for i, _ in shown]
+        style = {"color": f"C{k}", "hatch": "" if name.startswith("real") else "//"}
+        ax_wait.bar(xs, [np.nan_to_num(r.onset_steps) for _, r in shown], width, label=name, **style)
+        ax_speed.bar(xs, [max(np.nan_to_num(r.moving_speed_mm_per_step), 1e-3) for _, r in shown], width, **style)
+    first = onsets[0] if onsets else None
+    ax_speed.set_xticks(range(len(moves)), [f"[{a:g}, {b:g}]" for a, b in moves])
+    ax_speed.set_xlabel("move held")
+    ax_wait.set_ylabel(f"steps until the object has moved {first.threshold_mm if first else 0:g} mm", fontsize=8)
+    ax_speed.set_yscale("log")
+    ax_speed.set_ylabel(f"then mm/step over {first.window if first else 0} steps (none at 0.001)", fontsize=8)
+    ax_wait.legend(fontsize=7)
+    fig.suptitle("Held moves: how long before the object moves, and how fast it moves then", fontsize=9)
+    return save(fig, path)
+
+
+def rows_as_dicts(rows: Sequence[BehaviourStats | HeldMoveRate | HeldMoveOnset]) -> list[dict]:
     return [asdict(r) for r in rows]

@@ -30,7 +30,7 @@ from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.hand.collect import run_episode
 from t42_transfer.hand.params import variant
-from t42_transfer.hand.realism import held_move_rates, rows_as_dicts
+from t42_transfer.hand.realism import held_move_onsets, held_move_rates, rows_as_dicts
 
 GRASP_STEP_RAD = simulator.GRASP_INCREMENT * simulator.ACTION_UNIT_RAD
 START_Y_MM = simulator.OBJECT_START_MM[1]
@@ -57,6 +57,7 @@ def run_setting(real: TrajectorySet, unit_rad: float, spool_mm: float, window: i
         "path_steps": [len(t) for t in replayed], "end_reasons": [t.end_reason for t in replayed],
         "grasp_state": [round(float(v), 1) for v in replayed[0].states[0]],
         "held_moves": rows_as_dicts(held_move_rates("sim source", replayed, window)),
+        "onsets": rows_as_dicts(held_move_onsets("sim source", replayed)),
     }
 
 
@@ -75,6 +76,14 @@ def main() -> None:
         for r in held_move_rates(f"real {name}", data, args.window):
             speeds.setdefault(r.action, []).append(r.speed_mm_per_step)
     reference = {move: float(np.mean(v)) for move, v in speeds.items()}
+    moving: dict[tuple, list[float]] = {}
+    onset: dict[tuple, list[float]] = {}
+    for name, data in real.items():
+        for o in held_move_onsets(f"real {name}", data):
+            moving.setdefault(o.action, []).append(o.moving_speed_mm_per_step)
+            onset.setdefault(o.action, []).append(o.onset_steps)
+    moving_reference = {move: float(np.nanmean(v)) for move, v in moving.items()}
+    real_onset = {move: float(np.nanmean(v)) for move, v in onset.items()}
     rows = []
     for setting in args.settings:
         unit, spool, *arm_and_start = (float(v) for v in setting.split(","))
@@ -92,8 +101,16 @@ def main() -> None:
             ratio = m["speed_mm_per_step"] / reference[move]
             print(f"  {list(move)}: {m['speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real), "
                   f"loads {m['load1_per_step']:+.2f} {m['load2_per_step']:+.2f} /step ({m['runs']} runs)")
+        for o in row["onsets"]:
+            move = tuple(o["action"])
+            ratio = o["moving_speed_mm_per_step"] / moving_reference[move]
+            print(f"  {list(move)}: {o['onset_steps']:g} steps to move 2 mm (real {real_onset[move]:g}), "
+                  f"then {o['moving_speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real)")
     real_speeds = {str(list(move)): speed for move, speed in reference.items()}
-    summary = {"window": args.window, "real_speed_mm_per_step": real_speeds, "settings": rows}
+    real_moving = {str(list(move)): speed for move, speed in moving_reference.items()}
+    summary = {"window": args.window, "real_speed_mm_per_step": real_speeds,
+               "real_moving_speed_mm_per_step": real_moving,
+               "real_onset_steps": {str(list(move)): steps for move, steps in real_onset.items()}, "settings": rows}
     args.out.write_text(json.dumps(summary, indent=2) + "\n")
 
 
