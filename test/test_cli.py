@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from t42_transfer.cli import main
@@ -38,6 +39,23 @@ def test_sim_collect_round_trips_exactly_through_the_bag(tmp_path: Path) -> None
         assert (got.states == want.states).all() and (got.actions == want.actions).all()
         assert (got.actuator_angles == want.actuator_angles).all()
         assert got.end_reason == want.end_reason and got.hand == "target"
+
+
+def test_sim_collect_sustained_policy_holds_the_real_hands_moves(tmp_path: Path) -> None:
+    from t42_transfer.conventions import REAL_HAND_ACTIONS
+    from t42_transfer.hand.collect import SustainedPolicy
+
+    out = tmp_path / "bag"
+    argv = ["sim", "collect", "--episodes", "2", "--steps", "150", "--seed", "3", "--workers", "1", "--quiet"]
+    assert main([*argv, "--policy", "sustained", "--hold-max", "130", "--out", str(out)]) == 0
+    direct, _ = collect("source", 2, 150, seed=3, workers=1, policy=SustainedPolicy(hold_max=130), progress=False)
+    back = read_bag(out)
+    assert len(back) == len(direct) >= 1
+    moves = {tuple(a) for a in np.array(REAL_HAND_ACTIONS, dtype=float)}
+    for got, want in zip(back, direct, strict=True):
+        assert (got.actions == want.actions).all()
+        assert {tuple(a) for a in got.actions} <= moves
+        assert len(got) < 120 or (got.actions[:120] == got.actions[0]).all()  # the first hold is 120-130 steps
 
 
 def test_collect_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

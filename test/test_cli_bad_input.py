@@ -192,6 +192,8 @@ CASES = {
     "collect --hold-max 0": (COLLECT + " --hold-max 0", "--hold-max"),
     "collect --hold-max 1000000000": (COLLECT + " --hold-max 1000000000", "hold_max"),
     "collect --seed -1": (COLLECT + " --seed -1", "--seed"),
+    "collect --policy bogus": (COLLECT + " --policy bogus", "--policy must be one of random, sustained"),
+    "collect sustained --hold-max 50": (COLLECT + " --policy sustained --hold-max 50", "hold_min <= hold_max"),
     "collect --hand bogus": (COLLECT + " --hand bogus", "bogus"),
     "collect --hand family-x": (COLLECT + " --hand family-x", "family-x"),
     "collect --storage bogus": (COLLECT + " --storage bogus", "--storage"),

@@ -12,16 +12,21 @@ from t42_transfer.cli.args import SEED_MAX, existing_dir, float_arg, int_arg, ne
 def _cmd_sim_collect(args: argparse.Namespace) -> int:
     from t42_transfer.data.bag import assign_start_times, write_bag
     from t42_transfer.data.trajectory import TrajectorySet
-    from t42_transfer.hand.collect import RandomPolicy, check_collection, collect
+    from t42_transfer.hand.collect import POLICIES, check_collection, collect
 
-    check_collection(args.hand, args.episodes, args.steps, args.workers, args.hold_max)
+    if args.policy not in POLICIES:
+        raise ValueError(f"--policy must be one of {', '.join(POLICIES)}, got {args.policy!r}")
+    hold = {} if args.hold_max is None else {"hold_max": args.hold_max}
+    policy = POLICIES[args.policy](**hold)
+    check_collection(args.hand, args.episodes, args.steps, args.workers, policy.hold_max)
     new_output(args.out)
     data, stats = collect(
-        args.hand, args.episodes, args.steps, seed=args.seed, workers=args.workers,
-        policy=RandomPolicy(hold_max=args.hold_max), progress=not args.quiet,
+        args.hand, args.episodes, args.steps, seed=args.seed, workers=args.workers, policy=policy,
+        progress=not args.quiet,
     )
     placed = TrajectorySet(assign_start_times(data), hand=data.hand)
-    meta = {"collector": "t42 sim collect", "seed": str(args.seed), "steps": str(args.steps)}
+    meta = {"collector": "t42 sim collect", "seed": str(args.seed), "steps": str(args.steps),
+            "policy": repr(policy)}
     bag = write_bag(args.out, placed, storage=args.storage, metadata=meta)
     print(
         f"{args.hand}: kept {stats.kept}/{stats.requested} episodes ({placed.num_transitions} transitions; "
@@ -68,13 +73,17 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
     sim = commands.add_parser("sim", help="simulated hands").add_subparsers(dest="sim_command", metavar="ACTION")
-    col = sim.add_parser("collect", help="collect random-policy episodes into a rosbag2 bag")
+    col = sim.add_parser("collect", help="collect episodes under a policy into a rosbag2 bag")
     col.add_argument("--hand", default="source", help="source, target, target_abrupt or family-<seed> (default source)")
     col.add_argument("--episodes", type=int_arg(1), default=300, help="episodes (paper: 300)")
     col.add_argument("--steps", type=int_arg(1), default=1000, help="max steps per episode at 10 Hz (paper: 1000)")
     col.add_argument("--seed", type=int_arg(0, SEED_MAX), default=0)
     col.add_argument("--workers", type=int_arg(1), default=None, help="worker processes (default: all cores)")
-    col.add_argument("--hold-max", type=int_arg(1), default=5, help="random actions are held 1..N steps (default 5)")
+    col.add_argument("--policy", default="random",
+                     help="random: uniform actions held 1..--hold-max steps (default 5), the training data of the "
+                          "experiments; sustained: test paths like the real hands' (their eight moves held "
+                          "120..--hold-max steps, default 700)")
+    col.add_argument("--hold-max", type=int_arg(1), default=None, help="longest hold in steps (default: the policy's)")
     col.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     col.add_argument("--quiet", action="store_true", help="no progress bar")
     col.add_argument("--out", type=Path, required=True, help="bag directory to create")
