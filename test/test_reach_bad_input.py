@@ -92,8 +92,8 @@ def test_a_model_announced_while_a_goal_runs_leaves_the_goal_a_result(ros, rig: 
     update = ModelUpdated(path=str(newer), method="direct", episodes=3)
     update.stamp = rig.tester.get_clock().now().to_msg()
     rig.model_pub.publish(update)  # the transfer server's announcement
-    loaded = rig.planner._model
-    assert ros.spin_until(lambda: str(rig.planner._model.path) == str(newer), 10.0), "the new model never loaded"
+    loaded = rig.planner.model
+    assert ros.spin_until(lambda: str(rig.planner.model.path) == str(newer), 10.0), "the new model never loaded"
     assert loaded is not None and loaded.path != str(newer)
     got = rig.run_until(handle.get_result_async())
     assert got.result.verdict in VERDICTS | {"refused"} and (got.status == GoalStatus.STATUS_SUCCEEDED
