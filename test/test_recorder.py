@@ -34,7 +34,8 @@ from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import RECORD_QOS, JazzyWriter, bag_info, read_bag
 from t42_transfer.data.errors import BagError
 from t42_transfer.nodes.mock_driver import MockDriver
-from t42_transfer.nodes.recorder import Recorder, RecorderParams, next_bag_path
+from t42_transfer.nodes.recorder import Recorder, RecorderParams
+from t42_transfer.nodes.recorder_params import next_bag_path
 from t42_transfer.ros.qos import recording
 
 POSE, JOINTS, ACTION = OBJECT_POSE_TOPIC, JOINT_STATES_TOPIC, APPLIED_ACTION_TOPIC
@@ -727,9 +728,9 @@ def test_a_bag_name_another_writer_took_is_passed_over_and_a_bag_that_does_not_o
     that exists): the loser takes the next name and goes on recording. Any other failure to open a bag is a
     write failure, which ~/start ends."""
     import t42_transfer.data.bag.recording as recording
-    import t42_transfer.nodes.recorder as recorder
+    import t42_transfer.nodes.recorder_bags as recorder_bags
 
-    real_name, real_writer, race = recorder.next_bag_path, recording.BagWriter, [False]
+    real_name, real_writer, race = recorder_bags.next_bag_path, recording.BagWriter, [False]
 
     def taken_first(out_dir, prefix):  # the other writer makes the directory between the choice and the open
         path = real_name(out_dir, prefix)
@@ -741,7 +742,7 @@ def test_a_bag_name_another_writer_took_is_passed_over_and_a_bag_that_does_not_o
     def broken(*args, **kwargs):
         raise RuntimeError("the storage plugin fails")
 
-    monkeypatch.setattr(recorder, "next_bag_path", taken_first)
+    monkeypatch.setattr(recorder_bags, "next_bag_path", taken_first)
     rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=1.0, resume_free_mb=1e6)  # no resume on room
     hand = Hand(ros, rec)
     t0 = now_ns()

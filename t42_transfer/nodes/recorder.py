@@ -82,8 +82,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
-from contextlib import suppress
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -97,26 +95,18 @@ from t42_interfaces.msg import BagClosed
 
 from msg_adapters import RCLPY, diagnostic_array, names, rclpy_class, stamp_to_ns
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
-from msg_adapters.events import SHUTDOWN, WRITE_FAILED, BagClosedEvent
-from t42_transfer.data.bag import BagWriter
-from t42_transfer.data.bag.recording import (
-    CLOCK_RESTART,
-    LogTimes,
-    Pause,
-    open_next_bag,
-    recorded_hand_topics,
-    room,
-)
+from msg_adapters.events import SHUTDOWN
+from t42_transfer.data.bag.recording import CLOCK_RESTART, Pause, recorded_hand_topics
 from t42_transfer.data.bag.steps import Step, StepBuffer, WrittenSteps
+from t42_transfer.nodes.recorder_bags import BagSeries
+from t42_transfer.nodes.recorder_changes import BagChanges, Change
 from t42_transfer.nodes.recorder_loose import LooseMessages
 from t42_transfer.nodes.recorder_params import (
     EVENT_TOPICS,
     RECORDABLE,
     Announcer,
-    Change,
     RecorderParams,
     latched_offers,
-    next_bag_path,
 )
 from t42_transfer.nodes.recorder_snapshot import Snapshots
 from t42_transfer.ros.dirs import claim, in_namespace
@@ -159,8 +149,6 @@ class Recorder(LooseMessages, Node):
             claim(self.out_dir, self.get_namespace(), p.share_dirs)
         except ValueError as err:
             raise ValueError(f"{self.get_fully_qualified_name()}: out_dir {err}") from None
-        self.bags: list[Path] = []
-        """Every bag this recorder has closed, in order."""
         self.received = 0
         """Messages received on the recorded topics and handled (counted when their callback ends)."""
         self.dropped = 0
@@ -168,33 +156,26 @@ class Recorder(LooseMessages, Node):
         self.late_kept = 0
         """Messages that came after their step was written and joined it in its bag."""
         self._written = WrittenSteps()
-        self._bag: BagWriter | None = None
-        """The open bag's storage file: flush checks it is still there (out_dir removed while recording)."""
-        self._log_times = LogTimes()
-        self.write_failure: str | None = None
-        """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self._changes: deque[Change] = deque()
-        self._will_record = False
-        """Whether a bag is open once every waiting change is carried out."""
+        self._changes = BagChanges()
         self._lock = threading.RLock()
         self._closed = False
         self._no_clock_since = 0.0  # steady time of the first message logged at 0 ns (no /clock yet); 0.0: none
         self._first_stamp: int | None = None
         """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
         self._pause = Pause()
-        self._span: list[int] = []
-        """Log times of the open bag's first and last message (min and max)."""
         self._announcer = Announcer(self.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS)),
                                     self.log)
 
         self._types = self._subscribe(p)
         """Resolved topic -> type, of the topics grouped into steps."""
         self._state_topics = {self.resolve_topic_name(t) for t in STATE_TOPICS if t in p.topics}
-        self._offers = latched_offers(self.resolve_topic_name, p.topics)
-        self._custom = recorded_hand_topics(self.resolve_topic_name)
+        offers = latched_offers(self.resolve_topic_name, p.topics)
+        custom = recorded_hand_topics(self.resolve_topic_name)
+        self._series = BagSeries(p, self.out_dir, self._types, offers, custom, self._announcer, self.log, self._report)
+        """The continuous bags: the open one, those closed, a write failure."""
         self.snapshots = Snapshots(p, self.out_dir, self._types, self._state_topics, self._announcer, self.log,
-                                   self._offers, self._custom)
+                                   offers, custom)
         """Snapshot mode (``snapshot_s`` > 0): the last seconds in memory, written as a bag on a trigger."""
         self._buffer = StepBuffer(self._types, p.step_hold_s, self._status_lag_s(p), required=self._state_topics)
         self._status_topic = self.resolve_topic_name(names.HAND_STATUS)
@@ -235,19 +216,29 @@ class Recorder(LooseMessages, Node):
     @property
     def recording(self) -> bool:
         """Whether a bag is open now."""
-        return self._bag is not None
+        return self._series.bag is not None
 
     @property
     def current_bag(self) -> Path | None:
         """Path of the open bag, if any."""
-        bag = self._bag
+        bag = self._series.bag
         return None if bag is None else bag.path
 
     @property
     def current_count(self) -> int:
         """Messages written to the open bag (0 when none is open)."""
-        bag = self._bag
+        bag = self._series.bag
         return 0 if bag is None else bag.count
+
+    @property
+    def bags(self) -> list[Path]:
+        """Every bag this recorder has closed, in order."""
+        return self._series.closed
+
+    @property
+    def write_failure(self) -> str | None:
+        """Why writing stopped (a full disk): steps are dropped, counted, until space returns or ~/start."""
+        return self._series.failure
 
     @property
     def waiting_changes(self) -> int:
@@ -257,16 +248,17 @@ class Recorder(LooseMessages, Node):
     def start(self) -> tuple[bool, str]:
         """Open a new bag after the step in progress; (success, message)."""
         with self._lock:
-            if self._will_record and self.write_failure is not None:
-                return self._resume(f"{names.RECORDER_START} called")
-            if self._will_record:
-                return False, f"already recording to {self._bag.path if self._bag is not None else 'a bag'}"
+            if self._changes.will_record and self.write_failure is not None:
+                return self._series.resume(f"{names.RECORDER_START} called")
+            if self._changes.will_record:
+                bag = self._series.bag
+                return False, f"already recording to {bag.path if bag is not None else 'a bag'}"
             return self._request("start", self._buffer.latest_stamp)
 
     def stop(self) -> tuple[bool, str]:
         """Close the open bag after the step in progress; (success, message)."""
         with self._lock:
-            if not self._will_record:
+            if not self._changes.will_record:
                 return False, "not recording"
             if self.paused:
                 self.resume()
@@ -275,7 +267,7 @@ class Recorder(LooseMessages, Node):
     def split(self) -> tuple[bool, str]:
         """Close the open bag after the step in progress and open the next; (success, message)."""
         with self._lock:
-            if not self._will_record:
+            if not self._changes.will_record:
                 return False, "not recording; call start"
             if self.write_failure is not None:
                 return False, f"not writing, nothing to split: {self.write_failure}"
@@ -294,15 +286,15 @@ class Recorder(LooseMessages, Node):
     def pause(self) -> tuple[bool, str]:
         """Drop the messages of the steps after the one in progress, the bag kept open; (success, message)."""
         with self._lock:
-            if not self._will_record:
+            if not self._changes.will_record:
                 return False, "not recording: nothing to pause (call start)"
-            return self._pause.pause(self._bag.path if self._bag is not None else "the next bag")
+            return self._pause.pause(self.current_bag or "the next bag")
 
     def resume(self) -> tuple[bool, str]:
         """Record again, into the same bag, from the first step after the newest stamp received; (success,
         message)."""
         with self._lock:
-            return self._pause.resume(self._bag.path if self._bag is not None else "no bag")
+            return self._pause.resume(self.current_bag or "no bag")
 
     def snapshot(self) -> tuple[bool, str]:
         """Write the steps of the last ``snapshot_s`` seconds as a bag, after the step in progress; (success,
@@ -316,22 +308,7 @@ class Recorder(LooseMessages, Node):
         """Write out what the open bag holds so far; failures are logged (it runs from a timer).  After a write
         failure, recording resumes here once there is room again."""
         with self._lock:
-            bag = self._bag
-            if bag is not None and (gone := bag.lost()) is not None:
-                self._bag = None  # out_dir removed: the bag cannot be finalised, a write failure
-                with suppress(Exception):
-                    bag.abort()
-                self._write_failed(bag.path, FileNotFoundError(f"{gone}: its {bag.count} messages are lost"))
-            if self.write_failure is not None and self._will_record and room(self.out_dir, self.params.resume_free_mb):
-                self._resume("space is back" if bag is self._bag else "a new bag")
-            if self._bag is None:
-                return
-            try:
-                self._bag.flush()
-            except OSError as err:  # a full disk: stop writing, say so once
-                self._write_failed(self._bag.path, err)
-            except Exception as err:
-                self.log.error(f"flushing {self._bag.path} failed: {err!r}")
+            self._series.flush(self._changes.will_record)
 
     def close(self) -> None:
         """Write the waiting steps that hold their whole state, carry out waiting changes, close the bag."""
@@ -342,11 +319,10 @@ class Recorder(LooseMessages, Node):
             try:
                 whole = [s for s in self._buffer.drain() if self._state_topics <= s.topics]
                 self._write_steps(whole)
-                # a start or split still waiting would open a bag only to close it empty
-                self._changes = deque(c for c in self._changes if c.kind in ("stop", "snapshot"))
+                self._changes.shutting_down()
                 self._carry_out(None)
-                if self._bag is not None:
-                    self._close_bag(SHUTDOWN)
+                if self.recording:
+                    self._series.close(SHUTDOWN)
             except Exception as err:  # close() never raises
                 self.log.error(f"closing the recorder failed: {err!r}")
         self._announcer.close()
@@ -354,121 +330,44 @@ class Recorder(LooseMessages, Node):
     # ------------------------------------------------------------------ bag changes
     def _request(self, kind: str, after: int | None, why: str = "", word: str = "") -> tuple[bool, str]:
         """Queue a bag change after the steps up to ``after``; carry out what can be; (success, the answer)."""
-        if self._changes and self._changes[-1].after is not None:
-            after = self._changes[-1].after if after is None else max(after, self._changes[-1].after)
-        self._changes.append(Change(kind, after, why, word))
-        if kind == "start":
-            self._will_record = True
-        elif kind == "stop":
-            self._will_record = False
+        change = self._changes.add(Change(kind, after, why, word))
         done = self._carry_out(self._buffer.oldest_pending)
         if kind in done:
             return done[kind]
-        return True, f"{kind}: after the step in progress (stamp {after} ns) is complete"
+        return True, f"{kind}: after the step in progress (stamp {change.after} ns) is complete"
 
     def _carry_out(self, next_stamp: int | None) -> dict[str, tuple[bool, str]]:
         """Carry out the changes due before the step stamped ``next_stamp`` (None: every change); what each did."""
-        done: dict[str, str] = {}
-        while self._changes:
-            change = self._changes[0]
-            if next_stamp is not None and change.after is not None and change.after >= next_stamp:
-                break
-            self._changes.popleft()
-            done[change.kind] = self._change(change)
-        return done
+        return {change.kind: self._change(change) for change in self._changes.due(next_stamp)}
 
     def _change(self, change: Change) -> tuple[bool, str]:
         """Carry out ``change``: (whether every close and open it took worked, what happened)."""
         if change.kind == "snapshot":
             return self.snapshots.take(change.after, change.word)
+        series = self._series
         if change.kind == "start":
-            return self._open_bag()
+            return series.open()
         if change.kind == "stop":
-            failure, self.write_failure = self.write_failure, None
-            if self._bag is not None:
-                return self._close_bag(change.kind)
+            failure, series.failure = series.failure, None
+            if series.bag is not None:
+                return series.close(change.kind)
             return (True, "not recording") if failure is None else (True, f"stopped; writing had failed: {failure}")
-        if self._bag is None:
-            return (False, f"not writing: {self.write_failure}") if self.write_failure else (True, "not recording")
-        if change.kind == "episode" and self._bag.count == 0:
-            return True, f"{self._bag.path} is empty: not split"
+        if series.bag is None:
+            return (False, f"not writing: {series.failure}") if series.failure else (True, "not recording")
+        if change.kind == "episode" and series.bag.count == 0:
+            return True, f"{series.bag.path} is empty: not split"
         said = not change.why  # a change with a cause says both halves in one line, with the cause
-        closed_ok, closed = self._close_bag(change.word or change.kind, say=said)
-        opened_ok, opened = self._open_bag(say=said)
+        closed_ok, closed = series.close(change.word or change.kind, say=said)
+        opened_ok, opened = series.open(say=said)
         message = f"{closed}; {opened}"
         if change.why:
             self.log.info(f"{change.why}: {message}")
         return closed_ok and opened_ok, message
 
-    def _open_bag(self, say: bool = True) -> tuple[bool, str]:
-        try:  # a name another writer took first is passed over; any other failure is a write failure
-            bag = open_next_bag(lambda: next_bag_path(self.out_dir, self.params.bag_prefix), self._types,
-                                self._offers, self._custom)
-        except Exception as err:
-            self._write_failed(self.out_dir, err)
-            return False, f"could not open a bag: {self.write_failure}"
-        self._bag, self._span = bag, []
-        self._log_times.new_bag()
-        if say:
-            self.log.info(f"recording to {bag.path}")
-        return True, f"recording to {bag.path}"
-
-    def _close_bag(self, reason: str, say: bool = True) -> tuple[bool, str]:
-        """Close the open bag and announce it (``reason``); (whether it closed, what happened), on /rosout too
-        unless ``say`` is False (the caller says it)."""
-        bag, self._bag = self._bag, None
-        assert bag is not None
-        try:
-            bag.close()
-        except Exception as err:  # its directory was removed...: nothing final to announce
-            self.log.error(f"closing {bag.path} failed: {err!r}")
-            self._report("ERROR", f"closing {bag.path} failed: {type(err).__name__}: {err}")
-            return False, f"closing {bag.path} failed: {type(err).__name__}: {err}"
-        self.bags.append(bag.path)
-        self._announce(bag, reason)
-        if say:
-            self.log.info(f"closed {bag.path} ({bag.count} messages)")
-        return True, f"closed {bag.path} ({bag.count} messages)"
-
-    # ------------------------------------------------------------------ write failures
-    def _write_failed(self, where: Path, err: Exception) -> None:
-        """Writing failed (a full disk): leave the bag as it is (repairable), drop steps until there is room."""
-        bag, self._bag = self._bag, None
-        if bag is not None:
-            try:
-                bag.close()
-                self._announce(bag, WRITE_FAILED)
-            except Exception:  # its summary cannot be written either: the bag stays as a killed one, repairable
-                pass
-        if self.write_failure is not None:
-            return
-        self.write_failure = f"writing to {where} failed: {getattr(err, 'strerror', None) or err}"
-        kept = "" if isinstance(err, FileNotFoundError) else "; what was written stays readable (t42 bag repair)"
-        self.log.error(f"{self.write_failure}; recording stops until {self.params.resume_free_mb:g} MB are free on "
-                       f"{self.out_dir} (or ~/start){kept}")
-        self._report("ERROR", self.write_failure)
-
-    def _resume(self, why: str) -> tuple[bool, str]:
-        failure, self.write_failure = self.write_failure, None
-        ok, message = self._open_bag(say=False)  # said here, with why
-        if ok:
-            self.log.info(f"{why}: {message} (writing had failed: {failure})")
-            self._report("OK", message)
-        return ok, message
-
-    # ------------------------------------------------------------------ bag events
-    def _announce(self, bag: BagWriter, reason: str) -> None:
-        """Queue ``recorder/bag_closed`` for a bag just closed and final: the announcer reads it (its episodes)."""
-        first, last = (self._span[0], self._span[-1]) if self._span else (0, 0)
-        self._announcer.put(BagClosedEvent(str(bag.path), 0, bag.count, first, last, reason))
-
-    def _spanned(self, log_ns: int) -> None:
-        span = self._span
-        self._span = [log_ns, log_ns] if not span else [min(span[0], log_ns), max(span[1], log_ns)]
-
+    # ------------------------------------------------------------------ diagnostics
     def _report_state(self) -> None:
         """The periodic status: what a monitor that joined late needs (a write failure is still an ERROR)."""
-        failure, bag, paused = self.write_failure, self._bag, self.paused
+        failure, bag, paused = self.write_failure, self._series.bag, self.paused
         if failure is not None:
             self._report("ERROR", failure)
         elif bag is not None:
@@ -486,7 +385,7 @@ class Recorder(LooseMessages, Node):
         for step in steps:
             self._carry_out(step.stamp)
             self.snapshots.add_step(step)
-            bag = self._bag
+            bag = self._series.bag
             if bag is None:
                 if self.write_failure is not None:
                     self.dropped += len(step.messages)
@@ -498,14 +397,11 @@ class Recorder(LooseMessages, Node):
                                          "bag began, or lost)")
                 continue
             try:
-                for topic, received_ns, data in step.messages:
-                    log_ns = self._log_times(topic, received_ns, step.stamp)
-                    bag.write(topic, log_ns, data)
-                    self._spanned(log_ns)
+                self._series.write_step(step)
                 self._written.add(step, bag)
             except OSError as err:  # a full disk: stop writing, say so once
                 self.dropped += len(step.messages)
-                self._write_failed(bag.path, err)
+                self._series.failed(bag.path, err)
             except Exception as err:
                 self.dropped += len(step.messages)
                 self.log.error(f"could not write the step stamped {step.stamp} ns to {bag.path}: {err!r}")
@@ -549,9 +445,9 @@ class Recorder(LooseMessages, Node):
         self._write_steps([s for s in released if s.stamp != stamp])
         self._carry_out(None)
         self._pause.restart(stamp)
-        if self._bag is not None and self._bag.count:
+        if self.current_count:
             self._change(Change("split", None, f"the stamps restarted at {stamp} ns", CLOCK_RESTART))
-        self._log_times.restart(log_ns, stamp)
+        self._series.restart(log_ns, stamp)
         return [s for s in released if s.stamp == stamp]
 
     def _on_hold_timer(self) -> None:
@@ -588,6 +484,7 @@ class Recorder(LooseMessages, Node):
             with self._lock:
                 self._buffer.hold_s = new.step_hold_s
         with self._lock:
+            self._series.configure(new)
             self.snapshots.configure(new)
             self._buffer.min_age_s = self._status_lag_s(new)
             self._hold_timer.timer_period_ns = round(new.step_hold_s / 2 * 1e9)

@@ -14,19 +14,18 @@ from msg_adapters import STRING, TYPESTORE, last_step_stamp, names, status_event
 class LooseMessages:
     """``hand/status`` and the typed events, as the recorder handles them (see the module docstring)."""
 
-    _bag: Any
     _buffer: Any
     _changes: Any
     _closed: bool
     _first_stamp: int | None
     _lock: Any
     _status_topic: str
-    _will_record: bool
     dropped: int
     late_kept: int
     log: Any
     _pause: Any
     per_message: Any
+    _series: Any
     snapshots: Any
     _written: Any
 
@@ -49,11 +48,11 @@ class LooseMessages:
             with self._lock:
                 if self._closed or (after is not None and (self._first_stamp is None or after < self._first_stamp)):
                     return  # a border before anything recorded (the history a late joiner hears)
-                if self.snapshots.due(event, after, [c.after for c in self._changes if c.kind == "snapshot"]):
+                if self.snapshots.due(event, after, self._changes.waiting("snapshot")):
                     self._request("snapshot", self._border(event, after), f"status {event!r}", event)
-                if not episode or not self._will_record:
+                if not episode or not self._changes.will_record:
                     return
-                waiting = [c.after for c in self._changes if c.kind == "episode"]
+                waiting = self._changes.waiting("episode")
                 # one split per episode border: a reset right after an end status names the same last step
                 # (a driver that names none: no second split while one waits)
                 if (after in waiting) if after is not None else waiting:
@@ -107,19 +106,18 @@ class LooseMessages:
                 return
             log_ns = self.get_clock().now().nanoseconds
             self.snapshots.add_loose(topic, log_ns, data, msgtype)
-            bag = self._bag
+            bag = self._series.bag
             if bag is None or bag.count == 0:
                 return
             try:
-                bag.write(topic, log_ns, data, msgtype)
-                self._spanned(log_ns)
+                self._series.write(topic, log_ns, data, msgtype)
             except OSError as err:  # a full disk: stop writing, say so once
-                self._write_failed(bag.path, err)
+                self._series.failed(bag.path, err)
 
     def _write_late(self, topic: str, stamp: int, log_ns: int, data: bytes) -> None:
         """A message whose step was already written: into that step's bag while it is open and lacks the topic,
         else dropped with a warning (the recorder's module docstring)."""
-        bag = self._bag
+        bag = self._series.bag
         if bag is None or not self._written.join(stamp, topic, bag):
             self.dropped += 1
             self.per_message.warning(f"dropped a message on {topic} stamped {stamp} ns: its step was already "
@@ -127,11 +125,10 @@ class LooseMessages:
                                      "or it is a duplicate")
             return
         try:
-            bag.write(topic, log_ns, data)
-            self._spanned(log_ns)
+            self._series.write(topic, log_ns, data)
         except OSError as err:
             self.dropped += 1
-            self._write_failed(bag.path, err)
+            self._series.failed(bag.path, err)
             return
         self.late_kept += 1
         self.per_message.info(f"a message on {topic} stamped {stamp} ns came after its step was written: it joined "

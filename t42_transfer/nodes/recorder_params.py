@@ -1,5 +1,4 @@
-"""The recorder's parameters, bag names, bag changes and bag events (:mod:`t42_transfer.nodes.recorder` is the
-node)."""
+"""The recorder's parameters, bag names and bag events (:mod:`t42_transfer.nodes.recorder` is the node)."""
 
 from __future__ import annotations
 
@@ -116,18 +115,6 @@ def next_bag_path(out_dir: str | Path, prefix: str) -> Path:
     taken = [int(m.group(1)) for p in directory.iterdir() if (m := pattern.match(p.name))] \
         if directory.is_dir() else []
     return directory / f"{prefix}_{max(taken, default=-1) + 1:03d}"
-
-
-@dataclass(frozen=True)
-class Change:
-    """A bag change waiting for the steps up to ``after`` (a stamp) to be written."""
-
-    kind: str
-    """``start``, ``stop``, ``split``, ``episode`` (a split only if the bag holds messages) or ``snapshot``."""
-    after: int | None
-    why: str = ""
-    word: str = ""
-    """An episode split's ``hand/status`` word (the closed bag's reason)."""
 
 
 class Announcer:
