@@ -107,6 +107,29 @@ def test_differential_actions_move_the_object_sideways_and_mirroring_reverses_it
     assert _x_shift(mirrored, (1.0, -1.0)) * right < 0
 
 
+def test_transmission_friction_holds_the_fingers_before_the_object_moves() -> None:
+    """Dry friction in the tendons is a dead band: after a change of move the fingers wait until the tension has
+    changed by the friction (the real hands wait 35-73 steps); without it the object moves at once."""
+    from t42_transfer.data.trajectory import TrajectorySet
+    from t42_transfer.hand.mjcf import hand_mjcf
+    from t42_transfer.hand.realism import held_move_onsets
+
+    actions = np.array([(1.0, -1.0)] * 60 + [(-1.0, 1.0)] * 60)
+    waits = {}
+    for friction in (0.0, 10.0):
+        hand = SimulatedHand(variant("source").with_(tendon_friction_n=friction))
+        path = run_episode(hand, actions, 0)
+        assert len(path) == len(actions)
+        onsets = held_move_onsets("sim", TrajectorySet([path]), threshold_mm=2.0, window=10, min_steps=50)
+        waits[friction] = [o.onset_steps for o in onsets]
+    assert waits[0.0] == [1.0, 1.0] and min(waits[10.0]) >= 3
+    for name in ("source", "target", "target_abrupt"):  # the named hands have none: their model is as before
+        assert "frictionloss" not in hand_mjcf(variant(name), (0.0, 90.0))
+    for bad in (-1.0, float("nan"), "1"):
+        with pytest.raises(ValueError, match="tendon_friction_n"):
+            variant("source").with_(tendon_friction_n=bad)
+
+
 def test_variants_are_reproducible_and_distinct() -> None:
     assert variant("family-3") == variant("family-3")
     assert variant("family-3") != variant("family-4")

@@ -27,6 +27,10 @@ PROXIMAL_RANGE = "-0.8 1.9"
 """Proximal joint travel (rad): the flexure lets a finger splay well outward when pushed."""
 
 LINK_RADIUS_MM = 7.0
+HARD_FRICTION = f'solreffriction="{2 * TIMESTEP_S:g} 1" solimpfriction="0.999 0.9999 0.001 0.5 2"'
+"""Dry friction that holds until its limit: MuJoCo's friction loss is a soft constraint, and with its default
+softness it yields like a damper at a finger's slow speeds, whatever its limit. The shortest time constant
+allowed (two time steps) and near-hard impedance make it stick (docs/experiments/sim_calibration)."""
 FINGER_SIDES = ("left", "right")
 
 
@@ -154,8 +158,14 @@ def _scene_parts(p: HandParams, scene: MarkerScene) -> tuple[str, str, str, str]
     return head, world, body, camera
 
 
+def _friction(value: float) -> str:
+    """A joint's or tendon's dry-friction attributes; none at 0, so a hand without friction compiles as before."""
+    return f' frictionloss="{value}" {HARD_FRICTION}' if value > 0 else ""
+
+
 def _finger_xml(side: str, f: FingerParams, p: HandParams) -> str:
     sign = -1.0 if side == "left" else 1.0
+    friction = _friction(p.joint_friction_nm)
     # Flexion (positive joint angle) turns each finger toward the centre line.
     axis = "0 0 -1" if side == "left" else "0 0 1"
     rest = math.radians(f.rest_deg)
@@ -163,21 +173,21 @@ def _finger_xml(side: str, f: FingerParams, p: HandParams) -> str:
     return f"""
     <body name="{side}_proximal" pos="{sign * _mm(p.base_half_width_mm):.6f} 0 0">
       <joint name="{side}_proximal" type="hinge" axis="{axis}" stiffness="{f.k_proximal}" springref="{rest:.6f}"
-             damping="{p.joint_damping}" range="{PROXIMAL_RANGE}" limited="true" armature="2e-5"/>
+             damping="{p.joint_damping}" range="{PROXIMAL_RANGE}" limited="true" armature="2e-5"{friction}/>
       <geom name="{side}_proximal_link" type="capsule" fromto="0 0 0 0 {_mm(f.proximal_mm):.6f} 0" size="{r}"
             friction="{p.link_friction} 0.005 0.0001" contype="2" conaffinity="1" mass="0.012"/>
       <body name="{side}_distal" pos="0 {_mm(f.proximal_mm):.6f} 0">
         <joint name="{side}_distal" type="hinge" axis="{axis}" stiffness="{f.k_distal}" springref="0"
-               damping="{p.joint_damping}" range="-0.2 1.7" limited="true" armature="2e-5"/>
+               damping="{p.joint_damping}" range="-0.2 1.7" limited="true" armature="2e-5"{friction}/>
         <geom name="{side}_distal_pad" type="capsule" fromto="0 0 0 0 {_mm(f.distal_mm):.6f} 0" size="{r}"
               friction="{p.pad_friction} 0.005 0.0001" contype="2" conaffinity="1" mass="0.008"/>
       </body>
     </body>"""
 
 
-def _tendon_xml(side: str, f: FingerParams) -> str:
+def _tendon_xml(side: str, f: FingerParams, p: HandParams) -> str:
     return f"""
-    <fixed name="{side}_tendon">
+    <fixed name="{side}_tendon"{_friction(p.tendon_friction_n)}>
       <joint joint="{side}_proximal" coef="{-_mm(f.r_proximal_mm):.6f}"/>
       <joint joint="{side}_distal" coef="{-_mm(f.r_distal_mm):.6f}"/>
     </fixed>"""
@@ -202,7 +212,7 @@ def hand_mjcf(p: HandParams, object_start_mm: tuple[float, float], scene: Marker
     radius = _mm(p.object_radius_mm)
     inertia = 0.5 * p.object_mass_kg * radius**2
     fingers = "".join(_finger_xml(s, f, p) for s, f in zip(FINGER_SIDES, (p.left, p.right), strict=True))
-    tendons = "".join(_tendon_xml(s, f) for s, f in zip(FINGER_SIDES, (p.left, p.right), strict=True))
+    tendons = "".join(_tendon_xml(s, f, p) for s, f in zip(FINGER_SIDES, (p.left, p.right), strict=True))
     servos = "".join(_servo_xml(s, p) for s in FINGER_SIDES)
     x0, y0 = (_mm(v) for v in object_start_mm)
     half_height, half_width = _mm(p.palm_height_mm) / 2, _mm(p.base_half_width_mm) - 0.009

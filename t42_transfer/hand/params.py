@@ -87,6 +87,11 @@ class HandParams:
     """Servo horn radius: tendon travel per servo radian, and tension -> torque for the load."""
     servo_time_constant_s: float = 0.04
     max_tension_n: float = 80.0
+    tendon_friction_n: float = 0.0
+    """Dry friction along each tendon's routing (N): a finger holds still until its tendon's change of tension
+    passes it, a dead band after every change of move. 0 (the named hands): none."""
+    joint_friction_nm: float = 0.0
+    """Dry friction at each finger joint (N m; a flexure's hysteresis). 0 (the named hands): none."""
     actuator_order: tuple[int, int] = (0, 1)
     """Which finger (0 left, 1 right) action component 0 and 1 drive; (1, 0) mirrors the hand."""
     load_noise: float = 1.0
@@ -95,6 +100,12 @@ class HandParams:
     """Std of the object-tracker noise on x, y."""
     region: RegionChange | None = None
     """Where, if anywhere, the hand's materials or springs differ abruptly (see :class:`RegionChange`)."""
+
+    def __post_init__(self) -> None:
+        for name in ("tendon_friction_n", "joint_friction_nm"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
     def with_(self, **changes: object) -> HandParams:
         return dataclasses.replace(self, **changes)
