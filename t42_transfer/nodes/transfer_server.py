@@ -9,12 +9,12 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   held-out divergence and MSE of the model, the source and the hold-still baseline, ``auto``'s candidates and their
   held-out divergence, and the bags skipped as unreadable (or missing) with why; ABORTED with the reason for an
   unknown method (``unknown transfer method ...``, at once), a goal while a transfer runs (``busy: ...``, at once),
-  the node stopping (:data:`SHUTTING_DOWN`, sent before the node leaves) and every refusal or failure the service
-  answers; CANCELED when the client cancelled it: training stops after the
-  epoch in progress and nothing is written (the current model, the numbered models, the state file stay as they
-  were, nothing is announced). A cancel is refused once the save has begun. Feedback at each stage change and after
-  every training epoch: ``phase`` (the stage; ``training: <what it trains>`` once an epoch named it), epoch /
-  epochs, train and validation loss;
+  the node stopping (:data:`SHUTTING_DOWN`; a goal accepted but not started yet: ``the node is shutting down; ...``;
+  sent before the node leaves) and every refusal or failure the service answers; CANCELED when the client cancelled
+  it: training stops after the epoch in progress and nothing is written (the current model, the numbered models,
+  the state file stay as they were, nothing is announced). A cancel is refused once the save has begun. Feedback at
+  each stage change and after every training epoch: ``phase`` (the stage; ``training: <what it trains>`` once an
+  epoch named it), epoch / epochs, train and validation loss;
 * ``t42/transfer_now`` (std_srvs/srv/Trigger; named ``t42/transfer`` until the action took that name): the same
   transfer for callers without the action type: the method parameter, the bags closed since the last transfer
   (:func:`t42_transfer.transfer.online.run_transfer`: new bags, held-out scoring, atomic saves, state file) and
@@ -74,7 +74,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from std_srvs.srv import Trigger
@@ -95,6 +95,7 @@ from msg_adapters.transfer import (
 )
 from t42_transfer.nodes.transfer_server_params import TransferServerParams, method_names
 from t42_transfer.ros.dirs import claim_made
+from t42_transfer.ros.goals import AnsweringActionServer
 from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
 from t42_transfer.ros.params import LiveParams
 from t42_transfer.ros.qos import profile
@@ -107,6 +108,8 @@ STATUS_NAME = "t42_transfer: transfer"
 CLOSE_WAIT_S = 10.0
 """How long closing the node waits for a cancelled transfer to stop (it stops at its next epoch, or finishes a
 save under way) before leaving it to end with the process."""
+RESULT_ASK_WAIT_S = 2.0
+"""How long closing the node waits for the client of a goal that ended to ask for its result (see :meth:`close`)."""
 SHUTTING_DOWN = "the node is shutting down; the transfer is cancelled, the previous model stays"
 """The message of a goal's (or call's) result when closing the node cancelled its transfer."""
 FEEDBACK_LEAD_S = 0.2
@@ -137,23 +140,17 @@ class Job:
 
 
 def answering(callback: Callable[..., Any]) -> Callable[..., Any]:
-    """A goal or call callback that closing the node waits for (see :meth:`TransferServer.close`): a call until it
-    returned, a goal until rclpy has sent its result to the clients that asked for it (the done callbacks of its
-    result future run in order: ours after the sending one)."""
+    """A call callback that closing the node waits for (see :meth:`TransferServer.close`) until it returned (a goal
+    is waited for from its acceptance until its result went out: :class:`AnsweringActionServer`)."""
 
     def counted(self: TransferServer, *args: Any) -> Any:
-        def done(*_: Any) -> None:
-            with self._in_flight_lock:
-                self._in_flight -= 1
-
         with self._in_flight_lock:
             self._in_flight += 1
         try:
             return callback(self, *args)
         finally:
-            goal_id = getattr(args[0], "goal_id", None)
-            future = None if goal_id is None else getattr(self._action, "_result_futures", {}).get(bytes(goal_id.uuid))
-            future.add_done_callback(done) if future is not None else done()
+            with self._in_flight_lock:
+                self._in_flight -= 1
 
     counted.__name__, counted.__doc__ = callback.__name__, callback.__doc__
     return counted
@@ -188,7 +185,7 @@ class TransferServer(Node):
         self._started = time.monotonic()
         self._closed = False
         self._in_flight = 0
-        """Goal and call callbacks running (closing waits for their answers)."""
+        """Call callbacks running (closing waits for their answers; for goals, see :meth:`_answered`)."""
         self._in_flight_lock = threading.Lock()
         self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_periodic)
@@ -197,7 +194,7 @@ class TransferServer(Node):
         group = ReentrantCallbackGroup()
         self.create_service(Trigger, names.TRANSFER_NOW, self._on_transfer, qos_profile=profile(names.REQUESTS),
                             callback_group=group)
-        self._action = ActionServer(
+        self._action = AnsweringActionServer(
             self, transfer_type(), names.TRANSFER, execute_callback=self._on_goal,
             goal_callback=lambda request: GoalResponse.ACCEPT, cancel_callback=self._on_cancel,
             callback_group=group,
@@ -238,19 +235,23 @@ class TransferServer(Node):
 
     def close(self) -> None:
         """Stop publishing and cancel a running transfer (the previous model stays), waiting for its thread to end:
-        a transfer left running would be cut off by the process's exit wherever it was.  A goal or call in progress
-        then ends (ABORTED: the node is shutting down) and its answer goes out before this returns: the node's
-        executor is spun meanwhile (from the thread that spins it), as the result is sent by the action server."""
-        if self._closed:
+        a transfer left running would be cut off by the process's exit wherever it was.  A goal or call in progress,
+        or a goal accepted whose execution has not started, then ends (ABORTED: the node is shutting down) and its
+        answer goes out before this returns, to a client that asks for it up to :data:`RESULT_ASK_WAIT_S` after its
+        end: the node's executor is spun meanwhile (from the thread that spins it), as the action server sends it.
+        Called again (``destroy_node`` does), it answers the goals accepted since (a closed node still takes goals)."""
+        threads: list[threading.Thread] = []
+        if not self._closed:
+            self._closed = True
+            job = self._running
+            if job is not None:
+                job.cancel.set()
+                self.log.warning("closing while a transfer runs: it is cancelled at its next epoch (the previous "
+                                 "model stays; a save under way completes)")
+            threads = [t for t in (self._worker, self._auto_thread) if t not in (None, threading.current_thread())]
+        elif self._answered():
             return
-        self._closed = True
-        job = self._running
-        if job is not None:
-            job.cancel.set()
-            self.log.warning("closing while a transfer runs: it is cancelled at its next epoch (the previous model "
-                             "stays; a save under way completes)")
         deadline = time.monotonic() + CLOSE_WAIT_S
-        threads = [t for t in (self._worker, self._auto_thread) if t not in (None, threading.current_thread())]
         self._spin_until(lambda: not any(t.is_alive() for t in threads) and self._answered(), deadline)
         for thread in threads:
             if thread.is_alive():
@@ -261,9 +262,10 @@ class TransferServer(Node):
                              f"{CLOSE_WAIT_S:g} s")
 
     def _answered(self) -> bool:
-        """No goal or call callback runs, nor has a goal's result still to go out."""
+        """No call callback runs, nor does an accepted goal (started or not) owe a client its result yet."""
         with self._in_flight_lock:
-            return self._in_flight == 0
+            calls = self._in_flight
+        return calls == 0 and self._action.unanswered(RESULT_ASK_WAIT_S) == 0
 
     def _spin_until(self, condition: Callable[[], bool], deadline: float) -> None:
         """Wait until ``condition`` or ``deadline``, spinning the node's executor when it is this thread's to spin
@@ -337,7 +339,6 @@ class TransferServer(Node):
         return response
 
     # ------------------------------------------------------------------ the action
-    @answering
     def _on_goal(self, handle: Any) -> Any:
         """Execute callback of ``t42/transfer``: runs the goal's transfer here (an executor thread) and returns
         its result; ends the goal SUCCEEDED, ABORTED (with the reason) or CANCELED."""
