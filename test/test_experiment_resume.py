@@ -5,6 +5,7 @@ one epoch."""
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import os
@@ -18,6 +19,7 @@ import pytest
 from t42_transfer.data.bag import assign_start_times, read_bag, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.evaluation import experiment as exp
+from t42_transfer.evaluation.cluster import CellsFailed
 from t42_transfer.evaluation.experiment import run_experiment
 from t42_transfer.evaluation.experiment_config import DataSpec, ExperimentConfig, load_config
 
@@ -162,3 +164,33 @@ def test_a_diverged_fine_tune_is_named_in_a_warning(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match=r"naive_finetune at amount 1, seed 0: position_mse_mean, .* not finite: the "
                                          r"transferred model predicts no numbers"):
         run_experiment(cfg, tmp_path, progress=False)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failed_cell_keeps_its_traceback_in_the_run_directory_until_it_is_redone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, workers: int) -> None:
+    """The run's error names each failed cell with its error's type and message; its record in ``failed/`` adds
+    the traceback, from the process that ran it (a pool worker's too), and goes once a resume redid the cell."""
+    cfg = dataclasses.replace(_config(tmp_path), workers=workers)
+    transfer = exp.transfer
+
+    def fails_for_seed_1(method, source, train, settings, seed):  # type: ignore[no-untyped-def]
+        if seed == 1:
+            raise RuntimeError("out of memory")
+        return transfer(method, source, train, settings, seed=seed)
+
+    monkeypatch.setattr(exp, "transfer", fails_for_seed_1)  # the pool's forked workers have it too
+    with pytest.raises(CellsFailed, match=r"direct at amount 1, seed 1: RuntimeError\('out of memory'\)"):
+        run_experiment(cfg, tmp_path / "runs", progress=False)
+    run_dir = tmp_path / "runs" / "tiny"
+    (kept,) = (run_dir / "cells").iterdir()
+    (failed,) = (run_dir / "failed").iterdir()
+    assert kept.name.startswith("direct-1-0-") and failed.name.startswith("direct-1-1-")
+    record = json.loads(failed.read_text())
+    assert {k: record[k] for k in ("method", "amount", "seed", "error")} == {
+        "method": "direct", "amount": 1, "seed": 1, "error": "RuntimeError('out of memory')"}
+    assert "in fails_for_seed_1" in record["traceback"] and "in _run_cell" in record["traceback"]
+    assert record["traceback"].rstrip().endswith("RuntimeError: out of memory")
+    monkeypatch.setattr(exp, "transfer", transfer)
+    run_experiment(cfg, tmp_path / "runs", progress=False)
+    assert (run_dir / "cells" / failed.name).is_file() and list((run_dir / "failed").iterdir()) == []

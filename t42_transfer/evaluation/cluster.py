@@ -4,7 +4,8 @@ Cells are independent and seeded, so where one runs changes nothing in its numbe
 each cell on a worker (one torch thread each) and its row comes back here, where it is kept at once
 (``on_row``), whatever order the cells finish in, so a run stopped or a worker lost costs only the cells still
 running.  On Dask a worker that dies mid-cell loses that cell, which the scheduler runs again on another worker.
-A cell that raises is named in one error once the others are done, and stays to be redone on the next resume.
+A cell that raises is named in one error once the others are done (``on_fail`` is told its error at once, with
+its traceback from the process that ran it), and stays to be redone on the next resume.
 
 ``scheduler`` is ``local:N`` (a LocalCluster of N worker processes on this machine) or a scheduler's address
 (``tcp://host:8786``: a cluster whose workers see the run directory at the same path, a shared filesystem,
@@ -72,19 +73,24 @@ class CellsFailed(RuntimeError):
 
 def run_cells(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],
               workers: int = 1, scheduler: str | None = None, bar: Any = None, name: Callable[[Task], str] = str,
-              key: Callable[[Task], str] | None = None) -> None:
+              key: Callable[[Task], str] | None = None,
+              on_fail: Callable[[Task, BaseException], None] | None = None) -> None:
     """``fn(task)`` for every task, each row handed to ``on_row`` as it comes: serially (``workers == 1``), on a
     local process pool of ``workers``, or on the Dask ``scheduler``.
 
     A task that raises does not stop the others: CellsFailed once they ran, naming each failed task by
-    ``name(task)``.  An error of ``on_row`` (a full disk) or Ctrl-C stops the run at once, its workers with it;
-    the rows handed over so far stay kept.  ``key(task)`` (default ``name``) tells a task from the run's others;
+    ``name(task)``; ``on_fail(task, error)`` is called as each fails (a pool's error has the worker's traceback as
+    its cause, Dask's the worker's frames as its own; :func:`traceback.format_exception` shows both).  An error of
+    ``on_row`` or ``on_fail`` (a full disk) or Ctrl-C stops the run at once, its workers with it; the rows handed
+    over so far stay kept.  ``key(task)`` (default ``name``) tells a task from the run's others;
     with an id of this call it is the task's Dask key, so two runs sharing a scheduler never share a result.
     """
     failed: list[str] = []
 
     def fail(task: Task, err: BaseException) -> None:
         failed.append(f"{name(task)}: {err!r}")
+        if on_fail is not None:
+            on_fail(task, err)
         if bar is not None:
             bar.set_postfix(failed=len(failed))
 

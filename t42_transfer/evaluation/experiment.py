@@ -48,6 +48,7 @@ from t42_transfer.evaluation.experiment_files import (
     Cell,
     cell_key,
     digest,
+    failure_record,
     run_lock,
     stored_rows,
     warn_if_diverged,
@@ -566,11 +567,17 @@ def _run(cfg: ExperimentConfig, run_dir: Path, progress: bool, scheduler: str | 
     def keep(task: tuple[Any, ...], row: dict[str, Any]) -> None:
         rows[task[1]] = row
         write_atomic(files[task[1]], json.dumps(row, indent=1))
+        (run_dir / "failed" / files[task[1]].name).unlink(missing_ok=True)  # an earlier run's failure, redone now
         bar.update()
         warn_if_diverged(name(task), row)
 
+    def failed(task: tuple[Any, ...], err: BaseException) -> None:
+        (run_dir / "failed").mkdir(exist_ok=True)
+        write_atomic(run_dir / "failed" / files[task[1]].name, json.dumps(failure_record(task[1], err), indent=1))
+
     try:
-        run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name, key=lambda task: files[task[1]].stem)
+        run_cells(_run_cell, tasks, keep, workers, scheduler, bar, name, key=lambda task: files[task[1]].stem,
+                  on_fail=failed)
     finally:
         bar.close()
     ordered = [rows[c] for c in cells] + baseline_rows(cfg, target.data, None if test is None else test.data, rows)

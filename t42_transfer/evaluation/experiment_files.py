@@ -3,7 +3,8 @@ read back with suspicion.
 
 A resume trusts what ``cells/`` holds, so every file is written whole or not at all (:func:`write_atomic`), and a
 cell read back is used only when it is whole and was computed on the data the run holds now: anything else is
-run again, with a warning naming the file, instead of stopping every later resume.
+run again, with a warning naming the file, instead of stopping every later resume.  A cell that raised leaves
+``failed/<key>.json`` (:func:`failure_record`), until a resume redoes it.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import hashlib
 import json
 import math
 import os
+import traceback
 import warnings
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -133,6 +135,12 @@ def stored_rows(files: Mapping[Any, Path], draws: Mapping[Any, Mapping[str, str]
         warnings.warn(f"{len(names)} cell(s) in {next(iter(files.values())).parent} were computed on other data "
                       f"(their {', '.join(differ)} differ): run again: {', '.join(names)}", stacklevel=2)
     return rows
+
+
+def failure_record(cell: Cell, err: BaseException) -> dict[str, Any]:
+    """What ``failed/<key>.json`` keeps of a cell that raised: the cell, its error as the run's error names it
+    (type and message) and the traceback, from the process that ran it (a pool's or Dask's worker)."""
+    return {**dataclasses.asdict(cell), "error": repr(err), "traceback": "".join(traceback.format_exception(err))}
 
 
 def warn_if_diverged(cell: str, row: Mapping[str, Any]) -> None:
