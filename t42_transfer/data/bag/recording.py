@@ -6,6 +6,7 @@ publishers' clock restarted, free space, and a pause's border.  (Whether the ope
 
 from __future__ import annotations
 
+import os
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -34,8 +35,11 @@ def open_next_bag(choose: Callable[[], Path], types: Mapping[str, str], offered:
     opens: a second recorder on the same ``out_dir``) is passed over for the next ``choose()`` gives, which counts
     on past it; whatever else fails is raised, as is the last of ``tries`` names taken."""
     for _ in range(tries - 1):
+        path = choose()
+        if os.path.lexists(path):  # taken since it was chosen (rosbags refuses a path that exists)
+            continue
         try:
-            return BagWriter(choose(), types, custom=custom, offered=offered)
+            return BagWriter(path, types, custom=custom, offered=offered)
         except Exception as err:
             if not _taken(err):
                 raise
@@ -43,10 +47,11 @@ def open_next_bag(choose: Callable[[], Path], types: Mapping[str, str], offered:
 
 
 def _taken(err: BaseException) -> bool:
-    """Whether opening a bag failed because its path exists: rosbags raises WriterError("... exists already, not
-    overwriting.") when it does at the start, and from the FileExistsError of its mkdir."""
-    return (isinstance(err, FileExistsError) or isinstance(err.__context__, FileExistsError)
-            or "exists already" in str(err))
+    """Whether opening a bag failed because another writer made its directory after :func:`open_next_bag` found
+    the path free: rosbags' mkdir raised FileExistsError, and rosbags (0.11) raises its WriterError from it (the
+    error's context), whatever its words.  One made in the microseconds between that check and rosbags' own
+    check is not told apart from any other failure to open."""
+    return isinstance(err, FileExistsError) or isinstance(err.__context__, FileExistsError)
 
 
 def room(out_dir: Path, free_mb: float) -> bool:
