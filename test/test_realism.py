@@ -83,6 +83,8 @@ def test_held_move_rates_measure_the_first_window_of_each_run() -> None:
     assert row.load1_per_step == pytest.approx(1.0) and row.load2_per_step == pytest.approx(-1.0)
     with pytest.raises(ValueError, match="window"):
         held_move_rates("made", data, window=0)
+    (later,) = held_move_rates("made", data, window=10, later_only=True)  # each path's first hold left out
+    assert later.runs == 1 and later.speed_mm_per_step == pytest.approx(0.1)
 
 
 def test_held_moves_table_gives_the_speed_against_the_real_hands() -> None:

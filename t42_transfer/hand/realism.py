@@ -92,13 +92,18 @@ def held_runs(actions: np.ndarray, min_steps: int) -> list[tuple[int, int]]:
     return runs
 
 
-def held_move_rates(name: str, data: TrajectorySet, window: int = 30) -> list[HeldMoveRate]:
-    """One :class:`HeldMoveRate` per move held at least ``window`` steps somewhere in ``data``, by move."""
+def held_move_rates(name: str, data: TrajectorySet, window: int = 30, later_only: bool = False) -> list[HeldMoveRate]:
+    """One :class:`HeldMoveRate` per move held at least ``window`` steps somewhere in ``data``, by move.
+
+    ``later_only``: leave out each path's first hold. On the real hands its loads drop at the first move, as the
+    authors' hand node re-bases the servos' goals after the grasp (docs/experiments/sim_calibration)."""
     if window < 1:
         raise ValueError(f"window must be at least 1 step, got {window}")
     changes: dict[tuple[float, float], list[np.ndarray]] = {}
     for t in data:
         for start, _ in held_runs(t.actions, window):
+            if later_only and start == 0:
+                continue
             delta = (t.states[start + window] - t.states[start]) / window
             move = (float(t.actions[start][0]), float(t.actions[start][1]))
             changes.setdefault(move, []).append(np.array([np.linalg.norm(delta[:2]), delta[2], delta[3]]))

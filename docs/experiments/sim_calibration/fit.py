@@ -80,13 +80,14 @@ def moving_speeds(name: str, data: TrajectorySet) -> dict[tuple[float, float], t
 
 
 def score(candidate: dict[str, float], real: TrajectorySet, unit_rad: float, window: int, palm_weight: float,
-          speed_measure: str = "first", onset_weight: float = 0.0) -> dict:
+          speed_measure: str = "first", onset_weight: float = 0.0, later_loads: bool = False) -> dict:
     """The candidate's score against ``real`` (lower is better) and what went into it.
 
     ``speed_measure``: ``first``, each move's speed over its runs' first ``window`` steps; ``moving``, its speed
     once the object has moved 2 mm (``realism.held_move_onsets``), the real hands' wait before that scored
     apart as the onset term, mean over moves of log((sim steps + 1) / (real steps + 1))^2, weighted
-    ``onset_weight``."""
+    ``onset_weight``. ``later_loads``: the load term over each path's later holds only (the real first hold's
+    loads drop as the authors' hand node re-bases its goals after the grasp)."""
     simulator.ACTION_UNIT_RAD = unit_rad
     simulator.GRASP_INCREMENT = GRASP_STEP_RAD / unit_rad
     simulator.GRASP_MAX_STEPS = 4000
@@ -98,9 +99,11 @@ def score(candidate: dict[str, float], real: TrajectorySet, unit_rad: float, win
         return {**candidate, "score": math.inf, "failed": f"{type(err).__name__}: {err}"[:200]}
     want = {r.action: r for r in held_move_rates("real", real, window)}
     got = {r.action: r for r in held_move_rates("sim", replayed, window)}
+    want_loads = {r.action: r for r in held_move_rates("real", real, window, later_loads)}
+    got_loads = {r.action: r for r in held_move_rates("sim", replayed, window, later_loads)}
     speed, load, onset = [], [], []
-    for move, r in want.items():
-        s = got.get(move)
+    for move, r in want_loads.items():
+        s = got_loads.get(move)
         if s is None:
             load.append((MISSING_LOAD_ERROR / 2.0) ** 2)
             continue
@@ -169,6 +172,7 @@ def main() -> None:
     parser.add_argument("--speed", choices=("first", "moving"), default="first",
                         help="speed over each hold's first --window steps, or once the object moves (see score)")
     parser.add_argument("--onset-weight", type=float, default=0.0, help="weight of the onset term (--speed moving)")
+    parser.add_argument("--later-loads", action="store_true", help="load term over each path's later holds only")
     parser.add_argument("--around", type=Path, default=None,
                         help="a JSON object of the --free parameters: draw candidates near it instead (a local search)")
     parser.add_argument("--spread", type=float, default=0.25, help="log-normal spread of --around's draws")
@@ -187,7 +191,7 @@ def main() -> None:
         def scored(sets: list[dict[str, float]], real: TrajectorySet) -> list[dict]:
             n = len(sets)
             return list(pool.map(score, sets, [real] * n, [args.unit] * n, [args.window] * n, [args.palm_weight] * n,
-                                 [args.speed] * n, [args.onset_weight] * n))
+                                 [args.speed] * n, [args.onset_weight] * n, [args.later_loads] * n))
 
         fitted = sorted(scored(candidates, fit_set), key=lambda r: r["score"])
         checked = scored([{k: r[k] for k in args.free} for r in fitted[: args.best]], check_set)
@@ -197,7 +201,7 @@ def main() -> None:
               f"{c['speed_term']:.2f}, load {c['load_term']:.2f}) | " + ", ".join(f"{k} {f[k]:.4g}" for k in args.free))
     summary = {"unit_rad": args.unit, "window": args.window, "fit_hand": args.fit, "check_hand": args.check,
                "seed": args.seed, "free": args.free, "palm_weight": args.palm_weight, "speed": args.speed,
-               "onset_weight": args.onset_weight, "ranges": RANGES,
+               "onset_weight": args.onset_weight, "later_loads": args.later_loads, "ranges": RANGES,
                "around": None if args.around is None else centre, "spread": args.spread,
                "fitted": fitted, "checked": checked}
     for row in (*fitted, *checked):  # JSON has no infinity: a candidate that failed has no score
