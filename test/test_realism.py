@@ -16,6 +16,7 @@ from t42_transfer.hand.realism import (
     plot_held_moves,
     plot_held_onsets,
     replay,
+    rows_as_dicts,
     summarise,
 )
 
@@ -141,6 +142,11 @@ def test_held_move_onsets_separate_the_wait_from_the_speed() -> None:
     assert moving.moving_speed_mm_per_step == pytest.approx(0.2)
     assert (still.runs, still.stuck, still.moving_runs) == (1, 1, 0)
     assert np.isnan(still.onset_steps) and np.isnan(still.moving_speed_mm_per_step)
+    import json
+
+    (row,) = [r for r in rows_as_dicts([still])]
+    assert row["onset_steps"] is None and row["moving_speed_mm_per_step"] is None
+    json.dumps(rows_as_dicts(rows), allow_nan=False)  # strict JSON: no NaN
 
 
 def test_held_move_onsets_leave_out_a_speed_the_run_cannot_measure() -> None:

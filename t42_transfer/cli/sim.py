@@ -60,7 +60,7 @@ def _cmd_sim_compare_real(args: argparse.Namespace) -> int:
         (args.out_dir / "sim_vs_real.md").write_text(table)
         summary = {"paths": realism.rows_as_dicts(rows), "held_moves": realism.rows_as_dicts(rates),
                    "onsets": realism.rows_as_dicts(onsets)}
-        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (args.out_dir / "sim_vs_real.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
         figure = realism.plot_paths(real, replays, args.out_dir / "sim_vs_real_paths.png")
         written = [args.out_dir / "sim_vs_real.md", args.out_dir / "sim_vs_real.json", figure]
         if rates:

@@ -340,4 +340,5 @@ def plot_held_onsets(onsets: Sequence[HeldMoveOnset], path: Path) -> Path:
 
 
 def rows_as_dicts(rows: Sequence[BehaviourStats | HeldMoveRate | HeldMoveOnset]) -> list[dict]:
-    return [asdict(r) for r in rows]
+    """The rows as JSON-ready dicts: a median over no runs (NaN, which JSON lacks) becomes None."""
+    return [{k: None if isinstance(v, float) and np.isnan(v) else v for k, v in asdict(r).items()} for r in rows]

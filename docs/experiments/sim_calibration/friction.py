@@ -22,8 +22,6 @@ import json
 import math
 from pathlib import Path
 
-import numpy as np
-
 import t42_transfer.hand.sim as simulator
 from t42_transfer.data.t42_real import REAL_FILES, load_t42_testpaths, real_data_dir
 from t42_transfer.data.trajectory import TrajectorySet
@@ -91,7 +89,7 @@ def main() -> None:
                   f"real); {loads}", flush=True)
     summary = {"unit_rad": args.unit, "fit_hand": "A",
                "real_onsets": rows_as_dicts(list(real_onsets.values())), "settings": rows}
-    args.out.write_text(json.dumps(summary, indent=2, default=lambda v: None if np.isnan(v) else v) + "\n")
+    args.out.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":

@@ -107,11 +107,11 @@ def main() -> None:
             print(f"  {list(move)}: {o['onset_steps']:g} steps to move 2 mm (real {real_onset[move]:g}), "
                   f"then {o['moving_speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real)")
     real_speeds = {str(list(move)): speed for move, speed in reference.items()}
-    real_moving = {str(list(move)): speed for move, speed in moving_reference.items()}
+    real_moving = {str(list(move)): None if np.isnan(speed) else speed for move, speed in moving_reference.items()}
     summary = {"window": args.window, "real_speed_mm_per_step": real_speeds,
                "real_moving_speed_mm_per_step": real_moving,
                "real_onset_steps": {str(list(move)): steps for move, steps in real_onset.items()}, "settings": rows}
-    args.out.write_text(json.dumps(summary, indent=2) + "\n")
+    args.out.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":
