@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import re
 import shutil
 import struct
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +23,8 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.highlevel import AnyReader
+from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.typesys import Stores, get_types_from_idl, get_typestore
 from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
 
 from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
@@ -321,10 +326,17 @@ FOO = "my_msgs/msg/Foo"
 """A type Jazzy's store lacks (a lab's own message package)."""
 
 
-def humble_killed_copy(tmp_path: Path, foo_schema: tuple[str, bytes], hand: bool = True) -> Path:
+def foo_int32(index: int) -> bytes:
+    """A FOO of definition ``int32 a`` (a = ``index``), CDR-serialized."""
+    return b"\x00\x01\x00\x00" + struct.pack("<i", index)
+
+
+def humble_killed_copy(tmp_path: Path, foo_schema: tuple[str, bytes], hand: bool = True,
+                       foo_data: Callable[[int], bytes] = foo_int32) -> Path:
     """The target fixture bag as Humble's MCAP plugin records it (no topic_type_hash on any channel), plus /foo of
-    type FOO with schema ``foo_schema`` (encoding, definition) every 10th message, killed: cut at 90 %, no
-    metadata.yaml.  Without ``hand`` the hand's channels hold no message."""
+    type FOO with schema ``foo_schema`` (encoding, definition) every 10th message (its CDR bytes
+    ``foo_data(index)``, ``index`` counting the fixture's messages), killed: cut at 90 %, no metadata.yaml.  Without
+    ``hand`` the hand's channels hold no message."""
     bag = tmp_path / "killed"
     bag.mkdir(parents=True)
     mcap = bag / "killed.mcap"
@@ -341,8 +353,7 @@ def humble_killed_copy(tmp_path: Path, foo_schema: tuple[str, bytes], hand: bool
                     for k, c in summary.channels.items()}
         for index, (_, channel, message) in enumerate(reader.iter_messages(log_time_order=False)):
             if index % 10 == 0:
-                writer.add_message(foo, message.log_time, b"\x00\x01\x00\x00" + struct.pack("<i", index),
-                                   message.log_time, index)
+                writer.add_message(foo, message.log_time, foo_data(index), message.log_time, index)
             if hand:
                 writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time,
                                    message.sequence)
@@ -415,3 +426,198 @@ def test_a_failure_writing_the_new_bag_is_no_damage_of_the_old(tmp_path: Path, m
     with pytest.raises(RuntimeError, match="the disk caught fire"):
         repair_bag(bag)
     assert [p.name for p in bag.iterdir()] == ["killed.mcap"] and (bag / "killed.mcap").read_bytes() == original
+
+
+# A type defined in .idl (a vendor's package): rosbag2 stores its definition as a ``ros2idl`` schema.
+FINGER, TIME = "my_msgs/msg/Finger", "builtin_interfaces/msg/Time"
+IDL = {
+    FOO: """// generated from rosidl_adapter/resource/msg.idl.em
+// with input from my_msgs/msg/Foo.msg
+// generated code does not contain a copyright notice
+
+#include "builtin_interfaces/msg/Time.idl"
+#include "my_msgs/msg/Finger.idl"
+
+module my_msgs {
+  module msg {
+    module Foo_Constants {
+      const uint8 OPEN = 0;
+      const uint8 CLOSED = 1;
+    };
+    @verbatim (language="comment", text=
+      "A grasp, as the vendor's driver reports it.")
+    struct Foo {
+      builtin_interfaces::msg::Time stamp;
+
+      @verbatim (language="comment", text=
+        "OPEN or CLOSED.")
+      uint8 state;
+
+      my_msgs::msg::Finger thumb;
+
+      sequence<my_msgs::msg::Finger, 4> fingers;
+
+      double force[3];
+
+      string<16> label;
+    };
+  };
+};
+""",
+    FINGER: """#ifndef MY_MSGS__MSG__FINGER_IDL_
+#define MY_MSGS__MSG__FINGER_IDL_
+
+module my_msgs {
+  module msg {
+    struct Finger {
+      string name;
+
+      @default (value=0.5)
+      float position;
+
+      int32 a;
+    };
+  };
+};
+
+#endif  // MY_MSGS__MSG__FINGER_IDL_
+""",
+    TIME: """// generated from rosidl_adapter/resource/msg.idl.em
+// with input from builtin_interfaces/msg/Time.msg
+// generated code does not contain a copyright notice
+
+
+module builtin_interfaces {
+  module msg {
+    @verbatim (language="comment", text=
+      "This message communicates ROS Time defined here:" "\\n"
+      "https://design.ros2.org/articles/clock_and_time.html")
+    struct Time {
+      @verbatim (language="comment", text=
+        "The seconds component, valid over all int32 values.")
+      int32 sec;
+
+      @verbatim (language="comment", text=
+        "The nanoseconds component, valid in the range [0, 10e9).")
+      uint32 nanosec;
+    };
+  };
+};
+""",
+}
+"""Each type's .idl file: FOO's as rosidl_adapter generates it, FINGER's as a vendor writes one, TIME's as Jazzy
+ships it."""
+
+
+def rosbag2_idl(idl: dict[str, str], name: str = FOO) -> str:
+    """The ``ros2idl`` schema rosbag2 (its LocalMessageDefinitionSource) writes for ``name``: each type's IDL after a
+    line of 80 '=' and a line ``IDL: <type>``, the types it ``#include``s after it (depth first, sorted, each once)."""
+    seen: set[str] = set()
+
+    def delimiter(type_name: str) -> str:
+        return "=" * 80 + f"\nIDL: {type_name}\n"
+
+    def full(type_name: str) -> str:
+        text = idl[type_name]
+        for dep in sorted(set(re.findall(r'^#include\s+["<]([\w/]+)\.idl[">]', text, re.MULTILINE))):
+            if dep not in seen:
+                seen.add(dep)
+                text += "\n" + delimiter(dep) + full(dep)
+        return text
+
+    return delimiter(name) + full(name)
+
+
+def idl_store() -> Any:
+    """A typestore of the IDL types, for writing them (rosbags' IDL parser takes no preprocessor lines)."""
+    store = get_typestore(Stores.EMPTY)
+    for text in IDL.values():
+        store.register(get_types_from_idl(re.sub(r"^#.*$", "", text, flags=re.MULTILINE)))
+    return store
+
+
+def foo_message(store: Any, index: int) -> Any:
+    """The FOO written for the fixture's ``index``-th message: every field, nested ones included, told by it."""
+    finger = store.types[FINGER]
+    return store.types[FOO](
+        stamp=store.types[TIME](sec=index, nanosec=index * 1000),
+        state=index // 10 % 2,
+        thumb=finger(name=f"thumb {index}", position=index / 4, a=-index),
+        fingers=[finger(name=f"f{j}", position=j + 0.5, a=index + j) for j in range(index // 10 % 4)],
+        force=np.array([index, -index, 0.25]),
+        label=f"grip {index}",
+    )
+
+
+def plain(value: Any) -> Any:
+    """A decoded message as plain data (fields by name, arrays as lists), to compare across typestores."""
+    if dataclasses.is_dataclass(value):
+        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, list):
+        return [plain(v) for v in value]
+    return value
+
+
+def idl_killed_copy(tmp_path: Path, schema_text: str) -> tuple[Path, dict[str, int]]:
+    """:func:`humble_killed_copy` whose /foo is the IDL type FOO, schema ``schema_text`` (encoding ``ros2idl``), and
+    the messages the scan of its cut file reads per topic."""
+    store = idl_store()
+    bag = humble_killed_copy(tmp_path, ("ros2idl", schema_text.encode()),
+                             foo_data=lambda index: store.serialize_cdr(foo_message(store, index), FOO))
+    return bag, {topic: t.count for topic, t in scan_mcap([bag / "killed.mcap"], None).topics.items()}
+
+
+@pytest.mark.parametrize("variant", ["rosbag2", "no header"])
+def test_a_custom_type_defined_in_idl_is_carried_over(tmp_path: Path, variant: str) -> None:
+    """A killed bag with a topic of a vendor's IDL type (a nested type and Jazzy's Time in its definition): every
+    salvaged message of it is carried over, and rosbags' AnyReader, from the repaired bag's own schemas alone, decodes
+    each to the values written.  rosbag2 puts the separator and ``IDL: <type>`` line before each type's IDL; some
+    writers store the IDL without that header."""
+    schema_text = rosbag2_idl(IDL) if variant == "rosbag2" else "\n".join(IDL.values())
+    assert FOO not in TYPESTORE.types and FINGER not in TYPESTORE.types  # not Jazzy's: the file's definition is used
+    bag, read = idl_killed_copy(tmp_path, schema_text)
+    before = read_anyway(bag)
+    assert read["/foo"] > 3 and len(before) >= 3
+    report = repair_bag(bag)
+    assert report.repaired and "unreadable" in report.stopped
+    assert report.counts == read and report.left_out == () and report.left_out_messages == 0
+    assert_same(read_anyway(bag), before)  # the hand's topics as they were
+    with AnyReader([bag]) as reader:  # no type registered: its typestore is the bag's definitions, hashes checked
+        (conn,) = [c for c in reader.connections if c.topic == "/foo"]
+        got = [plain(reader.deserialize(raw, FOO)) for _, _, raw in reader.messages(connections=[conn])]
+        constants = reader.typestore.types[FOO].OPEN, reader.typestore.types[FOO].CLOSED
+    assert conn.msgtype == FOO and conn.msgdef.format == MessageDefinitionFormat.IDL
+    assert conn.digest.startswith("RIHS01_") and constants == (0, 1)
+    # the file's definition, its preprocessor lines (which rosbags cannot parse) made comments
+    header = "" if variant == "rosbag2" else "=" * 80 + f"\nIDL: {FOO}\n"
+    assert conn.msgdef.data == re.sub(r"^#", "// #", header + schema_text, flags=re.MULTILINE)
+    store = idl_store()
+    assert got == [plain(foo_message(store, index)) for index in range(0, 10 * read["/foo"], 10)]
+    assert not repair_bag(bag).repaired  # sound now
+
+
+@pytest.mark.parametrize(("definition", "why", "where"), [
+    # rosbags' parse error ends with what it expected: the "}" the cut took away (not the first #include's "#")
+    (rosbag2_idl(IDL).replace("      string<16> label;\n    };\n", ""),
+     f"its definition of {FOO} cannot be used (TypesysError: Could not parse", "\n{\"'}'\"})\n"),
+    (rosbag2_idl({**IDL, FOO: IDL[FOO].replace('#include "my_msgs/msg/Finger.idl"\n', "")}),
+     f"its definition of {FOO} cannot be used (KeyError: '{FINGER}')", ""),
+], ids=["a struct cut short", "a type it uses left out"])
+def test_a_topic_whose_idl_cannot_be_used_is_left_out_and_named(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], definition: str, why: str, where: str) -> None:
+    """A broken IDL definition: its topic is left out with the reason, the command fails, the rest is repaired."""
+    bag, read = idl_killed_copy(tmp_path, definition)
+    before = read_anyway(bag)
+    assert main(["bag", "repair", str(bag)]) == 1
+    out, err = capsys.readouterr()
+    assert f"left out /foo ({FOO}, {read['/foo']} messages): {why}" in out and where in out
+    assert f"{read['/foo']} messages read could not be carried over; they are in the originals" in err
+    assert_same(read_anyway(bag), before)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        info = bag_info(bag)
+    assert {topic: t["count"] for topic, t in info["topics"].items()} == {k: v for k, v in read.items() if k != "/foo"}
+    assert f"left out /foo ({FOO}, {read['/foo']} messages): {why}" in info["metadata"][REPAIRED_KEY]
+    assert (bag / "killed.mcap.orig").exists()

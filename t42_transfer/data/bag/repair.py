@@ -25,6 +25,7 @@ or a directory where a file belongs is refused, never opened or replaced.
 from __future__ import annotations
 
 import dataclasses
+import re
 import stat
 import tempfile
 from pathlib import Path
@@ -152,6 +153,9 @@ def _problems(bag: Path, raw: RawBag) -> tuple[BagMetadata | None, list[str]]:
 
 _SEPARATOR = "=" * 80 + "\n"
 """What separates the definitions of a type and its dependencies in an MCAP schema (rosbag2's, and rosbags')."""
+_DIRECTIVE = re.compile(r"^([ \t]*)#", re.MULTILINE)
+"""A preprocessor line of IDL (``#include``, an include guard): rosbags' parser takes none, and rosbag2 writes one
+for each type a type uses (whose IDL the schema holds too), so they are carried over as comments."""
 
 
 def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
@@ -176,6 +180,7 @@ def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
             types = get_types_from_msg(text, schema.name)
         else:  # rosbags' writer tells IDL from msg by this header; rosbag2 writes it before each type's IDL
             text = text if text.startswith(f"{_SEPARATOR}IDL: ") else f"{_SEPARATOR}IDL: {schema.name}\n{text}"
+            text = _DIRECTIVE.sub(r"\1// #", text)
             types = {}
             for part in text.split(_SEPARATOR)[1:]:
                 types.update(get_types_from_idl(part.partition("\n")[2]))
