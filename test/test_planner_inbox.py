@@ -125,6 +125,25 @@ def test_a_piece_goes_out_until_its_goal_must_stop_and_says_why(rig: Rig) -> Non
     assert topic.send(3, lambda: 46).stopping
 
 
+def test_a_piece_a_cancels_stop_and_a_stopped_goals_last_word_go_out_under_the_lock(rig: Rig) -> None:
+    """What the node publishes from these callbacks must not be overtaken: a piece by a cancel's stop, a goal's
+    'never sent' result by a newer goal's."""
+    owned: list[str] = []
+
+    def note(what: str, value: Any = None) -> Any:
+        owned.append(what if rig.inbox._cond._is_owned() else f"{what} without the lock")
+        return value
+
+    run = FakeRun()
+    rig.inbox.submit(goal(run=run))
+    rig.inbox.next_goal()
+    watch = rig.inbox.watch(run)
+    assert watch.send(1, lambda: note("piece", 7), lambda stop: note("stopped")) == 7
+    rig.inbox.cancel(run.handle, lambda: note("stop"))
+    assert watch.send(1, lambda: note("piece"), lambda stop: note(f"stopped {stop}")) == Stop(False, True, False)
+    assert owned == ["piece", "stop", f"stopped {Stop(False, True, False)}"]
+
+
 def test_the_state_after_a_piece_is_the_first_stamped_after_its_last_step(rig: Rig) -> None:
     watch = rig.inbox.watch(None)
     put_state(rig.inbox, 900)

@@ -224,12 +224,15 @@ class Watch:
         self._done_before, self._steps = 0, 0
         """trajectory_done statuses before the piece sent last, and its steps."""
 
-    def send(self, steps: int, publish: Callable[[], int]) -> int | Stop:
+    def send(self, steps: int, publish: Callable[[], int], stopped: Callable[[Stop], None] | None = None) -> int | Stop:
         """``publish()`` a piece of ``steps`` and give its stamp (what ``publish`` returns), or why the goal stops
-        instead; under the lock, so that a cancel's stop is never overtaken by a piece."""
+        instead, after ``stopped(why)``; both under the lock, so that a cancel's stop is never overtaken by a piece,
+        and a goal's last word comes before a newer goal's."""
         with self._cond:
             stop = self._stop()
             if stop is not None:
+                if stopped is not None:
+                    stopped(stop)
                 return stop
             self._done_before, self._steps = self._inbox._dones, steps
             return publish()

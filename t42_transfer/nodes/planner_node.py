@@ -413,12 +413,14 @@ class PlannerNode(Node):
                               f"predicted error {plan.error_mm:.2f} mm)")
             return plan
 
+        def never_sent(stop: Stop) -> None:
+            if executed == 0 and not stop.stopping:  # planned, never sent: its result says why
+                self._publish_result(unsent(goal, result, stop.cancelled, stop.episode_ended))
+
         def send(piece: np.ndarray) -> str:
             nonlocal offset, executed
-            stamp = watch.send(len(piece), lambda: self._send_piece(piece, hand.angles))
+            stamp = watch.send(len(piece), lambda: self._send_piece(piece, hand.angles), never_sent)
             if isinstance(stamp, Stop):
-                if executed == 0 and not stamp.stopping:  # planned, never sent: its result says why
-                    self._publish_result(unsent(goal, result, stamp.cancelled, stamp.episode_ended))
                 return "interrupted"
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
             if offset == 0 and current.candidates:  # a new plan: what its search weighed
