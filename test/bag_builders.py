@@ -1,22 +1,28 @@
 """Bags for tests of the bag package and its users: hand messages as the driver sends them,
-copies of the fixture bag."""
+copies of the fixture bag, a vendor's IDL-defined type as rosbag2 stores its definition."""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import re
 import shutil
 import sqlite3
 import warnings
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 import yaml
 from mcap.reader import make_reader
 from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_idl, get_typestore
 
 import msg_adapters as ma
 from t42_transfer.conventions import CONTROL_PERIOD_NS
 from t42_transfer.data.bag import (
+    JazzyWriter,
     read_bag,
 )
 from t42_transfer.data.errors import BagError
@@ -129,3 +135,160 @@ def refusal(bag: Path, function=read_bag) -> str:
     text = str(err.value)
     assert text.startswith(f"{bag}: ") and "\n" not in text, text
     return text
+
+
+FOO = "my_msgs/msg/Foo"
+"""A type Jazzy's store lacks (a lab's own message package)."""
+
+
+# A type defined in .idl (a vendor's package): rosbag2 stores its definition as a ``ros2idl`` schema.
+FINGER, TIME = "my_msgs/msg/Finger", "builtin_interfaces/msg/Time"
+IDL = {
+    FOO: """// generated from rosidl_adapter/resource/msg.idl.em
+// with input from my_msgs/msg/Foo.msg
+// generated code does not contain a copyright notice
+
+#include "builtin_interfaces/msg/Time.idl"
+#include "my_msgs/msg/Finger.idl"
+
+module my_msgs {
+  module msg {
+    module Foo_Constants {
+      const uint8 OPEN = 0;
+      const uint8 CLOSED = 1;
+    };
+    @verbatim (language="comment", text=
+      "A grasp, as the vendor's driver reports it.")
+    struct Foo {
+      builtin_interfaces::msg::Time stamp;
+
+      @verbatim (language="comment", text=
+        "OPEN or CLOSED.")
+      uint8 state;
+
+      my_msgs::msg::Finger thumb;
+
+      sequence<my_msgs::msg::Finger, 4> fingers;
+
+      double force[3];
+
+      string<16> label;
+    };
+  };
+};
+""",
+    FINGER: """#ifndef MY_MSGS__MSG__FINGER_IDL_
+#define MY_MSGS__MSG__FINGER_IDL_
+
+module my_msgs {
+  module msg {
+    struct Finger {
+      string name;
+
+      @default (value=0.5)
+      float position;
+
+      int32 a;
+    };
+  };
+};
+
+#endif  // MY_MSGS__MSG__FINGER_IDL_
+""",
+    TIME: """// generated from rosidl_adapter/resource/msg.idl.em
+// with input from builtin_interfaces/msg/Time.msg
+// generated code does not contain a copyright notice
+
+
+module builtin_interfaces {
+  module msg {
+    @verbatim (language="comment", text=
+      "This message communicates ROS Time defined here:" "\\n"
+      "https://design.ros2.org/articles/clock_and_time.html")
+    struct Time {
+      @verbatim (language="comment", text=
+        "The seconds component, valid over all int32 values.")
+      int32 sec;
+
+      @verbatim (language="comment", text=
+        "The nanoseconds component, valid in the range [0, 10e9).")
+      uint32 nanosec;
+    };
+  };
+};
+""",
+}
+"""Each type's .idl file: FOO's as rosidl_adapter generates it, FINGER's as a vendor writes one, TIME's as Jazzy
+ships it."""
+
+
+def rosbag2_idl(idl: dict[str, str], name: str = FOO) -> str:
+    """The ``ros2idl`` schema rosbag2 (its LocalMessageDefinitionSource) writes for ``name``: each type's IDL after a
+    line of 80 '=' and a line ``IDL: <type>``, the types it ``#include``s after it (depth first, sorted, each once)."""
+    seen: set[str] = set()
+
+    def delimiter(type_name: str) -> str:
+        return "=" * 80 + f"\nIDL: {type_name}\n"
+
+    def full(type_name: str) -> str:
+        text = idl[type_name]
+        for dep in sorted(set(re.findall(r'^#include\s+["<]([\w/]+)\.idl[">]', text, re.MULTILINE))):
+            if dep not in seen:
+                seen.add(dep)
+                text += "\n" + delimiter(dep) + full(dep)
+        return text
+
+    return delimiter(name) + full(name)
+
+
+def idl_store() -> Any:
+    """A typestore of the IDL types, for writing them (rosbags' IDL parser takes no preprocessor lines)."""
+    store = get_typestore(Stores.EMPTY)
+    for text in IDL.values():
+        store.register(get_types_from_idl(re.sub(r"^#.*$", "", text, flags=re.MULTILINE)))
+    return store
+
+
+def foo_message(store: Any, index: int) -> Any:
+    """The FOO written for the fixture's ``index``-th message: every field, nested ones included, told by it."""
+    finger = store.types[FINGER]
+    return store.types[FOO](
+        stamp=store.types[TIME](sec=index, nanosec=index * 1000),
+        state=index // 10 % 2,
+        thumb=finger(name=f"thumb {index}", position=index / 4, a=-index),
+        fingers=[finger(name=f"f{j}", position=j + 0.5, a=index + j) for j in range(index // 10 % 4)],
+        force=np.array([index, -index, 0.25]),
+        label=f"grip {index}",
+    )
+
+
+def plain(value: Any) -> Any:
+    """A decoded message as plain data (fields by name, arrays as lists), to compare across typestores."""
+    if dataclasses.is_dataclass(value):
+        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, list):
+        return [plain(v) for v in value]
+    return value
+
+
+IDL_TOPIC = "/vendor/grasp"
+
+
+def idl_topic_bag(path: Path, data: TrajectorySet, storage=StoragePlugin.MCAP) -> tuple[Path, list[Any]]:
+    """A sound bag as ``ros2 bag record -a`` records one where a vendor's package defines a message in IDL:
+    ``data``'s hand messages and IDL_TOPIC of type FOO, its definition stored as rosbag2 stores one (``ros2idl``,
+    :func:`rosbag2_idl`: ``#include`` lines, an include guard) with the type's hash, metadata.yaml written at close;
+    and the FOOs written, in order (one after every 10th hand message, ``foo_message(store, index)``)."""
+    store = idl_store()
+    written = []
+    with JazzyWriter(path, version=9, storage_plugin=storage) as writer:
+        conns = {t: writer.add_connection(t, ma.HAND_TOPICS[t], typestore=ma.TYPESTORE) for t in ma.HAND_TOPICS}
+        foo = writer.add_connection(IDL_TOPIC, FOO, msgdef=rosbag2_idl(IDL), rihs01=store.hash_rihs01(FOO))
+        for index, (topic, stamp, msg) in enumerate(m for traj in data for m in step_messages(traj)):
+            writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+            if index % 10 == 0:
+                written.append(foo_message(store, index))
+                writer.write(foo, stamp, store.serialize_cdr(written[-1], FOO))
+    return path, written

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import re
 import shutil
@@ -15,7 +14,18 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from bag_builders import assert_same, fixture_message_count, mcap_ros_distro
+from bag_builders import (
+    FINGER,
+    FOO,
+    IDL,
+    assert_same,
+    fixture_message_count,
+    foo_message,
+    idl_store,
+    mcap_ros_distro,
+    plain,
+    rosbag2_idl,
+)
 from fuzz_harness import DecoderWorker
 from mcap.reader import make_reader
 from mcap.records import Chunk, Message, Metadata
@@ -24,7 +34,6 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import MessageDefinitionFormat
-from rosbags.typesys import Stores, get_types_from_idl, get_typestore
 from test_recorder import Hand, add_recorder, now_ns  # the recorder tests' hand: CDR bytes as a driver sends
 
 from msg_adapters import HAND_TOPICS, JOINT_STATES_TOPIC, TYPESTORE, stamp_to_ns
@@ -322,10 +331,6 @@ def test_a_recorders_closed_bag_verifies(ros: Any, tmp_path: Path, capsys: pytes
     assert "verify: metadata.yaml agrees with the data" in capsys.readouterr().out
 
 
-FOO = "my_msgs/msg/Foo"
-"""A type Jazzy's store lacks (a lab's own message package)."""
-
-
 def foo_int32(index: int) -> bytes:
     """A FOO of definition ``int32 a`` (a = ``index``), CDR-serialized."""
     return b"\x00\x01\x00\x00" + struct.pack("<i", index)
@@ -426,138 +431,6 @@ def test_a_failure_writing_the_new_bag_is_no_damage_of_the_old(tmp_path: Path, m
     with pytest.raises(RuntimeError, match="the disk caught fire"):
         repair_bag(bag)
     assert [p.name for p in bag.iterdir()] == ["killed.mcap"] and (bag / "killed.mcap").read_bytes() == original
-
-
-# A type defined in .idl (a vendor's package): rosbag2 stores its definition as a ``ros2idl`` schema.
-FINGER, TIME = "my_msgs/msg/Finger", "builtin_interfaces/msg/Time"
-IDL = {
-    FOO: """// generated from rosidl_adapter/resource/msg.idl.em
-// with input from my_msgs/msg/Foo.msg
-// generated code does not contain a copyright notice
-
-#include "builtin_interfaces/msg/Time.idl"
-#include "my_msgs/msg/Finger.idl"
-
-module my_msgs {
-  module msg {
-    module Foo_Constants {
-      const uint8 OPEN = 0;
-      const uint8 CLOSED = 1;
-    };
-    @verbatim (language="comment", text=
-      "A grasp, as the vendor's driver reports it.")
-    struct Foo {
-      builtin_interfaces::msg::Time stamp;
-
-      @verbatim (language="comment", text=
-        "OPEN or CLOSED.")
-      uint8 state;
-
-      my_msgs::msg::Finger thumb;
-
-      sequence<my_msgs::msg::Finger, 4> fingers;
-
-      double force[3];
-
-      string<16> label;
-    };
-  };
-};
-""",
-    FINGER: """#ifndef MY_MSGS__MSG__FINGER_IDL_
-#define MY_MSGS__MSG__FINGER_IDL_
-
-module my_msgs {
-  module msg {
-    struct Finger {
-      string name;
-
-      @default (value=0.5)
-      float position;
-
-      int32 a;
-    };
-  };
-};
-
-#endif  // MY_MSGS__MSG__FINGER_IDL_
-""",
-    TIME: """// generated from rosidl_adapter/resource/msg.idl.em
-// with input from builtin_interfaces/msg/Time.msg
-// generated code does not contain a copyright notice
-
-
-module builtin_interfaces {
-  module msg {
-    @verbatim (language="comment", text=
-      "This message communicates ROS Time defined here:" "\\n"
-      "https://design.ros2.org/articles/clock_and_time.html")
-    struct Time {
-      @verbatim (language="comment", text=
-        "The seconds component, valid over all int32 values.")
-      int32 sec;
-
-      @verbatim (language="comment", text=
-        "The nanoseconds component, valid in the range [0, 10e9).")
-      uint32 nanosec;
-    };
-  };
-};
-""",
-}
-"""Each type's .idl file: FOO's as rosidl_adapter generates it, FINGER's as a vendor writes one, TIME's as Jazzy
-ships it."""
-
-
-def rosbag2_idl(idl: dict[str, str], name: str = FOO) -> str:
-    """The ``ros2idl`` schema rosbag2 (its LocalMessageDefinitionSource) writes for ``name``: each type's IDL after a
-    line of 80 '=' and a line ``IDL: <type>``, the types it ``#include``s after it (depth first, sorted, each once)."""
-    seen: set[str] = set()
-
-    def delimiter(type_name: str) -> str:
-        return "=" * 80 + f"\nIDL: {type_name}\n"
-
-    def full(type_name: str) -> str:
-        text = idl[type_name]
-        for dep in sorted(set(re.findall(r'^#include\s+["<]([\w/]+)\.idl[">]', text, re.MULTILINE))):
-            if dep not in seen:
-                seen.add(dep)
-                text += "\n" + delimiter(dep) + full(dep)
-        return text
-
-    return delimiter(name) + full(name)
-
-
-def idl_store() -> Any:
-    """A typestore of the IDL types, for writing them (rosbags' IDL parser takes no preprocessor lines)."""
-    store = get_typestore(Stores.EMPTY)
-    for text in IDL.values():
-        store.register(get_types_from_idl(re.sub(r"^#.*$", "", text, flags=re.MULTILINE)))
-    return store
-
-
-def foo_message(store: Any, index: int) -> Any:
-    """The FOO written for the fixture's ``index``-th message: every field, nested ones included, told by it."""
-    finger = store.types[FINGER]
-    return store.types[FOO](
-        stamp=store.types[TIME](sec=index, nanosec=index * 1000),
-        state=index // 10 % 2,
-        thumb=finger(name=f"thumb {index}", position=index / 4, a=-index),
-        fingers=[finger(name=f"f{j}", position=j + 0.5, a=index + j) for j in range(index // 10 % 4)],
-        force=np.array([index, -index, 0.25]),
-        label=f"grip {index}",
-    )
-
-
-def plain(value: Any) -> Any:
-    """A decoded message as plain data (fields by name, arrays as lists), to compare across typestores."""
-    if dataclasses.is_dataclass(value):
-        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, list):
-        return [plain(v) for v in value]
-    return value
 
 
 def idl_killed_copy(tmp_path: Path, schema_text: str) -> tuple[Path, dict[str, int]]:

@@ -10,16 +10,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bag_builders import (
+    FOO,
+    IDL_TOPIC,
     LOG,
     assert_same,
     damaged_copy,
     fixture_copy,
+    idl_topic_bag,
     read_quietly,
     refusal,
     sqlite3_without_a_definition,
 )
 from fuzz_harness import DecoderWorker
+from rosbags.rosbag2 import StoragePlugin
 
+from t42_transfer.cli import main
 from t42_transfer.data.bag import (
     bag_info,
     read_bag,
@@ -86,6 +91,24 @@ def test_a_sqlite3_bag_with_a_topic_stored_without_a_definition_is_read(tmp_path
         info = bag_info(path)
         assert info["topics"]["/rosout"] == {"type": LOG, "count": 1} and info["episodes"] == len(small_set)
     assert verify_bag(bag) == []
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3], ids=["mcap", "sqlite3"])
+def test_a_bag_with_a_topic_of_an_idl_type_is_read(tmp_path, small_set, capsys, storage):
+    """``ros2 bag record -a`` where a vendor's package defines a message in IDL: rosbag2 stores its definition with
+    ``#include`` lines and include guards, which rosbags' IDL parser refuses, and rosbags refused the whole sqlite3
+    bag ("Could not parse").  The hand's topics are read, the vendor's counted; ``t42 bag info`` lists it."""
+    bag, written = idl_topic_bag(tmp_path / "bag", small_set, storage)
+    for path in (bag, next(bag.glob("bag.[dm]*"))):
+        got = read_quietly(path)
+        assert len(got) == len(small_set)
+        for traj, want in zip(got, small_set, strict=True):
+            assert np.array_equal(traj.states, want.states) and np.array_equal(traj.actions, want.actions)
+        info = bag_info(path)
+        assert info["topics"][IDL_TOPIC] == {"type": FOO, "count": len(written)} and info["episodes"] == len(small_set)
+    assert verify_bag(bag) == []
+    assert main(["bag", "info", str(bag)]) == 0
+    assert f"{IDL_TOPIC}: {{'type': '{FOO}', 'count': {len(written)}}}" in capsys.readouterr().out
 
 
 def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):

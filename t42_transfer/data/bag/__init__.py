@@ -3,8 +3,8 @@
 One module per job: :mod:`.writer` writes bags, :mod:`.steps` groups arriving messages into steps, :mod:`.recording`
 keeps a recorder's bag bookkeeping (free names, a removed file, log times after a clock restart, pauses),
 :mod:`.storage` reads storage files (MCAP record by record, sqlite3 through :mod:`.db3`'s rosbags reader, which
-:mod:`.playback` opens bags with too), :mod:`.metadata`
-parses ``metadata.yaml`` and ``custom_data``,
+:mod:`.playback` opens bags with too), :mod:`.idl` puts rosbag2's IDL definitions in the form rosbags reads,
+:mod:`.metadata` parses ``metadata.yaml`` and ``custom_data``,
 :mod:`.episodes` turns hand messages into episodes, :mod:`.reader` reads a bag whole, :mod:`.playback` opens one
 to play in time order and paces it, and :mod:`.repair` rewrites a killed writer's bag.  The names here are the
 package's public API.

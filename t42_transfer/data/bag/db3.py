@@ -1,4 +1,5 @@
-"""The one rosbags reader every bag is opened with, its sqlite3 storage taking a topic stored without a definition.
+"""The one rosbags reader every bag is opened with, its sqlite3 storage taking a topic stored without a definition,
+and a topic of an IDL-defined type read from its definition as rosbag2 stores it.
 
 ``ros2 bag record`` stores a topic whose ``.msg`` it cannot find with an empty message definition (encoding
 ``""``); rosbags 0.11's sqlite3 storage has no entry for that encoding and refuses the whole bag (``KeyError: ''``),
@@ -6,6 +7,10 @@ while its MCAP storage takes such a schema as definition-less.  :class:`BagReade
 sqlite3 files are opened by :class:`_Db3`: it lists a file's connections from its ``topics`` and
 ``message_definitions`` tables itself, a definition of no known encoding given as none (that topic is not
 decodable from the bag, and the hand never needs it), and leaves opening, messages and closing to rosbags.
+
+rosbag2 stores an IDL definition with ``#include`` lines (and a vendor's include guards), which rosbags' IDL parser
+refuses, and ``AnyReader`` the whole bag with it ("Could not parse"): every storage's IDL definitions are given to
+rosbags as :func:`~.idl.rosbags_idl` gives them, those lines comments, so such a topic decodes from the bag.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
 import msg_adapters as ma
+from t42_transfer.data.bag.idl import rosbags_idl
 
 _FORMATS = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
 _NO_DEFINITION = MessageDefinition(MessageDefinitionFormat.NONE, "")
@@ -66,6 +72,20 @@ class _Directory(DirectoryReader):
 
 class _Reader(Reader):
     STORAGE_PLUGINS: Mapping = {**Reader.STORAGE_PLUGINS, "dir": _Directory, ".db3": _Db3}
+
+    def open(self) -> None:
+        """Open the storage; its IDL definitions in the form rosbags parses (``AnyReader`` parses them next)."""
+        super().open()
+        self.storage.connections = [_readable(conn) for conn in self.storage.connections]
+
+
+def _readable(conn: Connection) -> Connection:
+    """``conn`` with an IDL definition as rosbags parses it (the messages are matched by id, topic and type, never
+    by definition)."""
+    if conn.msgdef.format != MessageDefinitionFormat.IDL:
+        return conn
+    return conn._replace(msgdef=MessageDefinition(MessageDefinitionFormat.IDL,
+                                                  rosbags_idl(conn.msgdef.data, conn.msgtype)))
 
 
 class BagReader(AnyReader):

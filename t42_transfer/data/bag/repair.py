@@ -25,7 +25,6 @@ or a directory where a file belongs is refused, never opened or replaced.
 from __future__ import annotations
 
 import dataclasses
-import re
 import stat
 import tempfile
 from pathlib import Path
@@ -35,9 +34,10 @@ import yaml
 from mcap.records import Channel, Message, Metadata, Schema
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
-from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from msg_adapters import TYPESTORE
+from t42_transfer.data.bag.idl import idl_types, rosbags_idl
 from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
 from t42_transfer.data.bag.reader import refusals
 from t42_transfer.data.bag.storage import (
@@ -151,13 +151,6 @@ def _problems(bag: Path, raw: RawBag) -> tuple[BagMetadata | None, list[str]]:
     return meta, [*problems, *metadata_mismatches(bag, meta, raw)]
 
 
-_SEPARATOR = "=" * 80 + "\n"
-"""What separates the definitions of a type and its dependencies in an MCAP schema (rosbag2's, and rosbags')."""
-_DIRECTIVE = re.compile(r"^([ \t]*)#", re.MULTILINE)
-"""A preprocessor line of IDL (``#include``, an include guard): rosbags' parser takes none, and rosbag2 writes one
-for each type a type uses (whose IDL the schema holds too), so they are carried over as comments."""
-
-
 def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
     """``add_connection``'s type arguments for ``channel``, or why its type cannot be carried over.
 
@@ -178,12 +171,9 @@ def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
         text = schema.data.decode()
         if schema.encoding == "ros2msg":
             types = get_types_from_msg(text, schema.name)
-        else:  # rosbags' writer tells IDL from msg by this header; rosbag2 writes it before each type's IDL
-            text = text if text.startswith(f"{_SEPARATOR}IDL: ") else f"{_SEPARATOR}IDL: {schema.name}\n{text}"
-            text = _DIRECTIVE.sub(r"\1// #", text)
-            types = {}
-            for part in text.split(_SEPARATOR)[1:]:
-                types.update(get_types_from_idl(part.partition("\n")[2]))
+        else:  # written with rosbag2's header, its #include lines and include guards kept as comments
+            text = rosbags_idl(text, schema.name)
+            types = idl_types(text)
         store = get_typestore(Stores.EMPTY)
         store.register({**TYPESTORE.fielddefs, **types})  # the file's definitions first, Jazzy's for the rest
         rihs01 = store.hash_rihs01(schema.name)
