@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from bag_builders import fixture_copy
+from bag_builders import FOO, IDL_TOPIC, fixture_copy, idl_topic_bag
 from foxglove_probe import SUBPROTOCOLS
 from fuzz_harness import DecoderWorker
 from ros_rig import REPO, stop
@@ -100,6 +100,22 @@ def test_a_client_plays_pauses_and_seeks_a_bag(bag):
             _drive(Client(ws), poses)
     finally:
         server.close()
+
+
+def test_a_topic_of_a_type_defined_in_idl_is_offered_with_its_idl(tmp_path, small_set):
+    """Foxglove decodes a channel by its schema encoding: an IDL definition sent as ros2msg would not parse."""
+    from websockets.sync.client import connect
+
+    bag, _ = idl_topic_bag(tmp_path / "idl_bag", small_set)
+    server = BagServer(bag, port=0)
+    try:
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+            channels = Client(ws).channels
+    finally:
+        server.close()
+    idl, pose = channels[IDL_TOPIC], channels[ma.OBJECT_POSE_TOPIC]
+    assert idl["schemaName"] == FOO and idl["schemaEncoding"] == "ros2idl" and f"IDL: {FOO}" in idl["schema"]
+    assert "module my_msgs" in idl["schema"] and pose["schemaEncoding"] == "ros2msg"
 
 
 def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:

@@ -1,6 +1,7 @@
 """``t42 view --bag BAG``: a recorded bag over the Foxglove WebSocket protocol, with play, pause, speed and seek.
 
-Each bag topic is a channel (``cdr``, the ``ros2msg`` definition the bag stores, else the one this machine knows);
+Each bag topic is a channel (``cdr``, the definition the bag stores, ``ros2msg`` or ``ros2idl``, else the one this
+machine knows);
 messages go out as the bag holds them, at their log times (the server's time follows them), paced by a
 :class:`~t42_transfer.data.bag.playback.Timeline`.  The server advertises the bag's time range and the PlaybackControl
 capability: the Foxglove app's play/pause button, speed and seek bar drive it.  ``/view/markers`` is added, drawn as
@@ -27,6 +28,7 @@ from foxglove.websocket import (
     PlaybackStatus,
 )
 from rclpy.serialization import serialize_message
+from rosbags.interfaces import MessageDefinitionFormat
 
 import msg_adapters as ma
 from msg_adapters import names
@@ -45,10 +47,13 @@ _TIME_EVERY_NS = 50_000_000
 
 
 def _schema(conn: Any) -> foxglove.Schema:
+    """The definition the bag stores, in its own encoding (``ros2idl`` for a type defined in IDL), else the one
+    this machine knows (``ros2msg``)."""
     text = conn.msgdef.data if hasattr(conn.msgdef, "data") else conn.msgdef
+    idl = getattr(conn.msgdef, "format", None) == MessageDefinitionFormat.IDL
     if not text:
-        text = message_definition(conn.msgtype)
-    return foxglove.Schema(name=conn.msgtype, encoding="ros2msg", data=str(text).encode())
+        text, idl = message_definition(conn.msgtype), False
+    return foxglove.Schema(name=conn.msgtype, encoding="ros2idl" if idl else "ros2msg", data=str(text).encode())
 
 
 class BagServer:
