@@ -193,7 +193,8 @@ CASES = {
     "collect --hold-max 1000000000": (COLLECT + " --hold-max 1000000000", "hold_max"),
     "collect --seed -1": (COLLECT + " --seed -1", "--seed"),
     "collect --policy bogus": (COLLECT + " --policy bogus", "--policy must be one of random, sustained"),
-    "collect sustained --hold-max 50": (COLLECT + " --policy sustained --hold-max 50", "hold_min <= hold_max"),
+    "collect sustained --hold-max 50": (COLLECT + " --policy sustained --hold-max 50",
+                                        "--hold-max must be at least 120 with --policy sustained"),
     "collect --hand bogus": (COLLECT + " --hand bogus", "bogus"),
     "collect --hand family-x": (COLLECT + " --hand family-x", "family-x"),
     "collect --storage bogus": (COLLECT + " --storage bogus", "--storage"),
@@ -208,6 +209,7 @@ CASES = {
     "compare-real --moving-threshold 0": (
         "sim compare-real --real-dir {dir} --moving-threshold 0", "--moving-threshold"),
     "compare-real --moving-window 0": ("sim compare-real --real-dir {dir} --moving-window 0", "--moving-window"),
+    "compare-real --moving-window 100": ("sim compare-real --real-dir {dir} --moving-window 100", "--moving-window"),
     "compare-real --out-dir is a file": ("sim compare-real --real-dir {dir} --out-dir {file}", "{file}"),
     # t42 experiment (the config's own cases are in the next test)
     "experiment config missing": ("experiment {missing} --out {out}", "{missing}"),

@@ -116,18 +116,21 @@ def test_transmission_friction_holds_the_fingers_before_the_object_moves() -> No
 
     actions = np.array([(1.0, -1.0)] * 60 + [(-1.0, 1.0)] * 60)
     waits = {}
-    for friction in (0.0, 10.0):
-        hand = SimulatedHand(variant("source").with_(tendon_friction_n=friction))
+    for friction in ({}, {"tendon_friction_n": 10.0}, {"joint_friction_nm": 0.05}):
+        hand = SimulatedHand(variant("source").with_(**friction))
         path = run_episode(hand, actions, 0)
         assert len(path) == len(actions)
         onsets = held_move_onsets("sim", TrajectorySet([path]), threshold_mm=2.0, window=10, min_steps=50)
-        waits[friction] = [o.onset_steps for o in onsets]
-    assert waits[0.0] == [1.0, 1.0] and min(waits[10.0]) >= 3
+        waits[tuple(friction)] = [o.onset_steps for o in onsets]
+    assert waits[()] == [1.0, 1.0]
+    assert min(waits[("tendon_friction_n",)]) >= 3 and min(waits[("joint_friction_nm",)]) >= 3
     for name in ("source", "target", "target_abrupt"):  # the named hands have none: their model is as before
         assert "frictionloss" not in hand_mjcf(variant(name), (0.0, 90.0))
-    for bad in (-1.0, float("nan"), "1"):
-        with pytest.raises(ValueError, match="tendon_friction_n"):
-            variant("source").with_(tendon_friction_n=bad)
+    assert variant("source").with_(joint_friction_nm=np.float32(0.01)).joint_friction_nm == np.float32(0.01)
+    for field in ("tendon_friction_n", "joint_friction_nm"):
+        for bad in (-1.0, float("nan"), "1", True):
+            with pytest.raises(ValueError, match=field):
+                variant("source").with_(**{field: bad})
 
 
 def test_variants_are_reproducible_and_distinct() -> None:

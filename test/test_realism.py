@@ -159,6 +159,29 @@ def test_held_move_onsets_leave_out_a_speed_the_run_cannot_measure() -> None:
             held_move_onsets("made", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 100, 0.2)])]), **bad)
 
 
+def test_held_move_onsets_reach_the_holds_last_state_and_no_further() -> None:
+    # Speeds are exact binary fractions, so a threshold or a window's end falls on the step it is meant to.
+    # A 100-step hold whose object passes 2 mm only at the hold's last state (step 100): found, with no speed. The
+    # next hold passes 2 mm at step 100 too (84 still, then 16 steps of 0.125 mm); the hold after it moves fast from
+    # its first step, and none of that may leak into the holds before it.
+    path = _waiting_path([((-1.0, 1.0), 100, 99, 2.5), ((1.0, -1.0), 100, 84, 0.125), ((1.0, 1.0), 100, 0, 9.0)])
+    rows = {r.action: r for r in held_move_onsets("made", TrajectorySet([path]), window=20, min_steps=100)}
+    for late in (rows[(-1.0, 1.0)], rows[(1.0, -1.0)]):
+        assert late.onset_steps == 100 and late.moving_runs == 0
+    # Onset at step 80 (64 still, 16 steps of 0.125): the 20-step window ends exactly on the hold's last state.
+    path = _waiting_path([((1.0, -1.0), 100, 64, 0.125), ((1.0, 1.0), 100, 0, 9.0)])
+    (edge, _) = held_move_onsets("made", TrajectorySet([path]), window=20, min_steps=100)
+    assert edge.onset_steps == 80 and edge.moving_runs == 1 and edge.moving_speed_mm_per_step == 0.125
+
+
+def test_held_move_onsets_speed_starts_at_the_onset() -> None:
+    # 40 steps still, 20 steps at 0.0625 mm/step (1.25 mm: under the threshold), then 0.5 mm/step: 2 mm out at step
+    # 62, and the 10 steps from there move 5 mm (from the hold's start, the mean would be lower).
+    path = _waiting_path([((-1.0, 1.0), 60, 40, 0.0625), ((-1.0, 1.0), 60, 0, 0.5)])
+    (row,) = held_move_onsets("made", TrajectorySet([path]), window=10, min_steps=100)
+    assert row.onset_steps == 62 and row.moving_speed_mm_per_step == 0.5
+
+
 def test_held_onsets_table_and_figure(tmp_path) -> None:
     real = held_move_onsets("real A", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 40, 0.1)])]))
     sim = held_move_onsets("sim source", TrajectorySet([_waiting_path([((-1.0, 1.0), 120, 0, 2.5)])]))

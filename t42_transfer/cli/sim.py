@@ -16,6 +16,10 @@ def _cmd_sim_collect(args: argparse.Namespace) -> int:
 
     if args.policy not in POLICIES:
         raise ValueError(f"--policy must be one of {', '.join(POLICIES)}, got {args.policy!r}")
+    shortest = getattr(POLICIES[args.policy], "hold_min", 1)
+    if args.hold_max is not None and args.hold_max < shortest:
+        raise ValueError(f"--hold-max must be at least {shortest} with --policy {args.policy} (its shortest hold), "
+                         f"got {args.hold_max}")
     hold = {} if args.hold_max is None else {"hold_max": args.hold_max}
     policy = POLICIES[args.policy](**hold)
     check_collection(args.hand, args.episodes, args.steps, args.workers, policy.hold_max)
@@ -106,8 +110,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
              "tracker's positions move in steps of about 0.4 mm)",
     )
     cmp_.add_argument(
-        "--moving-window", type=int_arg(1), default=20,
-        help="steps, from that point, over which the moving speed is measured (default 20)",
+        "--moving-window", type=int_arg(1, 99), default=20,
+        help="steps, from that point, over which the moving speed is measured (default 20; under the 100 steps "
+             "a move must be held)",
     )
     cmp_.add_argument("--out-dir", type=Path, default=None, help="write table (md, json) and figure here")
     cmp_.set_defaults(func=_cmd_sim_compare_real)

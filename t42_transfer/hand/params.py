@@ -9,6 +9,7 @@ draws a reproducible copy around the nominal design.
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,7 +105,7 @@ class HandParams:
     def __post_init__(self) -> None:
         for name in ("tendon_friction_n", "joint_friction_nm"):
             value = getattr(self, name)
-            if not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
+            if isinstance(value, bool) or not (isinstance(value, numbers.Real) and np.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
     def with_(self, **changes: object) -> HandParams:

@@ -327,6 +327,9 @@ def plot_held_onsets(onsets: Sequence[HeldMoveOnset], path: Path) -> Path:
         xs = [i + (k - (len(sets) - 1) / 2) * width for i, _ in shown]
         style = {"color": f"C{k}", "hatch": "" if name.startswith("real") else "//"}
         ax_wait.bar(xs, [np.nan_to_num(r.onset_steps) for _, r in shown], width, label=name, **style)
+        for x, (_, r) in zip(xs, shown, strict=True):
+            if np.isnan(r.onset_steps):  # no bar would read as "moves at once"
+                ax_wait.text(x, 0, "never", rotation=90, ha="center", va="bottom", fontsize=7, color=f"C{k}")
         ax_speed.bar(xs, [max(np.nan_to_num(r.moving_speed_mm_per_step), 1e-3) for _, r in shown], width, **style)
     first = onsets[0] if onsets else None
     ax_speed.set_xticks(range(len(moves)), [f"[{a:g}, {b:g}]" for a, b in moves])

@@ -196,6 +196,9 @@ def main() -> None:
         fitted = sorted(scored(candidates, fit_set), key=lambda r: r["score"])
         checked = scored([{k: r[k] for k in args.free} for r in fitted[: args.best]], check_set)
     for f, c in zip(fitted, checked, strict=False):
+        if "failed" in f or "failed" in c:  # the best are scored first; a failure can only be a checked one
+            print(f"fit {f['score']:.3f}: {f.get('failed') or 'checked: ' + c['failed']}")
+            continue
         print(f"fit {f['score']:.3f} (speed {f['speed_term']:.2f}, load {f['load_term']:.2f}, short "
               f"{f['short_fraction']:.2f}, grasp y {f['grasp_y_mm']}) check {c['score']:.3f} (speed "
               f"{c['speed_term']:.2f}, load {c['load_term']:.2f}) | " + ", ".join(f"{k} {f[k]:.4g}" for k in args.free))
@@ -206,7 +209,7 @@ def main() -> None:
                "fitted": fitted, "checked": checked}
     for row in (*fitted, *checked):  # JSON has no infinity: a candidate that failed has no score
         row["score"] = None if math.isinf(row["score"]) else row["score"]
-    args.out.write_text(json.dumps(summary, indent=2) + "\n")
+    args.out.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
 
 
 if __name__ == "__main__":

@@ -79,14 +79,15 @@ def main() -> None:
         print(f"{head}: path steps {row['path_steps']}, grasp {row['grasp_state']}", flush=True)
         rates = {tuple(r["action"]): r for r in row["held_moves"]}
         for o in row["onsets"]:
-            move = tuple(o["action"])
+            move, steps, speed = tuple(o["action"]), o["onset_steps"], o["moving_speed_mm_per_step"]
             want, rate, want_rate = real_onsets[move], rates.get(move), real_rates[move]
-            ratio = o["moving_speed_mm_per_step"] / want.moving_speed_mm_per_step
-            loads = (f"loads {rate['load1_per_step']:+.1f} {rate['load2_per_step']:+.1f} /step (real "
+            waited = "never moved 2 mm" if steps is None else f"{steps:g} steps to move 2 mm"
+            ratio = "" if speed is None or math.isnan(want.moving_speed_mm_per_step) else (
+                f" ({speed / want.moving_speed_mm_per_step:.1f}x real)")
+            then = "" if speed is None else f", then {speed:.3f} mm/step{ratio}"
+            loads = (f"; loads {rate['load1_per_step']:+.1f} {rate['load2_per_step']:+.1f} /step (real "
                      f"{want_rate.load1_per_step:+.1f} {want_rate.load2_per_step:+.1f})" if rate else "")
-            print(f"  {list(move)}: {o['onset_steps']:g} steps to move 2 mm (real {want.onset_steps:g}), then "
-                  f"{o['moving_speed_mm_per_step']:.3f} mm/step ({'' if math.isnan(ratio) else f'{ratio:.1f}x'} "
-                  f"real); {loads}", flush=True)
+            print(f"  {list(move)}: {waited} (real {want.onset_steps:g}){then}{loads}", flush=True)
     summary = {"unit_rad": args.unit, "fit_hand": "A",
                "real_onsets": rows_as_dicts(list(real_onsets.values())), "settings": rows}
     args.out.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")

@@ -102,10 +102,10 @@ def main() -> None:
             print(f"  {list(move)}: {m['speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real), "
                   f"loads {m['load1_per_step']:+.2f} {m['load2_per_step']:+.2f} /step ({m['runs']} runs)")
         for o in row["onsets"]:
-            move = tuple(o["action"])
-            ratio = o["moving_speed_mm_per_step"] / moving_reference[move]
-            print(f"  {list(move)}: {o['onset_steps']:g} steps to move 2 mm (real {real_onset[move]:g}), "
-                  f"then {o['moving_speed_mm_per_step']:.3f} mm/step ({ratio:.1f}x real)")
+            move, steps, speed = tuple(o["action"]), o["onset_steps"], o["moving_speed_mm_per_step"]
+            waited = "never moved 2 mm" if steps is None else f"{steps:g} steps to move 2 mm"
+            then = "" if speed is None else f", then {speed:.3f} mm/step ({speed / moving_reference[move]:.1f}x real)"
+            print(f"  {list(move)}: {waited} (real {real_onset[move]:g}){then}")
     real_speeds = {str(list(move)): speed for move, speed in reference.items()}
     real_moving = {str(list(move)): None if np.isnan(speed) else speed for move, speed in moving_reference.items()}
     summary = {"window": args.window, "real_speed_mm_per_step": real_speeds,
