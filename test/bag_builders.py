@@ -292,3 +292,34 @@ def idl_topic_bag(path: Path, data: TrajectorySet, storage=StoragePlugin.MCAP) -
                 written.append(foo_message(store, index))
                 writer.write(foo, stamp, store.serialize_cdr(written[-1], FOO))
     return path, written
+
+
+BROKEN_TOPIC = "/vendor/broken"
+BAR = "my_msgs/msg/Bar"
+"""A type defined in .msg (a lab's package) that Jazzy's store lacks."""
+BROKEN = {
+    "ros2msg": (BAR, "int32 id\nfloat64 force\nmy_msgs/Fi"),
+    "ros2idl": (FOO, rosbag2_idl(IDL)[:640]),
+    "ros2idl, a part unheaded": (FOO, rosbag2_idl(IDL).replace(f"IDL: {FINGER}", f"// {FINGER}")),
+}
+"""Stored definitions rosbags cannot parse, by kind, with their type: a ``.msg`` definition cut off mid-line, an IDL
+one cut off in its struct, and an IDL one whose second type lost its ``IDL: <type>`` header line."""
+
+
+def broken_definition_bag(path: Path, data: TrajectorySet, storage=StoragePlugin.MCAP,
+                          kind: str = "ros2msg") -> tuple[Path, int]:
+    """A ``ros2 bag record -a`` bag of ``data``'s hand messages and BROKEN_TOPIC, whose stored definition (``kind``,
+    one of :data:`BROKEN`) does not parse; and how many messages BROKEN_TOPIC holds (one after every 10th hand
+    message, each bytes of no particular type: nothing reads them)."""
+    msgtype, text = BROKEN[kind]
+    assert text.startswith("=" * 80 + "\nIDL: ") == (kind != "ros2msg")  # how rosbags' writer tells the encoding
+    count = 0
+    with JazzyWriter(path, version=9, storage_plugin=storage) as writer:
+        conns = {t: writer.add_connection(t, ma.HAND_TOPICS[t], typestore=ma.TYPESTORE) for t in ma.HAND_TOPICS}
+        broken = writer.add_connection(BROKEN_TOPIC, msgtype, msgdef=text, rihs01="RIHS01_" + "0" * 64)
+        for index, (topic, stamp, msg) in enumerate(m for traj in data for m in step_messages(traj)):
+            writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+            if index % 10 == 0:
+                writer.write(broken, stamp, b"\x00\x01\x00\x00" + index.to_bytes(4, "little"))
+                count += 1
+    return path, count

@@ -10,10 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bag_builders import (
+    BROKEN,
+    BROKEN_TOPIC,
     FOO,
     IDL_TOPIC,
     LOG,
     assert_same,
+    broken_definition_bag,
     damaged_copy,
     fixture_copy,
     idl_topic_bag,
@@ -109,6 +112,48 @@ def test_a_bag_with_a_topic_of_an_idl_type_is_read(tmp_path, small_set, capsys, 
     assert verify_bag(bag) == []
     assert main(["bag", "info", str(bag)]) == 0
     assert f"{IDL_TOPIC}: {{'type': '{FOO}', 'count': {len(written)}}}" in capsys.readouterr().out
+
+
+def undecodable_said(said: list[warnings.WarningMessage], path: Path, msgtype: str) -> str:
+    """The one warning in ``said``: that BROKEN_TOPIC of ``path`` is not decodable from the bag, and why (rosbags'
+    parse error, its type and where it stopped, in one short line)."""
+    assert len(said) == 1, [str(w.message) for w in said]
+    text = str(said[0].message)
+    assert text.startswith(f"{path}: {BROKEN_TOPIC} ({msgtype}) is not decodable from the bag: its stored "
+                           "definition cannot be parsed (TypesysError: Could not parse"), text
+    assert text.isprintable() and len(text) < len(str(path)) + 240, text  # (rosbags' error quotes the whole text)
+    return text
+
+
+@pytest.mark.parametrize("kind", list(BROKEN))
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3], ids=["mcap", "sqlite3"])
+def test_a_topic_whose_stored_definition_does_not_parse_is_named_once_and_the_hand_read(tmp_path, small_set, capsys,
+                                                                                        storage, kind):
+    """``ros2 bag record -a`` where one topic's stored definition does not parse (cut off, malformed): rosbags refused
+    the whole sqlite3 bag ("Could not parse").  That topic is taken as one stored without a definition: the hand's
+    topics are read, it is counted, and a warning names it once, with why; ``t42 bag info`` lists it."""
+    bag, count = broken_definition_bag(tmp_path / "bag", small_set, storage, kind)
+    msgtype = BROKEN[kind][0]
+    for path in (bag, next(bag.glob("bag.[dm]*"))):
+        got = {}
+        for read in (read_bag, bag_info):
+            with warnings.catch_warnings(record=True) as said:
+                warnings.simplefilter("always")
+                got[read] = read(path)
+            text = undecodable_said(said, path, msgtype)
+            if kind == "ros2msg":
+                assert text.endswith("(TypesysError: Could not parse at 'my_msgs/Fi')"), text
+        for traj, want in zip(got[read_bag], small_set, strict=True):
+            assert np.array_equal(traj.states, want.states) and np.array_equal(traj.actions, want.actions)
+        info = got[bag_info]
+        assert info["topics"][BROKEN_TOPIC] == {"type": msgtype, "count": count}
+        assert info["episodes"] == len(small_set) and info["no_hand_episodes"] is None
+    assert verify_bag(bag) == []
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["bag", "info", str(bag)]) == 0
+    undecodable_said(said, bag, msgtype)
+    assert f"{BROKEN_TOPIC}: {{'type': '{msgtype}', 'count': {count}}}" in capsys.readouterr().out
 
 
 def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):

@@ -11,10 +11,17 @@ decodable from the bag, and the hand never needs it), and leaves opening, messag
 rosbag2 stores an IDL definition with ``#include`` lines (and a vendor's include guards), which rosbags' IDL parser
 refuses, and ``AnyReader`` the whole bag with it ("Could not parse"): every storage's IDL definitions are given to
 rosbags as :func:`~.idl.rosbags_idl` gives them, those lines comments, so such a topic decodes from the bag.
+
+``AnyReader`` parses every definition it is given (of a type the project's typestore knows too), and refuses the
+whole bag over one it cannot parse (a definition cut off, or otherwise malformed, in a ``ros2 bag record -a`` of
+topics the hand never needs).  :func:`readable_definition` parses each first, as ``AnyReader`` will, and gives one
+that does not parse as none: that topic is not decodable from the bag, like one stored without a definition.
+:attr:`BagReader.undecodable` says which and why, for its users to warn of (the reader says nothing itself).
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -24,14 +31,17 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import ReaderMetadata, parse_qos
 from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+from rosbags.typesys import get_types_from_msg
 
 import msg_adapters as ma
-from t42_transfer.data.bag.idl import rosbags_idl
+from t42_transfer.data.bag.idl import idl_types, rosbags_idl
 
 _FORMATS = {"ros2msg": MessageDefinitionFormat.MSG, "ros2idl": MessageDefinitionFormat.IDL}
 _NO_DEFINITION = MessageDefinition(MessageDefinitionFormat.NONE, "")
 _NO_TIMES = (0, 2**63 - 1, 0)
 """rosbags' duration, start and end of a storage without messages."""
+_SHOWN = 40
+"""At most this much of the text where parsing stopped is quoted in why a definition cannot be parsed."""
 
 
 class _Db3(Sqlite3Reader):
@@ -52,8 +62,7 @@ class _Db3(Sqlite3Reader):
         if "message_definitions" in tables:
             for msgtype, encoding, text in db.execute(
                     "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions ORDER BY id"):
-                known = _FORMATS.get(encoding)
-                definitions.setdefault(msgtype, _NO_DEFINITION if known is None else MessageDefinition(known, text))
+                definitions.setdefault(msgtype, stored_definition(encoding, text))
         self.connections = [
             Connection(cid, topic, msgtype, definitions.get(msgtype, _NO_DEFINITION), rihs01 or "", count,
                        ConnectionExtRosbag2(serialization, parse_qos(offered) if offered else []), self)
@@ -74,18 +83,61 @@ class _Reader(Reader):
     STORAGE_PLUGINS: Mapping = {**Reader.STORAGE_PLUGINS, "dir": _Directory, ".db3": _Db3}
 
     def open(self) -> None:
-        """Open the storage; its IDL definitions in the form rosbags parses (``AnyReader`` parses them next)."""
+        """Open the storage; its definitions as :func:`readable_definition` gives them (``AnyReader`` parses them
+        next), and :attr:`undecodable` the topics whose definition does not parse."""
+        self.undecodable: dict[str, str] = {}
+        """Why each topic whose stored definition does not parse is not decodable from the bag, a line each."""
         super().open()
-        self.storage.connections = [_readable(conn) for conn in self.storage.connections]
+        connections = []
+        for conn in self.storage.connections:  # (messages are matched by id, topic and type, never by definition)
+            msgdef, why = readable_definition(conn.msgdef, conn.msgtype)
+            if why:
+                self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, why))
+            connections.append(conn._replace(msgdef=msgdef))
+        self.storage.connections = connections
 
 
-def _readable(conn: Connection) -> Connection:
-    """``conn`` with an IDL definition as rosbags parses it (the messages are matched by id, topic and type, never
-    by definition)."""
-    if conn.msgdef.format != MessageDefinitionFormat.IDL:
-        return conn
-    return conn._replace(msgdef=MessageDefinition(MessageDefinitionFormat.IDL,
-                                                  rosbags_idl(conn.msgdef.data, conn.msgtype)))
+@functools.lru_cache(maxsize=256)  # the same definitions come in bag after bag, and each time a bag is opened
+def readable_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageDefinition, str]:
+    """``msgdef``, a stored definition of ``msgtype``, as rosbags' ``AnyReader`` is given it (an IDL one as
+    :func:`~.idl.rosbags_idl` gives it) and ""; or no definition and why ``msgdef`` cannot be parsed, one line.
+
+    Parsed as ``AnyReader`` parses it: a ``.msg`` one by rosbags' ``get_types_from_msg``, an IDL one by
+    :func:`~.idl.idl_types`."""
+    if msgdef.format == MessageDefinitionFormat.NONE:
+        return msgdef, ""
+    try:
+        if msgdef.format == MessageDefinitionFormat.IDL:
+            msgdef = MessageDefinition(MessageDefinitionFormat.IDL, rosbags_idl(msgdef.data, msgtype))
+            idl_types(msgdef.data)
+        else:
+            get_types_from_msg(msgdef.data, msgtype)
+    except Exception as err:  # rosbags raises many types for what it cannot parse
+        return _NO_DEFINITION, f"its stored definition cannot be parsed ({_short(err)})"
+    return msgdef, ""
+
+
+def stored_definition(encoding: str, text: str | bytes) -> MessageDefinition:
+    """The definition stored with ``encoding`` (rosbag2's ``ros2msg`` or ``ros2idl``; any other is none)."""
+    known = _FORMATS.get(encoding)
+    if known is None:
+        return _NO_DEFINITION
+    return MessageDefinition(known, text.decode(errors="replace") if isinstance(text, bytes) else text)
+
+
+def undecodable_line(topic: str, msgtype: str, why: str) -> str:
+    """What a warning says of ``topic`` (of ``msgtype``), not decodable from the bag for ``why``."""
+    return f"{topic} ({msgtype}) is not decodable from the bag: {why}"
+
+
+def _short(err: Exception) -> str:
+    """``err``'s type and message, one short line.  rosbags' parse error quotes the whole definition, then the
+    offset and the text from there: it is said as where parsing stopped."""
+    lines = str(err).splitlines() or [""]
+    text = "".join(c if c.isprintable() else "?" for c in lines[0].rstrip(":"))[:100]
+    if len(lines) > 3 and lines[2].strip().isdigit() and lines[3].strip():
+        text += f" at {lines[3].strip()[:_SHOWN]!r}"
+    return f"{type(err).__name__}: {text}"
 
 
 class BagReader(AnyReader):
@@ -95,3 +147,13 @@ class BagReader(AnyReader):
     def __init__(self, paths: Sequence[Path]) -> None:
         super().__init__(paths, default_typestore=ma.TYPESTORE)
         self.readers = [_Reader(path) for path in paths]
+
+    @property
+    def undecodable(self) -> dict[str, str]:
+        """Of the open bag, why each topic whose stored definition does not parse is not decodable from it (a line
+        each, for a warning); those topics read as if stored without a definition."""
+        lines: dict[str, str] = {}
+        for reader in self.readers:
+            for topic, line in getattr(reader, "undecodable", {}).items():
+                lines.setdefault(topic, line)
+        return lines

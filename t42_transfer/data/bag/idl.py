@@ -14,12 +14,14 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from rosbags.typesys import get_types_from_idl
+from rosbags.typesys import TypesysError, get_types_from_idl
 
 SEPARATOR = "=" * 80 + "\n"
 """What separates the definitions of a type and its dependencies in a stored definition (rosbag2's, and rosbags')."""
 _DIRECTIVE = re.compile(r"^([ \t]*)#", re.MULTILINE)
 """A preprocessor line of IDL (``#include``, an include guard)."""
+_SHOWN = 40
+"""At most this much of a header line that is not ``IDL: <type>`` is quoted in the error."""
 
 
 def rosbags_idl(text: str, msgtype: str) -> str:
@@ -32,8 +34,12 @@ def rosbags_idl(text: str, msgtype: str) -> str:
 
 def idl_types(text: str) -> dict[str, Any]:
     """The types a definition from :func:`rosbags_idl` defines, each type's IDL parsed as rosbags' ``AnyReader``
-    parses it; rosbags raises what it cannot parse."""
+    parses it; rosbags raises what it cannot parse, and a TypesysError is raised here for a type's IDL without its
+    ``IDL: <type>`` line (``AnyReader`` fails an assertion or an unpacking on it)."""
     types: dict[str, Any] = {}
     for part in text.split(SEPARATOR)[1:]:
-        types.update(get_types_from_idl(part.partition("\n")[2]))
+        header, newline, idl = part.partition("\n")
+        if not (newline and header.startswith("IDL: ")):
+            raise TypesysError(f"Could not parse: no 'IDL: <type>' line at {header[:_SHOWN]!r}")
+        types.update(get_types_from_idl(idl))
     return types

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +18,8 @@ from t42_transfer.data.errors import BagError
 
 
 def open_bag(path: str | Path, purpose: str = "played") -> BagReader:
-    """An open rosbags reader of ``path``, or BagError saying why it cannot be ``purpose`` ("played", "served")."""
+    """An open rosbags reader of ``path``, or BagError saying why it cannot be ``purpose`` ("played", "served"); a
+    warning names each topic whose stored definition does not parse (it is opened as one stored without)."""
     bag = Path(path)
     storage = bag_files(bag)[0]  # before rosbags opens anything: a FIFO where a file belongs would block it forever
     try:
@@ -27,6 +29,8 @@ def open_bag(path: str | Path, purpose: str = "played") -> BagReader:
         hint = ("; an MCAP bag left by a killed recorder needs `t42 bag repair` first" if storage == "mcap" else
                 "")
         raise BagError(bag, f"cannot be {purpose} ({type(err).__name__}: {err}){hint}") from None
+    for line in reader.undecodable.values():
+        warnings.warn(f"{bag}: {line}", stacklevel=2)
     return reader
 
 

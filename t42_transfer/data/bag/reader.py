@@ -130,7 +130,8 @@ def _one_line(text: str) -> str:
 
 
 def _warn_loaded(bag: Path, raw: RawBag) -> None:
-    """Warn of what was read in place of a sound bag; BagError when damage left no hand message."""
+    """Warn of what was read in place of a sound bag, and of each topic not decodable from it; BagError when damage
+    left no hand message."""
     if raw.problem:
         warnings.warn(f"{bag}: {raw.problem}; read its storage files directly", stacklevel=3)
     if raw.stopped:
@@ -141,3 +142,5 @@ def _warn_loaded(bag: Path, raw: RawBag) -> None:
             f"log time {raw.end_ns} ns; {raw.stopped}",
             stacklevel=3,
         )
+    for line in raw.undecodable.values():  # (counted as any topic; the hand's decode with the project's types)
+        warnings.warn(f"{bag}: {line}", stacklevel=3)

@@ -25,7 +25,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from rosbags.rosbag2 import StoragePlugin
 
 import msg_adapters as ma
-from t42_transfer.data.bag.db3 import BagReader
+from t42_transfer.data.bag.db3 import BagReader, readable_definition, stored_definition, undecodable_line
 from t42_transfer.data.bag.hand_topics import HAND_ROLES, written_names
 from t42_transfer.data.bag.metadata import (
     REPAIRED_KEY,
@@ -90,6 +90,9 @@ class RawBag:
     meta: BagMetadata | None = None
     problem: str = ""
     """Why a bag directory's metadata.yaml was not used ("" when it was)."""
+    undecodable: dict[str, str] = dataclasses.field(default_factory=dict)
+    """Why each topic whose stored definition does not parse is not decodable from the bag (a line each, for a
+    warning; its messages are read and counted as any topic's)."""
 
     @property
     def cut(self) -> bool:
@@ -193,9 +196,10 @@ def _read_sqlite3(bag: Path, files: list[Path], meta: BagMetadata | None) -> Raw
                 for conn, log_ns, data in reader.messages(connections=wanted):
                     messages[conn.topic].append((log_ns, bytes(data)))
             start, end = (0, 0) if reader.message_count == 0 else (reader.start_time, reader.end_time - 1)
+            undecodable = reader.undecodable
     except Exception as err:  # rosbags and sqlite3 raise many types on damaged files
         raise BagError(bag, f"rosbags cannot read it ({type(err).__name__}: {err})") from None
-    return RawBag("sqlite3", topics, messages, custom, distro, start, end)
+    return RawBag("sqlite3", topics, messages, custom, distro, start, end, undecodable=undecodable)
 
 
 def _db3_metadata(file: Path) -> tuple[dict[str, str], str | None]:
@@ -264,8 +268,11 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
 
     Counts and log times are those of the messages read, whatever a summary says.
     Without ``meta``, custom_data comes from rosbag2's own metadata record in the MCAP.
+    Each channel's schema is parsed as a sqlite3 bag's definitions are (:class:`~.db3.BagReader`), so a topic not
+    decodable from either is named alike.
     """
     topics: dict[str, _Topic] = {}
+    undecodable: dict[str, str] = {}
     messages: dict[str, list[tuple[int, bytes]]] = {}
     digests = meta.digests if meta else {}
     # Without metadata.yaml the names a recorder wrote down come last, in the MCAP's own metadata record:
@@ -275,19 +282,24 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
     log_times: list[int] = []
     stopped, unsummarized = "", []
     for file in files:
-        schemas: dict[int, str] = {}
+        schemas: dict[int, Schema] = {}
         channels: dict[int, str] = {}
         summarized = False
         with file.open("rb") as stream:
             try:
                 for record in mcap_records(stream, file.stat().st_size):
                     if isinstance(record, Schema):
-                        schemas[record.id] = record.name
+                        schemas[record.id] = record
                     elif isinstance(record, Channel):
                         channels[record.id] = record.topic
                         digest = record.metadata.get("topic_type_hash", digests.get(record.topic, ""))
-                        msgtype = schemas.get(record.schema_id, "(no schema)")
+                        schema = schemas.get(record.schema_id)
+                        msgtype = "(no schema)" if schema is None else schema.name
                         _add_topic(topics, record.topic, msgtype, 0, digest)
+                        why = "" if schema is None else readable_definition(
+                            stored_definition(schema.encoding, schema.data), msgtype)[1]
+                        if why:
+                            undecodable.setdefault(record.topic, undecodable_line(record.topic, msgtype, why))
                         if msgtype in HAND_TYPES:
                             typed.add(record.topic)
                     elif isinstance(record, Message):
@@ -309,7 +321,8 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
         received.sort(key=lambda m: m[0])
     custom, distro = (meta.custom, meta.ros_distro) if meta else record_meta or ({}, None)
     start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
-    return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized))
+    return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized),
+                  undecodable=undecodable)
 
 
 def metadata_mismatches(bag: Path, meta: BagMetadata, raw: RawBag) -> list[str]:
