@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from bag_builders import FOO, IDL_TOPIC, fixture_copy, idl_topic_bag
+from bag_builders import BROKEN_TOPIC, FOO, IDL_TOPIC, broken_definition_bag, fixture_copy, idl_topic_bag
 from foxglove_probe import SUBPROTOCOLS
 from fuzz_harness import DecoderWorker
 from ros_rig import REPO, stop
@@ -116,6 +116,31 @@ def test_a_topic_of_a_type_defined_in_idl_is_offered_with_its_idl(tmp_path, smal
     idl, pose = channels[IDL_TOPIC], channels[ma.OBJECT_POSE_TOPIC]
     assert idl["schemaName"] == FOO and idl["schemaEncoding"] == "ros2idl" and f"IDL: {FOO}" in idl["schema"]
     assert "module my_msgs" in idl["schema"] and pose["schemaEncoding"] == "ros2msg"
+
+
+def test_a_topic_no_client_could_decode_is_left_out_with_a_warning(tmp_path, small_set):
+    """A topic whose stored definition does not parse and whose type this machine does not know either: the bag is
+    served without it (it stopped with a KeyError traceback), as ``t42 bag play`` leaves such a topic out."""
+    import warnings
+
+    from websockets.sync.client import connect
+
+    bag, _ = broken_definition_bag(tmp_path / "bag", small_set)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        server = BagServer(bag, port=0)
+    try:
+        with connect(f"ws://127.0.0.1:{server.port}", subprotocols=SUBPROTOCOLS, max_size=None) as ws:
+            client = Client(ws)
+            client.subscribe(ma.OBJECT_POSE_TOPIC)
+            client.control(PLAY, speed=50.0)
+            client.read(1.0)
+    finally:
+        server.close()
+    why = "neither the bag nor this machine defines its type"
+    assert f"{bag}: not serving {BROKEN_TOPIC} (my_msgs/msg/Bar): {why}" in [str(w.message) for w in said]
+    assert BROKEN_TOPIC not in client.channels and ma.OBJECT_POSE_TOPIC in client.channels
+    assert client.messages  # the hand topics play past the topics left out
 
 
 def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -46,14 +47,31 @@ _TIME_EVERY_NS = 50_000_000
 """The server's time is broadcast at most every 50 ms of bag time (and at each seek)."""
 
 
-def _schema(conn: Any) -> foxglove.Schema:
+def _schema(conn: Any) -> foxglove.Schema | None:
     """The definition the bag stores, in its own encoding (``ros2idl`` for a type defined in IDL), else the one
-    this machine knows (``ros2msg``)."""
+    this machine knows (``ros2msg``); None when neither has one (a client could not decode the topic)."""
     text = conn.msgdef.data if hasattr(conn.msgdef, "data") else conn.msgdef
     idl = getattr(conn.msgdef, "format", None) == MessageDefinitionFormat.IDL
     if not text:
-        text, idl = message_definition(conn.msgtype), False
+        try:
+            text, idl = message_definition(conn.msgtype), False
+        except KeyError:
+            return None
     return foxglove.Schema(name=conn.msgtype, encoding="ros2idl" if idl else "ros2msg", data=str(text).encode())
+
+
+def _channels(connections: Any, context: foxglove.Context, bag: Path) -> dict[int, foxglove.Channel]:
+    """A channel per connection a client can decode; the others are left out with a warning, as ``t42 bag play``
+    leaves out a topic whose message package is missing."""
+    channels = {}
+    for conn in connections:
+        schema = _schema(conn)
+        if schema is None:
+            warnings.warn(f"{bag}: not serving {conn.topic} ({conn.msgtype}): neither the bag nor this machine "
+                          "defines its type", stacklevel=2)
+            continue
+        channels[conn.id] = foxglove.Channel(conn.topic, schema=schema, message_encoding="cdr", context=context)
+    return channels
 
 
 class BagServer:
@@ -68,8 +86,7 @@ class BagServer:
         self.sent = 0
         """Messages sent so far."""
         self._context = foxglove.Context()
-        self._channels = {c.id: foxglove.Channel(c.topic, schema=_schema(c), message_encoding="cdr",
-                                                 context=self._context) for c in self._reader.connections}
+        self._channels = _channels(self._reader.connections, self._context, path)
         self._hand, self._tolerance_mm = variant(hand), float(tolerance_mm)
         self._inputs = SceneInputs()
         markers_schema = foxglove.Schema(name=MARKER_ARRAY, encoding="ros2msg",
@@ -141,7 +158,10 @@ class BagServer:
             conn, log_ns, raw = item
             if not self._wait_until(log_ns):
                 continue  # a seek (or stop) came first: handled above
-            self._channels[conn.id].log(bytes(raw), log_time=log_ns)
+            channel = self._channels.get(conn.id)
+            if channel is None:  # a topic not served (see _channels)
+                continue
+            channel.log(bytes(raw), log_time=log_ns)
             self.sent += 1
             self._draw(conn, log_ns, raw)
             if last_time is None or log_ns - last_time >= _TIME_EVERY_NS:
