@@ -134,7 +134,9 @@ def test_a_topic_no_client_could_decode_is_left_out_with_a_warning(tmp_path, sma
             client = Client(ws)
             client.subscribe(ma.OBJECT_POSE_TOPIC)
             client.control(PLAY, speed=50.0)
-            client.read(1.0)
+            deadline = time.monotonic() + 10.0
+            while not client.messages and time.monotonic() < deadline:
+                client.read(0.05)
     finally:
         server.close()
     why = "neither the bag nor this machine defines its type"
