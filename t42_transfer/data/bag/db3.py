@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import Connection, ConnectionExtRosbag2, MessageDefinition, MessageDefinitionFormat
@@ -107,14 +108,20 @@ def readable_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[Messag
     if msgdef.format == MessageDefinitionFormat.NONE:
         return msgdef, ""
     try:
-        if msgdef.format == MessageDefinitionFormat.IDL:
-            msgdef = MessageDefinition(MessageDefinitionFormat.IDL, rosbags_idl(msgdef.data, msgtype))
-            idl_types(msgdef.data)
-        else:
-            get_types_from_msg(msgdef.data, msgtype)
+        msgdef, _ = parsed_definition(msgdef, msgtype)
     except Exception as err:  # rosbags raises many types for what it cannot parse
         return _NO_DEFINITION, f"its stored definition cannot be parsed ({_short(err)})"
     return msgdef, ""
+
+
+def parsed_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageDefinition, dict[str, Any]]:
+    """``msgdef`` (a ``.msg`` or IDL definition of ``msgtype``) as rosbags is given it, an IDL one as
+    :func:`~.idl.rosbags_idl` gives it, and the types it defines, parsed as ``AnyReader`` parses them; rosbags raises
+    what it cannot parse.  For reading a bag (:func:`readable_definition`) and for repairing one."""
+    if msgdef.format == MessageDefinitionFormat.IDL:
+        msgdef = MessageDefinition(MessageDefinitionFormat.IDL, rosbags_idl(msgdef.data, msgtype))
+        return msgdef, idl_types(msgdef.data)
+    return msgdef, get_types_from_msg(msgdef.data, msgtype)
 
 
 def stored_definition(encoding: str, text: str | bytes) -> MessageDefinition:

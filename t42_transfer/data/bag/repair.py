@@ -34,10 +34,10 @@ import yaml
 from mcap.records import Channel, Message, Metadata, Schema
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2.metadata import parse_qos
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys import Stores, get_typestore
 
 from msg_adapters import TYPESTORE
-from t42_transfer.data.bag.idl import idl_types, rosbags_idl
+from t42_transfer.data.bag.db3 import parsed_definition, stored_definition
 from t42_transfer.data.bag.metadata import REPAIRED_KEY, BagMetadata, metadata_yaml, record_metadata
 from t42_transfer.data.bag.reader import refusals
 from t42_transfer.data.bag.storage import (
@@ -167,13 +167,9 @@ def _typing(channel: Channel, schema: Schema | None) -> dict[str, Any] | str:
     if schema.encoding not in ("ros2msg", "ros2idl") or not schema.data.strip():
         return (f"the file holds no definition of {schema.name} (schema encoding {schema.encoding!r}) and ROS 2 "
                 "Jazzy's types do not include it")
-    try:
-        text = schema.data.decode()
-        if schema.encoding == "ros2msg":
-            types = get_types_from_msg(text, schema.name)
-        else:  # written with rosbag2's header, its #include lines and include guards kept as comments
-            text = rosbags_idl(text, schema.name)
-            types = idl_types(text)
+    try:  # an IDL one written with rosbag2's header, its #include lines and include guards kept as comments
+        msgdef, types = parsed_definition(stored_definition(schema.encoding, schema.data.decode()), schema.name)
+        text = msgdef.data
         store = get_typestore(Stores.EMPTY)
         store.register({**TYPESTORE.fielddefs, **types})  # the file's definitions first, Jazzy's for the rest
         rihs01 = store.hash_rihs01(schema.name)
