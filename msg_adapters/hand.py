@@ -1,7 +1,9 @@
 """Hand messages <-> numpy: the one place that knows the wire units.
 
 Inside the package a state is (x mm, y mm, load1, load2) and an action a pair of
-normalised actuator-angle increments, all float32.  On the wire (REP 103) they are
+normalised actuator-angle increments, all float32: ``unit_rad`` (default the suite's
+``wire.ACTION_UNIT_RAD``) is the step of an action of 1, the unit of the model or data
+the actions belong to.  On the wire (REP 103) they are
 metres, N m, rad and rad/s in float64.  Every conversion goes float32 -> float64 ->
 SI -> float64 -> float32 with one multiplication or division per direction, so a
 value survives the round trip bit for bit (float64 has 29 bits to spare).
@@ -153,34 +155,38 @@ def joint_state_arrays(msg: Any) -> tuple[np.ndarray, np.ndarray | None]:
     return loads, _to_f32("joint state position", position[cols])
 
 
-def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS) -> Any:
+def applied_action_msg(action: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS,
+                       unit_rad: float = wire.ACTION_UNIT_RAD) -> Any:
     """``JointState`` whose velocity (rad/s) is the action held over one control period."""
-    velocity = _pair("action", action) * wire.ACTION_UNIT_RAD / wire.CONTROL_PERIOD_S
+    velocity = _pair("action", action) * wire.checked_action_unit(unit_rad) / wire.CONTROL_PERIOD_S
     return _actuator_state(stamp_ns, kit, velocity=velocity)
 
 
-def applied_action(msg: Any, what: str = "applied action") -> np.ndarray:
+def applied_action(msg: Any, what: str = "applied action", unit_rad: float = wire.ACTION_UNIT_RAD) -> np.ndarray:
     """Normalised action (float32) of an applied-action ``JointState`` (or a command, ``what`` in messages: both
     carry the action as velocity over one control period)."""
+    unit = wire.checked_action_unit(unit_rad)
     cols = _actuator_columns(msg.name, what)
     velocity = _per_joint(msg.velocity, msg.name, f"{what} velocity")
-    return _to_f32(f"{what} velocity", velocity[cols] * wire.CONTROL_PERIOD_S / wire.ACTION_UNIT_RAD)
+    return _to_f32(f"{what} velocity", velocity[cols] * wire.CONTROL_PERIOD_S / unit)
 
 
 def actions_to_joint_trajectory(
-    actions: np.ndarray, start_angles: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS
+    actions: np.ndarray, start_angles: np.ndarray | Sequence[float], stamp_ns: int, kit: MessageKit = ROSBAGS,
+    unit_rad: float = wire.ACTION_UNIT_RAD,
 ) -> Any:
     """``JointTrajectory`` of actuator-angle targets, one per control period.
 
     Point ``k`` (at ``(k + 1) * wire.CONTROL_PERIOD_S``) is where the actuators stand
-    after actions ``0..k``: ``start_angles + wire.ACTION_UNIT_RAD * cumsum(actions)[k]``.
+    after actions ``0..k``: ``start_angles + unit_rad * cumsum(actions)[k]``.
     """
+    unit = wire.checked_action_unit(unit_rad)
     acts = np.asarray(actions, dtype=np.float32)
     if acts.ndim != 2 or acts.shape[1] != wire.ACTION_DIM:
         raise ValueError(f"actions must have shape [T, {wire.ACTION_DIM}], got {acts.shape}")
     if not np.all(np.isfinite(acts)):
         raise ValueError("actions have a non-finite value")
-    targets = _pair("start angles", start_angles) + wire.ACTION_UNIT_RAD * np.cumsum(acts.astype(np.float64), axis=0)
+    targets = _pair("start angles", start_angles) + unit * np.cumsum(acts.astype(np.float64), axis=0)
     points = [
         kit.make(
             "trajectory_msgs/msg/JointTrajectoryPoint",
@@ -196,13 +202,16 @@ def actions_to_joint_trajectory(
                     points=points)
 
 
-def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[float]) -> np.ndarray:
-    """Actions ``[T, 2]`` (float32) that move the actuators from ``start_angles`` through ``msg``'s points.
+def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[float],
+                                unit_rad: float = wire.ACTION_UNIT_RAD) -> np.ndarray:
+    """Actions ``[T, 2]`` (float32, in ``unit_rad``) that move the actuators from ``start_angles`` through ``msg``'s
+    points.
 
     Refuses trajectories the driver cannot execute step by step: missing
     actuators, points not spaced one control period apart, wrong position counts,
     non-finite targets.
     """
+    unit = wire.checked_action_unit(unit_rad)
     cols = _actuator_columns(msg.joint_names, "joint trajectory")
     previous = _pair("start angles", start_angles)
     targets = np.zeros((len(msg.points), wire.ACTION_DIM), np.float64)
@@ -218,5 +227,5 @@ def joint_trajectory_to_actions(msg: Any, start_angles: np.ndarray | Sequence[fl
         if not np.all(np.isfinite(positions[cols])):
             raise ValueError(f"joint trajectory point {k} has a non-finite position: {positions.tolist()}")
         targets[k] = positions[cols]
-    steps = np.diff(np.vstack([previous, targets]), axis=0) / wire.ACTION_UNIT_RAD
+    steps = np.diff(np.vstack([previous, targets]), axis=0) / unit
     return _to_f32("joint trajectory actions", steps)

@@ -15,12 +15,16 @@ from msg_adapters.wire import (
     ACTION_DIM,
     ACTION_UNIT_RAD,
     ACTUATOR_NAMES,
+    AUTHORS_ACTION_UNIT_RAD,
     CONTROL_PERIOD_NS,
     CONTROL_PERIOD_S,
     FRAME_ID,
     LATE_STEP_NS,
     LOAD_UNIT_NM,
+    MAX_ACTION_UNIT_RAD,
     MIN_STEP_NS,
+    checked_action_unit,
+    same_action_unit,
 )
 
 STATE_DIM = 4

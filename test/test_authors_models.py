@@ -9,6 +9,7 @@ files (../shared/data/authors_models, not redistributed) are checked when presen
 
 from __future__ import annotations
 
+import json
 import pickle
 import struct
 from dataclasses import dataclass, field
@@ -18,12 +19,15 @@ import numpy as np
 import pytest
 import torch
 from fuzz_harness import DecoderWorker, fuzz, mutated
+from safetensors import safe_open
 
 from t42_transfer.cli import main
+from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.data.errors import DataFileError
+from t42_transfer.evaluation.model_files import load_model_file
 from t42_transfer.models.authors import AUTHORS_GAMMA, import_authors_model, save_authors_model
 from t42_transfer.models.baselines import HoldStill
-from t42_transfer.models.checkpoint import load_model
+from t42_transfer.models.checkpoint import UNIT_KEY, load_model
 from t42_transfer.models.legacy_torch import AuthorsModelError
 
 AUTHORS_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "authors_models"
@@ -339,6 +343,10 @@ def test_the_command_writes_a_checkpoint_naming_the_file_and_family(made, tmp_pa
     assert authors["source_sha256"] == hashlib.sha256(file.read_bytes()).hexdigest()
     assert authors["family"] == "recurrent_residual" and authors["negate_actions"] is True
     assert meta["kind"] == "start_state_recurrent_residual"
+    with safe_open(str(out), framework="pt") as f:  # stored, not only the default for an authors' import
+        assert json.loads(f.metadata()["t42_transfer"])[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD
+    _, on_the_fly = load_model_file(file)  # as experiments and t42 evaluate take a .pkl
+    assert on_the_fly[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD
     x0, actions = path(np.random.default_rng(4), 150)
     assert xy_gap(rollout(model, x0, actions), _reference("recurrent_residual", parts, x0, actions, True)) < TOL_MM
     # never overwrites; a bad file is one line

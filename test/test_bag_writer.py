@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import tempfile
 from pathlib import Path
@@ -16,18 +17,28 @@ from hypothesis.extra.numpy import arrays
 from rosbags.highlevel import AnyReader
 
 import msg_adapters as ma
-from t42_transfer.conventions import CONTROL_PERIOD_NS, MIN_EPISODE_STEPS
+from t42_transfer.conventions import (
+    ACTION_LIMIT,
+    ACTION_UNIT_RAD,
+    AUTHORS_ACTION_UNIT_RAD,
+    CONTROL_PERIOD_NS,
+    MIN_EPISODE_STEPS,
+)
 from t42_transfer.data.bag import (
     EPISODE_GAP_NS,
     EPISODES_KEY,
     HAND_KEY,
     assign_start_times,
+    read_bag,
     write_bag,
 )
 from t42_transfer.data.bag import writer as bag_writer
+from t42_transfer.data.errors import BagError
 from t42_transfer.data.trajectory import END_REASONS, Trajectory, TrajectorySet
 
 F32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
+ACTIONS = st.floats(-ACTION_LIMIT, ACTION_LIMIT, width=32)
+"""Any action a hand takes (the reader refuses a step past ``ACTION_LIMIT``: a bag of another unit)."""
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -46,7 +57,7 @@ def trajectory_sets(draw) -> TrajectorySet:
         episodes.append(
             Trajectory(
                 states=draw(arrays(np.float32, (steps + 1, 4), elements=F32)),
-                actions=draw(arrays(np.float32, (steps, 2), elements=F32)),
+                actions=draw(arrays(np.float32, (steps, 2), elements=ACTIONS)),
                 actuator_angles=draw(st.none() | arrays(np.float32, (steps + 1, 2), elements=F32)),
                 end_reason=draw(st.sampled_from(END_REASONS)),
                 hand=draw(st.sampled_from([hand, "other"])),
@@ -125,7 +136,24 @@ def test_write_refuses_existing_paths_and_bad_arguments(tmp_path, small_set):
         write_bag(tmp_path / "c", small_set, storage="rosbag1")
     with pytest.raises(ValueError, match="U\\+0085"):
         write_bag(tmp_path / "d", TrajectorySet(small_set, hand="a\x85b"))
+    too_far = dataclasses.replace(small_set[0], actions=np.full_like(small_set[0].actions, ACTION_LIMIT + 0.01))
+    with pytest.raises(ValueError, match=r"an action of 1\.51 is past the largest a hand takes \(1\.5\)"):
+        write_bag(tmp_path / "e", TrajectorySet([too_far]))
+    with pytest.raises(ValueError, match="an action unit must be"):
+        write_bag(tmp_path / "f", small_set, action_unit_rad=0.0)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+
+
+def test_a_bag_holds_the_actuators_steps_and_is_read_in_any_unit_they_fit(tmp_path, small_set):
+    bag = write_bag(tmp_path / "bag", small_set, action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    assert all(a == b for a, b in zip(read_bag(bag, AUTHORS_ACTION_UNIT_RAD), small_set, strict=True))
+    ratio = AUTHORS_ACTION_UNIT_RAD / ACTION_UNIT_RAD
+    for ours, theirs in zip(read_bag(bag), small_set, strict=True):
+        np.testing.assert_allclose(ours.actions, theirs.actions * ratio, rtol=1e-6)
+    suite = write_bag(tmp_path / "suite", small_set)  # actions near 1 in the suite's unit are 6.4 in theirs
+    with pytest.raises(BagError, match=r"applied_action at stamp \d+ ns: an action of \d\.\d+ in units of 0\.00388 "
+                                       r"rad a step, past 1\.5: the hand stepped 0\.0\d+ rad"):
+        read_bag(suite, AUTHORS_ACTION_UNIT_RAD)
 
 
 def test_a_bag_another_writer_finishes_first_at_the_same_path_is_a_file_exists_error(tmp_path, small_set,

@@ -13,9 +13,11 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import save_file
 
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.models import CumulativeResidualModel, Normalisation, RecurrentResidualModel, TransitionModel
 from t42_transfer.models.checkpoint import (
     DIGEST_KEY,
+    UNIT_KEY,
     CheckpointError,
     UnverifiedCheckpointWarning,
     load_model,
@@ -331,3 +333,28 @@ def test_loaded_model_lives_on_the_cpu_and_trains(residual_file: Path) -> None:
     assert all(t.device.type == "cpu" for t in tensors)
     assert not any(p.requires_grad for p in model.source.parameters())
     assert all(p.requires_grad for p in model.residual.parameters())
+
+
+def test_the_actions_unit_is_saved_and_files_without_it_get_the_unit_they_were_trained_in(saved: Path,
+                                                                                            tmp_path: Path) -> None:
+    assert read_metadata(saved)[UNIT_KEY] == ACTION_UNIT_RAD
+    model, _ = load_model(saved)
+    authors = save_model(model, tmp_path / "authors.safetensors", method="direct", action_unit_rad=0.00388)
+    assert load_model(authors)[1][UNIT_KEY] == 0.00388
+    _rewrite_metadata(saved, lambda meta, _: meta.pop(UNIT_KEY))
+    assert load_model(saved)[1][UNIT_KEY] == ACTION_UNIT_RAD  # saved before units were stored: the suite's
+    _rewrite_metadata(saved, lambda meta, _: meta.update(method="authors_B"))
+    assert read_metadata(saved)[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD  # an authors' import of then: theirs
+
+
+@pytest.mark.parametrize("value, match", [("0.025", "'action_unit_rad' that is not a number"),
+                                          (0, r"action unit must be a number of rad in \(0, 0.1\], got 0"),
+                                          (0.5, "got 0.5"), (True, "got True"), (-0.025, "got -0.025")])
+def test_a_bad_actions_unit_is_refused(saved: Path, tmp_path: Path, value: object, match: str) -> None:
+    _rewrite_metadata(saved, lambda meta, _: meta.update({UNIT_KEY: value}))
+    _refused(saved, match)
+    if not isinstance(value, str):
+        with pytest.raises(ValueError, match=match):
+            save_model(TransitionModel(Normalisation.identity()), tmp_path / "new.safetensors", method="direct",
+                       action_unit_rad=value)
+        assert list(tmp_path.glob("new*")) == []

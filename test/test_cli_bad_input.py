@@ -85,7 +85,10 @@ def other_models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     (folder / "real_B.pkl").write_bytes(pickle.dumps(LEGACY_MAGIC, 2) + pickle.dumps(LEGACY_PROTOCOL, 2))
     zeros, ones = np.zeros(4, np.float32), np.ones(4, np.float32)
     norm = Normalisation(zeros, ones, zeros, np.array([1, 0, 1, 1], np.float32))
-    return {"pkl": folder / "real_B.pkl",
+    authors_unit = save_model(TransitionModel(Normalisation.identity()), folder / "authors_unit.safetensors",
+                              method="new_model", extra={"workspace": Workspace.box(-60, 60, 30, 130).to_dict()},
+                              action_unit_rad=0.00388)
+    return {"pkl": folder / "real_B.pkl", "authors_unit": authors_unit,
             "zero_std": save_model(TransitionModel(norm), folder / "zero_std.safetensors", method="new_model")}
 
 
@@ -176,6 +179,9 @@ CASES = {
     "peg NAME=model missing": ("peg-in-hole a={missing} --out {out}", "{missing}: does not exist"),
     "peg model is an authors' pickle": ("peg-in-hole {pkl} --out {out}", "{pkl}: is a pickle"),
     "peg model is a FIFO": ("peg-in-hole {fifo} --out {out}", "{fifo}: is a FIFO, not a regular file"),
+    "peg model of another unit": ("peg-in-hole {authors_unit} --out {out}",
+                                  "{authors_unit}: its actions are in steps of 0.00388 rad at an action of 1, the "
+                                  "actions of the simulated hands in 0.025 rad"),
     "peg --workspace missing": (PEG + " --workspace {missing}", "{missing}: does not exist"),
     "peg --out is a file": ("peg-in-hole {model} --out {file}", "{file}"),
     "peg without --out": ("peg-in-hole {model}", "--out"),

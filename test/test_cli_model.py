@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from t42_transfer.cli import main
+from t42_transfer.conventions import ACTION_UNIT_RAD
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.hand.collect import collect
-from t42_transfer.models.checkpoint import read_metadata
+from t42_transfer.models.checkpoint import UNIT_KEY, read_metadata
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.transfer.online import load_source
 
@@ -43,6 +44,7 @@ def test_a_source_model_trained_on_bags_is_one_a_transfer_server_starts_from(
     assert f"{len(data)} episodes ({data.num_transitions} transitions) of 2 bag(s), hand source" in said, said
     model, meta = load_source(model_file)  # what the transfer server does with its source_model
     assert meta["method"] == "source" and len(meta["data"]["bags"]) == 2
+    assert meta[UNIT_KEY] == ACTION_UNIT_RAD  # bags read as they were recorded, in the suite's unit
     assert Workspace.from_metadata(meta).to_dict() == Workspace.from_trajectories(data).to_dict()
     hold_still = float(np.abs(data.transitions()[2] - data.transitions()[0]).mean())
     assert one_step_error(model, data) < 0.5 * hold_still  # it learned the hand, not the identity
@@ -80,4 +82,10 @@ def test_bad_inputs_are_one_line_errors_and_nothing_is_written(source_bags, tmp_
         assert main(["model", "train", *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+    # Bags of the suite's unit read in the authors': each is skipped with why, then nothing is left to train on.
+    assert main(["model", "train", str(out_dir), "--out", str(tmp_path / "m.safetensors"), "--action-unit-rad",
+                 "0.00388"]) == 2
+    *skipped, error = capsys.readouterr().err.strip().splitlines()
+    assert len(skipped) == 2 and all("in units of 0.00388 rad a step, past 1.5" in line for line in skipped), skipped
+    assert "no usable episode in 2 bag(s)" in error
     assert not (tmp_path / "m.safetensors").exists() and taken.read_bytes() == b""

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from t42_transfer.cli import main
+from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 from t42_transfer.evaluation.evaluate import evaluate_models, score_model
@@ -68,7 +69,11 @@ def made(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     norm = Normalisation(np.array([20, 100, 80, -80], np.float32), np.array([10, 10, 10, 10], np.float32),
                          np.zeros(4, np.float32), np.full(4, 0.5, np.float32))
     noisy = save_model(TransitionModel(norm, dropout=0.3).eval(), root / "noisy.safetensors", method="made")
-    return {"bag": root / "paths", "constant": constant, "noisy": noisy}
+    authors_unit = save_model(_constant_model(), root / "authors_unit.safetensors", method="made",
+                              action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    authors_bag = write_bag(root / "authors_paths", _paths(), action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    return {"bag": root / "paths", "constant": constant, "noisy": noisy, "authors_unit": authors_unit,
+            "authors_bag": authors_bag}
 
 
 def _run(made: dict[str, Path], *extra: str, models: tuple[str, ...] = ("constant",)) -> int:
@@ -93,6 +98,12 @@ def test_known_divergence_and_mse_per_path_and_overall(made, tmp_path, capsys):
     assert [p["divergence_4mm"] for p in result["hold_still"]["per_path"]] == [4, 8, 2]
     table = capsys.readouterr().out
     assert "hold still" in table and "constant.safetensors" in table and "dropout on" in table  # the paper's note
+
+    # A model of the authors' unit on the same paths recorded in it, the unit written as people write it.
+    theirs = tmp_path / "theirs.json"
+    assert main(["evaluate", str(made["authors_unit"]), "--on", f"{{bag: {made['authors_bag']}, action_unit_rad: "
+                 "0.00388}", "--quiet", "--json", str(theirs)]) == 0
+    assert json.loads(theirs.read_text())["models"][0]["per_path"] == result["models"][0]["per_path"]
 
 
 def test_two_files_of_one_name_are_told_apart_by_their_paths(made, tmp_path, capsys):
@@ -179,6 +190,9 @@ def _not_a_model(tmp_path: Path) -> str:
     (lambda m, d: [str(m["constant"]), "--on", f"{{bag: {m['bag']}}}", "--json", str(m["constant"])],
      r"constant\.safetensors: exists already"),
     (lambda m, d: [str(m["constant"])], r"the following arguments are required: --on"),
+    (lambda m, d: [str(m["authors_unit"]), "--on", f"{{bag: {m['bag']}}}"],
+     r"authors_unit\.safetensors: its actions are in steps of 0\.00388 rad at an action of 1, the actions of "
+     r"\{bag: .*\} in 0\.025 rad"),
 ])
 def test_bad_input_is_one_line_exit_2(made, tmp_path, capsys, args, message):
     try:

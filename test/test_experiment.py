@@ -10,9 +10,12 @@ import pytest
 import yaml
 
 from t42_transfer.cli import main
+from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.evaluation import experiment as exp
 from t42_transfer.evaluation.experiment import run_experiment
-from t42_transfer.evaluation.experiment_config import SAFE_NAME, DataSpec, ExperimentConfig, load_config
+from t42_transfer.evaluation.experiment_config import SAFE_NAME, DataSpec, ExperimentConfig, check_spec, load_config
+from t42_transfer.models.checkpoint import save_model
+from t42_transfer.models.network import Normalisation, TransitionModel
 from t42_transfer.models.training import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -660,3 +663,30 @@ def test_a_path_the_file_lacks_is_refused_before_anything_is_written(side: str, 
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "paths: the data has" in err and "not 999" in err, err
     assert not (tmp_path / "out" / "tiny").exists()
+
+
+def test_sides_whose_actions_are_in_different_units_are_refused_before_anything_is_written(
+        config_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    authors = save_model(TransitionModel(Normalisation.identity()), tmp_path / "authors.safetensors", method="source",
+                         action_unit_rad=AUTHORS_ACTION_UNIT_RAD)  # as an import of the authors' real-hand models is
+    text = config_file.read_text().replace(f"source: {{bag: {REPO / 'bags' / 'source_small'}}}",
+                                           f"source: {{model: {authors}}}")
+    text = text.replace("source_training: {epochs: 2}\n", "")
+    assert str(authors) in text
+    config_file.write_text(text)
+    assert main(["experiment", str(config_file), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the sides' actions are in different units (source 0.00388 rad, target 0.025 " \
+        "rad a step at an action of 1" in err, err
+    assert not (tmp_path / "out" / "tiny").exists()
+
+
+@pytest.mark.parametrize("spec, message", [
+    (dict(hand="target", action_unit_rad=0.01), "target.action_unit_rad is the unit a bag is read in: it needs "
+                                                "target.bag"),
+    (dict(bag="b", action_unit_rad=0.5), r"action_unit_rad must be in \(0, 0.1\]"),
+    (dict(bag="b", action_unit_rad=0.0), r"action_unit_rad must be in \(0, 0.1\]"),
+])
+def test_a_bags_action_unit_is_checked(spec: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        check_spec(DataSpec(**spec), "target")

@@ -13,6 +13,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from msg_adapters import applied_action, names
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.data.bag import read_bag
 from t42_transfer.data.trajectory import Trajectory
 from t42_transfer.hand.collect import RandomPolicy
@@ -52,16 +53,18 @@ def sampled(seed: int, steps: int, hold_max: int = 5, limit: float = 1.0) -> np.
 
 
 def test_episodes_run_through_the_driver_with_the_sampled_actions(ros) -> None:
+    """In the unit of the model the data are for: the authors' actions step the actuators 0.155 of the suite's."""
     watcher = Watcher(ros)
     driver = ros.add(MockDriver, {**DRIVER, "seed": 7})
-    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 30, "seed": 3})
+    explorer = ros.add(Explorer, {**EXPLORER, "episodes": 2, "steps": 30, "seed": 3,
+                                  "action_unit_rad": AUTHORS_ACTION_UNIT_RAD})
     assert ros.spin_until(lambda: explorer.finished, 90.0), f"not finished: {explorer.completed}"
     assert explorer.completed == [{"episode": 1, "applied": 30, "end": "complete"},
                                   {"episode": 2, "applied": 30, "end": "complete"}]
     assert driver.episode == 2, "one reset per episode after the driver's own first grasp"
     # Exactly the sampled actions, in order: each trajectory started from the new grasp's angles.
-    expected = np.vstack([sampled(3, 30), sampled(4, 30)])
-    np.testing.assert_allclose(watcher.explored(), expected, atol=1e-6)
+    expected = np.vstack([sampled(3, 30), sampled(4, 30)]) * (AUTHORS_ACTION_UNIT_RAD / ACTION_UNIT_RAD)
+    np.testing.assert_allclose(watcher.explored(), expected, atol=1e-6)  # (applied actions are in the suite's unit)
     events = [s.split(":")[0] for s in watcher.statuses]
     assert events.count("trajectory_done") == 2 and events.count("reset") >= 2
     assert events.index("reset", 1) < events.index("trajectory_done"), events
@@ -187,7 +190,7 @@ def test_without_a_driver_it_says_what_it_waits_for(ros, monkeypatch: pytest.Mon
 
 @pytest.mark.parametrize("field, value", [
     ("episodes", 0), ("steps", -1), ("steps", 10_001), ("hold_max", 0), ("limit", 2.0), ("limit", 0.0),
-    ("rate_factor", 0.0),
+    ("rate_factor", 0.0), ("action_unit_rad", 0.0), ("action_unit_rad", 0.25),
     ("seed", -1), ("record_stop_service", "1stop"), ("record_start_service", "with space"),
 ])
 def test_bad_parameters_are_refused_at_start(ros, field: str, value: object) -> None:

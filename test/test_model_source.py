@@ -17,7 +17,8 @@ import torch
 from test_authors_models import Net, Norm, Writer, trajnet
 
 from t42_transfer.cli import main
-from t42_transfer.data.bag import read_bag
+from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD
+from t42_transfer.data.bag import read_bag, write_bag
 from t42_transfer.evaluation import experiment as exp
 from t42_transfer.evaluation.experiment import run_experiment
 from t42_transfer.evaluation.experiment_config import DataSpec, ExperimentConfig, load_config
@@ -47,9 +48,19 @@ def _no_source_training(monkeypatch: pytest.MonkeyPatch) -> None:
 _load_data = exp.load_data
 
 
-def _config(model: Path, methods: tuple[str, ...] = ("direct",), **source: object) -> ExperimentConfig:
-    return ExperimentConfig(name="m", source=DataSpec(model=str(model), **source), target=DataSpec(bag=str(TARGET)),
+def _config(model: Path, methods: tuple[str, ...] = ("direct",), target: DataSpec | None = None,
+            **source: object) -> ExperimentConfig:
+    target = DataSpec(bag=str(TARGET)) if target is None else target
+    return ExperimentConfig(name="m", source=DataSpec(model=str(model), **source), target=target,
                             methods=methods, split="paths", amounts=(2,), seeds=1, lyapunov_steps=5, workers=1)
+
+
+@pytest.fixture(scope="module")
+def authors_target(tmp_path_factory: pytest.TempPathFactory) -> DataSpec:
+    """TARGET's episodes as the steps of a hand driven in the authors' unit, read in it: the same actions."""
+    bag = write_bag(tmp_path_factory.mktemp("authors_unit") / "target", read_bag(TARGET),
+                    action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    return DataSpec(bag=str(bag), action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
 
 
 def _direct_row(rows: list[dict]) -> dict:
@@ -78,9 +89,14 @@ def test_a_model_file_is_the_source_as_it_is(source_model: Path, tmp_path: Path,
 @pytest.mark.parametrize("negate", [False, True])
 def test_an_authors_file_is_imported_on_the_fly_with_the_specs_negation(authors_pkl: Path, tmp_path: Path,
                                                                         monkeypatch: pytest.MonkeyPatch,
+                                                                        authors_target: DataSpec,
                                                                         negate: bool) -> None:
     _no_source_training(monkeypatch)
-    cfg = _config(authors_pkl, negate_actions=negate)
+    cfg = _config(authors_pkl, target=authors_target, negate_actions=negate)
+    with pytest.raises(ValueError, match=r"the sides' actions are in different units \(source 0\.00388 rad, "
+                                         r"target 0\.025 rad"):
+        run_experiment(_config(authors_pkl, negate_actions=negate), tmp_path / "refused", progress=False)
+    assert not (tmp_path / "refused").exists()
     rows = run_experiment(cfg, tmp_path / "runs", progress=False)
     imported = import_authors_model(authors_pkl, negate_actions=negate)[0].model
     kept, meta = load_model(exp.source_model_path(cfg, tmp_path / "runs" / "m"))

@@ -255,3 +255,31 @@ def test_message_from_fields_is_message_fields_backwards_and_names_a_bad_field()
             message_from_fields(PathMsg, bad)
     edges = message_from_fields(CameraInfo, {"height": 2 ** 32 - 1, "d": [float("nan")]})  # a double has no range
     assert edges.height == 2 ** 32 - 1 and math.isnan(edges.d[0])
+
+
+def test_the_authors_unit_is_their_drivers_step_and_units_are_checked() -> None:
+    # 0.065 % of the normalised range a step, over 0.95 of a 4096-tick turn: 2.53 ticks
+    assert wire.AUTHORS_ACTION_UNIT_RAD / (2 * np.pi / 4096) == pytest.approx(0.00065 * 0.95 * 4096)
+    assert wire.checked_action_unit(np.float32(0.025)) == pytest.approx(0.025)
+    for bad in (0, -0.025, 0.2, float("nan"), float("inf"), True, "0.025", None):
+        with pytest.raises(ValueError, match=r"an action unit must be a number of rad in \(0, 0\.1\]"):
+            wire.checked_action_unit(bad)
+        with pytest.raises(ValueError, match="an action unit must be"):
+            ma.applied_action_msg([0.5, -0.5], 1, unit_rad=bad)
+
+
+@settings(max_examples=50, deadline=None)
+@given(arrays(np.float32, (7, 2), elements=st.floats(-1.5, 1.5, width=32)))
+def test_actions_in_any_unit_are_the_same_actuator_steps_and_come_back_bit_for_bit(actions: np.ndarray) -> None:
+    unit = wire.AUTHORS_ACTION_UNIT_RAD
+    for a in actions:
+        msg = ma.applied_action_msg(a, 5, unit_rad=unit)
+        np.testing.assert_array_equal(ma.applied_action(msg, unit_rad=unit), a)
+        np.testing.assert_allclose(np.asarray(msg.velocity) * wire.CONTROL_PERIOD_S, a.astype(np.float64) * unit)
+    start = np.array([0.3, 0.4])
+    traj = ma.actions_to_joint_trajectory(actions, start, 5, unit_rad=unit)
+    np.testing.assert_allclose(traj.points[-1].positions, start + unit * actions.astype(np.float64).sum(axis=0))
+    back = ma.joint_trajectory_to_actions(traj, start, unit_rad=unit)
+    np.testing.assert_allclose(back, actions, atol=1e-5)
+    np.testing.assert_allclose(ma.joint_trajectory_to_actions(traj, start), actions * (unit / wire.ACTION_UNIT_RAD),
+                               atol=1e-5)  # the same steps in the suite's unit

@@ -7,10 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from t42_transfer.conventions import CONTROL_PERIOD_NS
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, CONTROL_PERIOD_NS
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
-from t42_transfer.transfer.online import hold_out, read_target
+from t42_transfer.models.checkpoint import UNIT_KEY, read_metadata, save_model
+from t42_transfer.models.network import Normalisation, TransitionModel
+from t42_transfer.transfer.online import OnlineTransferSpec, TransferRefused, hold_out, read_target, run_transfer
 
 
 def test_recorded_episodes_end_at_their_first_drop(tmp_path, make_set) -> None:
@@ -83,3 +85,27 @@ def test_a_split_episodes_stretches_are_held_out_or_trained_on_together(tmp_path
         loose = hold_out(target.data, 0.4, seed)[1]  # as pieces: apart for some draw
         separated += any(t.start_ns == stretches[0] for t in loose) != any(t.start_ns == stretches[1] for t in loose)
     assert separated > 0
+
+
+def test_a_source_in_the_authors_unit_reads_the_bags_in_it_and_its_transfer_keeps_it(tmp_path, make_set) -> None:
+    """Bags hold the actuators' steps (rad/s on the wire); a model of the authors' real hands learnt their unit."""
+    source = save_model(TransitionModel(Normalisation.identity()), tmp_path / "authors.safetensors", method="source",
+                        action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    episodes = make_set([30] * 4, seed=3, hand="target")
+    scale = np.float32(AUTHORS_ACTION_UNIT_RAD / ACTION_UNIT_RAD)
+    driven = TrajectorySet([dataclasses.replace(t, actions=t.actions * scale) for t in episodes], hand="target")
+    write_bag(tmp_path / "bags" / "b0", TrajectorySet(assign_start_times(driven)))
+    read = read_target([tmp_path / "bags" / "b0"], AUTHORS_ACTION_UNIT_RAD).data
+    np.testing.assert_allclose(np.vstack([t.actions for t in read]), np.vstack([t.actions for t in episodes]),
+                               rtol=1e-5, atol=1e-6)
+    spec = OnlineTransferSpec(source_model=source, model_dir=tmp_path / "models", bag_dir=tmp_path / "bags",
+                              method="direct")
+    assert read_metadata(run_transfer(spec).model_path)[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD
+
+    write_bag(tmp_path / "suite" / "b0", TrajectorySet(assign_start_times(episodes)))  # driven in the suite's unit
+    spec = dataclasses.replace(spec, bag_dir=tmp_path / "suite", model_dir=tmp_path / "refused")
+    with pytest.raises(TransferRefused, match=r"too little data: 0 episode\(s\) .* skipped 1 unreadable bag\(s\): "
+                                              r".*b0: .*applied_action at stamp \d+ ns: an action of \d\.\d+ in units "
+                                              r"of 0\.00388 rad a step, past 1\.5"):
+        run_transfer(spec)
+    assert not (tmp_path / "refused").exists() or not any((tmp_path / "refused").iterdir())

@@ -27,14 +27,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from t42_transfer.evaluation.evaluate import evaluate_models, table
     from t42_transfer.evaluation.experiment import load_spec
     from t42_transfer.evaluation.experiment_config import parse_data_spec
-    from t42_transfer.evaluation.model_files import load_model_file
+    from t42_transfer.evaluation.model_files import check_action_unit, load_model_file
 
     spec = parse_data_spec(args.on, "--on")
     for model in args.models:
         existing_file(model)
     if args.json is not None:
         new_output(args.json)
-    models = [(str(path), load_model_file(path, args.negate_actions)[0]) for path in args.models]
+    models = []
+    for path in args.models:
+        model, meta = load_model_file(path, args.negate_actions)
+        check_action_unit(path, meta, spec.unit_rad(), args.on)
+        models.append((str(path), model))
     data = load_spec(spec, output_dir(args.cache), progress=not args.quiet).data
     chosen = args.paths if args.paths is not None else tuple(range(len(data)))
     missing = [i for i in chosen if i >= len(data)]

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from t42_transfer.cli.args import bags_in, existing_file, float_arg, int_arg, new_output
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, MAX_ACTION_UNIT_RAD
 
 
 def _cmd_import_authors(args: argparse.Namespace) -> int:
@@ -35,7 +36,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     bags = bags_in(args.bags)
     new_output(args.out)
     cfg = TrainConfig(seed=args.seed, **({} if args.epochs is None else {"epochs": args.epochs}))
-    target = read_target(bags)
+    target = read_target(bags, args.action_unit_rad)
     for bag, why in target.skipped:
         print(f"t42: warning: skipped {bag}: {why}", file=sys.stderr)
     for note in target.notes:
@@ -51,7 +52,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     model, report = train_transition_model(data, cfg, on_epoch=ProgressBar(), phase="source model")
     save_model(model, args.out, method="source", hyperparameters=dataclasses.asdict(cfg),
                data={"bags": [str(b.resolve()) for b in target.read], "source": data.fingerprint()},
-               extra={"workspace": Workspace.from_trajectories(data).to_dict()})
+               extra={"workspace": Workspace.from_trajectories(data).to_dict()}, action_unit_rad=args.action_unit_rad)
     print(f"{len(data)} episodes ({data.num_transitions} transitions) of {len(target.read)} bag(s), hand "
           f"{data.hand or 'unnamed'}: {report.epochs_run} epochs (best {report.best_epoch + 1}; {report.validation}) "
           f"-> {args.out}")
@@ -75,6 +76,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help="most epochs (default: the training default, as experiments train); early stopping on "
                             "a held-out tenth of the episodes ends sooner")
     train.add_argument("--seed", type=int_arg(0), default=0, help="seed of the split and the initial weights")
+    train.add_argument("--action-unit-rad", type=float_arg(0.0, MAX_ACTION_UNIT_RAD, low_open=True),
+                       default=ACTION_UNIT_RAD, metavar="RAD",
+                       help=f"the actuator step of an action of 1 that the model learns in, as the explorer's "
+                            f"action_unit_rad (default {ACTION_UNIT_RAD:g}, the suite's; the paper authors' is "
+                            f"{AUTHORS_ACTION_UNIT_RAD:.5f}); bags stepping further than its 1.5 are refused")
     train.set_defaults(func=_cmd_train)
     imp = model.add_parser(
         "import-authors", help="convert one of the paper authors' saved models (legacy torch pickle) to a model file",

@@ -27,7 +27,7 @@ from t42_transfer.conventions import (
 def _cmd_plan(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
-    from t42_transfer.models.checkpoint import load_model
+    from t42_transfer.models.checkpoint import UNIT_KEY, load_model
     from t42_transfer.planning import Planner, PlannerConfig, Workspace
     from t42_transfer.planning.export import write_plan
 
@@ -42,7 +42,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     model, meta = load_model(existing_file(args.model))
     workspace = Workspace.for_planning(args.workspace, meta, args.model)
     plan = Planner(model, workspace, cfg).plan(args.start, args.goal)
-    info = {"model": str(args.model), "method": meta.get("method"), "config": asdict(cfg)}
+    info = {"model": str(args.model), "method": meta.get("method"), "action_unit_rad": meta[UNIT_KEY],
+            "config": asdict(cfg)}
     files = write_plan(plan, args.out, workspace, info)
     if plan.ok:
         print(f"plan: {len(plan.actions)} steps, predicted final error {plan.error_mm:.2f} mm "

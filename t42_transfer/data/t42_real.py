@@ -26,7 +26,7 @@ from typing import Any, NoReturn
 import numpy as np
 from numpy._core.multiarray import _reconstruct
 
-from t42_transfer.conventions import DROPPED
+from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD, DROPPED
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.errors import PickleFileError
 from t42_transfer.data.quality import scan, summarise, summary_lines
@@ -340,7 +340,9 @@ def quality_lines(paths: TrajectorySet) -> list[str]:
 
 def import_t42_to_bag(pickle_path: str | Path, bag_path: str | Path) -> Path:
     """Write one hand's test paths as a bag, recording the source file's name, the sha256 of the bytes read
-    and what the quality scan found (``data_quality``, JSON), so the bag carries its flagged stretches along."""
+    and what the quality scan found (``data_quality``, JSON), so the bag carries its flagged stretches along.
+    The actions are the authors' (``AUTHORS_ACTION_UNIT_RAD``): the bag holds the steps their driver took, and
+    reads them back as recorded in that unit (``read_bag(bag, AUTHORS_ACTION_UNIT_RAD)``)."""
     source = Path(pickle_path)
     data = _read_regular(source)
     paths = _testpaths(source, data)
@@ -348,5 +350,7 @@ def import_t42_to_bag(pickle_path: str | Path, bag_path: str | Path) -> Path:
     return write_bag(
         bag_path,
         paths,
-        metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest(), "data_quality": quality},
+        metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest(), "data_quality": quality,
+                  "action_unit_rad": repr(AUTHORS_ACTION_UNIT_RAD)},
+        action_unit_rad=AUTHORS_ACTION_UNIT_RAD,
     )

@@ -54,7 +54,7 @@ from t42_transfer.evaluation.experiment_files import (
     warn_if_diverged,
     write_results,
 )
-from t42_transfer.evaluation.model_files import file_sha256, load_source_model, put_source_model
+from t42_transfer.evaluation.model_files import check_action_units, file_sha256, put_source_model
 from t42_transfer.files import held_lock, write_atomic
 from t42_transfer.hand.collect import POLICIES
 from t42_transfer.models.baselines import HoldStill
@@ -93,7 +93,7 @@ def load_data(spec: DataSpec, cache: Path, progress: bool = True) -> TrajectoryS
     if spec.real:
         return load_t42_testpaths(real_data_dir() / real_file(spec.real, spec.real_object))
     if spec.bag:
-        return read_bag(spec.bag)
+        return read_bag(spec.bag, spec.unit_rad())
     if spec.hand:
         bag = cache / f"{spec.hand}_{digest(spec.describe())}"
         if bag.exists():  # (no lock: a cache others keep may be read-only)
@@ -340,7 +340,7 @@ def _run_cell(args: tuple[Any, ...]) -> dict[str, Any]:
     row["seconds"] = time.perf_counter() - start
     save_model(model, run_dir / "models" / f"{cell_key(cfg, cell, source_path)}.safetensors", method=cell.method,
                hyperparameters=dataclasses.asdict(cfg.transfer), data={"target_train": train.fingerprint()},
-               extra={"workspace": workspace})
+               extra={"workspace": workspace}, action_unit_rad=cfg.target.unit_rad())
     return row
 
 
@@ -424,6 +424,7 @@ def train_source(cfg: ExperimentConfig, run_dir: Path, progress: bool = True, ex
         data={"source": data.fingerprint(), "transitions": data.num_transitions},
         extra={"epochs_run": report.epochs_run, "best_epoch": report.best_epoch, "val_loss": report.val_loss,
                "validation": report.validation, "excluded_source_episodes": list(excluded)},
+        action_unit_rad=cfg.source.unit_rad(),
     )
     return path
 
@@ -442,8 +443,7 @@ def run_experiment(cfg: ExperimentConfig, out: Path, progress: bool = True,
         check_reachable(check_scheduler(scheduler))
     for side in sides(cfg):
         _check_input(getattr(cfg, side), side)
-    if cfg.source.model is not None:
-        load_source_model(cfg.source)  # a file that is no model is refused before anything is written
+    check_action_units(cfg)  # and a source file that is no model, before anything is written
     run_dir = Path(out) / cfg.name
     target = load_side(cfg, "target", data_cache(run_dir), progress)  # collected here when simulated
     test = load_test(cfg, data_cache(run_dir), progress)

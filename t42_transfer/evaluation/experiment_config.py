@@ -32,6 +32,7 @@ from t42_transfer.config import (
     one_of,
     show,
 )
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, MAX_ACTION_UNIT_RAD
 from t42_transfer.data.quality import HANDLING
 from t42_transfer.data.t42_real import REAL_HANDS, REAL_OBJECT
 from t42_transfer.evaluation.metrics import METRIC_DEFINITIONS
@@ -66,6 +67,7 @@ DATA_RULES: dict[str, Rule] = {
     "paths": ((lambda v: v >= 0), "a path number (0 or more)"),
     "model": ((lambda v: isinstance(v, str) and 0 < len(v) <= MAX_PATH_CHARS and "\0" not in v),
               f"a file path (at most {MAX_PATH_CHARS} characters)"),
+    "action_unit_rad": between(0, MAX_ACTION_UNIT_RAD, True),
 }
 """What each :class:`DataSpec` setting must be beyond its type."""
 EXPERIMENT_RULES: dict[str, Rule] = {
@@ -119,6 +121,9 @@ class DataSpec:
     and no training.  A project model file (``.safetensors``, e.g. from ``t42 model import-authors``) or one of
     the paper authors' files (``.pkl``), imported on the fly; ``negate_actions`` then negates the actions inside
     the imported model (the authors' B model on hand A's actions as recorded), as it would negate source data."""
+    action_unit_rad: float | None = None
+    """``bag`` only: the unit its actions are read in (a bag holds the actuators' steps), e.g. the authors' 0.00388
+    rad for a bag of their hands (``t42 bag import-t42``) or recorded for their models; None: the suite's."""
 
     def describe(self) -> dict:
         """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
@@ -127,6 +132,15 @@ class DataSpec:
 
     def __post_init__(self) -> None:
         check(self, DATA_RULES)
+
+    def unit_rad(self) -> float | None:
+        """The unit of the data's actions: the authors' for their real-hand files (recorded by their driver), the
+        suite's for simulated hands, a bag's as read (``action_unit_rad``); None for a model, whose file says."""
+        if self.model is not None:
+            return None
+        if self.real is not None:
+            return AUTHORS_ACTION_UNIT_RAD
+        return self.action_unit_rad or ACTION_UNIT_RAD
 
 
 _SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}
@@ -272,6 +286,8 @@ def check_spec(spec: DataSpec, where: str, model_allowed: bool = False) -> None:
             raise ValueError(f"{where}.paths picks episodes of a file: it needs {where}.real or {where}.bag")
         if not spec.paths or len(set(spec.paths)) != len(spec.paths):
             raise ValueError(f"{where}.paths must name distinct episodes, got {list(spec.paths)}")
+    if spec.action_unit_rad is not None and spec.bag is None:
+        raise ValueError(f"{where}.action_unit_rad is the unit a bag is read in: it needs {where}.bag")
     if spec.real_object != REAL_OBJECT and spec.real is None:
         raise ValueError(f"{where}.real_object names the object of a real-hand file: it needs {where}.real")
     if spec.mirror_about != "origin" and not spec.mirror_x:

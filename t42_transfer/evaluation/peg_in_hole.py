@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from t42_transfer.conventions import ACTION_DIM, PLAN_LENGTHS
+from t42_transfer.conventions import ACTION_DIM, ACTION_UNIT_RAD, PLAN_LENGTHS
 from t42_transfer.evaluation.stats import wilson_interval
 from t42_transfer.hand.collect import Settled, run_episode, run_settled, settle
 from t42_transfer.hand.sim import GraspFailed, SimulatedHand
@@ -412,12 +412,14 @@ def evaluate(
 def load_models(paths: Sequence[str]) -> tuple[dict[str, LatentDynamics], dict]:
     """Models from files given as ``PATH`` (named by the file's stem) or ``NAME=PATH``, and the first file's
     metadata (its stored workspace is the default one)."""
+    from t42_transfer.evaluation.model_files import check_action_unit
     from t42_transfer.models.checkpoint import load_model
 
     models, first = {}, None
     for spec in paths:
         name, file = model_spec(spec)
         models[name], meta = load_model(file)
+        check_action_unit(file, meta, ACTION_UNIT_RAD, "the simulated hands")
         first = meta if first is None else first
     return models, first or {}
 

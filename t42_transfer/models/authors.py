@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from t42_transfer.conventions import ACTION_DIM, STATE_DIM
+from t42_transfer.conventions import ACTION_DIM, AUTHORS_ACTION_UNIT_RAD, STATE_DIM
 from t42_transfer.models.checkpoint import save_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.models.legacy_torch import (
@@ -303,7 +303,7 @@ def describe_name(name: str) -> dict[str, Any]:
 def save_authors_model(path: str | os.PathLike[str], out: str | os.PathLike[str], *, negate_actions: bool = False,
                        gamma: float | None = None, alpha: float | None = None) -> tuple[Path, AuthorsModel]:
     """Import ``path`` and write it as a project model file ``out``; the metadata names the source file,
-    its sha256 and the authors' family."""
+    its sha256 and the authors' family, and the actions' unit is the authors' (``AUTHORS_ACTION_UNIT_RAD``)."""
     converted, legacy = import_authors_model(path, negate_actions=negate_actions, gamma=gamma, alpha=alpha)
     source = Path(path)
     authors = {"source_file": source.name, "source_sha256": legacy.sha256, "family": converted.family,
@@ -314,5 +314,6 @@ def save_authors_model(path: str | os.PathLike[str], out: str | os.PathLike[str]
     if converted.gamma is not None:
         settings["gamma"] = converted.gamma
     saved = save_model(converted.model, out, method=f"authors_{authors.get('authors_method', converted.family)}",
-                       hyperparameters=settings, data={"source_sha256": legacy.sha256}, extra={"authors": authors})
+                       hyperparameters=settings, data={"source_sha256": legacy.sha256}, extra={"authors": authors},
+                       action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
     return saved, converted

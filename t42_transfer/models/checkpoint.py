@@ -43,7 +43,7 @@ from safetensors.torch import save_file
 from torch import Tensor
 
 from t42_transfer import __version__
-from t42_transfer.conventions import STATE_NAMES
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, STATE_NAMES, checked_action_unit
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.files import not_regular_reason
 from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
@@ -51,15 +51,19 @@ from t42_transfer.models.dynamics import MODEL_KINDS, LatentDynamics
 FORMAT = "t42_transfer.model/1"
 _HEADER_KEY = "t42_transfer"
 DIGEST_KEY = "weights_sha256"
+UNIT_KEY = "action_unit_rad"
+"""The actuator-angle step (rad) of an action of 1 in the data the model learnt from (``conventions``: the suite's
+or the paper authors' unit).  Files saved before it was stored are read as the suite's unit, the authors' imports
+(method ``authors_...``) as theirs: what each was trained in."""
 MAX_HEADER_BYTES = 2**20
 """Largest safetensors header (tensor table and metadata JSON) read; saved files have a few kB, so parsing
 a file's JSON never takes more than a few tens of MB however it is crafted."""
 MAX_METADATA_DEPTH = 32
 """Deepest nesting of objects and lists in a file's metadata (saved files use under 10)."""
-_FIELDS: dict[str, tuple[type, bool]] = {
+_FIELDS: dict[str, tuple[type | tuple[type, ...], bool]] = {
     "format": (str, True), "state_layout": (list, True), "kind": (str, True), "config": (dict, True),
     "method": (str, True), "hyperparameters": (dict, False), "data": (dict, False), "extra": (dict, False),
-    "versions": (dict, False), DIGEST_KEY: (str, False),
+    "versions": (dict, False), DIGEST_KEY: (str, False), UNIT_KEY: ((int, float), False),
 }
 """Metadata fields this project reads: their JSON type and whether a file must have them."""
 
@@ -93,8 +97,11 @@ def save_model(
     hyperparameters: dict[str, Any] | None = None,
     data: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    action_unit_rad: float = ACTION_UNIT_RAD,
 ) -> Path:
-    """Write ``model`` to ``path`` atomically; returns the path."""
+    """Write ``model`` to ``path`` atomically; returns the path.  ``action_unit_rad`` is the unit of the actions it
+    learnt from: the suite's for simulated hands and bags read as they are, the authors' for their data."""
+    checked_action_unit(action_unit_rad)  # before anything is written
     target = Path(path)
     tensors = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
     metadata = {
@@ -106,6 +113,7 @@ def save_model(
         "data": data or {},
         "state_layout": list(STATE_NAMES),
         "latent_dim": model.latent_dim,
+        UNIT_KEY: float(action_unit_rad),
         "versions": {"t42_transfer": __version__, "torch": torch.__version__, "numpy": np.__version__},
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         DIGEST_KEY: weights_digest(tensors),
@@ -211,8 +219,14 @@ def _metadata(file: Path, f: Any) -> dict[str, Any]:
         )
     for name, (kind, required) in _FIELDS.items():
         if (required or name in meta) and not isinstance(meta.get(name), kind):
-            what = {str: "a string", list: "a list", dict: "an object"}[kind]
+            what = {str: "a string", list: "a list", dict: "an object"}.get(kind, "a number")
             raise CheckpointError(file, f"has metadata {name!r} that is not {what}: {reprlib.repr(meta.get(name))}")
+    if UNIT_KEY not in meta:
+        meta[UNIT_KEY] = AUTHORS_ACTION_UNIT_RAD if meta["method"].startswith("authors_") else ACTION_UNIT_RAD
+    try:
+        checked_action_unit(meta[UNIT_KEY])
+    except ValueError as err:
+        raise CheckpointError(file, f"has metadata {UNIT_KEY!r}: {err}") from None
     return meta
 
 

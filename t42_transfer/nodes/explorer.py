@@ -14,15 +14,16 @@ the driver's: remap them with ``--ros-args -r``, or run under a namespace):
 For each episode it calls the reset service, waits for a joint state of the new
 grasp, sends one ``JointTrajectory`` of ``steps`` random piecewise-constant actions
 (the sampler of :class:`~t42_transfer.hand.collect.RandomPolicy`, seeded
-``seed + episode - 1``) and counts the applied actions the driver reports.  An
-episode ends when the driver reports ``trajectory_done`` (and the last applied
-action arrived, or a short grace passed: the two topics are not ordered) or an
-end, or after a wall-clock timeout; then the next one starts.  The start angles
-come from a joint state stamped ``SETTLE_PERIODS`` control periods after the
-newest one seen when the reset answered, so a state still in flight from before
-the reset is not mistaken for the new grasp, and only once discovery has matched
-the trajectory, applied-action and status topics with the driver.  A recorder in ``episode`` mode
-splits its bags on the driver's ``reset`` status, so each episode becomes one bag.
+``seed + episode - 1``, in ``action_unit_rad``: the unit of the model the data are
+for) and counts the applied actions the driver reports.  An episode ends when the
+driver reports ``trajectory_done`` (and the last applied action arrived, or a short
+grace passed: the two topics are not ordered) or an end, or after a wall-clock
+timeout; then the next one starts.  The start angles come from a joint state
+stamped ``SETTLE_PERIODS`` control periods after the newest one seen when the reset
+answered, so a state still in flight from before the reset is not mistaken for the
+new grasp, and only once discovery has matched the trajectory, applied-action and
+status topics with the driver.  A recorder in ``episode`` mode splits its bags on
+the driver's ``reset`` status, so each episode becomes one bag.
 
 One whole trajectory per episode (not a command per step) keeps the actions
 exactly as sampled whatever the latency: the driver executes it open loop, one
@@ -64,10 +65,13 @@ from trajectory_msgs.msg import JointTrajectory
 from msg_adapters import RCLPY, actions_to_joint_trajectory, applied_action, joint_state_arrays, names, stamp_to_ns
 from t42_transfer.conventions import (
     ACTION_LIMIT,
+    ACTION_UNIT_RAD,
     CONTROL_PERIOD_NS,
     CONTROL_PERIOD_S,
+    MAX_ACTION_UNIT_RAD,
     MAX_PLAN_HORIZON,
     RANDOM_POLICY_LIMIT,
+    checked_action_unit,
 )
 from t42_transfer.hand.collect import RandomPolicy
 from t42_transfer.ros.logs import ThrottledLog
@@ -98,6 +102,9 @@ class ExplorerParams:
     limit: float = param(RANDOM_POLICY_LIMIT, "random actions are uniform in [-limit, limit] per actuator",
                          min=0.0, max=ACTION_LIMIT, constraints="> 0")
     seed: int = param(0, "episode k (from 1) samples its actions with seed + k - 1", min=0)
+    action_unit_rad: float = param(ACTION_UNIT_RAD, "actuator step (rad) of an action of 1: the unit of the model "
+                                   "the data are for (the suite's 0.025; the paper authors' models 0.00388)",
+                                   min=0.0, max=MAX_ACTION_UNIT_RAD, constraints="> 0")
     rate_factor: float = param(1.0, "the driver's rate factor: episode timeouts shrink with it", min=1e-3, max=1000.0)
     timeout_margin_s: float = param(5.0, "an episode gives up this long (wall time) after its last action was due",
                                     min=0.0, max=3600.0)
@@ -115,6 +122,10 @@ class ExplorerParams:
             raise ValueError(f"seed must be a non-negative int, got {self.seed!r}")
         if not (math.isfinite(self.limit) and 0 < self.limit <= ACTION_LIMIT):
             raise ValueError(f"limit must be in (0, {ACTION_LIMIT}], got {self.limit!r}")
+        try:
+            checked_action_unit(self.action_unit_rad)
+        except ValueError as err:
+            raise ValueError(f"action_unit_rad: {err}") from None
         if not (math.isfinite(self.rate_factor) and self.rate_factor > 0):
             raise ValueError(f"rate_factor must be positive and finite, got {self.rate_factor!r}")
         if not (math.isfinite(self.timeout_margin_s) and self.timeout_margin_s >= 0):
@@ -199,6 +210,8 @@ class Explorer(Node):
         self._applied_ns = -1
         """Stamp of the latest applied action heard in any phase: proof the driver's writer reaches us."""
         self._actions = np.zeros((0, 2))
+        self._unit_rad = ACTION_UNIT_RAD
+        """The unit the running episode's actions were sent in."""
         self._applied = 0
         self._mismatched = 0
         self._ended: str | None = None
@@ -256,7 +269,7 @@ class Explorer(Node):
         if self._phase != "running":
             return
         try:
-            action = applied_action(msg)
+            action = applied_action(msg, unit_rad=self._unit_rad)
         except Exception as err:
             self.per_message.warning(f"ignored an applied action: {err}")
             return
@@ -364,8 +377,9 @@ class Explorer(Node):
         rng = np.random.default_rng(p.seed + self.episode - 1)
         actions = RandomPolicy(hold_max=p.hold_max, limit=p.limit).sample(rng, p.steps)
         self._actions, self._applied, self._mismatched, self._ended = actions, 0, 0, None
+        self._unit_rad = p.action_unit_rad  # the episode's, should the parameter change during it
         now = self.get_clock().now().nanoseconds
-        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, self._angles, now, RCLPY))
+        self._trajectory_pub.publish(actions_to_joint_trajectory(actions, self._angles, now, RCLPY, p.action_unit_rad))
         # Wall time: under use_sim_time ROS time runs rate_factor times faster.
         self._deadline = time.monotonic() + p.steps * CONTROL_PERIOD_S / p.rate_factor + p.timeout_margin_s
         self._phase = "running"

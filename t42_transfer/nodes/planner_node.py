@@ -9,7 +9,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``t42/model_updated`` (t42_interfaces/msg/ModelUpdated, latched): subscribed TRANSIENT_LOCAL; the model file
   (``path``) to plan with from now on (the transfer server announces there);
 * ``hand/trajectory`` (trajectory_msgs/msg/JointTrajectory): published for an accepted plan; actuator-angle
-  targets one per control period from the angles of the state planned from, stamped when published;
+  targets one per control period from the angles of the state planned from, stamped when published, each step
+  the model's action times its unit (``action_unit_rad`` in its file: the authors' models step 0.00388 rad);
 * ``t42/planned_path`` (nav_msgs/msg/Path, latched): published with each trajectory; the predicted object
   positions (plan length + 1 poses, the start included), metres in ``t42_base``, stamped from the trajectory's
   stamp one control period apart;
@@ -105,7 +106,7 @@ from msg_adapters.plan_result import plan_result_msg
 from msg_adapters.planning import candidates_msg
 from msg_adapters.reach import reach_request
 from msg_adapters.transfer import model_announcement
-from t42_transfer.conventions import CONTROL_PERIOD_NS, MAX_PLAN_HORIZON
+from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_NS, MAX_PLAN_HORIZON
 from t42_transfer.driver.commands import check_stamp
 from t42_transfer.nodes.planner_inbox import Inbox, Stop, Watch
 from t42_transfer.nodes.planner_params import PlannerNodeParams
@@ -201,7 +202,8 @@ class PlannerNode(Node):
             self.log.warning(f"could not load model {path} ({err}); keeping model {kept}")
             return False
         self._inbox.model = loaded
-        self.log.info(f"planning with model {path} (method {loaded.method!r})")
+        self.log.info(f"planning with model {path} (method {loaded.method!r}, actions of "
+                      f"{loaded.action_unit_rad:.3g} rad a step)")
         return True
 
     def close(self) -> None:
@@ -384,9 +386,10 @@ class PlannerNode(Node):
             return
         if goal.run is not None:
             goal.run.start(pose[0], hand.state[:2])
-        self._execute(goal, planner, plan, hand, result)
+        self._execute(goal, loaded, planner, plan, hand, result)
 
-    def _execute(self, goal: Goal, planner: Planner, first: Plan, hand: HandState, result: PlanResult) -> None:
+    def _execute(self, goal: Goal, loaded: LoadedModel, planner: Planner, first: Plan, hand: HandState,
+                 result: PlanResult) -> None:
         """Send ``first`` whole (open loop) or piece by piece, replanning between pieces (:func:`receding_horizon`).
 
         The goal's result is published right after the first piece is sent; every replan is logged
@@ -419,7 +422,8 @@ class PlannerNode(Node):
 
         def send(piece: np.ndarray) -> str:
             nonlocal offset, executed
-            stamp = watch.send(len(piece), lambda: self._send_piece(piece, hand.angles), never_sent)
+            stamp = watch.send(len(piece), lambda: self._send_piece(piece, hand.angles, loaded.action_unit_rad),
+                               never_sent)
             if isinstance(stamp, Stop):
                 return "interrupted"
             self._path_pub.publish(path_msg(current.predicted[offset:, :2], stamp, kit=RCLPY))
@@ -459,10 +463,11 @@ class PlannerNode(Node):
                                                 final.state[:2], tolerance, ends, pending)
         run.finish(outcome, verdict, reason, error)
 
-    def _send_piece(self, piece: np.ndarray, angles: np.ndarray) -> int:
-        """Publish ``piece`` as the driver's trajectory from ``angles``, stamped now; its stamp."""
+    def _send_piece(self, piece: np.ndarray, angles: np.ndarray, unit_rad: float = ACTION_UNIT_RAD) -> int:
+        """Publish ``piece`` (actions of ``unit_rad``, its model's) as the driver's trajectory from ``angles``,
+        stamped now; its stamp."""
         stamp = self._now_ns()
-        self._trajectory_pub.publish(actions_to_joint_trajectory(piece, angles, stamp, kit=RCLPY))
+        self._trajectory_pub.publish(actions_to_joint_trajectory(piece, angles, stamp, kit=RCLPY, unit_rad=unit_rad))
         return stamp
 
     def _stop_hand(self) -> None:

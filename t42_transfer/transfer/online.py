@@ -53,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
+from t42_transfer.conventions import ACTION_UNIT_RAD
 from t42_transfer.data.bag import list_bags, read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.quality import usable_stretches
@@ -61,7 +62,7 @@ from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
 from t42_transfer.files import write_atomic
 from t42_transfer.models.baselines import HoldStill
-from t42_transfer.models.checkpoint import load_model, save_model
+from t42_transfer.models.checkpoint import UNIT_KEY, load_model, save_model
 from t42_transfer.models.network import TransitionModel
 from t42_transfer.models.training import Progress
 from t42_transfer.planning.workspace import Workspace
@@ -313,16 +314,17 @@ class TargetData:
         return len(set(self.episodes))
 
 
-def read_target(bags: Sequence[Path]) -> TargetData:
+def read_target(bags: Sequence[Path], action_unit_rad: float = ACTION_UNIT_RAD) -> TargetData:
     """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule; a late step
     may move 8 mm a period it lasted: the object moves on during one) and then split at its late steps
-    (``quality.usable_stretches``).  The notes count episodes as the reader gave them."""
+    (``quality.usable_stretches``), its actions in ``action_unit_rad`` (the model's: a bag stepped further than that
+    unit allows is skipped, with why).  The notes count episodes as the reader gave them."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                sets.append(read_bag(bag))
+                sets.append(read_bag(bag, action_unit_rad))
                 read.append(bag)
             except DataFileError as err:  # one bad bag leaves the others usable
                 skipped.append((bag, str(err)))
@@ -465,7 +467,7 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     state = read_state(spec.model_dir)
     new = bags_to_read(spec, state)
     source, source_meta = load_source(spec.source_model)
-    target = read_target(new)
+    target = read_target(new, source_meta[UNIT_KEY])  # the source's unit: its transfer learns the same actions
     data, readable, skipped_pairs, notes = target.data, target.read, target.skipped, target.notes
     skipped = [why for _, why in skipped_pairs]
     if target.recorded_episodes < spec.min_episodes:  # (a split episode is held out whole)
@@ -545,6 +547,7 @@ def _commit(
             "source_model": str(spec.source_model), "source_data": source_meta.get("data", {}),
         },
         "extra": {"workspace": workspace.to_dict(), "evaluation": evaluation, **picked},
+        "action_unit_rad": source_meta[UNIT_KEY],  # the target data were read in it
     }
     path = next_model_path(spec.model_dir)
     save_model(model, path, **kwargs)

@@ -27,7 +27,16 @@ import numpy as np
 
 import msg_adapters as ma
 from msg_adapters import names
-from t42_transfer.conventions import CONTROL_PERIOD_NS, DROP_REASONS, LATE_STEP_NS, MIN_EPISODE_STEPS, MIN_STEP_NS
+from t42_transfer.conventions import (
+    ACTION_LIMIT,
+    ACTION_UNIT_RAD,
+    CONTROL_PERIOD_NS,
+    DROP_REASONS,
+    LATE_STEP_NS,
+    MIN_EPISODE_STEPS,
+    MIN_STEP_NS,
+    checked_action_unit,
+)
 from t42_transfer.data.bag.hand_topics import hand_topic_names
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import RawBag
@@ -43,8 +52,24 @@ _POSE, _JOINTS, _ACTION = ma.OBJECT_POSE_TOPIC, ma.JOINT_STATES_TOPIC, ma.APPLIE
 _CONVERTERS: dict[str, Callable[[Any], Any]] = {
     _POSE: ma.object_xy_mm,
     _JOINTS: ma.joint_state_arrays,
-    _ACTION: ma.applied_action,
 }
+
+
+def _action_in(unit_rad: float) -> Callable[[Any], np.ndarray]:
+    """The applied action of a message in ``unit_rad``; ValueError for one past ``ACTION_LIMIT`` there: no hand
+    driven in that unit steps so far, so the bag was recorded in a larger one."""
+    unit = checked_action_unit(unit_rad)
+
+    def convert(msg: Any) -> np.ndarray:
+        action = ma.applied_action(msg, unit_rad=unit)
+        largest = float(np.abs(action).max())
+        if largest > ACTION_LIMIT * (1 + 1e-6):
+            raise ValueError(f"an action of {largest:.3g} in units of {unit:.3g} rad a step, past {ACTION_LIMIT:g}: "
+                             f"the hand stepped {largest * unit:.3g} rad, further than one driven in that unit (a bag "
+                             "is read in its model's unit: record it with the explorer's action_unit_rad set to it)")
+        return action
+
+    return convert
 
 
 @dataclasses.dataclass
@@ -54,8 +79,10 @@ class _Stream:
     values: list[Any]
 
 
-def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
-    """Hand topics as header-stamped numpy values, checked for type, finiteness and order."""
+def decode_streams(bag: Path, raw: RawBag, action_unit_rad: float = ACTION_UNIT_RAD) -> dict[str, _Stream]:
+    """Hand topics as header-stamped numpy values (actions in ``action_unit_rad``), checked for type, finiteness,
+    range and order."""
+    converters = {**_CONVERTERS, _ACTION: _action_in(action_unit_rad)}
     recorded = hand_topic_names(bag, raw.custom, raw.topics)
     _check_topics(bag, raw, recorded)
     streams = {}
@@ -70,7 +97,7 @@ def decode_streams(bag: Path, raw: RawBag) -> dict[str, _Stream]:
                 raise BagError(bag, f"{name}: the message logged at {log_ns} ns cannot be decoded ({err})") from None
             stamp = ma.stamp_to_ns(msg.header.stamp)
             try:
-                values.append(_CONVERTERS[topic](msg))
+                values.append(converters[topic](msg))
             except ValueError as err:
                 raise BagError(bag, f"{name} at stamp {stamp} ns: {err}") from None
             if stamps and stamp <= stamps[-1]:

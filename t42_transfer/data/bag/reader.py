@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from t42_transfer.conventions import ACTION_UNIT_RAD, checked_action_unit
 from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, missing_hand_topics
 from t42_transfer.data.bag.hand_topics import hand_topic_names
 from t42_transfer.data.bag.metadata import EPISODES_KEY
@@ -21,8 +22,9 @@ from t42_transfer.data.errors import BagError
 from t42_transfer.data.trajectory import TrajectorySet
 
 
-def read_bag(path: str | Path) -> TrajectorySet:
-    """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s).
+def read_bag(path: str | Path, action_unit_rad: float = ACTION_UNIT_RAD) -> TrajectorySet:
+    """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s), their actions in
+    ``action_unit_rad`` (a bag holds the actuators' steps; an action past ``ACTION_LIMIT`` in that unit refuses it).
 
     Every joint state is a state; the object pose with the nearest header stamp
     within half a control period gives its x, y; the applied action stamped
@@ -38,11 +40,11 @@ def read_bag(path: str | Path) -> TrajectorySet:
     state the object fell or slipped into is left out.  Episodes shorter than
     ``MIN_EPISODE_STEPS`` are dropped with a warning.
     """
-    bag = Path(path)
+    bag, unit = Path(path), checked_action_unit(action_unit_rad)
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        return assemble_episodes(bag, decode_streams(bag, raw), raw)
+        return assemble_episodes(bag, decode_streams(bag, raw, unit), raw)
 
 
 def bag_info(path: str | Path) -> dict[str, Any]:

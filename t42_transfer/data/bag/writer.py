@@ -25,6 +25,7 @@ from rosbags.rosbag2 import Writer
 import msg_adapters as ma
 from msg_adapters import names
 from msg_adapters.names import LATE
+from t42_transfer.conventions import ACTION_LIMIT, ACTION_UNIT_RAD, checked_action_unit
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
 from t42_transfer.data.bag.storage import STORAGES
@@ -196,8 +197,9 @@ def write_bag(
     *,
     storage: str = "mcap",
     metadata: Mapping[str, str] | None = None,
+    action_unit_rad: float = ACTION_UNIT_RAD,
 ) -> Path:
-    """Write ``data`` as a new rosbag2 bag at ``path``; returns ``path``.
+    """Write ``data`` (actions in ``action_unit_rad``) as a new rosbag2 bag at ``path``; returns ``path``.
 
     The bag is built in a hidden directory beside ``path`` and renamed into place
     only once complete, so a failure never leaves a half bag that looks whole.  FileExistsError when a bag is at
@@ -207,6 +209,11 @@ def write_bag(
     target = Path(path)
     if storage not in STORAGES:  # before anything is made on disk
         raise ValueError(f"storage must be one of {sorted(STORAGES)}, got {storage!r}")
+    unit = checked_action_unit(action_unit_rad)
+    largest = max((float(np.abs(t.actions).max(initial=0.0)) for t in data), default=0.0)
+    if largest > ACTION_LIMIT:
+        raise ValueError(f"an action of {largest:g} is past the largest a hand takes ({ACTION_LIMIT:g}): no bag "
+                         "holds it")
     if target.exists() or target.is_symlink():
         raise FileExistsError(f"{target} exists already; bags are never overwritten")
     custom = _custom_data(data, metadata)
@@ -217,7 +224,7 @@ def write_bag(
         bag = staging / target.name
         with BagWriter(bag, ma.HAND_TOPICS, storage, custom) as writer:
             for traj in data:
-                _write_episode(writer, traj)
+                _write_episode(writer, traj, unit)
         try:
             bag.rename(target)
         except OSError:
@@ -263,7 +270,7 @@ def _check_timeline(trajectories: Iterable[Trajectory]) -> None:
         previous_end = traj.start_ns + int(traj.durations_ns.sum())
 
 
-def _write_episode(writer: BagWriter, traj: Trajectory) -> None:
+def _write_episode(writer: BagWriter, traj: Trajectory, unit_rad: float) -> None:
     """Each step's three messages at its stamp; a late step (``step_ns``) also gets the ``late`` status a driver
     publishes for it, which tells a reader that no step is missing before it."""
     stamps = traj.start_ns + np.concatenate([[0], np.cumsum(traj.durations_ns)])
@@ -274,7 +281,8 @@ def _write_episode(writer: BagWriter, traj: Trajectory) -> None:
         writer.write(ma.OBJECT_POSE_TOPIC, stamp, _cdr(ma.object_pose_msg(state[:2], stamp)))
         writer.write(ma.JOINT_STATES_TOPIC, stamp, _cdr(ma.joint_state_msg(state[2:], angles, stamp)))
         if k < len(traj):
-            writer.write(ma.APPLIED_ACTION_TOPIC, stamp, _cdr(ma.applied_action_msg(traj.actions[k], stamp)))
+            action = ma.applied_action_msg(traj.actions[k], stamp, unit_rad=unit_rad)
+            writer.write(ma.APPLIED_ACTION_TOPIC, stamp, _cdr(action))
         if k in late:
             text = ma.status_message(LATE, f"{(stamp - int(stamps[k - 1])) / 1e6:g} ms after the step before", stamp)
             writer.write(ma.HAND_STATUS_TOPIC, stamp, _cdr(ma.TYPESTORE.types[ma.STRING](data=text)), ma.STRING)
