@@ -301,9 +301,19 @@ BROKEN = {
     "ros2msg": (BAR, "int32 id\nfloat64 force\nmy_msgs/Fi"),
     "ros2idl": (FOO, rosbag2_idl(IDL)[:640]),
     "ros2idl, a part unheaded": (FOO, rosbag2_idl(IDL).replace(f"IDL: {FINGER}", f"// {FINGER}")),
+    "ros2msg, a type it uses undefined": (BAR, "int32 id\nfloat64 force\nmy_msgs/Finger finger\n"),
+    "ros2msg, another type hash": (BAR, "int32 id\nfloat64 force\n"),
 }
-"""Stored definitions rosbags cannot parse, by kind, with their type: a ``.msg`` definition cut off mid-line, an IDL
-one cut off in its struct, and an IDL one whose second type lost its ``IDL: <type>`` header line."""
+"""Stored definitions rosbags cannot parse or check, by kind, with their type: a ``.msg`` definition cut off
+mid-line, an IDL one cut off in its struct, an IDL one whose second type lost its ``IDL: <type>`` header line, a
+``.msg`` one that parses but lacks a type it uses (its ``MSG:`` part), and one whose hash is not the stored one
+(all are stored with a hash of zeros)."""
+BROKEN_WHY = {"ros2msg, a type it uses undefined": "its stored definition does not define every type it uses "
+                                                   "(KeyError: 'my_msgs/msg/Finger')",
+              "ros2msg, another type hash": "its stored definition hashes to RIHS01_9551c679..., not to its stored "
+                                            "RIHS01_00000000..."}
+"""How a warning says why a BROKEN kind is not decodable, where it is not that it does not parse."""
+UNPARSED = "its stored definition cannot be parsed (TypesysError: Could not parse"
 
 
 def broken_definition_bag(path: Path, data: TrajectorySet, storage=StoragePlugin.MCAP,
@@ -312,7 +322,7 @@ def broken_definition_bag(path: Path, data: TrajectorySet, storage=StoragePlugin
     one of :data:`BROKEN`) does not parse; and how many messages BROKEN_TOPIC holds (one after every 10th hand
     message, each bytes of no particular type: nothing reads them)."""
     msgtype, text = BROKEN[kind]
-    assert text.startswith("=" * 80 + "\nIDL: ") == (kind != "ros2msg")  # how rosbags' writer tells the encoding
+    assert text.startswith("=" * 80 + "\nIDL: ") == kind.startswith("ros2idl")  # how rosbags' writer tells encodings
     count = 0
     with JazzyWriter(path, version=9, storage_plugin=storage) as writer:
         conns = {t: writer.add_connection(t, ma.HAND_TOPICS[t], typestore=ma.TYPESTORE) for t in ma.HAND_TOPICS}

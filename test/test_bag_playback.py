@@ -11,8 +11,10 @@ import pytest
 from bag_builders import (
     BROKEN,
     BROKEN_TOPIC,
+    BROKEN_WHY,
     FOO,
     IDL_TOPIC,
+    UNPARSED,
     broken_definition_bag,
     fixture_copy,
     idl_topic_bag,
@@ -97,9 +99,11 @@ def test_a_topic_whose_stored_definition_does_not_parse_plays_without_one(tmp_pa
             warnings.simplefilter("always")
             reader = open_bag(path)
         try:
-            assert [str(w.message).partition(" (TypesysError: ")[0] for w in said] == [
-                f"{path}: {BROKEN_TOPIC} ({msgtype}) is not decodable from the bag: its stored definition cannot be "
-                "parsed"]
+            if kind in BROKEN_WHY and path.suffix == ".mcap":  # an MCAP file alone has no hashes to check
+                assert said == [] and reader.undecodable == {}
+                continue
+            assert len(said) == 1 and str(said[0].message).startswith(
+                f"{path}: {BROKEN_TOPIC} ({msgtype}) is not decodable from the bag: {BROKEN_WHY.get(kind, UNPARSED)}")
             assert list(reader.undecodable) == [BROKEN_TOPIC]
             formats = {c.topic: c.msgdef.format for c in reader.connections}
             assert formats.pop(BROKEN_TOPIC) == MessageDefinitionFormat.NONE

@@ -14,8 +14,9 @@ rosbags as :func:`~.idl.rosbags_idl` gives them, those lines comments, so such a
 
 ``AnyReader`` parses every definition it is given (of a type the project's typestore knows too), and refuses the
 whole bag over one it cannot parse (a definition cut off, or otherwise malformed, in a ``ros2 bag record -a`` of
-topics the hand never needs).  :func:`readable_definition` parses each first, as ``AnyReader`` will, and gives one
-that does not parse as none: that topic is not decodable from the bag, like one stored without a definition.
+topics the hand never needs), or whose types do not give the type hash stored with it (a type it uses missing, or
+another hash).  :func:`readable_definition` parses each first, as ``AnyReader`` will, and gives one
+that it would refuse as none: that topic is not decodable from the bag, like one stored without a definition.
 :attr:`BagReader.undecodable` says which and why, for its users to warn of (the reader says nothing itself).
 """
 
@@ -32,7 +33,7 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import ReaderMetadata, parse_qos
 from rosbags.rosbag2.reader import DirectoryReader
 from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
-from rosbags.typesys import get_types_from_msg
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 import msg_adapters as ma
 from t42_transfer.data.bag.idl import idl_types, rosbags_idl
@@ -91,7 +92,7 @@ class _Reader(Reader):
         super().open()
         connections = []
         for conn in self.storage.connections:  # (messages are matched by id, topic and type, never by definition)
-            msgdef, why = readable_definition(conn.msgdef, conn.msgtype)
+            msgdef, why = readable_definition(conn.msgdef, conn.msgtype, conn.digest)
             if why:
                 self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, why))
             connections.append(conn._replace(msgdef=msgdef))
@@ -99,18 +100,31 @@ class _Reader(Reader):
 
 
 @functools.lru_cache(maxsize=256)  # the same definitions come in bag after bag, and each time a bag is opened
-def readable_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageDefinition, str]:
+def readable_definition(msgdef: MessageDefinition, msgtype: str, digest: str = "") -> tuple[MessageDefinition, str]:
     """``msgdef``, a stored definition of ``msgtype``, as rosbags' ``AnyReader`` is given it (an IDL one as
-    :func:`~.idl.rosbags_idl` gives it) and ""; or no definition and why ``msgdef`` cannot be parsed, one line.
+    :func:`~.idl.rosbags_idl` gives it) and ""; or no definition and why ``AnyReader`` would refuse the bag over it,
+    one line.
 
     Parsed as ``AnyReader`` parses it: a ``.msg`` one by rosbags' ``get_types_from_msg``, an IDL one by
-    :func:`~.idl.idl_types`."""
+    :func:`~.idl.idl_types`.  With the type's stored hash (``digest``, RIHS01), hashed as ``AnyReader`` checks it:
+    a definition that lacks a type it uses (rosbag2 stores each with every type it needs) or gives another hash is
+    refused too."""
     if msgdef.format == MessageDefinitionFormat.NONE:
         return msgdef, ""
     try:
-        msgdef, _ = parsed_definition(msgdef, msgtype)
+        msgdef, types = parsed_definition(msgdef, msgtype)
     except Exception as err:  # rosbags raises many types for what it cannot parse
         return _NO_DEFINITION, f"its stored definition cannot be parsed ({_short(err)})"
+    if not digest:
+        return msgdef, ""
+    store = get_typestore(Stores.EMPTY)
+    try:
+        store.register(types)
+        have = store.hash_rihs01(msgtype)
+    except Exception as err:  # KeyError: a type it uses and does not define
+        return _NO_DEFINITION, f"its stored definition does not define every type it uses ({_short(err)})"
+    if have != digest:
+        return _NO_DEFINITION, f"its stored definition hashes to {have[:15]}..., not to its stored {digest[:15]}..."
     return msgdef, ""
 
 

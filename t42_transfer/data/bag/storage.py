@@ -297,7 +297,7 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
                         msgtype = "(no schema)" if schema is None else schema.name
                         _add_topic(topics, record.topic, msgtype, 0, digest)
                         why = "" if schema is None else readable_definition(
-                            stored_definition(schema.encoding, schema.data), msgtype)[1]
+                            stored_definition(schema.encoding, schema.data), msgtype, digest)[1]
                         if why:
                             undecodable.setdefault(record.topic, undecodable_line(record.topic, msgtype, why))
                         if msgtype in HAND_TYPES:
