@@ -26,11 +26,8 @@ from t42_transfer.data.bag import assign_start_times, read_bag, write_bag
 from t42_transfer.models.checkpoint import FORMAT, load_model, read_metadata, save_model
 from t42_transfer.models.residual import CumulativeResidualModel
 from t42_transfer.models.training import TrainConfig, train_transition_model
-from t42_transfer.nodes.transfer_server import (
-    SHUTTING_DOWN,
-    STATUS_NAME,
-    TransferServer,
-)
+from t42_transfer.nodes.transfer_server import SHUTTING_DOWN, TransferServer
+from t42_transfer.nodes.transfer_status import STATUS_NAME
 from t42_transfer.planning.workspace import Workspace
 from t42_transfer.ros.qos import profile
 from t42_transfer.transfer.methods import METHODS

@@ -21,7 +21,8 @@ from test_transfer_server import Rig, add_target_bag, config_file, source_model 
 from msg_adapters import DiagnosticReport, names, status_report
 from t42_transfer.data.bag import read_bag
 from t42_transfer.nodes.recorder import Recorder
-from t42_transfer.nodes.transfer_server import SHUTTING_DOWN, STATUS_NAME
+from t42_transfer.nodes.transfer_server import SHUTTING_DOWN
+from t42_transfer.nodes.transfer_status import STATUS_NAME
 from t42_transfer.ros.qos import profile
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

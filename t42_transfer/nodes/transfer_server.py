@@ -24,7 +24,7 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
   ``config`` file; nothing is written then), or ``busy: ...`` at once while a transfer (a call, a goal, an automatic
   one) runs;
 * ``diagnostics`` (diagnostic_msgs/msg/DiagnosticArray): one status named
-  :data:`STATUS_NAME`, level OK while running and when done, WARN when a request
+  :data:`~t42_transfer.nodes.transfer_status.STATUS_NAME`, level OK while running and when done, WARN when a request
   was refused, ERROR when the transfer failed; key-values ``stage`` (loading,
   training, evaluating, saving, done, failed, cancelled), ``elapsed_s``, ``method``,
   ``bags`` and what is known so far; while training, the last finished epoch:
@@ -73,14 +73,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 from t42_interfaces.msg import BagClosed, ModelUpdated
 
-from msg_adapters import RCLPY, diagnostic_array, names
+from msg_adapters import names
 from msg_adapters.diagnostics import PERIOD_S as DIAGNOSTICS_PERIOD_S
 from msg_adapters.events import SNAPSHOT, bag_closed_event
 from msg_adapters.transfer import (
@@ -94,6 +93,7 @@ from msg_adapters.transfer import (
     transfer_type,
 )
 from t42_transfer.nodes.transfer_server_params import TransferServerParams, method_names
+from t42_transfer.nodes.transfer_status import TransferStatus
 from t42_transfer.ros.dirs import claim_made
 from t42_transfer.ros.goals import AnsweringActionServer
 from t42_transfer.ros.node_lifetime import destroyed_if_init_fails
@@ -103,8 +103,6 @@ from t42_transfer.ros.qos import profile
 if TYPE_CHECKING:  # the science is imported on first use (node start-up time)
     from t42_transfer.transfer.online import TransferResult
 
-STATUS_NAME = "t42_transfer: transfer"
-"""Name of the node's status in ``diagnostics``."""
 CLOSE_WAIT_S = 10.0
 """How long closing the node waits for a cancelled transfer to stop (it stops at its next epoch, or finishes a
 save under way) before leaving it to end with the process."""
@@ -177,18 +175,12 @@ class TransferServer(Node):
         self._worker: threading.Thread | None = None
         """The thread of the newest transfer (closing the node waits for it)."""
         self._auto_thread: threading.Thread | None = None
-        self._publishing = threading.Lock()
-        """Worker and callback threads publish the status one at a time."""
-        self._status: dict[str, Any] = {"stage": "idle", "level": "OK", "message": "idle", "values": {}}
-        self._method = self.params.method
-        """The method of the running (or last) transfer."""
-        self._started = time.monotonic()
+        self._status = TransferStatus(self, self.params.method)
         self._closed = False
         self._in_flight = 0
         """Call callbacks running (closing waits for their answers; for goals, see :meth:`_answered`)."""
         self._in_flight_lock = threading.Lock()
-        self._diagnostics = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_periodic)
+        self.create_timer(DIAGNOSTICS_PERIOD_S, lambda: self._status.publish_ended(self.busy))
         self._updates = self.create_publisher(ModelUpdated, names.MODEL_UPDATED,
                                               profile(names.OFFERED[names.MODEL_UPDATED]))
         group = ReentrantCallbackGroup()
@@ -242,7 +234,7 @@ class TransferServer(Node):
         Called again (``destroy_node`` does), it answers the goals accepted since (a closed node still takes goals)."""
         threads: list[threading.Thread] = []
         if not self._closed:
-            self._closed = True
+            self._closed = self._status.closed = True
             job = self._running
             if job is not None:
                 job.cancel.set()
@@ -315,17 +307,13 @@ class TransferServer(Node):
                    if getattr(old, f.name) != getattr(new, f.name)]
         self.log.info(f"{', '.join(changed)}: takes effect with the next call")
 
-    def _busy(self, again: str) -> str:
-        return (f"busy: a {self._method} transfer is {self._status['stage']} "
-                f"({time.monotonic() - self._started:.0f} s in); {again} when it is done")
-
     @answering
     def _on_transfer(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self._closed:
             response.success, response.message = False, "the node is shutting down; call again when it runs"
             return response
         if not self._job.acquire(blocking=False):
-            response.success, response.message = False, self._busy("call again")
+            response.success, response.message = False, self._status.busy("call again")
             return response
         try:
             outcome = self._run(Job(self.params.method))
@@ -356,7 +344,7 @@ class TransferServer(Node):
                 return self._end(handle, TransferOutcome(False, "cancelled before it started; nothing was written"),
                                  cancelled=True)
             if not self._job.acquire(blocking=False):
-                return self._end(handle, TransferOutcome(False, self._busy("send the goal again")))
+                return self._end(handle, TransferOutcome(False, self._status.busy("send the goal again")))
             fed = [0.0]  # when the last feedback went out (monotonic s)
 
             def feed(stage: str, info: dict) -> None:
@@ -396,7 +384,7 @@ class TransferServer(Node):
         """Accept cancelling a goal until its save begins: the running one stops after its epoch in progress."""
         job = self._running
         if job is not None and job.handle is not None and job.handle.goal_id == handle.goal_id:
-            if self._status["stage"] in ("saving", "done"):
+            if self._status.stage in ("saving", "done"):
                 return CancelResponse.REJECT
             job.cancel.set()
         return CancelResponse.ACCEPT
@@ -444,11 +432,9 @@ class TransferServer(Node):
         """Run ``job`` in a worker thread (the job lock held), publishing progress until it ends."""
         from t42_transfer.transfer.online import TransferCancelled, TransferRefused, run_transfer
 
-        self._started = time.monotonic()
         params = self.params
-        self._method = job.method
+        self._status.begin(job.method)
         self._running = job
-        self._status = {"stage": "loading", "level": "OK", "message": "starting", "values": {}}
         try:
             spec = dataclasses.replace(params.spec(self.get_namespace()), method=job.method)
             if job.bags:
@@ -459,7 +445,7 @@ class TransferServer(Node):
         done = threading.Event()
 
         def report(stage: str, info: Mapping[str, object]) -> None:
-            self._report(stage, info)
+            self._status.report(stage, info)
             if job.feedback is not None:
                 try:
                     job.feedback(stage, info)
@@ -485,7 +471,7 @@ class TransferServer(Node):
             while not done.wait(params.progress_period_s) and not self._closed:
                 if job.handle is not None and job.handle.is_cancel_requested:
                     job.cancel.set()
-                self._publish_status()
+                self._status.publish()
         finally:
             self._running = None
         return self._conclude(job, outcome, done.is_set())
@@ -503,7 +489,7 @@ class TransferServer(Node):
                 job.cancelled = True
                 message = one_line(outcome["cancelled"])
                 self.log.info(f"transfer not done: {message}")
-                self._set_status("cancelled", "OK", message, {})
+                self._status.set("cancelled", "OK", message, {})
                 return TransferOutcome(False, message)
             if "refused" in outcome:
                 refused = outcome["refused"]
@@ -523,7 +509,7 @@ class TransferServer(Node):
             "picked_method": result.selection.best,
             **{f"candidate.{c.method}": c.describe() for c in result.selection.candidates},
         }
-        self._set_status("done", "OK", summary, {
+        self._status.set("done", "OK", summary, {
             "divergence_steps": result.divergence_steps, "position_mse_mm2": result.position_mse_mm2,
             "model": str(result.model_path), "episodes": result.episodes, "transitions": result.transitions, **picked,
         })
@@ -533,56 +519,8 @@ class TransferServer(Node):
         """Log and publish a refusal (WARN) or a failure (ERROR); the outcome with the one-line reason."""
         reason = one_line(reason)
         (self.log.warning if refused else self.log.error)(f"transfer not done: {reason}")
-        self._set_status("failed", "WARN" if refused else "ERROR", reason, {})
+        self._status.set("failed", "WARN" if refused else "ERROR", reason, {})
         return TransferOutcome(False, reason)
-
-    # ------------------------------------------------------------------ diagnostics
-    _MESSAGES = {
-        "loading": "loading the source model and the new bags",
-        "training": "training",
-        "evaluating": "scoring on held-out target episodes",
-        "saving": "saving the model",
-    }
-
-    def _report(self, stage: str, info: Mapping[str, object]) -> None:
-        """Progress callback of :func:`run_transfer` (worker thread); an epoch report says which in the message."""
-        message = self._MESSAGES.get(stage, stage)
-        if stage == "training" and "phase" in info:
-            message = f"training {info['phase']}: epoch {info['epoch']}/{info['epochs']}"
-        self._set_status(stage, "OK", message, info)
-
-    def _set_status(self, stage: str, level: str, message: str, info: Mapping[str, object]) -> None:
-        values = {**self._status["values"], **info}
-        self._status = {"stage": stage, "level": level, "message": message, "values": values}
-        self._publish_status()
-
-    def _publish_periodic(self) -> None:
-        """The status each second once a transfer has ended (before: nothing to say; while one runs, its worker
-        publishes every ``progress_period_s``)."""
-        if self._status["stage"] != "idle" and not self.busy:
-            self._publish_status()
-
-    def _publish_status(self) -> None:
-        """Publish the current status; failures are logged (it runs from worker and callback threads).
-
-        The status is read under the lock, so a periodic publish cannot send an
-        older epoch after the worker has published a newer one.
-        """
-        try:
-            with self._publishing:
-                if self._closed:
-                    return
-                status = self._status
-                values = {
-                    "stage": status["stage"], "elapsed_s": f"{time.monotonic() - self._started:.1f}",
-                    "method": self._method, **status["values"],
-                }
-                self._diagnostics.publish(diagnostic_array(
-                    STATUS_NAME, status["level"], status["message"], values,
-                    self.get_clock().now().nanoseconds, kit=RCLPY,
-                ))
-        except Exception as err:
-            self.log.error(f"could not publish the transfer status: {err!r}")
 
 
 def outcome_of(result: TransferResult) -> TransferOutcome:
