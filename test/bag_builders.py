@@ -17,7 +17,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_types_from_idl, get_typestore
+from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 import msg_adapters as ma
 from t42_transfer.conventions import CONTROL_PERIOD_NS
@@ -333,3 +333,29 @@ def broken_definition_bag(path: Path, data: TrajectorySet, storage=StoragePlugin
                 writer.write(broken, stamp, b"\x00\x01\x00\x00" + index.to_bytes(4, "little"))
                 count += 1
     return path, count
+
+
+CLASHING_TOPICS = {"/vendor/a": ("my_msgs/msg/A", "int32 x"), "/vendor/b": ("my_msgs/msg/B", "float64 y")}
+"""Two topics whose types use one ``my_msgs/Sub``, each stored with a definition of its own (two installs of the
+package: an ``int32`` field, a ``float64``) and its own hash."""
+
+
+def clashing_definitions_bag(path: Path, data: TrajectorySet, storage=StoragePlugin.MCAP) -> Path:
+    """A ``ros2 bag record -a`` bag of ``data``'s hand messages and the CLASHING_TOPICS, one message each: each
+    definition is sound alone, but rosbags registers both in one store, where B's ``Sub`` replaces A's, and then
+    refused the whole bag over A's hash."""
+    separator = "=" * 80 + "\n"
+    with JazzyWriter(path, version=9, storage_plugin=storage) as writer:
+        conns = {t: writer.add_connection(t, ma.HAND_TOPICS[t], typestore=ma.TYPESTORE) for t in ma.HAND_TOPICS}
+        vendor = []
+        for topic, (msgtype, field) in CLASHING_TOPICS.items():
+            text = f"my_msgs/Sub s\n{separator}MSG: my_msgs/Sub\n{field}\n"
+            store = get_typestore(Stores.EMPTY)
+            store.register(get_types_from_msg(text, msgtype))
+            vendor.append(writer.add_connection(topic, msgtype, msgdef=text, rihs01=store.hash_rihs01(msgtype)))
+        for index, (topic, stamp, msg) in enumerate(m for traj in data for m in step_messages(traj)):
+            writer.write(conns[topic], stamp, ma.TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+            if index == 0:
+                for conn in vendor:
+                    writer.write(conn, stamp, b"\x00\x01\x00\x00" + bytes(8))
+    return path

@@ -16,6 +16,7 @@ from bag_builders import (
     IDL_TOPIC,
     UNPARSED,
     broken_definition_bag,
+    clashing_definitions_bag,
     fixture_copy,
     idl_topic_bag,
     plain,
@@ -115,6 +116,25 @@ def test_a_topic_whose_stored_definition_does_not_parse_plays_without_one(tmp_pa
             assert reader.deserialize(pose, "geometry_msgs/msg/PoseStamped").header.stamp.sec >= 0
         finally:
             reader.close()
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3], ids=["mcap", "sqlite3"])
+def test_of_two_definitions_that_do_not_hash_together_the_later_decodes(tmp_path: Path, small_set: object,
+                                                                        storage: StoragePlugin) -> None:
+    """rosbags refused such a bag whole ("hash mismatch"); it plays, the topic whose definition lost without one."""
+    bag = clashing_definitions_bag(tmp_path / "bag", small_set, storage)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        reader = open_bag(bag)
+    try:
+        assert len(said) == 1 and list(reader.undecodable) == ["/vendor/a"]
+        formats = {c.topic: c.msgdef.format for c in reader.connections}
+        none, msg = MessageDefinitionFormat.NONE, MessageDefinitionFormat.MSG
+        assert (formats["/vendor/a"], formats["/vendor/b"]) == (none, msg)
+        (raw,) = [raw for c, _, raw in reader.messages() if c.topic == "/vendor/b"]
+        assert reader.deserialize(raw, "my_msgs/msg/B").s.y == 0.0
+    finally:
+        reader.close()
 
 
 def test_refusals_name_the_bag_and_what_it_was_opened_for(tmp_path: Path, small_set: object) -> None:

@@ -19,6 +19,7 @@ from bag_builders import (
     UNPARSED,
     assert_same,
     broken_definition_bag,
+    clashing_definitions_bag,
     damaged_copy,
     fixture_copy,
     idl_topic_bag,
@@ -159,6 +160,22 @@ def test_a_topic_whose_stored_definition_does_not_parse_is_named_once_and_the_ha
         assert main(["bag", "info", str(bag)]) == 0
     undecodable_said(said, bag, msgtype, BROKEN_WHY.get(kind, UNPARSED))
     assert f"{BROKEN_TOPIC}: {{'type': '{msgtype}', 'count': {count}}}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("storage", [StoragePlugin.MCAP, StoragePlugin.SQLITE3], ids=["mcap", "sqlite3"])
+def test_two_definitions_that_do_not_hash_together_leave_one_topic_undecodable(tmp_path, small_set, storage):
+    """Two vendor topics whose definitions give a type they share otherwise (each sound alone): rosbags, registering
+    every definition in one store, refused the whole sqlite3 bag ("hash mismatch").  The topic whose definition lost
+    is named once; the hand's topics are read."""
+    bag = clashing_definitions_bag(tmp_path / "bag", small_set, storage)
+    for read in (read_bag, bag_info):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            got = read(bag)
+        assert [str(w.message) for w in said] == [
+            f"{bag}: /vendor/a (my_msgs/msg/A) is not decodable from the bag: its stored definition gives a type it "
+            "uses otherwise than another topic's definition does, and the two do not hash together"]
+    assert got["episodes"] == len(small_set) and got["topics"]["/vendor/b"]["count"] == 1
 
 
 def test_flipped_bytes_never_escape_as_library_errors(tmp_path, small_set):

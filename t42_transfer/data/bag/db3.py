@@ -96,6 +96,10 @@ class _Reader(Reader):
             if why:
                 self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, why))
             connections.append(conn._replace(msgdef=msgdef))
+        for i in clashing_definitions([(c.msgdef, c.msgtype, c.digest) for c in connections]):
+            conn = connections[i]
+            self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, CLASHING))
+            connections[i] = conn._replace(msgdef=_NO_DEFINITION)
         self.storage.connections = connections
 
 
@@ -136,6 +140,42 @@ def parsed_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageD
         msgdef = MessageDefinition(MessageDefinitionFormat.IDL, rosbags_idl(msgdef.data, msgtype))
         return msgdef, idl_types(msgdef.data)
     return msgdef, get_types_from_msg(msgdef.data, msgtype)
+
+
+CLASHING = ("its stored definition gives a type it uses otherwise than another topic's definition does, and the two "
+            "do not hash together")
+"""Why a topic is not decodable when :func:`clashing_definitions` finds it."""
+
+
+def clashing_definitions(stored: Sequence[tuple[MessageDefinition, str, str]]) -> set[int]:
+    """Which of a bag's ``(definition, type, stored hash)`` (readable definitions, as :func:`readable_definition` gives
+    them) ``AnyReader`` would refuse the bag over: it registers every definition in one store, where a type two
+    definitions give differently (two installs of a package) takes the later one, and then checks each stored hash.
+    Those found are left out and the rest checked again, as reading the bag without them would."""
+    dropped: set[int] = set()
+    while True:
+        kept = [i for i, (msgdef, _, _) in enumerate(stored)
+                if i not in dropped and msgdef.format != MessageDefinitionFormat.NONE]
+        types: dict[str, Any] = {}
+        for i in kept:
+            types.update(parsed_definition(stored[i][0], stored[i][1])[1])
+        store = get_typestore(Stores.EMPTY)
+        try:
+            store.register(types)
+        except Exception:  # rosbags says why when it opens the bag
+            return dropped
+        clashing = {i for i in kept if stored[i][2] and not _hashes_to(store, stored[i][1], stored[i][2])}
+        if not clashing:
+            return dropped
+        dropped |= clashing
+
+
+def _hashes_to(store: Any, msgtype: str, digest: str) -> bool:
+    """Whether ``msgtype`` hashes to ``digest`` (RIHS01) in ``store``; False when a type it uses is missing."""
+    try:
+        return store.hash_rihs01(msgtype) == digest
+    except Exception:  # KeyError: a type it uses that no definition gives
+        return False
 
 
 def stored_definition(encoding: str, text: str | bytes) -> MessageDefinition:

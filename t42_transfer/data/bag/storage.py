@@ -22,10 +22,18 @@ import lz4.frame
 import zstandard
 from mcap.records import Channel, Chunk, McapRecord, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, breakup_chunk
+from rosbags.interfaces import MessageDefinition, MessageDefinitionFormat
 from rosbags.rosbag2 import StoragePlugin
 
 import msg_adapters as ma
-from t42_transfer.data.bag.db3 import BagReader, readable_definition, stored_definition, undecodable_line
+from t42_transfer.data.bag.db3 import (
+    CLASHING,
+    BagReader,
+    clashing_definitions,
+    readable_definition,
+    stored_definition,
+    undecodable_line,
+)
 from t42_transfer.data.bag.hand_topics import HAND_ROLES, written_names
 from t42_transfer.data.bag.metadata import (
     REPAIRED_KEY,
@@ -45,6 +53,8 @@ its own metadata record says which of them a recorder wrote its remapped hand to
 those of the hand topics, by name or by that record.)"""
 _MAX_CHUNK_BYTES = 1 << 28
 """An MCAP chunk may unpack to at most this (rosbag2 writes chunks of about 1 MiB); more is refused, not allocated."""
+
+_NO_DEFINITION = MessageDefinition(MessageDefinitionFormat.NONE, "")
 
 
 def path_mode(bag: Path) -> int:
@@ -273,6 +283,8 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
     """
     topics: dict[str, _Topic] = {}
     undecodable: dict[str, str] = {}
+    definitions: list[tuple[str, tuple[MessageDefinition, str, str]]] = []
+    """Each channel's topic and (readable definition, type, stored hash), for the check of them all together."""
     messages: dict[str, list[tuple[int, bytes]]] = {}
     digests = meta.digests if meta else {}
     # Without metadata.yaml the names a recorder wrote down come last, in the MCAP's own metadata record:
@@ -296,8 +308,9 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
                         schema = schemas.get(record.schema_id)
                         msgtype = "(no schema)" if schema is None else schema.name
                         _add_topic(topics, record.topic, msgtype, 0, digest)
-                        why = "" if schema is None else readable_definition(
-                            stored_definition(schema.encoding, schema.data), msgtype, digest)[1]
+                        msgdef, why = (_NO_DEFINITION, "") if schema is None else readable_definition(
+                            stored_definition(schema.encoding, schema.data), msgtype, digest)
+                        definitions.append((record.topic, (msgdef, msgtype, digest)))
                         if why:
                             undecodable.setdefault(record.topic, undecodable_line(record.topic, msgtype, why))
                         if msgtype in HAND_TYPES:
@@ -319,6 +332,9 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
             unsummarized.append(file.name)
     for received in messages.values():
         received.sort(key=lambda m: m[0])
+    for i in clashing_definitions([stored for _, stored in definitions]):
+        topic, (_, msgtype, _) = definitions[i]
+        undecodable.setdefault(topic, undecodable_line(topic, msgtype, CLASHING))
     custom, distro = (meta.custom, meta.ros_distro) if meta else record_meta or ({}, None)
     start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
     return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized),
