@@ -29,6 +29,7 @@ from t42_transfer.data.bag import (
     EPISODES_KEY,
     HAND_KEY,
     assign_start_times,
+    declared_bag_unit,
     read_bag,
     write_bag,
 )
@@ -137,7 +138,8 @@ def test_write_refuses_existing_paths_and_bad_arguments(tmp_path, small_set):
     with pytest.raises(ValueError, match="U\\+0085"):
         write_bag(tmp_path / "d", TrajectorySet(small_set, hand="a\x85b"))
     too_far = dataclasses.replace(small_set[0], actions=np.full_like(small_set[0].actions, ACTION_LIMIT + 0.01))
-    with pytest.raises(ValueError, match=r"an action of 1\.51 is past the largest a hand takes \(1\.5\)"):
+    with pytest.raises(ValueError, match=r"/e: episode 0 has an action of 1\.51, past the largest a hand takes "
+                                         r"\(1\.5\): no bag holds it"):
         write_bag(tmp_path / "e", TrajectorySet([too_far]))
     with pytest.raises(ValueError, match="an action unit must be"):
         write_bag(tmp_path / "f", small_set, action_unit_rad=0.0)
@@ -146,14 +148,22 @@ def test_write_refuses_existing_paths_and_bad_arguments(tmp_path, small_set):
 
 def test_a_bag_holds_the_actuators_steps_and_is_read_in_any_unit_they_fit(tmp_path, small_set):
     bag = write_bag(tmp_path / "bag", small_set, action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
-    assert all(a == b for a, b in zip(read_bag(bag, AUTHORS_ACTION_UNIT_RAD), small_set, strict=True))
+    assert declared_bag_unit(bag) == AUTHORS_ACTION_UNIT_RAD == declared_bag_unit(bag / "bag.mcap")
+    assert all(a == b for a, b in zip(read_bag(bag), small_set, strict=True))  # in the unit it declares
+    assert all(a == b for a, b in zip(read_bag(bag / "bag.mcap"), small_set, strict=True))  # (the MCAP's copy)
     ratio = AUTHORS_ACTION_UNIT_RAD / ACTION_UNIT_RAD
-    for ours, theirs in zip(read_bag(bag), small_set, strict=True):
+    for ours, theirs in zip(read_bag(bag, ACTION_UNIT_RAD), small_set, strict=True):
         np.testing.assert_allclose(ours.actions, theirs.actions * ratio, rtol=1e-6)
     suite = write_bag(tmp_path / "suite", small_set)  # actions near 1 in the suite's unit are 6.4 in theirs
+    assert declared_bag_unit(suite) == ACTION_UNIT_RAD
     with pytest.raises(BagError, match=r"applied_action at stamp \d+ ns: an action of \d\.\d+ in units of 0\.00388 "
                                        r"rad a step, past 1\.5: the hand stepped 0\.0\d+ rad"):
         read_bag(suite, AUTHORS_ACTION_UNIT_RAD)
+    # A unit written to three figures reads the largest actions of the unit it stands for.
+    largest = dataclasses.replace(small_set[0], actions=np.full_like(small_set[0].actions, ACTION_LIMIT))
+    edge = write_bag(tmp_path / "edge", TrajectorySet([largest]), action_unit_rad=AUTHORS_ACTION_UNIT_RAD)
+    assert float(np.abs(read_bag(edge, 0.00388)[0].actions).max()) == pytest.approx(1.5, rel=1e-3)
+
 
 
 def test_a_bag_another_writer_finishes_first_at_the_same_path_is_a_file_exists_error(tmp_path, small_set,

@@ -17,6 +17,7 @@ from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.models import CumulativeResidualModel, Normalisation, RecurrentResidualModel, TransitionModel
 from t42_transfer.models.checkpoint import (
     DIGEST_KEY,
+    UNIT_ASSUMED_KEY,
     UNIT_KEY,
     CheckpointError,
     UnverifiedCheckpointWarning,
@@ -337,12 +338,13 @@ def test_loaded_model_lives_on_the_cpu_and_trains(residual_file: Path) -> None:
 
 def test_the_actions_unit_is_saved_and_files_without_it_get_the_unit_they_were_trained_in(saved: Path,
                                                                                             tmp_path: Path) -> None:
-    assert read_metadata(saved)[UNIT_KEY] == ACTION_UNIT_RAD
+    assert read_metadata(saved)[UNIT_KEY] == ACTION_UNIT_RAD and UNIT_ASSUMED_KEY not in read_metadata(saved)
     model, _ = load_model(saved)
     authors = save_model(model, tmp_path / "authors.safetensors", method="direct", action_unit_rad=0.00388)
     assert load_model(authors)[1][UNIT_KEY] == 0.00388
     _rewrite_metadata(saved, lambda meta, _: meta.pop(UNIT_KEY))
-    assert load_model(saved)[1][UNIT_KEY] == ACTION_UNIT_RAD  # saved before units were stored: the suite's
+    meta = load_model(saved)[1]
+    assert meta[UNIT_KEY] == ACTION_UNIT_RAD and meta[UNIT_ASSUMED_KEY] is True  # saved before units: assumed
     _rewrite_metadata(saved, lambda meta, _: meta.update(method="authors_B"))
     assert read_metadata(saved)[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD  # an authors' import of then: theirs
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from t42_transfer.cli import main
-from t42_transfer.conventions import ACTION_UNIT_RAD
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.trajectory import TrajectorySet
 from t42_transfer.hand.collect import collect
@@ -82,6 +82,15 @@ def test_bad_inputs_are_one_line_errors_and_nothing_is_written(source_bags, tmp_
         assert main(["model", "train", *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+    theirs = write_bag(tmp_path / "theirs", TrajectorySet(list(source_bags[1])[:12], hand="source"),
+                       action_unit_rad=AUTHORS_ACTION_UNIT_RAD)  # declares the authors' unit
+    assert main(["model", "train", str(out_dir / "episode_000"), str(theirs), "--out", str(tmp_path / "m.safetensors")]
+                ) == 2
+    assert "the bags declare different action units (0.00388, 0.025 rad): a model learns one; name it with " \
+        "--action-unit-rad" in capsys.readouterr().err
+    assert main(["model", "train", str(theirs), "--out", str(tmp_path / "theirs.safetensors"), "--epochs", "1"]) == 0
+    assert read_metadata(tmp_path / "theirs.safetensors")[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD  # the bag's own
+    capsys.readouterr()
     # Bags of the suite's unit read in the authors': each is skipped with why, then nothing is left to train on.
     assert main(["model", "train", str(out_dir), "--out", str(tmp_path / "m.safetensors"), "--action-unit-rad",
                  "0.00388"]) == 2

@@ -103,10 +103,10 @@ def test_both_hands_received_the_same_actions(t42_real_dir):
 def test_import_survives_a_bag_round_trip_exactly(real, tmp_path):
     _, source, data = real
     bag = import_t42_to_bag(source, tmp_path / "bag")
-    got = read_bag(bag, AUTHORS_ACTION_UNIT_RAD)  # the steps their driver took, in their unit
+    got = read_bag(bag)  # the steps their driver took, in the unit the bag declares: theirs
     assert got.hand == data.hand and len(got) == len(data)
     assert all(a == b for a, b in zip(got, data, strict=True))
-    in_ours = read_bag(bag)  # the same steps in the suite's unit: 0.155 of the actions
+    in_ours = read_bag(bag, ACTION_UNIT_RAD)  # the same steps in the suite's unit: 0.155 of the actions
     for ours, theirs in zip(in_ours, data, strict=True):
         np.testing.assert_allclose(ours.actions, theirs.actions * (AUTHORS_ACTION_UNIT_RAD / ACTION_UNIT_RAD),
                                    rtol=1e-6)

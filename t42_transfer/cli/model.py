@@ -25,6 +25,17 @@ def _cmd_import_authors(args: argparse.Namespace) -> int:
     return 0
 
 
+def _declared(bag: Path) -> float | None:
+    """The action unit ``bag`` declares, or None for a bag that cannot be read (reading it says why)."""
+    from t42_transfer.data.bag import declared_bag_unit
+    from t42_transfer.data.errors import DataFileError
+
+    try:
+        return declared_bag_unit(bag)
+    except DataFileError:
+        return None
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     import torch
 
@@ -36,7 +47,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     bags = bags_in(args.bags)
     new_output(args.out)
     cfg = TrainConfig(seed=args.seed, **({} if args.epochs is None else {"epochs": args.epochs}))
-    target = read_target(bags, args.action_unit_rad)
+    unit = args.action_unit_rad
+    if unit is None:
+        declared = sorted({u for bag in bags if (u := _declared(bag)) is not None}) or [ACTION_UNIT_RAD]
+        if len(declared) > 1:
+            raise ValueError(f"the bags declare different action units ({', '.join(f'{u:.4g}' for u in declared)} "
+                             "rad): a model learns one; name it with --action-unit-rad")
+        unit = declared[0]
+    target = read_target(bags, unit)
     for bag, why in target.skipped:
         print(f"t42: warning: skipped {bag}: {why}", file=sys.stderr)
     for note in target.notes:
@@ -52,7 +70,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     model, report = train_transition_model(data, cfg, on_epoch=ProgressBar(), phase="source model")
     save_model(model, args.out, method="source", hyperparameters=dataclasses.asdict(cfg),
                data={"bags": [str(b.resolve()) for b in target.read], "source": data.fingerprint()},
-               extra={"workspace": Workspace.from_trajectories(data).to_dict()}, action_unit_rad=args.action_unit_rad)
+               extra={"workspace": Workspace.from_trajectories(data).to_dict()}, action_unit_rad=unit)
     print(f"{len(data)} episodes ({data.num_transitions} transitions) of {len(target.read)} bag(s), hand "
           f"{data.hand or 'unnamed'}: {report.epochs_run} epochs (best {report.best_epoch + 1}; {report.validation}) "
           f"-> {args.out}")
@@ -77,10 +95,11 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                             "a held-out tenth of the episodes ends sooner")
     train.add_argument("--seed", type=int_arg(0), default=0, help="seed of the split and the initial weights")
     train.add_argument("--action-unit-rad", type=float_arg(0.0, MAX_ACTION_UNIT_RAD, low_open=True),
-                       default=ACTION_UNIT_RAD, metavar="RAD",
+                       default=None, metavar="RAD",
                        help=f"the actuator step of an action of 1 that the model learns in, as the explorer's "
-                            f"action_unit_rad (default {ACTION_UNIT_RAD:g}, the suite's; the paper authors' is "
-                            f"{AUTHORS_ACTION_UNIT_RAD:.5f}); bags stepping further than its 1.5 are refused")
+                            f"action_unit_rad (default: the unit the bags declare, else the suite's "
+                            f"{ACTION_UNIT_RAD:g}; the paper authors' is {AUTHORS_ACTION_UNIT_RAD:.5f}); a bag "
+                            "stepping further than 1.5 of it is skipped")
     train.set_defaults(func=_cmd_train)
     imp = model.add_parser(
         "import-authors", help="convert one of the paper authors' saved models (legacy torch pickle) to a model file",

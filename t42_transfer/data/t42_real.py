@@ -341,8 +341,8 @@ def quality_lines(paths: TrajectorySet) -> list[str]:
 def import_t42_to_bag(pickle_path: str | Path, bag_path: str | Path) -> Path:
     """Write one hand's test paths as a bag, recording the source file's name, the sha256 of the bytes read
     and what the quality scan found (``data_quality``, JSON), so the bag carries its flagged stretches along.
-    The actions are the authors' (``AUTHORS_ACTION_UNIT_RAD``): the bag holds the steps their driver took, and
-    reads them back as recorded in that unit (``read_bag(bag, AUTHORS_ACTION_UNIT_RAD)``)."""
+    The actions are the authors' (``AUTHORS_ACTION_UNIT_RAD``): the bag holds the steps their driver took, declares
+    that unit and is read back in it."""
     source = Path(pickle_path)
     data = _read_regular(source)
     paths = _testpaths(source, data)
@@ -350,7 +350,6 @@ def import_t42_to_bag(pickle_path: str | Path, bag_path: str | Path) -> Path:
     return write_bag(
         bag_path,
         paths,
-        metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest(), "data_quality": quality,
-                  "action_unit_rad": repr(AUTHORS_ACTION_UNIT_RAD)},
+        metadata={"source": source.name, "source_sha256": hashlib.sha256(data).hexdigest(), "data_quality": quality},
         action_unit_rad=AUTHORS_ACTION_UNIT_RAD,
     )

@@ -123,7 +123,8 @@ class DataSpec:
     the imported model (the authors' B model on hand A's actions as recorded), as it would negate source data."""
     action_unit_rad: float | None = None
     """``bag`` only: the unit its actions are read in (a bag holds the actuators' steps), e.g. the authors' 0.00388
-    rad for a bag of their hands (``t42 bag import-t42``) or recorded for their models; None: the suite's."""
+    rad for a bag recorded for their models; None: the one the bag declares (``t42 bag import-t42`` declares
+    theirs, ``t42 sim collect`` the suite's), else the suite's (a recorder's bag declares none)."""
 
     def describe(self) -> dict:
         """The settings, without those still at defaults added after runs were cached (their keys stay valid)."""
@@ -135,12 +136,17 @@ class DataSpec:
 
     def unit_rad(self) -> float | None:
         """The unit of the data's actions: the authors' for their real-hand files (recorded by their driver), the
-        suite's for simulated hands, a bag's as read (``action_unit_rad``); None for a model, whose file says."""
+        suite's for simulated hands, a bag's ``action_unit_rad`` or else the one it declares (its metadata is read);
+        None for a model, whose file says."""
+        from t42_transfer.data.bag import declared_bag_unit
+
         if self.model is not None:
             return None
         if self.real is not None:
             return AUTHORS_ACTION_UNIT_RAD
-        return self.action_unit_rad or ACTION_UNIT_RAD
+        if self.bag is not None:
+            return self.action_unit_rad or declared_bag_unit(self.bag)
+        return ACTION_UNIT_RAD
 
 
 _SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(DataSpec)}

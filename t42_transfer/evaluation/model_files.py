@@ -13,7 +13,7 @@ from typing import Any
 
 from t42_transfer.conventions import AUTHORS_ACTION_UNIT_RAD, same_action_unit
 from t42_transfer.evaluation.experiment_config import AUTHORS_SUFFIX, DataSpec, ExperimentConfig, sides
-from t42_transfer.models.checkpoint import UNIT_KEY, load_model
+from t42_transfer.models.checkpoint import UNIT_ASSUMED_KEY, UNIT_KEY, load_model
 from t42_transfer.models.dynamics import LatentDynamics
 
 
@@ -58,23 +58,26 @@ def load_model_file(path: str | os.PathLike[str], negate_actions: bool = False
 
 def check_action_unit(file: str | os.PathLike[str], meta: dict[str, Any], unit_rad: float, data: str) -> None:
     """ValueError unless the model in ``file`` (``meta``: its metadata) learnt actions in ``unit_rad``, the unit of
-    ``data``'s actions (the same action then steps the actuators as far as in its training data)."""
-    if not same_action_unit(meta[UNIT_KEY], unit_rad):
+    ``data``'s actions (the same action then steps the actuators as far as in its training data).  A file saved
+    before units were stored is taken as in ``data``'s (it cannot say)."""
+    if not meta.get(UNIT_ASSUMED_KEY) and not same_action_unit(meta[UNIT_KEY], unit_rad):
         raise ValueError(f"{file}: its actions are in steps of {meta[UNIT_KEY]:.3g} rad at an action of 1, the "
                          f"actions of {data} in {unit_rad:.3g} rad (the authors' models and real-hand files are in "
-                         "their driver's unit, simulated hands and bags in the suite's)")
+                         "their driver's unit, simulated hands in the suite's, a bag in the one it declares or its "
+                         "data spec's action_unit_rad)")
 
 
 def check_action_units(cfg: ExperimentConfig) -> None:
     """ValueError unless every side's actions are in one unit (a model learns one); loads a source model file."""
     units = {side: getattr(cfg, side).unit_rad() for side in sides(cfg)}
     if cfg.source.model is not None:
-        units["source"] = load_source_model(cfg.source)[1][UNIT_KEY]
+        meta = load_source_model(cfg.source)[1]
+        units["source"] = units["target"] if meta.get(UNIT_ASSUMED_KEY) else meta[UNIT_KEY]  # (it cannot say)
     if not all(same_action_unit(unit, units["target"]) for unit in units.values()):
         shown = ", ".join(f"{side} {unit:.3g} rad" for side, unit in units.items())
         raise ValueError(f"the sides' actions are in different units ({shown} a step at an action of 1: the "
-                         "authors' real-hand files and models in their driver's, simulated hands and bags in the "
-                         "suite's unless a bag's action_unit_rad says otherwise): a model learns one")
+                         "authors' real-hand files and models in their driver's, simulated hands in the suite's, a bag "
+                         "in the one it declares or its spec's action_unit_rad): a model learns one")
 
 
 def load_source_model(spec: DataSpec) -> tuple[LatentDynamics, dict[str, Any]]:

@@ -53,8 +53,11 @@ _HEADER_KEY = "t42_transfer"
 DIGEST_KEY = "weights_sha256"
 UNIT_KEY = "action_unit_rad"
 """The actuator-angle step (rad) of an action of 1 in the data the model learnt from (``conventions``: the suite's
-or the paper authors' unit).  Files saved before it was stored are read as the suite's unit, the authors' imports
-(method ``authors_...``) as theirs: what each was trained in."""
+or the paper authors' unit)."""
+UNIT_ASSUMED_KEY = "action_unit_assumed"
+"""Set (true) in the metadata read of a file saved before the unit was stored: its ``action_unit_rad`` is then
+assumed, the suite's, or the authors' for their imports (method ``authors_...``); a model trained on their data
+(an experiment on their files) cannot be told apart, so checks against data take such a file as in the data's."""
 MAX_HEADER_BYTES = 2**20
 """Largest safetensors header (tensor table and metadata JSON) read; saved files have a few kB, so parsing
 a file's JSON never takes more than a few tens of MB however it is crafted."""
@@ -223,6 +226,7 @@ def _metadata(file: Path, f: Any) -> dict[str, Any]:
             raise CheckpointError(file, f"has metadata {name!r} that is not {what}: {reprlib.repr(meta.get(name))}")
     if UNIT_KEY not in meta:
         meta[UNIT_KEY] = AUTHORS_ACTION_UNIT_RAD if meta["method"].startswith("authors_") else ACTION_UNIT_RAD
+        meta[UNIT_ASSUMED_KEY] = True
     try:
         checked_action_unit(meta[UNIT_KEY])
     except ValueError as err:

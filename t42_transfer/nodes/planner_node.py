@@ -202,8 +202,9 @@ class PlannerNode(Node):
             self.log.warning(f"could not load model {path} ({err}); keeping model {kept}")
             return False
         self._inbox.model = loaded
+        assumed = " (assumed: the file was saved before units were stored)" if loaded.unit_assumed else ""
         self.log.info(f"planning with model {path} (method {loaded.method!r}, actions of "
-                      f"{loaded.action_unit_rad:.3g} rad a step)")
+                      f"{loaded.action_unit_rad:.3g} rad a step{assumed})")
         return True
 
     def close(self) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 from msg_adapters import names
 from msg_adapters.plan_result import PlanResult
 from t42_transfer.conventions import ACTION_UNIT_RAD
-from t42_transfer.models.checkpoint import UNIT_KEY, load_model
+from t42_transfer.models.checkpoint import UNIT_ASSUMED_KEY, UNIT_KEY, load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
 
@@ -39,6 +39,8 @@ class LoadedModel:
     workspace: Workspace
     action_unit_rad: float = ACTION_UNIT_RAD
     """The unit of the model's actions (its data's): the authors' models step 0.00388 rad at an action of 1."""
+    unit_assumed: bool = False
+    """The file was saved before units were stored: its unit is assumed (``checkpoint.UNIT_ASSUMED_KEY``)."""
 
     def planner(self, config: PlannerConfig) -> Planner:
         return Planner(self.model, self.workspace, config)
@@ -55,7 +57,8 @@ def load_planner_model(path: str | Path) -> LoadedModel:
     if workspace is None:
         raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
                          "the planner cannot tell where its predictions hold")
-    return LoadedModel(str(path), str(meta.get("method", "")), model, workspace, meta[UNIT_KEY])
+    return LoadedModel(str(path), str(meta.get("method", "")), model, workspace, meta[UNIT_KEY],
+                       bool(meta.get(UNIT_ASSUMED_KEY)))
 
 
 @dataclass(frozen=True)

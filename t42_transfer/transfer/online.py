@@ -53,7 +53,6 @@ from typing import Any
 import numpy as np
 
 from t42_transfer.config import FRACTION, Rule, between, check, from_mapping
-from t42_transfer.conventions import ACTION_UNIT_RAD
 from t42_transfer.data.bag import list_bags, read_bag
 from t42_transfer.data.errors import DataFileError
 from t42_transfer.data.quality import usable_stretches
@@ -314,11 +313,12 @@ class TargetData:
         return len(set(self.episodes))
 
 
-def read_target(bags: Sequence[Path], action_unit_rad: float = ACTION_UNIT_RAD) -> TargetData:
+def read_target(bags: Sequence[Path], action_unit_rad: float | None = None) -> TargetData:
     """Every episode of the readable ``bags``, in order, ended at its first drop (the paper's 8 mm rule; a late step
     may move 8 mm a period it lasted: the object moves on during one) and then split at its late steps
     (``quality.usable_stretches``), its actions in ``action_unit_rad`` (the model's: a bag stepped further than that
-    unit allows is skipped, with why).  The notes count episodes as the reader gave them."""
+    unit allows is skipped, with why; None: each bag's own, ``read_bag``'s default).  The notes count episodes as
+    the reader gave them."""
     sets, read, skipped, notes = [], [], [], []
     for bag in bags:
         with warnings.catch_warnings(record=True) as caught:

@@ -13,7 +13,7 @@ package's public API.
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
 from t42_transfer.data.bag.hand_topics import hand_namespace
 from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY, REPAIRED_KEY
-from t42_transfer.data.bag.reader import bag_info, read_bag, verify_bag
+from t42_transfer.data.bag.reader import bag_info, declared_bag_unit, read_bag, verify_bag
 from t42_transfer.data.bag.storage import is_bag, list_bags
 from t42_transfer.data.bag.writer import (
     DEFAULT_T0_NS,
@@ -28,6 +28,6 @@ from t42_transfer.data.errors import BagError
 
 __all__ = [
     "DEFAULT_T0_NS", "EPISODES_KEY", "EPISODE_GAP_NS", "EPISODE_GAP_S", "HAND_KEY", "RECORD_QOS", "REPAIRED_KEY",
-    "ROS_DISTRO", "BagError", "BagWriter", "JazzyWriter", "assign_start_times", "bag_info", "hand_namespace",
-    "is_bag", "list_bags", "read_bag", "verify_bag", "write_bag",
+    "ROS_DISTRO", "BagError", "BagWriter", "JazzyWriter", "assign_start_times", "bag_info", "declared_bag_unit",
+    "hand_namespace", "is_bag", "list_bags", "read_bag", "verify_bag", "write_bag",
 ]

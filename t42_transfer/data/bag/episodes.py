@@ -55,18 +55,23 @@ _CONVERTERS: dict[str, Callable[[Any], Any]] = {
 }
 
 
-def _action_in(unit_rad: float) -> Callable[[Any], np.ndarray]:
-    """The applied action of a message in ``unit_rad``; ValueError for one past ``ACTION_LIMIT`` there: no hand
-    driven in that unit steps so far, so the bag was recorded in a larger one."""
+UNIT_SLACK = 1e-3
+"""An action may pass ``ACTION_LIMIT`` by this share in the unit asked for: a unit written to three figures
+(``same_action_unit``) reads the largest actions of the unit it stands for a little larger."""
+
+
+def _action_in(unit_rad: float, checked: bool) -> Callable[[Any], np.ndarray]:
+    """The applied action of a message in ``unit_rad``; with ``checked``, ValueError for one past ``ACTION_LIMIT``
+    there: no hand driven in that unit steps so far, so the bag was recorded in a larger one."""
     unit = checked_action_unit(unit_rad)
 
     def convert(msg: Any) -> np.ndarray:
         action = ma.applied_action(msg, unit_rad=unit)
         largest = float(np.abs(action).max())
-        if largest > ACTION_LIMIT * (1 + 1e-6):
-            raise ValueError(f"an action of {largest:.3g} in units of {unit:.3g} rad a step, past {ACTION_LIMIT:g}: "
-                             f"the hand stepped {largest * unit:.3g} rad, further than one driven in that unit (a bag "
-                             "is read in its model's unit: record it with the explorer's action_unit_rad set to it)")
+        if checked and largest > ACTION_LIMIT * (1 + UNIT_SLACK):
+            raise ValueError(f"an action of {largest:.4g} in units of {unit:.4g} rad a step, past {ACTION_LIMIT:g}: "
+                             f"the hand stepped {largest * unit:.3g} rad, further than one driven in that unit (read "
+                             "the bag in the unit its hand was driven in: the explorer's action_unit_rad)")
         return action
 
     return convert
@@ -79,10 +84,11 @@ class _Stream:
     values: list[Any]
 
 
-def decode_streams(bag: Path, raw: RawBag, action_unit_rad: float = ACTION_UNIT_RAD) -> dict[str, _Stream]:
+def decode_streams(bag: Path, raw: RawBag, action_unit_rad: float = ACTION_UNIT_RAD,
+                   checked: bool = False) -> dict[str, _Stream]:
     """Hand topics as header-stamped numpy values (actions in ``action_unit_rad``), checked for type, finiteness,
-    range and order."""
-    converters = {**_CONVERTERS, _ACTION: _action_in(action_unit_rad)}
+    order and, with ``checked`` (a unit the caller needs the actions in), range."""
+    converters = {**_CONVERTERS, _ACTION: _action_in(action_unit_rad, checked)}
     recorded = hand_topic_names(bag, raw.custom, raw.topics)
     _check_topics(bag, raw, recorded)
     streams = {}

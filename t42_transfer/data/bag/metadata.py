@@ -22,6 +22,17 @@ EPISODES_KEY = "t42_transfer.episodes"
 REPAIRED_KEY = "t42_transfer.repaired"
 """Set by :mod:`t42_transfer.data.bag.repair`: the bag is a killed writer's salvaged prefix
 (a cut last step is no error)."""
+UNIT_KEY = "t42_transfer.action_unit_rad"
+"""The action unit the episodes written were in (:func:`~t42_transfer.data.bag.writer.write_bag`): a bag holds the
+actuators' steps, and is read back in that unit unless another is asked for.  A recorder's bag has none."""
+
+
+def declared_unit(custom: dict[str, str]) -> float | None:
+    """The action unit ``custom`` data declares (:data:`UNIT_KEY`), or None when it declares none or no number."""
+    try:
+        return float(custom[UNIT_KEY])
+    except (KeyError, ValueError):
+        return None
 
 
 @dataclasses.dataclass(frozen=True)

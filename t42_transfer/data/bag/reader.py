@@ -16,15 +16,18 @@ from typing import Any
 from t42_transfer.conventions import ACTION_UNIT_RAD, checked_action_unit
 from t42_transfer.data.bag.episodes import assemble_episodes, decode_streams, missing_hand_topics
 from t42_transfer.data.bag.hand_topics import hand_topic_names
-from t42_transfer.data.bag.metadata import EPISODES_KEY
+from t42_transfer.data.bag.metadata import EPISODES_KEY, UNIT_KEY, declared_unit, metadata_yaml
 from t42_transfer.data.bag.storage import RawBag, load_raw, metadata_mismatches
 from t42_transfer.data.errors import BagError
 from t42_transfer.data.trajectory import TrajectorySet
 
 
-def read_bag(path: str | Path, action_unit_rad: float = ACTION_UNIT_RAD) -> TrajectorySet:
-    """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s), their actions in
-    ``action_unit_rad`` (a bag holds the actuators' steps; an action past ``ACTION_LIMIT`` in that unit refuses it).
+def read_bag(path: str | Path, action_unit_rad: float | None = None) -> TrajectorySet:
+    """Episodes recorded in a rosbag2 bag (MCAP or sqlite3, ours or a real ``ros2 bag record``'s).
+
+    A bag holds the actuators' steps; its actions come in ``action_unit_rad`` (a model's unit: an action past
+    ``ACTION_LIMIT`` in it refuses the bag, whose hand was driven in larger steps), by default in the unit the bag
+    declares (:func:`bag_unit`).
 
     Every joint state is a state; the object pose with the nearest header stamp
     within half a control period gives its x, y; the applied action stamped
@@ -40,11 +43,37 @@ def read_bag(path: str | Path, action_unit_rad: float = ACTION_UNIT_RAD) -> Traj
     state the object fell or slipped into is left out.  Episodes shorter than
     ``MIN_EPISODE_STEPS`` are dropped with a warning.
     """
-    bag, unit = Path(path), checked_action_unit(action_unit_rad)
+    bag = Path(path)
+    asked = None if action_unit_rad is None else checked_action_unit(action_unit_rad)
     with refusals(bag):
         raw = load_raw(bag)
         _warn_loaded(bag, raw)
-        return assemble_episodes(bag, decode_streams(bag, raw, unit), raw)
+        unit = bag_unit(bag, raw) if asked is None else asked
+        return assemble_episodes(bag, decode_streams(bag, raw, unit, checked=asked is not None), raw)
+
+
+def declared_bag_unit(path: str | Path) -> float:
+    """The action unit :func:`read_bag` reads ``path`` in by default, from its metadata.yaml (the storage's copy when
+    there is none): the unit the bag declares, else the suite's."""
+    bag = Path(path)
+    with refusals(bag):
+        meta, _ = metadata_yaml(bag) if bag.is_dir() else (None, "")
+        if meta is not None:
+            return _checked_unit(bag, declared_unit(meta.custom))
+        return bag_unit(bag, load_raw(bag))
+
+
+def bag_unit(bag: Path, raw: RawBag) -> float:
+    """The action unit a bag's custom data declares (``write_bag`` does), else the suite's: a recorder's bag holds
+    steps in whatever unit its hand was driven, which only the reader knows."""
+    return _checked_unit(bag, declared_unit(raw.custom))
+
+
+def _checked_unit(bag: Path, declared: float | None) -> float:
+    try:
+        return ACTION_UNIT_RAD if declared is None else checked_action_unit(declared)
+    except ValueError as err:
+        raise BagError(bag, f"custom_data {UNIT_KEY}: {err}") from None
 
 
 def bag_info(path: str | Path) -> dict[str, Any]:
@@ -61,7 +90,7 @@ def bag_info(path: str | Path) -> dict[str, Any]:
         recorded = hand_topic_names(bag, raw.custom, raw.topics)
         missing = missing_hand_topics(raw, recorded)
         if not missing:
-            data = assemble_episodes(bag, decode_streams(bag, raw), raw)
+            data = assemble_episodes(bag, decode_streams(bag, raw, bag_unit(bag, raw)), raw)
             episodes, transitions, hand = len(data), data.num_transitions, data.hand
             late = sum(len(t.late_steps) for t in data)
             ends = dict(sorted(Counter(t.end_reason or "unknown" for t in data).items()))

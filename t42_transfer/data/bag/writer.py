@@ -27,7 +27,7 @@ from msg_adapters import names
 from msg_adapters.names import LATE
 from t42_transfer.conventions import ACTION_LIMIT, ACTION_UNIT_RAD, checked_action_unit
 from t42_transfer.data.bag.episodes import EPISODE_GAP_NS, EPISODE_GAP_S
-from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY
+from t42_transfer.data.bag.metadata import EPISODES_KEY, HAND_KEY, UNIT_KEY
 from t42_transfer.data.bag.storage import STORAGES
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
 
@@ -210,13 +210,13 @@ def write_bag(
     if storage not in STORAGES:  # before anything is made on disk
         raise ValueError(f"storage must be one of {sorted(STORAGES)}, got {storage!r}")
     unit = checked_action_unit(action_unit_rad)
-    largest = max((float(np.abs(t.actions).max(initial=0.0)) for t in data), default=0.0)
-    if largest > ACTION_LIMIT:
-        raise ValueError(f"an action of {largest:g} is past the largest a hand takes ({ACTION_LIMIT:g}): no bag "
-                         "holds it")
+    for i, traj in enumerate(data):
+        if (largest := float(np.abs(traj.actions).max(initial=0.0))) > ACTION_LIMIT:
+            raise ValueError(f"{target}: episode {i} has an action of {largest:g}, past the largest a hand takes "
+                             f"({ACTION_LIMIT:g}): no bag holds it")
     if target.exists() or target.is_symlink():
         raise FileExistsError(f"{target} exists already; bags are never overwritten")
-    custom = _custom_data(data, metadata)
+    custom = {**_custom_data(data, metadata), UNIT_KEY: repr(unit)}
     _check_timeline(data.trajectories)
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".partial", dir=target.parent))
