@@ -29,6 +29,7 @@ from t42_transfer.data.bag import (
     verify_bag,
     write_bag,
 )
+from t42_transfer.data.bag.metadata import UNIT_KEY
 from t42_transfer.data.errors import BagError
 
 
@@ -43,7 +44,7 @@ def test_bag_info_summarises(tmp_path, small_set):
     last = small_set[-1]
     assert info["start_ns"] == small_set[0].start_ns
     assert info["duration_s"] == pytest.approx((last.start_ns + len(last) * CONTROL_PERIOD_NS - info["start_ns"]) / 1e9)
-    assert info["metadata"] == {"operator": "ada", HAND_KEY: "sim_a"}
+    assert info["metadata"] == {"operator": "ada", HAND_KEY: "sim_a", UNIT_KEY: "0.025"}  # (the unit it declares)
     assert info["recovered_prefix"] is False
 
 

@@ -152,6 +152,11 @@ def clashing_definitions(stored: Sequence[tuple[MessageDefinition, str, str]]) -
     them) ``AnyReader`` would refuse the bag over: it registers every definition in one store, where a type two
     definitions give differently (two installs of a package) takes the later one, and then checks each stored hash.
     Those found are left out and the rest checked again, as reading the bag without them would."""
+    return set(_clashing(tuple(stored)))
+
+
+@functools.lru_cache(maxsize=64)  # bags of one recorder hold the same definitions: the check is 20 ms a bag
+def _clashing(stored: tuple[tuple[MessageDefinition, str, str], ...]) -> frozenset[int]:
     dropped: set[int] = set()
     while True:
         kept = [i for i, (msgdef, _, _) in enumerate(stored)
@@ -163,10 +168,10 @@ def clashing_definitions(stored: Sequence[tuple[MessageDefinition, str, str]]) -
         try:
             store.register(types)
         except Exception:  # rosbags says why when it opens the bag
-            return dropped
+            return frozenset(dropped)
         clashing = {i for i in kept if stored[i][2] and not _hashes_to(store, stored[i][1], stored[i][2])}
         if not clashing:
-            return dropped
+            return frozenset(dropped)
         dropped |= clashing
 
 
