@@ -32,6 +32,9 @@ STATE_NAMES = ("x_mm", "y_mm", "load1", "load2")
 
 ACTION_LIMIT = 1.5
 """Largest accepted |action| component: the real hands' discrete set contains +-1.5."""
+MAX_STEP_RAD = ACTION_LIMIT * ACTION_UNIT_RAD
+"""The largest actuator step a driver takes in one period (0.0375 rad: an action of ACTION_LIMIT in the suite's
+unit); actions of a larger unit that would step further are refused there."""
 
 RANDOM_POLICY_LIMIT = 1.0
 """The paper's random policy and the planner draw actions in [-1, 1]^2."""

@@ -308,8 +308,8 @@ BROKEN = {
 mid-line, an IDL one cut off in its struct, an IDL one whose second type lost its ``IDL: <type>`` header line, a
 ``.msg`` one that parses but lacks a type it uses (its ``MSG:`` part), and one whose hash is not the stored one
 (all are stored with a hash of zeros)."""
-BROKEN_WHY = {"ros2msg, a type it uses undefined": "its stored definition does not define every type it uses "
-                                                   "(KeyError: 'my_msgs/msg/Finger')",
+BROKEN_WHY = {"ros2msg, a type it uses undefined": "its stored definition uses a type no definition in the bag "
+                                                   "gives (KeyError: 'my_msgs/msg/Finger')",
               "ros2msg, another type hash": "its stored definition hashes to RIHS01_9551c679..., not to its stored "
                                             "RIHS01_00000000..."}
 """How a warning says why a BROKEN kind is not decodable, where it is not that it does not parse."""

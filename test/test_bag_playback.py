@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sqlite3
 import warnings
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from fuzz_harness import DecoderWorker
 from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.rosbag2 import StoragePlugin
 
+import msg_adapters as ma
 from t42_transfer.data.bag import write_bag
 from t42_transfer.data.bag.playback import Timeline, open_bag
 from t42_transfer.data.errors import BagError
@@ -133,6 +135,27 @@ def test_of_two_definitions_that_do_not_hash_together_the_later_decodes(tmp_path
         assert (formats["/vendor/a"], formats["/vendor/b"]) == (none, msg)
         (raw,) = [raw for c, _, raw in reader.messages() if c.topic == "/vendor/b"]
         assert reader.deserialize(raw, "my_msgs/msg/B").s.y == 0.0
+    finally:
+        reader.close()
+
+
+def test_a_definition_that_leaves_a_type_to_another_topics_definition_reads_as_rosbags_reads_it(
+        tmp_path: Path, small_set: object) -> None:
+    """rosbags checks a bag's hashes with all its definitions together: a joint state definition cut to its own
+    lines still hashes right with the pose's Header, and decodes (checked alone, it had been dropped)."""
+    bag = write_bag(tmp_path / "bag", small_set, storage="sqlite3")
+    with sqlite3.connect(next(bag.glob("*.db3"))) as db:
+        (text,) = db.execute("SELECT encoded_message_definition FROM message_definitions WHERE topic_type = ?",
+                             (ma.JOINT_STATE,)).fetchone()
+        db.execute("UPDATE message_definitions SET encoded_message_definition = ? WHERE topic_type = ?",
+                   (text.split("=" * 80)[0], ma.JOINT_STATE))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        reader = open_bag(bag)
+    try:
+        assert said == [] and reader.undecodable == {}
+        raw = next(raw for c, _, raw in reader.messages() if c.topic == "/hand/joint_states")
+        assert len(reader.deserialize(raw, ma.JOINT_STATE).name) == 2
     finally:
         reader.close()
 

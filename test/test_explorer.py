@@ -190,7 +190,7 @@ def test_without_a_driver_it_says_what_it_waits_for(ros, monkeypatch: pytest.Mon
 
 @pytest.mark.parametrize("field, value", [
     ("episodes", 0), ("steps", -1), ("steps", 10_001), ("hold_max", 0), ("limit", 2.0), ("limit", 0.0),
-    ("rate_factor", 0.0), ("action_unit_rad", 0.0), ("action_unit_rad", 0.25),
+    ("rate_factor", 0.0), ("action_unit_rad", 0.0), ("action_unit_rad", 0.25), ("action_unit_rad", 0.05),
     ("seed", -1), ("record_stop_service", "1stop"), ("record_start_service", "with space"),
 ])
 def test_bad_parameters_are_refused_at_start(ros, field: str, value: object) -> None:

@@ -44,7 +44,7 @@ from t42_transfer.models.checkpoint import save_model
 from t42_transfer.nodes.mock_driver import MockDriver
 from t42_transfer.nodes.planner_node import PlannerNode
 from t42_transfer.nodes.planner_params import PlannerNodeParams
-from t42_transfer.nodes.planner_parts import Goal, Refused, hand_state, unsent
+from t42_transfer.nodes.planner_parts import Goal, Refused, hand_state, load_planner_model, unsent
 from t42_transfer.planning import Plan, Planner, Workspace
 from t42_transfer.planning.execution import execute
 from t42_transfer.ros.qos import profile
@@ -205,6 +205,13 @@ def test_a_model_of_the_authors_unit_is_sent_as_the_actuator_steps_it_planned(ro
     assert np.abs(planned).max() > 0.5 and np.all(np.abs(planned) <= 1.0 + 1e-4)
     predicted = path_xy_mm(path)  # the toy moves the object by its actions, in its own unit
     np.testing.assert_allclose(predicted[1:], predicted[0] + np.cumsum(planned, 0), atol=1e-3)
+
+
+def test_a_model_whose_actions_step_further_than_a_driver_takes_is_not_loaded(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"its actions step up to 0\.05 rad \(unit 0\.05 rad\), more than a driver "
+                                         r"takes \(0\.0375 rad\)"):
+        load_planner_model(toy_file(tmp_path / "far.safetensors", action_unit_rad=0.05))
+    assert load_planner_model(toy_file(tmp_path / "edge.safetensors", action_unit_rad=0.0375)).action_unit_rad == 0.0375
 
 
 def test_closing_the_node_stops_a_plan_under_way_and_publishes_nothing_of_it(ros, tmp_path: Path) -> None:

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
+from safetensors import safe_open
+from safetensors.torch import save_file
 
 from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, CONTROL_PERIOD_NS
 from t42_transfer.data.bag import assign_start_times, write_bag
@@ -102,6 +105,16 @@ def test_a_source_in_the_authors_unit_reads_the_bags_in_it_and_its_transfer_keep
                               method="direct")
     assert read_metadata(run_transfer(spec).model_path)[UNIT_KEY] == AUTHORS_ACTION_UNIT_RAD
 
+    # A source saved before files stored units: taken as the suite's, and the transfer says so.
+    with safe_open(str(source), framework="pt") as f:
+        meta, tensors = json.loads(f.metadata()["t42_transfer"]), {k: f.get_tensor(k) for k in f.keys()}
+    del meta[UNIT_KEY]
+    save_file(tensors, str(tmp_path / "old.safetensors"), metadata={"t42_transfer": json.dumps(meta)})
+    old = run_transfer(dataclasses.replace(spec, source_model=tmp_path / "old.safetensors",
+                                           model_dir=tmp_path / "old_models", exact_bags=True,
+                                           bags=(tmp_path / "bags" / "b0",)))
+    assert "old.safetensors was saved before model files stored their action unit: its actions, and the bags', are " \
+        "taken as 0.025 rad a step" in old.summary()
     write_bag(tmp_path / "suite" / "b0", TrajectorySet(assign_start_times(episodes)))  # driven in the suite's unit
     spec = dataclasses.replace(spec, bag_dir=tmp_path / "suite", model_dir=tmp_path / "refused")
     with pytest.raises(TransferRefused, match=r"too little data: 0 episode\(s\) .* skipped 1 unreadable bag\(s\): "

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from t42_transfer.cli.args import bags_in, existing_file, float_arg, int_arg, new_output
-from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, MAX_ACTION_UNIT_RAD
+from t42_transfer.conventions import ACTION_UNIT_RAD, AUTHORS_ACTION_UNIT_RAD, MAX_ACTION_UNIT_RAD, same_action_unit
 
 
 def _cmd_import_authors(args: argparse.Namespace) -> int:
@@ -26,7 +26,8 @@ def _cmd_import_authors(args: argparse.Namespace) -> int:
 
 
 def _declared(bag: Path) -> float | None:
-    """The action unit ``bag`` declares, or None for a bag that cannot be read (reading it says why)."""
+    """The action unit ``bag`` declares, or None for a bag that declares none or cannot be read (reading it says
+    why)."""
     from t42_transfer.data.bag import declared_bag_unit
     from t42_transfer.data.errors import DataFileError
 
@@ -49,7 +50,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(seed=args.seed, **({} if args.epochs is None else {"epochs": args.epochs}))
     unit = args.action_unit_rad
     if unit is None:
-        declared = sorted({u for bag in bags if (u := _declared(bag)) is not None}) or [ACTION_UNIT_RAD]
+        declared: list[float] = []
+        for found in (u for bag in bags if (u := _declared(bag)) is not None):
+            if not any(same_action_unit(found, u) for u in declared):
+                declared.append(found)
+        declared = sorted(declared) or [ACTION_UNIT_RAD]
         if len(declared) > 1:
             raise ValueError(f"the bags declare different action units ({', '.join(f'{u:.4g}' for u in declared)} "
                              "rad): a model learns one; name it with --action-unit-rad")

@@ -145,7 +145,7 @@ class DataSpec:
         if self.real is not None:
             return AUTHORS_ACTION_UNIT_RAD
         if self.bag is not None:
-            return self.action_unit_rad or declared_bag_unit(self.bag)
+            return self.action_unit_rad or declared_bag_unit(self.bag) or ACTION_UNIT_RAD
         return ACTION_UNIT_RAD
 
 

@@ -70,6 +70,7 @@ from t42_transfer.conventions import (
     CONTROL_PERIOD_S,
     MAX_ACTION_UNIT_RAD,
     MAX_PLAN_HORIZON,
+    MAX_STEP_RAD,
     RANDOM_POLICY_LIMIT,
     checked_action_unit,
 )
@@ -126,6 +127,9 @@ class ExplorerParams:
             checked_action_unit(self.action_unit_rad)
         except ValueError as err:
             raise ValueError(f"action_unit_rad: {err}") from None
+        if (step := self.limit * self.action_unit_rad) > MAX_STEP_RAD * (1 + 1e-9):
+            raise ValueError(f"limit x action_unit_rad is {step:.4g} rad a step, more than a driver takes "
+                             f"({MAX_STEP_RAD:g} rad)")
         if not (math.isfinite(self.rate_factor) and self.rate_factor > 0):
             raise ValueError(f"rate_factor must be positive and finite, got {self.rate_factor!r}")
         if not (math.isfinite(self.timeout_margin_s) and self.timeout_margin_s >= 0):

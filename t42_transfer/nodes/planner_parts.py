@@ -12,7 +12,7 @@ import numpy as np
 
 from msg_adapters import names
 from msg_adapters.plan_result import PlanResult
-from t42_transfer.conventions import ACTION_UNIT_RAD
+from t42_transfer.conventions import ACTION_UNIT_RAD, MAX_STEP_RAD, RANDOM_POLICY_LIMIT
 from t42_transfer.models.checkpoint import UNIT_ASSUMED_KEY, UNIT_KEY, load_model
 from t42_transfer.models.dynamics import LatentDynamics
 from t42_transfer.planning import Planner, PlannerConfig, Workspace
@@ -57,6 +57,9 @@ def load_planner_model(path: str | Path) -> LoadedModel:
     if workspace is None:
         raise ValueError(f"{path} stores no workspace (metadata extra.workspace): "
                          "the planner cannot tell where its predictions hold")
+    if (step := RANDOM_POLICY_LIMIT * meta[UNIT_KEY]) > MAX_STEP_RAD * (1 + 1e-9):
+        raise ValueError(f"{path}: its actions step up to {step:.4g} rad (unit {meta[UNIT_KEY]:.4g} rad), more than a "
+                         f"driver takes ({MAX_STEP_RAD:g} rad)")
     return LoadedModel(str(path), str(meta.get("method", "")), model, workspace, meta[UNIT_KEY],
                        bool(meta.get(UNIT_ASSUMED_KEY)))
 

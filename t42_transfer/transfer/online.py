@@ -61,7 +61,7 @@ from t42_transfer.evaluation.metrics import evaluate_model
 from t42_transfer.evaluation.online_loop import EPISODE_KINDS, episode_kind
 from t42_transfer.files import write_atomic
 from t42_transfer.models.baselines import HoldStill
-from t42_transfer.models.checkpoint import UNIT_KEY, load_model, save_model
+from t42_transfer.models.checkpoint import UNIT_ASSUMED_KEY, UNIT_KEY, load_model, save_model
 from t42_transfer.models.network import TransitionModel
 from t42_transfer.models.training import Progress
 from t42_transfer.planning.workspace import Workspace
@@ -469,6 +469,9 @@ def run_transfer(spec: OnlineTransferSpec, report: Report = lambda stage, info: 
     source, source_meta = load_source(spec.source_model)
     target = read_target(new, source_meta[UNIT_KEY])  # the source's unit: its transfer learns the same actions
     data, readable, skipped_pairs, notes = target.data, target.read, target.skipped, target.notes
+    if source_meta.get(UNIT_ASSUMED_KEY):
+        notes = [f"{spec.source_model} was saved before model files stored their action unit: its actions, and the "
+                 f"bags', are taken as {source_meta[UNIT_KEY]:.3g} rad a step", *notes]
     skipped = [why for _, why in skipped_pairs]
     if target.recorded_episodes < spec.min_episodes:  # (a split episode is held out whole)
         raise TransferRefused(

@@ -23,7 +23,7 @@ that it would refuse as none: that topic is not decodable from the bag, like one
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -92,43 +92,31 @@ class _Reader(Reader):
         super().open()
         connections = []
         for conn in self.storage.connections:  # (messages are matched by id, topic and type, never by definition)
-            msgdef, why = readable_definition(conn.msgdef, conn.msgtype, conn.digest)
+            msgdef, why = readable_definition(conn.msgdef, conn.msgtype)
             if why:
                 self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, why))
             connections.append(conn._replace(msgdef=msgdef))
-        for i in clashing_definitions([(c.msgdef, c.msgtype, c.digest) for c in connections]):
+        for i, why in unhashable_definitions([(c.msgdef, c.msgtype, c.digest) for c in connections]).items():
             conn = connections[i]
-            self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, CLASHING))
+            self.undecodable.setdefault(conn.topic, undecodable_line(conn.topic, conn.msgtype, why))
             connections[i] = conn._replace(msgdef=_NO_DEFINITION)
         self.storage.connections = connections
 
 
 @functools.lru_cache(maxsize=256)  # the same definitions come in bag after bag, and each time a bag is opened
-def readable_definition(msgdef: MessageDefinition, msgtype: str, digest: str = "") -> tuple[MessageDefinition, str]:
+def readable_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageDefinition, str]:
     """``msgdef``, a stored definition of ``msgtype``, as rosbags' ``AnyReader`` is given it (an IDL one as
-    :func:`~.idl.rosbags_idl` gives it) and ""; or no definition and why ``AnyReader`` would refuse the bag over it,
-    one line.
+    :func:`~.idl.rosbags_idl` gives it) and ""; or no definition and why ``msgdef`` cannot be parsed, one line.
 
     Parsed as ``AnyReader`` parses it: a ``.msg`` one by rosbags' ``get_types_from_msg``, an IDL one by
-    :func:`~.idl.idl_types`.  With the type's stored hash (``digest``, RIHS01), hashed as ``AnyReader`` checks it:
-    a definition that lacks a type it uses (rosbag2 stores each with every type it needs) or gives another hash is
-    refused too."""
+    :func:`~.idl.idl_types`.  The stored hashes are checked for all of a bag's definitions together
+    (:func:`unhashable_definitions`), as ``AnyReader`` checks them."""
     if msgdef.format == MessageDefinitionFormat.NONE:
         return msgdef, ""
     try:
-        msgdef, types = parsed_definition(msgdef, msgtype)
+        msgdef, _ = parsed_definition(msgdef, msgtype)
     except Exception as err:  # rosbags raises many types for what it cannot parse
         return _NO_DEFINITION, f"its stored definition cannot be parsed ({_short(err)})"
-    if not digest:
-        return msgdef, ""
-    store = get_typestore(Stores.EMPTY)
-    try:
-        store.register(types)
-        have = store.hash_rihs01(msgtype)
-    except Exception as err:  # KeyError: a type it uses and does not define
-        return _NO_DEFINITION, f"its stored definition does not define every type it uses ({_short(err)})"
-    if have != digest:
-        return _NO_DEFINITION, f"its stored definition hashes to {have[:15]}..., not to its stored {digest[:15]}..."
     return msgdef, ""
 
 
@@ -144,43 +132,62 @@ def parsed_definition(msgdef: MessageDefinition, msgtype: str) -> tuple[MessageD
 
 CLASHING = ("its stored definition gives a type it uses otherwise than another topic's definition does, and the two "
             "do not hash together")
-"""Why a topic is not decodable when :func:`clashing_definitions` finds it."""
+"""Why a topic is not decodable when its definition hashes right alone but not with the bag's others."""
 
 
-def clashing_definitions(stored: Sequence[tuple[MessageDefinition, str, str]]) -> set[int]:
+def unhashable_definitions(stored: Sequence[tuple[MessageDefinition, str, str]]) -> dict[int, str]:
     """Which of a bag's ``(definition, type, stored hash)`` (readable definitions, as :func:`readable_definition` gives
-    them) ``AnyReader`` would refuse the bag over: it registers every definition in one store, where a type two
-    definitions give differently (two installs of a package) takes the later one, and then checks each stored hash.
-    Those found are left out and the rest checked again, as reading the bag without them would."""
-    return set(_clashing(tuple(stored)))
+    them) ``AnyReader`` would refuse the bag over, and why: it registers every definition in one store, where a type
+    two definitions give differently (two installs of a package) takes the later one, then checks each stored hash
+    (RIHS01), refusing the bag over a type no definition gives or another hash.  Those found are left out and the rest
+    checked again, as reading the bag without them would."""
+    return dict(_unhashable(tuple(stored)))
 
 
 @functools.lru_cache(maxsize=64)  # bags of one recorder hold the same definitions: the check is 20 ms a bag
-def _clashing(stored: tuple[tuple[MessageDefinition, str, str], ...]) -> frozenset[int]:
-    dropped: set[int] = set()
+def _unhashable(stored: tuple[tuple[MessageDefinition, str, str], ...]) -> tuple[tuple[int, str], ...]:
+    dropped: dict[int, str] = {}
     while True:
         kept = [i for i, (msgdef, _, _) in enumerate(stored)
                 if i not in dropped and msgdef.format != MessageDefinitionFormat.NONE]
-        types: dict[str, Any] = {}
-        for i in kept:
-            types.update(parsed_definition(stored[i][0], stored[i][1])[1])
-        store = get_typestore(Stores.EMPTY)
-        try:
-            store.register(types)
-        except Exception:  # rosbags says why when it opens the bag
-            return frozenset(dropped)
-        clashing = {i for i in kept if stored[i][2] and not _hashes_to(store, stored[i][1], stored[i][2])}
-        if not clashing:
-            return frozenset(dropped)
-        dropped |= clashing
+        store = _store(stored[i][:2] for i in kept)
+        if store is None:  # rosbags says why when it opens the bag
+            return tuple(sorted(dropped.items()))
+        found = {i: why for i in kept if stored[i][2] and (why := _hash_problem(store, *stored[i]))}
+        if not found:
+            return tuple(sorted(dropped.items()))
+        dropped.update(found)
 
 
-def _hashes_to(store: Any, msgtype: str, digest: str) -> bool:
-    """Whether ``msgtype`` hashes to ``digest`` (RIHS01) in ``store``; False when a type it uses is missing."""
+def _store(definitions: Iterable[tuple[MessageDefinition, str]]) -> Any:
+    """A typestore of ``definitions`` registered as ``AnyReader`` registers them (a later one of a type replaces an
+    earlier), or None when rosbags refuses them together."""
+    types: dict[str, Any] = {}
+    for msgdef, msgtype in definitions:
+        types.update(parsed_definition(msgdef, msgtype)[1])
+    store = get_typestore(Stores.EMPTY)
     try:
-        return store.hash_rihs01(msgtype) == digest
-    except Exception:  # KeyError: a type it uses that no definition gives
-        return False
+        store.register(types)
+    except Exception:
+        return None
+    return store
+
+
+def _hash_problem(store: Any, msgdef: MessageDefinition, msgtype: str, digest: str) -> str:
+    """Why ``msgtype`` does not hash to ``digest`` in ``store``, the bag's definitions together; "" when it does."""
+    try:
+        if store.hash_rihs01(msgtype) == digest:
+            return ""
+    except Exception as err:  # KeyError: a type it uses that no definition gives
+        return f"its stored definition uses a type no definition in the bag gives ({_short(err)})"
+    alone = _store([(msgdef, msgtype)])
+    try:
+        have = "" if alone is None else alone.hash_rihs01(msgtype)
+    except Exception:  # a type it uses that only another definition gives
+        have = ""
+    if have == digest:
+        return CLASHING
+    return f"its stored definition hashes to {have[:15] or 'another hash'}..., not to its stored {digest[:15]}..."
 
 
 def stored_definition(encoding: str, text: str | bytes) -> MessageDefinition:

@@ -52,15 +52,14 @@ def read_bag(path: str | Path, action_unit_rad: float | None = None) -> Trajecto
         return assemble_episodes(bag, decode_streams(bag, raw, unit, checked=asked is not None), raw)
 
 
-def declared_bag_unit(path: str | Path) -> float:
-    """The action unit :func:`read_bag` reads ``path`` in by default, from its metadata.yaml (the storage's copy when
-    there is none): the unit the bag declares, else the suite's."""
+def declared_bag_unit(path: str | Path) -> float | None:
+    """The action unit ``path`` declares, from its metadata.yaml (the storage's copy when there is none), or None
+    (a recorder's bag): :func:`read_bag` reads it in the suite's then."""
     bag = Path(path)
     with refusals(bag):
         meta, _ = metadata_yaml(bag) if bag.is_dir() else (None, "")
-        if meta is not None:
-            return _checked_unit(bag, declared_unit(meta.custom))
-        return bag_unit(bag, load_raw(bag))
+        declared = declared_unit(meta.custom if meta is not None else load_raw(bag).custom)
+        return None if declared is None else _checked_unit(bag, declared)
 
 
 def bag_unit(bag: Path, raw: RawBag) -> float:

@@ -27,12 +27,11 @@ from rosbags.rosbag2 import StoragePlugin
 
 import msg_adapters as ma
 from t42_transfer.data.bag.db3 import (
-    CLASHING,
     BagReader,
-    clashing_definitions,
     readable_definition,
     stored_definition,
     undecodable_line,
+    unhashable_definitions,
 )
 from t42_transfer.data.bag.hand_topics import HAND_ROLES, written_names
 from t42_transfer.data.bag.metadata import (
@@ -309,7 +308,7 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
                         msgtype = "(no schema)" if schema is None else schema.name
                         _add_topic(topics, record.topic, msgtype, 0, digest)
                         msgdef, why = (_NO_DEFINITION, "") if schema is None else readable_definition(
-                            stored_definition(schema.encoding, schema.data), msgtype, digest)
+                            stored_definition(schema.encoding, schema.data), msgtype)
                         definitions.append((record.topic, (msgdef, msgtype, digest)))
                         if why:
                             undecodable.setdefault(record.topic, undecodable_line(record.topic, msgtype, why))
@@ -332,9 +331,9 @@ def scan_mcap(files: list[Path], meta: BagMetadata | None) -> RawBag:
             unsummarized.append(file.name)
     for received in messages.values():
         received.sort(key=lambda m: m[0])
-    for i in clashing_definitions([stored for _, stored in definitions]):
+    for i, why in unhashable_definitions([stored for _, stored in definitions]).items():
         topic, (_, msgtype, _) = definitions[i]
-        undecodable.setdefault(topic, undecodable_line(topic, msgtype, CLASHING))
+        undecodable.setdefault(topic, undecodable_line(topic, msgtype, why))
     custom, distro = (meta.custom, meta.ros_distro) if meta else record_meta or ({}, None)
     start, end = (min(log_times), max(log_times)) if log_times else (0, 0)
     return RawBag("mcap", topics, messages, custom, distro, start, end, stopped, tuple(unsummarized),
