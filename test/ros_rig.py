@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import rclpy
+from rclpy.action import ActionClient, ActionServer
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
@@ -76,6 +77,12 @@ class RosRig:
         self.executor.shutdown(timeout_sec=5.0)
         for node in self.nodes:
             node.destroy_node()
+            # destroy_node leaves a node's action servers and clients, which hold its rcl node and so the
+            # context's participant: node and server lived on its graph until a garbage collection freed their
+            # reference cycle, seen by the next test that took the domain (a second /t42/reach server there)
+            for waitable in list(node.waitables):
+                if isinstance(waitable, ActionServer | ActionClient):
+                    waitable.destroy()
         if self.context.ok():
             rclpy.shutdown(context=self.context)
 
