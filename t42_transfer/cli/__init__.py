@@ -16,10 +16,25 @@ from collections.abc import Sequence
 from types import ModuleType
 
 from t42_transfer import __version__
-from t42_transfer.cli import bag, camera, demo, evaluate, experiment, graph, hw, model, node, plan, sim, topic, view
+from t42_transfer.cli import (
+    bag,
+    camera,
+    demo,
+    evaluate,
+    experiment,
+    graph,
+    hw,
+    model,
+    node,
+    plan,
+    reach,
+    sim,
+    topic,
+    view,
+)
 from t42_transfer.cli.args import OneLineParser, os_error
 
-GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, topic, graph, hw, camera, view)
+GROUPS = (demo, experiment, evaluate, plan, sim, bag, model, node, topic, graph, reach, hw, camera, view)
 """Command modules, in the order ``t42 --help`` lists them."""
 
 

@@ -1,13 +1,12 @@
-"""``t42 lifecycle``, ``t42 call``, ``t42 param``, ``t42 reach``: the ``ros2 lifecycle``, ``ros2 service call``,
-``ros2 param`` and ``ros2 action send_goal`` a pip-installed ROS lacks (no ros2cli wheel), for the suite's lifecycle
-nodes, services, parameters and the planner's ``t42/reach`` action; and the graph node, Ctrl-C and name handling
-``t42 topic`` (:mod:`t42_transfer.cli.topic`) shares."""
+"""``t42 lifecycle``, ``t42 call``, ``t42 param``: the ``ros2 lifecycle``, ``ros2 service call`` and ``ros2 param``
+a pip-installed ROS lacks (no ros2cli wheel), for the suite's lifecycle nodes, services and parameters; and the graph
+node, Ctrl-C and name handling ``t42 topic`` and ``t42 reach`` (:mod:`t42_transfer.cli.topic`,
+:mod:`t42_transfer.cli.reach`) share."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import os
 import re
 import signal
@@ -19,9 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from msg_adapters import names
-from t42_transfer.cli.args import float_arg, int_arg
-from t42_transfer.conventions import MM_PER_M
+from t42_transfer.cli.args import float_arg
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -32,12 +29,12 @@ TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 """The transitions ``t42 lifecycle set`` takes (``shutdown``: from whichever state the node is in)."""
 
 INTERRUPTED = threading.Event()
-"""Set by Ctrl-C while a command is on the graph: its loops stop at their next turn (:func:`_stop_if_asked`).  A
+"""Set by Ctrl-C while a command is on the graph: its loops stop at their next turn (:func:`stop_if_asked`).  A
 KeyboardInterrupt raised wherever the program happens to be, inside rclpy's C++ calls too, came out as another
 error there, or left an action client half-way."""
 
 
-def _stop_if_asked() -> None:
+def stop_if_asked() -> None:
     """KeyboardInterrupt, at a point where stopping is safe, once Ctrl-C was pressed."""
     if INTERRUPTED.is_set():
         raise KeyboardInterrupt
@@ -100,7 +97,7 @@ def _call(node: Node, srv_type: Any, name: str, request: Any, wait_s: float, aga
         executor.add_node(node)
     gone = None
     while not (answered := [f for f in futures if f.done()]):  # a transfer takes minutes: Ctrl-C stops the wait
-        _stop_if_asked()
+        stop_if_asked()
         executor.spin_once(timeout_sec=0.2)
         now = time.monotonic()
         gone = None if client.service_is_ready() else (gone or now)
@@ -124,7 +121,7 @@ def _waiting_for(node: Node, name: str, wait_s: float, kind: str = "") -> Callab
 
     def check() -> None:
         nonlocal seen
-        _stop_if_asked()
+        stop_if_asked()
         now = time.monotonic()
         running = owner in {f"{ns.rstrip('/')}/{n}" for n, ns in node.get_node_names_and_namespaces()}
         seen = (seen or now) if running else None  # (a node restarted by t42 up is looked for anew)
@@ -303,147 +300,6 @@ def _cmd_param(args: argparse.Namespace) -> int:
     return 0 if result.successful else 1
 
 
-SERVER_GONE_S = 3.0
-"""How long ``t42 reach`` waits on an action server that left the graph before it stops waiting."""
-
-
-def _cmd_reach(args: argparse.Namespace) -> int:
-    import uuid
-
-    from action_msgs.msg import GoalStatus
-    from rclpy.action import ActionClient
-    from rclpy.executors import SingleThreadedExecutor
-    from unique_identifier_msgs.msg import UUID
-
-    from msg_adapters.reach import reach_goal, reach_outcome, reach_progress, reach_type
-
-    absolute_name(args.action)  # a name ROS refuses: one line, before the graph
-    goal = reach_goal([args.x * MM_PER_M, args.y * MM_PER_M], 0, args.tolerance * MM_PER_M, args.steps,
-                      args.replan_every)  # stamp 0: now, for the planner
-    with graph_node() as node:
-        client = ActionClient(node, reach_type(), args.action)
-        executor = SingleThreadedExecutor(context=node.context)
-        executor.add_node(node)
-
-        def until(done: Any, what: str, wait_s: float = math.inf) -> None:
-            """Spin until ``done()``; KeyboardInterrupt on Ctrl-C; ValueError after ``wait_s`` or once the server
-            has been off the graph for SERVER_GONE_S."""
-            start, gone_since = time.monotonic(), None
-            while not done():
-                _stop_if_asked()
-                executor.spin_once(timeout_sec=0.1)
-                now = time.monotonic()
-                if now - start > wait_s:
-                    raise ValueError(what)
-                if wait_s < math.inf or client.server_is_ready():
-                    gone_since = None
-                elif gone_since is None:
-                    gone_since = now
-                elif now - gone_since > SERVER_GONE_S:
-                    raise ValueError(f"{args.action}: the action server left the graph {what}")
-
-        def said(message: Any) -> None:
-            p = reach_progress(message.feedback)
-            print(f"step {p.step}: {p.error_mm:.1f} mm from the target (the plan ends {p.predicted_final_error_mm:.1f}"
-                  " mm from it)", flush=True)
-
-        sent = None
-        try:
-            until(client.server_is_ready,
-                  f"{args.action}: no such action server on the graph after {args.wait:g} s (the planner's; "
-                  f"ROS_DOMAIN_ID {os.environ.get('ROS_DOMAIN_ID', '0')}; is it running?)", args.wait)
-            goal_id = UUID(uuid=list(uuid.uuid4().bytes))
-            sent = client.send_goal_async(goal, feedback_callback=said, goal_uuid=goal_id)
-            got = _reach_result(node, client, args.action, sent, goal_id, until, args.wait + GOAL_ANSWER_S)
-            if got is None:
-                print(f"{args.action}: goal rejected (the planner logs why)")
-                return 1
-        except KeyboardInterrupt:  # as ros2 action send_goal: Ctrl-C cancels the goal, the hand holds
-            print(f"t42: interrupted: {_cancelled(executor, sent)}", file=sys.stderr)
-            raise SystemExit(130) from None
-        finally:
-            executor.shutdown(timeout_sec=1.0)
-            client.destroy()
-    if not got.result.verdict:  # a server that failed builds no result (rclpy sends the empty default)
-        ended = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "canceled"}
-        status = ended.get(got.status, str(got.status))
-        print(f"{args.action}: the goal ended {status} without a result (the planner's log says why)")
-        return 1
-    outcome = reach_outcome(got.result)
-    reason = outcome.reason.removeprefix(f"{outcome.verdict}: ")  # (a verdict's reason may begin with its word)
-    if outcome.verdict == reach_type().Result.VERDICT_REFUSED:  # never executed
-        print(f"{args.action}: refused: {reason}")
-        return 1
-    error = "unknown" if outcome.final_error_mm is None else f"{outcome.final_error_mm:.1f} mm"
-    print(f"{args.action}: {outcome.verdict}{f': {reason}' if reason else ''}; final error {error} after "
-          f"{len(outcome.executed_mm)} measured positions")
-    return 0 if outcome.success else 1
-
-
-GOAL_ANSWER_S = 3.0
-"""How long ``t42 reach`` waits for the goal's answer before the goal's status stands for it (an answer can be
-lost as :data:`ASK_AGAIN_S` says, while the goal itself is delivered and runs)."""
-
-
-def _reach_result(node: Node, client: Any, action: str, sent: Any, goal_id: Any,
-                  until: Callable[..., None], answer_s: float) -> Any:
-    """The result of the goal ``sent``, id ``goal_id`` (None: rejected). Without its answer after :data:`GOAL_ANSWER_S`
-    the id on the status (goals accepted) stands for it; with neither after ``answer_s``, ValueError (a lost no)."""
-    from action_msgs.msg import GoalStatusArray
-    from rclpy.action.client import ClientGoalHandle
-    from rclpy.qos import DurabilityPolicy, QoSProfile
-
-    from msg_adapters.reach import reach_type
-
-    accepted = threading.Event()
-
-    def on_status(message: Any) -> None:
-        if any(list(s.goal_info.goal_id.uuid) == list(goal_id.uuid) for s in message.status_list):
-            accepted.set()
-
-    status = node.create_subscription(GoalStatusArray, f"{action}/_action/status", on_status,
-                                      QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-    try:
-        asked = time.monotonic()
-        until(lambda: sent.done() or (accepted.is_set() and time.monotonic() - asked > GOAL_ANSWER_S),
-              f"{action}: no answer to the goal after {answer_s:g} s, nor the goal among the server's (rejected, "
-              "its answer lost?)", answer_s)
-    finally:
-        node.destroy_subscription(status)
-    if sent.done():
-        handle = sent.result()
-        if not handle.accepted:
-            return None
-    else:  # accepted, its answer lost: the result is asked for by the goal's own id
-        handle = ClientGoalHandle(client, goal_id, reach_type().Impl.SendGoalService.Response(accepted=True))
-    result = handle.get_result_async()
-    until(result.done, "before the goal's result (the hand may still run the plan)")
-    return result.result()
-
-
-def _cancelled(executor: Any, sent: Any) -> str:
-    """Cancel the goal ``sent`` (a goal future, or None: none sent), waiting for its answer up to 5 s a request;
-    what became of it, for the user."""
-    if sent is None:
-        return "no goal sent"
-
-    def wait(future: Any) -> bool:
-        deadline = time.monotonic() + 5.0
-        while not future.done() and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.1)
-        return future.done()
-
-    if not wait(sent):
-        return "the goal was sent but never answered; it may still run (stop it with a new goal or hand/reset)"
-    handle = sent.result()
-    if not handle.accepted:
-        return "the goal was rejected"
-    cancel = handle.cancel_goal_async()
-    if wait(cancel) and cancel.result().goals_canceling:
-        return "goal cancelled (the hand holds from its next step)"
-    return "cancel not confirmed (the goal may have ended already)"
-
-
 def _as_declared(value: Any, declared: int) -> Any:
     """A whole number given for a double parameter (``1`` for ``1.0``, in a list too) as a double: what the user
     meant, which rclpy would refuse as an integer."""
@@ -489,19 +345,3 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
                        help="a YAML value (2.5, true, '[2.5, 2.5]', text); none: print the parameter")
     _wait_argument(param)
     param.set_defaults(func=_cmd_param)
-    reach = commands.add_parser("reach", help="send the planner a t42/reach goal and follow it to its result (as ros2 "
-                                              "action send_goal --feedback); Ctrl-C cancels it")
-    for axis in ("x", "y"):
-        reach.add_argument(axis, type=float_arg(-1.0, 1.0), metavar=axis.upper(),
-                           help=f"the object's target {axis} in t42_base, metres (REP 103), as the action takes it")
-    reach.add_argument("--tolerance", type=float_arg(0.0, 1.0), default=0.0, metavar="M",
-                       help="success radius, metres (default 0: the planner's tolerance_m)")
-    reach.add_argument("--steps", type=int_arg(0, 100_000), default=0, metavar="N",
-                       help="plan horizon in control steps (default 0: the planner's choice)")
-    reach.add_argument("--replan-every", type=int_arg(0, 100_000), default=0, metavar="K",
-                       help="replan every K executed steps (default 0: the planner's replan_every)")
-    reach.add_argument("--action", default=f"/{names.REACH}", metavar="NAME",
-                       help=f"the action's name (default /{names.REACH}; under a namespace e.g. /left/{names.REACH})")
-    reach.add_argument("--wait", type=float_arg(0, 3600), default=10.0, metavar="S",
-                       help="how long to wait for the action server, then 3 s more for its goal's answer")
-    reach.set_defaults(func=_cmd_reach)
