@@ -7,6 +7,7 @@ import fcntl
 import os
 import random
 import sys
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -135,29 +136,41 @@ def source_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 # --------------------------------------------------------------------------- ROS 2 (rclpy)
 _DOMAIN_LOCKS = Path(os.environ.get("TMPDIR", "/tmp")) / "t42-ros-domains"
+DOMAIN_REST_S = 25.0
+"""How long a domain rests after a test let it go before another test takes it: a node process killed at a test's
+end stays on the others' graphs until its discovery lease runs out (Fast DDS: 20 s), and a later test on the domain
+would see its servers beside its own."""
 
 
 @contextlib.contextmanager
 def _own_domain(env: pytest.MonkeyPatch) -> Iterator[int]:
-    """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds, set in ``env`` with discovery on
-    LOCALHOST (node processes a test starts inherit both), held until the block ends."""
+    """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds or let go of in the last
+    :data:`DOMAIN_REST_S` (while every domain rests, any free one), set in ``env`` with discovery on LOCALHOST (node
+    processes a test starts inherit both), held until the block ends."""
     _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
     ids = list(range(1, 200))
     random.SystemRandom().shuffle(ids)
-    for domain in ids:
-        handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "w")
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            handle.close()
-            continue
-        env.setenv("ROS_DOMAIN_ID", str(domain))
-        env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-        try:
-            yield domain
-        finally:
-            handle.close()
-        return
+    for rested in (True, False):
+        for domain in ids:
+            handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "a+")  # (its text: when it was let go)
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                handle.seek(0)
+                if rested and time.time() - float(handle.read() or 0.0) < DOMAIN_REST_S:
+                    raise OSError("resting")
+            except (OSError, ValueError):
+                handle.close()
+                continue
+            env.setenv("ROS_DOMAIN_ID", str(domain))
+            env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+            try:
+                yield domain
+            finally:
+                handle.seek(0)
+                handle.truncate()
+                handle.write(repr(time.time()))
+                handle.close()
+            return
     pytest.fail("no free ROS domain id")
 
 
