@@ -326,14 +326,20 @@ class _FirstLost:
         return self._handle.__exit__(*exc)
 
 
-def executes_once(runs: list[Any]) -> Callable[[Any], Any]:
-    """A planner's execute callback: one feedback, then a hit; each goal it runs is added to ``runs``."""
+def executes_once(node: Any, runs: list[Any]) -> Callable[[Any], Any]:
+    """A planner's execute callback: one feedback, then a hit; each goal it runs is added to ``runs``.  The feedback
+    waits (up to 10 s) for the command's feedback subscription to show on the graph of ``node`` (of the server's
+    process, whose graph the server's is): published
+    before the server has matched it, it is lost (the README says so of an action client made just before its goal)."""
     import numpy as np
 
     from msg_adapters.reach import reach_feedback, reach_result
 
     def execute(handle: Any) -> Any:
         runs.append(handle)
+        deadline = time.monotonic() + 10.0
+        while not node.count_subscribers("/t42/reach/_action/feedback") and time.monotonic() < deadline:
+            time.sleep(0.05)
         handle.publish_feedback(reach_feedback(1, 3.0, 1.0))
         handle.succeed()
         path = np.array([[0.0, 70.0], [0.5, 70.5]])
@@ -348,7 +354,7 @@ def test_a_goal_whose_request_answer_or_result_request_is_lost_still_runs_once_t
     """A lost answer: the goal's status stands for it; a lost goal: it goes again with its id; a lost result
     request: asked again once the status says the goal ended."""
     runs: list[Any] = []
-    _, server = reach_server(ros, "quiet_planner", execute_callback=executes_once(runs))
+    _, server = reach_server(ros, "quiet_planner", execute_callback=executes_once(ros.node("seer"), runs))
     server._handle = _FirstLost(server._handle, lost)
     code, out, err = t42(ros, "reach", "0.0", "0.07")
     assert server._handle.lost == 1 and code == 0 and len(runs) == 1, (out, err)
