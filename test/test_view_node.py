@@ -336,3 +336,33 @@ def test_the_planners_candidates_are_drawn_when_it_publishes_them(ros, view):
     assert ros.spin_until(lambda: len(drawn()) == 3, 5), "the candidates were not drawn"
     for marker, path in zip(sorted(drawn(), key=lambda m: m.id), paths, strict=True):
         assert np.allclose([(p.x, p.y) for p in marker.points], path / 1000)
+
+
+def test_clients_coming_and_going_on_the_servers_threads_never_stop_the_spin(ros, view):
+    """The Foxglove server calls the node on threads of its own: a graph reader destroyed there while the executor
+    put its wait set together stopped the spin with InvalidHandle (seen once in a fast-suite run)."""
+    step = _feed(Tester(ros))
+    topic = "/hand/object_pose"
+    assert ros.spin_until(lambda: topic in view.offered or step(0), 15)
+    churned = threading.Event()
+
+    def churn() -> None:
+        for _ in range(400):
+            view.client_subscribed(7, topic)
+            view.client_unsubscribed(7, topic)
+        churned.set()
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # the threads interleave as on a busy machine
+    try:
+        threading.Thread(target=churn, daemon=True).start()
+        k = 0
+        while not churned.is_set():
+            step(k)
+            k += 1
+            ros.spin_for(0.002)
+    finally:
+        sys.setswitchinterval(switch)
+    readers = lambda: [s for s in view.subscriptions if s.topic_name == topic]  # noqa: E731
+    assert ros.spin_until(lambda: len(readers()) == 1, 5), readers()  # the markers' own: no reader left behind
+    assert view.reading == [] and k > 10

@@ -47,6 +47,7 @@ from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -181,6 +182,10 @@ class View(Node):
         self._skipped: set[str] = set()
         self._client_pubs: dict[tuple[int, int], Any] = {}
         """(client id, client channel id) -> the rclpy publisher its messages go out on, and their type."""
+        self._let_go: list[Any] = []
+        """Graph readers and client publishers no client needs, for the executor's thread to destroy: destroyed on
+        the server's threads, one could go while the executor was putting its wait set together (InvalidHandle)."""
+        self._destroy_let_go = self.create_guard_condition(self._destroy_what_was_let_go)
         self._clock_ns: int | None = None
         self._inputs: dict[str, Any] = {}
         self._refused = ""
@@ -279,11 +284,11 @@ class View(Node):
             if offered is None:
                 return
             offered.clients.discard(client_id)
-            reader = offered.reader if not offered.clients else None
-            if reader is not None:
-                offered.reader = None
-        if reader is not None:
-            self.destroy_subscription(reader)
+            if offered.clients or offered.reader is None:
+                return
+            self._let_go.append(offered.reader)
+            offered.reader = None
+        self._destroy_let_go.trigger()
 
     # ------------------------------------------------------------------ markers
     def _input(self, key: str, msg: Any) -> None:
@@ -368,8 +373,19 @@ class View(Node):
     def client_unadvertised(self, client: Client, client_channel_id: int) -> None:
         with self._lock:
             entry = self._client_pubs.pop((client.id, client_channel_id), None)
-        if entry is not None:
-            self.destroy_publisher(entry[0])
+            if entry is None:
+                return
+            self._let_go.append(entry[0])
+        self._destroy_let_go.trigger()
+
+    def _destroy_what_was_let_go(self) -> None:
+        with self._lock:
+            let_go, self._let_go = self._let_go, []
+        for entity in let_go:
+            if isinstance(entity, Publisher):
+                self.destroy_publisher(entity)
+            else:
+                self.destroy_subscription(entity)
 
     def client_message(self, client: Client, client_channel_id: int, data: bytes) -> None:
         with self._lock:
