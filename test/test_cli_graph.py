@@ -373,6 +373,46 @@ def test_a_goal_whose_rejection_is_lost_is_not_taken_for_accepted(ros: Any) -> N
         assert out.strip() == "/t42/reach: goal rejected (the planner logs why)", (lost, out, err)
 
 
+def test_a_slow_no_then_a_yes_to_the_goal_sent_again_follows_the_goal_that_runs(ros: Any) -> None:
+    """A server that says no after 4 s, then yes: the copy sent meanwhile is accepted and runs, so it is followed."""
+    from rclpy.action import GoalResponse
+
+    answers: list[GoalResponse] = []
+    runs: list[Any] = []
+
+    def slow_no_then_yes(_: Any) -> GoalResponse:
+        if not answers:
+            time.sleep(4.0)
+        answers.append(GoalResponse.ACCEPT if answers else GoalResponse.REJECT)
+        return answers[-1]
+
+    reach_server(ros, "moody_planner", goal_callback=slow_no_then_yes,
+                 execute_callback=executes_once(ros.node("seer"), runs))
+    code, out, err = t42(ros, "reach", "0.0", "0.07")
+    assert answers == [GoalResponse.REJECT, GoalResponse.ACCEPT] and len(runs) == 1, (answers, out, err)
+    assert code == 0 and "hit" in out.splitlines()[-1], (out, err)
+
+
+def test_a_goal_unanswered_within_the_wait_is_cancelled_by_its_id(ros: Any) -> None:
+    """The server answers after the command gave up: the goal would run unwatched, so the command cancels it."""
+    from rclpy.action import CancelResponse, GoalResponse
+
+    held: list[Any] = []
+    cancelled: list[Any] = []
+
+    def slow_yes(_: Any) -> GoalResponse:
+        time.sleep(6.0)
+        return GoalResponse.ACCEPT
+
+    reach_server(ros, "slow_planner", goal_callback=slow_yes, execute_callback=lambda handle: None,
+                 handle_accepted_callback=held.append,
+                 cancel_callback=lambda handle: cancelled.append(handle) or CancelResponse.ACCEPT)
+    code, out, err = t42(ros, "reach", "0.0", "0.07", "--wait", "0.5")
+    assert code == 2 and out == "" and len(held) == 1 and len(cancelled) == 1, (out, err)
+    assert err == ("t42: error: /t42/reach: no answer to the goal after 3.5 s, nor the goal among the server's (its "
+                   "requests lost?); goal cancelled (the hand holds from its next step)\n"), err
+
+
 @pytest.mark.parametrize("argv, bad", [
     (["call", "bad name", "std_srvs/srv/Trigger"], "bad name"),
     (["param", "bad node"], "bad node"),

@@ -26,6 +26,10 @@ GOAL_ANSWER_S = 3.0
 again with the same id: a request is dropped as its answer is (:data:`ASK_AGAIN_S`), when the server has not yet
 matched the client that sent it. A server that has the goal refuses the copy, and its status shows the goal."""
 
+class Unanswered(ValueError):
+    """The goal's fate unknown to the command: it may run on the server all the same."""
+
+
 Until = Callable[..., None]
 """``until(done, what, wait_s=inf)``: spin until ``done()`` (see :func:`_cmd_reach`)."""
 
@@ -75,14 +79,16 @@ class _Goal:
         return ClientGoalHandle(self._client, self.id, reach_type().Impl.SendGoalService.Response(accepted=True))
 
     def refused(self) -> bool:
-        """The first request answered no; or a copy did (the server's no, or a goal it has) and, the server's
-        status matched, the goal has not shown on it for :data:`GOAL_ANSWER_S`."""
+        """The first request answered no and so did every copy sent while it was slow to (a server may say no,
+        then yes); or a copy did while the first's answer was lost (the server's no, or a goal it has) and, the
+        server's status matched, the goal has not shown on it for :data:`GOAL_ANSWER_S`."""
         first = bool(self.sends) and self.sends[0].done() and not self.sends[0].result().accepted
-        return first or self._copy_refusal_stands
+        return (first and all(f.done() for f in self.sends)) or self._copy_refusal_stands
 
     def answered(self, until: Until, answer_s: float) -> Any:
-        """Send the goal; its handle once accepted, None once refused (:meth:`refused`).  ValueError after
-        ``answer_s`` without an answer, or when a copy was refused and the server's status is out of reach."""
+        """Send the goal; its handle once accepted, None once refused (:meth:`refused`).  :class:`Unanswered`
+        after ``answer_s`` without an answer, or when a copy was refused and the server's status is out of reach:
+        the goal may run all the same."""
         self.send()
         start = self._sent_at
 
@@ -90,19 +96,19 @@ class _Goal:
             now = time.monotonic()
             if self.handle() is not None or self.refused():
                 return True
-            if any(f.done() for f in self.sends[1:]):  # a copy refused: the server's no, or a goal it has
+            first_answered = self.sends[0].done()
+            if not first_answered and any(f.done() for f in self.sends[1:]):  # a copy refused: a no, or a goal it has
                 self._copy_refused_at = min(self._copy_refused_at, now)
                 if now - self._copy_refused_at > GOAL_ANSWER_S:
                     if self._status_subscription.get_publisher_count() == 0:  # the status could not have shown it
-                        raise ValueError(f"{self._action}: the goal's answer was lost and the server refused a copy "
-                                         "of it; its status is out of reach: the goal may run (stop it with a new "
-                                         "goal or hand/reset)")
+                        raise Unanswered(f"{self._action}: the goal's answer was lost and the server refused a copy "
+                                         "of it, with its status out of reach")
                     self._copy_refusal_stands = True
                     return True
             elif now - start > answer_s:
-                raise ValueError(f"{self._action}: no answer to the goal after {answer_s:g} s, nor the goal among "
+                raise Unanswered(f"{self._action}: no answer to the goal after {answer_s:g} s, nor the goal among "
                                  "the server's (its requests lost?)")
-            elif now - self._sent_at > GOAL_ANSWER_S:
+            elif not first_answered and now - self._sent_at > GOAL_ANSWER_S:
                 self.send()
             return False
 
@@ -129,9 +135,9 @@ class _Goal:
         until(came, "before the goal's result (the hand may still run the plan)")
         return next(f for f in asks if f.done()).result()
 
-    def cancelled(self, executor: Any) -> str:
-        """Cancel the goal once answered (waiting up to 5 s a request; unanswered: by its id all the same); what
-        became of it, for the user."""
+    def cancelled(self, executor: Any, answer_s: float = 5.0) -> str:
+        """Cancel the goal once answered (waiting up to ``answer_s`` for that, then 5 s for the cancel's answer;
+        unanswered: by its id all the same); what became of it, for the user."""
         from rclpy.action.client import ClientGoalHandle
 
         from msg_adapters.reach import reach_type
@@ -139,13 +145,13 @@ class _Goal:
         if not self.sends:
             return "no goal sent"
 
-        def wait(done: Callable[[], bool]) -> bool:
-            deadline = time.monotonic() + 5.0
+        def wait(done: Callable[[], bool], wait_s: float = 5.0) -> bool:
+            deadline = time.monotonic() + wait_s
             while not done() and time.monotonic() < deadline:
                 executor.spin_once(timeout_sec=0.1)
             return done()
 
-        answered = wait(lambda: self.handle() is not None or self.refused())
+        answered = wait(lambda: self.handle() is not None or self.refused(), answer_s)
         if self.refused():
             return "the goal was rejected"
         handle = self.handle() or ClientGoalHandle(self._client, self.id,
@@ -205,6 +211,8 @@ def _cmd_reach(args: argparse.Namespace) -> int:
                 print(f"{args.action}: goal rejected (the planner logs why)")
                 return 1
             got = goal.result(handle, until)
+        except Unanswered as err:  # the goal may run all the same: it is cancelled
+            raise ValueError(f"{err}; {goal.cancelled(executor, answer_s=0.0)}") from None
         except KeyboardInterrupt:  # as ros2 action send_goal: Ctrl-C cancels the goal, the hand holds
             print(f"t42: interrupted: {goal.cancelled(executor)}", file=sys.stderr)
             raise SystemExit(130) from None
