@@ -46,6 +46,7 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -270,7 +271,11 @@ class View(Node):
             if offered is None:
                 return
             offered.clients.add(client_id)
-            if offered.reader is None:
+            let_go = next((e for e in self._let_go if not isinstance(e, Publisher) and e.topic_name == topic), None)
+            if offered.reader is None and let_go is not None:  # back before it was destroyed: read on with it
+                self._let_go.remove(let_go)
+                offered.reader = let_go
+            elif offered.reader is None:
                 channel = offered.channel
                 qos = subscription_qos(self.get_publishers_info_by_topic(topic))
                 offered.reader = self.create_subscription(
@@ -288,7 +293,7 @@ class View(Node):
                 return
             self._let_go.append(offered.reader)
             offered.reader = None
-        self._destroy_let_go.trigger()
+        self._wake_destroyer()
 
     # ------------------------------------------------------------------ markers
     def _input(self, key: str, msg: Any) -> None:
@@ -376,7 +381,13 @@ class View(Node):
             if entry is None:
                 return
             self._let_go.append(entry[0])
-        self._destroy_let_go.trigger()
+        self._wake_destroyer()
+
+    def _wake_destroyer(self) -> None:
+        try:
+            self._destroy_let_go.trigger()
+        except InvalidHandle:  # the node destroyed: its entities went with it
+            pass
 
     def _destroy_what_was_let_go(self) -> None:
         with self._lock:
