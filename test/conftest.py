@@ -10,7 +10,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -146,32 +146,46 @@ would see its servers beside its own."""
 def _own_domain(env: pytest.MonkeyPatch) -> Iterator[int]:
     """A ROS_DOMAIN_ID no other test (of this run or a parallel one) holds or let go of in the last
     :data:`DOMAIN_REST_S` (while every domain rests, any free one), set in ``env`` with discovery on LOCALHOST (node
-    processes a test starts inherit both), held until the block ends."""
+    processes a test starts inherit both), held until the block ends.  A domain whose holder was killed (its lock
+    free, its file still saying held) starts its rest when found so."""
     _DOMAIN_LOCKS.mkdir(parents=True, exist_ok=True)
     ids = list(range(1, 200))
     random.SystemRandom().shuffle(ids)
     for rested in (True, False):
         for domain in ids:
-            handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "a+")  # (its text: when it was let go)
+            handle = open(_DOMAIN_LOCKS / f"{domain}.lock", "a+")  # (its text: when it was let go, or HELD)
             try:
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 handle.seek(0)
-                if rested and time.time() - float(handle.read() or 0.0) < DOMAIN_REST_S:
+                text = handle.read()
+                if text == _HELD:  # its holder was killed: its nodes may still be on the graph
+                    _write(handle, repr(time.time()))
+                    raise OSError("let go just now")
+                if rested and time.time() - float(text or 0.0) < DOMAIN_REST_S:
                     raise OSError("resting")
             except (OSError, ValueError):
                 handle.close()
                 continue
+            _write(handle, _HELD)
             env.setenv("ROS_DOMAIN_ID", str(domain))
             env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
             try:
                 yield domain
             finally:
-                handle.seek(0)
-                handle.truncate()
-                handle.write(repr(time.time()))
+                _write(handle, repr(time.time()))
                 handle.close()
             return
     pytest.fail("no free ROS domain id")
+
+
+_HELD = "held"
+
+
+def _write(handle: IO[str], text: str) -> None:
+    handle.seek(0)
+    handle.truncate()
+    handle.write(text)
+    handle.flush()
 
 
 @pytest.fixture
