@@ -400,16 +400,16 @@ def test_a_goal_unanswered_within_the_wait_is_cancelled_by_its_id(ros: Any) -> N
     held: list[Any] = []
     cancelled: list[Any] = []
 
-    def slow_yes(_: Any) -> GoalResponse:
-        time.sleep(6.0)
+    def slow_yes(_: Any) -> GoalResponse:  # past the command's wait: its 3 s for the server, 3 s more for the answer
+        time.sleep(8.0)
         return GoalResponse.ACCEPT
 
     reach_server(ros, "slow_planner", goal_callback=slow_yes, execute_callback=lambda handle: None,
                  handle_accepted_callback=held.append,
                  cancel_callback=lambda handle: cancelled.append(handle) or CancelResponse.ACCEPT)
-    code, out, err = t42(ros, "reach", "0.0", "0.07", "--wait", "0.5")
+    code, out, err = t42(ros, "reach", "0.0", "0.07", "--wait", "3")
     assert code == 2 and out == "" and len(held) == 1 and len(cancelled) == 1, (out, err)
-    assert err == ("t42: error: /t42/reach: no answer to the goal after 3.5 s, nor the goal among the server's (its "
+    assert err == ("t42: error: /t42/reach: no answer to the goal after 6 s, nor the goal among the server's (its "
                    "requests lost?); goal cancelled (the hand holds from its next step)\n"), err
 
 
