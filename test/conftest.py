@@ -19,7 +19,7 @@ from t42_transfer.conventions import ACTION_UNIT_RAD
 from t42_transfer.data.bag import assign_start_times, write_bag
 from t42_transfer.data.t42_real import REAL_FILES, real_data_dir
 from t42_transfer.data.trajectory import Trajectory, TrajectorySet
-from t42_transfer.ros.runner import announce_often
+from t42_transfer.ros.runner import announce_often, freeze_heap
 
 sys.path.insert(0, str(Path(__file__).parent))  # test helpers (ros_rig)
 # One OpenMP thread for torch here and in every process a test starts (node processes inherit the environment):
@@ -99,6 +99,21 @@ def t42_real_dir() -> Path:
             "they are not redistributed with the project"
         )
     return directory
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Every test module imported: freeze the heap, as each node process does (``freeze_heap``).  A worker's full
+    collections walked ~300k objects of the imports with the GIL held, 470-610 ms at the longest in a fast-suite
+    run, stopping the rclpy nodes and the emulated servo bus that tests run in this process: a driver timed out
+    on a bus that was frozen too."""
+    freeze_heap()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _heap_frozen() -> None:
+    """At each module's start, what the tests before left alive (session fixtures, pytest's records) is frozen
+    too (the module fixtures before are torn down by then)."""
+    freeze_heap()
 
 
 @pytest.fixture(scope="module")

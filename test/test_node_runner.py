@@ -434,3 +434,36 @@ def test_each_node_spins_on_the_executor_it_asks_for() -> None:
     assert kinds["dynamixel_driver"] == "EventsExecutor"  # its CPU per step is benchmarked (bench_driver)
     assert kinds["transfer_server"] == "MultiThreadedExecutor"  # a long transfer beside its other callbacks
     assert kinds["recorder"] == kinds["mock_driver"] == "SingleThreadedExecutor"
+
+
+def test_a_node_freezes_what_its_start_left_before_it_spins(ros_domain: int) -> None:
+    """A full collection of the ~300k objects the imports leave stops every thread of a node for 150-250 ms
+    (runner.freeze_heap); a node run by run_node has them frozen once it is up, and stops on SIGINT as before."""
+    import gc
+    import threading
+
+    from t42_transfer.ros.runner import run_node
+
+    gc.unfreeze()  # (the suite's conftest froze this process's heap)
+    tracked = len(gc.get_objects())
+    seen: dict[str, int] = {}
+    returned = threading.Event()
+
+    def watch() -> None:
+        deadline = time.monotonic() + 30.0
+        while gc.get_freeze_count() == 0 and time.monotonic() < deadline and not returned.is_set():
+            time.sleep(0.05)
+        seen.update(frozen=gc.get_freeze_count(), tracked=len(gc.get_objects()))
+        if not returned.is_set():
+            os.kill(os.getpid(), signal.SIGINT)  # run_node's own handler: a clean stop
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        code = run_node("mock_driver", ["--ros-args", "-r", "__node:=frozen_hand"])
+    finally:
+        returned.set()
+        watcher.join()
+    assert code == 0
+    assert seen["frozen"] >= tracked // 2, (seen, tracked)
+    assert seen["tracked"] < seen["frozen"] // 10, (seen, tracked)
