@@ -104,8 +104,8 @@ def t42_real_dir() -> Path:
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Every test module imported: freeze the heap, as each node process does (``freeze_heap``).  A worker's full
     collections walked ~300k objects of the imports with the GIL held, 470-610 ms at the longest in a fast-suite
-    run, stopping the rclpy nodes and the emulated servo bus that tests run in this process: a driver timed out
-    on a bus that was frozen too."""
+    run (87-166 ms frozen), stopping the rclpy nodes, emulated hands and timing checks tests run in this
+    process."""
     freeze_heap()
 
 

@@ -181,10 +181,10 @@ def freeze_heap() -> None:
 
     A node's imports (torch, rclpy, numpy) leave ~300k objects the collector tracks, and each full collection
     walks them all with the GIL held: 150-250 ms in the suite's node processes, 1.2 s once on a loaded machine
-    (measured with ``gc.callbacks``, 2026-12-07), every thread of the node stopped meanwhile.  That is more than
-    a control period of a driver, and in an emulator the answer a driver is timing.  Frozen, they are never
-    walked again; what the node makes from now on is collected as before.  (Objects frozen here that later
-    become cyclic garbage are not freed: they were alive at start-up, and most live as long as the process.)"""
+    (measured with ``gc.callbacks``, 2026-12-07), every thread of the node stopped meanwhile: more than a
+    driver's control period.  Frozen, they are never walked again; what the node makes from now on is
+    collected as before.  (Objects frozen here that later become cyclic garbage are not freed: they were alive
+    at start-up, and most live as long as the process.)"""
     gc.collect()
     gc.freeze()
 
