@@ -3,7 +3,8 @@
 ``t42 node NAME [--ros-args ...]`` and the console script ``NAME`` (``ros2 run
 t42_transfer NAME``) both end here.  rclpy takes the whole argument list
 (remapping, namespaces, ``-p``, ``--params-file``, ``--log-level``,
-``use_sim_time``); the node declares its parameters.  The node spins on the
+``use_sim_time``); the node declares its parameters.  Once it is built, what its start-up left on the heap is
+frozen out of garbage collection (:func:`freeze_heap`).  The node spins on the
 executor :func:`make_executor` picks for it until SIGINT, SIGTERM or SIGHUP (its terminal or ssh session gone), or
 until a
 node with a ``finished`` property (the explorer) is done; then the node's
