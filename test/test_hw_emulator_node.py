@@ -152,8 +152,8 @@ def test_a_fault_is_injected_once_per_change_and_a_spent_count_goes_back_to_zero
 
     emulator = ros.add(HwEmulator, {})
     # dynamixel-sdk's own packets, on its port with the emulated bus's latency timer as every other client of it
-    # in the suite: the SDK's 16 ms gives an answer ~34 ms, which a busy machine can hold the bus's thread past
-    # (this test failed under the parallel suite and passed alone; the failure's output was not kept)
+    # in the suite: the SDK's 16 ms gives an answer ~34 ms, which a busy machine can hold the bus's thread past.
+    # (A guess at why this test failed under the parallel suite and passed alone: that output was not kept.)
     port, packets = _Port(emulator.port, EMULATED_LATENCY_TIMER_MS), PacketHandler(2.0)
     assert port.openPort() and port.setBaudRate(1_000_000)
 

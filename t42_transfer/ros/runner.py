@@ -185,7 +185,8 @@ def freeze_heap() -> None:
     (measured with ``gc.callbacks``, 2026-12-07), every thread of the node stopped meanwhile: more than a
     driver's control period.  Frozen, they are never walked again; what the node makes from now on is
     collected as before.  (Objects frozen here that later become cyclic garbage are not freed: they were alive
-    at start-up, and most live as long as the process.)"""
+    at start-up, and most live as long as the process; a model loaded at start-up and replaced later holds no
+    cycle, so reference counting frees it.)"""
     gc.collect()
     gc.freeze()
 
