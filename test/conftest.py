@@ -101,18 +101,13 @@ def t42_real_dir() -> Path:
     return directory
 
 
-def pytest_collection_finish(session: pytest.Session) -> None:
-    """Every test module imported: freeze the heap, as each node process does (``freeze_heap``).  A worker's full
-    collections walked ~300k objects of the imports with the GIL held, 470-610 ms at the longest in a fast-suite
-    run (87-166 ms frozen), stopping the rclpy nodes, emulated hands and timing checks tests run in this
-    process."""
-    freeze_heap()
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _heap_frozen() -> None:
-    """At each module's start, what the tests before left alive (session fixtures, pytest's records) is frozen
-    too (the module fixtures before are torn down by then; autouse, this runs before the module's own).  What is
+    """At each module's start, freeze the heap, as each node process does (``freeze_heap``): the imports of every
+    test module, then what the tests before left alive (session fixtures, pytest's records; the module fixtures
+    before are torn down by then, and autouse, this runs before the module's own).  Unfrozen, a worker's full
+    collections walked ~300k objects with the GIL held, 470-610 ms at the longest in a fast-suite run (87-166 ms
+    frozen), stopping the rclpy nodes, emulated hands and timing checks tests run in this process.  What is
     frozen and later becomes cyclic garbage stays for the worker's life: a few objects a module, not a leak
     that grows with a test's length."""
     freeze_heap()
