@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -172,6 +173,37 @@ def test_a_late_step_is_recorded_with_the_drivers_word_for_it_and_read_as_data(r
     (traj,) = read_bag(tmp_path / "bags" / "recording_000")
     assert len(traj) == 20 and traj.late_steps.tolist() == [9] and traj.step_ns[9] == 450_000_000
     assert traj.states[:, 0].tolist() == [float(k) for k in range(21)]
+
+
+@pytest.mark.parametrize("episode", [1, 2])
+def test_a_late_second_step_keeps_its_word_while_the_first_step_waits(ros: Any, tmp_path: Path,
+                                                                      episode: int) -> None:
+    """In episode mode a bag's first step waits for a status that would split before it (half ``step_hold_s``).
+    The driver's ``late`` for the second step can come in that time, while the bag holds no step yet: it must
+    still go into the bag with the steps it qualifies, in the first bag and in one a reset split off."""
+    rec = add_recorder(ros, tmp_path, mode="episode", step_hold_s=2.0)  # the first step waits 1 s
+    hand = Hand(ros, rec)
+    start = now_ns()
+    if episode == 2:
+        hand.episode(start, 5, seed=1, last_state=False)
+        start += 5 * CONTROL_PERIOD_NS
+        hand.status(status_message(names.RESET, "episode 2 grasped (seed 2)", start - CONTROL_PERIOD_NS))
+        assert ros.spin_until(lambda: rec.waiting_changes == 0 and rec.current_count == 0, 5.0)
+    stamps = [start, start + 250_000_000, *(start + (2 + k) * CONTROL_PERIOD_NS + 50_000_000 for k in range(1, 17))]
+    hand.step(stamps[0], xy=(0.0, 0.0))
+    hand.step(stamps[1], xy=(1.0, 0.0))  # 250 ms after the first
+    hand.status(status_message(names.LATE, "250.0 ms after the step before", stamps[1]))
+    assert rec.current_count == 0  # (the case: the first step still waits, so no step is in the bag yet)
+    for k, stamp in enumerate(stamps[2:], start=2):
+        hand.step(stamp, xy=(float(k), 0.0), action=(0.5, -0.5) if k < len(stamps) - 1 else None)
+    hand.settle()
+    rec.close()
+    bag = sorted(p for p in tmp_path.iterdir() if p.is_dir())[-1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no episode split for want of the late word
+        (traj,) = read_bag(bag)
+    assert traj.start_ns == stamps[0] and len(traj) == len(stamps) - 1  # 17 transitions: one episode is 15 or more
+    assert traj.late_steps.tolist() == [0] and traj.step_ns[0] == 250_000_000
 
 
 def _an_episode_with_step_ten_by(ros: Any, tmp_path: Path, step_ten: Any) -> tuple[Recorder, Any]:

@@ -30,7 +30,8 @@ Wiring (relative names: remap them with ``--ros-args -r``, or run under a namesp
 * ``hand/status`` (std_msgs/msg/String): always recorded, written into the open bag as it comes (a driver's ``late``
   word there tells a reader that a step came late and none is missing); in ``mode="episode"`` a status whose first
   word is in ``params.split_on`` also splits the bag, so each bag holds one episode (see "Steps" for where).  Statuses
-  and events go only into a bag that holds a step (:mod:`~t42_transfer.nodes.recorder_loose`);
+  and events go only into a bag that holds a step; a status naming a step that comes before the bag's first step
+  is written (a ``late`` second step) goes in after it (:mod:`~t42_transfer.nodes.recorder_loose`);
 * ``~/snapshot`` (std_srvs/srv/Trigger), snapshot mode (``snapshot_s`` > 0, rosbag2's ``--snapshot-mode``): the last
   ``snapshot_s`` seconds' steps, kept in memory, go to a bag in ``out_dir/snapshots`` (``recorder_snapshot``).
 
@@ -82,6 +83,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -164,6 +166,8 @@ class Recorder(LooseMessages, Node):
         self._first_stamp: int | None = None
         """The oldest stamp received: a status's border before it (history, heard on joining) is no border."""
         self._pause = Pause()
+        self._held: deque[tuple[str, int, bytes, str, int]] = deque(maxlen=names.EVENTS.depth)
+        """Statuses that named a step and came while the bag held none: (topic, log time, bytes, type, step)."""
         self._announcer = Announcer(self.create_publisher(BagClosed, names.BAG_CLOSED, profile(names.EVENTS)),
                                     self.log)
 
@@ -397,8 +401,11 @@ class Recorder(LooseMessages, Node):
                                          "bag began, or lost)")
                 continue
             try:
+                first = bag.count == 0
                 self._series.write_step(step)
                 self._written.add(step, bag)
+                if first:
+                    self._write_held(step.stamp)
             except OSError as err:  # a full disk: stop writing, say so once
                 self.dropped += len(step.messages)
                 self._series.failed(bag.path, err)

@@ -2,10 +2,17 @@
 bags in episode mode and trigger snapshots), the typed events of ``topics`` (``t42/plan_result``,
 ``t42/model_updated``), and a step's message that came after the step was written.  A part of
 :class:`~t42_transfer.nodes.recorder.Recorder` (a mixin: it uses the node's bag, lock, step buffer and
-snapshots), kept apart to keep modules short; see that module's docstring."""
+snapshots), kept apart to keep modules short; see that module's docstring.
+
+A status goes only into a bag that holds a step, yet a bag's first step is written late: it waits for its step to
+complete, and in episode mode half ``step_hold_s`` more for a status that would split before it.  A driver's
+``late`` for the second step (a first step slow to follow, as at a driver's start) comes in that time, and a bag
+without it reads as two episodes.  So a status naming a step (``[last step N ns]``) that comes while the bag holds
+no step is held, and goes into the bag once its first step is written when it names that step or a later one."""
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 from msg_adapters import STRING, TYPESTORE, last_step_stamp, names, status_event
@@ -18,6 +25,7 @@ class LooseMessages:
     _changes: Any
     _closed: bool
     _first_stamp: int | None
+    _held: deque[tuple[str, int, bytes, str, int]]
     _lock: Any
     _status_topic: str
     dropped: int
@@ -40,8 +48,8 @@ class LooseMessages:
             if self.paused:  # neither written nor splitting
                 self._pause.dropped += 1  # counted where the pause is kept
                 return
-            self._write_loose(self._status_topic, bytes(data), STRING)
             event, after = status_event(text), last_step_stamp(text)  # the driver says where the border is
+            self._write_loose(self._status_topic, bytes(data), STRING, after)
             episode = self.params.mode == "episode" and event in self.params.split_on
             if not episode and self.snapshots.buffer is None:
                 return
@@ -95,12 +103,13 @@ class LooseMessages:
             self.dropped += 1
             self.log.error(f"could not record a message on {topic}: {err!r}")
 
-    def _write_loose(self, topic: str, data: bytes, msgtype: str) -> None:
+    def _write_loose(self, topic: str, data: bytes, msgtype: str, step: int | None = None) -> None:
         """A status or an event goes into the open bag as it came (a reader learns from a status which steps were
         late, not lost), and into the snapshot buffer.
 
         Only into a bag that holds steps: a status has no step to qualify before the first one, and a bag of
-        statuses alone would count as holding messages (episode mode splits only those)."""
+        statuses alone would count as holding messages (episode mode splits only those).  One that names its
+        ``step`` is held until the bag's first step is written (the module docstring)."""
         with self._lock:
             if self._closed:
                 return
@@ -108,11 +117,21 @@ class LooseMessages:
             self.snapshots.add_loose(topic, log_ns, data, msgtype)
             bag = self._series.bag
             if bag is None or bag.count == 0:
+                if step is not None:
+                    self._held.append((topic, log_ns, data, msgtype, step))
                 return
             try:
                 self._series.write(topic, log_ns, data, msgtype)
             except OSError as err:  # a full disk: stop writing, say so once
                 self._series.failed(bag.path, err)
+
+    def _write_held(self, first_stamp: int) -> None:
+        """After the open bag's first step, stamped ``first_stamp``: the statuses held meanwhile that name it or a
+        later step go in at their receive times (raises what the bag raises); the rest were of earlier steps."""
+        held = [m for m in self._held if m[4] >= first_stamp]
+        self._held.clear()
+        for topic, log_ns, data, msgtype, _ in held:
+            self._series.write(topic, log_ns, data, msgtype)
 
     def _write_late(self, topic: str, stamp: int, log_ns: int, data: bytes) -> None:
         """A message whose step was already written: into that step's bag while it is open and lacks the topic,
