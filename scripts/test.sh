@@ -9,7 +9,10 @@
 # clone 3 timing checks of the emulated hand and the transfer server failed
 # under their contention (each passes alone, and beside 3 CPU burners).  Tests marked
 # `serial` (real-time checks a loaded machine can break: driver stalls, the
-# quick demos) then run in one process on their own.  Give -n yourself to run
+# quick demos) then run in one process on their own.  The batch hands out its
+# files longest first, by the seconds of a measured batch (test/file_order.py,
+# test/file_seconds.json; --no-loadscope-reorder keeps that order), so that no
+# long file is left for the end while the other workers idle.  Give -n yourself to run
 # everything in one batch (-n 0: one process).
 # `scripts/test.sh -m slow` runs the long checks in one process: soak and
 # timing checks there want the machine to themselves.
@@ -37,7 +40,7 @@ elif [[ $has_workers -eq 1 ]]; then
 else
     # pytest exits 5 when a batch collects nothing (e.g. named files hold no serial test): not a failure.
     rc=0
-    "$ROOT/.venv/bin/python" -m pytest -m "not slow and not serial" -n 4 --dist loadfile "$@" || rc=$?
+    "$ROOT/.venv/bin/python" -m pytest -m "not slow and not serial" -n 4 --dist loadfile --no-loadscope-reorder "$@" || rc=$?
     rc_serial=0
     # With no arguments, only the files that mark a test serial are collected again (collecting all takes ~3 s).
     serial_files=()

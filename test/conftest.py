@@ -234,6 +234,28 @@ def module_ros_domain() -> Iterator[int]:
         yield domain
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--record-file-seconds", metavar="PATH", type=Path,
+                     help="write each test file's seconds as JSON (test/file_seconds.json orders the parallel batch)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    from file_order import FileSeconds
+
+    path = config.getoption("record_file_seconds")
+    if path is not None and not hasattr(config, "workerinput"):  # the controller hears every worker's reports
+        config.pluginmanager.register(FileSeconds(path), "file_seconds")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """In xdist's workers, the files longest first (:mod:`file_order`): the order they report is the order the
+    files are handed out in, with ``--no-loadscope-reorder``."""
+    from file_order import load_seconds, order_items
+
+    if hasattr(config, "workerinput"):
+        order_items(items, load_seconds())
+
+
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[pytest.TestReport]:
     """Each phase's report on its item (``item.report_call``...): a fixture shared by tests learns whether the
