@@ -15,6 +15,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,7 @@ from msg_adapters import RCLPY, last_step_stamp, names, object_pose_msg, stamp_t
 from msg_adapters.wire import ACTUATOR_NAMES
 from t42_transfer.conventions import ACTION_UNIT_RAD, CONTROL_PERIOD_S, LATE_STEP_NS, LOAD_UNIT_NM, MIN_STEP_NS
 from t42_transfer.hand.sim import SimulatedHand
+from t42_transfer.hardware import protocol
 from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.emulator import EMULATED_LATENCY_TIMER_MS, Faults, PtyBus, t42_bus
 from t42_transfer.hardware.hand_plant import HandPlant
@@ -565,24 +567,53 @@ def test_close_turns_the_torque_off_on_every_servo_that_answers(fresh_rig: Rig, 
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: int) -> None:
+def test_the_driver_process_turns_the_torque_off_when_stopped(ros: RosRig, sig: int, tmp_path: Path) -> None:
     """``t42 node dynamixel_driver`` with autostart on the emulated bus; the signal ends it, the torque goes off."""
     bus = PtyBus(t42_bus())
-    proc = start_node("dynamixel_driver", "-p", f"port:={bus.port}", "-p", "autostart:=true")
+    log = tmp_path / "driver.log"
+    proc = start_node("dynamixel_driver", "-p", f"port:={bus.port}", "-p", "autostart:=true", log=log)
     try:
         deadline = time.monotonic() + 30.0
         while [s.torque for s in bus.bus.servos.values()] != [True, True]:
-            assert time.monotonic() < deadline and proc.poll() is None, "the driver never turned the torque on"
+            assert time.monotonic() < deadline and proc.poll() is None, \
+                f"the driver never turned the torque on ({bus.bus.handled} packets handled):\n{log.read_text()[-3000:]}"
             time.sleep(0.05)
         handled, deadline = bus.bus.handled, time.monotonic() + 5.0
         while bus.bus.handled <= handled + 5:  # it steps: one sync read and one sync write each period
-            assert time.monotonic() < deadline and proc.poll() is None, "the driver does not step"
+            assert time.monotonic() < deadline and proc.poll() is None, f"the driver does not step:\n{log.read_text()}"
             time.sleep(0.05)  # (0.5 s once held only one step, under the parallel suite)
-        assert stop([proc], timeout_s=10.0, sig=sig) == [0]
+        assert stop([proc], timeout_s=10.0, sig=sig) == [0], log.read_text()[-3000:]
         assert [s.torque for s in bus.bus.servos.values()] == [False, False]
     finally:
         stop([proc])
         bus.close_port()
+
+
+def test_autostart_tries_activate_again_when_it_fails(ros: RosRig) -> None:
+    """The servos' answer to activate's read of where the fingers stand is lost: activate fails and leaves the
+    torque off.  Autostart tries it again a second later, as it does configure, until the hand is active (it once
+    stayed inactive for good, the torque never on)."""
+    with PtyBus(t42_bus()) as bus:
+        handle, sync_reads = bus.bus.handle, []
+
+        def second_read_lost(ins):  # noqa: ANN001, ANN202 (configure reads once, then activate does)
+            answer = handle(ins)
+            if ins.instruction == protocol.SYNC_READ:
+                sync_reads.append(answer)
+                if len(sync_reads) == 2:
+                    return b""
+            return answer
+
+        bus.bus.handle = second_read_lost
+        driver = ros.add(DynamixelDriver, {"port": bus.port, "autostart": True,
+                                           "latency_timer_ms": EMULATED_LATENCY_TIMER_MS})
+        assert ros.spin_until(lambda: len(sync_reads) >= 2, 10.0), len(sync_reads)
+        assert ros.spin_until(lambda: driver.state == "inactive", 5.0), driver.state  # activate failed
+        assert [s.torque for s in bus.bus.servos.values()] == [False, False]
+        assert ros.spin_until(lambda: driver.state == "active", 5.0), driver.state
+        assert [s.torque for s in bus.bus.servos.values()] == [True, True]
+        driver.close()
+        assert [s.torque for s in bus.bus.servos.values()] == [False, False]
 
 
 class RaisingDriver(DynamixelDriver):

@@ -16,7 +16,8 @@ Lifecycle (``ros2 lifecycle set`` or any ``change_state`` client):
   callback) turns the torque off too, whatever the state, on each servo that answers.  ``autostart`` configures
   and activates at start, for a suite run without a lifecycle manager (``t42 up``), trying configure again
   every second until the port is there (a port that does not exist yet is waited for quietly for
-  :data:`PORT_GRACE_S`, then it is a fault).
+  :data:`PORT_GRACE_S`, then it is a fault), and activate again every second while it fails (a servo that does
+  not answer as the torque comes on; the torque is left off meanwhile).
 
 Interface: that of :mod:`~t42_transfer.nodes.mock_driver` (``hand/joint_states`` with actuator angles and
 loads, ``hand/object_pose``, ``hand/applied_action``, ``hand/command``, ``hand/trajectory``,
@@ -43,22 +44,21 @@ Drops: a published pose more than ``drop_jump_m`` (the paper's 8 mm) a control p
 frame's stamp and the step before's, from the step before's ends the episode as the mock driver ends one: that
 step's state goes out without an action, ``hand/status`` says ``dropped`` and the hand holds until the next reset.
 
-Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the torque found off on a
-servo that restarted, the port gone) are
-reported on ``hand/status`` (``fault: ...``, which ends the episode) and ``diagnostics`` with the servo id
-and the error bits decoded; so is a configure that fails (no port, a port that is no Dynamixel bus, servos of
-another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when it changes, and
-``recovered`` once a configure passes).  A command
-refused or cut short (clamped at a position limit, a finger held for its load) says ``refused`` on
-``hand/status`` as on /rosout, at most once a second per kind.  A Hardware Error Status bit latches: the servo is
-never rebooted by the driver, the fault stays until cleanup and configure (:mod:`t42_transfer.driver.faults`).  From
-the others recovery is automatic: once a second the driver reopens the port if it went, pings, turns the torque
-back on and holds; ``recovered`` then says the hand is back (a reset starts the next episode).  While inactive the
-servos are read once a second (the torque may be on, holding a grasp), faults said as while active.  Late steps are
-counted and reported in diagnostics, and each says ``late`` on ``hand/status`` with its stamp (a recording keeps it as
-data); a tick whose stamp would come less than half a period after the last step's (a timer catching up after a
-late one) does not step, so two steps are never stamped closer than the bag reader accepts.  Both are judged on
-the stamps published, taken after the read (:mod:`t42_transfer.driver.timing`).
+Faults (a servo that stops answering, a garbled answer, a Hardware Error Status bit, the torque found off on a servo
+that restarted, the port gone) are reported on ``hand/status`` (``fault: ...``, which ends the episode) and
+``diagnostics`` with the servo id and the error bits decoded; so is a configure that fails (no port, a port that is
+no Dynamixel bus, servos of another model: ``fault: configure failed: ...``, said again on ``hand/status`` only when
+it changes, and ``recovered`` once a configure passes). A command refused or cut short (clamped at a position limit,
+a finger held for its load) says ``refused`` on ``hand/status`` as on /rosout, at most once a second per kind. A
+Hardware Error Status bit latches: the servo is never rebooted by the driver, the fault stays until cleanup and
+configure (:mod:`t42_transfer.driver.faults`). From the others recovery is automatic: once a second the driver
+reopens the port if it went, pings, turns the torque back on and holds; ``recovered`` then says the hand is back (a
+reset starts the next episode). While inactive the servos are read once a second (the torque may be on, holding a
+grasp), faults said as while active. Late steps are counted and reported in diagnostics, and each says ``late`` on
+``hand/status`` with its stamp (a recording keeps it as data); a tick whose stamp would come less than half a period
+after the last step's (a timer catching up after a late one) does not step, so two steps are never stamped closer
+than the bag reader accepts. Both are judged on the stamps published, taken after the read
+(:mod:`t42_transfer.driver.timing`).
 Steps follow the graph's clock: with ``use_sim_time`` (the emulator's ``/clock``) they run as fast as that clock
 does.  ``t42 node`` spins the driver on rclpy's EventsExecutor (its CPU per step: ``bench/bench_driver.py``).
 """
@@ -73,7 +73,6 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rclpy.clock import Clock, ClockType
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.lifecycle import State, TransitionCallbackReturn
 from rclpy.qos_overriding_options import QoSOverridingOptions
@@ -103,6 +102,7 @@ from t42_transfer.hardware import xm430 as xm
 from t42_transfer.hardware.servos import HARDWARE, PORT, HandServos, ServoFault
 from t42_transfer.hardware.servos import REFUSED as REFUSED_KIND
 from t42_transfer.nodes.dynamixel_params import DynamixelDriverParams
+from t42_transfer.ros.autostart import Autostart
 from t42_transfer.ros.deferred_service import DeferredService, Pending
 from t42_transfer.ros.logs import ThrottledLog
 from t42_transfer.ros.node_lifetime import DestroyableLifecycleNode, destroyed_if_init_fails
@@ -124,7 +124,7 @@ _NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 """The driver's publishers and subscriptions go without rclpy's default QoS event handlers (a warning on an
 incompatible QoS or type, which the peer's own handlers log as well): each handler is a waitable that the
 SingleThreadedExecutor builds into its wait set again at every wake (about 6 a step: the timer, the command, the
-tracker's pose, each followed by the wake its guard condition causes).  Measured: a spin_once of the unconfigured
+tracker's pose, each followed by the wake its guard condition causes). Measured: a spin_once of the unconfigured
 driver with nothing ready took 172 us of CPU with the 16, 132 us without (an idle node with one timer: 94-105)."""
 
 
@@ -150,8 +150,7 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self._configure_error = ""
         """The last configure failure reported on ``hand/status`` (autostart retries say a new one only), or the fault
         held when the hand was released: the next configure that passes says ``recovered`` after it."""
-        self._autostarting = False
-        """Whether the configure under way is an autostart retry."""
+        self._autostart: Autostart | None = None
         self._transition_error = ""
         """Why the transition in progress raised, for :meth:`on_error` ("" when none did)."""
         self.hand: ServoHand | None = None
@@ -190,34 +189,18 @@ class DynamixelDriver(DestroyableLifecycleNode):
         self._reset = DeferredService(self, Trigger, names.HAND_RESET, self._on_reset,
                                       qos_profile=profile(names.REQUESTS))
         self._timer = self.create_timer(CONTROL_PERIOD_S, self._on_timer)
-        if self.params.autostart:  # on the wall clock: a port is retried in seconds, whatever the graph's time
-            self._autostart = self.create_timer(0.0, self._start, clock=Clock(clock_type=ClockType.STEADY_TIME))
-            self._port_wait_until = time.monotonic() + PORT_GRACE_S
+        self._port_wait_until = time.monotonic() + PORT_GRACE_S
+        self._autostart = Autostart(self, RETRY_PERIOD_S, self._port_ready) if self.params.autostart else None
 
-    def _start(self) -> None:
-        """``autostart``: configure, then activate, once the executor spins; while configure fails (the port not
-        there yet: an adapter plugged in later, an emulator still starting) it is tried again every second."""
-        if self.state != "unconfigured":  # a lifecycle client got there first
-            self.destroy_timer(self._autostart)
-            return
+    def _port_ready(self) -> bool:
+        """Autostart's configure waits quietly for a port that does not exist yet (an adapter plugged in later, an
+        emulator still starting), up to :data:`PORT_GRACE_S`; then a missing port is a configure fault."""
         port = self.params.port
-        if not os.path.exists(port) and time.monotonic() < self._port_wait_until:  # not yet a fault: say it once
-            if self._autostart.timer_period_ns == 0:
-                self.log.info(f"autostart: waiting for {port} to appear (up to {PORT_GRACE_S:g} s before it is a "
-                              "fault)")
-            self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
-            return
-        self._autostarting = True
-        try:
-            configured = self.trigger_configure() == TransitionCallbackReturn.SUCCESS
-        finally:
-            self._autostarting = False
-        if not configured:
-            self._autostart.timer_period_ns = round(RETRY_PERIOD_S * 1e9)
-            return
-        # Destroyed, not cancelled: a cancelled timer stays in the executor's wait set, built at every wake.
-        self.destroy_timer(self._autostart)
-        self.trigger_activate()
+        if os.path.exists(port) or time.monotonic() >= self._port_wait_until:
+            return True
+        if self._autostart is not None and not self._autostart.waiting:  # not yet a fault: say it once
+            self.log.info(f"autostart: waiting for {port} to appear (up to {PORT_GRACE_S:g} s before it is a fault)")
+        return False
 
     @property
     def params(self) -> DynamixelDriverParams:
@@ -287,7 +270,7 @@ class DynamixelDriver(DestroyableLifecycleNode):
         fault = err if isinstance(err, ServoFault) else ServoFault(REFUSED_KIND, None, str(err))
         self._publish_diagnostics("ERROR", message, fault)
         new = message != self._configure_error
-        if new or not self._autostarting:
+        if new or not (self._autostart is not None and self._autostart.configuring):
             self.log.error(message + ("" if fault.kind != HARDWARE else
                                       "; stop the driver, find the cause, then t42 hw reboot clears the error bit"))
         if new:
