@@ -185,12 +185,13 @@ def main() -> int:
         for k, target in enumerate(targets):
             msg.points.append(JointTrajectoryPoint(positions=target,
                                                    time_from_start=Duration(nanosec=(k + 1) * 100_000_000)))
+        sent = len(user.statuses)  # (the latched ones heard on joining are not this trajectory's)
         user.trajectory.publish(msg)
         end = time.monotonic() + 5.0
-        while not any(s.startswith("trajectory_done") for s in user.statuses) and time.monotonic() < end:
+        while not any(s.startswith("trajectory_done") for s in user.statuses[sent:]) and time.monotonic() < end:
             rclpy.spin_once(user, timeout_sec=0.05)
         user.spin_for(0.5)
-        seen["trajectory_done"] = any(s.startswith("trajectory_done") for s in user.statuses)
+        seen["trajectory_done"] = any(s.startswith("trajectory_done") for s in user.statuses[sent:])
         seen["followed"] = [list(user.joints[-1].position), targets[-1]]
         seen["past_limit"] = past_the_limit(user, names)
         before = len(user.statuses)
