@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import struct
 import subprocess
 import sys
@@ -202,7 +203,9 @@ def _drive(client: Client, poses: list[tuple[int, np.ndarray]]) -> None:
 def test_t42_view_bag_serves_until_ctrl_c_and_refuses_a_missing_bag(bag, tmp_path):
     from t42_transfer.cli import main
 
+    handlers = [signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)]
     assert main(["view", "--bag", str(tmp_path / "none")]) == 2
+    assert [signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)] == handlers  # none left behind
     log = tmp_path / "serve.log"
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-u", "-m", "t42_transfer.cli", "view", "--bag", str(bag),

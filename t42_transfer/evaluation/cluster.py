@@ -123,10 +123,12 @@ def _interrupts_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def _ignore_interrupt() -> None:
+def _worker_signals() -> None:
     """Pool workers leave Ctrl-C (sent to the whole process group) to the parent, which stops them and keeps the
-    rows that came back: no worker prints a traceback."""
+    rows that came back: no worker prints a traceback.  They end on the SIGTERM that stops them whatever handler
+    the parent had when they were forked (one that only sets a flag let a worker finish its cell first)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _run_on_pool(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Callable[[Task, Row], None],
@@ -134,7 +136,7 @@ def _run_on_pool(fn: Callable[[Task], Row], tasks: Sequence[Task], on_row: Calla
     """The tasks on a local pool of ``workers`` processes, each row kept as soon as it is back (not in task order:
     a kill then loses only the cells still running)."""
     ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_ignore_interrupt)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_signals)
     try:
         futures = {pool.submit(fn, task): task for task in tasks}
         for future in as_completed(futures):

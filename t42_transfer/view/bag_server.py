@@ -218,8 +218,9 @@ def serve_bag(bag: str | Path, host: str = "127.0.0.1", port: int = 8765, hand: 
               tolerance_mm: float = DEFAULT_TOLERANCE_MM) -> int:
     """``t42 view --bag``: serve ``bag`` until Ctrl-C (or SIGTERM); exit code 0."""
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     server = BagServer(bag, host=host, port=port, hand=hand, tolerance_mm=tolerance_mm)
+    # After the server opened: a bag that does not open raised before, with no handler left installed behind it.
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         span = (server.end_ns - server.start_ns) / 1e9
         print(f"serving {server.path} ({len(server._channels)} topics, {span:.1f} s) on ws://{host}:{server.port}; "
